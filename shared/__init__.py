@@ -1,0 +1,1 @@
+"""telesurg shared library: messages, keys, bus, kinematics, config — imported by every service."""

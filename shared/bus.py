@@ -1,0 +1,281 @@
+"""One zenoh helper for every service: the same flags, the same safe defaults.
+
+* ``--mode peer|client|router``, ``--connect``, ``--listen``, ``--config FILE`` (a zenoh JSON5
+  config file, applied first; the flags override it).
+* Multicast and gossip scouting off unless ``--multicast`` is given: robots on one network must
+  not find each other by accident.
+* ``transport/link/tx/lease`` set on every process (default 1000 ms, keep-alive every 250 ms), so a
+  frozen peer is dropped within about a second, not zenoh's default 10 s.
+* Control streams are published ``express`` with ``Priority.REAL_TIME`` and
+  ``CongestionControl.DROP``: a late sample is worth less than the next one, and a publisher in a
+  control loop must never block. Receivers count the resulting sequence gaps.
+
+Example::
+
+    with Node(BusConfig(connect=["tcp/127.0.0.1:7447"]), site="local", service="demo") as node:
+        out = node.outlet(node.keys.slave("arm1", "servo_jp"))
+        out.put(JointSetpoint(out.header(), ("j1",), (0.0,), follow=False))
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import json
+import logging
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from types import TracebackType
+from typing import TYPE_CHECKING, Any, TypeVar
+
+from shared.errors import ConfigError, MessageError
+from shared.keys import Keys, check_id
+from shared.messages import Header, Heartbeat, Message, SafetyEvent, Sequencer, decode_as
+from shared.streams import StreamTable
+
+if TYPE_CHECKING:
+    import zenoh
+
+log = logging.getLogger(__name__)
+M = TypeVar("M", bound=Message)
+
+MODES = ("peer", "client", "router")
+
+
+@dataclass
+class BusConfig:
+    """How a process joins the zenoh network."""
+
+    mode: str = "client"  # peer | client | router; services are clients of the site router
+    connect: list[str] = field(
+        default_factory=list
+    )  # endpoints to connect to, e.g. tcp/127.0.0.1:7447
+    listen: list[str] = field(default_factory=list)  # endpoints to listen on
+    config_file: str = ""  # optional zenoh JSON5 config, applied before the fields above
+    lease_ms: int = 1000  # transport lease, ms: a silent peer is dropped after this
+    multicast: bool = (
+        False  # multicast scouting; off so robots never discover each other by accident
+    )
+
+    def validate(self) -> None:
+        """Raise ConfigError naming the valid options."""
+        if self.mode not in MODES:
+            raise ConfigError(f"bus mode {self.mode!r} invalid; valid: {', '.join(MODES)}")
+        if not 100 <= self.lease_ms <= 60_000:
+            raise ConfigError(f"bus lease_ms={self.lease_ms} outside [100, 60000]")
+        if self.mode == "client" and not self.connect:
+            raise ConfigError("bus mode 'client' needs at least one --connect endpoint")
+
+
+def add_bus_args(parser: argparse.ArgumentParser) -> None:
+    """Add the common zenoh flags (``--mode --connect --listen --zenoh-config --lease-ms``)."""
+    g = parser.add_argument_group("zenoh")
+    g.add_argument("--mode", choices=MODES, help="zenoh mode (default: client)")
+    g.add_argument("--connect", action="append", metavar="ENDPOINT", help="e.g. tcp/127.0.0.1:7447")
+    g.add_argument("--listen", action="append", metavar="ENDPOINT", help="e.g. tcp/127.0.0.1:7447")
+    g.add_argument("--zenoh-config", metavar="FILE", help="zenoh JSON5 config file")
+    g.add_argument("--lease-ms", type=int, help="transport lease, ms (default 1000)")
+    g.add_argument(
+        "--multicast", action="store_true", default=None, help="enable multicast scouting"
+    )
+
+
+def bus_from_args(args: argparse.Namespace, base: BusConfig | None = None) -> BusConfig:
+    """BusConfig from parsed flags, on top of ``base`` (e.g. from a TOML file)."""
+    cfg = base or BusConfig()
+    if args.mode:
+        cfg.mode = args.mode
+    if args.connect:
+        cfg.connect = list(args.connect)
+    if args.listen:
+        cfg.listen = list(args.listen)
+    if args.zenoh_config:
+        cfg.config_file = args.zenoh_config
+    if args.lease_ms:
+        cfg.lease_ms = args.lease_ms
+    if args.multicast:
+        cfg.multicast = True
+    return cfg
+
+
+def zenoh_config(cfg: BusConfig) -> zenoh.Config:
+    """Build a zenoh.Config: file first, then mode/endpoints/scouting/lease."""
+    import zenoh
+
+    cfg.validate()
+    z = zenoh.Config.from_file(cfg.config_file) if cfg.config_file else zenoh.Config()
+    z.insert_json5("mode", json.dumps(cfg.mode))
+    if cfg.connect:
+        z.insert_json5("connect/endpoints", json.dumps(cfg.connect))
+    if cfg.listen:
+        z.insert_json5("listen/endpoints", json.dumps(cfg.listen))
+    z.insert_json5("scouting/multicast/enabled", json.dumps(cfg.multicast))
+    if not cfg.multicast:
+        z.insert_json5("scouting/gossip/enabled", json.dumps(cfg.mode != "client"))
+    z.insert_json5("transport/link/tx/lease", json.dumps(cfg.lease_ms))
+    z.insert_json5("transport/link/tx/keep_alive", json.dumps(4))
+    return z
+
+
+def open_session(cfg: BusConfig) -> zenoh.Session:
+    """Open a zenoh session; errors name the endpoint that failed."""
+    import zenoh
+
+    try:
+        return zenoh.open(zenoh_config(cfg))
+    except zenoh.ZError as exc:
+        raise ConnectionError(
+            f"zenoh session failed ({cfg.mode}, connect={cfg.connect}, listen={cfg.listen}): {exc}"
+        ) from exc
+
+
+class Outlet:
+    """A publisher plus the sequencer of its stream."""
+
+    def __init__(self, publisher: Any, source: str) -> None:
+        self._pub = publisher
+        self._seq = Sequencer(source)
+
+    def header(self) -> Header:
+        """Header for the next message on this stream."""
+        return self._seq.next()
+
+    def put(self, msg: Message) -> None:
+        """Encode and publish."""
+        self._pub.put(msg.encode())
+
+    @property
+    def sent(self) -> int:
+        """Messages sent so far."""
+        return self._seq.seq
+
+
+class Node:
+    """A service's presence on the bus: session, liveliness token, heartbeat, events, inputs.
+
+    Every subscription made with :meth:`subscribe` decodes through the strict decoder; malformed
+    or out-of-order messages are counted per key in :attr:`streams` and never reach the callback.
+    Use as a context manager; it undeclares everything on exit.
+    """
+
+    def __init__(self, bus: BusConfig, site: str, service: str) -> None:
+        self.keys = Keys(site)
+        self.service = check_id("service", service)
+        self.streams = StreamTable()
+        self._lock = threading.Lock()
+        self._start = time.monotonic()
+        self._handles: list[Any] = []  # keep references: zenoh undeclares on GC
+        self.session = open_session(bus)
+        self._token: Any = self.session.liveliness().declare_token(self.keys.alive(service))
+        self._events = self.outlet(self.keys.events(service), control=False)
+        self._heartbeat = self.outlet(self.keys.heartbeat(service), control=False)
+        self._hb_stop = threading.Event()
+        self._hb_thread = threading.Thread(target=self._heartbeat_loop, daemon=True)
+        self._hb_thread.start()
+
+    # -- outputs --------------------------------------------------------------------------
+    def outlet(self, key: str, *, control: bool = True) -> Outlet:
+        """Declare a publisher; control streams get express + real-time priority + drop."""
+        import zenoh
+
+        if control:
+            pub = self.session.declare_publisher(
+                key,
+                express=True,
+                priority=zenoh.Priority.REAL_TIME,
+                congestion_control=zenoh.CongestionControl.DROP,
+            )
+        else:
+            pub = self.session.declare_publisher(key, priority=zenoh.Priority.DATA_HIGH)
+        self._handles.append(pub)
+        return Outlet(pub, self.service)
+
+    def event(self, kind: str, text: str, *, arm: str = "", severity: str = "info") -> None:
+        """Publish an event and log it."""
+        level = {"info": logging.INFO, "warning": logging.WARNING}.get(severity, logging.ERROR)
+        log.log(level, "%s%s: %s", f"[{arm}] " if arm else "", kind, text)
+        self._events.put(SafetyEvent(self._events.header(), arm, kind, severity, text))
+
+    # -- inputs ---------------------------------------------------------------------------
+    def subscribe(self, key: str, cls: type[M], callback: Callable[[M, str], None]) -> None:
+        """Subscribe with strict decoding; ``callback(msg, key)`` runs on a zenoh thread."""
+
+        def on_sample(sample: Any) -> None:
+            k = str(sample.key_expr)
+            stats = self.streams.get(k)
+            try:
+                msg = decode_as(sample.payload.to_bytes(), cls)
+            except MessageError as exc:
+                with self._lock:
+                    stats.rejected += 1
+                if stats.rejected <= 5 or stats.rejected % 1000 == 0:
+                    log.warning("rejected message on %s (%d so far): %s", k, stats.rejected, exc)
+                return
+            with self._lock:
+                fresh = stats.accept(msg.header.source, msg.header.seq)
+            if not fresh:
+                return
+            try:
+                callback(msg, k)
+            except Exception:  # a bug in a handler must not kill the zenoh callback thread
+                log.exception("handler for %s failed", k)
+
+        self._handles.append(self.session.declare_subscriber(key, on_sample))
+
+    def watch_liveliness(self, pattern: str, callback: Callable[[str, bool], None]) -> None:
+        """``callback(service, alive)`` for liveliness tokens under ``pattern`` (with history)."""
+        import zenoh
+
+        def on_sample(sample: Any) -> None:
+            service = self.keys.service_of_alive(str(sample.key_expr))
+            callback(service, sample.kind == zenoh.SampleKind.PUT)
+
+        self._handles.append(
+            self.session.liveliness().declare_subscriber(pattern, on_sample, history=True)
+        )
+
+    @property
+    def rejected(self) -> int:
+        """Messages rejected by the strict decoder so far, all keys."""
+        return self.streams.rejected
+
+    def _heartbeat_loop(self) -> None:
+        while not self._hb_stop.wait(0.5):
+            try:
+                self._heartbeat.put(
+                    Heartbeat(
+                        self._heartbeat.header(),
+                        self.service,
+                        time.monotonic() - self._start,
+                        self.rejected,
+                    )
+                )
+            except Exception:  # session closing under us
+                return
+
+    # -- lifetime -------------------------------------------------------------------------
+    def close(self) -> None:
+        """Undeclare everything and close the session (idempotent)."""
+        self._hb_stop.set()
+        self._hb_thread.join(timeout=1.0)
+        if self._token is not None:
+            self._token.undeclare()
+            self._token = None
+        for h in self._handles:
+            with contextlib.suppress(Exception):  # already undeclared
+                h.undeclare()
+        self._handles.clear()
+        self.session.close()  # type: ignore[no-untyped-call]
+
+    def __enter__(self) -> Node:
+        return self
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        self.close()

@@ -1,0 +1,94 @@
+"""Every zenoh key expression, built from one prefix ``telesurg/<site>`` and CRTK stream names.
+
+Layout under ``telesurg/<site>/`` (``<arm>``: an arm id such as ``arm1``; ``<service>``: a
+service instance id)::
+
+    master/<arm>/measured_cp     CartesianPose   master tip pose, master frame
+    master/<arm>/measured_js     JointState      master joints (if the device has them)
+    master/<arm>/buttons         MasterButtons   clutch pedal, operator presence
+    slave/<arm>/servo_jp         JointSetpoint   joint setpoint from the mapping
+    slave/<arm>/setpoint_cp      CartesianPose   Cartesian target behind servo_jp
+    slave/<arm>/measured_js      JointState      slave joints
+    slave/<arm>/measured_cp      CartesianPose   slave forceps-tip pose, base frame
+    slave/<arm>/operating_state  OperatingState  slave state, mode, follow, hold reason
+    safety/<arm>/lease           SafetyLease     watchdog → slave permission to move
+    safety/<arm>/state           SafetyState     watchdog's view of the arm
+    events/<service>             SafetyEvent     events (transitions, IK failures, ...)
+    heartbeat/<service>          Heartbeat       2 Hz service heartbeat
+    alive/<service>              (liveliness token)
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+
+from shared.errors import ConfigError
+
+PREFIX_ROOT = "telesurg"
+_ID = re.compile(r"^[A-Za-z0-9_-]{1,64}$")
+
+MASTER_STREAMS = ("measured_cp", "measured_js", "buttons")
+SLAVE_STREAMS = ("servo_jp", "setpoint_cp", "measured_js", "measured_cp", "operating_state")
+SAFETY_STREAMS = ("lease", "state")
+
+
+def check_id(kind: str, value: str) -> str:
+    """Validate a site / arm / service id (letters, digits, ``_`` and ``-``, 1–64 chars)."""
+    if not _ID.match(value):
+        raise ConfigError(f"{kind} id {value!r} must match [A-Za-z0-9_-]{{1,64}}")
+    return value
+
+
+@dataclass(frozen=True)
+class Keys:
+    """Key expressions of one site. ``Keys("lab").slave("arm1", "servo_jp")``."""
+
+    site: str = "local"
+
+    def __post_init__(self) -> None:
+        check_id("site", self.site)
+
+    @property
+    def prefix(self) -> str:
+        """``telesurg/<site>``."""
+        return f"{PREFIX_ROOT}/{self.site}"
+
+    @property
+    def all(self) -> str:
+        """Everything of this site: ``telesurg/<site>/**``."""
+        return f"{self.prefix}/**"
+
+    def master(self, arm: str, stream: str) -> str:
+        """``telesurg/<site>/master/<arm>/<stream>``; stream in :data:`MASTER_STREAMS`."""
+        return self._arm_key("master", arm, stream, MASTER_STREAMS)
+
+    def slave(self, arm: str, stream: str) -> str:
+        """``telesurg/<site>/slave/<arm>/<stream>``; stream in :data:`SLAVE_STREAMS`."""
+        return self._arm_key("slave", arm, stream, SLAVE_STREAMS)
+
+    def safety(self, arm: str, stream: str) -> str:
+        """``telesurg/<site>/safety/<arm>/<stream>``; stream in :data:`SAFETY_STREAMS`."""
+        return self._arm_key("safety", arm, stream, SAFETY_STREAMS)
+
+    def events(self, service: str = "*") -> str:
+        """``telesurg/<site>/events/<service>`` (``*`` matches every service)."""
+        return f"{self.prefix}/events/{service if service == '*' else check_id('service', service)}"
+
+    def heartbeat(self, service: str = "*") -> str:
+        """``telesurg/<site>/heartbeat/<service>``."""
+        svc = service if service == "*" else check_id("service", service)
+        return f"{self.prefix}/heartbeat/{svc}"
+
+    def alive(self, service: str = "*") -> str:
+        """Liveliness token key ``telesurg/<site>/alive/<service>``."""
+        return f"{self.prefix}/alive/{service if service == '*' else check_id('service', service)}"
+
+    def service_of_alive(self, key: str) -> str:
+        """Service id from a liveliness key (inverse of :meth:`alive`)."""
+        return key.rsplit("/", 1)[-1]
+
+    def _arm_key(self, role: str, arm: str, stream: str, valid: tuple[str, ...]) -> str:
+        if stream not in valid:
+            raise ConfigError(f"unknown {role} stream {stream!r}; valid: {', '.join(valid)}")
+        return f"{self.prefix}/{role}/{check_id('arm', arm)}/{stream}"
