@@ -1,1 +1,1 @@
-"""telesurg services: each subpackage is one process (master_capture, mapping, slave_control, watchdog, mirror)."""
+"""telesurg services: one subpackage per process."""

@@ -1,0 +1,109 @@
+"""What every service process shares: argument parsing, logging, clean shutdown.
+
+Each service provides a config dataclass (with ``site``, ``service`` and ``bus`` fields) and a
+``run(cfg, stop)`` function that returns when ``stop`` is set. :func:`service_main` parses
+``--config FILE``, ``--set key=value`` and the zenoh flags, installs SIGINT/SIGTERM handlers and
+calls ``run``. Exit code 0 on a requested stop, 2 on a config error.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import os
+import signal
+import sys
+import threading
+from collections.abc import Callable, Sequence
+from typing import Any, Protocol, TypeVar
+
+from shared.bus import BusConfig, add_bus_args, bus_from_args
+from shared.config import load_config
+from shared.errors import TelesurgError
+
+log = logging.getLogger("telesurg")
+
+
+class ServiceConfig(Protocol):
+    """Fields every service config has."""
+
+    site: str
+    service: str
+    bus: BusConfig
+
+
+C = TypeVar("C", bound=ServiceConfig)
+
+
+def setup_logging(level: str, service: str) -> None:
+    """One log format for every process: time, service, level, logger, message (stderr)."""
+    logging.basicConfig(
+        level=getattr(logging, level.upper(), logging.INFO),
+        format=f"%(asctime)s {service} %(levelname)s %(name)s: %(message)s",
+        stream=sys.stderr,
+    )
+
+
+def install_stop_handlers(stop: threading.Event) -> None:
+    """SIGINT and SIGTERM set ``stop`` (a second signal exits at once)."""
+
+    def handler(signum: int, frame: Any) -> None:
+        if stop.is_set():
+            os._exit(130)
+        stop.set()
+
+    signal.signal(signal.SIGINT, handler)
+    signal.signal(signal.SIGTERM, handler)
+
+
+def watch_parent(parent_pid: int, stop: threading.Event) -> None:
+    """Set ``stop`` if the launcher that started us dies (no orphans after a launcher crash)."""
+
+    def loop() -> None:
+        while not stop.wait(0.5):
+            if os.getppid() != parent_pid:
+                log.warning("launcher %d is gone; stopping", parent_pid)
+                stop.set()
+
+    threading.Thread(target=loop, daemon=True, name="parent-watch").start()
+
+
+def service_main(
+    name: str,
+    config_cls: type[C],
+    run: Callable[[C, threading.Event], None],
+    argv: Sequence[str] | None,
+    description: str = "",
+) -> int:
+    """Parse flags into ``config_cls``, then ``run`` until SIGINT/SIGTERM."""
+    parser = argparse.ArgumentParser(prog=f"telesurg {name}", description=description)
+    parser.add_argument("--config", metavar="FILE", help="TOML config file")
+    parser.add_argument(
+        "--set", action="append", default=[], metavar="KEY=VALUE", help="override a config key"
+    )
+    parser.add_argument("--site", help="site id (key prefix telesurg/<site>)")
+    parser.add_argument("--log-level", default="INFO", help="DEBUG, INFO, WARNING, ERROR")
+    parser.add_argument("--parent-pid", type=int, help=argparse.SUPPRESS)
+    add_bus_args(parser)
+    args = parser.parse_args(argv)
+    try:
+        cfg = load_config(config_cls, args.config, args.set)
+        if args.site:
+            cfg.site = args.site
+        cfg.bus = bus_from_args(args, cfg.bus)
+        cfg.bus.validate()
+    except TelesurgError as exc:
+        print(f"telesurg {name}: {exc}", file=sys.stderr)
+        return 2
+    setup_logging(args.log_level, cfg.service)
+    stop = threading.Event()
+    install_stop_handlers(stop)
+    if args.parent_pid:
+        watch_parent(args.parent_pid, stop)
+    try:
+        run(cfg, stop)
+    except (TelesurgError, ConnectionError) as exc:
+        log.error("%s", exc)
+        return 1
+    log.info("stopped")
+    return 0

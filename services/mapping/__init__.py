@@ -1,0 +1,289 @@
+"""mapping: master pose → slave joint setpoints (Cartesian incremental mapping with clutch).
+
+dVRK-style: on engage (a clutch-pedal press), the current master pose and the current slave tip
+pose become the references; afterwards
+``p_slave = p_slave0 + scale · R_ms · (p_master − p_master0)``
+and the slave orientation follows the master's rotation increment (``orientation="follow"``) or
+stays as it was at engage (``"fixed"``). Engaging or re-clutching therefore never makes the slave
+jump. The target goes through the 6-axis IK (nearest branch, joint limits); an IK failure or a
+branch flip holds the last valid setpoint and publishes an event.
+
+The service publishes ``slave/<arm>/servo_jp`` for every master sample (``follow`` tells the
+slave whether to track it) and ``slave/<arm>/setpoint_cp`` (the Cartesian target) while following.
+
+Engage needs a *new* pedal press: after any disengage not made by the operator (master stream
+stale, slave holding, operator absent) the pedal must be released and pressed again.
+
+Example::
+
+    telesurg mapping --connect tcp/127.0.0.1:7447 --set 'pairs=["m1:arm1"]' --set scale=0.5
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from services.common import service_main
+from shared.bus import BusConfig, Node, Outlet
+from shared.errors import ConfigError, IKError
+from shared.keys import check_id
+from shared.kinematics import MH3F, fk, ik, matrix_from_quat, quat_from_matrix
+from shared.kinematics.transforms import rot_x, rot_y, rot_z
+from shared.messages import (
+    CartesianPose,
+    JointSetpoint,
+    JointState,
+    MasterButtons,
+    OperatingState,
+)
+
+log = logging.getLogger(__name__)
+ORIENTATION_MODES = ("follow", "fixed")
+
+
+@dataclass
+class MappingConfig:
+    """mapping config."""
+
+    site: str = "local"  # key prefix telesurg/<site>
+    service: str = "mapping"  # instance id (liveliness alive/<service>, header src)
+    pairs: list[str] = field(default_factory=lambda: ["m1:arm1"])  # "master_arm:slave_arm"
+    scale: float = 0.5  # slave translation / master translation (motion scaling), 0 < scale <= 2
+    orientation: str = "follow"  # follow: apply master rotation increments; fixed: keep engage pose
+    # Rotation of the master frame expressed in the slave base frame, roll/pitch/yaw in degrees.
+    master_to_slave_rpy_deg: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    master_timeout_ms: float = 50.0  # ms: master stream older than this disengages
+    slave_timeout_ms: float = 100.0  # ms: slave measured_js older than this refuses engage
+    # rad: a setpoint step larger than this between two samples is an IK branch flip → hold
+    max_joint_step_rad: float = 0.1
+    bus: BusConfig = field(default_factory=BusConfig)  # zenoh session
+
+    def validate(self) -> None:
+        """Raise ConfigError naming the valid options."""
+        if not 0.0 < self.scale <= 2.0:
+            raise ConfigError(f"scale={self.scale} outside (0, 2]")
+        if self.orientation not in ORIENTATION_MODES:
+            raise ConfigError(
+                f"orientation {self.orientation!r} invalid; valid: {', '.join(ORIENTATION_MODES)}"
+            )
+        for p in self.pairs:
+            parse_pair(p)
+
+
+def parse_pair(pair: str) -> tuple[str, str]:
+    """``"m1:arm1"`` → ``("m1", "arm1")``."""
+    master, sep, slave = pair.partition(":")
+    if not sep:
+        raise ConfigError(f"pair {pair!r} must look like master_arm:slave_arm")
+    return check_id("arm", master), check_id("arm", slave)
+
+
+def rpy_matrix(rpy_deg: tuple[float, float, float]) -> np.ndarray:
+    """R = Rz(yaw) · Ry(pitch) · Rx(roll), angles in degrees."""
+    r, p, y = np.radians(rpy_deg)
+    out: np.ndarray = rot_z(y) @ rot_y(p) @ rot_x(r)
+    return out
+
+
+class ArmMapping:
+    """Mapping state of one master → slave pair. Thread-safe: zenoh callbacks call in."""
+
+    def __init__(self, cfg: MappingConfig, node: Node, master: str, slave: str) -> None:
+        self.cfg, self.node, self.master, self.slave = cfg, node, master, slave
+        self.geom = MH3F
+        self.r_ms = rpy_matrix(cfg.master_to_slave_rpy_deg)
+        self.lock = threading.Lock()
+        self.servo_out: Outlet = node.outlet(node.keys.slave(slave, "servo_jp"))
+        self.target_out: Outlet = node.outlet(node.keys.slave(slave, "setpoint_cp"))
+        # inputs
+        self.buttons: MasterButtons | None = None
+        self.q_meas: np.ndarray | None = None
+        self.q_meas_rx = 0.0
+        self.slave_state: OperatingState | None = None
+        self.master_rx = 0.0
+        # follow state
+        self.following = False
+        self.need_release = True  # an engage needs a pedal press seen after a release
+        self.q_last: np.ndarray | None = None
+        self.ref: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None
+        self.ik_failures = 0
+        self.ik_streak = 0
+
+    # -- inputs -----------------------------------------------------------------------
+    def on_buttons(self, msg: MasterButtons, key: str) -> None:
+        with self.lock:
+            self.buttons = msg
+            if not msg.clutch:
+                self.need_release = False
+                if self.following:
+                    self._disengage("clutch released", operator=True)
+            elif not msg.operator_present and self.following:
+                self._disengage("operator not present")
+
+    def on_slave_js(self, msg: JointState, key: str) -> None:
+        if msg.names != self.geom.joint_names:
+            log.warning("slave %s joint names %s do not match the model", self.slave, msg.names)
+            return
+        with self.lock:
+            self.q_meas = np.array(msg.position)
+            self.q_meas_rx = time.monotonic()
+
+    def on_slave_state(self, msg: OperatingState, key: str) -> None:
+        with self.lock:
+            self.slave_state = msg
+            if self.following and not msg.lease_ok:
+                self._disengage(f"slave holding: {msg.reason or 'no lease'}")
+
+    def on_master_pose(self, msg: CartesianPose, key: str) -> None:
+        with self.lock:
+            self.master_rx = time.monotonic()
+            b = self.buttons
+            if not self.following and b is not None and b.clutch and not self.need_release:
+                self._try_engage(msg)
+            self._publish(msg)
+
+    def check_timeouts(self) -> None:
+        """Disengage on a stale master stream (called at a low rate from the service loop)."""
+        with self.lock:
+            age_ms = (time.monotonic() - self.master_rx) * 1e3
+            if self.following and age_ms > self.cfg.master_timeout_ms:
+                self._disengage(f"master stream stale ({age_ms:.0f} ms)")
+
+    # -- internals (lock held) ------------------------------------------------------------
+    def _try_engage(self, pose: CartesianPose) -> None:
+        self.need_release = True  # whatever happens, the next try needs a new press
+        b = self.buttons
+        now = time.monotonic()
+        reason = ""
+        if b is None or not b.operator_present:
+            reason = "operator not present"
+        elif self.q_meas is None or (now - self.q_meas_rx) * 1e3 > self.cfg.slave_timeout_ms:
+            reason = "no fresh slave joint state"
+        elif self.slave_state is None or not self.slave_state.lease_ok:
+            why = self.slave_state.reason if self.slave_state else "no slave state"
+            reason = f"slave not allowed to move ({why})"
+        if reason:
+            self.node.event(
+                "engage_refused", f"engage refused: {reason}", arm=self.slave, severity="warning"
+            )
+            return
+        assert self.q_meas is not None
+        t_s0 = fk(self.q_meas, self.geom)
+        self.ref = (
+            np.array(pose.position),
+            matrix_from_quat(np.array(pose.orientation)),
+            t_s0[:3, 3].copy(),
+            t_s0[:3, :3].copy(),
+        )
+        self.q_last = self.q_meas.copy()
+        self.following = True
+        self.ik_streak = 0
+        self.node.event(
+            "engage",
+            f"engaged {self.master} → {self.slave} at scale {self.cfg.scale}",
+            arm=self.slave,
+        )
+
+    def _disengage(self, reason: str, *, operator: bool = False) -> None:
+        self.following = False
+        self.need_release = not operator
+        self.node.event(
+            "disengage",
+            f"disengaged: {reason}",
+            arm=self.slave,
+            severity="info" if operator else "warning",
+        )
+
+    def _target(self, pose: CartesianPose) -> np.ndarray:
+        assert self.ref is not None
+        pm0, rm0, ps0, rs0 = self.ref
+        t = np.eye(4)
+        t[:3, 3] = ps0 + self.cfg.scale * (self.r_ms @ (np.array(pose.position) - pm0))
+        if self.cfg.orientation == "follow":
+            d_rot = matrix_from_quat(np.array(pose.orientation)) @ rm0.T
+            t[:3, :3] = self.r_ms @ d_rot @ self.r_ms.T @ rs0
+        else:
+            t[:3, :3] = rs0
+        return t
+
+    def _publish(self, pose: CartesianPose) -> None:
+        if self.following:
+            target = self._target(pose)
+            assert self.q_last is not None
+            try:
+                q = ik(target, self.q_last, self.geom)
+                step = float(np.max(np.abs(q - self.q_last)))
+                if step > self.cfg.max_joint_step_rad:
+                    raise IKError(f"branch flip: joint step {step:.3f} rad")
+            except IKError as exc:
+                self.ik_failures += 1
+                self.ik_streak += 1
+                if self.ik_streak == 1:
+                    self.node.event(
+                        "ik_failure",
+                        f"holding last valid setpoint: {exc}",
+                        arm=self.slave,
+                        severity="warning",
+                    )
+            else:
+                if self.ik_streak:
+                    self.node.event(
+                        "ik_recovered",
+                        f"IK valid again after {self.ik_streak} samples",
+                        arm=self.slave,
+                    )
+                self.ik_streak = 0
+                self.q_last = q
+                h = self.target_out.header()
+                quat = quat_from_matrix(target[:3, :3])
+                self.target_out.put(CartesianPose(h, "base", _vec3(target[:3, 3]), _quat(quat)))
+        q_pub = self.q_last if self.q_last is not None else self.q_meas
+        if q_pub is None:
+            return
+        self.servo_out.put(
+            JointSetpoint(
+                self.servo_out.header(),
+                self.geom.joint_names,
+                tuple(float(x) for x in q_pub),
+                follow=self.following,
+            )
+        )
+
+
+def _vec3(v: np.ndarray) -> tuple[float, float, float]:
+    return (float(v[0]), float(v[1]), float(v[2]))
+
+
+def _quat(q: np.ndarray) -> tuple[float, float, float, float]:
+    return (float(q[0]), float(q[1]), float(q[2]), float(q[3]))
+
+
+def run(cfg: MappingConfig, stop: threading.Event) -> None:
+    """Map until ``stop``."""
+    cfg.validate()
+    with Node(cfg.bus, cfg.site, cfg.service) as node:
+        k = node.keys
+        arms = []
+        for pair in cfg.pairs:
+            master, slave = parse_pair(pair)
+            a = ArmMapping(cfg, node, master, slave)
+            node.subscribe(k.master(master, "buttons"), MasterButtons, a.on_buttons)
+            node.subscribe(k.master(master, "measured_cp"), CartesianPose, a.on_master_pose)
+            node.subscribe(k.slave(slave, "measured_js"), JointState, a.on_slave_js)
+            node.subscribe(k.slave(slave, "operating_state"), OperatingState, a.on_slave_state)
+            arms.append(a)
+            log.info("mapping %s → %s, scale %.2f", master, slave, cfg.scale)
+        while not stop.wait(0.01):
+            for a in arms:
+                a.check_timeouts()
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """``telesurg mapping``."""
+    return service_main("mapping", MappingConfig, run, argv, __doc__ or "")

@@ -1,0 +1,182 @@
+"""Master devices behind one interface, chosen by a registered ``type`` string.
+
+A device is opened as a context manager and sampled with :meth:`MasterDevice.read`. Here: the
+``scripted`` device — a circle, a figure-eight or a CSV trajectory, with a clutch-pedal schedule —
+for demos, tests and replaying a surgeon's path.
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from types import TracebackType
+from typing import Protocol
+
+import numpy as np
+
+from shared.errors import ConfigError
+
+TRAJECTORIES = ("circle", "figure8", "csv")
+
+
+@dataclass(frozen=True)
+class DeviceSample:
+    """One master reading.
+
+    Attributes:
+        position: tip position in the master frame, m, shape (3,).
+        orientation: unit quaternion (x, y, z, w) in the master frame.
+        clutch: clutch pedal pressed.
+        operator_present: operator detected at the console.
+        joints: master joint positions (rad / m) if the device has joints, else empty.
+    """
+
+    position: tuple[float, float, float]
+    orientation: tuple[float, float, float, float]
+    clutch: bool
+    operator_present: bool
+    joints: tuple[float, ...] = ()
+
+
+class MasterDevice(Protocol):
+    """What master_capture needs from a device."""
+
+    joint_names: tuple[str, ...]
+
+    def read(self, t: float) -> DeviceSample:
+        """Sample the device; ``t`` is seconds since capture started."""
+        ...
+
+    def __enter__(self) -> MasterDevice: ...
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None: ...
+
+
+@dataclass
+class ScriptedConfig:
+    """Scripted master: a path in the master frame and a clutch-pedal schedule."""
+
+    trajectory: str = "circle"  # circle | figure8 | csv
+    center: tuple[float, float, float] = (0.0, 0.0, 0.0)  # m, master frame: path centre
+    radius: float = 0.04  # m: circle radius / figure-eight half-width
+    period_s: float = 8.0  # s: one lap
+    plane: str = "xy"  # plane of the circle / figure-eight: xy, xz or yz
+    csv_path: str = ""  # CSV with columns t,x,y,z[,clutch] (s, m, 0/1); looped
+    # [t_on, t_off] intervals (s since start) while the clutch pedal is pressed. The default
+    # presses after 1 s, so a restarted master never engages in its first second.
+    clutch: list[list[float]] = field(default_factory=lambda: [[1.0, 1e9]])
+    operator_present: bool = True  # the operator-present sensor reads this constant
+
+    def validate(self) -> None:
+        """Raise ConfigError naming the valid options."""
+        if self.trajectory not in TRAJECTORIES:
+            raise ConfigError(
+                f"scripted trajectory {self.trajectory!r} invalid; valid: {', '.join(TRAJECTORIES)}"
+            )
+        if self.plane not in ("xy", "xz", "yz"):
+            raise ConfigError(f"scripted plane {self.plane!r} invalid; valid: xy, xz, yz")
+        if self.period_s <= 0 or self.radius < 0:
+            raise ConfigError("scripted period_s must be > 0 and radius >= 0")
+        for iv in self.clutch:
+            if len(iv) != 2 or iv[0] > iv[1]:
+                raise ConfigError(f"clutch interval {iv} must be [t_on, t_off] with t_on <= t_off")
+        if self.trajectory == "csv" and not self.csv_path:
+            raise ConfigError("scripted trajectory 'csv' needs csv_path")
+
+
+class ScriptedDevice:
+    """A master that plays a path; see :class:`ScriptedConfig`."""
+
+    joint_names: tuple[str, ...] = ()
+
+    def __init__(self, cfg: ScriptedConfig) -> None:
+        cfg.validate()
+        self.cfg = cfg
+        self._csv: np.ndarray | None = None
+        axes = {"xy": (0, 1), "xz": (0, 2), "yz": (1, 2)}[cfg.plane]
+        self._u, self._v = axes
+
+    def __enter__(self) -> ScriptedDevice:
+        if self.cfg.trajectory == "csv":
+            self._csv = _load_csv(Path(self.cfg.csv_path))
+        return self
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        self._csv = None
+
+    def read(self, t: float) -> DeviceSample:
+        """Path position at ``t`` s; identity orientation."""
+        c = self.cfg
+        clutch = any(on <= t < off for on, off in c.clutch)
+        p = np.array(c.center, dtype=float)
+        if c.trajectory == "csv":
+            assert self._csv is not None, "device not opened"
+            data = self._csv
+            tt = t % data[-1, 0] if data[-1, 0] > 0 else 0.0
+            for i in range(3):
+                p[i] = float(np.interp(tt, data[:, 0], data[:, 1 + i]))
+            if data.shape[1] > 4:
+                clutch = clutch and bool(np.interp(tt, data[:, 0], data[:, 4]) >= 0.5)
+        else:
+            w = 2.0 * math.pi * t / c.period_s
+            if c.trajectory == "circle":
+                du, dv = c.radius * math.cos(w), c.radius * math.sin(w)
+            else:  # figure8 (Gerono lemniscate)
+                du, dv = c.radius * math.sin(w), c.radius * math.sin(w) * math.cos(w)
+            p[self._u] += du
+            p[self._v] += dv
+        return DeviceSample(
+            (float(p[0]), float(p[1]), float(p[2])),
+            (0.0, 0.0, 0.0, 1.0),
+            clutch,
+            c.operator_present,
+        )
+
+
+def _load_csv(path: Path) -> np.ndarray:
+    try:
+        with path.open(newline="") as f:
+            rows = [r for r in csv.reader(f) if r and not r[0].lstrip().startswith("#")]
+    except FileNotFoundError:
+        raise ConfigError(f"trajectory CSV {path} not found") from None
+    if rows and not _is_number(rows[0][0]):
+        rows = rows[1:]  # header
+    try:
+        data = np.array([[float(x) for x in r] for r in rows], dtype=float)
+    except ValueError as exc:
+        raise ConfigError(f"trajectory CSV {path}: {exc}") from None
+    if data.ndim != 2 or data.shape[0] < 2 or data.shape[1] < 4:
+        raise ConfigError(f"trajectory CSV {path} needs >= 2 rows of t,x,y,z[,clutch]")
+    if not np.all(np.isfinite(data)) or np.any(np.diff(data[:, 0]) <= 0):
+        raise ConfigError(f"trajectory CSV {path}: values must be finite and t increasing")
+    return data
+
+
+def _is_number(s: str) -> bool:
+    try:
+        float(s)
+    except ValueError:
+        return False
+    return True
+
+
+DEVICES = ("scripted",)
+
+
+def make_device(kind: str, scripted: ScriptedConfig) -> MasterDevice:
+    """The device registered as ``kind``."""
+    if kind == "scripted":
+        return ScriptedDevice(scripted)
+    raise ConfigError(f"master device {kind!r} unknown; valid: {', '.join(DEVICES)}")

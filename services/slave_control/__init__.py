@@ -1,0 +1,187 @@
+"""slave_control: runs the slave arm (MuJoCo here) and tracks servo_jp under a watchdog lease.
+
+The control loop runs at the backend period (1 ms for MuJoCo, in real time: missed periods are
+caught up by extra physics steps, and counted). Setpoints arrive on ``slave/<arm>/servo_jp``; they
+are validated (joint names, joint limits) and only followed as described in
+:mod:`services.slave_control.control`. The service publishes ``measured_js`` and the forceps-tip
+``measured_cp`` at ``publish_hz`` and its ``operating_state`` at ``state_hz`` and on change.
+
+Example::
+
+    telesurg slave-control --connect tcp/127.0.0.1:7447 --set arm=arm1
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from services.common import service_main
+from services.slave_control.backends import make_backend
+from services.slave_control.control import FollowController, Lease, Setpoint
+from shared.bus import BusConfig, Node
+from shared.errors import ConfigError
+from shared.kinematics import MH3F
+from shared.messages import CartesianPose, JointSetpoint, JointState, OperatingState, SafetyLease
+from shared.timing import CycleTimer
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class SlaveControlConfig:
+    """slave_control config."""
+
+    site: str = "local"  # key prefix telesurg/<site>
+    service: str = "slave_control"  # instance id (liveliness alive/<service>, header src)
+    arm: str = "arm1"  # slave arm id in keys slave/<arm>/...
+    backend: str = "mujoco"  # valid: mujoco
+    model: str = "mh3f"  # robot model (services/slave_control/models/<model>)
+    # rad: start pose — tip in front of the robot, forceps pointing down and forward
+    q_home: tuple[float, ...] = (0.0, 0.35, 0.15, 0.0, -0.9, 0.0)
+    publish_hz: float = 250.0  # Hz: measured_js and measured_cp
+    state_hz: float = 20.0  # Hz: operating_state (also sent on every change)
+    setpoint_timeout_ms: float = 100.0  # ms: an older setpoint is stale → hold
+    engage_tolerance_rad: float = 0.02  # rad: first followed setpoint must be this close to the arm
+    bus: BusConfig = field(default_factory=BusConfig)  # zenoh session
+
+
+class SlaveService:
+    """Inputs (zenoh callbacks) and the control loop of one slave arm."""
+
+    def __init__(self, cfg: SlaveControlConfig, node: Node, names: tuple[str, ...]) -> None:
+        self.cfg, self.node, self.names = cfg, node, names
+        self.lower = np.array(MH3F.lower)
+        self.upper = np.array(MH3F.upper)
+        self.lock = threading.Lock()
+        self.lease = Lease()
+        self.setpoint: Setpoint | None = None
+        self.rejected_setpoints = 0
+
+    def on_lease(self, msg: SafetyLease, key: str) -> None:
+        now = time.monotonic()
+        with self.lock:
+            self.lease = Lease(msg.allow, now + msg.valid_for_ms / 1e3, msg.reason)
+
+    def on_setpoint(self, msg: JointSetpoint, key: str) -> None:
+        reason = ""
+        q = np.array(msg.position)
+        if msg.names != self.names:
+            reason = f"joint names {list(msg.names)} != {list(self.names)}"
+        elif np.any(q < self.lower) or np.any(q > self.upper):
+            bad = [
+                f"{n}={np.degrees(v):.1f}°"
+                for n, v, lo, hi in zip(self.names, q, self.lower, self.upper, strict=True)
+                if not lo <= v <= hi
+            ]
+            reason = f"outside joint limits: {', '.join(bad)}"
+        if reason:
+            self.rejected_setpoints += 1
+            if self.rejected_setpoints <= 5 or self.rejected_setpoints % 1000 == 0:
+                self.node.event("setpoint_rejected", reason, arm=self.cfg.arm, severity="warning")
+            return
+        with self.lock:
+            self.setpoint = Setpoint(q, msg.follow, time.monotonic())
+
+
+def run(cfg: SlaveControlConfig, stop: threading.Event) -> None:
+    """Run the slave until ``stop``."""
+    if len(cfg.q_home) != len(MH3F.joint_names):
+        raise ConfigError(f"q_home needs {len(MH3F.joint_names)} values")
+    backend = make_backend(cfg.backend, cfg.model, cfg.q_home)
+    with backend, Node(cfg.bus, cfg.site, cfg.service) as node:
+        names = backend.joint_names
+        if names != MH3F.joint_names:
+            raise ConfigError(f"model joints {names} != kinematics {MH3F.joint_names}")
+        k = node.keys
+        svc = SlaveService(cfg, node, names)
+        js_out = node.outlet(k.slave(cfg.arm, "measured_js"))
+        cp_out = node.outlet(k.slave(cfg.arm, "measured_cp"))
+        state_out = node.outlet(k.slave(cfg.arm, "operating_state"))
+        node.subscribe(k.safety(cfg.arm, "lease"), SafetyLease, svc.on_lease)
+        node.subscribe(k.slave(cfg.arm, "servo_jp"), JointSetpoint, svc.on_setpoint)
+
+        ctl = FollowController(
+            np.array(MH3F.max_velocity),
+            setpoint_timeout=cfg.setpoint_timeout_ms / 1e3,
+            engage_tolerance=cfg.engage_tolerance_rad,
+        )
+        dt = backend.dt
+        timer = CycleTimer(1.0 / dt)
+        pub_every = max(1, round(1.0 / (dt * cfg.publish_hz)))
+        state_every = max(1, round(1.0 / (dt * cfg.state_hz)))
+        q_cmd = np.array(cfg.q_home, dtype=float)
+        reading = backend.read()
+        last_state: tuple[bool, bool, str] | None = None
+        caught_up = 0
+        log.info("slave %s (%s/%s) running at %.0f Hz", cfg.arm, cfg.backend, cfg.model, 1 / dt)
+        cycle = 0
+        while not stop.is_set():
+            now = time.monotonic()
+            with svc.lock:
+                lease, sp = svc.lease, svc.setpoint
+            q_cmd = ctl.update(now, reading.position, q_cmd, lease, sp, dt)
+            backend.command(q_cmd)
+            missed = timer.wait()
+            backend.step(1 + missed)  # stay in real time: catch up missed periods
+            caught_up += missed
+            reading = backend.read()
+            cycle += 1
+            for kind, text in ctl.events:
+                node.event(
+                    kind, text, arm=cfg.arm, severity="warning" if kind == "hold" else "info"
+                )
+            ctl.events.clear()
+            if cycle % pub_every == 0:
+                js_out.put(
+                    JointState(
+                        js_out.header(),
+                        names,
+                        tuple(reading.position.tolist()),
+                        tuple(reading.velocity.tolist()),
+                        tuple(reading.effort.tolist()),
+                    )
+                )
+                p, qt = reading.tip_position, reading.tip_quat
+                cp_out.put(
+                    CartesianPose(
+                        cp_out.header(),
+                        "base",
+                        (float(p[0]), float(p[1]), float(p[2])),
+                        (float(qt[0]), float(qt[1]), float(qt[2]), float(qt[3])),
+                    )
+                )
+            lease_ok = ctl.lease_ok(lease, now)
+            state = (ctl.following, lease_ok, ctl.reason)
+            if state != last_state or cycle % state_every == 0:
+                last_state = state
+                state_out.put(
+                    OperatingState(
+                        state_out.header(),
+                        "ENABLED" if ctl.following else "PAUSED",
+                        "non_trocar",
+                        ctl.following,
+                        lease_ok,
+                        ctl.reason,
+                        ctl.holds,
+                    )
+                )
+        log.info(
+            "stopped after %d cycles: %d overruns, %d periods caught up, %d holds, %d setpoints "
+            "rejected",
+            cycle,
+            timer.overruns,
+            caught_up,
+            ctl.holds,
+            svc.rejected_setpoints,
+        )
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """``telesurg slave-control``."""
+    return service_main("slave-control", SlaveControlConfig, run, argv, __doc__ or "")

@@ -1,0 +1,123 @@
+"""The slave's follow/hold logic, free of I/O so it can be tested on its own.
+
+Rules (safety first — any doubt means hold):
+
+* The slave moves only while a lease from the watchdog allows it and has not expired.
+* It tracks ``servo_jp`` only while the setpoint says ``follow`` and is fresh.
+* After any hold it resumes only on a new engage: a ``follow=False`` setpoint must be seen before
+  a ``follow=True`` one counts, and the first followed setpoint must be close to where the arm is
+  (no jump); otherwise the engage is refused with a reason.
+* Commanded joints move toward the target no faster than the joint speed limits.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+@dataclass
+class Lease:
+    """Latest lease as seen by the slave (times on the local monotonic clock, s)."""
+
+    allow: bool = False
+    expires: float = 0.0
+    reason: str = "no lease received"
+
+
+@dataclass
+class Setpoint:
+    """Latest accepted setpoint (receive time on the local monotonic clock, s)."""
+
+    position: np.ndarray
+    follow: bool
+    received: float
+
+
+@dataclass
+class FollowController:
+    """Decides each control period what the joints should do.
+
+    Attributes:
+        max_velocity: per-joint speed limit, rad/s, shape (n,).
+        setpoint_timeout: s; an older setpoint is stale → hold.
+        engage_tolerance: rad; the first followed setpoint must be this close to the arm.
+    """
+
+    max_velocity: np.ndarray
+    setpoint_timeout: float = 0.1
+    engage_tolerance: float = 0.02
+    following: bool = False
+    armed: bool = False  # a follow=False setpoint was seen since the last hold
+    holds: int = 0
+    reason: str = "waiting for engage"
+    events: list[tuple[str, str]] = field(default_factory=list)  # (kind, text), drained by caller
+    _hold_q: np.ndarray | None = None
+
+    def lease_ok(self, lease: Lease, now: float) -> bool:
+        """True while the lease allows motion and has not expired."""
+        return lease.allow and now < lease.expires
+
+    def update(
+        self,
+        now: float,
+        q_meas: np.ndarray,
+        q_cmd: np.ndarray,
+        lease: Lease,
+        sp: Setpoint | None,
+        dt: float,
+    ) -> np.ndarray:
+        """Next commanded joint position (rad) after one period ``dt`` (s)."""
+        ok = self.lease_ok(lease, now)
+        fresh = sp is not None and now - sp.received <= self.setpoint_timeout
+        if self.following:
+            cause = ""
+            if not ok:
+                cause = f"lease: {lease.reason}" if not lease.allow else "lease expired"
+            elif not fresh:
+                cause = "setpoint stream stale"
+            elif sp is not None and not sp.follow:
+                cause = "clutch released"
+            if cause:
+                self._hold(q_meas, cause, fault=cause != "clutch released")
+        else:
+            if sp is not None and fresh and not sp.follow:
+                self.armed = True
+            if not ok:
+                self.reason = f"lease: {lease.reason}" if not lease.allow else "lease expired"
+            elif sp is not None and fresh and sp.follow:
+                if not self.armed:
+                    self.reason = "waiting for a new engage (clutch)"
+                else:
+                    jump = float(np.max(np.abs(sp.position - q_meas)))
+                    if jump > self.engage_tolerance:
+                        self.armed = False
+                        self.reason = f"engage refused: setpoint {jump:.3f} rad from arm"
+                        self.events.append(("engage_refused", self.reason))
+                    else:
+                        self.following = True
+                        self.reason = ""
+                        self.events.append(("follow", "following servo_jp"))
+            else:
+                self.reason = "waiting for engage" if self.armed else self.reason
+        if self.following and sp is not None:
+            target = sp.position
+        else:
+            if self._hold_q is None:
+                self._hold_q = q_cmd.copy()
+            target = self._hold_q
+        step = np.clip(target - q_cmd, -self.max_velocity * dt, self.max_velocity * dt)
+        out: np.ndarray = q_cmd + step
+        if self.following:
+            self._hold_q = None
+        return out
+
+    def _hold(self, q_meas: np.ndarray, cause: str, *, fault: bool) -> None:
+        self.following = False
+        self.armed = False
+        self.reason = cause
+        self._hold_q = q_meas.copy()
+        if fault:
+            self.holds += 1
+        self.events.append(("hold" if fault else "pause", cause))

@@ -1,0 +1,63 @@
+"""Pure-numpy kinematics: SE(3)/SO(3) helpers and the MOTOMAN-MH3F class 6-axis arm.
+
+Units are metres and radians; quaternions are [x, y, z, w]. See :mod:`.mh3f` for the frames
+and the IK derivation and :mod:`.transforms` for the conventions.
+"""
+
+from shared.kinematics.mh3f import (
+    LIMIT_TOL,
+    MH3F,
+    MH3F_NO_TOOL,
+    SHOULDER_SINGULAR_TOL,
+    WRIST_SINGULAR_TOL,
+    ArmGeometry,
+    fk,
+    fk_frames,
+    ik,
+    ik_all,
+    jacobian,
+    within_limits,
+    wrist_center,
+)
+from shared.kinematics.transforms import (
+    FloatArray,
+    make_transform,
+    matrix_from_quat,
+    matrix_from_rotvec,
+    quat_from_matrix,
+    quat_normalize,
+    rot_x,
+    rot_y,
+    rot_z,
+    rotation_angle_between,
+    rotvec_from_matrix,
+    skew,
+)
+
+__all__ = [
+    "LIMIT_TOL",
+    "MH3F",
+    "MH3F_NO_TOOL",
+    "SHOULDER_SINGULAR_TOL",
+    "WRIST_SINGULAR_TOL",
+    "ArmGeometry",
+    "FloatArray",
+    "fk",
+    "fk_frames",
+    "ik",
+    "ik_all",
+    "jacobian",
+    "make_transform",
+    "matrix_from_quat",
+    "matrix_from_rotvec",
+    "quat_from_matrix",
+    "quat_normalize",
+    "rot_x",
+    "rot_y",
+    "rot_z",
+    "rotation_angle_between",
+    "rotvec_from_matrix",
+    "skew",
+    "within_limits",
+    "wrist_center",
+]
