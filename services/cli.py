@@ -1,1 +1,53 @@
-def main() -> None: ...
+"""``telesurg``: one CLI, one subcommand per service plus the launcher.
+
+Examples::
+
+    telesurg demo                       # whole simulated session + rerun web viewer
+    telesurg demo --headless --seconds 20 --save out.rrd --report out.json
+    telesurg up                         # router + every service, Ctrl-C stops them
+    telesurg slave-control --help       # one service on its own
+"""
+
+from __future__ import annotations
+
+import importlib
+import sys
+from collections.abc import Sequence
+
+#: subcommand → module with a ``main(argv) -> int``
+COMMANDS = {
+    "router": ("services.router", "zenoh router for a site (Python process, no zenohd)"),
+    "master-capture": ("services.master_capture", "publish a master device's pose and buttons"),
+    "mapping": ("services.mapping", "master pose → slave joint setpoints (clutch, scale, IK)"),
+    "slave-control": ("services.slave_control", "run the slave arm (MuJoCo) under a lease"),
+    "watchdog": ("services.watchdog", "grant slave leases while every service is healthy"),
+    "mirror": ("services.mirror", "stream everything to rerun (web viewer or .rrd)"),
+    "up": ("services.launcher", "start router + all services locally; Ctrl-C stops all"),
+    "demo": ("services.launcher.demo", "the whole simulated teleop session (scripted circle)"),
+}
+
+
+def usage() -> str:
+    """Help text listing the subcommands."""
+    lines = ["usage: telesurg COMMAND [options]   (telesurg COMMAND --help for options)", ""]
+    lines += [f"  {name:<15} {desc}" for name, (_, desc) in COMMANDS.items()]
+    return "\n".join(lines)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Dispatch to the subcommand's ``main``."""
+    args = list(sys.argv[1:] if argv is None else argv)
+    if not args or args[0] in ("-h", "--help"):
+        print(usage())
+        return 0
+    cmd, rest = args[0], args[1:]
+    if cmd not in COMMANDS:
+        print(f"telesurg: unknown command {cmd!r}\n\n{usage()}", file=sys.stderr)
+        return 2
+    module = importlib.import_module(COMMANDS[cmd][0])
+    code: int = module.main(rest)
+    return code
+
+
+if __name__ == "__main__":
+    sys.exit(main())

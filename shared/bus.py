@@ -49,15 +49,11 @@ class BusConfig:
     """How a process joins the zenoh network."""
 
     mode: str = "client"  # peer | client | router; services are clients of the site router
-    connect: list[str] = field(
-        default_factory=list
-    )  # endpoints to connect to, e.g. tcp/127.0.0.1:7447
+    connect: list[str] = field(default_factory=list)  # endpoints to connect to, e.g. tcp/127.0.0.1:7447
     listen: list[str] = field(default_factory=list)  # endpoints to listen on
     config_file: str = ""  # optional zenoh JSON5 config, applied before the fields above
     lease_ms: int = 1000  # transport lease, ms: a silent peer is dropped after this
-    multicast: bool = (
-        False  # multicast scouting; off so robots never discover each other by accident
-    )
+    multicast: bool = False  # multicast scouting; off so robots never discover each other by accident
 
     def validate(self) -> None:
         """Raise ConfigError naming the valid options."""
@@ -77,9 +73,7 @@ def add_bus_args(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--listen", action="append", metavar="ENDPOINT", help="e.g. tcp/127.0.0.1:7447")
     g.add_argument("--zenoh-config", metavar="FILE", help="zenoh JSON5 config file")
     g.add_argument("--lease-ms", type=int, help="transport lease, ms (default 1000)")
-    g.add_argument(
-        "--multicast", action="store_true", default=None, help="enable multicast scouting"
-    )
+    g.add_argument("--multicast", action="store_true", default=None, help="enable multicast scouting")
 
 
 def bus_from_args(args: argparse.Namespace, base: BusConfig | None = None) -> BusConfig:
@@ -232,9 +226,7 @@ class Node:
             service = self.keys.service_of_alive(str(sample.key_expr))
             callback(service, sample.kind == zenoh.SampleKind.PUT)
 
-        self._handles.append(
-            self.session.liveliness().declare_subscriber(pattern, on_sample, history=True)
-        )
+        self._handles.append(self.session.liveliness().declare_subscriber(pattern, on_sample, history=True))
 
     @property
     def rejected(self) -> int:

@@ -20,9 +20,7 @@ from shared.errors import ConfigError
 T = TypeVar("T")
 
 
-def load_config(
-    cls: type[T], path: str | Path | None = None, overrides: list[str] | None = None
-) -> T:
+def load_config(cls: type[T], path: str | Path | None = None, overrides: list[str] | None = None) -> T:
     """Build ``cls`` from an optional TOML file and ``key=value`` overrides."""
     data: dict[str, Any] = {}
     if path:
@@ -103,8 +101,7 @@ def _coerce(tp: Any, value: Any, where: str) -> Any:
             if len(value) != len(args):
                 raise ConfigError(f"{where} must have {len(args)} elements")
             return tuple(
-                _coerce(a, v, f"{where}[{i}]")
-                for i, (a, v) in enumerate(zip(args, value, strict=True))
+                _coerce(a, v, f"{where}[{i}]") for i, (a, v) in enumerate(zip(args, value, strict=True))
             )
         inner = args[0] if args else Any
         items = [_coerce(inner, v, f"{where}[{i}]") for i, v in enumerate(value)]

@@ -438,9 +438,7 @@ class SafetyLease(Message):
         valid = _float(d, "valid_for_ms")
         if not 0.0 < valid <= 10_000.0:
             raise MessageError(f"field 'valid_for_ms'={valid} outside (0, 10000]")
-        return cls(
-            header, _str(d, "arm", allow_empty=False), _bool(d, "allow"), valid, _str(d, "reason")
-        )
+        return cls(header, _str(d, "arm", allow_empty=False), _bool(d, "allow"), valid, _str(d, "reason"))
 
 
 @_register
@@ -572,9 +570,7 @@ def decode(payload: bytes | bytearray | memoryview) -> AnyMessage:
             max_ext_len=0,
         )
     except Exception as exc:  # msgpack raises a family of unrelated exception types
-        raise MessageError(
-            f"not a valid MessagePack payload: {type(exc).__name__}: {exc}"
-        ) from None
+        raise MessageError(f"not a valid MessagePack payload: {type(exc).__name__}: {exc}") from None
     if not isinstance(d, dict):
         raise MessageError(f"payload must be a map, got {type(d).__name__}")
     version = d.get("v")

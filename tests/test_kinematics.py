@@ -145,9 +145,7 @@ def test_geometry_constants() -> None:
     assert MH3F.d1 + MH3F.reach == pytest.approx(0.804, abs=1e-3)  # vertical reach 804 mm
     assert MH3F.reach == pytest.approx(0.532, abs=1e-3)
     assert MH3F.wrist_to_tcp == pytest.approx(0.590)
-    np.testing.assert_allclose(
-        np.degrees(MH3F.lower_limits), [-160, -85, -105, -170, -120, -360], atol=1e-12
-    )
+    np.testing.assert_allclose(np.degrees(MH3F.lower_limits), [-160, -85, -105, -170, -120, -360], atol=1e-12)
     np.testing.assert_allclose(np.degrees(MH3F.upper_limits), [160, 90, 260, 170, 120, 360])
     np.testing.assert_allclose(MH3F.velocity_limits, [3.49, 2.62, 3.32, 5.24, 5.24, 7.33])
     assert MH3F_NO_TOOL.tool == 0.0
@@ -280,11 +278,7 @@ def test_ik_all_finds_multiple_wraps_of_j6() -> None:
 def test_ik_all_finds_j3_wrap() -> None:
     q = np.radians([0, 20, 255, 10, 40, 0])  # J3 = 255° is the same as -105°: both are in range
     sols = ik_all(fk(q))
-    j3 = {
-        round(math.degrees(s[2]), 6)
-        for s in sols
-        if np.allclose(s[[0, 1, 3, 4, 5]], q[[0, 1, 3, 4, 5]])
-    }
+    j3 = {round(math.degrees(s[2]), 6) for s in sols if np.allclose(s[[0, 1, 3, 4, 5]], q[[0, 1, 3, 4, 5]])}
     assert j3 == {255.0, -105.0}
 
 

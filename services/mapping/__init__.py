@@ -169,9 +169,7 @@ class ArmMapping:
             why = self.slave_state.reason if self.slave_state else "no slave state"
             reason = f"slave not allowed to move ({why})"
         if reason:
-            self.node.event(
-                "engage_refused", f"engage refused: {reason}", arm=self.slave, severity="warning"
-            )
+            self.node.event("engage_refused", f"engage refused: {reason}", arm=self.slave, severity="warning")
             return
         assert self.q_meas is not None
         t_s0 = fk(self.q_meas, self.geom)

@@ -24,9 +24,7 @@ class RouterConfig:
 
     site: str = "local"  # unused by the router itself; kept for a uniform CLI
     service: str = "router"  # instance id for logs
-    bus: BusConfig = field(
-        default_factory=lambda: BusConfig(mode="router", listen=["tcp/127.0.0.1:7447"])
-    )
+    bus: BusConfig = field(default_factory=lambda: BusConfig(mode="router", listen=["tcp/127.0.0.1:7447"]))
 
 
 def run(cfg: RouterConfig, stop: threading.Event) -> None:

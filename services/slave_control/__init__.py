@@ -42,8 +42,8 @@ class SlaveControlConfig:
     arm: str = "arm1"  # slave arm id in keys slave/<arm>/...
     backend: str = "mujoco"  # valid: mujoco
     model: str = "mh3f"  # robot model (services/slave_control/models/<model>)
-    # rad: start pose — tip in front of the robot, forceps pointing down and forward
-    q_home: tuple[float, ...] = (0.0, 0.35, 0.15, 0.0, -0.9, 0.0)
+    # rad: start pose — tip at (835, 0, 301) mm, forceps pitched 29° down
+    q_home: tuple[float, ...] = (0.0, 0.2, 0.3, 0.0, -0.6, 0.0)
     publish_hz: float = 250.0  # Hz: measured_js and measured_cp
     state_hz: float = 20.0  # Hz: operating_state (also sent on every change)
     setpoint_timeout_ms: float = 100.0  # ms: an older setpoint is stale → hold
@@ -133,9 +133,7 @@ def run(cfg: SlaveControlConfig, stop: threading.Event) -> None:
             reading = backend.read()
             cycle += 1
             for kind, text in ctl.events:
-                node.event(
-                    kind, text, arm=cfg.arm, severity="warning" if kind == "hold" else "info"
-                )
+                node.event(kind, text, arm=cfg.arm, severity="warning" if kind == "hold" else "info")
             ctl.events.clear()
             if cycle % pub_every == 0:
                 js_out.put(
@@ -172,8 +170,7 @@ def run(cfg: SlaveControlConfig, stop: threading.Event) -> None:
                     )
                 )
         log.info(
-            "stopped after %d cycles: %d overruns, %d periods caught up, %d holds, %d setpoints "
-            "rejected",
+            "stopped after %d cycles: %d overruns, %d periods caught up, %d holds, %d setpoints rejected",
             cycle,
             timer.overruns,
             caught_up,

@@ -186,9 +186,7 @@ def run(cfg: WatchdogConfig, stop: threading.Event) -> None:
         # Last word: revoke every lease explicitly before going away.
         for a in wd.arms:
             a.lease_out.put(
-                SafetyLease(
-                    a.lease_out.header(), a.arm, False, cfg.lease_valid_ms, "watchdog stopped"
-                )
+                SafetyLease(a.lease_out.header(), a.arm, False, cfg.lease_valid_ms, "watchdog stopped")
             )
 
 

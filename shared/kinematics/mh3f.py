@@ -151,9 +151,7 @@ class ArmGeometry:
         for name in ("joint_names", "lower", "upper", "max_velocity"):
             if len(getattr(self, name)) != 6:
                 raise KinematicsError(f"ArmGeometry.{name} must have 6 entries")
-        for n, lo, hi, v in zip(
-            self.joint_names, self.lower, self.upper, self.max_velocity, strict=True
-        ):
+        for n, lo, hi, v in zip(self.joint_names, self.lower, self.upper, self.max_velocity, strict=True):
             if not (math.isfinite(lo) and math.isfinite(hi) and lo < hi):
                 raise KinematicsError(f"joint {n}: need finite lower < upper, got {lo}, {hi}")
             if not (math.isfinite(v) and v > 0.0):
@@ -266,9 +264,7 @@ def fk_frames(q: npt.ArrayLike, geom: ArmGeometry = MH3F) -> FloatArray:
     centre, flange, TCP (tool tip).
     """
     c = _chain(q, geom)
-    return np.stack(
-        [np.zeros(3, dtype=np.float64), c.p_j2, c.p_j3, c.p_j4, c.p_wrist, c.p_flange, c.p_tcp]
-    )
+    return np.stack([np.zeros(3, dtype=np.float64), c.p_j2, c.p_j3, c.p_j4, c.p_wrist, c.p_flange, c.p_tcp])
 
 
 def wrist_center(q: npt.ArrayLike, geom: ArmGeometry = MH3F) -> FloatArray:
@@ -402,8 +398,7 @@ def _within_limit_solutions(cands: FloatArray, geom: ArmGeometry) -> list[FloatA
     sols: list[FloatArray] = []
     for cand in cands:
         per_joint = [
-            _wrap_variants(float(v), lo, hi)
-            for v, lo, hi in zip(cand, geom.lower, geom.upper, strict=True)
+            _wrap_variants(float(v), lo, hi) for v, lo, hi in zip(cand, geom.lower, geom.upper, strict=True)
         ]
         for combo in itertools.product(*per_joint):
             sol = np.array(combo, dtype=np.float64)

@@ -1,0 +1,281 @@
+"""``telesurg up``: start a site router and every service on this machine, stop them cleanly.
+
+Each service runs as its own OS process, a zenoh client of the site router on an explicit
+loopback endpoint. Ctrl-C (SIGINT) or SIGTERM stops the services in a safe order — master first,
+slave and router last — waits for them, and exits 0 if every process stopped cleanly. Children
+also stop by themselves if the launcher dies (they watch their parent PID).
+
+Example::
+
+    telesurg up --port 7447 --log-dir out/logs --set mapping.scale=0.3
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import os
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from types import TracebackType
+from typing import IO
+
+from services.common import install_stop_handlers, setup_logging
+from shared.errors import ConfigError
+
+log = logging.getLogger("telesurg.launcher")
+
+#: Start order; they stop in reverse, except the mirror, which stops after the others to record
+#: everything, and the router, which stops last.
+SERVICES = ("watchdog", "slave_control", "mapping", "master_capture", "mirror")
+STOP_ORDER = ("master_capture", "mapping", "watchdog", "slave_control", "mirror", "router")
+CLI_NAME = {
+    "router": "router",
+    "watchdog": "watchdog",
+    "slave_control": "slave-control",
+    "mapping": "mapping",
+    "master_capture": "master-capture",
+    "mirror": "mirror",
+}
+
+
+def default_config_dir() -> Path:
+    """``deploy/local`` of this checkout."""
+    return Path(__file__).resolve().parents[2] / "deploy" / "local"
+
+
+def free_port(host: str = "127.0.0.1") -> int:
+    """A TCP port free on ``host`` right now."""
+    with socket.socket() as s:
+        s.bind((host, 0))
+        port: int = s.getsockname()[1]
+        return port
+
+
+def wait_port(host: str, port: int, timeout: float) -> bool:
+    """True once a TCP connect to host:port succeeds, False after ``timeout`` s."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        try:
+            with socket.create_connection((host, port), timeout=0.2):
+                return True
+        except OSError:
+            time.sleep(0.05)
+    return False
+
+
+@dataclass
+class SiteSpec:
+    """What to start."""
+
+    site: str = "local"  # key prefix telesurg/<site>
+    host: str = "127.0.0.1"  # router listen address (loopback for a local site)
+    port: int = 7447  # router TCP port
+    config_dir: Path | None = None  # directory with <service>.toml files (None: defaults only)
+    services: tuple[str, ...] = SERVICES  # which services to start
+    overrides: dict[str, list[str]] = field(default_factory=dict)  # service → ["key=value"]
+    log_dir: Path | None = None  # per-service log files (None: inherit the terminal)
+    log_level: str = "INFO"  # service log level
+
+    @property
+    def endpoint(self) -> str:
+        """Router endpoint, e.g. ``tcp/127.0.0.1:7447``."""
+        return f"tcp/{self.host}:{self.port}"
+
+
+def service_argv(spec: SiteSpec, name: str) -> list[str]:
+    """Command line that starts service ``name`` of ``spec``."""
+    argv = [sys.executable, "-m", "services.cli", CLI_NAME[name], "--site", spec.site]
+    argv += ["--log-level", spec.log_level, "--parent-pid", str(os.getpid())]
+    if name == "router":
+        argv += ["--listen", spec.endpoint]
+    else:
+        argv += ["--connect", spec.endpoint]
+    cfg = spec.config_dir / f"{name}.toml" if spec.config_dir else None
+    if cfg is not None and cfg.exists():
+        argv += ["--config", str(cfg)]
+    for item in spec.overrides.get(name, []):
+        argv += ["--set", item]
+    return argv
+
+
+class Site:
+    """The running processes of a local site; a context manager that always stops them."""
+
+    def __init__(self, spec: SiteSpec) -> None:
+        self.spec = spec
+        self.procs: dict[str, subprocess.Popen[bytes]] = {}
+        self._logs: list[IO[bytes]] = []
+
+    def start(self) -> None:
+        """Start the router, wait for it, then every service."""
+        self._spawn("router")
+        if not wait_port(self.spec.host, self.spec.port, 15.0):
+            raise ConnectionError(f"router did not open {self.spec.endpoint} within 15 s")
+        for name in SERVICES:
+            if name in self.spec.services:
+                self._spawn(name)
+        if self.spec.log_dir:
+            pids = {n: p.pid for n, p in self.procs.items()}
+            (self.spec.log_dir / "pids.json").write_text(json.dumps(pids, indent=2))
+
+    def _spawn(self, name: str) -> None:
+        out: IO[bytes] | None = None
+        if self.spec.log_dir:
+            self.spec.log_dir.mkdir(parents=True, exist_ok=True)
+            out = (self.spec.log_dir / f"{name}.log").open("ab")
+            self._logs.append(out)
+        argv = service_argv(self.spec, name)
+        log.debug("starting %s: %s", name, " ".join(argv))
+        self.procs[name] = subprocess.Popen(
+            argv, stdout=out, stderr=subprocess.STDOUT if out else None, start_new_session=True
+        )
+        log.info("started %-15s pid %d", name, self.procs[name].pid)
+
+    def dead(self) -> dict[str, int]:
+        """Services that exited on their own: name → exit code."""
+        return {n: rc for n, p in self.procs.items() if (rc := p.poll()) is not None}
+
+    def stop(self, timeout: float = 10.0) -> dict[str, int]:
+        """SIGINT each process in :data:`STOP_ORDER`, wait, SIGKILL stragglers; exit codes."""
+        codes: dict[str, int] = {}
+        for name in STOP_ORDER:
+            p = self.procs.get(name)
+            if p is None:
+                continue
+            if p.poll() is None:
+                p.send_signal(signal.SIGINT)
+            try:
+                codes[name] = p.wait(timeout)
+            except subprocess.TimeoutExpired:
+                log.error("%s did not stop within %.0f s; killing pid %d", name, timeout, p.pid)
+                p.kill()
+                codes[name] = p.wait()
+        for f in self._logs:
+            f.close()
+        self._logs.clear()
+        return codes
+
+    def __enter__(self) -> Site:
+        try:
+            self.start()
+        except BaseException:
+            self.stop()
+            raise
+        return self
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        self.stop()
+
+
+def add_site_args(parser: argparse.ArgumentParser) -> None:
+    """Flags shared by ``up`` and ``demo``."""
+    parser.add_argument("--site", default="local", help="site id (default: local)")
+    parser.add_argument("--host", default="127.0.0.1", help="router address (default: 127.0.0.1)")
+    parser.add_argument("--port", type=int, default=7447, help="router TCP port (0: pick a free one)")
+    parser.add_argument(
+        "--config-dir",
+        type=Path,
+        default=default_config_dir(),
+        help="directory of <service>.toml files (default: deploy/local)",
+    )
+    parser.add_argument("--log-dir", type=Path, help="write each service's log to DIR/<service>.log")
+    parser.add_argument("--log-level", default="INFO", help="service log level (default: INFO)")
+    parser.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="SERVICE.KEY=VALUE",
+        help="override a service config key, e.g. mapping.scale=0.3",
+    )
+    parser.add_argument(
+        "--seconds",
+        type=float,
+        default=0.0,
+        help="stop after this many seconds (default: run until Ctrl-C)",
+    )
+
+
+def spec_from_args(args: argparse.Namespace, services: Sequence[str]) -> SiteSpec:
+    """SiteSpec from the shared flags."""
+    overrides: dict[str, list[str]] = {}
+    for item in args.set:
+        service, dot, rest = item.partition(".")
+        if not dot or service not in CLI_NAME:
+            raise ConfigError(f"--set {item!r} must start with a service name: {', '.join(CLI_NAME)}")
+        overrides.setdefault(service, []).append(rest)
+    port = args.port or free_port(args.host)
+    config_dir = args.config_dir if args.config_dir and args.config_dir.is_dir() else None
+    return SiteSpec(
+        args.site,
+        args.host,
+        port,
+        config_dir,
+        tuple(services),
+        overrides,
+        args.log_dir,
+        args.log_level,
+    )
+
+
+def run_site(spec: SiteSpec, seconds: float, stop: threading.Event) -> int:
+    """Run ``spec`` until ``stop`` or ``seconds``; 0 if every process stopped cleanly."""
+    deadline = time.monotonic() + seconds if seconds > 0 else float("inf")
+    with Site(spec) as site:
+        log.info("site %r up on %s; Ctrl-C stops everything", spec.site, spec.endpoint)
+        reported: set[str] = set()
+        while not stop.wait(0.2) and time.monotonic() < deadline:
+            for name, rc in site.dead().items():
+                if name not in reported:
+                    reported.add(name)
+                    log.error("%s exited with code %d (the watchdog holds the slave)", name, rc)
+        codes = site.stop()
+    bad = {n: c for n, c in codes.items() if c != 0}
+    if bad:
+        log.error("unclean exits: %s", bad)
+        return 1
+    log.info("all processes stopped cleanly")
+    return 0
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """``telesurg up``."""
+    parser = argparse.ArgumentParser(
+        prog="telesurg up",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    add_site_args(parser)
+    parser.add_argument("--no-mirror", action="store_true", help="do not start the mirror")
+    parser.add_argument("--save", metavar="FILE.rrd", help="mirror writes this .rrd")
+    parser.add_argument("--serve", action="store_true", help="mirror serves the rerun web viewer")
+    args = parser.parse_args(argv)
+    setup_logging("INFO", "launcher")
+    services = [
+        s for s in SERVICES if not (s == "mirror" and (args.no_mirror or not (args.save or args.serve)))
+    ]
+    try:
+        spec = spec_from_args(args, services)
+    except ConfigError as exc:
+        print(f"telesurg up: {exc}", file=sys.stderr)
+        return 2
+    if args.save:
+        spec.overrides.setdefault("mirror", []).append(f"save={json.dumps(str(args.save))}")
+    if args.serve:
+        spec.overrides.setdefault("mirror", []).append("serve=true")
+    stop = threading.Event()
+    install_stop_handlers(stop)
+    return run_site(spec, args.seconds, stop)

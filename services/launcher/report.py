@@ -1,0 +1,167 @@
+"""Session recorder for ``telesurg demo --report``: stream counts, gaps, tracking error, holds.
+
+The tracking error compares the slave forceps tip with the *scaled master motion*: while the
+slave follows, ``p_slave(t) − scale·R_ms·p_master(t)`` must stay constant (it is the offset the
+mapping fixes at engage). The error of a sample is its distance from the median offset of its
+engaged segment, after a settling time at the start of the segment. Master positions are
+interpolated at the slave sample's source time (all processes share the host's wall clock).
+"""
+
+from __future__ import annotations
+
+import threading
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from shared.bus import Node
+from shared.messages import (
+    CartesianPose,
+    JointSetpoint,
+    JointState,
+    Message,
+    OperatingState,
+    SafetyEvent,
+)
+
+
+@dataclass
+class TrackingError:
+    """Tip tracking error over the settled, engaged samples, mm."""
+
+    mean_mm: float
+    max_mm: float
+    samples: int
+    segments: int
+
+    def as_dict(self) -> dict[str, Any]:
+        """For JSON."""
+        return {
+            "mean_mm": round(self.mean_mm, 4),
+            "max_mm": round(self.max_mm, 4),
+            "samples": self.samples,
+            "segments": self.segments,
+        }
+
+
+def engaged_segments(follow: list[tuple[int, bool]]) -> list[tuple[int, int]]:
+    """[(t_start_ns, t_end_ns)] where ``follow`` (time-sorted (ns, flag) samples) is True."""
+    out = []
+    start: int | None = None
+    for t, f in follow:
+        if f and start is None:
+            start = t
+        elif not f and start is not None:
+            out.append((start, t))
+            start = None
+    if start is not None and follow:
+        out.append((start, follow[-1][0]))
+    return out
+
+
+def tracking_error(
+    master: np.ndarray,
+    slave: np.ndarray,
+    segments: list[tuple[int, int]],
+    scale: float,
+    r_ms: np.ndarray,
+    settle_s: float = 0.5,
+) -> TrackingError:
+    """Tracking error of the slave tip against the scaled master motion.
+
+    Args:
+        master: (N, 4) rows of (t_ns, x, y, z) master tip, master frame, m.
+        slave: (M, 4) rows of (t_ns, x, y, z) slave tip, base frame, m.
+        segments: engaged intervals (ns).
+        scale: mapping motion scale.
+        r_ms: (3, 3) rotation of the master frame in the slave base frame.
+        settle_s: s skipped at the start of each segment.
+    """
+    errors: list[np.ndarray] = []
+    used = 0
+    if len(master) < 2 or len(slave) == 0:
+        return TrackingError(float("nan"), float("nan"), 0, 0)
+    for t0, t1 in segments:
+        sel = (slave[:, 0] >= t0 + settle_s * 1e9) & (slave[:, 0] <= t1)
+        sel &= (slave[:, 0] >= master[0, 0]) & (slave[:, 0] <= master[-1, 0])
+        if sel.sum() < 10:
+            continue
+        ts = slave[sel, 0]
+        pm = np.stack([np.interp(ts, master[:, 0], master[:, 1 + i]) for i in range(3)], axis=1)
+        offset = slave[sel, 1:] - scale * pm @ r_ms.T
+        errors.append(np.linalg.norm(offset - np.median(offset, axis=0), axis=1))
+        used += 1
+    if not errors:
+        return TrackingError(float("nan"), float("nan"), 0, 0)
+    e = np.concatenate(errors) * 1e3
+    return TrackingError(float(e.mean()), float(e.max()), int(e.size), used)
+
+
+@dataclass
+class SessionRecorder:
+    """Subscribes to one master→slave pair and keeps what a report needs."""
+
+    node: Node
+    master_arm: str = "m1"
+    slave_arm: str = "arm1"
+    lock: threading.Lock = field(default_factory=threading.Lock)
+    master: list[tuple[int, float, float, float]] = field(default_factory=list)
+    slave: list[tuple[int, float, float, float]] = field(default_factory=list)
+    follow: list[tuple[int, bool]] = field(default_factory=list)
+    holds: int = 0
+    events: list[str] = field(default_factory=list)
+
+    def __post_init__(self) -> None:
+        k = self.node.keys
+        self.keys = {
+            "master_cp": k.master(self.master_arm, "measured_cp"),
+            "servo_jp": k.slave(self.slave_arm, "servo_jp"),
+            "measured_js": k.slave(self.slave_arm, "measured_js"),
+            "measured_cp": k.slave(self.slave_arm, "measured_cp"),
+            "operating_state": k.slave(self.slave_arm, "operating_state"),
+        }
+        self.node.subscribe(self.keys["master_cp"], CartesianPose, self._on_master)
+        self.node.subscribe(self.keys["measured_cp"], CartesianPose, self._on_slave)
+        self.node.subscribe(self.keys["servo_jp"], JointSetpoint, self._ignore)
+        self.node.subscribe(self.keys["measured_js"], JointState, self._ignore)
+        self.node.subscribe(self.keys["operating_state"], OperatingState, self._on_state)
+        self.node.subscribe(k.events(), SafetyEvent, self._on_event)
+
+    def _ignore(self, msg: Message, key: str) -> None:
+        pass  # counted by node.streams
+
+    def _on_master(self, msg: CartesianPose, key: str) -> None:
+        with self.lock:
+            self.master.append((msg.header.stamp_ns, *msg.position))
+
+    def _on_slave(self, msg: CartesianPose, key: str) -> None:
+        with self.lock:
+            self.slave.append((msg.header.stamp_ns, *msg.position))
+
+    def _on_state(self, msg: OperatingState, key: str) -> None:
+        with self.lock:
+            self.follow.append((msg.header.stamp_ns, msg.follow))
+            self.holds = max(self.holds, msg.holds)
+
+    def _on_event(self, msg: SafetyEvent, key: str) -> None:
+        with self.lock:
+            self.events.append(f"{msg.header.source} [{msg.arm}] {msg.kind}: {msg.text}")
+
+    def report(self, scale: float, r_ms: np.ndarray) -> dict[str, Any]:
+        """Counts, gaps, tracking error, holds, events."""
+        with self.lock:
+            master = np.array(self.master, dtype=float).reshape(-1, 4)
+            slave = np.array(self.slave, dtype=float).reshape(-1, 4)
+            follow = sorted(self.follow)
+            events = list(self.events)
+            holds = self.holds
+        err = tracking_error(master, slave, engaged_segments(follow), scale, r_ms)
+        streams = {name: self.node.streams.get(key).as_dict() for name, key in self.keys.items()}
+        return {
+            "streams": streams,
+            "tip_tracking_error_mm": err.as_dict(),
+            "holds": holds,
+            "engagements": sum(1 for e in events if " engage:" in e),
+            "events": events[-100:],
+        }
