@@ -160,7 +160,9 @@ class Node:
         self.streams = StreamTable()
         self._lock = threading.Lock()
         self._start = time.monotonic()
-        self._handles: list[Any] = []  # keep references: zenoh undeclares on GC
+        self._handles: list[Any] = []  # publishers; keep references: zenoh undeclares on GC
+        self._inputs: list[Any] = []  # subscribers, undeclared first on close
+        self._closed = False
         self.session = open_session(bus)
         self._token: Any = self.session.liveliness().declare_token(self.keys.alive(service))
         self._events = self.outlet(self.keys.events(service), control=False)
@@ -179,7 +181,7 @@ class Node:
                 key,
                 express=True,
                 priority=zenoh.Priority.REAL_TIME,
-                congestion_control=zenoh.CongestionControl.DROP,
+                congestion_control=zenoh.CongestionControl.BLOCK,
             )
         else:
             pub = self.session.declare_publisher(key, priority=zenoh.Priority.DATA_HIGH)
@@ -190,7 +192,8 @@ class Node:
         """Publish an event and log it."""
         level = {"info": logging.INFO, "warning": logging.WARNING}.get(severity, logging.ERROR)
         log.log(level, "%s%s: %s", f"[{arm}] " if arm else "", kind, text)
-        self._events.put(SafetyEvent(self._events.header(), arm, kind, severity, text))
+        if not self._closed:
+            self._events.put(SafetyEvent(self._events.header(), arm, kind, severity, text))
 
     # -- inputs ---------------------------------------------------------------------------
     def subscribe(self, key: str, cls: type[M], callback: Callable[[M, str], None]) -> None:
@@ -216,7 +219,7 @@ class Node:
             except Exception:  # a bug in a handler must not kill the zenoh callback thread
                 log.exception("handler for %s failed", k)
 
-        self._handles.append(self.session.declare_subscriber(key, on_sample))
+        self._inputs.append(self.session.declare_subscriber(key, on_sample))
 
     def watch_liveliness(self, pattern: str, callback: Callable[[str, bool], None]) -> None:
         """``callback(service, alive)`` for liveliness tokens under ``pattern`` (with history)."""
@@ -250,14 +253,19 @@ class Node:
     # -- lifetime -------------------------------------------------------------------------
     def close(self) -> None:
         """Undeclare everything and close the session (idempotent)."""
+        if self._closed:
+            return
         self._hb_stop.set()
         self._hb_thread.join(timeout=1.0)
-        if self._token is not None:
-            self._token.undeclare()
-            self._token = None
-        for h in self._handles:
+        for h in self._inputs:  # no more callbacks from here on
             with contextlib.suppress(Exception):  # already undeclared
                 h.undeclare()
+        self._closed = True
+        self._token.undeclare()
+        for h in self._handles:
+            with contextlib.suppress(Exception):
+                h.undeclare()
+        self._inputs.clear()
         self._handles.clear()
         self.session.close()  # type: ignore[no-untyped-call]
 

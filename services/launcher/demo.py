@@ -79,13 +79,10 @@ def main(argv: Sequence[str] | None = None) -> int:
             with Node(bus, spec.site, "demo_report") as node:
                 rec = SessionRecorder(node, master_arm, slave_arm)
                 if not args.headless:
-                    from services.mirror import viewer_url
+                    from services.mirror.view import viewer_url
 
-                    print(
-                        f"\nrerun web viewer: {viewer_url(args.web_port, args.grpc_port)}\n"
-                        "Ctrl-C stops everything.\n",
-                        flush=True,
-                    )
+                    url = viewer_url(f"rerun+http://127.0.0.1:{args.grpc_port}/proxy", args.web_port)
+                    print(f"\nrerun web viewer: {url}\nCtrl-C stops everything.\n", flush=True)
                 while not stop.wait(0.2) and time.monotonic() < deadline:
                     for name, rc in site.dead().items():
                         log.error("%s exited with code %d", name, rc)

@@ -3,8 +3,10 @@
 The tracking error compares the slave forceps tip with the *scaled master motion*: while the
 slave follows, ``p_slave(t) − scale·R_ms·p_master(t)`` must stay constant (it is the offset the
 mapping fixes at engage). The error of a sample is its distance from the median offset of its
-engaged segment, after a settling time at the start of the segment. Master positions are
-interpolated at the slave sample's source time (all processes share the host's wall clock).
+engaged segment, after a settling time at the start of the segment. The master position used for
+a slave sample is the last master sample published at or before the slave sample's source time
+(all processes share the host's wall clock): the slave cannot follow motion the master never
+published, e.g. while the master process was descheduled.
 """
 
 from __future__ import annotations
@@ -88,7 +90,7 @@ def tracking_error(
         if sel.sum() < 10:
             continue
         ts = slave[sel, 0]
-        pm = np.stack([np.interp(ts, master[:, 0], master[:, 1 + i]) for i in range(3)], axis=1)
+        pm = master[np.searchsorted(master[:, 0], ts, side="right") - 1, 1:]
         offset = slave[sel, 1:] - scale * pm @ r_ms.T
         errors.append(np.linalg.norm(offset - np.median(offset, axis=0), axis=1))
         used += 1

@@ -58,7 +58,7 @@ class MappingConfig:
     orientation: str = "follow"  # follow: apply master rotation increments; fixed: keep engage pose
     # Rotation of the master frame expressed in the slave base frame, roll/pitch/yaw in degrees.
     master_to_slave_rpy_deg: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    master_timeout_ms: float = 50.0  # ms: master stream older than this disengages
+    master_timeout_ms: float = 100.0  # ms: master stream older than this disengages
     slave_timeout_ms: float = 100.0  # ms: slave measured_js older than this refuses engage
     # rad: a setpoint step larger than this between two samples is an IK branch flip → hold
     max_joint_step_rad: float = 0.1
@@ -277,7 +277,13 @@ def run(cfg: MappingConfig, stop: threading.Event) -> None:
             node.subscribe(k.slave(slave, "operating_state"), OperatingState, a.on_slave_state)
             arms.append(a)
             log.info("mapping %s → %s, scale %.2f", master, slave, cfg.scale)
-        while not stop.wait(0.01):
+        period = 0.01
+        t_next = time.monotonic() + period
+        while not stop.wait(max(0.0, t_next - time.monotonic())):
+            late = time.monotonic() - t_next
+            t_next = max(t_next + period, time.monotonic())
+            if late > period:
+                continue  # we were descheduled: let queued samples arrive before judging staleness
             for a in arms:
                 a.check_timeouts()
 

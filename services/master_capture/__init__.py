@@ -1,8 +1,8 @@
 """master_capture: samples a master device and publishes its pose, joints and buttons.
 
 Publishes at ``rate_hz`` (default 500 Hz) on ``master/<arm>/measured_cp`` (CartesianPose, master
-frame), ``master/<arm>/buttons`` (MasterButtons) and, for devices with joints,
-``master/<arm>/measured_js``.
+frame) and, for devices with joints, ``master/<arm>/measured_js``; ``master/<arm>/buttons``
+(MasterButtons) goes out before the pose on every change and at least at ``buttons_hz``.
 
 Example::
 
@@ -34,7 +34,8 @@ class MasterCaptureConfig:
     site: str = "local"  # key prefix telesurg/<site>
     service: str = "master_capture"  # instance id (liveliness alive/<service>, header src)
     arm: str = "m1"  # master arm id in keys master/<arm>/...
-    rate_hz: float = 500.0  # Hz: publish rate of pose and buttons
+    rate_hz: float = 500.0  # Hz: publish rate of the pose (and joints)
+    buttons_hz: float = 50.0  # Hz: buttons are sent on every change and at least this often
     device: str = "scripted"  # device type; valid: scripted
     scripted: ScriptedConfig = field(default_factory=ScriptedConfig)  # scripted device settings
     bus: BusConfig = field(default_factory=BusConfig)  # zenoh session
@@ -52,10 +53,15 @@ def run(cfg: MasterCaptureConfig, stop: threading.Event) -> None:
         js_out = node.outlet(k.master(cfg.arm, "measured_js")) if device.joint_names else None
         timer = CycleTimer(cfg.rate_hz)
         t0 = time.monotonic()
+        buttons_every = max(1, round(cfg.rate_hz / cfg.buttons_hz))
+        last_buttons: tuple[bool, bool] | None = None
         log.info("publishing master %s at %.0f Hz (%s)", cfg.arm, cfg.rate_hz, cfg.device)
         while not stop.is_set():
             s = device.read(time.monotonic() - t0)
-            buttons_out.put(MasterButtons(buttons_out.header(), s.clutch, s.operator_present))
+            buttons = (s.clutch, s.operator_present)
+            if buttons != last_buttons or timer.cycles % buttons_every == 0:
+                last_buttons = buttons
+                buttons_out.put(MasterButtons(buttons_out.header(), *buttons))
             pose_out.put(CartesianPose(pose_out.header(), "master", s.position, s.orientation))
             if js_out is not None:
                 js_out.put(JointState(js_out.header(), device.joint_names, s.joints))

@@ -48,6 +48,9 @@ class SlaveControlConfig:
     state_hz: float = 20.0  # Hz: operating_state (also sent on every change)
     setpoint_timeout_ms: float = 100.0  # ms: an older setpoint is stale → hold
     engage_tolerance_rad: float = 0.02  # rad: first followed setpoint must be this close to the arm
+    # The watchdog's liveliness token is watched too: its death revokes the lease at once
+    # (in ms), instead of after the lease lifetime.
+    watchdog_service: str = "watchdog"
     bus: BusConfig = field(default_factory=BusConfig)  # zenoh session
 
 
@@ -62,11 +65,19 @@ class SlaveService:
         self.lease = Lease()
         self.setpoint: Setpoint | None = None
         self.rejected_setpoints = 0
+        self.cycle = 0  # control cycles executed; stamped on inputs (see control.py)
+        self.dt = 0.001
 
     def on_lease(self, msg: SafetyLease, key: str) -> None:
         now = time.monotonic()
         with self.lock:
-            self.lease = Lease(msg.allow, now + msg.valid_for_ms / 1e3, msg.reason)
+            valid_cycles = round(msg.valid_for_ms / 1e3 / self.dt)
+            self.lease = Lease(msg.allow, now + msg.valid_for_ms / 1e3, msg.reason, self.cycle, valid_cycles)
+
+    def on_watchdog_alive(self, service: str, alive: bool) -> None:
+        if service == self.cfg.watchdog_service and not alive:
+            with self.lock:
+                self.lease = Lease(False, 0.0, f"{service} not alive")
 
     def on_setpoint(self, msg: JointSetpoint, key: str) -> None:
         reason = ""
@@ -86,7 +97,7 @@ class SlaveService:
                 self.node.event("setpoint_rejected", reason, arm=self.cfg.arm, severity="warning")
             return
         with self.lock:
-            self.setpoint = Setpoint(q, msg.follow, time.monotonic())
+            self.setpoint = Setpoint(q, msg.follow, time.monotonic(), self.cycle)
 
 
 def run(cfg: SlaveControlConfig, stop: threading.Event) -> None:
@@ -105,13 +116,14 @@ def run(cfg: SlaveControlConfig, stop: threading.Event) -> None:
         state_out = node.outlet(k.slave(cfg.arm, "operating_state"))
         node.subscribe(k.safety(cfg.arm, "lease"), SafetyLease, svc.on_lease)
         node.subscribe(k.slave(cfg.arm, "servo_jp"), JointSetpoint, svc.on_setpoint)
+        node.watch_liveliness(k.alive(cfg.watchdog_service), svc.on_watchdog_alive)
 
         ctl = FollowController(
             np.array(MH3F.max_velocity),
             setpoint_timeout=cfg.setpoint_timeout_ms / 1e3,
             engage_tolerance=cfg.engage_tolerance_rad,
         )
-        dt = backend.dt
+        dt = svc.dt = backend.dt
         timer = CycleTimer(1.0 / dt)
         pub_every = max(1, round(1.0 / (dt * cfg.publish_hz)))
         state_every = max(1, round(1.0 / (dt * cfg.state_hz)))
@@ -125,13 +137,14 @@ def run(cfg: SlaveControlConfig, stop: threading.Event) -> None:
             now = time.monotonic()
             with svc.lock:
                 lease, sp = svc.lease, svc.setpoint
-            q_cmd = ctl.update(now, reading.position, q_cmd, lease, sp, dt)
+            q_cmd = ctl.update(now, reading.position, q_cmd, lease, sp, dt, svc.cycle)
             backend.command(q_cmd)
             missed = timer.wait()
             backend.step(1 + missed)  # stay in real time: catch up missed periods
             caught_up += missed
             reading = backend.read()
             cycle += 1
+            svc.cycle = cycle
             for kind, text in ctl.events:
                 node.event(kind, text, arm=cfg.arm, severity="warning" if kind == "hold" else "info")
             ctl.events.clear()
@@ -154,7 +167,7 @@ def run(cfg: SlaveControlConfig, stop: threading.Event) -> None:
                         (float(qt[0]), float(qt[1]), float(qt[2]), float(qt[3])),
                     )
                 )
-            lease_ok = ctl.lease_ok(lease, now)
+            lease_ok = ctl.lease_ok(lease, now, cycle)
             state = (ctl.following, lease_ok, ctl.reason)
             if state != last_state or cycle % state_every == 0:
                 last_state = state

@@ -8,6 +8,11 @@ Rules (safety first — any doubt means hold):
   a ``follow=True`` one counts, and the first followed setpoint must be close to where the arm is
   (no jump); otherwise the engage is refused with a reason.
 * Commanded joints move toward the target no faster than the joint speed limits.
+
+Ages are judged on two clocks: wall time *and* control cycles executed since the input arrived.
+An input is stale (or a lease expired) only when both say so. A slave process that was itself
+descheduled for a while therefore does not hold on inputs that are merely waiting in its queue;
+a silent input still times out after the same time once the loop runs.
 """
 
 from __future__ import annotations
@@ -19,20 +24,27 @@ import numpy as np
 
 @dataclass
 class Lease:
-    """Latest lease as seen by the slave (times on the local monotonic clock, s)."""
+    """Latest lease as seen by the slave (times on the local monotonic clock, s).
+
+    ``cycle``/``valid_cycles``: control cycle at reception and lifetime in cycles (None: wall
+    time only).
+    """
 
     allow: bool = False
     expires: float = 0.0
     reason: str = "no lease received"
+    cycle: int | None = None
+    valid_cycles: int = 0
 
 
 @dataclass
 class Setpoint:
-    """Latest accepted setpoint (receive time on the local monotonic clock, s)."""
+    """Latest accepted setpoint (receive time on the local monotonic clock, s; control cycle)."""
 
     position: np.ndarray
     follow: bool
     received: float
+    cycle: int | None = None
 
 
 @dataclass
@@ -55,9 +67,20 @@ class FollowController:
     events: list[tuple[str, str]] = field(default_factory=list)  # (kind, text), drained by caller
     _hold_q: np.ndarray | None = None
 
-    def lease_ok(self, lease: Lease, now: float) -> bool:
-        """True while the lease allows motion and has not expired."""
-        return lease.allow and now < lease.expires
+    def lease_ok(self, lease: Lease, now: float, cycle: int | None = None) -> bool:
+        """True while the lease allows motion and has not expired (wall time and cycles)."""
+        if not lease.allow:
+            return False
+        if now < lease.expires:
+            return True
+        return cycle is not None and lease.cycle is not None and cycle - lease.cycle < lease.valid_cycles
+
+    def _fresh(self, sp: Setpoint | None, now: float, cycle: int | None, dt: float) -> bool:
+        if sp is None:
+            return False
+        if now - sp.received <= self.setpoint_timeout:
+            return True
+        return cycle is not None and sp.cycle is not None and (cycle - sp.cycle) * dt <= self.setpoint_timeout
 
     def update(
         self,
@@ -67,10 +90,11 @@ class FollowController:
         lease: Lease,
         sp: Setpoint | None,
         dt: float,
+        cycle: int | None = None,
     ) -> np.ndarray:
-        """Next commanded joint position (rad) after one period ``dt`` (s)."""
-        ok = self.lease_ok(lease, now)
-        fresh = sp is not None and now - sp.received <= self.setpoint_timeout
+        """Next commanded joint position (rad) after one period ``dt`` (s) at control ``cycle``."""
+        ok = self.lease_ok(lease, now, cycle)
+        fresh = self._fresh(sp, now, cycle, dt)
         if self.following:
             cause = ""
             if not ok:

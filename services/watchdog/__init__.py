@@ -32,7 +32,6 @@ from shared.messages import (
     CartesianPose,
     JointSetpoint,
     JointState,
-    MasterButtons,
     Message,
     SafetyLease,
     SafetyState,
@@ -52,11 +51,13 @@ class WatchdogConfig:
     required_services: list[str] = field(
         default_factory=lambda: ["master_capture", "mapping", "slave_control"]
     )
-    lease_hz: float = 100.0  # Hz: lease publish rate
-    lease_valid_ms: float = 50.0  # ms: lease lifetime at the slave (> 2 lease periods)
-    master_deadline_ms: float = 50.0  # ms: master measured_cp / buttons older than this → HOLD
-    servo_deadline_ms: float = 50.0  # ms: servo_jp older than this → HOLD
-    slave_deadline_ms: float = 50.0  # ms: slave measured_js older than this → HOLD
+    lease_hz: float = 50.0  # Hz: lease publish rate (also at once on any liveliness loss)
+    # ms: lease lifetime at the slave. Covers a *frozen* watchdog; a dead one is seen by the
+    # slave through liveliness in ms. Long enough to ride out the VM's scheduling stalls.
+    lease_valid_ms: float = 250.0
+    master_deadline_ms: float = 100.0  # ms: master measured_cp older than this → HOLD
+    servo_deadline_ms: float = 100.0  # ms: servo_jp older than this → HOLD
+    slave_deadline_ms: float = 100.0  # ms: slave measured_js older than this → HOLD
     state_hz: float = 5.0  # Hz: safety state republish rate (also sent on every change)
     bus: BusConfig = field(default_factory=BusConfig)  # zenoh session
 
@@ -76,7 +77,6 @@ class ArmWatch:
         self.arm = arm
         self.deadlines = {
             k.master(master, "measured_cp"): cfg.master_deadline_ms,
-            k.master(master, "buttons"): cfg.master_deadline_ms,
             k.slave(arm, "servo_jp"): cfg.servo_deadline_ms,
             k.slave(arm, "measured_js"): cfg.slave_deadline_ms,
         }
@@ -93,10 +93,15 @@ class Watchdog:
         self.cfg, self.node = cfg, node
         self.lock = threading.Lock()
         self.alive: set[str] = set()
+        # Ticks executed, and the tick at which each stream last delivered. A stream is stale
+        # only when it is old by wall time *and* by ticks: after the watchdog's own stall
+        # (descheduled), queued messages get a chance to arrive before anything is judged stale.
+        self.ticks = 0
+        self.tick_lock = threading.Lock()
+        self.last_tick: dict[str, int] = {}
         self.arms = [ArmWatch(node, cfg, *parse_pair(p)) for p in cfg.pairs]
         types: dict[str, type[Message]] = {
             "measured_cp": CartesianPose,
-            "buttons": MasterButtons,
             "servo_jp": JointSetpoint,
             "measured_js": JointState,
         }
@@ -106,7 +111,7 @@ class Watchdog:
         node.watch_liveliness(node.keys.alive(), self._on_alive)
 
     def _on_stream(self, msg: Message, key: str) -> None:
-        pass  # freshness is tracked by Node.streams (receive time of the last accepted message)
+        self.last_tick[key] = self.ticks  # receive time is tracked by Node.streams
 
     def _on_alive(self, service: str, alive: bool) -> None:
         with self.lock:
@@ -124,7 +129,8 @@ class Watchdog:
         out = [f"{s} not alive" for s in self.cfg.required_services if s not in alive]
         for key, deadline in a.deadlines.items():
             age_ms = self.node.streams.get(key).age_s() * 1e3
-            if age_ms > deadline:
+            ticks = self.ticks - self.last_tick.get(key, -(10**9))
+            if age_ms > deadline and ticks * 1e3 / self.cfg.lease_hz >= deadline:
                 stream = key.split("/", 2)[-1]
                 out.append(
                     f"{stream} never received"
@@ -135,6 +141,11 @@ class Watchdog:
 
     def tick(self, *, force_state: bool = False) -> None:
         """Evaluate every arm, publish leases (and states on change or when forced)."""
+        with self.tick_lock:  # the main loop and the liveliness callback both tick
+            self._tick(force_state)
+
+    def _tick(self, force_state: bool) -> None:
+        self.ticks += 1
         for a in self.arms:
             causes = self.causes(a)
             state = "OK" if not causes else "HOLD"
@@ -179,8 +190,9 @@ def run(cfg: WatchdogConfig, stop: threading.Event) -> None:
             wd.tick()
             n += 1
             if n % state_every == 0:
-                for a in wd.arms:
-                    wd.publish_state(a)
+                with wd.tick_lock:
+                    for a in wd.arms:
+                        wd.publish_state(a)
             next_t += period
             stop.wait(max(0.0, next_t - time.monotonic()))
         # Last word: revoke every lease explicitly before going away.

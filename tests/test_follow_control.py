@@ -1,0 +1,56 @@
+"""The slave's follow/hold rules (services.slave_control.control), without I/O."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from services.slave_control.control import FollowController, Lease, Setpoint
+
+VMAX = np.full(6, 2.0)
+DT = 0.001
+
+
+def make() -> tuple[FollowController, np.ndarray, Lease]:
+    return FollowController(VMAX), np.zeros(6), Lease(True, 1e9, "")
+
+
+def test_needs_follow_edge_then_tracks_rate_limited() -> None:
+    ctl, q, lease = make()
+    target = np.full(6, 0.01)
+    q = ctl.update(0.0, q, q, lease, Setpoint(target, True, 0.0), DT)
+    assert not ctl.following and "engage" in ctl.reason  # no False seen yet: no follow
+    ctl.update(0.0, q, q, lease, Setpoint(np.zeros(6), False, 0.0), DT)
+    q2 = ctl.update(0.0, q, q, lease, Setpoint(target, True, 0.0), DT)
+    assert ctl.following
+    np.testing.assert_allclose(q2, VMAX * DT)  # limited to max speed × dt
+
+
+def test_lease_expiry_and_revocation_hold() -> None:
+    ctl, q, lease = make()
+    ctl.update(0.0, q, q, lease, Setpoint(q, False, 0.0), DT)
+    ctl.update(0.0, q, q, lease, Setpoint(q, True, 0.0), DT)
+    assert ctl.following
+    moved = np.full(6, 0.05)
+    out = ctl.update(0.05, moved, moved, Lease(False, 1e9, "mapping not alive"), Setpoint(q, True, 0.05), DT)
+    assert not ctl.following and ctl.holds == 1 and "mapping not alive" in ctl.reason
+    np.testing.assert_allclose(out, moved)  # holds where it is, ignores the setpoint
+    ctl2, q, _ = make()
+    ctl2.update(0.0, q, q, Lease(True, 0.05, ""), Setpoint(q, False, 0.0), DT)
+    ctl2.update(0.01, q, q, Lease(True, 0.05, ""), Setpoint(q, True, 0.01), DT)
+    ctl2.update(0.06, q, q, Lease(True, 0.05, ""), Setpoint(q, True, 0.06), DT)
+    assert not ctl2.following and ctl2.reason == "lease expired"
+
+
+def test_resume_after_hold_needs_new_engage_and_no_jump() -> None:
+    ctl, q, lease = make()
+    ctl.update(0.0, q, q, lease, Setpoint(q, False, 0.0), DT)
+    ctl.update(0.0, q, q, lease, Setpoint(q, True, 0.0), DT)
+    ctl.update(0.2, q, q, lease, Setpoint(q, True, 0.0), DT)  # stale setpoint
+    assert not ctl.following and ctl.reason == "setpoint stream stale"
+    ctl.update(0.3, q, q, lease, Setpoint(q, True, 0.3), DT)
+    assert not ctl.following  # follow=True continuing is not a new engage
+    ctl.update(0.3, q, q, lease, Setpoint(q, False, 0.3), DT)
+    far = np.full(6, 0.5)
+    out = ctl.update(0.3, q, q, lease, Setpoint(far, True, 0.3), DT)
+    assert not ctl.following and "engage refused" in ctl.reason
+    np.testing.assert_allclose(out, q)

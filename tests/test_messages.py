@@ -1,0 +1,134 @@
+"""Message round trips and strict rejection of malformed payloads."""
+
+from __future__ import annotations
+
+import contextlib
+import math
+
+import msgpack
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from shared.errors import MessageError
+from shared.messages import (
+    MAX_PAYLOAD_BYTES,
+    SCHEMA_VERSION,
+    CartesianPose,
+    Header,
+    Heartbeat,
+    JointSetpoint,
+    JointState,
+    MasterButtons,
+    OperatingState,
+    SafetyEvent,
+    SafetyLease,
+    SafetyState,
+    decode,
+    decode_as,
+)
+
+H = Header("test", 7, 1_700_000_000_000_000_000)
+NAMES = ("j1", "j2", "j3", "j4", "j5", "j6")
+
+EXAMPLES = [
+    JointState(H, NAMES, (0.1, 0.2, 0.3, 0.4, 0.5, 0.6), (0.0,) * 6, (1.0,) * 6),
+    JointState(H, ("j1",), (0.1,)),
+    CartesianPose(H, "base", (0.5, 0.0, 0.2), (0.0, 0.0, 0.0, 1.0)),
+    MasterButtons(H, True, False),
+    JointSetpoint(H, NAMES, (0.0, 0.2, 0.3, 0.0, -0.6, 0.0), follow=True),
+    OperatingState(H, "PAUSED", "non_trocar", False, True, "clutch released", 3),
+    SafetyLease(H, "arm1", True, 50.0, ""),
+    SafetyState(H, "arm1", "HOLD", ("mapping not alive", "servo_jp stale (80 ms > 50 ms)")),
+    SafetyEvent(H, "arm1", "transition", "warning", "OK → HOLD"),
+    Heartbeat(H, "mapping", 12.5, 0),
+]
+
+
+@pytest.mark.parametrize("msg", EXAMPLES, ids=lambda m: m.TYPE)
+def test_round_trip(msg: object) -> None:
+    assert decode(msg.encode()) == msg  # type: ignore[attr-defined]
+
+
+def _valid() -> dict[str, object]:
+    return msgpack.unpackb(EXAMPLES[4].encode())  # type: ignore[no-any-return]
+
+
+def _pack(d: object) -> bytes:
+    return msgpack.packb(d)  # type: ignore[no-any-return]
+
+
+@pytest.mark.parametrize(
+    ("mutate", "needle"),
+    [
+        (lambda d: d.update(position=[0.0, math.nan, 0, 0, 0, 0]), "not finite"),
+        (lambda d: d.update(position=[0.0, math.inf, 0, 0, 0, 0]), "not finite"),
+        (lambda d: d.update(position=[0.0, 0.1]), "2 elements for 6 names"),
+        (lambda d: d.update(position="0.1"), "must be an array"),
+        (lambda d: d.update(position=[0.0, "x", 0, 0, 0, 0]), "must be a number"),
+        (lambda d: d.update(position=[True] * 6), "must be a number"),
+        (lambda d: d.update(follow=1), "must be a boolean"),
+        (lambda d: d.update(seq=-1), "outside"),
+        (lambda d: d.update(seq=1.5), "must be an integer"),
+        (lambda d: d.update(v=2), "unknown schema version"),
+        (lambda d: d.pop("v"), "unknown schema version"),
+        (lambda d: d.update(type="nope"), "unknown message type"),
+        (lambda d: d.update(extra=1), "unexpected fields"),
+        (lambda d: d.pop("follow"), "missing field 'follow'"),
+        (lambda d: d.update(src=""), "must not be empty"),
+        (lambda d: d.update(name=["j"] * 40, position=[0.0] * 40), "limit"),
+    ],
+)
+def test_rejects_malformed(mutate: object, needle: str) -> None:
+    d = _valid()
+    mutate(d)  # type: ignore[operator]
+    with pytest.raises(MessageError, match=needle):
+        decode(_pack(d))
+
+
+def test_rejects_truncated_and_garbage() -> None:
+    data = EXAMPLES[0].encode()
+    for n in (0, 1, len(data) // 2, len(data) - 1):
+        with pytest.raises(MessageError):
+            decode(data[:n])
+    with pytest.raises(MessageError, match="must be a map"):
+        decode(_pack([1, 2, 3]))
+    with pytest.raises(MessageError, match="bytes, limit"):
+        decode(b"\x00" * (MAX_PAYLOAD_BYTES + 1))
+
+
+def test_rejects_non_unit_quaternion_and_wrong_type() -> None:
+    d = msgpack.unpackb(EXAMPLES[2].encode())
+    d["orientation"] = [0.0, 0.0, 0.0, 2.0]
+    with pytest.raises(MessageError, match="unit quaternion"):
+        decode(_pack(d))
+    with pytest.raises(MessageError, match="expected 'servo_jp', got 'pose'"):
+        decode_as(EXAMPLES[2].encode(), JointSetpoint)
+
+
+def test_rejects_unknown_enum_values() -> None:
+    d = msgpack.unpackb(EXAMPLES[5].encode())
+    d["state"] = "RUNNING"
+    with pytest.raises(MessageError, match="not one of"):
+        decode(_pack(d))
+    assert SCHEMA_VERSION == 1
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.binary(max_size=512))
+def test_random_bytes_never_escape_as_other_errors(data: bytes) -> None:
+    with contextlib.suppress(MessageError):
+        decode(data)
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.integers(0, 200), st.integers(0, 255))
+def test_single_byte_mutations_decode_or_raise_message_error(pos: int, value: int) -> None:
+    data = bytearray(EXAMPLES[0].encode())
+    data[pos % len(data)] = value
+    try:
+        msg = decode(bytes(data))
+    except MessageError:
+        return
+    assert isinstance(msg, JointState)
+    assert all(math.isfinite(x) for x in msg.position)

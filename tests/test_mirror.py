@@ -1,0 +1,111 @@
+"""mirror as a real process: bus traffic in, a complete .rrd out, garbage survived."""
+
+from __future__ import annotations
+
+import math
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from services.mirror.view import entity_paths, scalar_counts, text_logs
+from shared.bus import BusConfig, Node, open_session
+from shared.messages import JointState, SafetyEvent
+
+ROOT = Path(__file__).resolve().parents[1]
+JOINTS = ("j1", "j2", "j3", "j4", "j5", "j6")
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port: int = s.getsockname()[1]
+        return port
+
+
+def _wait_alive(node: Node, service: str, timeout_s: float) -> bool:
+    seen = threading.Event()
+    node.watch_liveliness(node.keys.alive(service), lambda _svc, alive: seen.set() if alive else None)
+    return seen.wait(timeout_s)
+
+
+def _matching(publisher: Any) -> bool:
+    """A subscriber (the mirror's) matches this publisher (zenoh's stub types this as bool)."""
+    return bool(publisher.matching_status.matching)
+
+
+@pytest.mark.process
+def test_mirror_records_bus_traffic_to_rrd(tmp_path: Path) -> None:
+    ep = f"tcp/127.0.0.1:{_free_port()}"
+    out = tmp_path / "out.rrd"
+    router = open_session(BusConfig(mode="router", listen=[ep]))
+    proc: subprocess.Popen[str] | None = None
+    try:
+        proc = subprocess.Popen(
+            [
+                sys.executable,
+                "-m",
+                "services.cli",
+                "mirror",
+                "--connect",
+                ep,
+                "--set",
+                f"save='{out}'",
+            ],
+            cwd=ROOT,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
+        with Node(BusConfig(connect=[ep]), "local", "test_pub") as node:
+            assert _wait_alive(node, "mirror", 15.0), "mirror never joined the bus"
+            js = node.outlet(node.keys.slave("arm1", "measured_js"), control=False)
+            events = node.outlet(node.keys.events("test_pub"), control=False)
+            raw = node.session.declare_publisher(node.keys.slave("arm1", "measured_js"))
+            # The liveliness token precedes the subscriber by a few ms; wait until it matches.
+            deadline = time.monotonic() + 5.0
+            while not _matching(raw) and time.monotonic() < deadline:
+                time.sleep(0.02)
+            time.sleep(0.2)
+
+            sent = 0
+            t0 = time.monotonic()
+            for i in range(250):
+                q = tuple(0.3 * math.sin(0.02 * i + k) for k in range(6))
+                js.put(JointState(js.header(), JOINTS, q))
+                sent += 1
+                if i == 100:
+                    raw.put(b"garbage")
+                if i % 60 == 0:
+                    events.put(SafetyEvent(events.header(), "arm1", "test", "warning", f"event {i}"))
+                time.sleep(max(0.0, t0 + (i + 1) / 250 - time.monotonic()))
+            raw.undeclare()  # type: ignore[no-untyped-call]
+            time.sleep(0.3)  # let the last samples reach the mirror
+
+        proc.send_signal(signal.SIGINT)
+        _, stderr = proc.communicate(timeout=15)
+        assert proc.returncode == 0, stderr
+        assert "rejected message" in stderr  # the garbage was seen and counted, not fatal
+
+        assert out.is_file()
+        paths = entity_paths(out)
+        assert "/slave/arm1/joints/j1/measured" in paths
+        assert "/slave/arm1/links" in paths
+        assert "/events" in paths
+        counts = scalar_counts(out)
+        for j in JOINTS:
+            n = counts.get(f"/slave/arm1/joints/{j}/measured", 0)
+            assert 0.9 * sent <= n <= sent, (j, n, sent)
+        logged = [t for p, _lvl, t in text_logs(out) if p == "/events"]
+        assert logged == [f"[arm1] test: event {i}" for i in range(0, 250, 60)]
+    finally:
+        if proc is not None and proc.poll() is None:
+            proc.kill()
+            proc.wait(timeout=5)
+        router.close()  # type: ignore[no-untyped-call]

@@ -1,0 +1,207 @@
+"""Process-level test: router + every service as separate OS processes on loopback.
+
+Acceptance of the spine: the slave follows the scaled master within 2 mm, no sequence gaps, the
+mirror's .rrd holds the slave joint series; SIGKILL of master_capture → the slave holds (< 1 mm);
+a restarted master does not move the slave until the clutch engages again (no jump); SIGINT to
+the launcher stops everything with exit code 0 and leaves no process behind.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from services.launcher import SiteSpec, default_config_dir, free_port, service_argv, wait_port
+from shared.bus import BusConfig, Node
+from shared.messages import CartesianPose, JointSetpoint, JointState, OperatingState
+
+pytestmark = pytest.mark.process
+
+SCALE = 0.5  # deploy/local/mapping.toml
+
+
+@dataclass
+class Probe:
+    """A test-side zenoh client recording what a user would look at."""
+
+    node: Node
+    lock: threading.Lock = field(default_factory=threading.Lock)
+    master: list[tuple[int, float, float, float]] = field(default_factory=list)
+    slave: list[tuple[int, float, float, float]] = field(default_factory=list)
+    follow: list[tuple[int, bool]] = field(default_factory=list)
+
+    def __post_init__(self) -> None:
+        k = self.node.keys
+        self.node.subscribe(k.master("m1", "measured_cp"), CartesianPose, self._on(self.master))
+        self.node.subscribe(k.slave("arm1", "measured_cp"), CartesianPose, self._on(self.slave))
+        self.node.subscribe(k.slave("arm1", "servo_jp"), JointSetpoint, lambda m, k: None)
+        self.node.subscribe(k.slave("arm1", "measured_js"), JointState, lambda m, k: None)
+        self.node.subscribe(k.slave("arm1", "operating_state"), OperatingState, self._on_state)
+
+    def _on(self, store: list[tuple[int, float, float, float]]):  # type: ignore[no-untyped-def]
+        def cb(msg: CartesianPose, key: str) -> None:
+            with self.lock:
+                store.append((msg.header.stamp_ns, *msg.position))
+
+        return cb
+
+    def _on_state(self, msg: OperatingState, key: str) -> None:
+        with self.lock:
+            self.follow.append((msg.header.stamp_ns, msg.follow))
+
+    def following(self) -> bool:
+        with self.lock:
+            return bool(self.follow) and self.follow[-1][1]
+
+    def arrays(self) -> tuple[np.ndarray, np.ndarray]:
+        with self.lock:
+            return np.array(self.master).reshape(-1, 4), np.array(self.slave).reshape(-1, 4)
+
+    def gaps(self, stream: str) -> int:
+        return self.node.streams.get(self.node.keys.slave("arm1", stream)).gaps
+
+
+def wait_for(pred, timeout: float, what: str) -> None:  # type: ignore[no-untyped-def]
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if pred():
+            return
+        time.sleep(0.02)
+    raise AssertionError(f"timed out after {timeout} s waiting for {what}")
+
+
+def tip_at(slave: np.ndarray, t_ns: int) -> np.ndarray:
+    """Slave tip position at time t (last sample at or before t)."""
+    i = int(np.searchsorted(slave[:, 0], t_ns, side="right")) - 1
+    return slave[max(i, 0), 1:]
+
+
+def pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    return True
+
+
+@pytest.fixture
+def site(tmp_path: Path) -> Iterator[tuple[subprocess.Popen[bytes], SiteSpec, Path]]:
+    port = free_port()
+    logs = tmp_path / "logs"
+    rrd = tmp_path / "session.rrd"
+    argv = [sys.executable, "-m", "services.cli", "up", "--port", str(port), "--log-dir", str(logs)]
+    argv += ["--save", str(rrd)]
+    launcher_log = (tmp_path / "launcher.log").open("wb")
+    proc = subprocess.Popen(argv, stderr=launcher_log)
+    spec = SiteSpec(port=port, config_dir=default_config_dir(), log_dir=logs)
+    try:
+        assert wait_port("127.0.0.1", port, 20), "router did not come up"
+        yield proc, spec, rrd
+    finally:
+        if proc.poll() is None:
+            proc.send_signal(signal.SIGINT)
+            try:
+                proc.wait(20)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait()
+        launcher_log.close()
+        for f in sorted(logs.glob("*.log")):
+            print(f"--- {f.name}\n{f.read_text()[-3000:]}")
+
+
+def test_pipeline_follow_kill_restart_shutdown(
+    site: tuple[subprocess.Popen[bytes], SiteSpec, Path],
+) -> None:
+    launcher, spec, rrd = site
+    with Node(BusConfig(connect=[spec.endpoint]), "local", "test_probe") as node:
+        probe = Probe(node)
+        wait_for(probe.following, 20, "the slave to follow the master")
+        t_follow = time.time_ns()
+        time.sleep(6.0)  # ≥ 5 s of scripted motion
+
+        # --- 2. the slave tip followed the scaled master motion within 2 mm after settling
+        master, slave = probe.arrays()
+        sel = (slave[:, 0] > t_follow + 0.5e9) & (slave[:, 0] < master[-1, 0])
+        ts = slave[sel, 0]
+        assert ts.size > 1000, f"only {ts.size} slave samples while following"
+        # The master sample in effect at each slave sample (sample-and-hold: the slave cannot follow
+        # motion the master never published, e.g. while the master process was descheduled).
+        pm = master[np.searchsorted(master[:, 0], ts, side="right") - 1, 1:]
+        offset = slave[sel, 1:] - SCALE * pm
+        err_mm = np.linalg.norm(offset - np.median(offset, axis=0), axis=1) * 1e3
+        travel_mm = np.ptp(slave[sel, 1:], axis=0).max() * 1e3
+        print(
+            f"tracking error mean {err_mm.mean():.3f} mm, max {err_mm.max():.3f} mm, "
+            f"travel {travel_mm:.1f} mm"
+        )
+        assert travel_mm > 30.0, "the slave did not draw the circle"  # 40 mm master radius × 0.5 → 40 mm
+        assert err_mm.max() < 2.0
+        assert probe.gaps("servo_jp") == 0
+        assert probe.gaps("measured_js") == 0
+        assert node.streams.get(node.keys.slave("arm1", "measured_js")).received > 1000
+
+        # --- 3. SIGKILL master capture: the slave holds
+        pids = json.loads((spec.log_dir / "pids.json").read_text())  # type: ignore[operator]
+        t_kill = time.time_ns()
+        os.kill(pids["master_capture"], signal.SIGKILL)
+        wait_for(lambda: not probe.following(), 2, "the slave to hold after the kill")
+        time.sleep(1.5)
+        _, slave = probe.arrays()
+        p_kill = tip_at(slave, t_kill)
+        after = slave[slave[:, 0] >= t_kill, 1:]
+        moved_mm = np.linalg.norm(after - p_kill, axis=1).max() * 1e3
+        print(f"tip motion after SIGKILL: {moved_mm:.3f} mm")
+        assert moved_mm < 1.0
+
+        # --- restart master capture: no motion until the clutch engages again, then no jump
+        t_restart = time.time_ns()
+        master_log = (spec.log_dir / "master_capture.restart.log").open("wb")  # type: ignore[operator]
+        restarted = subprocess.Popen(
+            service_argv(spec, "master_capture"), stdout=master_log, stderr=subprocess.STDOUT
+        )
+        try:
+            wait_for(probe.following, 15, "re-engage after the master restart")
+            with probe.lock:
+                t_engage = next(t for t, f in reversed(probe.follow) if not f)  # last hold sample
+            time.sleep(1.0)
+            _, slave = probe.arrays()
+            p_restart = tip_at(slave, t_restart)
+            before = slave[(slave[:, 0] >= t_restart) & (slave[:, 0] <= t_engage), 1:]
+            drift_mm = np.linalg.norm(before - p_restart, axis=1).max() * 1e3
+            win = slave[(slave[:, 0] >= t_engage - 0.2e9) & (slave[:, 0] <= t_engage + 0.2e9), 1:]
+            step_mm = np.linalg.norm(np.diff(win, axis=0), axis=1).max() * 1e3
+            print(
+                f"motion before re-engage {drift_mm:.3f} mm; largest 4 ms step at re-engage {step_mm:.3f} mm"
+            )
+            assert before.shape[0] > 50, "no slave samples between restart and re-engage"
+            assert drift_mm < 0.5
+            assert step_mm < 1.0
+        finally:
+            restarted.send_signal(signal.SIGINT)
+            assert restarted.wait(10) == 0
+            master_log.close()
+
+    # --- 4. SIGINT to the launcher stops every process, exit code 0, no orphans
+    launcher.send_signal(signal.SIGINT)
+    assert launcher.wait(30) == 0
+    alive = [name for name, pid in pids.items() if pid_alive(pid)]
+    assert not alive, f"processes left behind: {alive}"
+
+    # --- the mirror's recording holds the slave joint series
+    from services.mirror.view import scalar_counts
+
+    assert rrd.exists()
+    counts = scalar_counts(rrd)
+    assert counts.get("/slave/arm1/joints/j1/measured", 0) > 1000, sorted(counts)[:20]
