@@ -94,7 +94,9 @@ def rpy_matrix(rpy_deg: tuple[float, float, float]) -> np.ndarray:
 class ArmMapping:
     """Mapping state of one master → slave pair. Thread-safe: zenoh callbacks call in."""
 
-    def __init__(self, cfg: MappingConfig, node: Node, master: str, slave: str) -> None:
+    def __init__(
+        self, cfg: MappingConfig, node: Node, master: str, slave: str, work: threading.Event
+    ) -> None:
         self.cfg, self.node, self.master, self.slave = cfg, node, master, slave
         self.geom = MH3F
         self.r_ms = rpy_matrix(cfg.master_to_slave_rpy_deg)
@@ -114,6 +116,12 @@ class ArmMapping:
         self.ref: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None
         self.ik_failures = 0
         self.ik_streak = 0
+        # Newest master sample not yet mapped. The zenoh callback only stores it; the service
+        # loop maps it. If mapping ever falls behind, it maps the newest sample and skips the
+        # rest (counted in ``conflated``) instead of queueing latency.
+        self.pending: CartesianPose | None = None
+        self.conflated = 0
+        self.work = work
 
     # -- inputs -----------------------------------------------------------------------
     def on_buttons(self, msg: MasterButtons, key: str) -> None:
@@ -143,6 +151,17 @@ class ArmMapping:
     def on_master_pose(self, msg: CartesianPose, key: str) -> None:
         with self.lock:
             self.master_rx = time.monotonic()
+            if self.pending is not None:
+                self.conflated += 1
+            self.pending = msg
+        self.work.set()
+
+    def process(self) -> None:
+        """Map the newest master sample, if any (older unprocessed ones are skipped)."""
+        with self.lock:
+            msg, self.pending = self.pending, None
+            if msg is None:
+                return
             b = self.buttons
             if not self.following and b is not None and b.clutch and not self.need_release:
                 self._try_engage(msg)
@@ -268,24 +287,38 @@ def run(cfg: MappingConfig, stop: threading.Event) -> None:
     with Node(cfg.bus, cfg.site, cfg.service) as node:
         k = node.keys
         arms = []
+        work = threading.Event()  # set by every master sample
         for pair in cfg.pairs:
             master, slave = parse_pair(pair)
-            a = ArmMapping(cfg, node, master, slave)
+            a = ArmMapping(cfg, node, master, slave, work)
             node.subscribe(k.master(master, "buttons"), MasterButtons, a.on_buttons)
             node.subscribe(k.master(master, "measured_cp"), CartesianPose, a.on_master_pose)
             node.subscribe(k.slave(slave, "measured_js"), JointState, a.on_slave_js)
             node.subscribe(k.slave(slave, "operating_state"), OperatingState, a.on_slave_state)
             arms.append(a)
             log.info("mapping %s → %s, scale %.2f", master, slave, cfg.scale)
-        period = 0.01
-        t_next = time.monotonic() + period
-        while not stop.wait(max(0.0, t_next - time.monotonic())):
-            late = time.monotonic() - t_next
-            t_next = max(t_next + period, time.monotonic())
-            if late > period:
-                continue  # we were descheduled: let queued samples arrive before judging staleness
+        check_period = 0.01  # s: master staleness check
+        last_check = last_iter = time.monotonic()
+        while not stop.is_set():
+            work.wait(check_period)
+            work.clear()
             for a in arms:
-                a.check_timeouts()
+                a.process()
+            now = time.monotonic()
+            stalled = now - last_iter > 2 * check_period  # we were descheduled: let queued
+            last_iter = now  # samples arrive before judging anything stale
+            if now - last_check >= check_period and not stalled:
+                last_check = now
+                for a in arms:
+                    a.check_timeouts()
+        for a in arms:
+            log.info(
+                "%s → %s: %d IK failures, %d samples skipped (conflated)",
+                a.master,
+                a.slave,
+                a.ik_failures,
+                a.conflated,
+            )
 
 
 def main(argv: Sequence[str] | None = None) -> int:

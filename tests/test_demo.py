@@ -1,0 +1,38 @@
+"""``telesurg demo --headless``: the main job runs end to end and writes a truthful report."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from services.mirror.view import scalar_counts
+
+pytestmark = pytest.mark.process
+
+
+def test_demo_headless_report(tmp_path: Path) -> None:
+    report, rrd = tmp_path / "report.json", tmp_path / "demo.rrd"
+    argv = [sys.executable, "-m", "services.cli", "demo", "--headless", "--seconds", "8", "--port", "0"]
+    argv += ["--save", str(rrd), "--report", str(report), "--log-dir", str(tmp_path / "logs")]
+    proc = subprocess.run(argv, capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    r = json.loads(report.read_text())
+    assert set(r["exit_codes"].values()) == {0}
+    for stream in ("servo_jp", "measured_js", "measured_cp", "master_cp"):
+        assert r["streams"][stream]["received"] > 500, stream
+        assert r["streams"][stream]["gaps"] == 0, stream
+    err = r["tip_tracking_error_mm"]
+    assert err["samples"] > 500 and err["max_mm"] < 2.0
+    assert r["engagements"] == 1 and r["holds"] == 0
+    assert scalar_counts(rrd).get("/slave/arm1/joints/j6/measured", 0) > 500
+
+
+def test_demo_headless_needs_seconds() -> None:
+    proc = subprocess.run(
+        [sys.executable, "-m", "services.cli", "demo", "--headless"], capture_output=True, text=True
+    )
+    assert proc.returncode == 2 and "--seconds" in proc.stderr
