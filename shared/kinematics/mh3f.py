@@ -72,13 +72,7 @@ import numpy as np
 import numpy.typing as npt
 
 from shared.errors import IKError, KinematicsError
-from shared.kinematics.transforms import (
-    FloatArray,
-    make_transform,
-    rot_x,
-    rot_y,
-    rot_z,
-)
+from shared.kinematics.transforms import FloatArray
 
 __all__ = [
     "LIMIT_TOL",
@@ -205,56 +199,160 @@ MH3F_NO_TOOL = replace(MH3F, tool=0.0)
 """Same arm without a tool; the TCP is the flange (mechanical interface)."""
 
 
+_Vec3 = tuple[float, float, float]
+
+
+class _Params(NamedTuple):
+    """Constants of one geometry used on the hot paths, derived once (see :func:`_params`)."""
+
+    d1: float
+    a2: float
+    a3: float
+    d4: float
+    d6: float
+    tool: float
+    wrist_to_tcp: float
+    upper_arm_length: float
+    upper_arm_angle: float
+    a2_sq: float  # a2 * a2
+    upper_arm_length_sq: float  # L * L
+    two_a2_l: float  # 2 * a2 * L
+    reach_max: float  # reach + _REACH_TOL
+    reach_min: float  # min_reach - _REACH_TOL
+    bounds: tuple[tuple[float, float, float, float], ...]  # (lo, hi, lo - LIMIT_TOL, hi + LIMIT_TOL)
+
+
+# id(geom) -> (geom, params). The geometry is frozen, and holding it keeps its id unique while cached.
+_PARAMS_CACHE: dict[int, tuple[ArmGeometry, _Params]] = {}
+_PARAMS_CACHE_MAX = 32
+
+
+def _params(geom: ArmGeometry) -> _Params:
+    """The cached :class:`_Params` of ``geom``."""
+    entry = _PARAMS_CACHE.get(id(geom))
+    if entry is not None and entry[0] is geom:
+        return entry[1]
+    a2, length = geom.a2, geom.upper_arm_length
+    params = _Params(
+        d1=geom.d1,
+        a2=a2,
+        a3=geom.a3,
+        d4=geom.d4,
+        d6=geom.d6,
+        tool=geom.tool,
+        wrist_to_tcp=geom.wrist_to_tcp,
+        upper_arm_length=length,
+        upper_arm_angle=geom.upper_arm_angle,
+        a2_sq=a2 * a2,
+        upper_arm_length_sq=length * length,
+        two_a2_l=2.0 * a2 * length,
+        reach_max=geom.reach + _REACH_TOL,
+        reach_min=geom.min_reach - _REACH_TOL,
+        bounds=tuple(
+            (lo, hi, lo - LIMIT_TOL, hi + LIMIT_TOL) for lo, hi in zip(geom.lower, geom.upper, strict=True)
+        ),
+    )
+    if len(_PARAMS_CACHE) >= _PARAMS_CACHE_MAX:
+        _PARAMS_CACHE.clear()
+    _PARAMS_CACHE[id(geom)] = (geom, params)
+    return params
+
+
 class _Chain(NamedTuple):
-    """Intermediate frames of the serial chain (all in the base frame)."""
+    """Joint-axis directions and link points of the serial chain (base frame, Python floats)."""
 
-    R1: FloatArray  # after J1
-    R2: FloatArray  # after J2
-    R3: FloatArray  # after J3
-    R4: FloatArray  # after J4
-    R5: FloatArray  # after J5
-    R6: FloatArray  # after J6 = flange / TCP orientation
-    p_j2: FloatArray
-    p_j3: FloatArray
-    p_j4: FloatArray
-    p_wrist: FloatArray
-    p_flange: FloatArray
-    p_tcp: FloatArray
+    y1: _Vec3  # R1[:, 1] (= R2[:, 1])
+    x3: _Vec3  # R3[:, 0] (= R4[:, 0])
+    y4: _Vec3  # R4[:, 1] (= R5[:, 1])
+    x6: _Vec3  # R6[:, 0] (= R5[:, 0]), the tool axis
+    y6: _Vec3  # R6[:, 1]
+    z6: _Vec3  # R6[:, 2]
+    p_j2: _Vec3
+    p_j3: _Vec3
+    p_j4: _Vec3
+    p_wrist: _Vec3
+    p_flange: _Vec3
+    p_tcp: _Vec3
 
 
-def _as_q(q: npt.ArrayLike, what: str = "q") -> FloatArray:
+def _q_values(q: npt.ArrayLike, what: str = "q") -> list[float]:
+    """``q`` checked to be 6 finite joint angles [rad]; returned as Python floats."""
     try:
         arr = np.asarray(q, dtype=np.float64)
     except (TypeError, ValueError) as exc:
         raise KinematicsError(f"{what} must be 6 joint angles [rad]: {exc}") from exc
     if arr.shape != (6,):
         raise KinematicsError(f"{what} must have shape (6,), got {arr.shape}")
-    if not np.all(np.isfinite(arr)):
-        raise KinematicsError(f"{what} must be finite, got {arr.tolist()}")
-    return arr
+    values: list[float] = arr.tolist()
+    # A finite sum implies finite terms (nan / inf propagate); only an overflow needs the full test.
+    if not math.isfinite(sum(values)) and not all(map(math.isfinite, values)):
+        raise KinematicsError(f"{what} must be finite, got {values}")
+    return values
 
 
 def _chain(q: npt.ArrayLike, geom: ArmGeometry) -> _Chain:
-    q1, q2, q3, q4, q5, q6 = (float(v) for v in _as_q(q))
-    R1 = rot_z(q1)
-    R2 = R1 @ rot_y(q2)
-    R3 = R2 @ rot_y(-q3)
-    R4 = R3 @ rot_x(q4)
-    R5 = R4 @ rot_y(-q5)
-    R6 = R5 @ rot_x(q6)
-    p_j2 = np.array([0.0, 0.0, geom.d1], dtype=np.float64)
-    p_j3 = p_j2 + geom.a2 * R2[:, 2]
-    p_j4 = p_j3 + geom.a3 * R3[:, 2]
-    p_wrist = p_j4 + geom.d4 * R4[:, 0]
-    p_flange = p_wrist + geom.d6 * R6[:, 0]
-    p_tcp = p_flange + geom.tool * R6[:, 0]
-    return _Chain(R1, R2, R3, R4, R5, R6, p_j2, p_j3, p_j4, p_wrist, p_flange, p_tcp)
+    """``R1 = Rz(q1)``, ``R3 = R1 Ry(q2 - q3)``, ``R4 = R3 Rx(q4)``, ``R5 = R4 Ry(-q5)``, ``R6 = R5 Rx(q6)``.
+
+    Written out column by column in scalar arithmetic (numpy is slow on 3-vectors).
+    """
+    q1, q2, q3, q4, q5, q6 = _q_values(q)
+    prm = _params(geom)
+    cos, sin = math.cos, math.sin
+    c1, s1 = cos(q1), sin(q1)
+    c2, s2 = cos(q2), sin(q2)
+    q23 = q2 - q3
+    c23, s23 = cos(q23), sin(q23)
+    c4, s4 = cos(q4), sin(q4)
+    c5, s5 = cos(q5), sin(q5)
+    c6, s6 = cos(q6), sin(q6)
+    # R3 = Rz(q1) Ry(q23): columns x3, y1, z3.
+    x3x, x3y, x3z = c1 * c23, s1 * c23, -s23
+    z3x, z3y, z3z = c1 * s23, s1 * s23, c23
+    # R4 = R3 Rx(q4): y4 = c4 y1 + s4 z3, z4 = -s4 y1 + c4 z3.
+    y4x, y4y, y4z = c4 * -s1 + s4 * z3x, c4 * c1 + s4 * z3y, s4 * z3z
+    z4x, z4y, z4z = -s4 * -s1 + c4 * z3x, -s4 * c1 + c4 * z3y, c4 * z3z
+    # R5 = R4 Ry(-q5): x5 = c5 x3 + s5 z4, z5 = -s5 x3 + c5 z4 (y5 = y4).
+    x5x, x5y, x5z = c5 * x3x + s5 * z4x, c5 * x3y + s5 * z4y, c5 * x3z + s5 * z4z
+    z5x, z5y, z5z = -s5 * x3x + c5 * z4x, -s5 * x3y + c5 * z4y, -s5 * x3z + c5 * z4z
+    # R6 = R5 Rx(q6): x6 = x5, y6 = c6 y4 + s6 z5, z6 = -s6 y4 + c6 z5.
+    y6 = (c6 * y4x + s6 * z5x, c6 * y4y + s6 * z5y, c6 * y4z + s6 * z5z)
+    z6 = (-s6 * y4x + c6 * z5x, -s6 * y4y + c6 * z5y, -s6 * y4z + c6 * z5z)
+    a2, a3, d4, d6, tool = prm.a2, prm.a3, prm.d4, prm.d6, prm.tool
+    d1 = prm.d1
+    # Link points; R2[:, 2] = (c1 s2, s1 s2, c2).
+    j3x, j3y, j3z = a2 * (c1 * s2), a2 * (s1 * s2), d1 + a2 * c2
+    j4x, j4y, j4z = j3x + a3 * z3x, j3y + a3 * z3y, j3z + a3 * z3z
+    wx, wy, wz = j4x + d4 * x3x, j4y + d4 * x3y, j4z + d4 * x3z
+    fx, fy, fz = wx + d6 * x5x, wy + d6 * x5y, wz + d6 * x5z
+    return _Chain(
+        y1=(-s1, c1, 0.0),
+        x3=(x3x, x3y, x3z),
+        y4=(y4x, y4y, y4z),
+        x6=(x5x, x5y, x5z),
+        y6=y6,
+        z6=z6,
+        p_j2=(0.0, 0.0, d1),
+        p_j3=(j3x, j3y, j3z),
+        p_j4=(j4x, j4y, j4z),
+        p_wrist=(wx, wy, wz),
+        p_flange=(fx, fy, fz),
+        p_tcp=(fx + tool * x5x, fy + tool * x5y, fz + tool * x5z),
+    )
 
 
 def fk(q: npt.ArrayLike, geom: ArmGeometry = MH3F) -> FloatArray:
     """TCP pose ``(4, 4)`` in the base frame for joint angles ``q`` ``(6,)`` [rad]."""
     c = _chain(q, geom)
-    return make_transform(c.R6, c.p_tcp)
+    x, y, z, p = c.x6, c.y6, c.z6, c.p_tcp
+    return np.array(
+        [
+            [x[0], y[0], z[0], p[0]],
+            [x[1], y[1], z[1], p[1]],
+            [x[2], y[2], z[2], p[2]],
+            [0.0, 0.0, 0.0, 1.0],
+        ],
+        dtype=np.float64,
+    )
 
 
 def fk_frames(q: npt.ArrayLike, geom: ArmGeometry = MH3F) -> FloatArray:
@@ -264,12 +362,14 @@ def fk_frames(q: npt.ArrayLike, geom: ArmGeometry = MH3F) -> FloatArray:
     centre, flange, TCP (tool tip).
     """
     c = _chain(q, geom)
-    return np.stack([np.zeros(3, dtype=np.float64), c.p_j2, c.p_j3, c.p_j4, c.p_wrist, c.p_flange, c.p_tcp])
+    return np.array(
+        [(0.0, 0.0, 0.0), c.p_j2, c.p_j3, c.p_j4, c.p_wrist, c.p_flange, c.p_tcp], dtype=np.float64
+    )
 
 
 def wrist_center(q: npt.ArrayLike, geom: ArmGeometry = MH3F) -> FloatArray:
     """Wrist centre (intersection of J4, J5, J6) ``(3,)`` [m] in the base frame."""
-    return _chain(q, geom).p_wrist
+    return np.array(_chain(q, geom).p_wrist, dtype=np.float64)
 
 
 def jacobian(q: npt.ArrayLike, geom: ArmGeometry = MH3F) -> FloatArray:
@@ -280,26 +380,30 @@ def jacobian(q: npt.ArrayLike, geom: ArmGeometry = MH3F) -> FloatArray:
     ``[z_i × (p_tcp - p_i); z_i]`` for joint axis ``z_i`` through point ``p_i``.
     """
     c = _chain(q, geom)
+    y1, y4 = c.y1, c.y4
     axes = (
-        np.array([0.0, 0.0, 1.0], dtype=np.float64),
-        c.R1[:, 1],
-        -c.R2[:, 1],
-        c.R3[:, 0],
-        -c.R4[:, 1],
-        c.R5[:, 0],
+        (0.0, 0.0, 1.0),
+        y1,
+        (-y1[0], -y1[1], -y1[2]),
+        c.x3,
+        (-y4[0], -y4[1], -y4[2]),
+        c.x6,
     )
-    points = (np.zeros(3, dtype=np.float64), c.p_j2, c.p_j3, c.p_j4, c.p_wrist, c.p_wrist)
-    J = np.empty((6, 6), dtype=np.float64)
-    for i, (z, p) in enumerate(zip(axes, points, strict=True)):
-        J[:3, i] = np.cross(z, c.p_tcp - p)
-        J[3:, i] = z
-    return J
+    points = ((0.0, 0.0, 0.0), c.p_j2, c.p_j3, c.p_j4, c.p_wrist, c.p_wrist)
+    tx, ty, tz = c.p_tcp
+    columns = []
+    for (ax, ay, az), (px, py, pz) in zip(axes, points, strict=True):
+        dx, dy, dz = tx - px, ty - py, tz - pz
+        columns.append((ay * dz - az * dy, az * dx - ax * dz, ax * dy - ay * dx, ax, ay, az))
+    return np.array(list(zip(*columns, strict=True)), dtype=np.float64)
 
 
 def within_limits(q: npt.ArrayLike, geom: ArmGeometry = MH3F, tol: float = 0.0) -> bool:
     """True if every joint of ``q`` ``(6,)`` [rad] is within its limits (± ``tol`` [rad])."""
-    arr = _as_q(q)
-    return bool(np.all(arr >= geom.lower_limits - tol) and np.all(arr <= geom.upper_limits + tol))
+    values = _q_values(q)
+    return all(v >= lo - tol for v, lo in zip(values, geom.lower, strict=True)) and all(
+        v <= hi + tol for v, hi in zip(values, geom.upper, strict=True)
+    )
 
 
 # --------------------------------------------------------------------------------------------
@@ -307,107 +411,190 @@ def within_limits(q: npt.ArrayLike, geom: ArmGeometry = MH3F, tol: float = 0.0) 
 # --------------------------------------------------------------------------------------------
 
 
-def _wrap(a: float) -> float:
-    """Angle wrapped to [-π, π]."""
-    return math.remainder(a, TWO_PI)
-
-
-def _as_pose(T: npt.ArrayLike) -> tuple[FloatArray, FloatArray]:
+def _as_pose(T: npt.ArrayLike) -> list[list[float]]:
+    """``T`` checked to be a finite 4x4 with a proper rotation block; its rows as Python floats."""
     try:
         arr = np.asarray(T, dtype=np.float64)
     except (TypeError, ValueError) as exc:
         raise IKError(f"target pose must be a numeric 4x4 transform: {exc}") from exc
     if arr.shape != (4, 4):
         raise IKError(f"target pose must have shape (4, 4), got {arr.shape}")
-    if not np.all(np.isfinite(arr)):
+    rows: list[list[float]] = arr.tolist()
+    r0, r1, r2, r3 = rows
+    # A finite sum implies finite terms (nan / inf propagate); only an overflow needs the full test.
+    if not math.isfinite(sum(r0) + sum(r1) + sum(r2) + sum(r3)) and not all(
+        math.isfinite(v) for row in rows for v in row
+    ):
         raise IKError("target pose contains non-finite values")
-    R = arr[:3, :3]
-    err = float(np.max(np.abs(R.T @ R - np.eye(3))))
-    if err > 1e-6 or np.linalg.det(R) < 0.0:
-        raise IKError(f"target rotation is not a proper rotation matrix (|RᵀR - I| = {err:.2e})")
-    return R, arr[:3, 3]
+    a, b, c = r0[0], r0[1], r0[2]
+    d, e, f = r1[0], r1[1], r1[2]
+    g, h, i = r2[0], r2[1], r2[2]
+    # |RᵀR - I| (RᵀR is symmetric) and det(R), in scalars: the fast test for a proper rotation.
+    err = max(
+        abs(a * a + d * d + g * g - 1.0),
+        abs(b * b + e * e + h * h - 1.0),
+        abs(c * c + f * f + i * i - 1.0),
+        abs(a * b + d * e + g * h),
+        abs(a * c + d * f + g * i),
+        abs(b * c + e * f + h * i),
+    )
+    det = a * (e * i - f * h) - b * (d * i - f * g) + c * (d * h - e * g)
+    if not (err <= 1e-6 and det >= 0.0):
+        # Rejected (or undecided): the reference test in numpy decides and gives the message.
+        R = arr[:3, :3]
+        err = float(np.max(np.abs(R.T @ R - np.eye(3))))
+        if err > 1e-6 or np.linalg.det(R) < 0.0:
+            raise IKError(f"target rotation is not a proper rotation matrix (|RᵀR - I| = {err:.2e})")
+    return rows
 
 
 def _ik_candidates(
-    T: npt.ArrayLike, geom: ArmGeometry, q_ref: FloatArray | None
-) -> tuple[FloatArray, str | None]:
-    """All analytic IK branches ``(M, 6)`` with every angle wrapped to [-π, π], limits ignored.
+    T: npt.ArrayLike, geom: ArmGeometry, q_ref: list[float] | None
+) -> tuple[list[tuple[float, ...]], str | None]:
+    """All analytic IK branches (up to 8 of 6 angles) with every angle wrapped to [-π, π], limits ignored.
 
-    Returns ``(empty, reason)`` when the wrist centre is out of reach. Raises IKError for a
+    Returns ``([], reason)`` when the wrist centre is out of reach. Raises IKError for a
     malformed pose.
     """
-    R, p = _as_pose(T)
-    W = p - geom.wrist_to_tcp * R[:, 0]
-    rxy = math.hypot(float(W[0]), float(W[1]))
-    z = float(W[2]) - geom.d1
+    rows = _as_pose(T)
+    r00, r01, r02, px = rows[0]
+    r10, r11, r12, py = rows[1]
+    r20, r21, r22, pz = rows[2]
+    prm = _params(geom)
+    k = prm.wrist_to_tcp
+    wx, wy, wz = px - k * r00, py - k * r10, pz - k * r20  # W = p - (d6 + tool) R[:, 0]
+    rxy = math.hypot(wx, wy)
+    z = wz - prm.d1
     dist = math.hypot(rxy, z)
-    L, phi, a2 = geom.upper_arm_length, geom.upper_arm_angle, geom.a2
 
-    if dist > geom.reach + _REACH_TOL:
-        return np.empty((0, 6)), (
+    if dist > prm.reach_max:
+        return [], (
             f"target wrist centre is {dist:.3f} m from the shoulder (J2 axis), beyond the "
             f"reach of {geom.reach:.3f} m (tip {geom.wrist_to_tcp:.3f} m from the wrist centre)"
         )
-    if dist < geom.min_reach - _REACH_TOL:
-        return np.empty((0, 6)), (
+    if dist < prm.reach_min:
+        return [], (
             f"target wrist centre is {dist:.4f} m from the shoulder (J2 axis), inside the "
             f"minimum reach of {geom.min_reach:.4f} m"
         )
 
+    cos, sin, atan2, rem = math.cos, math.sin, math.atan2, math.remainder
+
     # J1: front and back branch; on the J1 axis q1 is free, so keep the reference.
-    if rxy < SHOULDER_SINGULAR_TOL:
-        q1_front = float(q_ref[0]) if q_ref is not None else 0.0
-    else:
-        q1_front = math.atan2(float(W[1]), float(W[0]))
-    j1_branches = ((q1_front, rxy), (q1_front + math.pi, -rxy))
+    q1_ref = q_ref[0] if q_ref is not None else 0.0
+    q1_front = q1_ref if rxy < SHOULDER_SINGULAR_TOL else atan2(wy, wx)
 
-    # J3: elbow up / down from the law of cosines on (a2, L).
-    s = (dist * dist - a2 * a2 - L * L) / (2.0 * a2 * L)
+    # J3: elbow up / down from the law of cosines on (a2, L); q3 and the second atan2 of q2
+    # depend on the elbow branch only.
+    L, a2 = prm.upper_arm_length, prm.a2
+    s = (dist * dist - prm.a2_sq - prm.upper_arm_length_sq) / prm.two_a2_l
     psi0 = math.asin(min(1.0, max(-1.0, s)))
-    psis = (psi0, math.pi - psi0)
+    elbows = [
+        (psi - prm.upper_arm_angle, atan2(L * cos(psi), a2 + L * sin(psi))) for psi in (psi0, math.pi - psi0)
+    ]
 
-    q4_ref = float(q_ref[3]) if q_ref is not None else 0.0
-    out: list[list[float]] = []
-    for q1, x in j1_branches:
-        for psi in psis:
-            q3 = psi - phi
-            q2 = math.atan2(x, z) - math.atan2(L * math.cos(psi), a2 + L * math.sin(psi))
-            R36 = (rot_z(q1) @ rot_y(q2 - q3)).T @ R
-            sin_b = math.hypot(float(R36[1, 0]), float(R36[2, 0]))
-            if sin_b > WRIST_SINGULAR_TOL:
-                a0 = math.atan2(float(R36[1, 0]), float(-R36[2, 0]))
+    q4_ref = q_ref[3] if q_ref is not None else 0.0
+    out: list[tuple[float, ...]] = []
+    for q1, x in ((q1_front, rxy), (q1_front + math.pi, -rxy)):
+        c1, s1 = cos(q1), sin(q1)
+        # R36 = R3ᵀ R with R3 = Rz(q1) Ry(q2 - q3) = [x3, y1, z3]; its row 1 is y1ᵀ R, y1 = (-s1, c1, 0).
+        b10 = -s1 * r00 + c1 * r10
+        b11 = -s1 * r01 + c1 * r11
+        b12 = -s1 * r02 + c1 * r12
+        q2_plane = atan2(x, z)
+        w1 = rem(q1, TWO_PI)
+        for q3, elbow_term in elbows:
+            q2 = q2_plane - elbow_term
+            q23 = q2 - q3
+            c23, s23 = cos(q23), sin(q23)
+            x3x, x3y = c1 * c23, s1 * c23
+            z3x, z3y = c1 * s23, s1 * s23
+            b00 = x3x * r00 + x3y * r10 + -s23 * r20
+            b20 = z3x * r00 + z3y * r10 + c23 * r20
+            b21 = z3x * r01 + z3y * r11 + c23 * r21
+            b22 = z3x * r02 + z3y * r12 + c23 * r22
+            w2, w3 = rem(q2, TWO_PI), rem(q3, TWO_PI)
+            if math.hypot(b10, b20) > WRIST_SINGULAR_TOL:  # |sin q5|
+                a0 = atan2(b10, -b20)
                 q4s: tuple[float, ...] = (a0, a0 + math.pi)
             else:
                 q4s = (q4_ref,)
             for q4 in q4s:
-                M = rot_x(q4).T @ R36  # = Ry(-q5) Rx(q6)
-                q5 = -math.atan2(float(-M[2, 0]), float(M[0, 0]))
-                q6 = math.atan2(float(-M[1, 2]), float(M[1, 1]))
-                out.append([_wrap(v) for v in (q1, q2, q3, q4, q5, q6)])
-    return np.array(out, dtype=np.float64), None
+                # M = Rx(q4)ᵀ R36 = Ry(-q5) Rx(q6)
+                c4, s4 = cos(q4), sin(q4)
+                q5 = -atan2(-(-s4 * b10 + c4 * b20), b00)
+                q6 = atan2(-(c4 * b12 + s4 * b22), c4 * b11 + s4 * b21)
+                out.append((w1, w2, w3, rem(q4, TWO_PI), rem(q5, TWO_PI), rem(q6, TWO_PI)))
+    return out, None
 
 
-def _wrap_variants(value: float, lo: float, hi: float) -> list[float]:
-    """All ``value + 2πk`` in [lo - LIMIT_TOL, hi + LIMIT_TOL], clipped onto [lo, hi]."""
-    k_min = math.ceil((lo - LIMIT_TOL - value) / TWO_PI)
-    k_max = math.floor((hi + LIMIT_TOL - value) / TWO_PI)
-    return [min(hi, max(lo, value + k * TWO_PI)) for k in range(k_min, k_max + 1)]
+def _within_limit_solutions(
+    cands: list[tuple[float, ...]], bounds: tuple[tuple[float, float, float, float], ...]
+) -> list[tuple[float, ...]]:
+    """Every distinct within-limit solution: each joint's ``value + 2πk`` in [lo - LIMIT_TOL,
+    hi + LIMIT_TOL], clipped onto [lo, hi], combined over the joints, in candidate order.
 
-
-def _within_limit_solutions(cands: FloatArray, geom: ArmGeometry) -> list[FloatArray]:
-    sols: list[FloatArray] = []
+    ``bounds`` are the per-joint ``(lo, hi, lo - LIMIT_TOL, hi + LIMIT_TOL)`` of :func:`_params`.
+    """
+    ceil, floor = math.ceil, math.floor
+    sols: list[tuple[float, ...]] = []
     for cand in cands:
-        per_joint = [
-            _wrap_variants(float(v), lo, hi) for v, lo, hi in zip(cand, geom.lower, geom.upper, strict=True)
-        ]
-        for combo in itertools.product(*per_joint):
-            sol = np.array(combo, dtype=np.float64)
-            if not any(np.max(np.abs(sol - s)) < 1e-9 for s in sols):
-                sols.append(sol)
+        options: list[tuple[float, ...]] = []
+        several = False
+        for v, (lo, hi, lo_tol, hi_tol) in zip(cand, bounds, strict=True):
+            k_min = ceil((lo_tol - v) / TWO_PI)
+            k_max = floor((hi_tol - v) / TWO_PI)
+            if k_min == k_max:
+                options.append((min(hi, max(lo, v + k_min * TWO_PI)),))
+            elif k_min > k_max:
+                break  # no variant of this joint within its limits: the branch yields nothing
+            else:
+                several = True
+                options.append(tuple(min(hi, max(lo, v + k * TWO_PI)) for k in range(k_min, k_max + 1)))
+        else:
+            combos = itertools.product(*options) if several else (tuple([o[0] for o in options]),)
+            for combo in combos:
+                c0, c1, c2, c3, c4, c5 = combo
+                for s in sols:  # duplicate if every joint is within 1e-9 rad
+                    if (
+                        abs(c0 - s[0]) < 1e-9
+                        and abs(c1 - s[1]) < 1e-9
+                        and abs(c2 - s[2]) < 1e-9
+                        and abs(c3 - s[3]) < 1e-9
+                        and abs(c4 - s[4]) < 1e-9
+                        and abs(c5 - s[5]) < 1e-9
+                    ):
+                        break
+                else:
+                    sols.append(combo)
     return sols
 
 
-def _limit_violation_message(cands: FloatArray, geom: ArmGeometry) -> str:
+def _nearest(sols: list[tuple[float, ...]], qc: list[float], w: list[float] | None) -> int:
+    """Index of the first solution with the smallest ``sum(w * (s - qc)²)`` (like ``np.argmin``)."""
+    q0, q1, q2, q3, q4, q5 = qc
+    best_i, best = 0, math.inf
+    for i, (s0, s1, s2, s3, s4, s5) in enumerate(sols):
+        d0, d1, d2, d3, d4, d5 = s0 - q0, s1 - q1, s2 - q2, s3 - q3, s4 - q4, s5 - q5
+        if w is None:
+            cost = d0 * d0 + d1 * d1 + d2 * d2 + d3 * d3 + d4 * d4 + d5 * d5
+        else:
+            cost = (
+                w[0] * (d0 * d0)
+                + w[1] * (d1 * d1)
+                + w[2] * (d2 * d2)
+                + w[3] * (d3 * d3)
+                + w[4] * (d4 * d4)
+                + w[5] * (d5 * d5)
+            )
+        if cost < best:
+            best_i, best = i, cost
+        elif cost != cost:  # nan (0 weight times an overflowed square): argmin takes the first nan
+            return i
+    return best_i
+
+
+def _limit_violation_message(cands: list[tuple[float, ...]], geom: ArmGeometry) -> str:
     """Describe the branch that comes closest to the limits (each joint at its best 2π wrap)."""
     best: tuple[float, int, float] | None = None  # (violation [rad], joint index, angle [rad])
     for cand in cands:
@@ -452,9 +639,9 @@ def ik_all(
     Raises:
         IKError: if ``T`` is not a finite 4x4 rigid transform.
     """
-    ref = None if q_ref is None else _as_q(q_ref, "q_ref")
+    ref = None if q_ref is None else _q_values(q_ref, "q_ref")
     cands, _ = _ik_candidates(T, geom, ref)
-    return _within_limit_solutions(cands, geom)
+    return [np.array(s, dtype=np.float64) for s in _within_limit_solutions(cands, _params(geom).bounds)]
 
 
 def ik(
@@ -477,18 +664,16 @@ def ik(
         IKError: naming the reason — target out of reach, or every branch violates a joint limit
             (and by how much the nearest one does), or a malformed pose.
     """
-    qc = _as_q(q_current, "q_current")
-    if weights is None:
-        w = np.ones(6, dtype=np.float64)
-    else:
-        w = _as_q(weights, "weights")
-        if np.any(w < 0.0):
-            raise KinematicsError(f"weights must be >= 0, got {w.tolist()}")
+    qc = _q_values(q_current, "q_current")
+    w = None
+    if weights is not None:
+        w = _q_values(weights, "weights")
+        if any(v < 0.0 for v in w):
+            raise KinematicsError(f"weights must be >= 0, got {w}")
     cands, reason = _ik_candidates(T, geom, qc)
     if reason is not None:
         raise IKError(reason)
-    sols = _within_limit_solutions(cands, geom)
+    sols = _within_limit_solutions(cands, _params(geom).bounds)
     if not sols:
         raise IKError(_limit_violation_message(cands, geom))
-    costs = [float(np.sum(w * (s - qc) ** 2)) for s in sols]
-    return sols[int(np.argmin(costs))].copy()
+    return np.array(sols[_nearest(sols, qc, w)], dtype=np.float64)
