@@ -10,13 +10,15 @@ and sends high-rate series in blocks (one ``send_columns`` per entity per tick).
 
 Examples::
 
-    telesurg mirror --connect tcp/127.0.0.1:7447 --set serve=true        # then open the URL it logs
-    telesurg mirror --connect tcp/127.0.0.1:7447 --set save=run.rrd      # headless recording
+    telesurg mirror --connect tcp/127.0.0.1:7447 --serve          # then open the URL it logs
+    telesurg mirror --connect tcp/127.0.0.1:7447 --save run.rrd   # headless recording
 """
 
 from __future__ import annotations
 
+import json
 import logging
+import sys
 import threading
 import time
 from collections import deque
@@ -393,6 +395,22 @@ def run(cfg: MirrorConfig, stop: threading.Event) -> None:
         view.close()
 
 
+def shortcut_args(argv: Sequence[str]) -> list[str]:
+    """``--save FILE`` → ``--set save="FILE"``; ``--serve`` → ``--set serve=true``."""
+    out: list[str] = []
+    it = iter(argv)
+    for a in it:
+        if a == "--serve":
+            out += ["--set", "serve=true"]
+        elif a == "--save" or a.startswith("--save="):
+            path = a.partition("=")[2] if "=" in a else next(it, "")
+            out += ["--set", f"save={json.dumps(path)}"]
+        else:
+            out.append(a)
+    return out
+
+
 def main(argv: Sequence[str] | None = None) -> int:
-    """``telesurg mirror``."""
-    return service_main("mirror", MirrorConfig, run, argv, __doc__ or "")
+    """``telesurg mirror`` (also accepts ``--save FILE.rrd`` and ``--serve``)."""
+    args = shortcut_args(sys.argv[2:] if argv is None else argv)
+    return service_main("mirror", MirrorConfig, run, args, __doc__ or "")

@@ -1,0 +1,114 @@
+"""The mapping's engage/clutch/IK-failure behaviour, driven in-process over real zenoh sessions."""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Iterator
+
+import numpy as np
+import pytest
+
+from services.launcher import free_port
+from services.mapping import ArmMapping, MappingConfig
+from shared.bus import BusConfig, Node, open_session
+from shared.kinematics import MH3F, fk
+from shared.messages import (
+    CartesianPose,
+    Header,
+    JointSetpoint,
+    JointState,
+    MasterButtons,
+    OperatingState,
+    SafetyEvent,
+)
+
+Q0 = (0.0, 0.2, 0.3, 0.0, -0.6, 0.0)
+H = Header("test", 0, 0)
+
+
+@pytest.fixture
+def rig() -> Iterator[tuple[ArmMapping, list[JointSetpoint], list[SafetyEvent]]]:
+    ep = f"tcp/127.0.0.1:{free_port()}"
+    router = open_session(BusConfig(mode="router", listen=[ep]))
+    bus = BusConfig(connect=[ep])
+    setpoints: list[JointSetpoint] = []
+    events: list[SafetyEvent] = []
+    try:
+        with Node(bus, "t", "mapping") as node, Node(bus, "t", "probe") as probe:
+            probe.subscribe(
+                probe.keys.slave("arm1", "servo_jp"), JointSetpoint, lambda m, k: setpoints.append(m)
+            )
+            probe.subscribe(probe.keys.events(), SafetyEvent, lambda m, k: events.append(m))
+            time.sleep(0.3)
+            arm = ArmMapping(MappingConfig(scale=0.5), node, "m1", "arm1", threading.Event())
+            arm.on_slave_js(JointState(H, MH3F.joint_names, Q0), "")
+            arm.on_slave_state(OperatingState(H, "PAUSED", "non_trocar", False, True, "", 0), "")
+            yield arm, setpoints, events
+    finally:
+        router.close()  # type: ignore[no-untyped-call]
+
+
+def feed(arm: ArmMapping, p: tuple[float, float, float], clutch: bool) -> None:
+    arm.on_buttons(MasterButtons(H, clutch, True), "")
+    arm.on_master_pose(CartesianPose(H, "master", p), "")
+    arm.process()
+
+
+def settle(n: int, store: list[JointSetpoint]) -> None:
+    deadline = time.monotonic() + 3
+    while len(store) < n and time.monotonic() < deadline:
+        time.sleep(0.01)
+
+
+def test_engage_needs_press_edge_then_scaled_motion_without_jump(
+    rig: tuple[ArmMapping, list[JointSetpoint], list[SafetyEvent]],
+) -> None:
+    arm, setpoints, _ = rig
+    feed(arm, (0.3, 0.0, 0.0), clutch=True)  # pedal already down at start: not an engage
+    assert not arm.following
+    feed(arm, (0.3, 0.0, 0.0), clutch=False)
+    feed(arm, (0.3, 0.0, 0.0), clutch=True)  # press edge → engage
+    assert arm.following
+    feed(arm, (0.31, 0.0, 0.0), clutch=True)  # master +10 mm in x → slave +5 mm
+    settle(4, setpoints)
+    first, moved = np.array(setpoints[2].position), np.array(setpoints[3].position)
+    tip0, tip1 = fk(np.array(Q0))[:3, 3], fk(moved)[:3, 3]
+    assert np.allclose(first, Q0, atol=1e-9)  # engage: first setpoint is where the arm is
+    np.testing.assert_allclose(tip1 - tip0, (0.005, 0.0, 0.0), atol=1e-9)
+    assert [s.follow for s in setpoints] == [False, False, True, True]
+
+
+def test_ik_failure_holds_last_setpoint_and_reports(
+    rig: tuple[ArmMapping, list[JointSetpoint], list[SafetyEvent]],
+) -> None:
+    arm, setpoints, events = rig
+    feed(arm, (0.0, 0.0, 0.0), clutch=False)
+    feed(arm, (0.0, 0.0, 0.0), clutch=True)
+    feed(arm, (2.0, 0.0, 0.0), clutch=True)  # slave target 1 m away: unreachable
+    feed(arm, (2.0, 0.0, 0.0), clutch=True)
+    settle(4, setpoints)
+    assert all(np.allclose(s.position, Q0) for s in setpoints[1:])
+    assert arm.ik_failures == 2
+    deadline = time.monotonic() + 3
+    while not any(e.kind == "ik_failure" for e in events) and time.monotonic() < deadline:
+        time.sleep(0.01)
+    failures = [e for e in events if e.kind == "ik_failure"]
+    assert len(failures) == 1 and "holding last valid setpoint" in failures[0].text
+
+
+def test_holding_slave_disengages_and_needs_new_press(
+    rig: tuple[ArmMapping, list[JointSetpoint], list[SafetyEvent]],
+) -> None:
+    arm, _, _ = rig
+    feed(arm, (0.0, 0.0, 0.0), clutch=False)
+    feed(arm, (0.0, 0.0, 0.0), clutch=True)
+    assert arm.following
+    arm.on_slave_state(OperatingState(H, "PAUSED", "non_trocar", False, False, "lease expired", 1), "")
+    assert not arm.following
+    arm.on_slave_state(OperatingState(H, "PAUSED", "non_trocar", False, True, "", 1), "")
+    feed(arm, (0.0, 0.0, 0.0), clutch=True)  # pedal still down: no re-engage
+    assert not arm.following
+    feed(arm, (0.0, 0.0, 0.0), clutch=False)
+    feed(arm, (0.0, 0.0, 0.0), clutch=True)
+    assert arm.following
