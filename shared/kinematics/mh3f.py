@@ -72,7 +72,7 @@ import numpy as np
 import numpy.typing as npt
 
 from shared.errors import IKError, KinematicsError
-from shared.kinematics.transforms import FloatArray
+from shared.kinematics.transforms import FloatArray, rot_x, rot_y, rot_z
 
 __all__ = [
     "LIMIT_TOL",
@@ -448,15 +448,39 @@ def _as_pose(T: npt.ArrayLike) -> list[list[float]]:
     return rows
 
 
+def _wrist_reference(q1: float, q23: float, R: FloatArray, q4_ref: float) -> list[tuple[float, float, float]]:
+    """``(q4, q5, q6)`` of one arm branch from 3x3 numpy products (the reference arithmetic).
+
+    The scalar code in :func:`_ik_candidates` is the same formula, but BLAS (with FMA) rounds
+    differently in the last bit. That only decides exact ties such as the mirrored limit
+    violations of two wrist-flip branches, so the error message is built from these values.
+    """
+    R36 = (rot_z(q1) @ rot_y(q23)).T @ R
+    sin_b = math.hypot(float(R36[1, 0]), float(R36[2, 0]))
+    if sin_b > WRIST_SINGULAR_TOL:
+        a0 = math.atan2(float(R36[1, 0]), float(-R36[2, 0]))
+        q4s: tuple[float, ...] = (a0, a0 + math.pi)
+    else:
+        q4s = (q4_ref,)
+    out = []
+    for q4 in q4s:
+        M = rot_x(q4).T @ R36  # = Ry(-q5) Rx(q6)
+        q5 = -math.atan2(float(-M[2, 0]), float(M[0, 0]))
+        q6 = math.atan2(float(-M[1, 2]), float(M[1, 1]))
+        out.append((q4, q5, q6))
+    return out
+
+
 def _ik_candidates(
-    T: npt.ArrayLike, geom: ArmGeometry, q_ref: list[float] | None
+    T: npt.ArrayLike, geom: ArmGeometry, q_ref: list[float] | None, *, reference: bool = False
 ) -> tuple[list[tuple[float, ...]], str | None]:
     """All analytic IK branches (up to 8 of 6 angles) with every angle wrapped to [-π, π], limits ignored.
 
     Returns ``([], reason)`` when the wrist centre is out of reach. Raises IKError for a
-    malformed pose.
+    malformed pose. ``reference=True`` takes the wrist angles from :func:`_wrist_reference`.
     """
     rows = _as_pose(T)
+    R_ref = np.asarray(T, dtype=np.float64)[:3, :3] if reference else None
     r00, r01, r02, px = rows[0]
     r10, r11, r12, py = rows[1]
     r20, r21, r22, pz = rows[2]
@@ -514,6 +538,10 @@ def _ik_candidates(
             b21 = z3x * r01 + z3y * r11 + c23 * r21
             b22 = z3x * r02 + z3y * r12 + c23 * r22
             w2, w3 = rem(q2, TWO_PI), rem(q3, TWO_PI)
+            if R_ref is not None:
+                for q4, q5, q6 in _wrist_reference(q1, q23, R_ref, q4_ref):
+                    out.append((w1, w2, w3, rem(q4, TWO_PI), rem(q5, TWO_PI), rem(q6, TWO_PI)))
+                continue
             if math.hypot(b10, b20) > WRIST_SINGULAR_TOL:  # |sin q5|
                 a0 = atan2(b10, -b20)
                 q4s: tuple[float, ...] = (a0, a0 + math.pi)
@@ -675,5 +703,6 @@ def ik(
         raise IKError(reason)
     sols = _within_limit_solutions(cands, _params(geom).bounds)
     if not sols:
+        cands, _ = _ik_candidates(T, geom, qc, reference=True)
         raise IKError(_limit_violation_message(cands, geom))
     return np.array(sols[_nearest(sols, qc, w)], dtype=np.float64)
