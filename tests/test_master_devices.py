@@ -20,6 +20,8 @@ def test_circle_radius_period_and_clutch_schedule() -> None:
         assert np.allclose(pts[:, 2], 0.2)
         assert np.allclose(pts[0], pts[-1])
         assert [dev.read(t).clutch for t in (0.5, 1.0, 1.5, 2.0)] == [False, True, True, False]
+    with ScriptedDevice(ScriptedConfig(clutch=[[1.0, 2.0]], clutch_repeat_s=3.0)) as dev:
+        assert [dev.read(t).clutch for t in (3.5, 4.5, 5.5, 7.5)] == [False, True, False, True]
 
 
 def test_csv_playback_loops_and_gates_clutch(tmp_path: Path) -> None:

@@ -72,6 +72,7 @@ class ScriptedConfig:
     # [t_on, t_off] intervals (s since start) while the clutch pedal is pressed. The default
     # presses after 1 s, so a restarted master never engages in its first second.
     clutch: list[list[float]] = field(default_factory=lambda: [[1.0, 1e9]])
+    clutch_repeat_s: float = 0.0  # s: if > 0, the clutch schedule repeats with this period
     operator_present: bool = True  # the operator-present sensor reads this constant
 
     def validate(self) -> None:
@@ -82,6 +83,8 @@ class ScriptedConfig:
             )
         if self.plane not in ("xy", "xz", "yz"):
             raise ConfigError(f"scripted plane {self.plane!r} invalid; valid: xy, xz, yz")
+        if self.clutch_repeat_s < 0:
+            raise ConfigError("scripted clutch_repeat_s must be >= 0 (0: no repeat)")
         if self.period_s <= 0 or self.radius < 0:
             raise ConfigError("scripted period_s must be > 0 and radius >= 0")
         for iv in self.clutch:
@@ -119,7 +122,8 @@ class ScriptedDevice:
     def read(self, t: float) -> DeviceSample:
         """Path position at ``t`` s; identity orientation."""
         c = self.cfg
-        clutch = any(on <= t < off for on, off in c.clutch)
+        tc = t % c.clutch_repeat_s if c.clutch_repeat_s > 0 else t
+        clutch = any(on <= tc < off for on, off in c.clutch)
         p = np.array(c.center, dtype=float)
         if c.trajectory == "csv":
             assert self._csv is not None, "device not opened"
