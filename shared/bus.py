@@ -6,9 +6,10 @@
   not find each other by accident.
 * ``transport/link/tx/lease`` set on every process (default 1000 ms, keep-alive every 250 ms), so a
   frozen peer is dropped within about a second, not zenoh's default 10 s.
-* Control streams are published ``express`` with ``Priority.REAL_TIME`` and
-  ``CongestionControl.DROP``: a late sample is worth less than the next one, and a publisher in a
-  control loop must never block. Receivers count the resulting sequence gaps.
+* Control streams are published ``express`` (no batching) with ``Priority.REAL_TIME`` and
+  ``CongestionControl.BLOCK``: nothing is dropped on a congested link (receivers check sequence
+  continuity and the watchdog sees a blocked stream as stale). Other streams use
+  ``Priority.DATA_HIGH`` and zenoh's default congestion control.
 
 Example::
 
@@ -173,7 +174,7 @@ class Node:
 
     # -- outputs --------------------------------------------------------------------------
     def outlet(self, key: str, *, control: bool = True) -> Outlet:
-        """Declare a publisher; control streams get express + real-time priority + drop."""
+        """Declare a publisher; control streams get express + real-time priority + block."""
         import zenoh
 
         if control:

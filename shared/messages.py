@@ -515,7 +515,7 @@ class Heartbeat(Message):
     Attributes:
         service: service instance id.
         uptime_s: seconds since the service started.
-        rejected: messages this service rejected so far (malformed, out of order, ...).
+        rejected: messages this service's strict decoder rejected so far (all keys).
     """
 
     TYPE: ClassVar[str] = "heartbeat"
@@ -574,7 +574,7 @@ def decode(payload: bytes | bytearray | memoryview) -> AnyMessage:
     if not isinstance(d, dict):
         raise MessageError(f"payload must be a map, got {type(d).__name__}")
     version = d.get("v")
-    if version != SCHEMA_VERSION or isinstance(version, bool):
+    if type(version) is not int or version != SCHEMA_VERSION:
         raise MessageError(f"unknown schema version {version!r}, expected {SCHEMA_VERSION}")
     tag = d.get("type")
     cls = _REGISTRY.get(tag) if isinstance(tag, str) else None

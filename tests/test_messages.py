@@ -132,3 +132,11 @@ def test_single_byte_mutations_decode_or_raise_message_error(pos: int, value: in
         return
     assert isinstance(msg, JointState)
     assert all(math.isfinite(x) for x in msg.position)
+
+
+def test_rejects_float_and_bool_versions() -> None:
+    for v in (1.0, True):
+        d = msgpack.unpackb(EXAMPLES[0].encode())
+        d["v"] = v
+        with pytest.raises(MessageError, match="unknown schema version"):
+            decode(_pack(d))

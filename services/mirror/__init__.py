@@ -24,7 +24,7 @@ import time
 from collections import deque
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import cast
 
 import numpy as np
 
@@ -40,7 +40,7 @@ from services.mirror.view import (
     slave_path,
 )
 from shared.bus import BusConfig, Node
-from shared.errors import ConfigError, KinematicsError, MessageError
+from shared.errors import ConfigError, KinematicsError
 from shared.kinematics.mh3f import fk_frames
 from shared.messages import (
     AnyMessage,
@@ -48,10 +48,10 @@ from shared.messages import (
     JointSetpoint,
     JointState,
     MasterButtons,
+    Message,
     OperatingState,
     SafetyEvent,
     SafetyState,
-    decode,
 )
 from shared.timing import CycleTimer
 
@@ -102,32 +102,22 @@ class MirrorConfig:
 class Inbox:
     """Thread-safe buffer between zenoh callbacks and the draw loop.
 
-    ``on_sample`` runs on zenoh threads: it stamps the receive time, decodes strictly and appends
-    ``(key, receive_ns, message)``; :meth:`take` hands the whole buffer to the draw loop.
+    :meth:`on_message` runs on zenoh threads for every message that passed the strict decoder
+    and the per-key sequence check of :meth:`shared.bus.Node.subscribe` (which also counts the
+    rejects); it stamps the receive time and appends ``(key, receive_ns, message)``;
+    :meth:`take` hands the whole buffer to the draw loop.
     """
 
     def __init__(self) -> None:
         self._lock = threading.Lock()
         self._items: list[tuple[str, int, AnyMessage]] = []
         self.received = 0
-        self.rejected = 0
-        self.rejected_by_key: dict[str, int] = {}
 
-    def on_sample(self, sample: Any) -> None:
-        """zenoh subscriber callback: decode and buffer; malformed payloads are counted only."""
+    def on_message(self, msg: Message, key: str) -> None:
+        """Node.subscribe callback: buffer the decoded message."""
         rx = time.time_ns()
-        key = str(sample.key_expr)
-        try:
-            msg = decode(sample.payload.to_bytes())
-        except MessageError as exc:
-            with self._lock:
-                self.rejected += 1
-                n = self.rejected_by_key[key] = self.rejected_by_key.get(key, 0) + 1
-            if n <= 3 or n % 1000 == 0:
-                log.warning("rejected message on %s (%d so far): %s", key, n, exc)
-            return
         with self._lock:
-            self._items.append((key, rx, msg))
+            self._items.append((key, rx, cast(AnyMessage, msg)))  # decode returns AnyMessage
             self.received += 1
 
     def take(self) -> list[tuple[str, int, AnyMessage]]:
@@ -374,20 +364,18 @@ def run(cfg: MirrorConfig, stop: threading.Event) -> None:
         inbox = Inbox()
         with Node(cfg.bus, cfg.site, cfg.service) as node:
             mirror = Mirror(view, node.keys.prefix, cfg.trail_s, cfg.trail_hz)
-            sub = node.session.declare_subscriber(node.keys.all, inbox.on_sample)  # keep the ref
-            try:
-                while not stop.is_set():
-                    mirror.feed(inbox.take())
-                    mirror.draw()
-                    timer.wait()
-            finally:
-                sub.undeclare()  # type: ignore[no-untyped-call]
+            node.subscribe(node.keys.all, Message, inbox.on_message)
+            while not stop.is_set():
+                mirror.feed(inbox.take())
+                mirror.draw()
+                timer.wait()
+            rejected = node.rejected
         mirror.feed(inbox.take())  # whatever arrived before the subscriber closed
         mirror.draw()
         log.info(
             "received %d, rejected %d, drew %d joint samples, %d draw overruns",
             inbox.received,
-            inbox.rejected,
+            rejected,
             mirror.drawn,
             timer.overruns,
         )
