@@ -167,7 +167,7 @@ def run(cfg: SlaveControlConfig, stop: threading.Event) -> None:
                         (float(qt[0]), float(qt[1]), float(qt[2]), float(qt[3])),
                     )
                 )
-            lease_ok = ctl.lease_ok(lease, now, cycle)
+            lease_ok = ctl.lease_valid
             state = (ctl.following, lease_ok, ctl.reason)
             if state != last_state or cycle % state_every == 0:
                 last_state = state

@@ -63,6 +63,7 @@ class FollowController:
     following: bool = False
     armed: bool = False  # a follow=False setpoint was seen since the last hold
     holds: int = 0
+    lease_valid: bool = False  # the lease verdict of the last update (what the decision used)
     reason: str = "waiting for engage"
     events: list[tuple[str, str]] = field(default_factory=list)  # (kind, text), drained by caller
     _hold_q: np.ndarray | None = None
@@ -93,7 +94,7 @@ class FollowController:
         cycle: int | None = None,
     ) -> np.ndarray:
         """Next commanded joint position (rad) after one period ``dt`` (s) at control ``cycle``."""
-        ok = self.lease_ok(lease, now, cycle)
+        ok = self.lease_valid = self.lease_ok(lease, now, cycle)
         fresh = self._fresh(sp, now, cycle, dt)
         if self.following:
             cause = ""
