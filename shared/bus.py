@@ -26,7 +26,7 @@ import json
 import logging
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Collection
 from dataclasses import dataclass, field
 from types import TracebackType
 from typing import TYPE_CHECKING, Any, TypeVar
@@ -168,6 +168,8 @@ class Node:
         self._token: Any = self.session.liveliness().declare_token(self.keys.alive(service))
         self._events = self.outlet(self.keys.events(service), control=False)
         self._heartbeat = self.outlet(self.keys.heartbeat(service), control=False)
+        # Echo: answers at once, so a peer on another host can measure the round-trip time.
+        self._echo: Any = self.session.declare_queryable(self.keys.echo(service), self._on_echo)
         self._hb_stop = threading.Event()
         self._hb_thread = threading.Thread(target=self._heartbeat_loop, daemon=True)
         self._hb_thread.start()
@@ -197,8 +199,20 @@ class Node:
             self._events.put(SafetyEvent(self._events.header(), arm, kind, severity, text))
 
     # -- inputs ---------------------------------------------------------------------------
-    def subscribe(self, key: str, cls: type[M], callback: Callable[[M, str], None]) -> None:
-        """Subscribe with strict decoding; ``callback(msg, key)`` runs on a zenoh thread."""
+    def subscribe(
+        self,
+        key: str,
+        cls: type[M],
+        callback: Callable[[M, str], None],
+        *,
+        sources: Collection[str] | None = None,
+    ) -> None:
+        """Subscribe with strict decoding; ``callback(msg, key)`` runs on a zenoh thread.
+
+        ``sources``: if given, only these publishers (header ``src``) may publish on ``key``;
+        messages from any other source are rejected and counted (``foreign``).
+        """
+        allowed = frozenset(sources) if sources is not None else None
 
         def on_sample(sample: Any) -> None:
             k = str(sample.key_expr)
@@ -210,6 +224,15 @@ class Node:
                     stats.rejected += 1
                 if stats.rejected <= 5 or stats.rejected % 1000 == 0:
                     log.warning("rejected message on %s (%d so far): %s", k, stats.rejected, exc)
+                return
+            if allowed is not None and msg.header.source not in allowed:
+                with self._lock:
+                    stats.rejected += 1
+                    stats.foreign += 1
+                if stats.foreign <= 5 or stats.foreign % 1000 == 0:
+                    log.warning(
+                        "rejected %s from %r on %s: not an allowed source", cls.TYPE, msg.header.source, k
+                    )
                 return
             with self._lock:
                 fresh = stats.accept(msg.header.source, msg.header.seq)
@@ -231,6 +254,18 @@ class Node:
             callback(service, sample.kind == zenoh.SampleKind.PUT)
 
         self._handles.append(self.session.liveliness().declare_subscriber(pattern, on_sample, history=True))
+
+    def _on_echo(self, query: Any) -> None:
+        with contextlib.suppress(Exception):  # the querier may be gone
+            query.reply(query.key_expr, b"")
+
+    def echo_rtt(self, service: str, timeout: float = 0.5) -> float | None:
+        """Round-trip time to ``service``'s echo queryable, s (None: no reply within timeout)."""
+        t0 = time.monotonic()
+        for reply in self.session.get(self.keys.echo(service), timeout=timeout):
+            if reply.ok is not None:
+                return time.monotonic() - t0
+        return None
 
     @property
     def rejected(self) -> int:
@@ -262,6 +297,8 @@ class Node:
             with contextlib.suppress(Exception):  # already undeclared
                 h.undeclare()
         self._closed = True
+        with contextlib.suppress(Exception):
+            self._echo.undeclare()
         self._token.undeclare()
         for h in self._handles:
             with contextlib.suppress(Exception):

@@ -13,6 +13,8 @@ service instance id)::
     slave/<arm>/operating_state  OperatingState  slave state, mode, follow, hold reason
     safety/<arm>/lease           SafetyLease     watchdog → slave permission to move
     safety/<arm>/state           SafetyState     watchdog's view of the arm
+    estop                        EStop           e-stop / reset, from the console or any service
+    echo/<service>               (queryable)     replies at once: round-trip time across hosts
     events/<service>             SafetyEvent     events (transitions, IK failures, ...)
     heartbeat/<service>          Heartbeat       2 Hz service heartbeat
     alive/<service>              (liveliness token)
@@ -70,6 +72,15 @@ class Keys:
     def safety(self, arm: str, stream: str) -> str:
         """``telesurg/<site>/safety/<arm>/<stream>``; stream in :data:`SAFETY_STREAMS`."""
         return self._arm_key("safety", arm, stream, SAFETY_STREAMS)
+
+    @property
+    def estop(self) -> str:
+        """``telesurg/<site>/estop``: e-stop and reset commands for one or every arm."""
+        return f"{self.prefix}/estop"
+
+    def echo(self, service: str = "*") -> str:
+        """``telesurg/<site>/echo/<service>``: each service's echo queryable (RTT probes)."""
+        return f"{self.prefix}/echo/{service if service == '*' else check_id('service', service)}"
 
     def events(self, service: str = "*") -> str:
         """``telesurg/<site>/events/<service>`` (``*`` matches every service)."""

@@ -116,6 +116,13 @@ def _float(d: dict[str, Any], key: str) -> float:
     return f
 
 
+def _nonneg(d: dict[str, Any], key: str) -> float:
+    f = _float(d, key)
+    if f < 0.0:
+        raise MessageError(f"field {key!r}={f} must be >= 0")
+    return f
+
+
 def _floats(
     d: dict[str, Any], key: str, length: int | None = None, *, max_len: int = MAX_JOINTS
 ) -> tuple[float, ...]:
@@ -326,24 +333,32 @@ class JointSetpoint(Message):
         position: rad / m.
         follow: True while the mapping follows the master; False means "hold" (the position is
             then the last setpoint, informational). A slave resumes only on a False → True edge.
+        origin_ns: source timestamp (``ts``) of the master sample this setpoint was computed
+            from, 0 if none. Receivers on the same host measure end-to-end latency with it.
     """
 
     TYPE: ClassVar[str] = "servo_jp"
-    BODY: ClassVar[frozenset[str]] = frozenset({"name", "position", "follow"})
+    BODY: ClassVar[frozenset[str]] = frozenset({"name", "position", "follow", "origin_ns"})
 
     names: tuple[str, ...] = ()
     position: tuple[float, ...] = ()
     follow: bool = False
+    origin_ns: int = 0
 
     def body(self) -> dict[str, Any]:
-        return {"name": list(self.names), "position": list(self.position), "follow": self.follow}
+        return {
+            "name": list(self.names),
+            "position": list(self.position),
+            "follow": self.follow,
+            "origin_ns": self.origin_ns,
+        }
 
     @classmethod
     def from_body(cls, header: Header, d: dict[str, Any]) -> JointSetpoint:
         names = _strs(d, "name", max_len=MAX_JOINTS)
         pos = _floats(d, "position")
         _same_len("position", names, pos)
-        return cls(header, names, pos, _bool(d, "follow"))
+        return cls(header, names, pos, _bool(d, "follow"), _int(d, "origin_ns"))
 
 
 OPERATING_STATES = frozenset({"DISABLED", "ENABLED", "PAUSED", "FAULT"})
@@ -362,11 +377,25 @@ class OperatingState(Message):
         lease_ok: True while a fresh watchdog lease allows motion.
         reason: why the slave holds ("" while following).
         holds: number of times the slave entered hold since start.
+        rcm_error_mm: distance from the trocar point to the forceps axis, mm (0 outside trocar
+            mode), from the measured (simulated or real) arm.
+        clipped: control cycles in which the slave's joint speed limit clipped the setpoint.
+        rejected: setpoints the slave refused (limits, jumps, wrong joints, foreign source).
     """
 
     TYPE: ClassVar[str] = "operating_state"
     BODY: ClassVar[frozenset[str]] = frozenset(
-        {"state", "control_mode", "follow", "lease_ok", "reason", "holds"}
+        {
+            "state",
+            "control_mode",
+            "follow",
+            "lease_ok",
+            "reason",
+            "holds",
+            "rcm_error_mm",
+            "clipped",
+            "rejected",
+        }
     )
 
     state: str = "DISABLED"
@@ -375,6 +404,9 @@ class OperatingState(Message):
     lease_ok: bool = False
     reason: str = ""
     holds: int = 0
+    rcm_error_mm: float = 0.0
+    clipped: int = 0
+    rejected: int = 0
 
     def body(self) -> dict[str, Any]:
         return {
@@ -384,6 +416,9 @@ class OperatingState(Message):
             "lease_ok": self.lease_ok,
             "reason": self.reason,
             "holds": self.holds,
+            "rcm_error_mm": self.rcm_error_mm,
+            "clipped": self.clipped,
+            "rejected": self.rejected,
         }
 
     @classmethod
@@ -396,6 +431,9 @@ class OperatingState(Message):
             _bool(d, "lease_ok"),
             _str(d, "reason"),
             _int(d, "holds"),
+            _nonneg(d, "rcm_error_mm"),
+            _int(d, "clipped"),
+            _int(d, "rejected"),
         )
 
 
@@ -450,26 +488,90 @@ class SafetyState(Message):
         arm: slave arm id.
         state: ``OK`` / ``DEGRADED`` / ``HOLD`` / ``ESTOP``.
         causes: human-readable causes of a non-OK state.
+        scale: motion-scale factor the mapping must apply, in [0, 1] (1 when OK; reduced while
+            DEGRADED by the latency budget).
+        latency_p50_ms / latency_p99_ms: master → watchdog latency of the arm's command path
+            over the last window, ms (0 while unknown).
+        latency_samples: samples in that window.
     """
 
     TYPE: ClassVar[str] = "safety_state"
-    BODY: ClassVar[frozenset[str]] = frozenset({"arm", "state", "causes"})
+    BODY: ClassVar[frozenset[str]] = frozenset(
+        {"arm", "state", "causes", "scale", "latency_p50_ms", "latency_p99_ms", "latency_samples"}
+    )
 
     arm: str = ""
     state: str = "HOLD"
     causes: tuple[str, ...] = ()
+    scale: float = 1.0
+    latency_p50_ms: float = 0.0
+    latency_p99_ms: float = 0.0
+    latency_samples: int = 0
 
     def body(self) -> dict[str, Any]:
-        return {"arm": self.arm, "state": self.state, "causes": list(self.causes)}
+        return {
+            "arm": self.arm,
+            "state": self.state,
+            "causes": list(self.causes),
+            "scale": self.scale,
+            "latency_p50_ms": self.latency_p50_ms,
+            "latency_p99_ms": self.latency_p99_ms,
+            "latency_samples": self.latency_samples,
+        }
 
     @classmethod
     def from_body(cls, header: Header, d: dict[str, Any]) -> SafetyState:
+        scale = _float(d, "scale")
+        if not 0.0 <= scale <= 1.0:
+            raise MessageError(f"field 'scale'={scale} outside [0, 1]")
         return cls(
             header,
             _str(d, "arm", allow_empty=False),
             _choice(d, "state", SAFETY_STATES),
             _strs(d, "causes"),
+            scale,
+            _nonneg(d, "latency_p50_ms"),
+            _nonneg(d, "latency_p99_ms"),
+            _int(d, "latency_samples"),
         )
+
+
+ESTOP_ACTIONS = frozenset({"estop", "reset"})
+
+
+@_register
+@dataclass(frozen=True, slots=True)
+class EStop(Message):
+    """Emergency stop or its reset (``estop``), from the console or any service.
+
+    The watchdog and slave_control both latch an e-stop: the arm holds until an explicit
+    ``reset`` and then a new engage.
+
+    Attributes:
+        arm: arm id, or ``"*"`` for every arm of the site.
+        action: ``estop`` or ``reset``.
+        reason: who/why, shown in events (e.g. ``"console: operator"``).
+    """
+
+    TYPE: ClassVar[str] = "estop"
+    BODY: ClassVar[frozenset[str]] = frozenset({"arm", "action", "reason"})
+
+    arm: str = "*"
+    action: str = "estop"
+    reason: str = ""
+
+    def body(self) -> dict[str, Any]:
+        return {"arm": self.arm, "action": self.action, "reason": self.reason}
+
+    @classmethod
+    def from_body(cls, header: Header, d: dict[str, Any]) -> EStop:
+        return cls(
+            header, _str(d, "arm", allow_empty=False), _choice(d, "action", ESTOP_ACTIONS), _str(d, "reason")
+        )
+
+    def applies_to(self, arm: str) -> bool:
+        """True if this command is for ``arm``."""
+        return self.arm in ("*", arm)
 
 
 @_register
@@ -550,6 +652,7 @@ AnyMessage = (
     | SafetyLease
     | SafetyState
     | SafetyEvent
+    | EStop
     | Heartbeat
 )
 

@@ -26,8 +26,8 @@ def test_demo_headless_report(tmp_path: Path) -> None:
         assert r["streams"][stream]["received"] > 500, stream
         assert r["streams"][stream]["gaps"] == 0, stream
     err = r["tip_tracking_error_mm"]
-    assert err["samples"] > 500 and err["max_mm"] < 2.0
-    assert r["engagements"] == 1 and r["holds"] == 0
+    assert err["samples"] > 500 and err["max_mm"] < 2.0, r["events"]
+    assert r["engagements"] == 1 and r["holds"] == 0, r["events"]
     assert scalar_counts(rrd).get("/slave/arm1/joints/j6/measured", 0) > 500
 
 

@@ -85,6 +85,8 @@ class SiteSpec:
     overrides: dict[str, list[str]] = field(default_factory=dict)  # service → ["key=value"]
     log_dir: Path | None = None  # per-service log files (None: inherit the terminal)
     log_level: str = "INFO"  # service log level
+    # service → endpoint it connects to instead of the router (e.g. through a link impairer)
+    connect: dict[str, str] = field(default_factory=dict)
 
     @property
     def endpoint(self) -> str:
@@ -99,7 +101,7 @@ def service_argv(spec: SiteSpec, name: str) -> list[str]:
     if name == "router":
         argv += ["--listen", spec.endpoint]
     else:
-        argv += ["--connect", spec.endpoint]
+        argv += ["--connect", spec.connect.get(name, spec.endpoint)]
     cfg = spec.config_dir / f"{name}.toml" if spec.config_dir else None
     if cfg is not None and cfg.exists():
         argv += ["--config", str(cfg)]
@@ -145,6 +147,17 @@ class Site:
             preexec_fn=(lambda: os.nice(10)) if name in NICE else None,
         )
         log.info("started %-15s pid %d", name, self.procs[name].pid)
+
+    def restart(self, name: str) -> None:
+        """Start ``name`` again (after it died or was killed); the old process must be gone."""
+        old = self.procs.get(name)
+        if old is not None and old.poll() is None:
+            raise RuntimeError(f"{name} (pid {old.pid}) is still running")
+        self._spawn(name)
+
+    def pid(self, name: str) -> int:
+        """PID of the current ``name`` process."""
+        return self.procs[name].pid
 
     def dead(self) -> dict[str, int]:
         """Services that exited on their own: name → exit code."""

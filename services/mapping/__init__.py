@@ -8,6 +8,12 @@ stays as it was at engage (``"fixed"``). Engaging or re-clutching therefore neve
 jump. The target goes through the 6-axis IK (nearest branch, joint limits); an IK failure or a
 branch flip holds the last valid setpoint and publishes an event.
 
+The slave target is clamped into the workspace box (``workspace_min_mm``/``workspace_max_mm``);
+each clamping episode is counted and reported as an event naming the axis and the change. The
+watchdog's ``safety/<arm>/state`` carries a motion-scale factor (< 1 while DEGRADED, e.g. over
+the latency budget); the mapping multiplies its scale by it, re-anchoring so the change makes no
+jump.
+
 The service publishes ``slave/<arm>/servo_jp`` for every master sample (``follow`` tells the
 slave whether to track it) and ``slave/<arm>/setpoint_cp`` (the Cartesian target) while following.
 
@@ -41,6 +47,7 @@ from shared.messages import (
     JointState,
     MasterButtons,
     OperatingState,
+    SafetyState,
 )
 
 log = logging.getLogger(__name__)
@@ -62,6 +69,8 @@ class MappingConfig:
     slave_timeout_ms: float = 100.0  # ms: slave measured_js older than this refuses engage
     # rad: a setpoint step larger than this between two samples is an IK branch flip → hold
     max_joint_step_rad: float = 0.1
+    workspace_min_mm: tuple[float, float, float] = (150.0, -600.0, -200.0)  # target box, base frame
+    workspace_max_mm: tuple[float, float, float] = (1100.0, 600.0, 800.0)
     bus: BusConfig = field(default_factory=BusConfig)  # zenoh session
 
     def validate(self) -> None:
@@ -72,6 +81,8 @@ class MappingConfig:
             raise ConfigError(
                 f"orientation {self.orientation!r} invalid; valid: {', '.join(ORIENTATION_MODES)}"
             )
+        if any(a >= b for a, b in zip(self.workspace_min_mm, self.workspace_max_mm, strict=True)):
+            raise ConfigError("workspace_min_mm must be below workspace_max_mm on every axis")
         for p in self.pairs:
             parse_pair(p)
 
@@ -116,6 +127,13 @@ class ArmMapping:
         self.ref: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None
         self.ik_failures = 0
         self.ik_streak = 0
+        self.safety_scale = 1.0  # factor from the watchdog's safety state
+        self.last_pose: CartesianPose | None = None  # last master sample mapped while following
+        self.last_target: np.ndarray | None = None  # its slave target (4×4)
+        self.ws_lo = np.asarray(cfg.workspace_min_mm) / 1e3
+        self.ws_hi = np.asarray(cfg.workspace_max_mm) / 1e3
+        self.clamped = 0  # samples whose target was clamped into the workspace
+        self._clamping = False
         # Newest master sample not yet mapped. The zenoh callback only stores it; the service
         # loop maps it. If mapping ever falls behind, it maps the newest sample and skips the
         # rest (counted in ``conflated``) instead of queueing latency.
@@ -147,6 +165,28 @@ class ArmMapping:
             self.slave_state = msg
             if self.following and not msg.lease_ok:
                 self._disengage(f"slave holding: {msg.reason or 'no lease'}")
+
+    def on_safety_state(self, msg: SafetyState, key: str) -> None:
+        with self.lock:
+            if msg.scale == self.safety_scale:
+                return
+            old, self.safety_scale = self.safety_scale, msg.scale
+            if self.following and self.last_pose is not None and self.last_target is not None:
+                # Re-anchor at the current target: the new scale applies to motion from here on.
+                lp, lt = self.last_pose, self.last_target
+                self.ref = (
+                    np.array(lp.position),
+                    matrix_from_quat(np.array(lp.orientation)),
+                    lt[:3, 3].copy(),
+                    lt[:3, :3].copy(),
+                )
+        self.node.event(
+            "scale",
+            f"motion scale {self.cfg.scale * old:.3g} → {self.cfg.scale * msg.scale:.3g} "
+            f"(safety {msg.state}{': ' + '; '.join(msg.causes) if msg.causes else ''})",
+            arm=self.slave,
+            severity="warning" if msg.scale < 1.0 else "info",
+        )
 
     def on_master_pose(self, msg: CartesianPose, key: str) -> None:
         with self.lock:
@@ -199,11 +239,12 @@ class ArmMapping:
             t_s0[:3, :3].copy(),
         )
         self.q_last = self.q_meas.copy()
+        self.last_pose = self.last_target = None
         self.following = True
         self.ik_streak = 0
         self.node.event(
             "engage",
-            f"engaged {self.master} → {self.slave} at scale {self.cfg.scale}",
+            f"engaged {self.master} → {self.slave} at scale {self.cfg.scale * self.safety_scale:.3g}",
             arm=self.slave,
         )
 
@@ -221,7 +262,27 @@ class ArmMapping:
         assert self.ref is not None
         pm0, rm0, ps0, rs0 = self.ref
         t = np.eye(4)
-        t[:3, 3] = ps0 + self.cfg.scale * (self.r_ms @ (np.array(pose.position) - pm0))
+        p = ps0 + self.cfg.scale * self.safety_scale * (self.r_ms @ (np.array(pose.position) - pm0))
+        clamped = np.clip(p, self.ws_lo, self.ws_hi)
+        if np.any(clamped != p):
+            self.clamped += 1
+            if not self._clamping:
+                self._clamping = True
+                moved = ", ".join(
+                    f"{ax} {a * 1e3:.1f}→{b * 1e3:.1f} mm"
+                    for ax, a, b in zip("xyz", p, clamped, strict=True)
+                    if a != b
+                )
+                self.node.event(
+                    "clamped",
+                    f"target clamped into the workspace: {moved}",
+                    arm=self.slave,
+                    severity="warning",
+                )
+        elif self._clamping:
+            self._clamping = False
+            self.node.event("clamped", "target back inside the workspace", arm=self.slave)
+        t[:3, 3] = clamped
         if self.cfg.orientation == "follow":
             d_rot = matrix_from_quat(np.array(pose.orientation)) @ rm0.T
             t[:3, :3] = self.r_ms @ d_rot @ self.r_ms.T @ rs0
@@ -257,6 +318,7 @@ class ArmMapping:
                     )
                 self.ik_streak = 0
                 self.q_last = q
+                self.last_pose, self.last_target = pose, target
                 h = self.target_out.header()
                 quat = quat_from_matrix(target[:3, :3])
                 self.target_out.put(CartesianPose(h, "base", _vec3(target[:3, 3]), _quat(quat)))
@@ -269,6 +331,7 @@ class ArmMapping:
                 self.geom.joint_names,
                 tuple(float(x) for x in q_pub),
                 follow=self.following,
+                origin_ns=pose.header.stamp_ns,
             )
         )
 
@@ -295,6 +358,7 @@ def run(cfg: MappingConfig, stop: threading.Event) -> None:
             node.subscribe(k.master(master, "measured_cp"), CartesianPose, a.on_master_pose)
             node.subscribe(k.slave(slave, "measured_js"), JointState, a.on_slave_js)
             node.subscribe(k.slave(slave, "operating_state"), OperatingState, a.on_slave_state)
+            node.subscribe(k.safety(slave, "state"), SafetyState, a.on_safety_state)
             arms.append(a)
             log.info("mapping %s → %s, scale %.2f", master, slave, cfg.scale)
         check_period = 0.01  # s: master staleness check
@@ -313,11 +377,12 @@ def run(cfg: MappingConfig, stop: threading.Event) -> None:
                     a.check_timeouts()
         for a in arms:
             log.info(
-                "%s → %s: %d IK failures, %d samples skipped (conflated)",
+                "%s → %s: %d IK failures, %d samples skipped (conflated), %d targets clamped",
                 a.master,
                 a.slave,
                 a.ik_failures,
                 a.conflated,
+                a.clamped,
             )
 
 

@@ -27,10 +27,11 @@ from services.slave_control.control import FollowController, Lease, Setpoint
 from shared.bus import BusConfig, Node
 from shared.errors import ConfigError
 from shared.kinematics import MH3F
-from shared.messages import CartesianPose, JointSetpoint, JointState, OperatingState, SafetyLease
+from shared.messages import CartesianPose, EStop, JointSetpoint, JointState, OperatingState, SafetyLease
 from shared.timing import CycleTimer
 
 log = logging.getLogger(__name__)
+WARN = frozenset({"hold", "clipped", "engage_refused"})
 
 
 @dataclass
@@ -48,6 +49,9 @@ class SlaveControlConfig:
     state_hz: float = 20.0  # Hz: operating_state (also sent on every change)
     setpoint_timeout_ms: float = 100.0  # ms: an older setpoint is stale → hold
     engage_tolerance_rad: float = 0.02  # rad: first followed setpoint must be this close to the arm
+    # rad: while following, a setpoint farther than this from the previous one is refused (a jump)
+    max_setpoint_step_rad: float = 0.1
+    setpoint_source: str = "mapping"  # only this service may publish servo_jp for this arm
     # The watchdog's liveliness token is watched too: its death revokes the lease at once
     # (in ms), instead of after the lease lifetime.
     watchdog_service: str = "watchdog"
@@ -65,6 +69,8 @@ class SlaveService:
         self.lease = Lease()
         self.setpoint: Setpoint | None = None
         self.rejected_setpoints = 0
+        self.following = False  # mirrors the controller (set by the control loop)
+        self.estop = ""  # latched e-stop cause ("" = none); only an explicit reset clears it
         self.cycle = 0  # control cycles executed; stamped on inputs (see control.py)
         self.dt = 0.001
 
@@ -79,9 +85,24 @@ class SlaveService:
             with self.lock:
                 self.lease = Lease(False, 0.0, f"{service} not alive")
 
+    def on_estop(self, msg: EStop, key: str) -> None:
+        if not msg.applies_to(self.cfg.arm):
+            return
+        with self.lock:
+            was = self.estop
+            if msg.action == "estop":
+                self.estop = f"e-stop from {msg.header.source}" + (f": {msg.reason}" if msg.reason else "")
+            else:
+                self.estop = ""
+        if msg.action == "estop" and not was:
+            self.node.event("estop", self.estop, arm=self.cfg.arm, severity="error")
+        elif msg.action == "reset" and was:
+            self.node.event("estop_reset", f"e-stop reset by {msg.header.source}", arm=self.cfg.arm)
+
     def on_setpoint(self, msg: JointSetpoint, key: str) -> None:
         reason = ""
         q = np.array(msg.position)
+        prev = self.setpoint
         if msg.names != self.names:
             reason = f"joint names {list(msg.names)} != {list(self.names)}"
         elif np.any(q < self.lower) or np.any(q > self.upper):
@@ -91,6 +112,10 @@ class SlaveService:
                 if not lo <= v <= hi
             ]
             reason = f"outside joint limits: {', '.join(bad)}"
+        elif self.following and msg.follow and prev is not None and prev.follow:
+            jump = float(np.max(np.abs(q - prev.position)))
+            if jump > self.cfg.max_setpoint_step_rad:
+                reason = f"jump of {jump:.3f} rad from the previous setpoint"
         if reason:
             self.rejected_setpoints += 1
             if self.rejected_setpoints <= 5 or self.rejected_setpoints % 1000 == 0:
@@ -114,8 +139,11 @@ def run(cfg: SlaveControlConfig, stop: threading.Event) -> None:
         js_out = node.outlet(k.slave(cfg.arm, "measured_js"))
         cp_out = node.outlet(k.slave(cfg.arm, "measured_cp"))
         state_out = node.outlet(k.slave(cfg.arm, "operating_state"))
-        node.subscribe(k.safety(cfg.arm, "lease"), SafetyLease, svc.on_lease)
-        node.subscribe(k.slave(cfg.arm, "servo_jp"), JointSetpoint, svc.on_setpoint)
+        node.subscribe(k.safety(cfg.arm, "lease"), SafetyLease, svc.on_lease, sources=[cfg.watchdog_service])
+        node.subscribe(
+            k.slave(cfg.arm, "servo_jp"), JointSetpoint, svc.on_setpoint, sources=[cfg.setpoint_source]
+        )
+        node.subscribe(k.estop, EStop, svc.on_estop)
         node.watch_liveliness(k.alive(cfg.watchdog_service), svc.on_watchdog_alive)
 
         ctl = FollowController(
@@ -137,6 +165,8 @@ def run(cfg: SlaveControlConfig, stop: threading.Event) -> None:
             now = time.monotonic()
             with svc.lock:
                 lease, sp = svc.lease, svc.setpoint
+                if svc.estop:
+                    lease = Lease(False, 0.0, svc.estop)
             q_cmd = ctl.update(now, reading.position, q_cmd, lease, sp, dt, svc.cycle)
             backend.command(q_cmd)
             missed = timer.wait()
@@ -145,8 +175,9 @@ def run(cfg: SlaveControlConfig, stop: threading.Event) -> None:
             reading = backend.read()
             cycle += 1
             svc.cycle = cycle
+            svc.following = ctl.following
             for kind, text in ctl.events:
-                node.event(kind, text, arm=cfg.arm, severity="warning" if kind == "hold" else "info")
+                node.event(kind, text, arm=cfg.arm, severity="warning" if kind in WARN else "info")
             ctl.events.clear()
             if cycle % pub_every == 0:
                 js_out.put(
@@ -171,24 +202,30 @@ def run(cfg: SlaveControlConfig, stop: threading.Event) -> None:
             state = (ctl.following, lease_ok, ctl.reason)
             if state != last_state or cycle % state_every == 0:
                 last_state = state
+                rejected = svc.rejected_setpoints + node.streams.get(k.slave(cfg.arm, "servo_jp")).rejected
                 state_out.put(
                     OperatingState(
                         state_out.header(),
-                        "ENABLED" if ctl.following else "PAUSED",
+                        "ENABLED" if ctl.following else ("FAULT" if svc.estop else "PAUSED"),
                         "non_trocar",
                         ctl.following,
                         lease_ok,
                         ctl.reason,
                         ctl.holds,
+                        0.0,
+                        ctl.clipped,
+                        rejected,
                     )
                 )
         log.info(
-            "stopped after %d cycles: %d overruns, %d periods caught up, %d holds, %d setpoints rejected",
+            "stopped after %d cycles: %d overruns, %d periods caught up, %d holds, %d setpoints rejected, "
+            "%d cycles speed-clipped",
             cycle,
             timer.overruns,
             caught_up,
             ctl.holds,
             svc.rejected_setpoints,
+            ctl.clipped,
         )
 
 

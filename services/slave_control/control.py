@@ -7,7 +7,9 @@ Rules (safety first — any doubt means hold):
 * After any hold it resumes only on a new engage: a ``follow=False`` setpoint must be seen before
   a ``follow=True`` one counts, and the first followed setpoint must be close to where the arm is
   (no jump); otherwise the engage is refused with a reason.
-* Commanded joints move toward the target no faster than the joint speed limits.
+* Commanded joints move toward the target no faster than the joint speed limits. Clipping
+  reports itself: ``clipped`` counts the cycles in which the limit cut a step, and each clipping
+  episode produces an event when it starts (which joint, how far behind) and when it ends.
 
 Ages are judged on two clocks: wall time *and* control cycles executed since the input arrived.
 An input is stale (or a lease expired) only when both say so. A slave process that was itself
@@ -66,7 +68,12 @@ class FollowController:
     lease_valid: bool = False  # the lease verdict of the last update (what the decision used)
     reason: str = "waiting for engage"
     events: list[tuple[str, str]] = field(default_factory=list)  # (kind, text), drained by caller
+    clipped: int = 0  # cycles in which the speed limit clipped the step
+    clip_quiet_cycles: int = 100  # an episode ends after this many unclipped cycles
     _hold_q: np.ndarray | None = None
+    _episode: int = 0  # cycles clipped in the current episode (0: none)
+    _episode_lag: float = 0.0  # largest lag behind the target in the episode, rad
+    _quiet: int = 0
 
     def lease_ok(self, lease: Lease, now: float, cycle: int | None = None) -> bool:
         """True while the lease allows motion and has not expired (wall time and cycles)."""
@@ -132,11 +139,39 @@ class FollowController:
             if self._hold_q is None:
                 self._hold_q = q_cmd.copy()
             target = self._hold_q
-        step = np.clip(target - q_cmd, -self.max_velocity * dt, self.max_velocity * dt)
+        want = target - q_cmd
+        lim = self.max_velocity * dt
+        step = np.clip(want, -lim, lim)
         out: np.ndarray = q_cmd + step
         if self.following:
             self._hold_q = None
+            self._account_clip(want, lim)
         return out
+
+    def _account_clip(self, want: np.ndarray, lim: np.ndarray) -> None:
+        over = np.abs(want) - lim
+        j = int(np.argmax(over))
+        if over[j] > 1e-12:
+            self.clipped += 1
+            self._quiet = 0
+            lag = float(abs(want[j]))
+            if not self._episode:
+                self.events.append(
+                    ("clipped", f"speed limit clips the setpoint: joint {j + 1} is {lag:.4f} rad behind")
+                )
+            self._episode += 1
+            self._episode_lag = max(self._episode_lag, lag)
+        elif self._episode:
+            self._quiet += 1
+            if self._quiet >= self.clip_quiet_cycles:
+                self.events.append(
+                    (
+                        "clipped",
+                        f"speed clipping ended after {self._episode} cycles "
+                        f"(largest lag {self._episode_lag:.4f} rad)",
+                    )
+                )
+                self._episode, self._episode_lag, self._quiet = 0, 0.0, 0
 
     def _hold(self, q_meas: np.ndarray, cause: str, *, fault: bool) -> None:
         self.following = False

@@ -1,15 +1,24 @@
 """watchdog: grants each slave arm a short lease to move, only while everything is healthy.
 
-Signals (first version; a later issue adds limits, latency budget and e-stop):
+Signals, combined per arm into OK / DEGRADED / HOLD / ESTOP (see :mod:`services.watchdog.logic`
+and ``docs/safety.md``):
 
 * liveliness tokens ``alive/<service>`` of every required service — a crash is seen in ms;
 * staleness of each control stream against its deadline — a hang, a frozen process or a
-  partition, which liveliness only sees after the transport lease.
+  partition, which liveliness only sees after the transport lease;
+* lost and reordered messages on the control streams (per second);
+* latency of the command path, p50/p99 over a window: the age of each ``servo_jp`` since its
+  master sample (same-host clocks, ``latency_source="clock"``) or half the round-trip time to the
+  master's echo queryable (``"echo"``, hosts without a shared clock);
+* joint position and speed of the setpoints, the workspace of the Cartesian target, the RCM
+  error in trocar mode, the operator-presence switch of the master;
+* e-stop commands on ``estop`` (latched until an explicit reset).
 
-Every ``1/lease_hz`` s, and at once on any liveliness change, the watchdog publishes
+Every ``1/lease_hz`` s, and at once on any liveliness loss or e-stop, the watchdog publishes
 ``safety/<arm>/lease`` (``allow``, ``valid_for_ms``, ``reason``). The slave holds the moment the
-lease says hold or expires, so the watchdog's own death is fail-safe. State changes go out on
-``safety/<arm>/state`` and as events.
+lease says hold or expires, so the watchdog's own death is fail-safe. ``safety/<arm>/state``
+(state, causes, motion-scale factor, latency) goes out on change and at ``state_hz``; every
+transition is an event with its causes.
 
 Example::
 
@@ -21,23 +30,32 @@ from __future__ import annotations
 import logging
 import threading
 import time
+from collections import deque
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 
+import numpy as np
+
 from services.common import service_main
 from services.mapping import parse_pair
+from services.watchdog.logic import ArmSafety, Policy, Verdict
 from shared.bus import BusConfig, Node, Outlet
 from shared.errors import ConfigError
+from shared.kinematics import MH3F
 from shared.messages import (
     CartesianPose,
+    EStop,
     JointSetpoint,
     JointState,
+    MasterButtons,
     Message,
+    OperatingState,
     SafetyLease,
     SafetyState,
 )
 
 log = logging.getLogger(__name__)
+LATENCY_SOURCES = ("clock", "echo")
 
 
 @dataclass
@@ -55,43 +73,97 @@ class WatchdogConfig:
     # ms: lease lifetime at the slave. Covers a *frozen* watchdog; a dead one is seen by the
     # slave through liveliness in ms. Long enough to ride out the VM's scheduling stalls.
     lease_valid_ms: float = 250.0
-    master_deadline_ms: float = 100.0  # ms: master measured_cp older than this → HOLD
-    servo_deadline_ms: float = 100.0  # ms: servo_jp older than this → HOLD
-    slave_deadline_ms: float = 100.0  # ms: slave measured_js older than this → HOLD
+    # Deadlines leave room for one lease tick (20 ms) so a silent stream holds within 100 ms.
+    master_deadline_ms: float = 80.0  # ms: master measured_cp older than this → HOLD
+    buttons_deadline_ms: float = 200.0  # ms: master buttons older than this → HOLD
+    servo_deadline_ms: float = 80.0  # ms: servo_jp older than this → HOLD
+    slave_deadline_ms: float = 100.0  # ms: slave measured_js / operating_state older → HOLD
+    max_loss_per_s: int = 10  # lost + reordered control messages per second above this → DEGRADED
+    latency_source: str = "clock"  # clock: servo_jp origin stamps (one host); echo: RTT/2
+    echo_service: str = "master_capture"  # whose echo queryable is probed (latency_source=echo)
+    echo_hz: float = 20.0  # Hz: echo probes (latency_source=echo)
+    latency_budget_ms: float = 50.0  # ms: p99 above → DEGRADED, motion scale × degraded_scale
+    latency_limit_ms: float = 150.0  # ms: p99 above → HOLD (out of follow until re-engage)
+    latency_window_s: float = 1.0  # s: window of the latency percentiles
+    degraded_scale: float = 0.5  # motion-scale factor while DEGRADED
+    velocity_hold_factor: float = 2.0  # setpoint speed above this × joint limit → HOLD (a jump)
+    workspace_min_mm: tuple[float, float, float] = (150.0, -600.0, -200.0)  # target box, base frame
+    workspace_max_mm: tuple[float, float, float] = (1100.0, 600.0, 800.0)
+    rcm_limit_mm: float = 2.0  # mm: RCM error above this in trocar mode → HOLD
+    fault_latch_ms: float = 500.0  # ms: a message-level fault holds at least this long
+    require_operator: bool = True  # HOLD while the master reports no operator present
     state_hz: float = 5.0  # Hz: safety state republish rate (also sent on every change)
     bus: BusConfig = field(default_factory=BusConfig)  # zenoh session
 
     def validate(self) -> None:
-        """Raise ConfigError on inconsistent timing."""
+        """Raise ConfigError on inconsistent settings."""
         if self.lease_hz <= 0 or self.lease_valid_ms * self.lease_hz / 1e3 < 2.0:
             raise ConfigError("lease_valid_ms must cover at least 2 lease periods")
+        if self.latency_source not in LATENCY_SOURCES:
+            raise ConfigError(
+                f"latency_source {self.latency_source!r} invalid; valid: {', '.join(LATENCY_SOURCES)}"
+            )
+        if not 0 < self.latency_budget_ms < self.latency_limit_ms:
+            raise ConfigError("need 0 < latency_budget_ms < latency_limit_ms")
+        if not 0.0 < self.degraded_scale <= 1.0:
+            raise ConfigError(f"degraded_scale={self.degraded_scale} outside (0, 1]")
+        if self.velocity_hold_factor < 1.0:
+            raise ConfigError("velocity_hold_factor must be >= 1")
+        if any(a >= b for a, b in zip(self.workspace_min_mm, self.workspace_max_mm, strict=True)):
+            raise ConfigError("workspace_min_mm must be below workspace_max_mm on every axis")
         for p in self.pairs:
             parse_pair(p)
 
+    def policy(self) -> Policy:
+        """Per-arm limits: this config plus the MH3F model's joint limits."""
+        return Policy(
+            lower=np.array(MH3F.lower),
+            upper=np.array(MH3F.upper),
+            max_velocity=np.array(MH3F.max_velocity),
+            velocity_hold_factor=self.velocity_hold_factor,
+            workspace_min_mm=self.workspace_min_mm,
+            workspace_max_mm=self.workspace_max_mm,
+            rcm_limit_mm=self.rcm_limit_mm,
+            latency_budget_ms=self.latency_budget_ms,
+            latency_limit_ms=self.latency_limit_ms,
+            latency_window_s=self.latency_window_s,
+            degraded_scale=self.degraded_scale,
+            fault_latch_ms=self.fault_latch_ms,
+            require_operator=self.require_operator,
+        )
+
 
 class ArmWatch:
-    """Health of one arm: which streams must be fresh, current state."""
+    """One arm: its streams and deadlines, its safety logic, its outlets."""
 
     def __init__(self, node: Node, cfg: WatchdogConfig, master: str, arm: str) -> None:
         k = node.keys
-        self.arm = arm
+        self.arm, self.master = arm, master
         self.deadlines = {
             k.master(master, "measured_cp"): cfg.master_deadline_ms,
+            k.master(master, "buttons"): cfg.buttons_deadline_ms,
             k.slave(arm, "servo_jp"): cfg.servo_deadline_ms,
             k.slave(arm, "measured_js"): cfg.slave_deadline_ms,
+            k.slave(arm, "operating_state"): cfg.slave_deadline_ms,
         }
+        self.control = [
+            k.master(master, "measured_cp"),
+            k.slave(arm, "servo_jp"),
+            k.slave(arm, "measured_js"),
+        ]
+        self.safety = ArmSafety(arm, cfg.policy(), MH3F.joint_names)
+        self.loss: deque[tuple[float, int]] = deque()  # (mono s, lost + reordered so far)
         self.lease_out: Outlet = node.outlet(k.safety(arm, "lease"))
         self.state_out: Outlet = node.outlet(k.safety(arm, "state"), control=False)
-        self.state = "HOLD"
-        self.causes: tuple[str, ...] = ("starting",)
+        self.verdict = Verdict("HOLD", ("starting",), 1.0, 0.0, 0.0, 0)
 
 
 class Watchdog:
-    """Combines liveliness and staleness into per-arm leases."""
+    """Combines every signal into per-arm leases."""
 
     def __init__(self, cfg: WatchdogConfig, node: Node) -> None:
         self.cfg, self.node = cfg, node
-        self.lock = threading.Lock()
+        self.lock = threading.Lock()  # guards alive and every ArmSafety
         self.alive: set[str] = set()
         # Ticks executed, and the tick at which each stream last delivered. A stream is stale
         # only when it is old by wall time *and* by ticks: after the watchdog's own stall
@@ -100,18 +172,53 @@ class Watchdog:
         self.tick_lock = threading.Lock()
         self.last_tick: dict[str, int] = {}
         self.arms = [ArmWatch(node, cfg, *parse_pair(p)) for p in cfg.pairs]
-        types: dict[str, type[Message]] = {
-            "measured_cp": CartesianPose,
-            "servo_jp": JointSetpoint,
-            "measured_js": JointState,
-        }
+        k = node.keys
         for a in self.arms:
-            for key in a.deadlines:
-                node.subscribe(key, types[key.rsplit("/", 1)[-1]], self._on_stream)
-        node.watch_liveliness(node.keys.alive(), self._on_alive)
+            node.subscribe(k.master(a.master, "measured_cp"), CartesianPose, self._on_stream)
+            node.subscribe(k.master(a.master, "buttons"), MasterButtons, self._bind(a, self._on_buttons))
+            node.subscribe(k.slave(a.arm, "servo_jp"), JointSetpoint, self._bind(a, self._on_servo))
+            node.subscribe(k.slave(a.arm, "setpoint_cp"), CartesianPose, self._bind(a, self._on_target))
+            node.subscribe(k.slave(a.arm, "measured_js"), JointState, self._on_stream)
+            node.subscribe(k.slave(a.arm, "operating_state"), OperatingState, self._bind(a, self._on_slave))
+        node.subscribe(k.estop, EStop, self._on_estop)
+        node.watch_liveliness(k.alive(), self._on_alive)
 
+    @staticmethod
+    def _bind(a: ArmWatch, fn):  # type: ignore[no-untyped-def]
+        def cb(msg: Message, key: str) -> None:
+            fn(a, msg, key)
+
+        return cb
+
+    # -- inputs (zenoh threads) -------------------------------------------------------------
     def _on_stream(self, msg: Message, key: str) -> None:
         self.last_tick[key] = self.ticks  # receive time is tracked by Node.streams
+
+    def _on_buttons(self, a: ArmWatch, msg: MasterButtons, key: str) -> None:
+        self.last_tick[key] = self.ticks
+        with self.lock:
+            a.safety.on_buttons(msg)
+
+    def _on_servo(self, a: ArmWatch, msg: JointSetpoint, key: str) -> None:
+        self.last_tick[key] = self.ticks
+        wall = time.time_ns() if self.cfg.latency_source == "clock" else None
+        with self.lock:
+            a.safety.on_servo(msg, time.monotonic(), wall)
+
+    def _on_target(self, a: ArmWatch, msg: CartesianPose, key: str) -> None:
+        with self.lock:
+            a.safety.on_setpoint_cp(msg, time.monotonic())
+
+    def _on_slave(self, a: ArmWatch, msg: OperatingState, key: str) -> None:
+        self.last_tick[key] = self.ticks
+        with self.lock:
+            a.safety.on_slave_state(msg, time.monotonic())
+
+    def _on_estop(self, msg: EStop, key: str) -> None:
+        with self.lock:
+            changed = [a.safety.on_estop(msg) for a in self.arms]
+        if any(changed):
+            self.tick(force_state=True)
 
     def _on_alive(self, service: str, alive: bool) -> None:
         with self.lock:
@@ -122,8 +229,16 @@ class Watchdog:
         if not alive and service in self.cfg.required_services:
             self.tick(force_state=True)  # do not wait for the next period
 
-    def causes(self, a: ArmWatch) -> list[str]:
-        """Why arm ``a`` must not move now (empty: healthy)."""
+    def add_echo_latency(self, rtt_s: float | None) -> None:
+        """Account one echo round trip (None: no reply) as a latency sample of every arm."""
+        now = time.monotonic()
+        with self.lock:
+            for a in self.arms:
+                a.safety.add_latency(rtt_s * 500.0 if rtt_s is not None else 1e4, now)
+
+    # -- decision ---------------------------------------------------------------------------
+    def hold_causes(self, a: ArmWatch) -> list[str]:
+        """Liveliness and staleness causes of ``a`` (empty: healthy)."""
         with self.lock:
             alive = set(self.alive)
         out = [f"{s} not alive" for s in self.cfg.required_services if s not in alive]
@@ -139,41 +254,80 @@ class Watchdog:
                 )
         return out
 
+    def degraded_causes(self, a: ArmWatch, now: float) -> list[str]:
+        """Lost / reordered control messages over the last second."""
+        total = 0
+        for key in a.control:
+            st = self.node.streams.get(key)
+            total += st.lost + st.reordered
+        a.loss.append((now, total))
+        while len(a.loss) > 1 and now - a.loss[1][0] >= 1.0:
+            a.loss.popleft()
+        lost = total - a.loss[0][1]
+        if lost > self.cfg.max_loss_per_s:
+            return [f"{lost} control messages lost or reordered in the last second"]
+        return []
+
     def tick(self, *, force_state: bool = False) -> None:
         """Evaluate every arm, publish leases (and states on change or when forced)."""
-        with self.tick_lock:  # the main loop and the liveliness callback both tick
+        with self.tick_lock:  # the main loop and the liveliness/e-stop callbacks all tick
             self._tick(force_state)
 
     def _tick(self, force_state: bool) -> None:
         self.ticks += 1
+        now = time.monotonic()
         for a in self.arms:
-            causes = self.causes(a)
-            state = "OK" if not causes else "HOLD"
-            allow = state == "OK"
+            hold = self.hold_causes(a)
+            degraded = self.degraded_causes(a, now)
+            with self.lock:
+                v = a.safety.evaluate(now, hold, degraded)
             a.lease_out.put(
                 SafetyLease(
                     a.lease_out.header(),
                     a.arm,
-                    allow,
+                    v.allow,
                     self.cfg.lease_valid_ms,
-                    "; ".join(causes)[:500],
+                    "" if v.allow else f"{v.state}: " + "; ".join(v.causes)[:480],
                 )
             )
-            changed = state != a.state
+            old = a.verdict
+            a.verdict = v
+            changed = v.state != old.state
             if changed:
                 self.node.event(
                     "safety_transition",
-                    f"{a.state} → {state}" + (f": {'; '.join(causes)}" if causes else ""),
+                    f"{old.state} → {v.state}" + (f": {'; '.join(v.causes)}" if v.causes else ""),
                     arm=a.arm,
-                    severity="warning" if state != "OK" else "info",
+                    severity={"OK": "info", "DEGRADED": "warning"}.get(v.state, "error"),
                 )
-            a.state, a.causes = state, tuple(c[:500] for c in causes)
-            if changed or force_state:
+            if changed or force_state or v.causes != old.causes:
                 self.publish_state(a)
 
     def publish_state(self, a: ArmWatch) -> None:
         """Send the current safety state of ``a``."""
-        a.state_out.put(SafetyState(a.state_out.header(), a.arm, a.state, a.causes))
+        v = a.verdict
+        a.state_out.put(
+            SafetyState(
+                a.state_out.header(),
+                a.arm,
+                v.state,
+                v.causes,
+                v.scale,
+                round(v.latency_p50_ms, 3),
+                round(v.latency_p99_ms, 3),
+                v.latency_samples,
+            )
+        )
+
+
+def _echo_loop(wd: Watchdog, cfg: WatchdogConfig, stop: threading.Event) -> None:
+    period = 1.0 / cfg.echo_hz
+    while not stop.wait(period):
+        try:
+            rtt = wd.node.echo_rtt(cfg.echo_service, timeout=cfg.latency_limit_ms / 1e3)
+        except Exception:  # session closing
+            return
+        wd.add_echo_latency(rtt)
 
 
 def run(cfg: WatchdogConfig, stop: threading.Event) -> None:
@@ -181,6 +335,8 @@ def run(cfg: WatchdogConfig, stop: threading.Event) -> None:
     cfg.validate()
     with Node(cfg.bus, cfg.site, cfg.service) as node:
         wd = Watchdog(cfg, node)
+        if cfg.latency_source == "echo":
+            threading.Thread(target=_echo_loop, args=(wd, cfg, stop), daemon=True).start()
         period = 1.0 / cfg.lease_hz
         state_every = max(1, round(cfg.lease_hz / cfg.state_hz))
         n = 0
@@ -200,6 +356,8 @@ def run(cfg: WatchdogConfig, stop: threading.Event) -> None:
             a.lease_out.put(
                 SafetyLease(a.lease_out.header(), a.arm, False, cfg.lease_valid_ms, "watchdog stopped")
             )
+        for a in wd.arms:
+            log.info("%s: message-level faults %s", a.arm, a.safety.counters or "none")
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -1,0 +1,146 @@
+"""The watchdog's per-arm decision rules, without processes (services.watchdog.logic)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from services.watchdog import WatchdogConfig
+from services.watchdog.logic import ArmSafety
+from shared.errors import ConfigError
+from shared.kinematics import MH3F
+from shared.messages import CartesianPose, EStop, Header, JointSetpoint, MasterButtons, OperatingState
+
+NAMES = MH3F.joint_names
+Q0 = (0.0, 0.2, 0.3, 0.0, -0.6, 0.0)
+
+
+def arm() -> ArmSafety:
+    return ArmSafety("arm1", WatchdogConfig().policy(), NAMES)
+
+
+def sp(q: tuple[float, ...], ts_ms: float, follow: bool = True, origin_ms: float = 0.0) -> JointSetpoint:
+    return JointSetpoint(Header("mapping", 0, int(ts_ms * 1e6)), NAMES, q, follow, int(origin_ms * 1e6))
+
+
+def test_healthy_arm_is_ok_at_full_scale() -> None:
+    a = arm()
+    a.on_buttons(MasterButtons(Header("m", 0, 0), True, True))
+    for i in range(50):
+        a.on_servo(sp(Q0, i * 1.0), i * 1e-3)
+    v = a.evaluate(0.05)
+    assert (v.state, v.causes, v.scale, v.allow) == ("OK", (), 1.0, True)
+
+
+def test_service_causes_hold_and_degrade() -> None:
+    a = arm()
+    assert a.evaluate(0.0, ["mapping not alive"]).state == "HOLD"
+    v = a.evaluate(0.0, [], ["12 control messages lost"])
+    assert v.state == "DEGRADED" and v.scale == 0.5 and v.allow
+
+
+def test_estop_latches_until_reset() -> None:
+    a = arm()
+    assert a.on_estop(EStop(Header("console", 0, 0), "*", "estop", "collision"))
+    v = a.evaluate(0.0)
+    assert v.state == "ESTOP" and not v.allow and "collision" in v.causes[0]
+    assert not a.on_estop(EStop(Header("console", 1, 0), "arm2", "reset", ""))  # other arm
+    assert a.evaluate(5.0).state == "ESTOP"  # latched: time alone does not clear it
+    assert a.on_estop(EStop(Header("console", 2, 0), "arm1", "reset", ""))
+    assert a.evaluate(5.0).state == "OK"
+
+
+def test_setpoint_outside_joint_limits_holds_for_the_latch_time() -> None:
+    a = arm()
+    bad = (0.0, 0.2, 0.3, 0.0, -0.6, 7.0)
+    a.on_servo(sp(bad, 0.0), 1.0)
+    v = a.evaluate(1.0)
+    assert v.state == "HOLD" and "j6" in v.causes[0] and "joint limits" in v.causes[0]
+    assert a.evaluate(1.4).state == "HOLD"
+    assert a.evaluate(1.6).state == "OK"  # 500 ms after the last offending message
+
+
+def test_setpoint_speed_degrades_then_jump_holds() -> None:
+    a = arm()
+    vmax = MH3F.max_velocity[0]
+    # j1 moving at 1.5× its limit for 30 ms → DEGRADED (the slave clips it)
+    for i in range(31):
+        q = (1.5 * vmax * i * 1e-3, *Q0[1:])
+        a.on_servo(sp(q, float(i)), 0.0)
+    v = a.evaluate(0.0)
+    assert v.state == "DEGRADED" and "j1" in v.causes[0] and "clips" in v.causes[0]
+    # a step of 0.2 rad within 20 ms: 10 rad/s, a jump → HOLD
+    b = arm()
+    b.on_servo(sp(Q0, 0.0), 0.0)
+    b.on_servo(sp((0.2, *Q0[1:]), 20.0), 0.0)
+    v = b.evaluate(0.0)
+    assert v.state == "HOLD" and "jump" in v.causes[0]
+
+
+def test_not_following_setpoints_are_not_speed_checked() -> None:
+    a = arm()
+    a.on_servo(sp(Q0, 0.0, follow=False), 0.0)
+    a.on_servo(sp((0.5, *Q0[1:]), 20.0, follow=False), 0.0)
+    assert a.evaluate(0.0).state == "OK"
+
+
+def test_workspace_and_rcm_limits() -> None:
+    a = arm()
+    a.on_setpoint_cp(CartesianPose(Header("mapping", 0, 0), "base", (1.2, 0.0, 0.3), (0, 0, 0, 1)), 0.0)
+    v = a.evaluate(0.0)
+    assert v.state == "HOLD" and "x=1200 mm" in v.causes[0]
+    b = arm()
+    st = OperatingState(Header("slave", 0, 0), "ENABLED", "non_trocar", True, True, "", 0, 5.0)
+    b.on_slave_state(st, 0.0)
+    assert b.evaluate(0.0).state == "OK"  # RCM only matters in trocar mode
+    st = OperatingState(Header("slave", 1, 0), "ENABLED", "trocar", True, True, "", 0, 2.5)
+    b.on_slave_state(st, 0.0)
+    v = b.evaluate(0.0)
+    assert v.state == "HOLD" and "RCM error 2.50 mm" in v.causes[0]
+
+
+def test_operator_absent_holds() -> None:
+    a = arm()
+    a.on_buttons(MasterButtons(Header("m", 0, 0), True, False))
+    assert a.evaluate(0.0).causes == ("operator not present",)
+
+
+@pytest.mark.parametrize(
+    ("latency_ms", "state", "scale"),
+    [(5.0, "OK", 1.0), (80.0, "DEGRADED", 0.5), (200.0, "HOLD", 1.0)],
+)
+def test_latency_budget(latency_ms: float, state: str, scale: float) -> None:
+    a = arm()
+    for i in range(100):
+        a.on_servo(sp(Q0, i, False, origin_ms=i + 1), i * 1e-3, rx_wall_ns=int((i + 1 + latency_ms) * 1e6))
+    v = a.evaluate(0.1)
+    assert (v.state, v.scale) == (state, scale)
+    assert v.latency_samples == 100 and v.latency_p50_ms == pytest.approx(latency_ms)
+
+
+def test_latency_hysteresis_and_window() -> None:
+    a = arm()
+    for i in range(50):
+        a.add_latency(200.0, 0.0)
+    assert a.evaluate(0.0).state == "HOLD"
+    for i in range(200):
+        a.add_latency(130.0, 0.5)  # below the limit but above 0.8 × limit: stays HOLD
+    assert a.evaluate(0.5).state == "HOLD"
+    v = a.evaluate(1.2)  # the 200 ms samples left the 1 s window; 130 ms > 0.8 × 150
+    assert v.state == "HOLD"
+    for i in range(2000):
+        a.add_latency(45.0, 1.6)  # below the limit's hysteresis, above 0.8 × budget
+    v = a.evaluate(1.6)
+    assert v.state == "DEGRADED", v
+    v = a.evaluate(2.7)  # window empty: no verdict change without samples
+    assert v.latency_samples == 0
+
+
+def test_config_validation() -> None:
+    with pytest.raises(ConfigError, match="latency_budget_ms"):
+        WatchdogConfig(latency_budget_ms=200.0).validate()
+    with pytest.raises(ConfigError, match="latency_source"):
+        WatchdogConfig(latency_source="ntp").validate()
+    with pytest.raises(ConfigError, match="workspace"):
+        WatchdogConfig(workspace_min_mm=(0.0, 0.0, 900.0)).validate()
+    assert np.all(WatchdogConfig().policy().max_velocity > 0)
