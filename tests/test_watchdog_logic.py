@@ -120,20 +120,30 @@ def test_latency_budget(latency_ms: float, state: str, scale: float) -> None:
 
 def test_latency_hysteresis_and_window() -> None:
     a = arm()
-    for i in range(50):
+    for _ in range(50):
         a.add_latency(200.0, 0.0)
     assert a.evaluate(0.0).state == "HOLD"
-    for i in range(200):
+    for _ in range(200):
         a.add_latency(130.0, 0.5)  # below the limit but above 0.8 × limit: stays HOLD
     assert a.evaluate(0.5).state == "HOLD"
     v = a.evaluate(1.2)  # the 200 ms samples left the 1 s window; 130 ms > 0.8 × 150
     assert v.state == "HOLD"
-    for i in range(2000):
+    for _ in range(2000):
         a.add_latency(45.0, 1.6)  # below the limit's hysteresis, above 0.8 × budget
     v = a.evaluate(1.6)
     assert v.state == "DEGRADED", v
     v = a.evaluate(2.7)  # window empty: no verdict change without samples
     assert v.latency_samples == 0
+
+
+def test_a_burst_after_one_stall_degrades_but_does_not_hold() -> None:
+    a = arm()
+    for i in range(900):
+        a.add_latency(1.0, i * 1e-3)
+    for i in range(90):  # a 180 ms stall: the queued messages arrive 180 … 0 ms late
+        a.add_latency(180.0 - 2 * i, 0.9)
+    v = a.evaluate(0.95)
+    assert v.state == "DEGRADED" and v.latency_p99_ms > 150 and v.latency_p50_ms < 5
 
 
 def test_config_validation() -> None:

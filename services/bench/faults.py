@@ -25,8 +25,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from services.bench.harness import Pipeline, now_ns
-from shared.messages import EStop
 
 log = logging.getLogger(__name__)
 
@@ -95,13 +96,7 @@ def _garbage(per_key: int) -> Fault:
 
 
 def _estop() -> Fault:
-    def send(p: Pipeline, action: str) -> int:
-        out = p.node.outlet(p.node.keys.estop, control=True)
-        t = now_ns()
-        out.put(EStop(out.header(), "*", action, "bench"))
-        return t
-
-    return Fault("e-stop, then reset", lambda p: send(p, "estop"), lambda p: send(p, "reset"), 1.0, "estop")
+    return Fault("e-stop, then reset", lambda p: p.estop("estop"), lambda p: p.estop("reset"), 1.0, "estop")
 
 
 def default_faults(stop_s: float = 0.6) -> list[Fault]:
@@ -170,8 +165,14 @@ def run_fault(pipe: Pipeline, f: Fault, settle_s: float = 1.0, recover_s: float 
         t_fol = fol[0] if fol else now_ns()
         row["recovery_s"] = round((t_fol - t_clear) / 1e9, 2)
         row["reengage_needed"] = p.press_between(hold[0] if hold else t0, t_fol)
+        # The slave must stay put from the moment the fault cleared until the new engage.
+        tips = p.tips()
+        sel = (tips[:, 0] >= t_clear) & (tips[:, 0] <= t_fol)
+        p_clear = tips[max(int(np.searchsorted(tips[:, 0], t_clear, side="right")) - 1, 0), 1:]
+        moved = np.linalg.norm(tips[sel, 1:] - p_clear, axis=1).max() * 1e3 if sel.any() else 0.0
+        row["motion_before_reengage_mm"] = round(float(moved), 3)
     else:
-        row["recovery_s"], row["reengage_needed"] = None, None
+        row["recovery_s"], row["reengage_needed"], row["motion_before_reengage_mm"] = None, None, None
     row["lost"] = sum(p.lost().values()) - lost0
     time.sleep(0.6)  # heartbeats are 2 Hz
     row["rejected"] = sum(p.heartbeats.values()) - rej0
@@ -192,6 +193,7 @@ def _judge(row: dict[str, Any]) -> bool:
         row["held"]
         and row["reengage_needed"]
         and row["motion_after_detect_mm"] < 0.5
+        and row["motion_before_reengage_mm"] < 0.5
         and (want is None or want in row["watchdog_states"])
     )
 

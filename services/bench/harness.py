@@ -31,10 +31,11 @@ from types import TracebackType
 import numpy as np
 
 from services.launcher import Site, SiteSpec, default_config_dir, free_port
-from shared.bus import BusConfig, Node
+from shared.bus import BusConfig, Node, Outlet
 from shared.impair import LinkImpairer
 from shared.messages import (
     CartesianPose,
+    EStop,
     JointSetpoint,
     JointState,
     MasterButtons,
@@ -206,6 +207,7 @@ class Pipeline:
         self.site = Site(self.spec)
         self._node: Node | None = None
         self.probe: Probe | None = None
+        self._estop_out: Outlet | None = None
 
     def __enter__(self) -> Pipeline:
         try:
@@ -303,6 +305,14 @@ class Pipeline:
         assert self.impairer is not None
         t = now_ns()
         self.impairer.set_delay(ms)
+        return t
+
+    def estop(self, action: str, arm: str = "*") -> int:
+        """Send an e-stop (``action="estop"``) or its reset from the probe."""
+        if self._estop_out is None:
+            self._estop_out = self.node.outlet(self.node.keys.estop)
+        t = now_ns()
+        self._estop_out.put(EStop(self._estop_out.header(), arm, action, "bench"))
         return t
 
     def restore(self) -> int:

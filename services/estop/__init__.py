@@ -54,7 +54,8 @@ def main(argv: Sequence[str] | None = None) -> int:
                     if (msg.state == "ESTOP") == (action == "estop"):
                         done.set()
 
-            node.subscribe(node.keys.safety(args.arm, "state"), SafetyState, on_state)
+            arm_key = "*" if args.arm == "*" else args.arm
+            node.subscribe(f"{node.keys.prefix}/safety/{arm_key}/state", SafetyState, on_state)
             out = node.outlet(node.keys.estop)
             reason = args.reason or f"telesurg estop (pid {os.getpid()})"
             # Re-send until confirmed: the first put may race the subscriber discovery.

@@ -83,7 +83,7 @@ class WatchdogConfig:
     echo_service: str = "master_capture"  # whose echo queryable is probed (latency_source=echo)
     echo_hz: float = 20.0  # Hz: echo probes (latency_source=echo)
     latency_budget_ms: float = 50.0  # ms: p99 above → DEGRADED, motion scale × degraded_scale
-    latency_limit_ms: float = 150.0  # ms: p99 above → HOLD (out of follow until re-engage)
+    latency_limit_ms: float = 150.0  # ms: p50 above → HOLD (out of follow until re-engage)
     latency_window_s: float = 1.0  # s: window of the latency percentiles
     degraded_scale: float = 0.5  # motion-scale factor while DEGRADED
     velocity_hold_factor: float = 2.0  # setpoint speed above this × joint limit → HOLD (a jump)
