@@ -205,27 +205,36 @@ class Node:
         cls: type[M],
         callback: Callable[[M, str], None],
         *,
-        sources: Collection[str] | None = None,
+        sources: Collection[str] | Callable[[str, str], bool] | None = None,
     ) -> None:
         """Subscribe with strict decoding; ``callback(msg, key)`` runs on a zenoh thread.
 
-        ``sources``: if given, only these publishers (header ``src``) may publish on ``key``;
-        messages from any other source are rejected and counted (``foreign``).
+        ``sources``: if given, only these publishers (header ``src``) may publish on ``key`` —
+        a collection of service ids, or ``trusted(key, source) -> bool``; messages from any other
+        source are rejected and counted (``foreign``) before the sequence check.
         """
-        allowed = frozenset(sources) if sources is not None else None
+        if sources is None or callable(sources):
+            trusted = sources
+        else:
+            allowed = frozenset(sources)
+
+            def trusted(key: str, source: str) -> bool:
+                return source in allowed
 
         def on_sample(sample: Any) -> None:
             k = str(sample.key_expr)
             stats = self.streams.get(k)
             try:
                 msg = decode_as(sample.payload.to_bytes(), cls)
-            except MessageError as exc:
+            except Exception as exc:  # MessageError; anything else is a decoder bug, still rejected
                 with self._lock:
                     stats.rejected += 1
-                if stats.rejected <= 5 or stats.rejected % 1000 == 0:
+                if not isinstance(exc, MessageError):
+                    log.error("decoder bug on %s (message rejected): %r", k, exc)
+                elif stats.rejected <= 5 or stats.rejected % 1000 == 0:
                     log.warning("rejected message on %s (%d so far): %s", k, stats.rejected, exc)
                 return
-            if allowed is not None and msg.header.source not in allowed:
+            if trusted is not None and not trusted(k, msg.header.source):
                 with self._lock:
                     stats.rejected += 1
                     stats.foreign += 1

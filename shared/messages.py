@@ -47,6 +47,8 @@ MAX_LIST = 64
 
 _HEADER_KEYS = frozenset({"v", "type", "src", "seq", "ts"})
 _U64_MAX = 2**64 - 1
+#: Largest ``seq`` / ``ts``: int64, so every consumer (numpy, rerun, MCAP) can hold them.
+_I64_MAX = 2**63 - 1
 
 
 def now_ns() -> int:
@@ -685,8 +687,10 @@ def decode(payload: bytes | bytearray | memoryview) -> AnyMessage:
         raise MessageError(f"unknown message type {tag!r}; valid: {sorted(_REGISTRY)}")
     extra = set(d) - _HEADER_KEYS - cls.BODY
     if extra:
-        raise MessageError(f"{tag}: unexpected fields {sorted(extra)}")
-    header = Header(_str(d, "src", allow_empty=False), _int(d, "seq"), _int(d, "ts"))
+        raise MessageError(f"{tag}: unexpected fields {sorted(map(repr, extra))}")
+    header = Header(
+        _str(d, "src", allow_empty=False), _int(d, "seq", hi=_I64_MAX), _int(d, "ts", hi=_I64_MAX)
+    )
     msg = cls.from_body(header, d)
     return msg  # type: ignore[return-value]
 

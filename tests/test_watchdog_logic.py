@@ -35,7 +35,7 @@ def test_healthy_arm_is_ok_at_full_scale() -> None:
 def test_service_causes_hold_and_degrade() -> None:
     a = arm()
     assert a.evaluate(0.0, ["mapping not alive"]).state == "HOLD"
-    v = a.evaluate(0.0, [], ["12 control messages lost"])
+    v = a.evaluate(1.0, [], ["12 control messages lost"])
     assert v.state == "DEGRADED" and v.scale == 0.5 and v.allow
 
 
@@ -57,7 +57,16 @@ def test_setpoint_outside_joint_limits_holds_for_the_latch_time() -> None:
     v = a.evaluate(1.0)
     assert v.state == "HOLD" and "j6" in v.causes[0] and "joint limits" in v.causes[0]
     assert a.evaluate(1.4).state == "HOLD"
-    assert a.evaluate(1.6).state == "OK"  # 500 ms after the last offending message
+    assert a.evaluate(1.6).state == "HOLD"  # latch over at 1.5 s; the hold outlasts it by 250 ms
+    assert a.evaluate(1.8).state == "OK"
+
+
+def test_hold_outlasts_its_causes_so_the_lease_does_not_flap() -> None:
+    a = arm()
+    assert a.evaluate(0.0, ["servo_jp stale (85 ms > 80 ms)"]).state == "HOLD"
+    v = a.evaluate(0.1)
+    assert v.state == "HOLD" and v.causes == ("clearing: servo_jp stale (85 ms > 80 ms)",)
+    assert a.evaluate(0.3).state == "OK"
 
 
 def test_setpoint_speed_degrades_then_jump_holds() -> None:

@@ -19,6 +19,7 @@ Example::
 from __future__ import annotations
 
 import contextlib
+import json
 import logging
 import os
 import signal
@@ -49,6 +50,7 @@ log = logging.getLogger(__name__)
 #: Clutch schedule of the bench's scripted master: pressed 0.5–3.5 s of every 4 s, so after any
 #: hold a new engage comes within 4 s.
 BENCH_CLUTCH = ["scripted.clutch=[[0.5, 3.5]]", "scripted.clutch_repeat_s=4.0"]
+HEARTBEAT_SOURCES = ("watchdog", "slave_control", "mapping", "master_capture", "mirror")
 CONTROL_STREAMS = ("master/m1/measured_cp", "slave/arm1/servo_jp", "slave/arm1/measured_js")
 
 
@@ -71,25 +73,31 @@ class Probe:
     clutch: list[tuple[int, bool]] = field(default_factory=list)
     events: list[tuple[int, str, str, str]] = field(default_factory=list)
     heartbeats: dict[str, int] = field(default_factory=dict)  # service → rejected so far
+    joints: list[tuple[float, ...]] = field(default_factory=list)  # slave measured_js positions
 
     def __post_init__(self) -> None:
         k = self.node.keys
-        self.node.subscribe(k.slave(self.arm, "measured_cp"), CartesianPose, self._on_tip)
-        self.node.subscribe(k.slave(self.arm, "operating_state"), OperatingState, self._on_op)
-        self.node.subscribe(k.safety(self.arm, "state"), SafetyState, self._on_safety)
-        self.node.subscribe(k.master(self.master, "buttons"), MasterButtons, self._on_buttons)
-        self.node.subscribe(k.events(), SafetyEvent, self._on_event)
-        # Counted only (sequence continuity of the control streams as the probe sees them).
-        self.node.subscribe(k.master(self.master, "measured_cp"), CartesianPose, lambda m, k: None)
-        self.node.subscribe(k.slave(self.arm, "servo_jp"), JointSetpoint, lambda m, k: None)
-        self.node.subscribe(k.slave(self.arm, "measured_js"), JointState, lambda m, k: None)
+        # Only the genuine publishers count (fuzzing publishes look-alikes on the same keys).
+        sub, slave, master = self.node.subscribe, ["slave_control"], ["master_capture"]
+        sub(k.slave(self.arm, "measured_cp"), CartesianPose, self._on_tip, sources=slave)
+        sub(k.slave(self.arm, "operating_state"), OperatingState, self._on_op, sources=slave)
+        sub(k.safety(self.arm, "state"), SafetyState, self._on_safety, sources=["watchdog"])
+        sub(k.master(self.master, "buttons"), MasterButtons, self._on_buttons, sources=master)
+        sub(k.events(), SafetyEvent, self._on_event)
+        sub(k.master(self.master, "measured_cp"), CartesianPose, lambda m, k: None, sources=master)
+        sub(k.slave(self.arm, "servo_jp"), JointSetpoint, lambda m, k: None, sources=["mapping"])
+        sub(k.slave(self.arm, "measured_js"), JointState, self._on_js, sources=slave)
         from shared.messages import Heartbeat
 
-        self.node.subscribe(k.heartbeat(), Heartbeat, self._on_heartbeat)
+        self.node.subscribe(k.heartbeat(), Heartbeat, self._on_heartbeat, sources=HEARTBEAT_SOURCES)
 
     def _on_tip(self, m: CartesianPose, key: str) -> None:
         with self.lock:
             self.tip.append((now_ns(), *m.position))
+
+    def _on_js(self, m: JointState, key: str) -> None:
+        with self.lock:
+            self.joints.append(m.position)
 
     def _on_op(self, m: OperatingState, key: str) -> None:
         with self.lock:
@@ -191,6 +199,8 @@ class Pipeline:
         port = free_port()
         self.impairer = LinkImpairer(("127.0.0.1", port)) if impair else None
         ov: dict[str, list[str]] = {"master_capture": list(BENCH_CLUTCH)}
+        if mirror:  # the mirror records the whole run next to the logs
+            ov["mirror"] = [f"save={json.dumps(str(log_dir / 'session.rrd'))}"]
         for name, items in (overrides or {}).items():
             ov.setdefault(name, []).extend(items)
         services = ("watchdog", "slave_control", "mapping", "master_capture") + (

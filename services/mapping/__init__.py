@@ -71,6 +71,10 @@ class MappingConfig:
     max_joint_step_rad: float = 0.1
     workspace_min_mm: tuple[float, float, float] = (150.0, -600.0, -200.0)  # target box, base frame
     workspace_max_mm: tuple[float, float, float] = (1100.0, 600.0, 800.0)
+    # Only these services may publish the inputs (others are rejected and counted; "" = anyone).
+    master_source: str = "master_capture"
+    slave_source: str = "slave_control"
+    watchdog_source: str = "watchdog"
     bus: BusConfig = field(default_factory=BusConfig)  # zenoh session
 
     def validate(self) -> None:
@@ -336,6 +340,11 @@ class ArmMapping:
         )
 
 
+def _only(source: str) -> list[str] | None:
+    """Allowed-sources list for Node.subscribe ("" = anyone)."""
+    return [source] if source else None
+
+
 def _vec3(v: np.ndarray) -> tuple[float, float, float]:
     return (float(v[0]), float(v[1]), float(v[2]))
 
@@ -354,11 +363,16 @@ def run(cfg: MappingConfig, stop: threading.Event) -> None:
         for pair in cfg.pairs:
             master, slave = parse_pair(pair)
             a = ArmMapping(cfg, node, master, slave, work)
-            node.subscribe(k.master(master, "buttons"), MasterButtons, a.on_buttons)
-            node.subscribe(k.master(master, "measured_cp"), CartesianPose, a.on_master_pose)
-            node.subscribe(k.slave(slave, "measured_js"), JointState, a.on_slave_js)
-            node.subscribe(k.slave(slave, "operating_state"), OperatingState, a.on_slave_state)
-            node.subscribe(k.safety(slave, "state"), SafetyState, a.on_safety_state)
+            m_src, s_src, w_src = (
+                _only(cfg.master_source),
+                _only(cfg.slave_source),
+                _only(cfg.watchdog_source),
+            )
+            node.subscribe(k.master(master, "buttons"), MasterButtons, a.on_buttons, sources=m_src)
+            node.subscribe(k.master(master, "measured_cp"), CartesianPose, a.on_master_pose, sources=m_src)
+            node.subscribe(k.slave(slave, "measured_js"), JointState, a.on_slave_js, sources=s_src)
+            node.subscribe(k.slave(slave, "operating_state"), OperatingState, a.on_slave_state, sources=s_src)
+            node.subscribe(k.safety(slave, "state"), SafetyState, a.on_safety_state, sources=w_src)
             arms.append(a)
             log.info("mapping %s → %s, scale %.2f", master, slave, cfg.scale)
         check_period = 0.01  # s: master staleness check

@@ -77,6 +77,11 @@ class MirrorConfig:
     trail_hz: float = 50.0  # Hz: trail points are thinned to at most this rate (file size)
     application_id: str = "telesurg"  # rerun application id (groups recordings in the viewer)
     recording_id: str = ""  # rerun recording id; "" = random; same id merges several processes
+    # Only these services' master/, slave/ and safety/ streams are drawn (look-alikes from any
+    # other source are counted and dropped); events and heartbeats are drawn from anyone.
+    trusted_sources: list[str] = field(
+        default_factory=lambda: ["master_capture", "mapping", "slave_control", "watchdog"]
+    )
     bus: BusConfig = field(default_factory=BusConfig)  # zenoh session
 
     def validate(self) -> None:
@@ -364,10 +369,22 @@ def run(cfg: MirrorConfig, stop: threading.Event) -> None:
         inbox = Inbox()
         with Node(cfg.bus, cfg.site, cfg.service) as node:
             mirror = Mirror(view, node.keys.prefix, cfg.trail_s, cfg.trail_hz)
-            node.subscribe(node.keys.all, Message, inbox.on_message)
+            trusted = frozenset(cfg.trusted_sources)
+
+            def trust(key: str, source: str) -> bool:
+                role = key.split("/", 3)[2] if key.count("/") >= 3 else ""
+                return source in trusted or role not in ("master", "slave", "safety")
+
+            node.subscribe(node.keys.all, Message, inbox.on_message, sources=trust)
+            draw_errors = 0
             while not stop.is_set():
-                mirror.feed(inbox.take())
-                mirror.draw()
+                try:
+                    mirror.feed(inbox.take())
+                    mirror.draw()
+                except Exception:  # a drawing bug must not take the mirror down; say so
+                    draw_errors += 1
+                    if draw_errors <= 5 or draw_errors % 1000 == 0:
+                        log.exception("draw failed (%d so far); continuing", draw_errors)
                 timer.wait()
             rejected = node.rejected
         mirror.feed(inbox.take())  # whatever arrived before the subscriber closed

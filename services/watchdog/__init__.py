@@ -77,7 +77,8 @@ class WatchdogConfig:
     master_deadline_ms: float = 80.0  # ms: master measured_cp older than this → HOLD
     buttons_deadline_ms: float = 200.0  # ms: master buttons older than this → HOLD
     servo_deadline_ms: float = 80.0  # ms: servo_jp older than this → HOLD
-    slave_deadline_ms: float = 100.0  # ms: slave measured_js / operating_state older → HOLD
+    slave_deadline_ms: float = 100.0  # ms: slave measured_js older than this → HOLD
+    slave_state_deadline_ms: float = 250.0  # ms: slave operating_state (20 Hz) older → HOLD
     max_loss_per_s: int = 10  # lost + reordered control messages per second above this → DEGRADED
     latency_source: str = "clock"  # clock: servo_jp origin stamps (one host); echo: RTT/2
     echo_service: str = "master_capture"  # whose echo queryable is probed (latency_source=echo)
@@ -91,8 +92,14 @@ class WatchdogConfig:
     workspace_max_mm: tuple[float, float, float] = (1100.0, 600.0, 800.0)
     rcm_limit_mm: float = 2.0  # mm: RCM error above this in trocar mode → HOLD
     fault_latch_ms: float = 500.0  # ms: a message-level fault holds at least this long
+    min_hold_ms: float = 250.0  # ms: a HOLD outlasts its causes by this much (no flapping lease)
     require_operator: bool = True  # HOLD while the master reports no operator present
     state_hz: float = 5.0  # Hz: safety state republish rate (also sent on every change)
+    # Only these services may publish the watched streams (others are rejected and counted, and
+    # cannot keep a stream looking fresh; "" = anyone). E-stops are accepted from anyone.
+    master_source: str = "master_capture"
+    mapping_source: str = "mapping"
+    slave_source: str = "slave_control"
     bus: BusConfig = field(default_factory=BusConfig)  # zenoh session
 
     def validate(self) -> None:
@@ -129,6 +136,7 @@ class WatchdogConfig:
             latency_window_s=self.latency_window_s,
             degraded_scale=self.degraded_scale,
             fault_latch_ms=self.fault_latch_ms,
+            min_hold_ms=self.min_hold_ms,
             require_operator=self.require_operator,
         )
 
@@ -144,7 +152,7 @@ class ArmWatch:
             k.master(master, "buttons"): cfg.buttons_deadline_ms,
             k.slave(arm, "servo_jp"): cfg.servo_deadline_ms,
             k.slave(arm, "measured_js"): cfg.slave_deadline_ms,
-            k.slave(arm, "operating_state"): cfg.slave_deadline_ms,
+            k.slave(arm, "operating_state"): cfg.slave_state_deadline_ms,
         }
         self.control = [
             k.master(master, "measured_cp"),
@@ -173,13 +181,15 @@ class Watchdog:
         self.last_tick: dict[str, int] = {}
         self.arms = [ArmWatch(node, cfg, *parse_pair(p)) for p in cfg.pairs]
         k = node.keys
+        m, mp, sl = ([x] if x else None for x in (cfg.master_source, cfg.mapping_source, cfg.slave_source))
         for a in self.arms:
-            node.subscribe(k.master(a.master, "measured_cp"), CartesianPose, self._on_stream)
-            node.subscribe(k.master(a.master, "buttons"), MasterButtons, self._bind(a, self._on_buttons))
-            node.subscribe(k.slave(a.arm, "servo_jp"), JointSetpoint, self._bind(a, self._on_servo))
-            node.subscribe(k.slave(a.arm, "setpoint_cp"), CartesianPose, self._bind(a, self._on_target))
-            node.subscribe(k.slave(a.arm, "measured_js"), JointState, self._on_stream)
-            node.subscribe(k.slave(a.arm, "operating_state"), OperatingState, self._bind(a, self._on_slave))
+            sub = node.subscribe
+            sub(k.master(a.master, "measured_cp"), CartesianPose, self._on_stream, sources=m)
+            sub(k.master(a.master, "buttons"), MasterButtons, self._bind(a, self._on_buttons), sources=m)
+            sub(k.slave(a.arm, "servo_jp"), JointSetpoint, self._bind(a, self._on_servo), sources=mp)
+            sub(k.slave(a.arm, "setpoint_cp"), CartesianPose, self._bind(a, self._on_target), sources=mp)
+            sub(k.slave(a.arm, "measured_js"), JointState, self._on_stream, sources=sl)
+            sub(k.slave(a.arm, "operating_state"), OperatingState, self._bind(a, self._on_slave), sources=sl)
         node.subscribe(k.estop, EStop, self._on_estop)
         node.watch_liveliness(k.alive(), self._on_alive)
 

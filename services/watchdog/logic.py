@@ -49,6 +49,7 @@ class Policy:
         latency_min_samples: fewer samples in the window → no latency verdict.
         degraded_scale: motion-scale factor while DEGRADED.
         fault_latch_ms: message-level faults hold at least this long.
+        min_hold_ms: a HOLD lasts at least this long after its causes cleared (no flapping lease).
         require_operator: HOLD while the master reports no operator present.
     """
 
@@ -66,6 +67,7 @@ class Policy:
     latency_min_samples: int = 20
     degraded_scale: float = 0.5
     fault_latch_ms: float = 500.0
+    min_hold_ms: float = 250.0
     require_operator: bool = True
 
 
@@ -101,6 +103,8 @@ class ArmSafety:
     _latched: dict[str, tuple[str, float]] = field(default_factory=dict)  # tag → (text, until)
     _latency: deque[tuple[float, float]] = field(default_factory=deque)  # (mono s, ms)
     _history: deque[tuple[int, np.ndarray]] = field(default_factory=deque)  # (src ts ns, q)
+    _hold_until: float = 0.0
+    _hold_causes: tuple[str, ...] = ()
     counters: dict[str, int] = field(default_factory=dict)
 
     # -- inputs -------------------------------------------------------------------------------
@@ -241,6 +245,11 @@ class ArmSafety:
             state, causes = "DEGRADED", degraded_causes
         else:
             state, causes = "OK", []
+        if state == "HOLD":
+            self._hold_until = now + p.min_hold_ms / 1e3
+            self._hold_causes = tuple(hold_causes)
+        elif state != "ESTOP" and now < self._hold_until:
+            state, causes = "HOLD", [f"clearing: {c}" for c in self._hold_causes] + causes
         scale = p.degraded_scale if state == "DEGRADED" else 1.0
         return Verdict(state, tuple(c[:500] for c in causes[:64]), scale, p50, p99, n)
 
