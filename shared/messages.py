@@ -160,6 +160,22 @@ def _strs(d: dict[str, Any], key: str, *, max_len: int = MAX_LIST) -> tuple[str,
     return tuple(out)
 
 
+def _joint_names(d: dict[str, Any]) -> tuple[str, ...]:
+    names = _strs(d, "name", max_len=MAX_JOINTS)
+    if not names:
+        raise MessageError("field 'name' must list at least one joint")
+    if len(set(names)) != len(names) or not all(names):
+        raise MessageError("field 'name' must hold distinct, non-empty joint names")
+    return names
+
+
+def _no_duplicate_keys(pairs: list[tuple[Any, Any]]) -> dict[Any, Any]:
+    d = dict(pairs)
+    if len(d) != len(pairs):
+        raise MessageError("duplicate keys in a map")
+    return d
+
+
 def _choice(d: dict[str, Any], key: str, options: frozenset[str]) -> str:
     v = _str(d, key)
     if v not in options:
@@ -259,7 +275,7 @@ class JointState(Message):
 
     @classmethod
     def from_body(cls, header: Header, d: dict[str, Any]) -> JointState:
-        names = _strs(d, "name", max_len=MAX_JOINTS)
+        names = _joint_names(d)
         pos = _floats(d, "position")
         _same_len("position", names, pos)
         vel = _floats(d, "velocity")
@@ -357,7 +373,7 @@ class JointSetpoint(Message):
 
     @classmethod
     def from_body(cls, header: Header, d: dict[str, Any]) -> JointSetpoint:
-        names = _strs(d, "name", max_len=MAX_JOINTS)
+        names = _joint_names(d)
         pos = _floats(d, "position")
         _same_len("position", names, pos)
         return cls(header, names, pos, _bool(d, "follow"), _int(d, "origin_ns"))
@@ -637,7 +653,7 @@ class Heartbeat(Message):
         return cls(
             header,
             _str(d, "service", allow_empty=False),
-            _float(d, "uptime_s"),
+            _nonneg(d, "uptime_s"),
             _int(d, "rejected"),
         )
 
@@ -672,6 +688,7 @@ def decode(payload: bytes | bytearray | memoryview) -> AnyMessage:
             max_bin_len=0,
             max_array_len=MAX_JOINTS * 4,
             max_map_len=32,
+            object_pairs_hook=_no_duplicate_keys,
             max_ext_len=0,
         )
     except Exception as exc:  # msgpack raises a family of unrelated exception types

@@ -68,3 +68,60 @@ def test_bus_config_errors() -> None:
         BusConfig(mode="mesh").validate()
     with pytest.raises(ConfigError, match="needs at least one --connect"):
         BusConfig(mode="client").validate()
+
+
+def test_only_allowed_sources_reach_the_callback(endpoint: str) -> None:
+    got: list[str] = []
+    bus = BusConfig(connect=[endpoint])
+    with Node(bus, "t", "sub") as sub, Node(bus, "t", "mapping") as good, Node(bus, "t", "intruder") as bad:
+        key = sub.keys.slave("arm1", "servo_jp")
+        sub.subscribe(key, JointSetpoint, lambda m, k: got.append(m.header.source), sources=["mapping"])
+        g, b = good.outlet(key), bad.outlet(key)
+        time.sleep(0.3)
+        for _ in range(3):
+            g.put(JointSetpoint(g.header(), ("j1",), (0.1,), follow=True))
+            b.put(JointSetpoint(b.header(), ("j1",), (0.9,), follow=True))
+        stats = sub.streams.get(key)
+        assert wait_until(lambda: len(got) == 3 and stats.foreign == 3)
+        assert got == ["mapping"] * 3 and stats.rejected == 3 and stats.gaps == 0
+
+
+def test_a_single_forged_sequence_jump_cannot_silence_the_stream() -> None:
+    from shared.streams import MAX_SEQ_JUMP, StreamStats
+
+    s = StreamStats()
+    assert all(s.accept("mapping", i) for i in range(5))
+    assert not s.accept("mapping", 10**12)  # forged: far ahead, unconfirmed → dropped, counted
+    assert s.accept("mapping", 5) and s.rejected == 1 and s.gaps == 0  # genuine stream goes on
+    assert not s.accept("mapping", 5)  # duplicate
+    assert not s.accept("mapping", 3)  # old
+    assert s.reordered == 2
+    far = 5 + MAX_SEQ_JUMP + 10
+    assert not s.accept("mapping", far)
+    assert s.accept("mapping", far + 1)  # the next message confirms a genuine renumbering
+    assert s.jumps == 1 and s.lost == far - 5
+
+
+def test_slave_refuses_a_setpoint_jump_while_following(endpoint: str) -> None:
+    import numpy as np
+
+    from services.slave_control import SlaveControlConfig, SlaveService
+    from shared.kinematics import MH3F
+
+    names = MH3F.joint_names
+    q0 = (0.0, 0.2, 0.3, 0.0, -0.6, 0.0)
+    with Node(BusConfig(connect=[endpoint]), "t", "slave_control") as node:
+        svc = SlaveService(SlaveControlConfig(), node, names)
+        h = Header("mapping", 0, 0)
+        svc.on_setpoint(JointSetpoint(h, names, q0, follow=True), "")
+        svc.following = True
+        near = (0.05, *q0[1:])
+        svc.on_setpoint(JointSetpoint(h, names, near, follow=True), "")
+        assert svc.setpoint is not None and svc.setpoint.position[0] == 0.05
+        svc.on_setpoint(JointSetpoint(h, names, (0.5, *q0[1:]), follow=True), "")  # 0.45 rad jump
+        assert svc.setpoint.position[0] == 0.05 and svc.rejected_setpoints == 1
+        svc.on_setpoint(JointSetpoint(h, names, (0.0, 0.2, 0.3, 0.0, -0.6, 9.0), follow=True), "")
+        assert svc.rejected_setpoints == 2  # outside the joint limits
+        svc.following = False  # after a hold the engage tolerance (not the jump rule) applies
+        svc.on_setpoint(JointSetpoint(h, names, (0.5, *q0[1:]), follow=True), "")
+        assert np.isclose(svc.setpoint.position[0], 0.5)

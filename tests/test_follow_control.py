@@ -54,3 +54,19 @@ def test_resume_after_hold_needs_new_engage_and_no_jump() -> None:
     out = ctl.update(0.3, q, q, lease, Setpoint(far, True, 0.3), DT)
     assert not ctl.following and "engage refused" in ctl.reason
     np.testing.assert_allclose(out, q)
+
+
+def test_speed_clipping_is_counted_and_reported() -> None:
+    ctl, q, lease = make()
+    ctl.clip_quiet_cycles = 5
+    ctl.update(0.0, q, q, lease, Setpoint(q, False, 0.0), DT)
+    target = np.zeros(6)
+    target[1] = 0.01  # 10 mrad ahead: 5 cycles at 2 mrad per cycle
+    for _ in range(12):
+        q = ctl.update(0.0, q, q, lease, Setpoint(target, True, 0.0), DT)
+    assert ctl.following and ctl.clipped == 4  # the 5th step lands exactly
+    kinds = [k for k, _ in ctl.events]
+    texts = [t for k, t in ctl.events if k == "clipped"]
+    assert kinds.count("clipped") == 2
+    assert "joint 2" in texts[0] and "0.0100 rad behind" in texts[0]
+    assert "ended after 4 cycles" in texts[1]

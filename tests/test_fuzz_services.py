@@ -1,0 +1,98 @@
+"""Property-based fuzzing of the *running* services (hypothesis → zenoh → real processes).
+
+Hypothesis builds batches of payloads — arbitrary bytes, and valid messages mutated by
+:func:`shared.fuzz.mutate` — and publishes them on every key the services subscribe to, while the
+scripted master drives the MuJoCo slave. Afterwards: every service is still alive, each one's
+rejection counter (from its heartbeat) equals what the same strict decoder and source rules say it
+must reject, the slave never left its joint limits, and it follows the master again.
+"""
+
+from __future__ import annotations
+
+import random
+import time
+from collections import Counter
+from collections.abc import Iterator
+from typing import Any
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from services.bench.fuzz import SERVICES, TARGETS, expected_rejections
+from services.bench.harness import Pipeline
+from shared.fuzz import mutate, valid_template
+from shared.kinematics import MH3F
+
+pytestmark = pytest.mark.process
+
+KEYS = sorted(TARGETS)
+
+
+@pytest.fixture(scope="module")
+def pipe(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Pipeline]:
+    logs = tmp_path_factory.mktemp("fuzz") / "logs"
+    with Pipeline(logs, impair=False) as p:
+        assert p.wait_following(30), "the slave never followed"
+        yield p
+    for f in sorted(logs.glob("*.log")):
+        text = "\n".join(line for line in f.read_text().splitlines() if "rejected message" not in line)
+        print(f"--- {f.name}\n{text[-2000:]}")
+
+
+@st.composite
+def payloads(draw: Any) -> tuple[str, bytes]:
+    key = draw(st.sampled_from(KEYS))
+    if draw(st.booleans()):
+        return key, draw(st.binary(max_size=400))
+    # Look-alikes from an untrusted source: their fate does not depend on stream state, so the
+    # expected counts are exact. (Forged trusted sources: tests/test_streams_and_sources.py.)
+    valid = valid_template(TARGETS[key][0], source="fuzz")
+    _, payload = mutate(random.Random(draw(st.integers(0, 2**32))), valid.encode())
+    return key, payload
+
+
+def test_running_services_reject_count_and_never_move_the_slave_out_of_limits(pipe: Pipeline) -> None:
+    import zenoh
+
+    p = pipe.p
+    prefix = pipe.node.keys.prefix
+    pubs = {
+        k: pipe.node.session.declare_publisher(
+            f"{prefix}/{k}", congestion_control=zenoh.CongestionControl.BLOCK
+        )
+        for k in KEYS
+    }
+    time.sleep(1.0)
+    with p.lock:
+        before = dict(p.heartbeats)
+    expected: Counter[str] = Counter()
+    sent = Counter[str]()
+
+    @settings(max_examples=60, deadline=None, suppress_health_check=list(HealthCheck), database=None)
+    @given(batch=st.lists(payloads(), min_size=10, max_size=60))
+    def throw(batch: list[tuple[str, bytes]]) -> None:
+        for key, payload in batch:
+            exp = expected_rejections(key, payload)
+            if key == "estop" and exp["watchdog"] == 0:
+                continue  # a decodable e-stop would (rightly) stop the arm
+            pubs[key].put(payload)
+            expected.update(exp)
+            sent[key] += 1
+        time.sleep(0.005)
+
+    throw()
+    time.sleep(1.5)  # heartbeats are 2 Hz
+    assert pipe.site.dead() == {}, "a service died while fuzzed"
+    with p.lock:
+        got = {s: p.heartbeats.get(s, 0) - before.get(s, 0) for s in SERVICES}
+        joints = np.array(p.joints, dtype=float)
+    print(f"sent {sum(sent.values())} payloads: {dict(sent)}; rejected {got}; expected {dict(expected)}")
+    assert sum(sent.values()) > 500
+    assert got == {s: expected[s] for s in SERVICES}
+    lo, hi = np.array(MH3F.lower), np.array(MH3F.upper)
+    assert joints.shape[0] > 100 and not ((joints < lo) | (joints > hi)).any()
+    for pub in pubs.values():
+        pub.undeclare()  # type: ignore[no-untyped-call]
+    assert pipe.wait_following(15), "the slave did not follow again after the fuzzing"
