@@ -163,6 +163,7 @@ class Node:
         self._start = time.monotonic()
         self._handles: list[Any] = []  # publishers; keep references: zenoh undeclares on GC
         self._inputs: list[Any] = []  # subscribers, undeclared first on close
+        self._subscribed: set[str] = set()
         self._closed = False
         self.session = open_session(bus)
         self._token: Any = self.session.liveliness().declare_token(self.keys.alive(service))
@@ -213,6 +214,10 @@ class Node:
         a collection of service ids, or ``trusted(key, source) -> bool``; messages from any other
         source are rejected and counted (``foreign``) before the sequence check.
         """
+        # Per-key bookkeeping lives in ``self.streams``; a second subscription to the same key
+        # expression gets its own table (else it would see every message as a duplicate).
+        table = self.streams if key not in self._subscribed else StreamTable()
+        self._subscribed.add(key)
         if sources is None or callable(sources):
             trusted = sources
         else:
@@ -223,16 +228,17 @@ class Node:
 
         def on_sample(sample: Any) -> None:
             k = str(sample.key_expr)
-            stats = self.streams.get(k)
+            stats = table.get(k)
             try:
                 msg = decode_as(sample.payload.to_bytes(), cls)
             except Exception as exc:  # MessageError; anything else is a decoder bug, still rejected
                 with self._lock:
                     stats.rejected += 1
+                    bad = stats.rejected - stats.foreign
                 if not isinstance(exc, MessageError):
                     log.error("decoder bug on %s (message rejected): %r", k, exc)
-                elif stats.rejected <= 5 or stats.rejected % 1000 == 0:
-                    log.warning("rejected message on %s (%d so far): %s", k, stats.rejected, exc)
+                elif bad <= 5 or bad % 1000 == 0:
+                    log.warning("rejected message on %s (%d so far): %s", k, bad, exc)
                 return
             if trusted is not None and not trusted(k, msg.header.source):
                 with self._lock:

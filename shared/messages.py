@@ -508,14 +508,23 @@ class SafetyState(Message):
         causes: human-readable causes of a non-OK state.
         scale: motion-scale factor the mapping must apply, in [0, 1] (1 when OK; reduced while
             DEGRADED by the latency budget).
-        latency_p50_ms / latency_p99_ms: master → watchdog latency of the arm's command path
-            over the last window, ms (0 while unknown).
+        latency_p50_ms / latency_p90_ms / latency_p99_ms: master → watchdog latency of the arm's
+            command path over the last window, ms (0 while unknown).
         latency_samples: samples in that window.
     """
 
     TYPE: ClassVar[str] = "safety_state"
     BODY: ClassVar[frozenset[str]] = frozenset(
-        {"arm", "state", "causes", "scale", "latency_p50_ms", "latency_p99_ms", "latency_samples"}
+        {
+            "arm",
+            "state",
+            "causes",
+            "scale",
+            "latency_p50_ms",
+            "latency_p90_ms",
+            "latency_p99_ms",
+            "latency_samples",
+        }
     )
 
     arm: str = ""
@@ -523,6 +532,7 @@ class SafetyState(Message):
     causes: tuple[str, ...] = ()
     scale: float = 1.0
     latency_p50_ms: float = 0.0
+    latency_p90_ms: float = 0.0
     latency_p99_ms: float = 0.0
     latency_samples: int = 0
 
@@ -533,6 +543,7 @@ class SafetyState(Message):
             "causes": list(self.causes),
             "scale": self.scale,
             "latency_p50_ms": self.latency_p50_ms,
+            "latency_p90_ms": self.latency_p90_ms,
             "latency_p99_ms": self.latency_p99_ms,
             "latency_samples": self.latency_samples,
         }
@@ -549,6 +560,7 @@ class SafetyState(Message):
             _strs(d, "causes"),
             scale,
             _nonneg(d, "latency_p50_ms"),
+            _nonneg(d, "latency_p90_ms"),
             _nonneg(d, "latency_p99_ms"),
             _int(d, "latency_samples"),
         )

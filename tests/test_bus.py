@@ -125,3 +125,19 @@ def test_slave_refuses_a_setpoint_jump_while_following(endpoint: str) -> None:
         svc.following = False  # after a hold the engage tolerance (not the jump rule) applies
         svc.on_setpoint(JointSetpoint(h, names, (0.5, *q0[1:]), follow=True), "")
         assert np.isclose(svc.setpoint.position[0], 0.5)
+
+
+def test_two_subscriptions_to_one_key_both_get_every_message(endpoint: str) -> None:
+    a: list[int] = []
+    b: list[int] = []
+    bus = BusConfig(connect=[endpoint])
+    with Node(bus, "t", "sub") as sub, Node(bus, "t", "pub") as pub:
+        key = sub.keys.slave("arm1", "servo_jp")
+        sub.subscribe(key, JointSetpoint, lambda m, k: a.append(m.header.seq))
+        sub.subscribe(key, JointSetpoint, lambda m, k: b.append(m.header.seq))
+        out = pub.outlet(key)
+        time.sleep(0.3)
+        for _ in range(20):
+            out.put(JointSetpoint(out.header(), ("j1",), (0.1,), follow=True))
+        assert wait_until(lambda: len(a) == 20 and len(b) == 20)
+        assert a == b == list(range(20)) and sub.streams.get(key).reordered == 0

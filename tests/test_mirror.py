@@ -63,10 +63,15 @@ def test_mirror_records_bus_traffic_to_rrd(tmp_path: Path) -> None:
             stderr=subprocess.PIPE,
             text=True,
         )
-        with Node(BusConfig(connect=[ep]), "local", "test_pub") as node:
+        # The mirror draws master/slave/safety streams only from the services that own them.
+        with (
+            Node(BusConfig(connect=[ep]), "local", "slave_control") as node,
+            Node(BusConfig(connect=[ep]), "local", "intruder") as intruder,
+        ):
             assert _wait_alive(node, "mirror", 15.0), "mirror never joined the bus"
             js = node.outlet(node.keys.slave("arm1", "measured_js"), control=False)
-            events = node.outlet(node.keys.events("test_pub"), control=False)
+            events = node.outlet(node.keys.events("slave_control"), control=False)
+            fake = intruder.outlet(node.keys.slave("arm1", "measured_js"), control=False)
             raw = node.session.declare_publisher(node.keys.slave("arm1", "measured_js"))
             # The liveliness token precedes the subscriber by a few ms; wait until it matches.
             deadline = time.monotonic() + 5.0
@@ -82,6 +87,8 @@ def test_mirror_records_bus_traffic_to_rrd(tmp_path: Path) -> None:
                 sent += 1
                 if i == 100:
                     raw.put(b"garbage")
+                if i % 10 == 0:  # a look-alike from a service that does not own the stream
+                    fake.put(JointState(fake.header(), JOINTS, (3.0,) * 6))
                 if i % 60 == 0:
                     events.put(SafetyEvent(events.header(), "arm1", "test", "warning", f"event {i}"))
                 time.sleep(max(0.0, t0 + (i + 1) / 250 - time.monotonic()))
@@ -92,6 +99,7 @@ def test_mirror_records_bus_traffic_to_rrd(tmp_path: Path) -> None:
         _, stderr = proc.communicate(timeout=15)
         assert proc.returncode == 0, stderr
         assert "rejected message" in stderr  # the garbage was seen and counted, not fatal
+        assert "not an allowed source" in stderr  # so was the look-alike
 
         assert out.is_file()
         paths = entity_paths(out)

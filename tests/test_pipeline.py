@@ -23,8 +23,9 @@ import numpy as np
 import pytest
 
 from services.launcher import SiteSpec, default_config_dir, free_port, service_argv, wait_port
+from services.launcher.report import split_by_scale, tracking_error
 from shared.bus import BusConfig, Node
-from shared.messages import CartesianPose, JointSetpoint, JointState, OperatingState
+from shared.messages import CartesianPose, JointSetpoint, JointState, OperatingState, SafetyState
 
 pytestmark = pytest.mark.process
 
@@ -40,6 +41,7 @@ class Probe:
     master: list[tuple[int, float, float, float]] = field(default_factory=list)
     slave: list[tuple[int, float, float, float]] = field(default_factory=list)
     follow: list[tuple[int, bool]] = field(default_factory=list)
+    factors: list[tuple[int, float]] = field(default_factory=list)  # watchdog motion-scale factor
 
     def __post_init__(self) -> None:
         k = self.node.keys
@@ -48,6 +50,11 @@ class Probe:
         self.node.subscribe(k.slave("arm1", "servo_jp"), JointSetpoint, lambda m, k: None)
         self.node.subscribe(k.slave("arm1", "measured_js"), JointState, lambda m, k: None)
         self.node.subscribe(k.slave("arm1", "operating_state"), OperatingState, self._on_state)
+        self.node.subscribe(k.safety("arm1", "state"), SafetyState, self._on_safety)
+
+    def _on_safety(self, msg: SafetyState, key: str) -> None:
+        with self.lock:
+            self.factors.append((msg.header.stamp_ns, msg.scale))
 
     def _on(self, store: list[tuple[int, float, float, float]]):  # type: ignore[no-untyped-def]
         def cb(msg: CartesianPose, key: str) -> None:
@@ -133,21 +140,24 @@ def test_pipeline_follow_kill_restart_shutdown(
 
         # --- 2. the slave tip followed the scaled master motion within 2 mm after settling
         master, slave = probe.arrays()
-        sel = (slave[:, 0] > t_follow + 0.5e9) & (slave[:, 0] < master[-1, 0])
-        ts = slave[sel, 0]
-        assert ts.size > 1000, f"only {ts.size} slave samples while following"
-        # The master sample in effect at each slave sample (sample-and-hold: the slave cannot follow
-        # motion the master never published, e.g. while the master process was descheduled).
-        pm = master[np.searchsorted(master[:, 0], ts, side="right") - 1, 1:]
-        offset = slave[sel, 1:] - SCALE * pm
-        err_mm = np.linalg.norm(offset - np.median(offset, axis=0), axis=1) * 1e3
+        t_end = int(min(master[-1, 0], slave[-1, 0]))
+        with probe.lock:
+            factors = sorted(probe.factors)
+        # The watchdog may lower the motion scale (DEGRADED, e.g. latency over budget on a busy
+        # host); the mapping re-anchors there, so each part is checked with its own scale.
+        parts = split_by_scale([(t_follow, t_end)], factors, SCALE)
+        err = tracking_error(master, slave, parts, SCALE, np.eye(3), settle_s=0.5)
+        sel = (slave[:, 0] > t_follow + 0.5e9) & (slave[:, 0] < t_end)
         travel_mm = np.ptp(slave[sel, 1:], axis=0).max() * 1e3
+        scales = sorted({round(p[2], 3) for p in parts})
         print(
-            f"tracking error mean {err_mm.mean():.3f} mm, max {err_mm.max():.3f} mm, "
-            f"travel {travel_mm:.1f} mm"
+            f"tracking error mean {err.mean_mm:.3f} mm, max {err.max_mm:.3f} mm over {err.samples} "
+            f"samples, travel {travel_mm:.1f} mm, scales {scales}"
         )
-        assert travel_mm > 30.0, "the slave did not draw the circle"  # 40 mm master radius × 0.5 → 40 mm
-        assert err_mm.max() < 2.0
+        assert err.samples > 1000, f"only {err.samples} slave samples while following"
+        # 40 mm master radius × 0.5 → a 40 mm circle (20 mm at a degraded scale)
+        assert travel_mm > (30.0 if scales == [SCALE] else 15.0), "the slave did not draw the circle"
+        assert err.max_mm < 2.0
         assert probe.gaps("servo_jp") == 0
         assert probe.gaps("measured_js") == 0
         assert node.streams.get(node.keys.slave("arm1", "measured_js")).received > 1000

@@ -94,6 +94,19 @@ def test_not_following_setpoints_are_not_speed_checked() -> None:
 
 
 def test_workspace_and_rcm_limits() -> None:
+    from services.watchdog import _tip
+
+    w = ArmSafety("arm1", WatchdogConfig().policy(), NAMES, tip_of=_tip)
+    w.on_servo(sp(Q0, 0.0), 0.0)  # tip at (835, 0, 301) mm
+    assert w.evaluate(0.0).state == "OK"
+    w.on_servo(sp((0.0, 0.2, 0.3, 0.0, -0.6, 0.0), 1.0, follow=False), 0.0)
+    low = (0.0, 0.2, 1.5, 0.0, 1.2, 0.0)  # folded back over the base: x < 150 mm, z > 800 mm
+    assert _tip(np.array(low))[0] < 0.15
+    w.on_servo(sp(low, 40.0, follow=False), 0.0)
+    assert w.evaluate(0.0).state == "OK"  # not followed: not checked
+    w.on_servo(sp(low, 60.0), 0.0)
+    v = w.evaluate(0.0)
+    assert v.state == "HOLD" and any("x=-378 mm" in c and "workspace" in c for c in v.causes), v
     a = arm()
     a.on_setpoint_cp(CartesianPose(Header("mapping", 0, 0), "base", (1.2, 0.0, 0.3), (0, 0, 0, 1)), 0.0)
     v = a.evaluate(0.0)
@@ -116,7 +129,7 @@ def test_operator_absent_holds() -> None:
 
 @pytest.mark.parametrize(
     ("latency_ms", "state", "scale"),
-    [(5.0, "OK", 1.0), (80.0, "DEGRADED", 0.5), (200.0, "HOLD", 1.0)],
+    [(5.0, "OK", 1.0), (150.0, "DEGRADED", 0.5), (300.0, "HOLD", 1.0)],
 )
 def test_latency_budget(latency_ms: float, state: str, scale: float) -> None:
     a = arm()
@@ -128,36 +141,40 @@ def test_latency_budget(latency_ms: float, state: str, scale: float) -> None:
 
 
 def test_latency_hysteresis_and_window() -> None:
-    a = arm()
+    a = arm()  # budget 100 ms (p99), limit 250 ms (p50)
     for _ in range(50):
-        a.add_latency(200.0, 0.0)
+        a.add_latency(300.0, 0.0)
     assert a.evaluate(0.0).state == "HOLD"
     for _ in range(200):
-        a.add_latency(130.0, 0.5)  # below the limit but above 0.8 × limit: stays HOLD
+        a.add_latency(220.0, 0.5)  # below the limit but above 0.8 × limit: stays HOLD
     assert a.evaluate(0.5).state == "HOLD"
-    v = a.evaluate(1.2)  # the 200 ms samples left the 1 s window; 130 ms > 0.8 × 150
+    v = a.evaluate(1.2)  # the 300 ms samples left the 1 s window; 220 ms > 0.8 × 250
     assert v.state == "HOLD"
     for _ in range(2000):
-        a.add_latency(45.0, 1.6)  # below the limit's hysteresis, above 0.8 × budget
+        a.add_latency(90.0, 1.6)  # below the limit's hysteresis, above 0.8 × budget
     v = a.evaluate(1.6)
     assert v.state == "DEGRADED", v
     v = a.evaluate(2.7)  # window empty: no verdict change without samples
     assert v.latency_samples == 0
 
 
-def test_a_burst_after_one_stall_degrades_but_does_not_hold() -> None:
+def test_a_burst_after_one_stall_does_not_degrade_a_slow_link_does() -> None:
     a = arm()
     for i in range(900):
         a.add_latency(1.0, i * 1e-3)
     for i in range(90):  # a 180 ms stall: the queued messages arrive 180 … 0 ms late
         a.add_latency(180.0 - 2 * i, 0.9)
     v = a.evaluate(0.95)
-    assert v.state == "DEGRADED" and v.latency_p99_ms > 150 and v.latency_p50_ms < 5
+    assert v.state == "OK" and v.latency_p99_ms > 150 and v.latency_p50_ms < 5  # p90 ≈ 1 ms
+    for i in range(200):  # a slow link: every message 120 ms late
+        a.add_latency(120.0, 0.95 + i * 1e-4)
+    v = a.evaluate(0.97)
+    assert v.state == "DEGRADED" and v.causes[0].startswith("latency p90")
 
 
 def test_config_validation() -> None:
     with pytest.raises(ConfigError, match="latency_budget_ms"):
-        WatchdogConfig(latency_budget_ms=200.0).validate()
+        WatchdogConfig(latency_budget_ms=300.0).validate()
     with pytest.raises(ConfigError, match="latency_source"):
         WatchdogConfig(latency_source="ntp").validate()
     with pytest.raises(ConfigError, match="workspace"):

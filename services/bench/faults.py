@@ -103,13 +103,13 @@ def default_faults(stop_s: float = 0.6) -> list[Fault]:
     """The standard fault list of the bench (and of docs/safety.md)."""
     out = [_kill(s) for s in ("master_capture", "mapping", "watchdog", "mirror")]
     out += [_stop(s, stop_s) for s in ("master_capture", "mapping", "watchdog", "mirror")]
-    out += [_cut(0.6), _cut(3.0), _delay(80, 3.0, "degraded"), _delay(250, 3.0, "hold")]
+    out += [_cut(0.6), _cut(3.0), _delay(150, 3.0, "degraded"), _delay(400, 3.0, "hold")]
     out += [_garbage(500), _estop()]
     return out
 
 
 def parse_only(spec: str) -> list[Fault]:
-    """``kill:mapping,stop:watchdog,cut:0.6,delay:250,garbage:200,estop`` → faults."""
+    """``kill:mapping,stop:watchdog,cut:0.6,delay:400,garbage:200,estop`` → faults."""
     out: list[Fault] = []
     for item in filter(None, (x.strip() for x in spec.split(","))):
         kind, _, arg = item.partition(":")
@@ -120,8 +120,8 @@ def parse_only(spec: str) -> list[Fault]:
         elif kind == "cut":
             out.append(_cut(float(arg or 0.6)))
         elif kind == "delay":
-            ms = float(arg or 250)
-            out.append(_delay(ms, 3.0, "hold" if ms > 150 else "degraded"))
+            ms = float(arg or 400)
+            out.append(_delay(ms, 3.0, "hold" if ms > 250 else "degraded"))
         elif kind == "garbage":
             out.append(_garbage(int(arg or 500)))
         elif kind == "estop":
@@ -248,7 +248,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     )
     ap.add_argument("--json", type=Path, help="write the rows as JSON here")
     ap.add_argument(
-        "--only", help="comma list, e.g. kill:mapping,stop:watchdog,cut:0.6,delay:250,garbage,estop"
+        "--only", help="comma list, e.g. kill:mapping,stop:watchdog,cut:0.6,delay:400,garbage,estop"
     )
     ap.add_argument("--log-dir", type=Path, help="service logs (default: a temporary directory)")
     ap.add_argument("--stop-s", type=float, default=0.6, help="SIGSTOP duration, s (default 0.6)")

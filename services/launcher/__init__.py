@@ -37,7 +37,17 @@ log = logging.getLogger("telesurg.launcher")
 #: everything, and the router, which stops last.
 SERVICES = ("watchdog", "slave_control", "mapping", "master_capture", "mirror")
 STOP_ORDER = ("master_capture", "mapping", "watchdog", "slave_control", "mirror", "router")
-NICE = ("mirror",)  # started with nice +10
+NICE = ("mirror",)  # started under SCHED_IDLE (or nice +19): it only gets CPU the control loop leaves
+
+
+def _background() -> None:
+    """preexec_fn: lowest CPU priority, inherited by every thread the process starts."""
+    try:
+        os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
+    except (AttributeError, OSError):  # not Linux, or not permitted
+        os.nice(19)
+
+
 CLI_NAME = {
     "router": "router",
     "watchdog": "watchdog",
@@ -144,7 +154,7 @@ class Site:
             stderr=subprocess.STDOUT if out else None,
             start_new_session=True,
             # The mirror only watches: it yields the CPU to the control processes.
-            preexec_fn=(lambda: os.nice(10)) if name in NICE else None,
+            preexec_fn=_background if name in NICE else None,
         )
         log.info("started %-15s pid %d", name, self.procs[name].pid)
 

@@ -7,10 +7,14 @@ engaged segment, after a settling time at the start of the segment. The master p
 a slave sample is the last master sample published at or before the slave sample's source time
 (all processes share the host's wall clock): the slave cannot follow motion the master never
 published, e.g. while the master process was descheduled.
+
+When the watchdog changes the motion-scale factor (DEGRADED, e.g. over the latency budget), the
+mapping re-anchors; the segment is split there and each part uses the scale then in effect.
 """
 
 from __future__ import annotations
 
+import itertools
 import threading
 from dataclasses import dataclass, field
 from typing import Any
@@ -25,6 +29,7 @@ from shared.messages import (
     Message,
     OperatingState,
     SafetyEvent,
+    SafetyState,
 )
 
 
@@ -62,10 +67,44 @@ def engaged_segments(follow: list[tuple[int, bool]]) -> list[tuple[int, int]]:
     return out
 
 
+def split_by_scale(
+    segments: list[tuple[int, int]], factors: list[tuple[int, float]], scale: float
+) -> list[tuple[int, int, float, bool]]:
+    """Cut engaged segments where the safety scale factor changes.
+
+    Returns (t0, t1, effective scale, starts an engagement) per part; ``factors`` are time-sorted
+    (ns, factor) samples of the watchdog's state.
+    """
+    out = []
+    for t0, t1 in segments:
+        cuts = [t for t, _ in _changes(factors) if t0 < t < t1]
+        bounds = [t0, *cuts, t1]
+        for i, (a, b) in enumerate(itertools.pairwise(bounds)):
+            out.append((a, b, scale * _factor_at(factors, a), i == 0))
+    return out
+
+
+def _changes(factors: list[tuple[int, float]]) -> list[tuple[int, float]]:
+    out: list[tuple[int, float]] = []
+    for t, f in factors:
+        if not out or out[-1][1] != f:
+            out.append((t, f))
+    return out
+
+
+def _factor_at(factors: list[tuple[int, float]], t: int) -> float:
+    f = 1.0
+    for tf, v in factors:
+        if tf > t:
+            break
+        f = v
+    return f
+
+
 def tracking_error(
     master: np.ndarray,
     slave: np.ndarray,
-    segments: list[tuple[int, int]],
+    segments: list[tuple[int, int]] | list[tuple[int, int, float, bool]],
     scale: float,
     r_ms: np.ndarray,
     settle_s: float = 0.5,
@@ -75,8 +114,9 @@ def tracking_error(
     Args:
         master: (N, 4) rows of (t_ns, x, y, z) master tip, master frame, m.
         slave: (M, 4) rows of (t_ns, x, y, z) slave tip, base frame, m.
-        segments: engaged intervals (ns).
-        scale: mapping motion scale.
+        segments: engaged intervals (ns), or (t0, t1, scale, is_engage_start) parts from
+            :func:`split_by_scale` (the settle time applies only at an engagement's start).
+        scale: mapping motion scale (for plain intervals).
         r_ms: (3, 3) rotation of the master frame in the slave base frame.
         settle_s: s skipped at the start of each segment.
     """
@@ -84,14 +124,16 @@ def tracking_error(
     used = 0
     if len(master) < 2 or len(slave) == 0:
         return TrackingError(float("nan"), float("nan"), 0, 0)
-    for t0, t1 in segments:
-        sel = (slave[:, 0] >= t0 + settle_s * 1e9) & (slave[:, 0] <= t1)
+    for seg in segments:
+        t0, t1 = seg[0], seg[1]
+        k, settle = (seg[2], seg[3]) if len(seg) == 4 else (scale, True)
+        sel = (slave[:, 0] >= t0 + (settle_s * 1e9 if settle else 0.0)) & (slave[:, 0] <= t1)
         sel &= (slave[:, 0] >= master[0, 0]) & (slave[:, 0] <= master[-1, 0])
         if sel.sum() < 10:
             continue
         ts = slave[sel, 0]
         pm = master[np.searchsorted(master[:, 0], ts, side="right") - 1, 1:]
-        offset = slave[sel, 1:] - scale * pm @ r_ms.T
+        offset = slave[sel, 1:] - k * pm @ r_ms.T
         errors.append(np.linalg.norm(offset - np.median(offset, axis=0), axis=1))
         used += 1
     if not errors:
@@ -111,6 +153,7 @@ class SessionRecorder:
     master: list[tuple[int, float, float, float]] = field(default_factory=list)
     slave: list[tuple[int, float, float, float]] = field(default_factory=list)
     follow: list[tuple[int, bool]] = field(default_factory=list)
+    factors: list[tuple[int, float]] = field(default_factory=list)  # watchdog scale factor
     holds: int = 0
     events: list[str] = field(default_factory=list)
 
@@ -129,6 +172,7 @@ class SessionRecorder:
         self.node.subscribe(self.keys["measured_js"], JointState, self._ignore)
         self.node.subscribe(self.keys["operating_state"], OperatingState, self._on_state)
         self.node.subscribe(k.events(), SafetyEvent, self._on_event)
+        self.node.subscribe(k.safety(self.slave_arm, "state"), SafetyState, self._on_safety)
 
     def _ignore(self, msg: Message, key: str) -> None:
         pass  # counted by node.streams
@@ -146,6 +190,10 @@ class SessionRecorder:
             self.follow.append((msg.header.stamp_ns, msg.follow))
             self.holds = max(self.holds, msg.holds)
 
+    def _on_safety(self, msg: SafetyState, key: str) -> None:
+        with self.lock:
+            self.factors.append((msg.header.stamp_ns, msg.scale))
+
     def _on_event(self, msg: SafetyEvent, key: str) -> None:
         with self.lock:
             self.events.append(f"{msg.header.source} [{msg.arm}] {msg.kind}: {msg.text}")
@@ -156,9 +204,11 @@ class SessionRecorder:
             master = np.array(self.master, dtype=float).reshape(-1, 4)
             slave = np.array(self.slave, dtype=float).reshape(-1, 4)
             follow = sorted(self.follow)
+            factors = sorted(self.factors)
             events = list(self.events)
             holds = self.holds
-        err = tracking_error(master, slave, engaged_segments(follow), scale, r_ms)
+        parts = split_by_scale(engaged_segments(follow), factors, scale)
+        err = tracking_error(master, slave, parts, scale, r_ms)
         streams = {name: self.node.streams.get(key).as_dict() for name, key in self.keys.items()}
         return {
             "streams": streams,

@@ -15,7 +15,8 @@ the latency budget); the mapping multiplies its scale by it, re-anchoring so the
 jump.
 
 The service publishes ``slave/<arm>/servo_jp`` for every master sample (``follow`` tells the
-slave whether to track it) and ``slave/<arm>/setpoint_cp`` (the Cartesian target) while following.
+slave whether to track it) and ``slave/<arm>/setpoint_cp`` (the Cartesian target, at ``target_hz``
+for display) while following.
 
 Engage needs a *new* pedal press: after any disengage not made by the operator (master stream
 stale, slave holding, operator absent) the pedal must be released and pressed again.
@@ -69,6 +70,7 @@ class MappingConfig:
     slave_timeout_ms: float = 100.0  # ms: slave measured_js older than this refuses engage
     # rad: a setpoint step larger than this between two samples is an IK branch flip → hold
     max_joint_step_rad: float = 0.1
+    target_hz: float = 100.0  # Hz: setpoint_cp (for display; servo_jp carries every sample)
     workspace_min_mm: tuple[float, float, float] = (150.0, -600.0, -200.0)  # target box, base frame
     workspace_max_mm: tuple[float, float, float] = (1100.0, 600.0, 800.0)
     # Only these services may publish the inputs (others are rejected and counted; "" = anyone).
@@ -79,6 +81,8 @@ class MappingConfig:
 
     def validate(self) -> None:
         """Raise ConfigError naming the valid options."""
+        if not 1.0 <= self.target_hz <= 1000.0:
+            raise ConfigError(f"target_hz={self.target_hz} outside [1, 1000]")
         if not 0.0 < self.scale <= 2.0:
             raise ConfigError(f"scale={self.scale} outside (0, 2]")
         if self.orientation not in ORIENTATION_MODES:
@@ -117,7 +121,9 @@ class ArmMapping:
         self.r_ms = rpy_matrix(cfg.master_to_slave_rpy_deg)
         self.lock = threading.Lock()
         self.servo_out: Outlet = node.outlet(node.keys.slave(slave, "servo_jp"))
-        self.target_out: Outlet = node.outlet(node.keys.slave(slave, "setpoint_cp"))
+        self.target_out: Outlet = node.outlet(node.keys.slave(slave, "setpoint_cp"), control=False)
+        self.target_period = 1.0 / cfg.target_hz
+        self.target_next = 0.0
         # inputs
         self.buttons: MasterButtons | None = None
         self.q_meas: np.ndarray | None = None
@@ -323,9 +329,12 @@ class ArmMapping:
                 self.ik_streak = 0
                 self.q_last = q
                 self.last_pose, self.last_target = pose, target
-                h = self.target_out.header()
-                quat = quat_from_matrix(target[:3, :3])
-                self.target_out.put(CartesianPose(h, "base", _vec3(target[:3, 3]), _quat(quat)))
+                now = time.monotonic()
+                if now >= self.target_next:
+                    self.target_next = max(self.target_next + self.target_period, now)
+                    h = self.target_out.header()
+                    quat = quat_from_matrix(target[:3, :3])
+                    self.target_out.put(CartesianPose(h, "base", _vec3(target[:3, 3]), _quat(quat)))
         q_pub = self.q_last if self.q_last is not None else self.q_meas
         if q_pub is None:
             return

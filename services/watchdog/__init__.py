@@ -7,11 +7,12 @@ and ``docs/safety.md``):
 * staleness of each control stream against its deadline — a hang, a frozen process or a
   partition, which liveliness only sees after the transport lease;
 * lost and reordered messages on the control streams (per second);
-* latency of the command path, p50/p99 over a window: the age of each ``servo_jp`` since its
+* latency of the command path, p50/p90/p99 over a window: the age of each ``servo_jp`` since its
   master sample (same-host clocks, ``latency_source="clock"``) or half the round-trip time to the
   master's echo queryable (``"echo"``, hosts without a shared clock);
-* joint position and speed of the setpoints, the workspace of the Cartesian target, the RCM
-  error in trocar mode, the operator-presence switch of the master;
+* joint position and speed of the setpoints, the workspace (the tip position the followed
+  setpoint would give, by forward kinematics), the RCM error in trocar mode, the
+  operator-presence switch of the master;
 * e-stop commands on ``estop`` (latched until an explicit reset).
 
 Every ``1/lease_hz`` s, and at once on any liveliness loss or e-stop, the watchdog publishes
@@ -41,7 +42,7 @@ from services.mapping import parse_pair
 from services.watchdog.logic import ArmSafety, Policy, Verdict
 from shared.bus import BusConfig, Node, Outlet
 from shared.errors import ConfigError
-from shared.kinematics import MH3F
+from shared.kinematics import MH3F, fk
 from shared.messages import (
     CartesianPose,
     EStop,
@@ -83,8 +84,8 @@ class WatchdogConfig:
     latency_source: str = "clock"  # clock: servo_jp origin stamps (one host); echo: RTT/2
     echo_service: str = "master_capture"  # whose echo queryable is probed (latency_source=echo)
     echo_hz: float = 20.0  # Hz: echo probes (latency_source=echo)
-    latency_budget_ms: float = 50.0  # ms: p99 above → DEGRADED, motion scale × degraded_scale
-    latency_limit_ms: float = 150.0  # ms: p50 above → HOLD (out of follow until re-engage)
+    latency_budget_ms: float = 100.0  # ms: p90 above → DEGRADED, motion scale × degraded_scale
+    latency_limit_ms: float = 250.0  # ms: p50 above → HOLD (out of follow until re-engage)
     latency_window_s: float = 1.0  # s: window of the latency percentiles
     degraded_scale: float = 0.5  # motion-scale factor while DEGRADED
     velocity_hold_factor: float = 2.0  # setpoint speed above this × joint limit → HOLD (a jump)
@@ -141,6 +142,12 @@ class WatchdogConfig:
         )
 
 
+def _tip(q: np.ndarray) -> np.ndarray:
+    """Forceps-tip position (m) of the MH3F at joint angles ``q``."""
+    out: np.ndarray = fk(q, MH3F)[:3, 3]
+    return out
+
+
 class ArmWatch:
     """One arm: its streams and deadlines, its safety logic, its outlets."""
 
@@ -159,11 +166,11 @@ class ArmWatch:
             k.slave(arm, "servo_jp"),
             k.slave(arm, "measured_js"),
         ]
-        self.safety = ArmSafety(arm, cfg.policy(), MH3F.joint_names)
+        self.safety = ArmSafety(arm, cfg.policy(), MH3F.joint_names, tip_of=_tip)
         self.loss: deque[tuple[float, int]] = deque()  # (mono s, lost + reordered so far)
         self.lease_out: Outlet = node.outlet(k.safety(arm, "lease"))
         self.state_out: Outlet = node.outlet(k.safety(arm, "state"), control=False)
-        self.verdict = Verdict("HOLD", ("starting",), 1.0, 0.0, 0.0, 0)
+        self.verdict = Verdict("HOLD", ("starting",), 1.0, 0.0, 0.0, 0.0, 0)
 
 
 class Watchdog:
@@ -187,7 +194,6 @@ class Watchdog:
             sub(k.master(a.master, "measured_cp"), CartesianPose, self._on_stream, sources=m)
             sub(k.master(a.master, "buttons"), MasterButtons, self._bind(a, self._on_buttons), sources=m)
             sub(k.slave(a.arm, "servo_jp"), JointSetpoint, self._bind(a, self._on_servo), sources=mp)
-            sub(k.slave(a.arm, "setpoint_cp"), CartesianPose, self._bind(a, self._on_target), sources=mp)
             sub(k.slave(a.arm, "measured_js"), JointState, self._on_stream, sources=sl)
             sub(k.slave(a.arm, "operating_state"), OperatingState, self._bind(a, self._on_slave), sources=sl)
         node.subscribe(k.estop, EStop, self._on_estop)
@@ -214,10 +220,6 @@ class Watchdog:
         wall = time.time_ns() if self.cfg.latency_source == "clock" else None
         with self.lock:
             a.safety.on_servo(msg, time.monotonic(), wall)
-
-    def _on_target(self, a: ArmWatch, msg: CartesianPose, key: str) -> None:
-        with self.lock:
-            a.safety.on_setpoint_cp(msg, time.monotonic())
 
     def _on_slave(self, a: ArmWatch, msg: OperatingState, key: str) -> None:
         self.last_tick[key] = self.ticks
@@ -324,6 +326,7 @@ class Watchdog:
                 v.causes,
                 v.scale,
                 round(v.latency_p50_ms, 3),
+                round(v.latency_p90_ms, 3),
                 round(v.latency_p99_ms, 3),
                 v.latency_samples,
             )

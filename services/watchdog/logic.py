@@ -22,6 +22,7 @@ last offending message, so a fault cannot flicker the lease.
 from __future__ import annotations
 
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -43,7 +44,7 @@ class Policy:
         velocity_window_ms: setpoint speed is measured over at least this span (source time).
         workspace_min_mm, workspace_max_mm: box the Cartesian target must stay in, base frame.
         rcm_limit_mm: largest RCM error tolerated in trocar mode.
-        latency_budget_ms: p99 latency above this → DEGRADED (scale × degraded_scale).
+        latency_budget_ms: p90 latency above this → DEGRADED (scale × degraded_scale).
         latency_limit_ms: median (p50) latency above this → HOLD (forced out of follow).
         latency_window_s: window of the latency percentiles.
         latency_min_samples: fewer samples in the window → no latency verdict.
@@ -61,8 +62,8 @@ class Policy:
     workspace_min_mm: tuple[float, float, float] = (150.0, -600.0, -200.0)
     workspace_max_mm: tuple[float, float, float] = (1100.0, 600.0, 800.0)
     rcm_limit_mm: float = 2.0
-    latency_budget_ms: float = 50.0
-    latency_limit_ms: float = 150.0
+    latency_budget_ms: float = 100.0
+    latency_limit_ms: float = 250.0
     latency_window_s: float = 1.0
     latency_min_samples: int = 20
     degraded_scale: float = 0.5
@@ -79,6 +80,7 @@ class Verdict:
     causes: tuple[str, ...]
     scale: float
     latency_p50_ms: float
+    latency_p90_ms: float
     latency_p99_ms: float
     latency_samples: int
 
@@ -106,6 +108,9 @@ class ArmSafety:
     _hold_until: float = 0.0
     _hold_causes: tuple[str, ...] = ()
     counters: dict[str, int] = field(default_factory=dict)
+    # forward kinematics (q → tip position, m): followed setpoints are checked against the
+    # workspace where the slave would actually put the tip
+    tip_of: Callable[[np.ndarray], np.ndarray] | None = None
 
     # -- inputs -------------------------------------------------------------------------------
     def on_estop(self, msg: EStop) -> bool:
@@ -149,6 +154,8 @@ class ArmSafety:
         if not msg.follow:
             self._history.clear()
             return
+        if self.tip_of is not None:
+            self.check_workspace(self.tip_of(q), now)
         ts = msg.header.stamp_ns
         hist = self._history
         hist.append((ts, q))
@@ -167,9 +174,13 @@ class ArmSafety:
                 self._latch("speed", f"{text}: the slave clips it", now)
 
     def on_setpoint_cp(self, msg: CartesianPose, now: float) -> None:
-        """Check the Cartesian target against the workspace box."""
+        """Check a Cartesian target against the workspace box."""
+        self.check_workspace(np.asarray(msg.position), now)
+
+    def check_workspace(self, position: np.ndarray, now: float) -> None:
+        """Fault if the tip ``position`` (m, base frame) is outside the workspace box."""
         p = self.policy
-        mm = np.asarray(msg.position) * 1e3
+        mm = position * 1e3
         lo, hi = np.asarray(p.workspace_min_mm), np.asarray(p.workspace_max_mm)
         out = (mm < lo) | (mm > hi)
         if out.any():
@@ -190,17 +201,17 @@ class ArmSafety:
             )
 
     # -- decision -----------------------------------------------------------------------------
-    def latency(self, now: float) -> tuple[float, float, int]:
-        """(p50, p99, samples) over the window ending at ``now``."""
+    def latency(self, now: float) -> tuple[float, float, float, int]:
+        """(p50, p90, p99, samples) over the window ending at ``now``."""
         lat = self._latency
         cutoff = now - self.policy.latency_window_s
         while lat and lat[0][0] < cutoff:
             lat.popleft()
         if not lat:
-            return 0.0, 0.0, 0
+            return 0.0, 0.0, 0.0, 0
         v = np.fromiter((x for _, x in lat), float, len(lat))
-        p50, p99 = np.percentile(v, (50, 99))
-        return float(p50), float(p99), len(v)
+        p50, p90, p99 = np.percentile(v, (50, 90, 99))
+        return float(p50), float(p90), float(p99), len(v)
 
     def evaluate(
         self, now: float, hold: list[str] | None = None, degraded: list[str] | None = None
@@ -209,25 +220,25 @@ class ArmSafety:
         p = self.policy
         hold_causes = list(hold or [])
         degraded_causes = list(degraded or [])
-        p50, p99, n = self.latency(now)
+        p50, p90, p99, n = self.latency(now)
         if n >= p.latency_min_samples:
-            # The budget judges the tail (p99); the hard limit judges the median, so only a
-            # sustained delay forces the arm out of follow — the burst of queued messages after
-            # one scheduling stall does not (a stall longer than a deadline is caught as stale).
+            # The budget judges p90 and the hard limit the median: a slow link shifts them all,
+            # while the tail (p99) on a busy 2-core host is dominated by CPU scheduling, and the
+            # burst of queued messages after one stall must not force the arm out of follow (a
+            # stall longer than a deadline is caught as stale anyway).
             # Hysteresis: a level is left only 20 % below its threshold.
             ls = self.latency_state
             if p50 > p.latency_limit_ms or (ls == "HOLD" and p50 > 0.8 * p.latency_limit_ms):
                 ls = "HOLD"
-            elif p99 > p.latency_budget_ms or (ls != "OK" and p99 > 0.8 * p.latency_budget_ms):
+            elif p90 > p.latency_budget_ms or (ls != "OK" and p90 > 0.8 * p.latency_budget_ms):
                 ls = "DEGRADED"
             else:
                 ls = "OK"
             self.latency_state = ls
-        text = f"latency p99 {p99:.1f} ms"
         if self.latency_state == "HOLD":
             hold_causes.append(f"latency p50 {p50:.1f} ms > limit {p.latency_limit_ms:g} ms")
         elif self.latency_state == "DEGRADED":
-            degraded_causes.append(f"{text} > budget {p.latency_budget_ms:g} ms")
+            degraded_causes.append(f"latency p90 {p90:.1f} ms > budget {p.latency_budget_ms:g} ms")
         if p.require_operator and self.operator_present is False:
             hold_causes.append("operator not present")
         for tag, (text, until) in list(self._latched.items()):
@@ -251,7 +262,7 @@ class ArmSafety:
         elif state != "ESTOP" and now < self._hold_until:
             state, causes = "HOLD", [f"clearing: {c}" for c in self._hold_causes] + causes
         scale = p.degraded_scale if state == "DEGRADED" else 1.0
-        return Verdict(state, tuple(c[:500] for c in causes[:64]), scale, p50, p99, n)
+        return Verdict(state, tuple(c[:500] for c in causes[:64]), scale, p50, p90, p99, n)
 
     # -- internals ----------------------------------------------------------------------------
     def _latch(self, tag: str, text: str, now: float) -> None:
