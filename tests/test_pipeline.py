@@ -154,7 +154,7 @@ def test_pipeline_follow_kill_restart_shutdown(
             f"tracking error mean {err.mean_mm:.3f} mm, max {err.max_mm:.3f} mm over {err.samples} "
             f"samples, travel {travel_mm:.1f} mm, scales {scales}"
         )
-        assert err.samples > 1000, f"only {err.samples} slave samples while following"
+        assert err.samples > 750, f"only {err.samples} slave samples while following"  # ≥ 3 s at 250 Hz
         # 40 mm master radius × 0.5 → a 40 mm circle (20 mm at a degraded scale)
         assert travel_mm > (30.0 if scales == [SCALE] else 15.0), "the slave did not draw the circle"
         assert err.max_mm < 2.0

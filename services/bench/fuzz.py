@@ -51,7 +51,7 @@ TARGETS: dict[str, tuple[type[Message], dict[str, str]]] = {
     "master/m1/measured_cp": (CartesianPose, {"mapping": "master_capture", "watchdog": "master_capture"}),
     "master/m1/buttons": (MasterButtons, {"mapping": "master_capture", "watchdog": "master_capture"}),
     "slave/arm1/servo_jp": (JointSetpoint, {"slave_control": "mapping", "watchdog": "mapping"}),
-    "slave/arm1/setpoint_cp": (CartesianPose, {"watchdog": "mapping"}),
+    "slave/arm1/setpoint_cp": (CartesianPose, {}),  # drawn by the mirror only
     "slave/arm1/measured_js": (JointState, {"mapping": "slave_control", "watchdog": "slave_control"}),
     "slave/arm1/operating_state": (OperatingState, {"mapping": "slave_control", "watchdog": "slave_control"}),
     "safety/arm1/lease": (SafetyLease, {"slave_control": "watchdog"}),

@@ -35,7 +35,7 @@ log = logging.getLogger("telesurg.launcher")
 
 #: Start order; they stop in reverse, except the mirror, which stops after the others to record
 #: everything, and the router, which stops last.
-SERVICES = ("watchdog", "slave_control", "mapping", "master_capture", "mirror")
+SERVICES = ("watchdog", "slave_control", "mapping", "mirror", "master_capture")
 STOP_ORDER = ("master_capture", "mapping", "watchdog", "slave_control", "mirror", "router")
 NICE = ("mirror",)  # started under SCHED_IDLE (or nice +19): it only gets CPU the control loop leaves
 
@@ -129,16 +129,47 @@ class Site:
         self._logs: list[IO[bytes]] = []
 
     def start(self) -> None:
-        """Start the router, wait for it, then every service."""
+        """Start the router, wait for it, then every service, one at a time.
+
+        Each service is started once the previous one is on the bus (its liveliness token is
+        seen): six Python processes importing at once saturate a 2-core host for seconds, long
+        enough for the watchdog's deadlines to fire before the first engage.
+        """
         self._spawn("router")
         if not wait_port(self.spec.host, self.spec.port, 15.0):
             raise ConnectionError(f"router did not open {self.spec.endpoint} within 15 s")
-        for name in SERVICES:
-            if name in self.spec.services:
+        from shared.bus import BusConfig, open_session
+        from shared.keys import Keys
+
+        keys = Keys(self.spec.site)
+        session = open_session(BusConfig(connect=[self.spec.endpoint]))
+        try:
+            for name in SERVICES:
+                if name not in self.spec.services:
+                    continue
                 self._spawn(name)
+                if not self._wait_alive(session, keys.alive(name), 30.0):
+                    rc = self.procs[name].poll()
+                    raise RuntimeError(
+                        f"{name} did not come up within 30 s"
+                        + (f" (exit code {rc})" if rc is not None else "")
+                    )
+        finally:
+            session.close()  # type: ignore[no-untyped-call]
         if self.spec.log_dir:
             pids = {n: p.pid for n, p in self.procs.items()}
             (self.spec.log_dir / "pids.json").write_text(json.dumps(pids, indent=2))
+
+    def _wait_alive(self, session: object, key: str, timeout: float) -> bool:
+        """Poll the liveliness token ``key`` until present (True) or timeout / exit (False)."""
+        name = key.rsplit("/", 1)[-1]
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline and self.procs[name].poll() is None:
+            replies = session.liveliness().get(key, timeout=0.5)  # type: ignore[attr-defined]
+            if any(r.ok is not None for r in replies):
+                return True
+            time.sleep(0.05)
+        return False
 
     def _spawn(self, name: str) -> None:
         out: IO[bytes] | None = None

@@ -72,12 +72,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     stop = threading.Event()
     install_stop_handlers(stop)
     master_arm, slave_arm = parse_pair(mapping.pairs[0])
-    deadline = time.monotonic() + args.seconds if args.seconds > 0 else float("inf")
     try:
         with Site(spec) as site:
             bus = BusConfig(mode="client", connect=[spec.endpoint])
             with Node(bus, spec.site, "demo_report") as node:
                 rec = SessionRecorder(node, master_arm, slave_arm)
+                # --seconds of session once everything is up (start-up is not counted)
+                deadline = time.monotonic() + args.seconds if args.seconds > 0 else float("inf")
                 if not args.headless:
                     from services.mirror.view import viewer_url
 
