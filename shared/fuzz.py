@@ -169,7 +169,28 @@ _ACCEPTS: dict[str, frozenset[str]] = {c: frozenset({c}) for c in _CATEGORIES} |
 }
 _NONFINITE: tuple[float, ...] = (_NAN, _INF, -_INF)
 _HUGE: tuple[Any, ...] = (2.0**64, 2**64 - 1, 2**63, -1, -(2**63), 1e308, -1e308)
-_BAD_VERSIONS: tuple[Any, ...] = (0, 2, "1", 1.0, -1, True, None, 2**32, [1], 1.5, "v1", SCHEMA_VERSION + 1)
+_BAD_VERSIONS: tuple[Any, ...] = tuple(
+    v
+    for v in (
+        0,
+        1,
+        2,
+        "1",
+        "2",
+        1.0,
+        2.0,
+        -1,
+        True,
+        None,
+        2**32,
+        [1],
+        1.5,
+        "v1",
+        SCHEMA_VERSION + 1,
+        SCHEMA_VERSION - 1,
+    )
+    if not (type(v) is int and v == SCHEMA_VERSION)
+)
 _INT_BOUNDARY: tuple[Any, ...] = (0, 1, 2**63 - 1, 2**63, 2**64 - 1, 2.0**64, -1)
 _FLOAT_BOUNDARY: tuple[Any, ...] = (
     0.0,

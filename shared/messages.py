@@ -2,7 +2,7 @@
 
 Every payload is a MessagePack map with a common header::
 
-    {"v": 1, "type": "joint_state", "src": "slave_control", "seq": 42, "ts": 1700000000000000000,
+    {"v": 2, "type": "joint_state", "src": "slave_control", "seq": 42, "ts": 1700000000000000000,
      ...body fields...}
 
 * ``v``    schema version (int, must equal :data:`SCHEMA_VERSION`)
@@ -35,7 +35,7 @@ import msgpack
 
 from shared.errors import MessageError
 
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2  # 2: safety fields (origin_ns, latency, scale, rcm, clipped), estop
 #: Largest payload accepted by :func:`decode`, bytes.
 MAX_PAYLOAD_BYTES = 64 * 1024
 #: Largest joint count in any joint-space message.

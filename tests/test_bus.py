@@ -141,3 +141,12 @@ def test_two_subscriptions_to_one_key_both_get_every_message(endpoint: str) -> N
             out.put(JointSetpoint(out.header(), ("j1",), (0.1,), follow=True))
         assert wait_until(lambda: len(a) == 20 and len(b) == 20)
         assert a == b == list(range(20)) and sub.streams.get(key).reordered == 0
+
+
+def test_echo_round_trip(endpoint: str) -> None:
+    bus = BusConfig(connect=[endpoint])
+    with Node(bus, "t", "watchdog") as wd, Node(bus, "t", "master_capture"):
+        time.sleep(0.2)
+        rtts = [wd.echo_rtt("master_capture", timeout=1.0) for _ in range(5)]
+        assert all(r is not None and 0.0 < r < 1.0 for r in rtts), rtts
+        assert wd.echo_rtt("nobody", timeout=0.2) is None  # no such service: no reply

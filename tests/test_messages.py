@@ -70,7 +70,8 @@ def _pack(d: object) -> bytes:
         (lambda d: d.update(follow=1), "must be a boolean"),
         (lambda d: d.update(seq=-1), "outside"),
         (lambda d: d.update(seq=1.5), "must be an integer"),
-        (lambda d: d.update(v=2), "unknown schema version"),
+        (lambda d: d.update(v=1), "unknown schema version"),
+        (lambda d: d.update(v=3), "unknown schema version"),
         (lambda d: d.pop("v"), "unknown schema version"),
         (lambda d: d.update(type="nope"), "unknown message type"),
         (lambda d: d.update(extra=1), "unexpected fields"),
@@ -111,7 +112,7 @@ def test_rejects_unknown_enum_values() -> None:
     d["state"] = "RUNNING"
     with pytest.raises(MessageError, match="not one of"):
         decode(_pack(d))
-    assert SCHEMA_VERSION == 1
+    assert SCHEMA_VERSION == 2
 
 
 @settings(max_examples=300, deadline=None)
@@ -135,7 +136,7 @@ def test_single_byte_mutations_decode_or_raise_message_error(pos: int, value: in
 
 
 def test_rejects_float_and_bool_versions() -> None:
-    for v in (1.0, True):
+    for v in (2.0, True):
         d = msgpack.unpackb(EXAMPLES[0].encode())
         d["v"] = v
         with pytest.raises(MessageError, match="unknown schema version"):

@@ -153,11 +153,11 @@ def run(count: int, rate: float, seed: int, log_dir: Path) -> dict[str, Any]:
             if lag > 0:
                 time.sleep(lag)
         duration = time.monotonic() - t_start
-        time.sleep(1.5)  # let the heartbeats (2 Hz) catch up
+        settled = pipe.settled_heartbeats()
         following_after = pipe.wait_following(12.0)
         dead = pipe.site.dead()
         with p.lock:
-            rej = {s: p.heartbeats.get(s, 0) - rej0.get(s, 0) for s in SERVICES}
+            rej = {s: settled.get(s, 0) - rej0.get(s, 0) for s in SERVICES}
             holds = (p.op[-1][5] if p.op else 0) - holds0
             slave_rejected = p.op[-1][7] if p.op else 0
         with p.lock:

@@ -37,6 +37,7 @@ from shared.impair import LinkImpairer
 from shared.messages import (
     CartesianPose,
     EStop,
+    Heartbeat,
     JointSetpoint,
     JointState,
     MasterButtons,
@@ -87,9 +88,8 @@ class Probe:
         sub(k.master(self.master, "measured_cp"), CartesianPose, lambda m, k: None, sources=master)
         sub(k.slave(self.arm, "servo_jp"), JointSetpoint, lambda m, k: None, sources=["mapping"])
         sub(k.slave(self.arm, "measured_js"), JointState, self._on_js, sources=slave)
-        from shared.messages import Heartbeat
-
-        self.node.subscribe(k.heartbeat(), Heartbeat, self._on_heartbeat, sources=HEARTBEAT_SOURCES)
+        for svc in HEARTBEAT_SOURCES:
+            self.node.subscribe(k.heartbeat(svc), Heartbeat, self._on_heartbeat, sources=[svc])
 
     def _on_tip(self, m: CartesianPose, key: str) -> None:
         with self.lock:
@@ -118,10 +118,7 @@ class Probe:
         with self.lock:
             self.events.append((now_ns(), m.header.source, m.kind, m.text))
 
-    def _on_heartbeat(self, m: object, key: str) -> None:
-        from shared.messages import Heartbeat
-
-        assert isinstance(m, Heartbeat)
+    def _on_heartbeat(self, m: Heartbeat, key: str) -> None:
         with self.lock:
             self.heartbeats[m.service] = m.rejected
 
@@ -271,6 +268,25 @@ class Pipeline:
                 return True
             time.sleep(0.01)
         return False
+
+    def settled_heartbeats(self, timeout: float = 20.0) -> dict[str, int]:
+        """Rejection counters once every service has caught up (unchanged over two heartbeats).
+
+        A service that fell behind under load is still working through its queue for a while
+        after the last message was sent; its heartbeat count settles when it is done.
+        """
+        deadline = time.monotonic() + timeout
+        last: dict[str, int] = {}
+        stable = 0
+        while time.monotonic() < deadline:
+            time.sleep(0.6)  # heartbeats are 2 Hz
+            with self.p.lock:
+                now = dict(self.p.heartbeats)
+            stable = stable + 1 if now == last else 0
+            if stable >= 2:
+                break
+            last = now
+        return last
 
     def wait_following(self, timeout: float) -> bool:
         """Wait until the slave follows the master."""

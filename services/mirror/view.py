@@ -9,6 +9,8 @@ Entity paths (``<arm>`` an arm id, ``<joint>`` a joint name, both escaped for re
     /slave/<arm>/links                     LineStrips3D + Points3D  fk_frames of measured joints, m
     /slave/<arm>/state                     TextLog      operating_state changes
     /safety/<arm>/state                    TextLog      watchdog state changes
+    /safety/<arm>/latency/p50_ms|p90_ms|p99_ms  Scalars  command-path latency (watchdog, 1 s window)
+    /safety/<arm>/scale                    Scalars      motion-scale factor from the watchdog
     /master/<arm>/tip                      LineStrips3D + Points3D  master measured_cp, master frame
     /master/<arm>/clutch                   Scalars      1 while the clutch pedal is pressed
     /events                                TextLog      every SafetyEvent
@@ -112,9 +114,10 @@ def blueprint() -> Any:
             rrb.Vertical(
                 rrb.TimeSeriesView(name="joints [rad]", origin="/slave"),
                 rrb.TimeSeriesView(name="clutch", origin="/master"),
+                rrb.TimeSeriesView(name="latency [ms] / scale", origin="/safety"),
                 rrb.TextLogView(name="state", contents=["/slave/**", "/safety/**"]),
                 rrb.TextLogView(name="events", origin=EVENTS_PATH),
-                row_shares=[4, 1, 2, 2],
+                row_shares=[4, 1, 1, 2, 2],
             ),
             column_shares=[3, 2],
         ),

@@ -363,7 +363,10 @@ def run(cfg: WatchdogConfig, stop: threading.Event) -> None:
                     for a in wd.arms:
                         wd.publish_state(a)
             next_t += period
-            stop.wait(max(0.0, next_t - time.monotonic()))
+            now = time.monotonic()
+            if next_t < now:  # we were descheduled: skip the missed ticks instead of bursting
+                next_t = now + period  # through them (a burst would age every stream in ticks too)
+            stop.wait(max(0.0, next_t - now))
         # Last word: revoke every lease explicitly before going away.
         for a in wd.arms:
             a.lease_out.put(
