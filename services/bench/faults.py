@@ -232,6 +232,7 @@ def print_table(rows: list[dict[str, Any]]) -> None:
         "re-engage",
         "recovery s",
         "lost",
+        "rejected",
         "ok",
     ):
         t.add_column(col, justify="left" if col in ("fault", "expect") else "right")
