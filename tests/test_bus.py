@@ -3,33 +3,13 @@
 from __future__ import annotations
 
 import time
-from collections.abc import Callable, Iterator
 
 import pytest
+from conftest import wait_until
 
-from services.launcher import free_port
-from shared.bus import BusConfig, Node, open_session
+from shared.bus import BusConfig, Node
 from shared.errors import ConfigError
 from shared.messages import Header, JointSetpoint, JointState
-
-
-@pytest.fixture
-def endpoint() -> Iterator[str]:
-    ep = f"tcp/127.0.0.1:{free_port()}"
-    router = open_session(BusConfig(mode="router", listen=[ep]))
-    try:
-        yield ep
-    finally:
-        router.close()  # type: ignore[no-untyped-call]
-
-
-def wait_until(pred: Callable[[], bool], timeout: float = 5.0) -> bool:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if pred():
-            return True
-        time.sleep(0.01)
-    return pred()
 
 
 def test_malformed_rejected_counted_never_delivered(endpoint: str) -> None:

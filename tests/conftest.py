@@ -1,0 +1,32 @@
+"""Shared fixtures: an in-process zenoh router on a free loopback port."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Iterator
+
+import pytest
+
+from services.launcher import free_port
+from shared.bus import BusConfig, open_session
+
+
+@pytest.fixture
+def endpoint() -> Iterator[str]:
+    """``tcp/127.0.0.1:<port>`` of a zenoh router running in this process."""
+    ep = f"tcp/127.0.0.1:{free_port()}"
+    router = open_session(BusConfig(mode="router", listen=[ep]))
+    try:
+        yield ep
+    finally:
+        router.close()  # type: ignore[no-untyped-call]
+
+
+def wait_until(pred: Callable[[], bool], timeout: float = 5.0) -> bool:
+    """Poll ``pred`` every 10 ms until true or ``timeout`` s."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if pred():
+            return True
+        time.sleep(0.01)
+    return pred()
