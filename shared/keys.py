@@ -14,6 +14,7 @@ service instance id)::
     safety/<arm>/lease           SafetyLease     watchdog → slave permission to move
     safety/<arm>/state           SafetyState     watchdog's view of the arm
     estop                        EStop           e-stop / reset, from the console or any service
+    slave/<arm>/command          (queryable)     Command → CommandReply (operator commands)
     echo/<service>               (queryable)     replies at once: round-trip time across hosts
     events/<service>             SafetyEvent     events (transitions, IK failures, ...)
     heartbeat/<service>          Heartbeat       2 Hz service heartbeat
@@ -77,6 +78,10 @@ class Keys:
     def estop(self) -> str:
         """``telesurg/<site>/estop``: e-stop and reset commands for one or every arm."""
         return f"{self.prefix}/estop"
+
+    def command(self, arm: str) -> str:
+        """``telesurg/<site>/slave/<arm>/command``: the arm's command queryable."""
+        return f"{self.prefix}/slave/{check_id('arm', arm)}/command"
 
     def echo(self, service: str = "*") -> str:
         """``telesurg/<site>/echo/<service>``: each service's echo queryable (RTT probes)."""

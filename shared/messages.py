@@ -26,6 +26,7 @@ Example::
 from __future__ import annotations
 
 import math
+import re
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -670,6 +671,75 @@ class Heartbeat(Message):
         )
 
 
+_COMMAND_NAME = re.compile(r"^[a-z][a-z0-9_]{0,63}$")
+
+
+@_register
+@dataclass(frozen=True, slots=True)
+class Command(Message):
+    """An operator command to one arm, sent as a zenoh query to ``slave/<arm>/command``.
+
+    Attributes:
+        arm: arm id the command is for.
+        name: command name, ``[a-z][a-z0-9_]*`` (e.g. ``teach_trocar``, ``insert``, ``jog``).
+        args: ``key=value`` strings (e.g. ``("frame=forceps", "axis=x", "direction=1")``);
+            the handler parses and validates them.
+    """
+
+    TYPE: ClassVar[str] = "command"
+    BODY: ClassVar[frozenset[str]] = frozenset({"arm", "name", "args"})
+
+    arm: str = ""
+    name: str = ""
+    args: tuple[str, ...] = ()
+
+    def body(self) -> dict[str, Any]:
+        return {"arm": self.arm, "name": self.name, "args": list(self.args)}
+
+    @classmethod
+    def from_body(cls, header: Header, d: dict[str, Any]) -> Command:
+        name = _str(d, "name", allow_empty=False)
+        if not _COMMAND_NAME.match(name):
+            raise MessageError(f"field 'name'={name!r} must match [a-z][a-z0-9_]{{0,63}}")
+        args = _strs(d, "args", max_len=16)
+        for a in args:
+            if "=" not in a:
+                raise MessageError(f"field 'args' entry {a!r} must look like key=value")
+        return cls(header, _str(d, "arm", allow_empty=False), name, args)
+
+    def arg_map(self) -> dict[str, str]:
+        """``args`` as a dict (a repeated key keeps the last value)."""
+        return dict(a.split("=", 1) for a in self.args)
+
+
+@_register
+@dataclass(frozen=True, slots=True)
+class CommandReply(Message):
+    """The answer to a :class:`Command`: accepted, or refused with the reason.
+
+    Attributes:
+        arm: arm id.
+        name: the command answered.
+        accepted: True if the command was carried out (or started).
+        reason: why it was refused ("" when accepted), or a short note.
+    """
+
+    TYPE: ClassVar[str] = "command_reply"
+    BODY: ClassVar[frozenset[str]] = frozenset({"arm", "name", "accepted", "reason"})
+
+    arm: str = ""
+    name: str = ""
+    accepted: bool = False
+    reason: str = ""
+
+    def body(self) -> dict[str, Any]:
+        return {"arm": self.arm, "name": self.name, "accepted": self.accepted, "reason": self.reason}
+
+    @classmethod
+    def from_body(cls, header: Header, d: dict[str, Any]) -> CommandReply:
+        return cls(header, _str(d, "arm"), _str(d, "name"), _bool(d, "accepted"), _str(d, "reason"))
+
+
 #: Every message class by its type tag.
 MESSAGE_TYPES: dict[str, type[Message]] = dict(_REGISTRY)
 
@@ -683,6 +753,8 @@ AnyMessage = (
     | SafetyState
     | SafetyEvent
     | EStop
+    | Command
+    | CommandReply
     | Heartbeat
 )
 

@@ -130,3 +130,44 @@ def test_echo_round_trip(endpoint: str) -> None:
         rtts = [wd.echo_rtt("master_capture", timeout=1.0) for _ in range(5)]
         assert all(r is not None and 0.0 < r < 1.0 for r in rtts), rtts
         assert wd.echo_rtt("nobody", timeout=0.2) is None  # no such service: no reply
+
+
+def test_command_queryable_answers_refuses_and_survives(endpoint: str) -> None:
+    from shared.errors import MessageError
+    from shared.messages import Command, CommandReply
+
+    bus = BusConfig(connect=[endpoint])
+    seen: list[Command] = []
+
+    def handle(cmd: Command) -> CommandReply:
+        seen.append(cmd)
+        if cmd.name == "boom":
+            raise RuntimeError("bug")
+        ok = cmd.name == "teach_trocar"
+        return CommandReply(h.header(), cmd.arm, cmd.name, ok, "" if ok else f"{cmd.name} refused: not now")
+
+    with Node(bus, "t", "slave_control") as slave, Node(bus, "t", "console") as console:
+        key = slave.keys.command("arm1")
+        h = slave.outlet(slave.keys.events("slave_control"), control=False)  # a header source
+        slave.serve(key, Command, handle, sources=["console"])
+        out = console.outlet(key, control=False)
+        time.sleep(0.2)
+        r = console.request(key, Command(out.header(), "arm1", "teach_trocar"), CommandReply)
+        assert r.accepted and r.name == "teach_trocar"
+        r = console.request(key, Command(out.header(), "arm1", "insert", ("speed=0.01",)), CommandReply)
+        assert not r.accepted and "insert refused" in r.reason
+        with pytest.raises(MessageError, match="handler error: RuntimeError"):
+            console.request(key, Command(out.header(), "arm1", "boom"), CommandReply)
+        console.session.get(key, payload=b"garbage")  # malformed: answered with an error
+        with Node(bus, "t", "intruder") as intruder:
+            o2 = intruder.outlet(key, control=False)
+            with pytest.raises(MessageError, match="may not send command"):
+                intruder.request(key, Command(o2.header(), "arm1", "teach_trocar"), CommandReply)
+        assert wait_until(lambda: slave.streams.get(key).rejected == 2)
+        assert [c.name for c in seen] == ["teach_trocar", "insert", "boom"]
+        # the service is still answering
+        assert console.request(key, Command(out.header(), "arm1", "teach_trocar"), CommandReply).accepted
+        with pytest.raises(TimeoutError, match="no reply"):
+            console.request(
+                console.keys.command("arm9"), Command(out.header(), "arm9", "x"), CommandReply, 0.3
+            )

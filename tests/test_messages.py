@@ -13,8 +13,12 @@ from hypothesis import strategies as st
 from shared.errors import MessageError
 from shared.messages import (
     MAX_PAYLOAD_BYTES,
+    MESSAGE_TYPES,
     SCHEMA_VERSION,
     CartesianPose,
+    Command,
+    CommandReply,
+    EStop,
     Header,
     Heartbeat,
     JointSetpoint,
@@ -42,7 +46,29 @@ EXAMPLES = [
     SafetyState(H, "arm1", "HOLD", ("mapping not alive", "servo_jp stale (80 ms > 50 ms)")),
     SafetyEvent(H, "arm1", "transition", "warning", "OK → HOLD"),
     Heartbeat(H, "mapping", 12.5, 0),
+    EStop(H, "*", "estop", "console: operator"),
+    Command(H, "arm1", "jog", ("frame=forceps", "axis=x", "direction=1")),
+    CommandReply(H, "arm1", "insert", False, "insert refused: forceps axis 7.3° off trocar direction"),
 ]
+
+
+def test_every_message_type_has_an_example() -> None:
+    assert {m.TYPE for m in EXAMPLES} == set(MESSAGE_TYPES)
+
+
+@pytest.mark.parametrize(
+    ("body", "match"),
+    [
+        ({"name": "Jog"}, "must match"),
+        ({"name": "jog", "args": ["frame"]}, "key=value"),
+        ({"args": [f"k{i}=v" for i in range(17)]}, "limit 16"),
+    ],
+)
+def test_command_field_rules(body: dict[str, object], match: str) -> None:
+    d = msgpack.unpackb(Command(H, "arm1", "jog", ("axis=x",)).encode())
+    d.update(body)
+    with pytest.raises(MessageError, match=match):
+        decode(_pack(d))
 
 
 @pytest.mark.parametrize("msg", EXAMPLES, ids=lambda m: m.TYPE)

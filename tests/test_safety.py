@@ -54,7 +54,9 @@ def test_sigstop_mapping_holds_within_the_stream_deadline(pipe: Pipeline) -> Non
     # servo_jp deadline 80 ms at the watchdog (+ one 20 ms lease tick), 100 ms at the slave
     (fault,) = parse_only("stop:mapping")
     row = run_fault(pipe, fault)
-    check_hold(row, 100.0 + 15.0)  # + the hop to the probe and scheduling on 2 cores
+    # 80 ms deadline + one 20 ms lease tick ≤ 100 ms at the watchdog; + the hop to the probe and
+    # scheduling jitter on 2 cores
+    check_hold(row, 100.0 + 30.0)
     assert any("servo_jp stale" in c or "measured_cp stale" in c for c in row["causes"]), row
 
 
