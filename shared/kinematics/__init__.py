@@ -61,3 +61,38 @@ __all__ = [
     "within_limits",
     "wrist_center",
 ]
+
+# Trocar mode (RCM kinematics, J4/J5 posture adjustment); see :mod:`.trocar`.
+from shared.kinematics.trocar import (
+    MIN_TIP_DEPTH,
+    ROLL_REF_SINGULAR_TOL,
+    STRAIGHT_FORCEPS,
+    TROCAR_MODE_DEPTH,
+    Forceps,
+    axis_angle_to_trocar,
+    forceps_roll,
+    insertion_depth,
+    interpolate_posture,
+    posture_adjust,
+    posture_duration,
+    rcm_error,
+    roll_reference,
+    trocar_ik,
+)
+
+__all__ += [
+    "MIN_TIP_DEPTH",
+    "ROLL_REF_SINGULAR_TOL",
+    "STRAIGHT_FORCEPS",
+    "TROCAR_MODE_DEPTH",
+    "Forceps",
+    "axis_angle_to_trocar",
+    "forceps_roll",
+    "insertion_depth",
+    "interpolate_posture",
+    "posture_adjust",
+    "posture_duration",
+    "rcm_error",
+    "roll_reference",
+    "trocar_ik",
+]
