@@ -27,7 +27,7 @@ from typing import Any
 
 import numpy as np
 
-from services.bench.harness import Pipeline, now_ns
+from services.bench.harness import Pipeline, Probe, now_ns
 
 log = logging.getLogger(__name__)
 
@@ -180,11 +180,19 @@ def run_fault(pipe: Pipeline, f: Fault, lead_s: float = 1.0, recover_s: float = 
         p_ref = tips[max(int(np.searchsorted(tips[:, 0], t_hold + 0.3e9, side="right")) - 1, 0), 1:]
         moved = np.linalg.norm(tips[sel, 1:] - p_ref, axis=1).max() * 1e3 if sel.any() else 0.0
         row["motion_before_reengage_mm"] = round(float(moved), 3)
+    row["_times_ns"] = {"inject": t0, "clear": t_clear, "hold": t_hold, "follow": _t_follow(p, t_hold)}
     row["lost"] = sum(p.lost().values()) - lost0
     time.sleep(0.6)  # heartbeats are 2 Hz
     row["rejected"] = sum(p.heartbeats.values()) - rej0
     row["ok"] = _judge(row)
     return row
+
+
+def _t_follow(p: Probe, t_hold: int | None) -> int | None:
+    if t_hold is None:
+        return None
+    fol = p.first_op_after(t_hold, lambda r: r[1])
+    return fol[0] if fol else None
 
 
 def _after_press(pipe: Pipeline, lead_s: float, timeout: float) -> bool:
@@ -273,6 +281,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     )
     ap.add_argument("--log-dir", type=Path, help="service logs (default: a temporary directory)")
     ap.add_argument("--stop-s", type=float, default=0.6, help="SIGSTOP duration, s (default 0.6)")
+    ap.add_argument("--plot", type=Path, metavar="FILE.png", help="draw every fault's timeline into one PNG")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(levelname)s %(message)s")
     try:
@@ -287,7 +296,13 @@ def main(argv: Sequence[str] | None = None) -> int:
             for i, f in enumerate(faults, 1):
                 print(f"[{i}/{len(faults)}] {f.name} ...", file=sys.stderr, flush=True)
                 rows.append(run_fault(pipe, f))
+            if args.plot:
+                from services.bench.plots import plot_faults
+
+                plot_faults(pipe.p, rows, args.plot)
             codes = pipe.close()
+    for r in rows:
+        r.pop("_times_ns", None)
     print_table(rows)
     result = {
         "date": time.strftime("%Y-%m-%d %H:%M:%S %Z"),

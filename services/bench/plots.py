@@ -1,0 +1,107 @@
+"""Figures of benchmark runs (matplotlib, headless): one timeline per injected fault.
+
+Each panel shows the slave tip's displacement (MuJoCo, mm) from where it was when the fault was
+injected, over a window around the fault, on a background coloured by the watchdog's state
+(DEGRADED yellow, HOLD red, ESTOP purple), with the clutch pedal as a grey bar and vertical lines
+at injection, detection (the slave's fault hold), clearing, and the re-engage.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from services.bench.harness import Probe
+
+STATE_COLOURS = {"DEGRADED": "#f6d55c", "HOLD": "#ed553b", "ESTOP": "#8e44ad"}
+
+
+def plot_faults(probe: Probe, rows: list[dict[str, Any]], out: Path, cols: int = 3) -> None:
+    """Write one PNG with a panel per fault row (rows from ``run_fault``)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    tips = probe.tips()
+    with probe.lock:
+        safety = [(t, s) for t, s, *_ in probe.safety]
+        clutch = list(probe.clutch)
+    n = len(rows)
+    nrows = math.ceil(n / cols)
+    fig, axes = plt.subplots(nrows, cols, figsize=(5.2 * cols, 2.9 * nrows), squeeze=False)
+    for ax, row in zip(axes.flat, rows, strict=False):
+        times = row.get("_times_ns") or {}
+        t0 = times.get("inject")
+        if t0 is None:
+            ax.set_title(f"{row['fault']}: {row.get('error', 'no data')}", fontsize=9)
+            continue
+        end = max(v for v in times.values() if v is not None) + 1.0e9
+        start = t0 - 1.0e9
+        sel = (tips[:, 0] >= start) & (tips[:, 0] <= end)
+        i0 = max(int(np.searchsorted(tips[:, 0], t0, side="right")) - 1, 0)
+        disp = np.linalg.norm(tips[sel, 1:] - tips[i0, 1:], axis=1) * 1e3
+        ts = (tips[sel, 0] - t0) / 1e9
+        _shade_states(ax, safety, start, end, t0)
+        _clutch_bar(ax, clutch, start, end, t0)
+        ax.plot(ts, disp, color="#20639b", lw=1.2)
+        for key, colour, label in (
+            ("inject", "#ed553b", "inject"),
+            ("hold", "#f39c12", "detect"),
+            ("clear", "#3caea3", "clear"),
+            ("follow", "#173f5f", "re-engage"),
+        ):
+            if times.get(key) is not None:
+                ax.axvline((times[key] - t0) / 1e9, color=colour, ls="--", lw=1.0, label=label)
+        detect = row.get("detect_ms")
+        title = row["fault"] + (f" — detect {detect:.0f} ms" if detect is not None else " — no hold")
+        ax.set_title(title, fontsize=9)
+        ax.set_xlim((start - t0) / 1e9, (end - t0) / 1e9)
+        ax.set_xlabel("s from injection", fontsize=8)
+        ax.set_ylabel("tip displacement [mm]", fontsize=8)
+        ax.tick_params(labelsize=7)
+    for ax in list(axes.flat)[n:]:
+        ax.axis("off")
+    handles, labels = axes.flat[0].get_legend_handles_labels()
+    from matplotlib.patches import Patch
+
+    handles += [Patch(color=c, alpha=0.35) for c in STATE_COLOURS.values()] + [Patch(color="0.6")]
+    labels += [f"watchdog {s}" for s in STATE_COLOURS] + ["clutch pressed"]
+    fig.legend(handles, labels, loc="lower center", ncol=len(labels), fontsize=8, frameon=False)
+    fig.tight_layout(rect=(0, 0.04, 1, 1))
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out, dpi=110)
+    plt.close(fig)
+
+
+def _shade_states(ax: Any, safety: list[tuple[int, str]], start: float, end: float, t0: int) -> None:
+    prev_t, prev_s = start, "OK"
+    for t, s in safety:
+        if t < start:
+            prev_s = s
+            continue
+        if t > end:
+            break
+        if prev_s in STATE_COLOURS:
+            ax.axvspan((prev_t - t0) / 1e9, (t - t0) / 1e9, color=STATE_COLOURS[prev_s], alpha=0.35, lw=0)
+        prev_t, prev_s = t, s
+    if prev_s in STATE_COLOURS:
+        ax.axvspan((prev_t - t0) / 1e9, (end - t0) / 1e9, color=STATE_COLOURS[prev_s], alpha=0.35, lw=0)
+
+
+def _clutch_bar(ax: Any, clutch: list[tuple[int, bool]], start: float, end: float, t0: int) -> None:
+    pressed_since: float | None = None
+    for t, pressed in clutch:
+        if pressed and pressed_since is None:
+            pressed_since = max(t, start)
+        elif not pressed and pressed_since is not None:
+            if t >= start:
+                ax.axvspan(
+                    (pressed_since - t0) / 1e9, (min(t, end) - t0) / 1e9, ymin=0, ymax=0.04, color="0.6"
+                )
+            pressed_since = None
+    if pressed_since is not None and pressed_since <= end:
+        ax.axvspan((pressed_since - t0) / 1e9, (end - t0) / 1e9, ymin=0, ymax=0.04, color="0.6")
