@@ -396,8 +396,9 @@ class OperatingState(Message):
         lease_ok: True while a fresh watchdog lease allows motion.
         reason: why the slave holds ("" while following).
         holds: number of times the slave entered hold since start.
-        rcm_error_mm: distance from the trocar point to the forceps axis, mm (0 outside trocar
-            mode), from the measured (simulated or real) arm.
+        rcm_error_mm: distance from the trocar point to the forceps axis line, mm, from the
+            measured (simulated or real) arm's tip pose; meaningful once the forceps is through
+            the trocar (the watchdog checks it only in trocar mode).
         clipped: control cycles in which the slave's joint speed limit clipped the setpoint.
         rejected: setpoints the slave refused (limits, jumps, wrong joints, foreign source).
     """

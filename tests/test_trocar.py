@@ -468,3 +468,36 @@ def test_forceps_description() -> None:
         Forceps(length_m=0.0)
     with pytest.raises(KinematicsError, match="wrist_joints"):
         Forceps(wrist_joints=-1)
+
+
+def test_pose_to_trocar_matches_the_kinematic_measures() -> None:
+    from shared.kinematics.trocar import pose_to_trocar
+
+    rng = np.random.default_rng(5)
+    trocar = np.array([0.5, 0.0, 0.2])
+    for _ in range(50):
+        q = rng.uniform(np.array(MH3F.lower) * 0.5, np.array(MH3F.upper) * 0.5)
+        T = fk(q, MH3F)
+        rcm, depth = pose_to_trocar(T[:3, 3], 3.0 * T[:3, 0], trocar)  # axis length is ignored
+        assert rcm == pytest.approx(rcm_error(q, trocar), abs=1e-12)
+        assert depth == pytest.approx(insertion_depth(q, trocar), abs=1e-12)
+
+
+def test_mujoco_arm_through_the_trocar_has_sub_mm_rcm_error() -> None:
+    """Measured from MuJoCo's tip site (not from the command): a trocar-IK pose 60 mm deep."""
+    from services.slave_control.backends import make_backend
+    from shared.kinematics import matrix_from_quat
+    from shared.kinematics.trocar import pose_to_trocar
+
+    trocar = np.array([0.5, 0.0, 0.2])
+    q_start = np.array([0.0, -0.2, 0.6, 0.0, -0.3, 0.0])  # a paper-like start (Fig. 10)
+    q_aligned = posture_adjust(q_start, trocar)
+    axis = fk(q_aligned, MH3F)[:3, 0]
+    q_in = trocar_ik(trocar + 0.06 * axis, trocar, q_aligned)
+    with make_backend("mujoco", "mh3f", tuple(q_in.tolist())) as sim:
+        sim.command(q_in)
+        sim.step(500)  # 0.5 s to settle under gravity
+        r = sim.read()
+    rcm, depth = pose_to_trocar(r.tip_position, matrix_from_quat(r.tip_quat)[:, 0], trocar)
+    print(f"MuJoCo at rest: RCM error {rcm * 1e3:.4f} mm, depth {depth * 1e3:.2f} mm")
+    assert rcm < 1e-3 and depth == pytest.approx(0.06, abs=1e-3)

@@ -26,7 +26,8 @@ from services.slave_control.backends import make_backend
 from services.slave_control.control import FollowController, Lease, Setpoint
 from shared.bus import BusConfig, Node
 from shared.errors import ConfigError
-from shared.kinematics import MH3F
+from shared.kinematics import MH3F, matrix_from_quat
+from shared.kinematics.trocar import pose_to_trocar
 from shared.messages import CartesianPose, EStop, JointSetpoint, JointState, OperatingState, SafetyLease
 from shared.timing import CycleTimer
 
@@ -52,6 +53,9 @@ class SlaveControlConfig:
     # rad: while following, a setpoint farther than this from the previous one is refused (a jump)
     max_setpoint_step_rad: float = 0.1
     setpoint_source: str = "mapping"  # only this service may publish servo_jp for this arm
+    # mm, base frame: the trocar (the scene's trocar site). The RCM error and insertion depth in
+    # operating_state are measured against it from the simulated arm's tip pose.
+    trocar_mm: tuple[float, float, float] = (500.0, 0.0, 200.0)
     # The watchdog's liveliness token is watched too: its death revokes the lease at once
     # (in ms), instead of after the lease lifetime.
     watchdog_service: str = "watchdog"
@@ -156,6 +160,7 @@ def run(cfg: SlaveControlConfig, stop: threading.Event) -> None:
         pub_every = max(1, round(1.0 / (dt * cfg.publish_hz)))
         state_every = max(1, round(1.0 / (dt * cfg.state_hz)))
         q_cmd = np.array(cfg.q_home, dtype=float)
+        trocar = np.array(cfg.trocar_mm) / 1e3
         reading = backend.read()
         last_state: tuple[bool, bool, str] | None = None
         caught_up = 0
@@ -202,6 +207,8 @@ def run(cfg: SlaveControlConfig, stop: threading.Event) -> None:
             state = (ctl.following, lease_ok, ctl.reason)
             if state != last_state or cycle % state_every == 0:
                 last_state = state
+                axis = matrix_from_quat(reading.tip_quat)[:, 0]
+                rcm_m, _depth_m = pose_to_trocar(reading.tip_position, axis, trocar)
                 rejected = svc.rejected_setpoints + node.streams.get(k.slave(cfg.arm, "servo_jp")).rejected
                 state_out.put(
                     OperatingState(
@@ -212,7 +219,7 @@ def run(cfg: SlaveControlConfig, stop: threading.Event) -> None:
                         lease_ok,
                         ctl.reason,
                         ctl.holds,
-                        0.0,
+                        round(rcm_m * 1e3, 4),
                         ctl.clipped,
                         rejected,
                     )

@@ -227,6 +227,29 @@ def rcm_error(q: npt.ArrayLike, trocar: npt.ArrayLike, geom: ArmGeometry = MH3F)
     return _norm(_cross(_sub(c, tip), axis))
 
 
+def pose_to_trocar(tip: npt.ArrayLike, axis: npt.ArrayLike, trocar: npt.ArrayLike) -> tuple[float, float]:
+    """``(rcm_error, insertion_depth)`` [m] of a *measured* forceps pose relative to the trocar.
+
+    For a slave that measures its tip (e.g. MuJoCo's tip site, or a real arm's own forward
+    kinematics): the forceps axis is the line through ``tip`` along ``axis`` (the TCP x axis,
+    normalised here).
+
+    Args:
+        tip: forceps tip ``(3,)`` [m], base frame.
+        axis: forceps axis direction ``(3,)``, toward the tip (any length > 0).
+        trocar: trocar point ``(3,)`` [m], base frame.
+    """
+    t = _point(tip, "tip")
+    a = _point(axis, "axis")
+    n = _norm(a)
+    if n < _POINT_TOL:
+        raise KinematicsError("forceps axis direction has zero length")
+    d = _scaled(a, 1.0 / n)
+    c = _point(trocar, "trocar")
+    rel = _sub(c, t)
+    return _norm(_cross(rel, d)), -_dot(rel, d)
+
+
 def insertion_depth(q: npt.ArrayLike, trocar: npt.ArrayLike, geom: ArmGeometry = MH3F) -> float:
     """Signed distance [m] along the forceps axis from the trocar to the tip.
 
