@@ -22,13 +22,25 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from services.common import service_main
-from services.slave_control.backends import make_backend
+from services.slave_control.backends import SlaveReading, make_backend
 from services.slave_control.control import FollowController, Lease, Setpoint
+from services.slave_control.modes import ControlModes, Jog, MotionMode
+from services.slave_control.motion import SUPPORTED_JOG_AXES, PtpMotion, jog_step, ptp_duration
 from shared.bus import BusConfig, Node
-from shared.errors import ConfigError
-from shared.kinematics import MH3F, matrix_from_quat
-from shared.kinematics.trocar import pose_to_trocar
-from shared.messages import CartesianPose, EStop, JointSetpoint, JointState, OperatingState, SafetyLease
+from shared.errors import ConfigError, IKError, KinematicsError
+from shared.kinematics import MH3F, matrix_from_quat, within_limits
+from shared.kinematics.trocar import pose_to_trocar, posture_adjust
+from shared.messages import (
+    CartesianPose,
+    Command,
+    CommandReply,
+    EStop,
+    JointSetpoint,
+    JointState,
+    OperatingState,
+    SafetyLease,
+    Sequencer,
+)
 from shared.timing import CycleTimer
 
 log = logging.getLogger(__name__)
@@ -56,6 +68,11 @@ class SlaveControlConfig:
     # mm, base frame: the trocar (the scene's trocar site). The RCM error and insertion depth in
     # operating_state are measured against it from the simulated arm's tip pose.
     trocar_mm: tuple[float, float, float] = (500.0, 0.0, 200.0)
+    trocar_taught: bool = True  # the configured trocar counts as taught (teach_trocar replaces it)
+    jog_speed_mm_s: float = 10.0  # mm/s: Cartesian jog and insert/remove speed
+    jog_joint_speed_deg_s: float = 5.0  # deg/s: joint jog speed
+    ptp_speed_fraction: float = 0.2  # PTP posture adjustment at this fraction of the joint limits
+    command_sources: list[str] = field(default_factory=list)  # who may send commands ([] = anyone)
     # The watchdog's liveliness token is watched too: its death revokes the lease at once
     # (in ms), instead of after the lease lifetime.
     watchdog_service: str = "watchdog"
@@ -77,6 +94,103 @@ class SlaveService:
         self.estop = ""  # latched e-stop cause ("" = none); only an explicit reset clears it
         self.cycle = 0  # control cycles executed; stamped on inputs (see control.py)
         self.dt = 0.001
+        # control modes of Jinno 2014 and the slave-side motion sources (PTP, jog)
+        self.modes = ControlModes()
+        self.trocar = np.array(cfg.trocar_mm) / 1e3
+        self.trocar_taught = cfg.trocar_taught
+        self.ptp: PtpMotion | None = None
+        self.q_cmd = np.array(cfg.q_home, dtype=float)  # last command (set by the loop)
+        self.tip = np.zeros(3)  # last measured tip (set by the loop)
+        self.reply_seq = Sequencer(cfg.service)
+
+    # -- operator commands (slave/<arm>/command) ----------------------------------------------
+    def on_command(self, cmd: Command) -> CommandReply:
+        """Answer one operator command (zenoh thread)."""
+        with self.lock:
+            accepted, reason = self._command(cmd)
+        if accepted:
+            self.node.event("command", f"{cmd.name} {' '.join(cmd.args)}: {reason}".strip(), arm=self.cfg.arm)
+        return CommandReply(self.reply_seq.next(), self.cfg.arm, cmd.name, accepted, reason)
+
+    def _command(self, cmd: Command) -> tuple[bool, str]:
+        m, a = self.modes, cmd.arg_map()
+        if cmd.arm != self.cfg.arm:
+            return False, f"{cmd.name} refused: this is arm {self.cfg.arm}, not {cmd.arm}"
+        if self.estop and cmd.name not in ("state", "stop", "abort"):
+            return False, f"{cmd.name} refused: {self.estop} (reset first)"
+        if cmd.name == "state":
+            allowed = "; ".join(f"{k}: {', '.join(v)}" for k, v in m.allowed().items() if v)
+            return True, f"{m.label}, motion {m.motion or 'none'}; allowed: {allowed}"[:500]
+        if cmd.name == "teach_trocar":
+            r = m.teach_trocar()
+            if r.accepted:
+                self.trocar = self.tip.copy()
+                self.trocar_taught = True
+                mm = ", ".join(f"{v * 1e3:.1f}" for v in self.trocar)
+                return True, f"trocar taught at ({mm}) mm"
+            return r.accepted, r.reason
+        if cmd.name == "begin_posture_adjust":
+            method = a.get("method", "ptp")
+            if method != "ptp":
+                return (
+                    False,
+                    f"begin_posture_adjust refused: method {method!r} is not implemented yet (ptp is)",
+                )
+            try:
+                target = posture_adjust(self.q_cmd, self.trocar)
+            except (IKError, KinematicsError) as exc:
+                return False, f"begin_posture_adjust refused: {exc}"
+            r = m.begin_posture_adjust(method)
+            if r.accepted:
+                duration = ptp_duration(self.q_cmd, target, self.cfg.ptp_speed_fraction)
+                self.ptp = PtpMotion(self.q_cmd.copy(), target, duration)
+                return True, f"{r.reason}; PTP of J4/J5 over {duration:.1f} s"
+            return r.accepted, r.reason
+        if cmd.name in ("finish_posture_adjust", "insert", "remove", "stop"):
+            if cmd.name != "stop" and self.ptp is not None:
+                return False, f"{cmd.name} refused: the PTP posture motion is still running"
+            r = getattr(m, cmd.name)()
+            return r.accepted, r.reason
+        if cmd.name == "abort":
+            self.ptp = None
+            r = m.abort(a.get("reason", "operator abort"))
+            return r.accepted, r.reason
+        if cmd.name == "set_motion_mode":
+            mode = a.get("mode", "")
+            if mode in ("direct_teach", "playback"):
+                return False, f"set_motion_mode refused: {mode} is not implemented yet"
+            if mode == "master_slave" and m.control_mode != "non_trocar":
+                return False, f"set_motion_mode refused: master_slave in {m.label} is not implemented yet"
+            r = m.set_motion_mode(mode)
+            return r.accepted, r.reason
+        if cmd.name == "jog":
+            axis = a.get("axis", "")
+            if axis not in SUPPORTED_JOG_AXES:
+                return (
+                    False,
+                    f"jog refused: axis {axis!r} not supported; valid: {', '.join(SUPPORTED_JOG_AXES)}",
+                )
+            try:
+                direction = int(a.get("direction", "1"))
+            except ValueError:
+                return False, f"jog refused: direction {a.get('direction')!r} must be 1 or -1"
+            r = m.jog(a.get("frame", "base"), axis, direction)
+            return r.accepted, r.reason
+        return False, f"unknown command {cmd.name!r}; valid: {', '.join(COMMANDS)}"
+
+    def internal_active(self) -> bool:
+        """A slave-side motion (PTP or jog) is commanded (lock held by the caller)."""
+        return self.ptp is not None or self.modes.jog_command is not None
+
+    def update_modes(self, reading_tip: np.ndarray, reading_quat: np.ndarray) -> None:
+        """Feed the control-mode machine the measured depth and axis angle (lock held)."""
+        axis = matrix_from_quat(reading_quat)[:, 0]
+        _, depth = pose_to_trocar(reading_tip, axis, self.trocar)
+        wc = reading_tip - MH3F.wrist_to_tcp * axis
+        to_trocar = self.trocar - wc
+        n = float(np.linalg.norm(to_trocar))
+        angle = float(np.arccos(np.clip(axis @ to_trocar / n, -1.0, 1.0))) if n > 1e-9 else None
+        self.modes.update(depth, angle, self.trocar_taught)
 
     def on_lease(self, msg: SafetyLease, key: str) -> None:
         now = time.monotonic()
@@ -129,6 +243,87 @@ class SlaveService:
             self.setpoint = Setpoint(q, msg.follow, time.monotonic(), self.cycle)
 
 
+#: Operator commands served on ``slave/<arm>/command`` (args as ``key=value``).
+COMMANDS = (
+    "state",
+    "teach_trocar",
+    "begin_posture_adjust",
+    "finish_posture_adjust",
+    "insert",
+    "remove",
+    "stop",
+    "abort",
+    "set_motion_mode",
+    "jog",
+)
+
+
+def _internal_step(
+    svc: SlaveService,
+    ctl: FollowController,
+    cfg: SlaveControlConfig,
+    reading: SlaveReading,
+    q_cmd: np.ndarray,
+    lease: Lease,
+    now: float,
+    dt: float,
+    vmax: np.ndarray,
+    jog: Jog | None,
+    ptp: PtpMotion | None,
+    mode: str,
+) -> np.ndarray:
+    """One control period of a slave-side motion (PTP or jog), only under a valid lease."""
+    ctl.pause(reading.position, "slave-side motion (PTP / jog)")
+    ok = ctl.lease_ok(lease, now, svc.cycle) and not svc.estop
+    ctl.lease_valid = ok
+    if not ok:  # any doubt: stop the motion; the operator must command it again
+        with svc.lock:
+            svc.ptp = None
+            if svc.modes.jog_command is not None:
+                svc.modes.stop()
+        ctl.holds += 1
+        svc.node.event(
+            "hold",
+            f"slave-side motion stopped: {lease.reason or 'lease expired'}",
+            arm=cfg.arm,
+            severity="warning",
+        )
+        ctl.track(q_cmd)
+        return q_cmd
+    try:
+        if ptp is not None:
+            target = ptp.next(dt)
+        else:
+            assert jog is not None
+            target = jog_step(
+                q_cmd,
+                jog.frame.value,
+                jog.axis,
+                jog.direction,
+                dt,
+                speed_m_s=cfg.jog_speed_mm_s / 1e3,
+                joint_speed_rad_s=np.radians(cfg.jog_joint_speed_deg_s),
+                trocar=svc.trocar if mode == "trocar" else None,
+            )
+            if not within_limits(target, MH3F):
+                raise IKError("a joint limit is reached")
+    except (IKError, KinematicsError) as exc:
+        with svc.lock:
+            svc.ptp = None
+            if svc.modes.jog_command is not None:
+                svc.modes.stop()
+        svc.node.event("motion_stopped", f"slave-side motion stopped: {exc}", arm=cfg.arm, severity="warning")
+        ctl.track(q_cmd)
+        return q_cmd
+    out: np.ndarray = q_cmd + np.clip(target - q_cmd, -vmax * dt, vmax * dt)
+    if ptp is not None and ptp.done and np.allclose(out, ptp.q_to, atol=1e-9):
+        with svc.lock:
+            svc.ptp = None
+        svc.node.event("ptp_done", "posture adjustment PTP reached its target", arm=cfg.arm)
+    ctl.track(out)
+    return out
+
+
 def run(cfg: SlaveControlConfig, stop: threading.Event) -> None:
     """Run the slave until ``stop``."""
     if len(cfg.q_home) != len(MH3F.joint_names):
@@ -149,6 +344,9 @@ def run(cfg: SlaveControlConfig, stop: threading.Event) -> None:
         )
         node.subscribe(k.estop, EStop, svc.on_estop)
         node.watch_liveliness(k.alive(cfg.watchdog_service), svc.on_watchdog_alive)
+        node.serve(k.command(cfg.arm), Command, svc.on_command, sources=cfg.command_sources or None)
+        vmax = np.array(MH3F.max_velocity)
+        modes_every = 10  # control cycles between mode-machine updates (100 Hz)
 
         ctl = FollowController(
             np.array(MH3F.max_velocity),
@@ -162,7 +360,7 @@ def run(cfg: SlaveControlConfig, stop: threading.Event) -> None:
         q_cmd = np.array(cfg.q_home, dtype=float)
         trocar = np.array(cfg.trocar_mm) / 1e3
         reading = backend.read()
-        last_state: tuple[bool, bool, str] | None = None
+        last_state: tuple[bool, bool, str, str, bool] | None = None
         caught_up = 0
         log.info("slave %s (%s/%s) running at %.0f Hz", cfg.arm, cfg.backend, cfg.model, 1 / dt)
         cycle = 0
@@ -172,7 +370,17 @@ def run(cfg: SlaveControlConfig, stop: threading.Event) -> None:
                 lease, sp = svc.lease, svc.setpoint
                 if svc.estop:
                     lease = Lease(False, 0.0, svc.estop)
-            q_cmd = ctl.update(now, reading.position, q_cmd, lease, sp, dt, svc.cycle)
+                internal = svc.internal_active()
+                jog, ptp, mode = svc.modes.jog_command, svc.ptp, svc.modes.control_mode
+                master_slave = mode == "non_trocar" and svc.modes.motion in (None, MotionMode.MASTER_SLAVE)
+            if internal:
+                q_cmd = _internal_step(svc, ctl, cfg, reading, q_cmd, lease, now, dt, vmax, jog, ptp, mode)
+            else:
+                if not master_slave:
+                    ctl.pause(reading.position, f"master-slave not active in {mode} mode")
+                    sp = None
+                q_cmd = ctl.update(now, reading.position, q_cmd, lease, sp, dt, svc.cycle)
+            svc.q_cmd = q_cmd
             backend.command(q_cmd)
             missed = timer.wait()
             backend.step(1 + missed)  # stay in real time: catch up missed periods
@@ -181,6 +389,13 @@ def run(cfg: SlaveControlConfig, stop: threading.Event) -> None:
             cycle += 1
             svc.cycle = cycle
             svc.following = ctl.following
+            svc.tip = reading.tip_position
+            if cycle % modes_every == 0:
+                with svc.lock:
+                    svc.update_modes(reading.tip_position, reading.tip_quat)
+                    mode_events, svc.modes.events = svc.modes.events, []
+                for kind, text in mode_events:
+                    node.event(kind, text, arm=cfg.arm)
             for kind, text in ctl.events:
                 node.event(kind, text, arm=cfg.arm, severity="warning" if kind in WARN else "info")
             ctl.events.clear()
@@ -204,7 +419,7 @@ def run(cfg: SlaveControlConfig, stop: threading.Event) -> None:
                     )
                 )
             lease_ok = ctl.lease_valid
-            state = (ctl.following, lease_ok, ctl.reason)
+            state = (ctl.following, lease_ok, ctl.reason, svc.modes.control_mode, internal)
             if state != last_state or cycle % state_every == 0:
                 last_state = state
                 axis = matrix_from_quat(reading.tip_quat)[:, 0]
@@ -213,8 +428,8 @@ def run(cfg: SlaveControlConfig, stop: threading.Event) -> None:
                 state_out.put(
                     OperatingState(
                         state_out.header(),
-                        "ENABLED" if ctl.following else ("FAULT" if svc.estop else "PAUSED"),
-                        "non_trocar",
+                        "ENABLED" if ctl.following or internal else ("FAULT" if svc.estop else "PAUSED"),
+                        svc.modes.control_mode,
                         ctl.following,
                         lease_ok,
                         ctl.reason,

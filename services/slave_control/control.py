@@ -173,6 +173,17 @@ class FollowController:
                 )
                 self._episode, self._episode_lag, self._quiet = 0, 0.0, 0
 
+    def pause(self, q_meas: np.ndarray, cause: str) -> None:
+        """Stop following servo_jp without a fault (another motion source takes over)."""
+        if self.following:
+            self._hold(q_meas, cause, fault=False)
+        self.armed = False
+        self.reason = cause
+
+    def track(self, q_cmd: np.ndarray) -> None:
+        """Another motion source moved the command to ``q_cmd``: hold there when it stops."""
+        self._hold_q = q_cmd.copy()
+
     def _hold(self, q_meas: np.ndarray, cause: str, *, fault: bool) -> None:
         self.following = False
         self.armed = False

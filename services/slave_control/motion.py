@@ -1,0 +1,86 @@
+"""Slave-side motion sources for the non-master-slave motion modes (Jinno 2014): PTP and jog.
+
+Each source turns the current commanded joints into the next joint target once per control
+period; slave_control rate-limits it to the joint speed limits and runs it only under a valid
+lease. Pure (kinematics only), so it can be tested on its own.
+
+* :class:`PtpMotion` — point-to-point synchronous joint motion (posture adjustment of J4/J5):
+  every joint arrives at the same time, linear in joint space.
+* :func:`jog_step` — one period of a jog: translation of the tip along an axis of the base
+  (``world``, ``base``, ``work`` = base here) or forceps frame at ``speed_m_s``, orientation kept;
+  or one joint at ``joint_speed_rad_s``. In trocar mode a translation goes through the trocar IK,
+  so the forceps keeps pivoting about the trocar.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from shared.errors import IKError
+from shared.kinematics import MH3F, fk, ik
+from shared.kinematics.trocar import trocar_ik
+
+_AXES = {"x": 0, "y": 1, "z": 2}
+#: Jog axes this slave can execute (rotations are not implemented yet).
+SUPPORTED_JOG_AXES = ("x", "y", "z", "j1", "j2", "j3", "j4", "j5", "j6")
+
+
+@dataclass
+class PtpMotion:
+    """Synchronous joint motion from ``q_from`` to ``q_to`` over ``duration_s``."""
+
+    q_from: np.ndarray
+    q_to: np.ndarray
+    duration_s: float
+    elapsed_s: float = 0.0
+
+    def next(self, dt: float) -> np.ndarray:
+        """Joint target after another ``dt`` seconds."""
+        self.elapsed_s = min(self.elapsed_s + dt, self.duration_s)
+        s = 1.0 if self.duration_s <= 0 else self.elapsed_s / self.duration_s
+        out: np.ndarray = self.q_from + s * (self.q_to - self.q_from)
+        return out
+
+    @property
+    def done(self) -> bool:
+        """The target has been reached."""
+        return self.elapsed_s >= self.duration_s
+
+
+def ptp_duration(q_from: np.ndarray, q_to: np.ndarray, speed_fraction: float = 0.2) -> float:
+    """Duration (s) of a synchronous PTP at ``speed_fraction`` of the slowest joint's limit."""
+    vmax = np.array(MH3F.max_velocity) * speed_fraction
+    return float(np.max(np.abs(q_to - q_from) / vmax))
+
+
+def jog_step(
+    q: np.ndarray,
+    frame: str,
+    axis: str,
+    direction: int,
+    dt: float,
+    *,
+    speed_m_s: float,
+    joint_speed_rad_s: float,
+    trocar: np.ndarray | None,
+) -> np.ndarray:
+    """Joint target one period ``dt`` further along the jog (raises IKError at a limit/reach).
+
+    ``trocar`` (m) given: translations keep the forceps through it (trocar-mode IK).
+    """
+    if axis.startswith("j"):
+        out = q.copy()
+        out[int(axis[1:]) - 1] += direction * joint_speed_rad_s * dt
+        return out
+    if axis not in _AXES:
+        raise IKError(f"jog about {axis} is not implemented")
+    T = fk(q, MH3F)
+    # forceps: the TCP frame's axis; world, base, work: the base frame's axis (work = base here)
+    d = T[:3, _AXES[axis]] if frame == "forceps" else np.eye(3)[_AXES[axis]]
+    T_next = T.copy()
+    T_next[:3, 3] = T[:3, 3] + direction * speed_m_s * dt * d
+    if trocar is not None:
+        return trocar_ik(T_next[:3, 3], trocar, q)
+    return ik(T_next, q, MH3F)
