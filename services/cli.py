@@ -25,6 +25,7 @@ COMMANDS = {
     "up": ("services.launcher", "start router + all services locally; Ctrl-C stops all"),
     "demo": ("services.launcher.demo", "the whole simulated teleop session (scripted circle)"),
     "estop": ("services.estop", "e-stop (or --reset) one arm or every arm of a site"),
+    "cmd": ("services.command", "send an operator command (trocar mode, jog, …) to a slave arm"),
     "bench": ("services.bench", "fault-injection and fuzz benchmarks (tables + JSON)"),
     "impair": ("shared.impair", "userspace TCP link impairer (cut / delay) for fault tests"),
 }

@@ -26,6 +26,7 @@ class Console:
 
     def __init__(self, node: Node) -> None:
         self.node = node
+        self.node_endpoint = ""
         self.key = node.keys.command("arm1")
         self.out = node.outlet(self.key, control=False)
         self.lock = threading.Lock()
@@ -76,6 +77,7 @@ def console(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Console]:
         Node(BusConfig(connect=[p.spec.endpoint]), "local", "console") as node,
     ):
         c = Console(node)
+        c.node_endpoint = p.spec.endpoint
         assert c.wait(lambda: bool(c.states) and c.states[-1][3], 30), "no lease"
         yield c
     for f in sorted(logs.glob("*.log")):
@@ -134,3 +136,20 @@ def test_insert_pivot_remove_keeps_the_rcm(console: Console) -> None:
         "transitional/remove → non_trocar",
     ]
     assert "hold" not in kinds
+
+
+def test_cmd_cli_accepts_refuses_and_fails_clearly(console: Console) -> None:
+    import subprocess
+    import sys
+
+    base = [sys.executable, "-m", "services.cli", "cmd", "--connect", console.node_endpoint]
+    ok = subprocess.run([*base, "state"], capture_output=True, text=True, timeout=30)
+    assert ok.returncode == 0 and ok.stdout.startswith("accepted: non_trocar"), ok
+    no = subprocess.run([*base, "finish_posture_adjust"], capture_output=True, text=True, timeout=30)
+    assert no.returncode == 1 and no.stdout.startswith("refused: finish_posture_adjust refused"), no
+    bad = subprocess.run([*base, "jog", "axis"], capture_output=True, text=True, timeout=30)
+    assert bad.returncode == 2 and "key=value" in bad.stderr, bad
+    gone = subprocess.run(
+        [*base, "--arm", "arm7", "state", "--timeout", "0.5"], capture_output=True, text=True
+    )
+    assert gone.returncode == 2 and "no reply" in gone.stderr, gone
