@@ -401,6 +401,8 @@ class OperatingState(Message):
             the trocar (the watchdog checks it only in trocar mode).
         clipped: control cycles in which the slave's joint speed limit clipped the setpoint.
         rejected: setpoints the slave refused (limits, jumps, wrong joints, foreign source).
+        trocar: the trocar point the slave uses (taught or configured), m, base frame; the
+            mapping uses it for master–slave motion in trocar mode.
     """
 
     TYPE: ClassVar[str] = "operating_state"
@@ -415,6 +417,7 @@ class OperatingState(Message):
             "rcm_error_mm",
             "clipped",
             "rejected",
+            "trocar",
         }
     )
 
@@ -427,6 +430,7 @@ class OperatingState(Message):
     rcm_error_mm: float = 0.0
     clipped: int = 0
     rejected: int = 0
+    trocar: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
     def body(self) -> dict[str, Any]:
         return {
@@ -439,6 +443,7 @@ class OperatingState(Message):
             "rcm_error_mm": self.rcm_error_mm,
             "clipped": self.clipped,
             "rejected": self.rejected,
+            "trocar": list(self.trocar),
         }
 
     @classmethod
@@ -454,6 +459,7 @@ class OperatingState(Message):
             _nonneg(d, "rcm_error_mm"),
             _int(d, "clipped"),
             _int(d, "rejected"),
+            _vec3(d, "trocar"),
         )
 
 

@@ -190,6 +190,7 @@ class Pipeline:
         overrides: dict[str, list[str]] | None = None,
         mirror: bool = True,
         impair: bool = True,
+        master: bool = True,
         log_level: str = "INFO",
     ) -> None:
         self.log_dir = log_dir
@@ -200,9 +201,8 @@ class Pipeline:
             ov["mirror"] = [f"save={json.dumps(str(log_dir / 'session.rrd'))}"]
         for name, items in (overrides or {}).items():
             ov.setdefault(name, []).extend(items)
-        services = ("watchdog", "slave_control", "mapping", "master_capture") + (
-            ("mirror",) if mirror else ()
-        )
+        services: tuple[str, ...] = ("watchdog", "slave_control", "mapping")
+        services += (("master_capture",) if master else ()) + (("mirror",) if mirror else ())
         self.spec = SiteSpec(
             port=port,
             config_dir=default_config_dir(),
@@ -222,6 +222,7 @@ class Pipeline:
                 self.impairer.start()
                 self.spec.connect["master_capture"] = self.impairer.endpoint
             self.site.start()
+            # (without master_capture the caller acts as the master, e.g. a test console)
             self._node = Node(BusConfig(connect=[self.spec.endpoint]), self.spec.site, "bench_probe")
             self.probe = Probe(self._node)
         except BaseException:

@@ -42,6 +42,7 @@ from shared.errors import ConfigError, IKError
 from shared.keys import check_id
 from shared.kinematics import MH3F, fk, ik, matrix_from_quat, quat_from_matrix
 from shared.kinematics.transforms import rot_x, rot_y, rot_z
+from shared.kinematics.trocar import trocar_ik
 from shared.messages import (
     CartesianPose,
     JointSetpoint,
@@ -172,9 +173,12 @@ class ArmMapping:
 
     def on_slave_state(self, msg: OperatingState, key: str) -> None:
         with self.lock:
+            old = self.slave_state
             self.slave_state = msg
             if self.following and not msg.lease_ok:
                 self._disengage(f"slave holding: {msg.reason or 'no lease'}")
+            elif self.following and old is not None and old.control_mode != msg.control_mode:
+                self._disengage(f"slave control mode {old.control_mode} → {msg.control_mode}")
 
     def on_safety_state(self, msg: SafetyState, key: str) -> None:
         with self.lock:
@@ -305,7 +309,13 @@ class ArmMapping:
             target = self._target(pose)
             assert self.q_last is not None
             try:
-                q = ik(target, self.q_last, self.geom)
+                st = self.slave_state
+                if st is not None and st.control_mode == "trocar":
+                    # trocar mode: the tip follows the master; the forceps pivots about the
+                    # trocar (remote centre of motion), its roll kept continuous
+                    q = trocar_ik(target[:3, 3], np.array(st.trocar), self.q_last, geom=self.geom)
+                else:
+                    q = ik(target, self.q_last, self.geom)
                 step = float(np.max(np.abs(q - self.q_last)))
                 if step > self.cfg.max_joint_step_rad:
                     raise IKError(f"branch flip: joint step {step:.3f} rad")

@@ -159,8 +159,6 @@ class SlaveService:
             mode = a.get("mode", "")
             if mode in ("direct_teach", "playback"):
                 return False, f"set_motion_mode refused: {mode} is not implemented yet"
-            if mode == "master_slave" and m.control_mode != "non_trocar":
-                return False, f"set_motion_mode refused: master_slave in {m.label} is not implemented yet"
             r = m.set_motion_mode(mode)
             return r.accepted, r.reason
         if cmd.name == "jog":
@@ -372,7 +370,10 @@ def run(cfg: SlaveControlConfig, stop: threading.Event) -> None:
                     lease = Lease(False, 0.0, svc.estop)
                 internal = svc.internal_active()
                 jog, ptp, mode = svc.modes.jog_command, svc.ptp, svc.modes.control_mode
-                master_slave = mode == "non_trocar" and svc.modes.motion in (None, MotionMode.MASTER_SLAVE)
+                motion = svc.modes.motion
+                master_slave = (mode == "non_trocar" and motion is None) or (
+                    mode in ("non_trocar", "trocar") and motion is MotionMode.MASTER_SLAVE
+                )
             if internal:
                 q_cmd = _internal_step(svc, ctl, cfg, reading, q_cmd, lease, now, dt, vmax, jog, ptp, mode)
             else:
@@ -437,6 +438,7 @@ def run(cfg: SlaveControlConfig, stop: threading.Event) -> None:
                         round(rcm_m * 1e3, 4),
                         ctl.clipped,
                         rejected,
+                        (float(svc.trocar[0]), float(svc.trocar[1]), float(svc.trocar[2])),
                     )
                 )
         log.info(
