@@ -191,6 +191,7 @@ class Pipeline:
         mirror: bool = True,
         impair: bool = True,
         master: bool = True,
+        probe: bool = True,
         log_level: str = "INFO",
     ) -> None:
         self.log_dir = log_dir
@@ -214,6 +215,7 @@ class Pipeline:
         self.site = Site(self.spec)
         self._node: Node | None = None
         self.probe: Probe | None = None
+        self._want_probe = probe
         self._estop_out: Outlet | None = None
 
     def __enter__(self) -> Pipeline:
@@ -224,7 +226,8 @@ class Pipeline:
             self.site.start()
             # (without master_capture the caller acts as the master, e.g. a test console)
             self._node = Node(BusConfig(connect=[self.spec.endpoint]), self.spec.site, "bench_probe")
-            self.probe = Probe(self._node)
+            if self._want_probe:  # (a test doing its own subscriptions can skip the probe's load)
+                self.probe = Probe(self._node)
         except BaseException:
             self.close()
             raise
