@@ -49,7 +49,16 @@ import numpy as np
 import numpy.typing as npt
 
 from shared.errors import IKError, KinematicsError
-from shared.kinematics.mh3f import LIMIT_TOL, MH3F, WRIST_SINGULAR_TOL, ArmGeometry, fk, ik, wrist_center
+from shared.kinematics.mh3f import (
+    LIMIT_TOL,
+    MH3F,
+    WRIST_SINGULAR_TOL,
+    ArmGeometry,
+    _q_values,
+    fk,
+    ik,
+    wrist_center,
+)
 from shared.kinematics.transforms import FloatArray
 
 __all__ = [
@@ -160,20 +169,6 @@ def _point(x: npt.ArrayLike, what: str) -> _Vec3:
     return a, b, c
 
 
-def _joints(q: npt.ArrayLike, what: str) -> list[float]:
-    """``q`` checked to be 6 finite joint angles [rad]; returned as Python floats."""
-    try:
-        arr = np.asarray(q, dtype=np.float64)
-    except (TypeError, ValueError) as exc:
-        raise KinematicsError(f"{what} must be 6 joint angles [rad]: {exc}") from exc
-    if arr.shape != (6,):
-        raise KinematicsError(f"{what} must have shape (6,), got {arr.shape}")
-    values: list[float] = arr.tolist()
-    if not all(map(math.isfinite, values)):
-        raise KinematicsError(f"{what} must be finite, got {values}")
-    return values
-
-
 def _sub(a: _Vec3, b: _Vec3) -> _Vec3:
     return a[0] - b[0], a[1] - b[1], a[2] - b[2]
 
@@ -222,9 +217,8 @@ def rcm_error(q: npt.ArrayLike, trocar: npt.ArrayLike, geom: ArmGeometry = MH3F)
         trocar: trocar point ``(3,)`` [m], base frame.
         geom: arm geometry (``tool`` = forceps length).
     """
-    c = _point(trocar, "trocar")
     tip, axis, _ = _tool_line(q, geom)
-    return _norm(_cross(_sub(c, tip), axis))
+    return pose_to_trocar(tip, axis, trocar)[0]
 
 
 def pose_to_trocar(tip: npt.ArrayLike, axis: npt.ArrayLike, trocar: npt.ArrayLike) -> tuple[float, float]:
@@ -262,9 +256,8 @@ def insertion_depth(q: npt.ArrayLike, trocar: npt.ArrayLike, geom: ArmGeometry =
         trocar: trocar point ``(3,)`` [m], base frame.
         geom: arm geometry (``tool`` = forceps length).
     """
-    c = _point(trocar, "trocar")
     tip, axis, _ = _tool_line(q, geom)
-    return _dot(_sub(tip, c), axis)
+    return pose_to_trocar(tip, axis, trocar)[1]
 
 
 def axis_angle_to_trocar(q: npt.ArrayLike, trocar: npt.ArrayLike, geom: ArmGeometry = MH3F) -> float:
@@ -491,7 +484,7 @@ def posture_adjust(q: npt.ArrayLike, trocar: npt.ArrayLike, geom: ArmGeometry = 
         IKError: the trocar coincides with the wrist centre, or both wrist solutions violate
             the J4/J5 limits (the message names the nearest violation).
     """
-    qv = _joints(q, "q")
+    qv = _q_values(q, "q")
     c = _point(trocar, "trocar")
     w = wrist_center(qv, geom).tolist()
     u = _sub(c, (w[0], w[1], w[2]))
@@ -549,8 +542,8 @@ def _posture_limit_message(cands: list[tuple[float, float]], c: _Vec3, geom: Arm
 
 def _posture_pair(q_from: npt.ArrayLike, q_to: npt.ArrayLike) -> tuple[list[float], list[float]]:
     """Both joint vectors, checked to differ in J4/J5 only (by at most 1e-12 rad elsewhere)."""
-    a = _joints(q_from, "q_from")
-    b = _joints(q_to, "q_to")
+    a = _q_values(q_from, "q_from")
+    b = _q_values(q_to, "q_to")
     for j in (0, 1, 2, 5):
         if abs(a[j] - b[j]) > 1e-12:
             raise KinematicsError(
