@@ -169,9 +169,9 @@ def run_fault(pipe: Pipeline, f: Fault, lead_s: float = 1.0, recover_s: float = 
     resumed = pipe.wait_following(recover_s)
     row["recovered"] = resumed
     row["recovery_s"] = row["reengage_needed"] = row["motion_before_reengage_mm"] = None
+    t_followed = _t_follow(p, t_hold)  # the first follow after the hold (None: none seen)
     if t_hold and resumed:
-        fol = p.first_op_after(t_hold, lambda r: r[1])
-        t_fol = fol[0] if fol else now_ns()
+        t_fol = t_followed if t_followed is not None else now_ns()
         row["recovery_s"] = round((t_fol - t_clear) / 1e9, 2)  # < 0: re-engaged during the fault
         row["reengage_needed"] = p.press_between(t_hold, t_fol)
         # The slave must stay put from the hold until the new engage.
@@ -180,7 +180,7 @@ def run_fault(pipe: Pipeline, f: Fault, lead_s: float = 1.0, recover_s: float = 
         p_ref = tips[max(int(np.searchsorted(tips[:, 0], t_hold + 0.3e9, side="right")) - 1, 0), 1:]
         moved = np.linalg.norm(tips[sel, 1:] - p_ref, axis=1).max() * 1e3 if sel.any() else 0.0
         row["motion_before_reengage_mm"] = round(float(moved), 3)
-    row["_times_ns"] = {"inject": t0, "clear": t_clear, "hold": t_hold, "follow": _t_follow(p, t_hold)}
+    row["_times_ns"] = {"inject": t0, "clear": t_clear, "hold": t_hold, "follow": t_followed}
     row["lost"] = sum(p.lost().values()) - lost0
     time.sleep(0.6)  # heartbeats are 2 Hz
     row["rejected"] = sum(p.heartbeats.values()) - rej0
