@@ -126,6 +126,11 @@ def open_session(cfg: BusConfig) -> zenoh.Session:
         ) from exc
 
 
+def only(service: str) -> list[str] | None:
+    """``sources=`` value for :meth:`Node.subscribe` allowing one service id ("" = anyone)."""
+    return [service] if service else None
+
+
 class Outlet:
     """A publisher plus the sequencer of its stream."""
 

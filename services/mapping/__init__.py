@@ -37,7 +37,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from services.common import service_main
-from shared.bus import BusConfig, Node, Outlet
+from shared.bus import BusConfig, Node, Outlet, only
 from shared.errors import ConfigError, IKError
 from shared.keys import check_id
 from shared.kinematics import MH3F, fk, ik, matrix_from_quat, quat_from_matrix
@@ -359,11 +359,6 @@ class ArmMapping:
         )
 
 
-def _only(source: str) -> list[str] | None:
-    """Allowed-sources list for Node.subscribe ("" = anyone)."""
-    return [source] if source else None
-
-
 def _vec3(v: np.ndarray) -> tuple[float, float, float]:
     return (float(v[0]), float(v[1]), float(v[2]))
 
@@ -383,9 +378,9 @@ def run(cfg: MappingConfig, stop: threading.Event) -> None:
             master, slave = parse_pair(pair)
             a = ArmMapping(cfg, node, master, slave, work)
             m_src, s_src, w_src = (
-                _only(cfg.master_source),
-                _only(cfg.slave_source),
-                _only(cfg.watchdog_source),
+                only(cfg.master_source),
+                only(cfg.slave_source),
+                only(cfg.watchdog_source),
             )
             node.subscribe(k.master(master, "buttons"), MasterButtons, a.on_buttons, sources=m_src)
             node.subscribe(k.master(master, "measured_cp"), CartesianPose, a.on_master_pose, sources=m_src)

@@ -40,7 +40,7 @@ import numpy as np
 from services.common import service_main
 from services.mapping import parse_pair
 from services.watchdog.logic import ArmSafety, Policy, Verdict
-from shared.bus import BusConfig, Node, Outlet
+from shared.bus import BusConfig, Node, Outlet, only
 from shared.errors import ConfigError
 from shared.kinematics import MH3F, fk
 from shared.messages import (
@@ -188,7 +188,7 @@ class Watchdog:
         self.last_tick: dict[str, int] = {}
         self.arms = [ArmWatch(node, cfg, *parse_pair(p)) for p in cfg.pairs]
         k = node.keys
-        m, mp, sl = ([x] if x else None for x in (cfg.master_source, cfg.mapping_source, cfg.slave_source))
+        m, mp, sl = only(cfg.master_source), only(cfg.mapping_source), only(cfg.slave_source)
         for a in self.arms:
             sub = node.subscribe
             sub(k.master(a.master, "measured_cp"), CartesianPose, self._on_stream, sources=m)
