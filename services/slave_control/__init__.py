@@ -29,7 +29,7 @@ from services.slave_control.motion import SUPPORTED_JOG_AXES, PtpMotion, jog_ste
 from shared.bus import BusConfig, Node
 from shared.errors import ConfigError, IKError, KinematicsError
 from shared.kinematics import MH3F, matrix_from_quat, within_limits
-from shared.kinematics.trocar import pose_to_trocar, posture_adjust
+from shared.kinematics.trocar import axis_angle_to_trocar, pose_to_trocar, posture_adjust
 from shared.messages import (
     CartesianPose,
     Command,
@@ -101,6 +101,7 @@ class SlaveService:
         self.ptp: PtpMotion | None = None
         self.q_cmd = np.array(cfg.q_home, dtype=float)  # last command (set by the loop)
         self.tip = np.zeros(3)  # last measured tip (set by the loop)
+        self.rcm_error_m = 0.0  # last measured RCM error (set by update_modes)
         self.reply_seq = Sequencer(cfg.service)
 
     # -- operator commands (slave/<arm>/command) ----------------------------------------------
@@ -180,14 +181,19 @@ class SlaveService:
         """A slave-side motion (PTP or jog) is commanded (lock held by the caller)."""
         return self.ptp is not None or self.modes.jog_command is not None
 
-    def update_modes(self, reading_tip: np.ndarray, reading_quat: np.ndarray) -> None:
-        """Feed the control-mode machine the measured depth and axis angle (lock held)."""
-        axis = matrix_from_quat(reading_quat)[:, 0]
-        _, depth = pose_to_trocar(reading_tip, axis, self.trocar)
-        wc = reading_tip - MH3F.wrist_to_tcp * axis
-        to_trocar = self.trocar - wc
-        n = float(np.linalg.norm(to_trocar))
-        angle = float(np.arccos(np.clip(axis @ to_trocar / n, -1.0, 1.0))) if n > 1e-9 else None
+    def update_modes(self, reading: SlaveReading) -> None:
+        """Measure the forceps against the trocar and feed the control-mode machine (lock held).
+
+        RCM error and depth come from the measured tip pose (MuJoCo's tip site); the axis angle
+        from the measured joints. The RCM error is kept for ``operating_state``.
+        """
+        axis = matrix_from_quat(reading.tip_quat)[:, 0]
+        rcm, depth = pose_to_trocar(reading.tip_position, axis, self.trocar)
+        self.rcm_error_m = rcm
+        try:
+            angle: float | None = axis_angle_to_trocar(reading.position, self.trocar)
+        except KinematicsError:  # the trocar at the wrist centre: no direction to it
+            angle = None
         self.modes.update(depth, angle, self.trocar_taught)
 
     def on_lease(self, msg: SafetyLease, key: str) -> None:
@@ -356,8 +362,9 @@ def run(cfg: SlaveControlConfig, stop: threading.Event) -> None:
         pub_every = max(1, round(1.0 / (dt * cfg.publish_hz)))
         state_every = max(1, round(1.0 / (dt * cfg.state_hz)))
         q_cmd = np.array(cfg.q_home, dtype=float)
-        trocar = np.array(cfg.trocar_mm) / 1e3
         reading = backend.read()
+        with svc.lock:  # the first operating_state already carries the measurements
+            svc.update_modes(reading)
         last_state: tuple[bool, bool, str, str, bool] | None = None
         caught_up = 0
         log.info("slave %s (%s/%s) running at %.0f Hz", cfg.arm, cfg.backend, cfg.model, 1 / dt)
@@ -393,7 +400,7 @@ def run(cfg: SlaveControlConfig, stop: threading.Event) -> None:
             svc.tip = reading.tip_position
             if cycle % modes_every == 0:
                 with svc.lock:
-                    svc.update_modes(reading.tip_position, reading.tip_quat)
+                    svc.update_modes(reading)
                     mode_events, svc.modes.events = svc.modes.events, []
                 for kind, text in mode_events:
                     node.event(kind, text, arm=cfg.arm)
@@ -423,8 +430,6 @@ def run(cfg: SlaveControlConfig, stop: threading.Event) -> None:
             state = (ctl.following, lease_ok, ctl.reason, svc.modes.control_mode, internal)
             if state != last_state or cycle % state_every == 0:
                 last_state = state
-                axis = matrix_from_quat(reading.tip_quat)[:, 0]
-                rcm_m, _depth_m = pose_to_trocar(reading.tip_position, axis, trocar)
                 rejected = svc.rejected_setpoints + node.streams.get(k.slave(cfg.arm, "servo_jp")).rejected
                 state_out.put(
                     OperatingState(
@@ -435,7 +440,7 @@ def run(cfg: SlaveControlConfig, stop: threading.Event) -> None:
                         lease_ok,
                         ctl.reason,
                         ctl.holds,
-                        round(rcm_m * 1e3, 4),
+                        round(svc.rcm_error_m * 1e3, 4),
                         ctl.clipped,
                         rejected,
                         (float(svc.trocar[0]), float(svc.trocar[1]), float(svc.trocar[2])),
