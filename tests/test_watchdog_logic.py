@@ -9,7 +9,7 @@ from services.watchdog import WatchdogConfig
 from services.watchdog.logic import ArmSafety
 from shared.errors import ConfigError
 from shared.kinematics import MH3F
-from shared.messages import CartesianPose, EStop, Header, JointSetpoint, MasterButtons, OperatingState
+from shared.messages import EStop, Header, JointSetpoint, MasterButtons, OperatingState
 
 NAMES = MH3F.joint_names
 Q0 = (0.0, 0.2, 0.3, 0.0, -0.6, 0.0)
@@ -108,7 +108,7 @@ def test_workspace_and_rcm_limits() -> None:
     v = w.evaluate(0.0)
     assert v.state == "HOLD" and any("x=-378 mm" in c and "workspace" in c for c in v.causes), v
     a = arm()
-    a.on_setpoint_cp(CartesianPose(Header("mapping", 0, 0), "base", (1.2, 0.0, 0.3), (0, 0, 0, 1)), 0.0)
+    a.check_workspace(np.array([1.2, 0.0, 0.3]), 0.0)
     v = a.evaluate(0.0)
     assert v.state == "HOLD" and "x=1200 mm" in v.causes[0]
     b = arm()

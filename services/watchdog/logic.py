@@ -27,7 +27,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from shared.messages import CartesianPose, EStop, JointSetpoint, MasterButtons, OperatingState
+from shared.messages import EStop, JointSetpoint, MasterButtons, OperatingState
 
 STATES = ("OK", "DEGRADED", "HOLD", "ESTOP")  # in increasing severity
 
@@ -172,10 +172,6 @@ class ArmSafety:
                 self._fault("jump", f"{text}: a jump, over {p.velocity_hold_factor:g}× the limit", now)
             elif ratio[j] > 1.0:
                 self._latch("speed", f"{text}: the slave clips it", now)
-
-    def on_setpoint_cp(self, msg: CartesianPose, now: float) -> None:
-        """Check a Cartesian target against the workspace box."""
-        self.check_workspace(np.asarray(msg.position), now)
 
     def check_workspace(self, position: np.ndarray, now: float) -> None:
         """Fault if the tip ``position`` (m, base frame) is outside the workspace box."""
