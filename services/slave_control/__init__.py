@@ -177,6 +177,13 @@ class SlaveService:
             return r.accepted, r.reason
         return False, f"unknown command {cmd.name!r}; valid: {', '.join(COMMANDS)}"
 
+    def stop_internal(self) -> None:
+        """Cancel the slave-side motion (PTP and jog); the operator must command it again."""
+        with self.lock:
+            self.ptp = None
+            if self.modes.jog_command is not None:
+                self.modes.stop()
+
     def internal_active(self) -> bool:
         """A slave-side motion (PTP or jog) is commanded (lock held by the caller)."""
         return self.ptp is not None or self.modes.jog_command is not None
@@ -281,10 +288,7 @@ def _internal_step(
     ok = ctl.lease_ok(lease, now, svc.cycle) and not svc.estop
     ctl.lease_valid = ok
     if not ok:  # any doubt: stop the motion; the operator must command it again
-        with svc.lock:
-            svc.ptp = None
-            if svc.modes.jog_command is not None:
-                svc.modes.stop()
+        svc.stop_internal()
         ctl.holds += 1
         svc.node.event(
             "hold",
@@ -312,10 +316,7 @@ def _internal_step(
             if not within_limits(target, MH3F):
                 raise IKError("a joint limit is reached")
     except (IKError, KinematicsError) as exc:
-        with svc.lock:
-            svc.ptp = None
-            if svc.modes.jog_command is not None:
-                svc.modes.stop()
+        svc.stop_internal()
         svc.node.event("motion_stopped", f"slave-side motion stopped: {exc}", arm=cfg.arm, severity="warning")
         ctl.track(q_cmd)
         return q_cmd
