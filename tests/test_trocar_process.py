@@ -60,6 +60,10 @@ class Console:
             time.sleep(0.02)
         return False
 
+    def transitions(self) -> list[str]:
+        with self.lock:
+            return [text.split(":")[0] for k, text in self.events if k == "mode_transition"]
+
     def saw_event(self, kind: str) -> bool:
         with self.lock:
             return any(k == kind for k, _ in self.events)
@@ -115,6 +119,8 @@ def test_insert_pivot_remove_keeps_the_rcm(console: Console) -> None:
     t_remove = time.monotonic()
     assert c.send("remove").accepted
     assert c.wait(lambda: c.mode() == "non_trocar", 20), "never came back out"
+    # the state and the event travel on different keys: the event may arrive a little later
+    assert c.wait(lambda: c.transitions()[-1:] == ["transitional/remove → non_trocar"], 5), c.transitions()
 
     with c.lock:
         trocar = [rcm for t, mode, rcm, _ in c.states if mode == "trocar"]
