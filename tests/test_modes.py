@@ -469,7 +469,7 @@ def test_insert_refused_with_numbers_and_stopped_when_alignment_is_lost() -> Non
     assert m.events == [
         (
             "jog_stopped",
-            "jog forceps x+ stopped: forceps axis 7.3° off the trocar direction (limit 1.0°)",
+            "jog forceps x+ stopped: forceps axis 7.3° off the trocar direction (limit 2.0°)",
         )
     ]
     before = copy.deepcopy(m)
@@ -605,3 +605,14 @@ def test_alignment_tolerance_boundary() -> None:
         assert reply.accepted == accepted
         if not accepted:
             assert reply.reason == "insert refused: forceps axis 1.2° off the trocar direction (limit 1.0°)"
+
+
+def test_running_insertion_has_a_wider_alignment_tolerance() -> None:
+    m = build("insert")
+    m.update(OUT, 1.5 * DEG, True)  # servo lag while moving: 1.5° does not stop it
+    assert m.jog_command == Jog(Frame.FORCEPS, "x", 1)
+    m.update(OUT, 2.1 * DEG, True)
+    assert m.jog_command is None
+    assert m.insert().reason == "insert refused: forceps axis 2.1° off the trocar direction (limit 1.0°)"
+    m.update(OUT, 1.5 * DEG, True)
+    assert not m.insert().accepted  # starting again needs the 1° of a fresh start

@@ -22,10 +22,19 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from services.common import service_main
-from services.slave_control.backends import SlaveReading, make_backend
+from services.slave_control.backends import PUSH_POINTS, SlaveReading, make_backend
 from services.slave_control.control import FollowController, Lease, Setpoint
-from services.slave_control.modes import ControlModes, Jog, MotionMode
+from services.slave_control.modes import ControlMode, ControlModes, Jog, MotionMode, Phase
 from services.slave_control.motion import SUPPORTED_JOG_AXES, PtpMotion, jog_step, ptp_duration
+from services.slave_control.teach import (
+    NAME_RE,
+    Playback,
+    TaughtPoint,
+    TeachConfig,
+    TeachStore,
+    direct_teach_step,
+    playback_problem,
+)
 from shared.bus import BusConfig, Node
 from shared.errors import ConfigError, IKError, KinematicsError
 from shared.kinematics import MH3F, matrix_from_quat, within_limits
@@ -71,7 +80,13 @@ class SlaveControlConfig:
     trocar_taught: bool = True  # the configured trocar counts as taught (teach_trocar replaces it)
     jog_speed_mm_s: float = 10.0  # mm/s: Cartesian jog and insert/remove speed
     jog_joint_speed_deg_s: float = 5.0  # deg/s: joint jog speed
-    ptp_speed_fraction: float = 0.2  # PTP posture adjustment at this fraction of the joint limits
+    ptp_speed_fraction: float = 0.2  # PTP moves (posture, playback) at this fraction of the joint limits
+    playback_speed_mm_s: float = 20.0  # mm/s: tip speed of a playback in trocar mode
+    playback_dwell_s: float = 0.3  # s: the arm rests this long at each taught point of a playback
+    # JSON file of taught trocars and programs ("" = kept in memory only); loaded at start, so a
+    # taught trocar (the current one) survives a restart
+    state_file: str = ""
+    teach: TeachConfig = field(default_factory=TeachConfig)  # direct-teach admittance
     command_sources: list[str] = field(default_factory=list)  # who may send commands ([] = anyone)
     # The watchdog's liveliness token is watched too: its death revokes the lease at once
     # (in ms), instead of after the lease lifetime.
@@ -99,6 +114,15 @@ class SlaveService:
         self.trocar = np.array(cfg.trocar_mm) / 1e3
         self.trocar_taught = cfg.trocar_taught
         self.ptp: PtpMotion | None = None
+        self.playback: Playback | None = None
+        self.playback_name = ""
+        self.posture_target: np.ndarray | None = None  # joints after the posture adjustment
+        self.store = TeachStore(cfg.state_file or None, cfg.arm)
+        if self.store.current_trocar:
+            self.trocar = np.array(self.store.trocars[self.store.current_trocar])
+            self.trocar_taught = True
+        self.backend_push = None  # set by run(): the simulated hand, if the backend has one
+        self.reading: SlaveReading | None = None  # last reading (set by the loop)
         self.q_cmd = np.array(cfg.q_home, dtype=float)  # last command (set by the loop)
         self.tip = np.zeros(3)  # last measured tip (set by the loop)
         self.rcm_error_m = 0.0  # last measured RCM error (set by update_modes)
@@ -123,45 +147,58 @@ class SlaveService:
             allowed = "; ".join(f"{k}: {', '.join(v)}" for k, v in m.allowed().items() if v)
             return True, f"{m.label}, motion {m.motion or 'none'}; allowed: {allowed}"[:500]
         if cmd.name == "teach_trocar":
+            name = a.get("name", "default")
+            if not NAME_RE.match(name):
+                return False, f"teach_trocar refused: invalid name {name!r}"
             r = m.teach_trocar()
             if r.accepted:
                 self.trocar = self.tip.copy()
                 self.trocar_taught = True
+                self.store.trocars[name] = (float(self.tip[0]), float(self.tip[1]), float(self.tip[2]))
+                self.store.current_trocar = name
+                self.store.save()
                 mm = ", ".join(f"{v * 1e3:.1f}" for v in self.trocar)
-                return True, f"trocar taught at ({mm}) mm"
+                return True, f"trocar {name!r} taught at ({mm}) mm"
             return r.accepted, r.reason
         if cmd.name == "begin_posture_adjust":
-            method = a.get("method", "ptp")
-            if method != "ptp":
-                return (
-                    False,
-                    f"begin_posture_adjust refused: method {method!r} is not implemented yet (ptp is)",
-                )
-            try:
-                target = posture_adjust(self.q_cmd, self.trocar)
-            except (IKError, KinematicsError) as exc:
-                return False, f"begin_posture_adjust refused: {exc}"
-            r = m.begin_posture_adjust(method)
-            if r.accepted:
-                duration = ptp_duration(self.q_cmd, target, self.cfg.ptp_speed_fraction)
-                self.ptp = PtpMotion(self.q_cmd.copy(), target, duration)
-                return True, f"{r.reason}; PTP of J4/J5 over {duration:.1f} s"
-            return r.accepted, r.reason
-        if cmd.name in ("finish_posture_adjust", "insert", "remove", "stop"):
-            if cmd.name != "stop" and self.ptp is not None:
+            return self._begin_posture(a.get("method", "ptp"), a.get("program", ""))
+        if cmd.name in ("finish_posture_adjust", "insert", "remove"):
+            if self.ptp is not None:
                 return False, f"{cmd.name} refused: the PTP posture motion is still running"
+            if self.playback is not None:
+                return False, f"{cmd.name} refused: playback of {self.playback_name!r} is still running"
             r = getattr(m, cmd.name)()
+            if r.accepted and cmd.name == "finish_posture_adjust":
+                self.posture_target = None
+            return r.accepted, r.reason
+        if cmd.name == "stop":
+            if self.playback is not None:
+                self.playback = None
+                return True, f"playback of {self.playback_name!r} stopped"
+            r = m.stop()
             return r.accepted, r.reason
         if cmd.name == "abort":
-            self.ptp = None
+            self.ptp = self.playback = None
             r = m.abort(a.get("reason", "operator abort"))
+            if m.phase is None:
+                self.posture_target = None
             return r.accepted, r.reason
         if cmd.name == "set_motion_mode":
-            mode = a.get("mode", "")
-            if mode in ("direct_teach", "playback"):
-                return False, f"set_motion_mode refused: {mode} is not implemented yet"
-            r = m.set_motion_mode(mode)
+            before = m.motion
+            r = m.set_motion_mode(a.get("mode", ""))
+            if r.accepted and m.motion is not before:
+                self.playback = None  # a new motion mode ends a running playback
             return r.accepted, r.reason
+        if cmd.name in ("teach_point", "clear_program", "play"):
+            return self._program_command(cmd.name, a.get("program", ""))
+        if cmd.name == "programs":
+            names = ", ".join(f"{k} ({len(v)} points)" for k, v in sorted(self.store.programs.items()))
+            trocars = ", ".join(sorted(self.store.trocars))
+            return True, f"programs: {names or 'none'}; trocars: {trocars or 'none'}"[:500]
+        if cmd.name == "load_trocar":
+            return self._load_trocar(a.get("name", ""))
+        if cmd.name == "push":
+            return self._push(a)
         if cmd.name == "jog":
             axis = a.get("axis", "")
             if axis not in SUPPORTED_JOG_AXES:
@@ -177,16 +214,144 @@ class SlaveService:
             return r.accepted, r.reason
         return False, f"unknown command {cmd.name!r}; valid: {', '.join(COMMANDS)}"
 
-    def stop_internal(self) -> None:
-        """Cancel the slave-side motion (PTP and jog); the operator must command it again."""
+    def _begin_posture(self, method: str, program: str) -> tuple[bool, str]:
+        """begin_posture_adjust: target J4/J5 (ptp, jog, direct_teach) or an aligned program."""
+        m = self.modes
+        angle: float | None = None
+        if method == "playback":
+            pts = self.store.programs.get(program)
+            if pts is None:
+                return False, f"begin_posture_adjust refused: no program {program!r} (teach_point first)"
+            if problem := playback_problem(pts, "non_trocar", self.trocar if self.trocar_taught else None):
+                return False, f"begin_posture_adjust refused: program {program!r}: {problem}"
+            angle = axis_angle_to_trocar(np.array(pts[-1].q), self.trocar)
+            target = np.array(pts[-1].q)
+        else:
+            try:
+                target = posture_adjust(self.q_cmd, self.trocar)
+            except (IKError, KinematicsError) as exc:
+                return False, f"begin_posture_adjust refused: {exc}"
+        r = m.begin_posture_adjust(method, program_axis_angle_rad=angle)
+        if not r.accepted:
+            return r.accepted, r.reason
+        self.posture_target = target
+        j45 = np.degrees(target[3:5] - self.q_cmd[3:5])
+        to_go = f"J4 {j45[0]:+.1f}°, J5 {j45[1]:+.1f}° to go"
+        if method == "ptp":
+            duration = ptp_duration(self.q_cmd, target, self.cfg.ptp_speed_fraction)
+            self.ptp = PtpMotion(self.q_cmd.copy(), target, duration)
+            return True, f"{r.reason}; PTP of J4/J5 over {duration:.1f} s"
+        if method == "playback":
+            self._start_playback(program, "non_trocar")
+            return True, f"{r.reason}; playing {program!r} ({len(self.store.programs[program])} points)"
+        if method == "jog":
+            return True, f"{r.reason}; jog J4/J5 toward the target ({to_go})"
+        return True, f"{r.reason}; push the forceps: J4/J5 follow toward the target ({to_go})"
+
+    def _start_playback(self, program: str, mode: str) -> None:
+        self.playback_name = program
+        self.playback = Playback(
+            list(self.store.programs[program]),
+            mode,
+            self.trocar.copy() if mode == "trocar" else None,
+            np.array(MH3F.max_velocity) * self.cfg.ptp_speed_fraction,
+            self.cfg.playback_speed_mm_s / 1e3,
+            self.cfg.playback_dwell_s,
+        )
+
+    def _program_command(self, name: str, program: str) -> tuple[bool, str]:
+        """teach_point, clear_program, play (lock held)."""
+        m = self.modes
+        if not NAME_RE.match(program):
+            return False, f"{name} refused: program={program!r} is not a valid name"
+        if self.playback is not None:
+            return False, f"{name} refused: playback of {self.playback_name!r} is running (stop it first)"
+        if name == "clear_program":
+            if self.store.programs.pop(program, None) is None:
+                return False, f"clear_program refused: no program {program!r}"
+            self.store.save()
+            return True, f"program {program!r} cleared"
+        if name == "teach_point":
+            if self.reading is None:
+                return False, "teach_point refused: no measurement yet"
+            if self.internal_active() and m.motion is not MotionMode.DIRECT_TEACH:
+                return False, "teach_point refused: the arm is moving (stop first)"
+            r = self.reading
+            tip = (float(r.tip_position[0]), float(r.tip_position[1]), float(r.tip_position[2]))
+            point = TaughtPoint(tuple(float(v) for v in r.position), tip, m.control_mode)
+            if problem := self.store.add_point(program, point):
+                return False, f"teach_point refused: {problem}"
+            self.store.save()
+            n = len(self.store.programs[program])
+            mm = ", ".join(f"{v * 1e3:.1f}" for v in tip)
+            return True, f"point {n} of {program!r} taught at ({mm}) mm in {m.control_mode} mode"
+        # play
+        if m.motion is not MotionMode.PLAYBACK or m.phase is not None:
+            return False, (
+                f"play refused in {m.label}: select the playback motion mode in non_trocar or trocar "
+                "mode (posture adjustment by playback starts its program itself)"
+            )
+        pts = self.store.programs.get(program)
+        if pts is None:
+            return False, f"play refused: no program {program!r}"
+        trocar = self.trocar if self.trocar_taught else None
+        if problem := playback_problem(pts, m.control_mode, trocar):
+            return False, f"play refused: program {program!r}: {problem}"
+        self._start_playback(program, m.control_mode)
+        return True, f"playing {program!r} ({len(pts)} points) in {m.control_mode} mode"
+
+    def _load_trocar(self, name: str) -> tuple[bool, str]:
+        if name not in self.store.trocars:
+            known = ", ".join(sorted(self.store.trocars)) or "none"
+            return False, f"load_trocar refused: no trocar {name!r} (taught: {known})"
+        if self.modes.control is not ControlMode.NON_TROCAR:
+            where = self.modes.label
+            return False, f"load_trocar refused in {where}: the trocar changes in non_trocar mode only"
+        self.trocar = np.array(self.store.trocars[name])
+        self.trocar_taught = True
+        self.store.current_trocar = name
+        self.store.save()
+        mm = ", ".join(f"{v * 1e3:.1f}" for v in self.trocar)
+        return True, f"trocar {name!r} loaded: ({mm}) mm"
+
+    def _push(self, a: dict[str, str]) -> tuple[bool, str]:
+        """Simulated hand: push the forceps tip (MuJoCo only)."""
+        if self.backend_push is None:
+            return False, f"push refused: the {self.cfg.backend} backend has no simulated hand"
+        try:
+            f = np.array([float(a.get(k, "0")) for k in ("fx", "fy", "fz")])
+            seconds = float(a.get("seconds", "1"))
+        except ValueError:
+            return False, "push refused: fx, fy, fz (N) and seconds must be numbers"
+        if not (np.all(np.isfinite(f)) and np.linalg.norm(f) <= 100.0 and 0.0 < seconds <= 10.0):
+            return False, "push refused: |force| must be ≤ 100 N and 0 < seconds ≤ 10"
+        at = a.get("at", "tip")
+        if at not in PUSH_POINTS:
+            return False, f"push refused: at={at!r}; valid: {', '.join(PUSH_POINTS)}"
+        self.backend_push(f, seconds, at)
+        return True, f"pushing the {at} with ({f[0]:.1f}, {f[1]:.1f}, {f[2]:.1f}) N for {seconds:.2f} s"
+
+    def stop_internal(self, reason: str = "stopped") -> None:
+        """Cancel the slave-side motion (PTP, jog, playback, direct teach); the operator must
+        command it again."""
         with self.lock:
-            self.ptp = None
+            self.ptp = self.playback = None
             if self.modes.jog_command is not None:
                 self.modes.stop()
+            if self.modes.motion is MotionMode.DIRECT_TEACH:
+                self.modes.abort(reason)
+                if self.modes.phase is None:
+                    self.posture_target = None
 
     def internal_active(self) -> bool:
-        """A slave-side motion (PTP or jog) is commanded (lock held by the caller)."""
-        return self.ptp is not None or self.modes.jog_command is not None
+        """A slave-side motion is commanded (lock held by the caller): PTP, jog, playback, or
+        direct teach (the arm moves when pushed)."""
+        return (
+            self.ptp is not None
+            or self.modes.jog_command is not None
+            or self.playback is not None
+            or self.modes.motion is MotionMode.DIRECT_TEACH
+        )
 
     def update_modes(self, reading: SlaveReading) -> None:
         """Measure the forceps against the trocar and feed the control-mode machine (lock held).
@@ -201,7 +366,13 @@ class SlaveService:
             angle: float | None = axis_angle_to_trocar(reading.position, self.trocar)
         except KinematicsError:  # the trocar at the wrist centre: no direction to it
             angle = None
-        self.modes.update(depth, angle, self.trocar_taught)
+        j45 = None
+        if self.posture_target is not None:
+            d = self.posture_target[3:5] - reading.position[3:5]
+            j45 = (float(d[0]), float(d[1]))
+        self.modes.update(depth, angle, self.trocar_taught, j45_to_target_rad=j45)
+        if self.modes.phase is None:
+            self.posture_target = None
 
     def on_lease(self, msg: SafetyLease, key: str) -> None:
         now = time.monotonic()
@@ -266,7 +437,25 @@ COMMANDS = (
     "abort",
     "set_motion_mode",
     "jog",
+    "teach_point",
+    "clear_program",
+    "programs",
+    "play",
+    "load_trocar",
+    "push",
 )
+
+
+@dataclass
+class Internal:
+    """The slave-side motion of one control period (a snapshot taken under the lock)."""
+
+    jog: Jog | None
+    ptp: PtpMotion | None
+    playback: Playback | None
+    teach: bool  # direct teach: the arm follows a push
+    mode: str  # control mode
+    phase: Phase | None
 
 
 def _internal_step(
@@ -279,30 +468,27 @@ def _internal_step(
     now: float,
     dt: float,
     vmax: np.ndarray,
-    jog: Jog | None,
-    ptp: PtpMotion | None,
-    mode: str,
+    job: Internal,
 ) -> np.ndarray:
-    """One control period of a slave-side motion (PTP or jog), only under a valid lease."""
-    ctl.pause(reading.position, "slave-side motion (PTP / jog)")
+    """One control period of a slave-side motion (PTP, jog, playback, direct teach), only under a
+    valid lease."""
+    ctl.pause(reading.position, "slave-side motion (PTP / jog / playback / direct teach)")
     ok = ctl.lease_ok(lease, now, svc.cycle) and not svc.estop
     ctl.lease_valid = ok
     if not ok:  # any doubt: stop the motion; the operator must command it again
-        svc.stop_internal()
+        why = lease.reason or "lease expired"
+        svc.stop_internal(f"lease: {why}")
         ctl.holds += 1
-        svc.node.event(
-            "hold",
-            f"slave-side motion stopped: {lease.reason or 'lease expired'}",
-            arm=cfg.arm,
-            severity="warning",
-        )
+        svc.node.event("hold", f"slave-side motion stopped: {why}", arm=cfg.arm, severity="warning")
         ctl.track(q_cmd)
         return q_cmd
     try:
-        if ptp is not None:
-            target = ptp.next(dt)
-        else:
-            assert jog is not None
+        if job.ptp is not None:
+            target = job.ptp.next(dt)
+        elif job.playback is not None:
+            target = job.playback.next(q_cmd, dt)
+        elif job.jog is not None:
+            jog = job.jog
             target = jog_step(
                 q_cmd,
                 jog.frame.value,
@@ -311,20 +497,51 @@ def _internal_step(
                 dt,
                 speed_m_s=cfg.jog_speed_mm_s / 1e3,
                 joint_speed_rad_s=np.radians(cfg.jog_joint_speed_deg_s),
-                trocar=svc.trocar if mode == "trocar" else None,
+                trocar=svc.trocar if job.mode == "trocar" else None,
             )
-            if not within_limits(target, MH3F):
-                raise IKError("a joint limit is reached")
+        else:
+            tau = reading.external_torque
+            if tau is None:
+                raise IKError("direct teach needs an external torque estimate from the backend")
+            target = direct_teach_step(
+                q_cmd,
+                tau,
+                dt,
+                "posture" if job.phase is Phase.POSTURE else job.mode,
+                cfg.teach,
+                trocar=svc.trocar,
+                posture_target=svc.posture_target,
+            )
+        if not within_limits(target, MH3F):
+            raise IKError("a joint limit is reached")
     except (IKError, KinematicsError) as exc:
-        svc.stop_internal()
+        if job.teach:  # direct teach: do not follow this push, stay in the mode
+            ctl.track(q_cmd)
+            return q_cmd
+        svc.stop_internal(str(exc))
         svc.node.event("motion_stopped", f"slave-side motion stopped: {exc}", arm=cfg.arm, severity="warning")
         ctl.track(q_cmd)
         return q_cmd
     out: np.ndarray = q_cmd + np.clip(target - q_cmd, -vmax * dt, vmax * dt)
-    if ptp is not None and ptp.done and np.allclose(out, ptp.q_to, atol=1e-9):
+    if job.ptp is not None and job.ptp.done and np.allclose(out, job.ptp.q_to, atol=1e-9):
         with svc.lock:
             svc.ptp = None
         svc.node.event("ptp_done", "posture adjustment PTP reached its target", arm=cfg.arm)
+    pb = job.playback
+    if pb is not None:
+        for i in pb.reached:
+            err = float(np.linalg.norm(reading.tip_position - np.array(pb.points[i].tip))) * 1e3
+            svc.node.event(
+                "point_reached",
+                f"{svc.playback_name} point {i + 1}/{len(pb.points)}: tip {err:.3f} mm from the taught point",
+                arm=cfg.arm,
+            )
+        pb.reached.clear()
+        if pb.done:
+            with svc.lock:
+                if svc.playback is pb:
+                    svc.playback = None
+            svc.node.event("playback_done", f"playback of {svc.playback_name} finished", arm=cfg.arm)
     ctl.track(out)
     return out
 
@@ -340,6 +557,7 @@ def run(cfg: SlaveControlConfig, stop: threading.Event) -> None:
             raise ConfigError(f"model joints {names} != kinematics {MH3F.joint_names}")
         k = node.keys
         svc = SlaveService(cfg, node, names)
+        svc.backend_push = getattr(backend, "push", None)
         js_out = node.outlet(k.slave(cfg.arm, "measured_js"))
         cp_out = node.outlet(k.slave(cfg.arm, "measured_cp"))
         state_out = node.outlet(k.slave(cfg.arm, "operating_state"))
@@ -377,13 +595,20 @@ def run(cfg: SlaveControlConfig, stop: threading.Event) -> None:
                 if svc.estop:
                     lease = Lease(False, 0.0, svc.estop)
                 internal = svc.internal_active()
-                jog, ptp, mode = svc.modes.jog_command, svc.ptp, svc.modes.control_mode
-                motion = svc.modes.motion
+                mode, motion = svc.modes.control_mode, svc.modes.motion
+                job = Internal(
+                    svc.modes.jog_command,
+                    svc.ptp,
+                    svc.playback,
+                    motion is MotionMode.DIRECT_TEACH,
+                    mode,
+                    svc.modes.phase,
+                )
                 master_slave = (mode == "non_trocar" and motion is None) or (
                     mode in ("non_trocar", "trocar") and motion is MotionMode.MASTER_SLAVE
                 )
             if internal:
-                q_cmd = _internal_step(svc, ctl, cfg, reading, q_cmd, lease, now, dt, vmax, jog, ptp, mode)
+                q_cmd = _internal_step(svc, ctl, cfg, reading, q_cmd, lease, now, dt, vmax, job)
             else:
                 if not master_slave:
                     ctl.pause(reading.position, f"master-slave not active in {mode} mode")
@@ -399,6 +624,7 @@ def run(cfg: SlaveControlConfig, stop: threading.Event) -> None:
             svc.cycle = cycle
             svc.following = ctl.following
             svc.tip = reading.tip_position
+            svc.reading = reading
             if cycle % modes_every == 0:
                 with svc.lock:
                     svc.update_modes(reading)

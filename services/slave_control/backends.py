@@ -27,6 +27,8 @@ class SlaveReading:
         tip_position: forceps tip in the base frame, m, shape (3,).
         tip_quat: tip orientation, unit quaternion (x, y, z, w).
         sim_time: backend time, s.
+        external_torque: estimated external joint torques (a push by hand, contact), N·m,
+            shape (n,); zeros if the backend cannot estimate them.
     """
 
     position: np.ndarray
@@ -35,6 +37,11 @@ class SlaveReading:
     tip_position: np.ndarray
     tip_quat: np.ndarray
     sim_time: float
+    external_torque: np.ndarray | None = None
+
+
+#: Where the simulated hand can push the arm.
+PUSH_POINTS = ("tip", "wrist")
 
 
 class SlaveBackend(Protocol):
@@ -66,7 +73,13 @@ class SlaveBackend(Protocol):
 
 
 class MujocoBackend:
-    """MuJoCo physics: position actuators track the commanded joints, 1 ms steps."""
+    """MuJoCo physics: position actuators track the commanded joints, 1 ms steps.
+
+    ``read().external_torque`` is the model-based estimate a torque-sensing arm would make: the
+    inverse dynamics ``M q̈ + c(q, q̇)`` minus what the model itself explains (actuators, joint
+    damping and gravity compensation, constraints). :meth:`push` simulates a hand pushing the
+    forceps tip or the wrist (for direct teach); the estimate then equals ``Jᵀ F`` of that push.
+    """
 
     def __init__(self, model: str, q_home: tuple[float, ...]) -> None:
         from services.slave_control.models import model_path
@@ -77,6 +90,9 @@ class MujocoBackend:
         self.dt = 0.001
         self._m: Any = None
         self._d: Any = None
+        self._push_force = np.zeros(3)
+        self._push_until = 0.0  # sim time (s) at which the push ends
+        self._push_at = "tip"
 
     def __enter__(self) -> MujocoBackend:
         import mujoco
@@ -91,6 +107,9 @@ class MujocoBackend:
         mujoco.mj_forward(m, d)
         self.dt = float(m.opt.timestep)
         self._tip = m.site("tip").id
+        self._tip_body = int(m.site_bodyid[self._tip])
+        self._wrist_body = m.body("link6").id  # its origin is the wrist centre
+        self._mq = np.zeros(m.nv)
         self._m, self._d, self._mj = m, d, mujoco
         return self
 
@@ -105,13 +124,38 @@ class MujocoBackend:
     def command(self, q: np.ndarray) -> None:
         self._d.ctrl[:] = q
 
+    def push(self, force: np.ndarray, seconds: float, at: str = "tip") -> None:
+        """Push with ``force`` (N, base frame) for ``seconds`` of sim time, at the forceps ``tip``
+        or at the ``wrist`` (the flange, where a hand grips the arm outside the patient)."""
+        if at not in PUSH_POINTS:
+            raise ConfigError(f"push at {at!r}: valid points are {', '.join(PUSH_POINTS)}")
+        self._push_force = np.asarray(force, dtype=float).copy()
+        self._push_until = float(self._d.time) + seconds
+        self._push_at = at
+
     def step(self, n: int = 1) -> None:
-        self._mj.mj_step(self._m, self._d, nstep=n)
+        m, d, mj = self._m, self._d, self._mj
+        if self._push_until <= d.time:
+            mj.mj_step(m, d, nstep=n)
+            return
+        for _ in range(n):  # the push acts at the moving tip: recompute it every step
+            d.qfrc_applied[:] = 0.0
+            if d.time < self._push_until:
+                if self._push_at == "tip":
+                    point, body = d.site_xpos[self._tip], self._tip_body
+                else:
+                    point, body = d.xpos[self._wrist_body], self._wrist_body
+                mj.mj_applyFT(m, d, self._push_force, np.zeros(3), point, body, d.qfrc_applied)
+            mj.mj_step(m, d)
+        if d.time >= self._push_until:
+            d.qfrc_applied[:] = 0.0
 
     def read(self) -> SlaveReading:
-        d = self._d
+        m, d, mj = self._m, self._d, self._mj
         quat = np.empty(4)
-        self._mj.mju_mat2Quat(quat, d.site_xmat[self._tip])  # (w, x, y, z)
+        mj.mju_mat2Quat(quat, d.site_xmat[self._tip])  # (w, x, y, z)
+        mj.mj_mulM(m, d, self._mq, d.qacc)
+        tau_ext = self._mq + d.qfrc_bias - d.qfrc_passive - d.qfrc_actuator - d.qfrc_constraint
         return SlaveReading(
             d.qpos.copy(),
             d.qvel.copy(),
@@ -119,6 +163,7 @@ class MujocoBackend:
             d.site_xpos[self._tip].copy(),
             np.array([quat[1], quat[2], quat[3], quat[0]]),
             float(d.time),
+            tau_ext,
         )
 
 

@@ -60,7 +60,8 @@ Thresholds and hysteresis
 
 Safety rules: unknown or non-finite measurements count as missing, and anything that needs them
 is refused. Losing the taught trocar (``trocar_taught`` falling to False in update) outside
-``non_trocar`` aborts. A running inward jog stops when the alignment or the depth is lost; a
+``non_trocar`` aborts. A running inward jog stops when the depth is lost or the axis angle passes
+``align_running_tolerance_rad`` (2°; starting needs ``align_tolerance_rad``, 1°); a
 posture jog stops when its joint reaches (or passes) its target.
 
 Events (``(kind, text)``, drained by the caller): ``mode_transition`` (``"A → B"``, with
@@ -219,15 +220,24 @@ class ModeConfig:
             posture adjustment and to insert, rad.
         joint_deadband_rad: a posture jog of J4/J5 is done when its remaining distance to the
             target is at most this, rad.
+        align_running_tolerance_rad: a running insertion stops when the axis angle exceeds
+            this (hysteresis above ``align_tolerance_rad``: servo lag while the arm moves must not
+            stop it), rad.
     """
 
     trocar_depth_m: float = TROCAR_MODE_DEPTH
     exit_margin_m: float = 0.002
     align_tolerance_rad: float = math.radians(1.0)
     joint_deadband_rad: float = math.radians(0.1)
+    align_running_tolerance_rad: float = math.radians(2.0)
 
     def __post_init__(self) -> None:
-        for name in ("trocar_depth_m", "align_tolerance_rad", "joint_deadband_rad"):
+        for name in (
+            "trocar_depth_m",
+            "align_tolerance_rad",
+            "joint_deadband_rad",
+            "align_running_tolerance_rad",
+        ):
             v = getattr(self, name)
             if not (math.isfinite(v) and v > 0.0):
                 raise ConfigError(f"ModeConfig.{name} must be finite and > 0, got {v}")
@@ -335,7 +345,7 @@ class ControlModes:
                     f"depth {_mm(self.depth_m)} ≥ {_mm(cfg.trocar_depth_m)}",
                 )
             elif self.jog_command is not None and self.jog_command.direction > 0:
-                problem = self._alignment_problem()
+                problem = self._alignment_problem(running=True)
                 if problem:
                     self._stop_jog(problem)
         elif self.phase is Phase.REMOVE and self._tip_outside():
@@ -515,9 +525,11 @@ class ControlModes:
                 )
         return ""
 
-    def _alignment_problem(self) -> str:
-        """Why inward motion along the forceps axis is not allowed now ("" if it is)."""
-        tol = self.config.align_tolerance_rad
+    def _alignment_problem(self, *, running: bool = False) -> str:
+        """Why inward motion along the forceps axis is not allowed now ("" if it is); ``running``:
+        for an insertion already under way (the wider tolerance)."""
+        cfg = self.config
+        tol = cfg.align_running_tolerance_rad if running else cfg.align_tolerance_rad
         if not self.trocar_taught:
             return "no trocar taught"
         if self.axis_angle_rad is None:
