@@ -9,6 +9,7 @@ _MODELS_DIR = pathlib.Path(__file__).resolve().parent
 #: Model names and their scene file, relative to this package.
 _SCENES: dict[str, str] = {
     "mh3f": "mh3f/scene.xml",
+    "vip": "vip/scene.xml",
 }
 
 
