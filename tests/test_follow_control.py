@@ -56,6 +56,16 @@ def test_resume_after_hold_needs_new_engage_and_no_jump() -> None:
     np.testing.assert_allclose(out, q)
 
 
+def test_speed_limit_scales_the_whole_step_so_the_joints_stay_synchronised() -> None:
+    ctl, q, lease = make()
+    ctl.update(0.0, q, q, lease, Setpoint(q, False, 0.0), DT)
+    target = np.zeros(6)
+    target[1], target[2] = 0.01, 0.002  # joint 2 is over its 2 mrad step limit, joint 3 is not
+    out = ctl.update(0.0, q, q, lease, Setpoint(target, True, 0.0), DT)
+    np.testing.assert_allclose(out[1:3], [0.002, 0.0004])  # both scaled by 1/5: same direction
+    assert ctl.clipped == 1
+
+
 def test_speed_clipping_is_counted_and_reported() -> None:
     ctl, q, lease = make()
     ctl.clip_quiet_cycles = 5

@@ -259,7 +259,7 @@ REASONS = [
     ("non_trocar", "insert", "insert refused in non_trocar mode: adjust the posture first"),
     ("non_trocar", "mode(ptp)", "ptp refused in non_trocar mode: point-to-point is a posture-adjustment"),
     ("non_trocar", "jog(world x+)", "jog along world x+ refused: motion mode is none (select jog first)"),
-    ("non_trocar", "begin(playback, program 2°)", "taught point 2.0° off the trocar direction (limit 1.0°)"),
+    ("non_trocar", "begin(playback, program 2°)", "taught point 2.0° off the trocar direction (limit 0.5°)"),
     ("non_trocar", "begin(playback, program unknown)", "alignment of the program's taught point unknown"),
     ("non_trocar", "begin(bogus)", "unknown method 'bogus'"),
     ("non_trocar", "remove", "remove refused in non_trocar mode: the forceps is not inserted"),
@@ -473,7 +473,7 @@ def test_insert_refused_with_numbers_and_stopped_when_alignment_is_lost() -> Non
         )
     ]
     before = copy.deepcopy(m)
-    refused = "insert refused: forceps axis 7.3° off the trocar direction (limit 1.0°)"
+    refused = "insert refused: forceps axis 7.3° off the trocar direction (limit 0.5°)"
     assert m.insert() == Reply(False, refused)
     assert m == before
     ok(m.jog("forceps", "x", -1))  # backing away stays allowed
@@ -594,7 +594,7 @@ def test_events_and_transition_counts() -> None:
 
 
 def test_alignment_tolerance_boundary() -> None:
-    for angle, accepted in ((1.0 * DEG, True), (1.2 * DEG, False)):
+    for angle, accepted in ((0.5 * DEG, True), (0.6 * DEG, False)):
         m = build("posture_ptp")
         m.update(OUT, angle, True)
         assert m.finish_posture_adjust().accepted == accepted
@@ -604,7 +604,7 @@ def test_alignment_tolerance_boundary() -> None:
         reply = m.insert()
         assert reply.accepted == accepted
         if not accepted:
-            assert reply.reason == "insert refused: forceps axis 1.2° off the trocar direction (limit 1.0°)"
+            assert reply.reason == "insert refused: forceps axis 0.6° off the trocar direction (limit 0.5°)"
 
 
 def test_running_insertion_has_a_wider_alignment_tolerance() -> None:
@@ -613,6 +613,6 @@ def test_running_insertion_has_a_wider_alignment_tolerance() -> None:
     assert m.jog_command == Jog(Frame.FORCEPS, "x", 1)
     m.update(OUT, 2.1 * DEG, True)
     assert m.jog_command is None
-    assert m.insert().reason == "insert refused: forceps axis 2.1° off the trocar direction (limit 1.0°)"
+    assert m.insert().reason == "insert refused: forceps axis 2.1° off the trocar direction (limit 0.5°)"
     m.update(OUT, 1.5 * DEG, True)
-    assert not m.insert().accepted  # starting again needs the 1° of a fresh start
+    assert not m.insert().accepted  # starting again needs the 0.5° of a fresh start

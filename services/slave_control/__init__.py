@@ -23,7 +23,7 @@ import numpy as np
 
 from services.common import service_main
 from services.slave_control.backends import PUSH_POINTS, SlaveReading, make_backend
-from services.slave_control.control import FollowController, Lease, Setpoint
+from services.slave_control.control import FollowController, Lease, Setpoint, limit_step
 from services.slave_control.modes import ControlMode, ControlModes, Jog, MotionMode, Phase
 from services.slave_control.motion import SUPPORTED_JOG_AXES, PtpMotion, jog_step, ptp_duration
 from services.slave_control.teach import (
@@ -235,6 +235,8 @@ class SlaveService:
         if not r.accepted:
             return r.accepted, r.reason
         self.posture_target = target
+        if self.reading is not None:  # the machine knows the J4/J5 distance at once (posture jog)
+            self.update_modes(self.reading)
         j45 = np.degrees(target[3:5] - self.q_cmd[3:5])
         to_go = f"J4 {j45[0]:+.1f}°, J5 {j45[1]:+.1f}° to go"
         if method == "ptp":
@@ -499,6 +501,11 @@ def _internal_step(
                 joint_speed_rad_s=np.radians(cfg.jog_joint_speed_deg_s),
                 trocar=svc.trocar if job.mode == "trocar" else None,
             )
+            pt = svc.posture_target
+            if job.phase is Phase.POSTURE and pt is not None and jog.axis in ("j4", "j5"):
+                j = int(jog.axis[1]) - 1  # a posture jog stops exactly at its target, never past it
+                if (target[j] - pt[j]) * jog.direction > 0:
+                    target[j] = pt[j]
         else:
             tau = reading.external_torque
             if tau is None:
@@ -522,7 +529,7 @@ def _internal_step(
         svc.node.event("motion_stopped", f"slave-side motion stopped: {exc}", arm=cfg.arm, severity="warning")
         ctl.track(q_cmd)
         return q_cmd
-    out: np.ndarray = q_cmd + np.clip(target - q_cmd, -vmax * dt, vmax * dt)
+    out: np.ndarray = q_cmd + limit_step(target - q_cmd, vmax * dt)
     if job.ptp is not None and job.ptp.done and np.allclose(out, job.ptp.q_to, atol=1e-9):
         with svc.lock:
             svc.ptp = None

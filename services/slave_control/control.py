@@ -7,7 +7,10 @@ Rules (safety first — any doubt means hold):
 * After any hold it resumes only on a new engage: a ``follow=False`` setpoint must be seen before
   a ``follow=True`` one counts, and the first followed setpoint must be close to where the arm is
   (no jump); otherwise the engage is refused with a reason.
-* Commanded joints move toward the target no faster than the joint speed limits. Clipping
+* Commanded joints move toward the target no faster than the joint speed limits; a step that is
+  too fast is scaled down as a whole (:func:`limit_step`), so the joints stay synchronised and
+  the arm keeps to the commanded path in joint space (per-joint clipping would bend it — off the
+  trocar's remote centre in trocar mode). Clipping
   reports itself: ``clipped`` counts the cycles in which the limit cut a step, and each clipping
   episode produces an event when it starts (which joint, how far behind) and when it ends.
 
@@ -22,6 +25,15 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+
+
+def limit_step(want: np.ndarray, lim: np.ndarray) -> np.ndarray:
+    """``want`` scaled down uniformly so that no joint exceeds its step limit ``lim`` (> 0)."""
+    ratio = float(np.max(np.abs(want) / lim))
+    if ratio <= 1.0:
+        return want
+    out: np.ndarray = want / ratio
+    return out
 
 
 @dataclass
@@ -141,8 +153,7 @@ class FollowController:
             target = self._hold_q
         want = target - q_cmd
         lim = self.max_velocity * dt
-        step = np.clip(want, -lim, lim)
-        out: np.ndarray = q_cmd + step
+        out: np.ndarray = q_cmd + limit_step(want, lim)
         if self.following:
             self._hold_q = None
             self._account_clip(want, lim)

@@ -61,7 +61,7 @@ Thresholds and hysteresis
 Safety rules: unknown or non-finite measurements count as missing, and anything that needs them
 is refused. Losing the taught trocar (``trocar_taught`` falling to False in update) outside
 ``non_trocar`` aborts. A running inward jog stops when the depth is lost or the axis angle passes
-``align_running_tolerance_rad`` (2°; starting needs ``align_tolerance_rad``, 1°); a
+``align_running_tolerance_rad`` (2°; starting needs ``align_tolerance_rad``, 0.5°); a
 posture jog stops when its joint reaches (or passes) its target.
 
 Events (``(kind, text)``, drained by the caller): ``mode_transition`` (``"A → B"``, with
@@ -227,7 +227,7 @@ class ModeConfig:
 
     trocar_depth_m: float = TROCAR_MODE_DEPTH
     exit_margin_m: float = 0.002
-    align_tolerance_rad: float = math.radians(1.0)
+    align_tolerance_rad: float = math.radians(0.5)
     joint_deadband_rad: float = math.radians(0.1)
     align_running_tolerance_rad: float = math.radians(2.0)
 

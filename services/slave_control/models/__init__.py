@@ -9,6 +9,8 @@ _MODELS_DIR = pathlib.Path(__file__).resolve().parent
 #: Model names and their scene file, relative to this package.
 _SCENES: dict[str, str] = {
     "mh3f": "mh3f/scene.xml",
+    "plas": "plas/scene.xml",
+    "plas_master": "plas_master/scene.xml",
     "vip": "vip/scene.xml",
 }
 

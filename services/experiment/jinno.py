@@ -1,0 +1,427 @@
+"""``telesurg experiment jinno-insertion``: Jinno 2014's evaluation, in simulation, through the services.
+
+Reproduces the paper's "Results and discussion" with the trocar at (500, 0, 200) mm:
+
+* **Fig. 9** — posture adjustment by point-to-point (PTP), jog and direct teach of J4/J5 from the
+  same start, each followed by the insert motion through the trocar (and removal);
+* **Fig. 10** — posture adjustment by PTP from three different starts, each followed by insertion;
+* **Figs. 11–13** — after a last insertion, master–slave tracing of a target path (a circle drawn
+  by the master) in trocar mode, with the RCM error from MuJoCo.
+
+Everything runs as a user would run it: router, watchdog, slave_control (MuJoCo), mapping as
+separate processes; this process is the operator console (commands over the command queryable,
+the simulated hand for direct teach) and the master (pose + clutch pedal at 250 Hz, like
+``master_capture``). The starts are programs in slave_control's teach store, reached by teaching
+playback; after every removal the forceps backs off 60 mm along its axis before the next start.
+
+The RCM error is slave_control's measurement from MuJoCo's tip-site pose (distance from the trocar
+point to the forceps axis), never from commands. Output: ``metrics.json`` and PNG figures.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from services.experiment.client import ArmClient
+from shared.bus import BusConfig, Node
+from shared.kinematics import MH3F, fk, jacobian
+from shared.kinematics.trocar import posture_adjust
+from shared.messages import CartesianPose, MasterButtons
+
+TROCAR_MM = (500.0, 0.0, 200.0)
+TROCAR = np.array(TROCAR_MM) / 1e3
+#: Starts (rad): B for Fig. 9 (J4 and J5 both have to turn), A, B, C for Fig. 10, A for the trace.
+STARTS: dict[str, tuple[float, ...]] = {
+    "start_a": (0.0, -0.2, 0.6, 0.0, -0.3, 0.0),
+    "start_b": (0.3, -0.15, 0.55, 0.4, -0.5, 0.0),
+    "start_c": (-0.35, -0.3, 0.5, -0.4, 0.2, 0.0),
+}
+TRACE_RADIUS_M = 0.03  # master circle; × mapping scale 0.5 = a 15 mm circle at the slave tip
+TRACE_PERIOD_S = 5.0
+TRACE_DEPTH_JOG_S = 1.5  # before the trace the forceps goes this long deeper (at 40 mm/s: +60 mm)
+TRACE_LAPS = 2
+
+Progress = Callable[[str, float], None]
+
+
+@dataclass
+class Run:
+    """One posture adjustment + insertion (+ optional trace) + removal."""
+
+    name: str
+    start: str
+    method: str
+    t0: float = 0.0
+    t_aligned: float = 0.0
+    t_trocar: float = 0.0
+    t_end: float = 0.0
+    inserted: bool = False
+    posture_s: float = 0.0
+    final_axis_deg: float = math.nan
+    moved_other_joints_deg: float = math.nan
+
+
+class Master(threading.Thread):
+    """The master console: pose and clutch at 250 Hz; draws the target circle when ``tracing``."""
+
+    def __init__(self, node: Node) -> None:
+        super().__init__(daemon=True)
+        self.node, self.clutch, self.stop = node, False, threading.Event()
+        self.trace_t0: float | None = None
+        k = node.keys
+        self.pose = node.outlet(k.master("m1", "measured_cp"))
+        self.buttons = node.outlet(k.master("m1", "buttons"))
+        self.log: list[tuple[float, float, float, float]] = []  # (t, x, y, z) while tracing
+
+    def target(self, t: float) -> tuple[float, float, float]:
+        if self.trace_t0 is None:
+            return (0.0, 0.0, 0.0)
+        a = 2 * math.pi * (t - self.trace_t0) / TRACE_PERIOD_S
+        return (TRACE_RADIUS_M * (math.cos(a) - 1.0), TRACE_RADIUS_M * math.sin(a), 0.0)
+
+    def run(self) -> None:
+        t0 = time.monotonic()
+        n = 0
+        while not self.stop.is_set():
+            now = time.monotonic()
+            p = self.target(now)
+            self.buttons.put(MasterButtons(self.buttons.header(), self.clutch, True))
+            self.pose.put(CartesianPose(self.pose.header(), "master", p, (0.0, 0.0, 0.0, 1.0)))
+            if self.trace_t0 is not None:
+                self.log.append((now, *p))
+            n += 1
+            self.stop.wait(max(0.0, t0 + n / 250 - time.monotonic()))
+
+
+def _write_store(path: Path) -> None:
+    """Teach store with the trocar and one single-point program per start (joints → FK tip)."""
+    from services.slave_control.teach import TaughtPoint, TeachStore
+
+    store = TeachStore(None, "arm1")
+    store.path = path
+    store.trocars["port"] = (float(TROCAR[0]), float(TROCAR[1]), float(TROCAR[2]))
+    store.current_trocar = "port"
+    for name, q in STARTS.items():
+        tip = fk(np.array(q), MH3F)[:3, 3]
+        store.add_point(name, TaughtPoint(q, (float(tip[0]), float(tip[1]), float(tip[2])), "non_trocar"))
+    store.save()
+
+
+class Experiment:
+    """The operator's procedure (commands, pushes, master) over one running site."""
+
+    def __init__(self, arm: ArmClient, master: Master, progress: Progress) -> None:
+        self.arm, self.master, self.progress = arm, master, progress
+        self.runs: list[Run] = []
+        self.trace: tuple[float, float] = (0.0, 0.0)
+
+    def _must_wait(self, pred: Callable[[], bool], timeout: float, what: str) -> None:
+        if not self.arm.wait(pred, timeout):
+            raise RuntimeError(f"{what} (within {timeout:.0f} s)")
+
+    def go_to(self, start: str) -> None:
+        a = self.arm
+        a.must("set_motion_mode", "mode=playback")
+        t = time.monotonic()
+        a.must("play", f"program={start}")
+        if not a.wait_event("playback_done", t, 60):
+            raise RuntimeError(f"playback of {start} never finished")
+        a.settle()
+
+    def adjust(self, run: Run) -> None:
+        """Posture adjustment by ``run.method``, until finish_posture_adjust is accepted."""
+        a = self.arm
+        q0 = a.q()
+        target = posture_adjust(q0, TROCAR)
+        t = time.monotonic()
+        a.must("begin_posture_adjust", f"method={run.method}")
+        if run.method == "ptp":
+            if not a.wait_event("ptp_done", t, 30):
+                raise RuntimeError("the PTP never finished")
+        elif run.method == "jog":
+            for j in (4, 5):
+                togo = target[j - 1] - a.q()[j - 1]
+                if abs(togo) < math.radians(0.1):
+                    continue
+                tj = time.monotonic()
+                a.must("jog", "frame=joint", f"axis=j{j}", f"direction={1 if togo > 0 else -1}")
+                if not a.wait_event("jog_stopped", tj, 40):  # the jog stops itself at the target
+                    raise RuntimeError(f"the J{j} jog never reached its target")
+        else:  # direct teach: push the tip the way J4/J5 must turn, as a person would
+            deadline = time.monotonic() + 40
+            while time.monotonic() < deadline:
+                q = a.q()
+                d45 = (target - q)[3:5]
+                if np.max(np.abs(d45)) < math.radians(0.3):
+                    break
+                v = jacobian(q, MH3F)[:3, 3:5] @ d45
+                f = 25.0 * v / np.linalg.norm(v)
+                a.must("push", f"fx={f[0]:.2f}", f"fy={f[1]:.2f}", f"fz={f[2]:.2f}", "seconds=0.4")
+                time.sleep(0.45)
+        deadline = time.monotonic() + 5
+        while not a.send("finish_posture_adjust").accepted:  # let the servo settle into alignment
+            if time.monotonic() > deadline:
+                raise RuntimeError("finish_posture_adjust never accepted")
+            time.sleep(0.1)
+        run.t_aligned = time.monotonic()
+        run.posture_s = run.t_aligned - t
+        q1 = a.q()
+        run.moved_other_joints_deg = float(np.degrees(np.abs(q1 - q0)[[0, 1, 2, 5]]).max())
+
+    def insert(self, run: Run) -> None:
+        a = self.arm
+        a.must("insert")
+        self._must_wait(lambda: a.mode() == "trocar", 30, "never reached trocar mode")
+        run.t_trocar = time.monotonic()
+        run.inserted = True
+
+    def remove(self) -> None:
+        a = self.arm
+        a.must("remove")
+        self._must_wait(lambda: a.mode() == "non_trocar", 30, "never came back out")
+        a.must("set_motion_mode", "mode=jog")  # back off along the axis before moving elsewhere
+        a.must("jog", "frame=forceps", "axis=x", "direction=-1")
+        time.sleep(1.5)
+        a.must("stop")
+        a.settle()
+
+    def trace_circle(self) -> None:
+        a, m = self.arm, self.master
+        a.must("set_motion_mode", "mode=jog")  # deeper first: ~110 mm, where surgery happens
+        a.must("jog", "frame=forceps", "axis=x", "direction=1")
+        time.sleep(TRACE_DEPTH_JOG_S)
+        a.must("stop")
+        a.settle()
+        a.must("set_motion_mode", "mode=master_slave")
+        time.sleep(0.3)
+        m.clutch = True  # press the pedal: engage
+        self._must_wait(lambda: bool(a.log.states) and a.log.states[-1][4], 5, "the slave never followed")
+        time.sleep(0.3)
+        t0 = m.trace_t0 = time.monotonic()
+        time.sleep(TRACE_LAPS * TRACE_PERIOD_S + 0.5)
+        self.trace = (t0, time.monotonic())
+        m.trace_t0 = None  # (the master stands still again: the slave stays where it is)
+        m.clutch = False
+        self._must_wait(lambda: not a.log.states[-1][4], 2, "the slave never let go")
+
+    def one(self, name: str, start: str, method: str, *, trace: bool = False) -> Run:
+        run = Run(name, start, method, t0=time.monotonic())
+        self.go_to(start)
+        run.t0 = time.monotonic()
+        self.adjust(run)
+        self.insert(run)
+        if trace:
+            self.trace_circle()
+        self.remove()
+        run.t_end = time.monotonic()
+        self.runs.append(run)
+        return run
+
+
+def run(out: Path, progress: Progress | None = None, *, keep_logs: bool = True) -> dict[str, Any]:
+    """Run the experiment; write ``metrics.json`` and figures into ``out``; return the metrics."""
+    from services.bench.harness import Pipeline
+
+    out.mkdir(parents=True, exist_ok=True)
+    say: Progress = progress or (lambda text, frac: None)
+    store = out / "teach_store.json"
+    _write_store(store)
+    overrides = {
+        "slave_control": [
+            f"q_home=[{', '.join(str(v) for v in STARTS['start_a'])}]",
+            "jog_speed_mm_s=40.0",
+            "jog_joint_speed_deg_s=20.0",
+            f"state_file={json.dumps(str(store))}",
+        ],
+    }
+    plan = [
+        ("fig9_ptp", "start_b", "ptp", False),
+        ("fig9_jog", "start_b", "jog", False),
+        ("fig9_direct_teach", "start_b", "direct_teach", False),
+        ("fig10_a", "start_a", "ptp", False),
+        ("fig10_c", "start_c", "ptp", False),
+        ("trace", "start_a", "ptp", True),
+    ]
+    t_begin = time.monotonic()
+    say("starting the services", 0.0)
+    with (
+        Pipeline(
+            out / "logs", mirror=False, impair=False, master=False, probe=False, overrides=overrides
+        ) as p,
+        Node(BusConfig(connect=[p.spec.endpoint]), "local", "master_capture") as node,
+    ):
+        master = Master(node)
+        master.start()
+        try:
+            arm = ArmClient(node)
+            if not arm.wait(arm.lease_ok, 30):
+                raise RuntimeError("no lease from the watchdog")
+            exp = Experiment(arm, master, say)
+            for i, (name, start, method, trace) in enumerate(plan):
+                say(f"{name}: posture by {method} from {start}" + (", trace" if trace else ""), i / len(plan))
+                exp.one(name, start, method, trace=trace)
+            say("figures", 0.97)
+        finally:
+            master.stop.set()
+            master.join(2)
+    metrics = _metrics(exp, master, time.monotonic() - t_begin)
+    _figures(out, exp, master)
+    (out / "metrics.json").write_text(json.dumps(metrics, indent=2) + "\n")
+    say("done", 1.0)
+    return metrics
+
+
+def _metrics(exp: Experiment, master: Master, wall_s: float) -> dict[str, Any]:
+    log = exp.arm.log
+    t0, t1 = exp.trace
+    with log.lock:
+        states = list(log.states)
+        tips = np.array([p for p in log.tips])
+        transitions = [(t, text) for t, k, text in log.events if k == "mode_transition"]
+        holds = [text for _, k, text in log.events if k == "hold"]
+    trace_rcm = [s[2] for s in states if t0 <= s[0] <= t1 and s[1] == "trocar"]
+    trocar_rcm = [s[2] for s in states if s[1] == "trocar"]
+    err = _tracking_error(tips, master, exp.trace)
+    return {
+        "rcm_error_max_mm": round(max(trace_rcm), 4),
+        "rcm_error_mean_mm": round(float(np.mean(trace_rcm)), 4),
+        "rcm_error_samples": len(trace_rcm),
+        "rcm_error_max_all_trocar_mm": round(max(trocar_rcm), 4),
+        "insertions_succeeded": sum(r.inserted for r in exp.runs),
+        "insertions_attempted": len(exp.runs),
+        "mode_transitions": len(transitions),
+        "mode_transition_log": [text for _, text in transitions],
+        "holds": len(holds),
+        "trace_tracking_error_rms_mm": round(err[0], 3),
+        "trace_tracking_error_max_mm": round(err[1], 3),
+        "runs": [
+            {
+                "name": r.name,
+                "start": r.start,
+                "method": r.method,
+                "posture_s": round(r.posture_s, 2),
+                "other_joints_moved_deg": round(r.moved_other_joints_deg, 4),
+                "inserted": r.inserted,
+                "insert_to_trocar_s": round(r.t_trocar - r.t_aligned, 2),
+            }
+            for r in exp.runs
+        ],
+        "trocar_mm": list(TROCAR_MM),
+        "wall_time_s": round(wall_s, 1),
+    }
+
+
+def _tracking_error(tips: np.ndarray, master: Master, window: tuple[float, float]) -> tuple[float, float]:
+    """RMS / max distance (mm) of the slave tip from the scaled master path (anchored at the start)."""
+    t0, t1 = window
+    ml = np.array(master.log)
+    sel = tips[(tips[:, 0] >= t0) & (tips[:, 0] <= t1)]
+    if len(ml) < 10 or len(sel) < 10:
+        return (math.nan, math.nan)
+    scale = 0.5  # mapping scale (deploy/local/mapping.toml)
+    anchor = sel[0, 1:]
+    want = np.stack([np.interp(sel[:, 0], ml[:, 0], ml[:, i]) for i in (1, 2, 3)], axis=1)
+    d = np.linalg.norm(sel[:, 1:] - (anchor + scale * (want - want[0])), axis=1) * 1e3
+    return (float(np.sqrt(np.mean(d**2))), float(d.max()))
+
+
+def _figures(out: Path, exp: Experiment, master: Master) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    log = exp.arm.log
+    with log.lock:
+        tips = np.array(log.tips)
+        states = list(log.states)
+        transitions = [(t, text) for t, k, text in log.events if k == "mode_transition"]
+    tz = tips[0, 0] if len(tips) else 0.0
+
+    def paths(runs: list[Run], fname: str, title: str) -> None:
+        fig, (xy, xz) = plt.subplots(1, 2, figsize=(11, 5))
+        for r in runs:
+            sel = tips[(tips[:, 0] >= r.t0) & (tips[:, 0] <= r.t_trocar + 0.5)] * 1e3
+            label = f"{r.method} from {r.start}"
+            xy.plot(sel[:, 1], sel[:, 2], label=label)
+            xz.plot(sel[:, 1], sel[:, 3], label=label)
+            for ax, j in ((xy, 2), (xz, 3)):
+                ax.plot(sel[0, 1], sel[0, j], "o", color=ax.lines[-1].get_color())
+        for ax, name in ((xy, "Y"), (xz, "Z")):
+            ax.plot(TROCAR_MM[0], TROCAR_MM[1 if name == "Y" else 2], "kx", ms=12, mew=2, label="trocar")
+            ax.set_xlabel("X [mm]")
+            ax.set_ylabel(f"{name} [mm]")
+            ax.set_aspect("equal", adjustable="datalim")
+            ax.grid(True, alpha=0.3)
+        xy.set_title("XY plane")
+        xz.set_title("XZ plane")
+        xz.legend(fontsize=8)
+        fig.suptitle(title)
+        fig.tight_layout()
+        fig.savefig(out / fname, dpi=110)
+        plt.close(fig)
+
+    fig9 = [r for r in exp.runs if r.name.startswith("fig9")]
+    fig10 = [exp.runs[0]] + [r for r in exp.runs if r.name.startswith("fig10")]
+    title9 = "Fig. 9: posture adjustment by PTP, jog, direct teach (o = start), insertion"
+    paths(fig9, "jinno-fig9.png", title9)
+    paths(fig10, "jinno-fig10.png", "Fig. 10: posture adjustment by PTP from three starts, then insertion")
+
+    # Figs. 11–13: the trace and its RCM error
+    t0, t1 = exp.trace
+    sel = tips[(tips[:, 0] >= t0) & (tips[:, 0] <= t1)]
+    rcm = np.array([(s[0], s[2]) for s in states if t0 - 1 <= s[0] <= t1 + 1 and s[1] == "trocar"])
+    fig, (xy, xz, er) = plt.subplots(1, 3, figsize=(15, 4.5))
+    xy.plot(sel[:, 1] * 1e3, sel[:, 2] * 1e3)
+    xz.plot(sel[:, 1] * 1e3, sel[:, 3] * 1e3)
+    for ax, name in ((xy, "Y"), (xz, "Z")):
+        ax.set_xlabel("X [mm]")
+        ax.set_ylabel(f"{name} [mm]")
+        ax.set_aspect("equal", adjustable="datalim")
+        ax.grid(True, alpha=0.3)
+    xy.set_title("Fig. 11: slave tip while tracing (XY)")
+    xz.set_title("slave tip while tracing (XZ)")
+    if len(rcm):
+        er.plot(rcm[:, 0] - t0, rcm[:, 1], ".-", ms=3)
+    er.axhline(1.0, color="r", ls="--", label="paper's bound (1 mm)")
+    er.set_xlabel("time since the trace started [s]")
+    er.set_ylabel("RCM error [mm] (MuJoCo)")
+    er.set_title("Fig. 13: trocar point to forceps axis")
+    er.legend()
+    er.grid(True, alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(out / "jinno-trace.png", dpi=110)
+    plt.close(fig)
+
+    # mode timeline + RCM error over the whole session
+    levels = {"non_trocar": 0, "transitional": 1, "trocar": 2}
+    st = np.array([(s[0] - tz, levels.get(s[1], -1), s[2]) for s in states])
+    fig, (ax1, ax2) = plt.subplots(2, 1, figsize=(12, 5), sharex=True)
+    ax1.step(st[:, 0], st[:, 1], where="post")
+    ax1.set_yticks([0, 1, 2], ["non_trocar", "transitional", "trocar"])
+    for r in exp.runs:
+        ax1.axvspan(r.t0 - tz, r.t_end - tz, alpha=0.08)
+        ax1.text(r.t0 - tz, 2.25, r.name, fontsize=7)
+    ax1.set_ylim(-0.3, 2.6)
+    ax1.set_title(f"control mode ({len(transitions)} transitions)")
+    ax2.plot(st[:, 0], np.where(st[:, 1] == 2, st[:, 2], np.nan), ".", ms=2)
+    ax2.set_ylabel("RCM error in\ntrocar mode [mm]")
+    ax2.set_xlabel("time [s]")
+    for ax in (ax1, ax2):
+        ax.grid(True, alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(out / "jinno-timeline.png", dpi=110)
+    plt.close(fig)
+
+
+def main(argv: list[str] | None = None) -> int:  # pragma: no cover - via services.experiment
+    raise SystemExit("use: telesurg experiment jinno-insertion --out DIR")
