@@ -10,6 +10,7 @@ service instance id)::
     slave/<arm>/setpoint_cp      CartesianPose   Cartesian target behind servo_jp
     slave/<arm>/measured_js      JointState      slave joints
     slave/<arm>/measured_cp      CartesianPose   slave forceps-tip pose, base frame
+    slave/<arm>/measured_cf      CartesianWrench external wrench at the tip, base frame (estimate)
     slave/<arm>/operating_state  OperatingState  slave state, mode, follow, hold reason
     safety/<arm>/lease           SafetyLease     watchdog → slave permission to move
     safety/<arm>/state           SafetyState     watchdog's view of the arm
@@ -32,7 +33,7 @@ PREFIX_ROOT = "telesurg"
 _ID = re.compile(r"^[A-Za-z0-9_-]{1,64}$")
 
 MASTER_STREAMS = ("measured_cp", "measured_js", "buttons")
-SLAVE_STREAMS = ("servo_jp", "setpoint_cp", "measured_js", "measured_cp", "operating_state")
+SLAVE_STREAMS = ("servo_jp", "setpoint_cp", "measured_js", "measured_cp", "measured_cf", "operating_state")
 SAFETY_STREAMS = ("lease", "state")
 
 

@@ -320,6 +320,32 @@ class CartesianPose(Message):
 
 @_register
 @dataclass(frozen=True, slots=True)
+class CartesianWrench(Message):
+    """A wrench at the tool tip (CRTK ``measured_cf``): what the environment exerts on the tool.
+
+    Attributes:
+        frame: reference frame of both vectors, e.g. ``"base"``.
+        force: (fx, fy, fz) in N.
+        torque: (tx, ty, tz) in N·m, about the tip.
+    """
+
+    TYPE: ClassVar[str] = "wrench"
+    BODY: ClassVar[frozenset[str]] = frozenset({"frame", "force", "torque"})
+
+    frame: str = "base"
+    force: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    torque: tuple[float, float, float] = (0.0, 0.0, 0.0)
+
+    def body(self) -> dict[str, Any]:
+        return {"frame": self.frame, "force": list(self.force), "torque": list(self.torque)}
+
+    @classmethod
+    def from_body(cls, header: Header, d: dict[str, Any]) -> CartesianWrench:
+        return cls(header, _str(d, "frame"), _vec3(d, "force"), _vec3(d, "torque"))
+
+
+@_register
+@dataclass(frozen=True, slots=True)
 class MasterButtons(Message):
     """Master device buttons (``master/<arm>/buttons``), published with every pose sample.
 

@@ -16,6 +16,7 @@ from shared.messages import (
     MESSAGE_TYPES,
     SCHEMA_VERSION,
     CartesianPose,
+    CartesianWrench,
     Command,
     CommandReply,
     EStop,
@@ -49,6 +50,7 @@ EXAMPLES = [
     EStop(H, "*", "estop", "console: operator"),
     Command(H, "arm1", "jog", ("frame=forceps", "axis=x", "direction=1")),
     CommandReply(H, "arm1", "insert", False, "insert refused: forceps axis 7.3° off trocar direction"),
+    CartesianWrench(H, "base", (0.0, 1.5, -2.0), (0.0, 0.0, 0.1)),
 ]
 
 

@@ -51,11 +51,19 @@ def test_a_push_moves_the_arm_and_it_stays_when_released(arm: tuple[ArmClient, P
     c, _ = arm
     before = c.settle()
     assert c.send("teach_point", "program=home").accepted  # to come back here later
+    t0 = time.monotonic()
     assert c.send("push", "fy=20", "seconds=1").accepted  # not in direct teach: the servo holds
     time.sleep(1.3)
     moved = c.settle() - before
     print(f"without direct teach the push moved the tip {np.linalg.norm(moved) * 1e3:.3f} mm")
     assert np.linalg.norm(moved) < 0.5e-3  # the servo holds against 20 N
+    # the slave's tip wrench estimate (measured_cf) saw the push: 20 N along +y while it lasted
+    with c.log.lock:
+        f = np.array([w[1:] for w in c.log.forces if w[0] >= t0])
+    pushed = f[np.linalg.norm(f, axis=1) > 5.0]
+    print(f"measured_cf during the push: mean {pushed.mean(axis=0).round(2)} N over {len(pushed)} samples")
+    assert len(pushed) > 50 and np.allclose(pushed.mean(axis=0), [0.0, 20.0, 0.0], atol=1.0)
+    assert np.linalg.norm(f[-10:], axis=1).max() < 1.0  # and nothing once it ended
 
     assert c.send("set_motion_mode", "mode=direct_teach").accepted
     before = c.settle()

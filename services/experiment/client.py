@@ -15,7 +15,15 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from shared.bus import Node
-from shared.messages import CartesianPose, Command, CommandReply, JointState, OperatingState, SafetyEvent
+from shared.messages import (
+    CartesianPose,
+    CartesianWrench,
+    Command,
+    CommandReply,
+    JointState,
+    OperatingState,
+    SafetyEvent,
+)
 
 
 @dataclass
@@ -27,6 +35,7 @@ class ArmLog:
     states: list[tuple[float, str, float, bool, bool]] = field(default_factory=list)
     tips: list[tuple[float, float, float, float]] = field(default_factory=list)  # (t, x, y, z) m
     joints: list[tuple[float, tuple[float, ...]]] = field(default_factory=list)  # (t, q) rad
+    forces: list[tuple[float, float, float, float]] = field(default_factory=list)  # (t, fx, fy, fz) N
     events: list[tuple[float, str, str]] = field(default_factory=list)  # (t, kind, text)
     replies: list[tuple[float, str, bool, str]] = field(default_factory=list)  # (t, name, ok, reason)
 
@@ -43,6 +52,7 @@ class ArmClient:
         node.subscribe(k.slave(arm, "operating_state"), OperatingState, self._on_state)
         node.subscribe(k.slave(arm, "measured_cp"), CartesianPose, self._on_tip)
         node.subscribe(k.slave(arm, "measured_js"), JointState, self._on_js)
+        node.subscribe(k.slave(arm, "measured_cf"), CartesianWrench, self._on_cf)
         node.subscribe(k.events("slave_control"), SafetyEvent, self._on_event)
 
     # -- inputs (zenoh threads)
@@ -54,6 +64,10 @@ class ArmClient:
         p = m.position
         with self.log.lock:
             self.log.tips.append((time.monotonic(), float(p[0]), float(p[1]), float(p[2])))
+
+    def _on_cf(self, m: CartesianWrench, key: str) -> None:
+        with self.log.lock:
+            self.log.forces.append((time.monotonic(), *m.force))
 
     def _on_js(self, m: JointState, key: str) -> None:
         with self.log.lock:

@@ -4,7 +4,8 @@ The control loop runs at the backend period (1 ms for MuJoCo, in real time: miss
 caught up by extra physics steps, and counted). Setpoints arrive on ``slave/<arm>/servo_jp``; they
 are validated (joint names, joint limits) and only followed as described in
 :mod:`services.slave_control.control`. The service publishes ``measured_js`` and the forceps-tip
-``measured_cp`` at ``publish_hz`` and its ``operating_state`` at ``state_hz`` and on change.
+``measured_cp`` at ``publish_hz``, the estimated external wrench at the tip ``measured_cf`` (for
+masters with force feedback) with them, and its ``operating_state`` at ``state_hz`` and on change.
 
 Example::
 
@@ -37,10 +38,11 @@ from services.slave_control.teach import (
 )
 from shared.bus import BusConfig, Node
 from shared.errors import ConfigError, IKError, KinematicsError
-from shared.kinematics import MH3F, matrix_from_quat, within_limits
+from shared.kinematics import MH3F, jacobian, matrix_from_quat, within_limits
 from shared.kinematics.trocar import axis_angle_to_trocar, pose_to_trocar, posture_adjust
 from shared.messages import (
     CartesianPose,
+    CartesianWrench,
     Command,
     CommandReply,
     EStop,
@@ -448,6 +450,16 @@ COMMANDS = (
 )
 
 
+def tip_wrench(
+    q: np.ndarray, tau_ext: np.ndarray
+) -> tuple[tuple[float, float, float], tuple[float, float, float]]:
+    """External force (N) and torque (N·m) at the forceps tip, base frame, from the external
+    joint torques: ``τ = Jᵀ [F; M]`` solved by least squares (the minimum-norm answer near a
+    singularity)."""
+    w = np.linalg.lstsq(jacobian(q, MH3F).T, tau_ext, rcond=1e-6)[0]
+    return (float(w[0]), float(w[1]), float(w[2])), (float(w[3]), float(w[4]), float(w[5]))
+
+
 @dataclass
 class Internal:
     """The slave-side motion of one control period (a snapshot taken under the lock)."""
@@ -567,6 +579,7 @@ def run(cfg: SlaveControlConfig, stop: threading.Event) -> None:
         svc.backend_push = getattr(backend, "push", None)
         js_out = node.outlet(k.slave(cfg.arm, "measured_js"))
         cp_out = node.outlet(k.slave(cfg.arm, "measured_cp"))
+        cf_out = node.outlet(k.slave(cfg.arm, "measured_cf"))
         state_out = node.outlet(k.slave(cfg.arm, "operating_state"))
         node.subscribe(k.safety(cfg.arm, "lease"), SafetyLease, svc.on_lease, sources=[cfg.watchdog_service])
         node.subscribe(
@@ -660,6 +673,9 @@ def run(cfg: SlaveControlConfig, stop: threading.Event) -> None:
                         (float(qt[0]), float(qt[1]), float(qt[2]), float(qt[3])),
                     )
                 )
+                if reading.external_torque is not None:
+                    f, m = tip_wrench(reading.position, reading.external_torque)
+                    cf_out.put(CartesianWrench(cf_out.header(), "base", f, m))
             lease_ok = ctl.lease_valid
             state = (ctl.following, lease_ok, ctl.reason, svc.modes.control_mode, internal)
             if state != last_state or cycle % state_every == 0:
