@@ -10,8 +10,9 @@ import numpy as np
 import pytest
 
 from services.launcher import free_port
-from services.mapping import ArmMapping, MappingConfig
+from services.mapping import ArmMapping, MappingConfig, master_point
 from shared.bus import BusConfig, Node, open_session
+from shared.errors import ConfigError
 from shared.kinematics import MH3F, fk
 from shared.messages import (
     CartesianPose,
@@ -112,3 +113,20 @@ def test_holding_slave_disengages_and_needs_new_press(
     feed(arm, (0.0, 0.0, 0.0), clutch=False)
     feed(arm, (0.0, 0.0, 0.0), clutch=True)
     assert arm.following
+
+
+def test_virtual_trocar_master_maps_the_dummy_tip_with_the_fulcrum_effect() -> None:
+    cfg = MappingConfig(
+        master_mode="virtual_trocar", virtual_trocar_mm=(0.0, 0.0, 0.0), dummy_forceps_mm=200.0
+    )
+    cfg.validate()
+    h0 = (0.0, 0.0, 0.1)  # handle 100 mm above the virtual trocar: dummy tip 100 mm below it
+    np.testing.assert_allclose(master_point(cfg, h0), (0.0, 0.0, -0.1), atol=1e-12)
+    side = master_point(cfg, (0.01, 0.0, 0.1)) - master_point(cfg, h0)
+    assert side[0] < -0.009  # handle +10 mm sideways → tip ~10 mm the other way (1:1 at mid-shaft)
+    deeper = master_point(cfg, (0.0, 0.0, 0.09)) - master_point(cfg, h0)
+    np.testing.assert_allclose(deeper, (0.0, 0.0, -0.01), atol=1e-12)  # pushed in → tip deeper
+    pen = MappingConfig()
+    np.testing.assert_allclose(master_point(pen, (0.01, 0.0, 0.1)), (0.01, 0.0, 0.1))
+    with pytest.raises(ConfigError, match="master_mode"):
+        MappingConfig(master_mode="joystick").validate()

@@ -8,7 +8,7 @@ import pytest
 from services.slave_control.motion import PtpMotion, jog_step, ptp_duration
 from shared.errors import IKError
 from shared.kinematics import MH3F, fk
-from shared.kinematics.trocar import posture_adjust, rcm_error, trocar_ik
+from shared.kinematics.trocar import forceps_roll, posture_adjust, rcm_error, trocar_ik
 
 TROCAR = np.array([0.5, 0.0, 0.2])
 Q0 = np.array([0.0, -0.2, 0.6, 0.0, -0.3, 0.0])
@@ -54,5 +54,32 @@ def test_jog_in_trocar_mode_pivots_about_the_trocar() -> None:
 def test_joint_jog_and_unsupported_axes() -> None:
     q = jog_step(Q0, "joint", "j6", -1, 0.5, speed_m_s=0.01, joint_speed_rad_s=0.2, trocar=None)
     np.testing.assert_allclose(q - Q0, [0, 0, 0, 0, 0, -0.1], atol=1e-15)
-    with pytest.raises(IKError, match="rx is not implemented"):
-        jog_step(Q0, "forceps", "rx", 1, 0.001, speed_m_s=0.01, joint_speed_rad_s=0.1, trocar=None)
+    with pytest.raises(IKError, match="jog about q7 is not implemented"):
+        jog_step(Q0, "forceps", "q7", 1, 0.001, speed_m_s=0.01, joint_speed_rad_s=0.1, trocar=None)
+
+
+def test_rotation_jogs_turn_about_the_tip() -> None:
+    T0 = fk(Q0, MH3F)
+    for frame, axis in (("base", "rz"), ("forceps", "ry"), ("world", "rx")):
+        q = Q0.copy()
+        for _ in range(100):  # 0.1 rad/s for 0.1 s: 0.01 rad
+            q = jog_step(q, frame, axis, 1, 0.001, speed_m_s=0.01, joint_speed_rad_s=0.1, trocar=None)
+        T = fk(q, MH3F)
+        np.testing.assert_allclose(T[:3, 3], T0[:3, 3], atol=1e-9)  # the tip stays put
+        d_rot = T[:3, :3] @ T0[:3, :3].T
+        angle = np.arccos(np.clip((np.trace(d_rot) - 1) / 2, -1, 1))
+        assert abs(angle - 0.01) < 1e-9
+
+
+def test_trocar_mode_rotation_is_the_roll_only() -> None:
+    qa = posture_adjust(Q0, TROCAR)
+    d = fk(qa, MH3F)[:3, 0]
+    q0 = trocar_ik(TROCAR + 0.06 * d, TROCAR, qa)
+    q = q0.copy()
+    for _ in range(100):
+        q = jog_step(q, "forceps", "rx", 1, 0.001, speed_m_s=0.01, joint_speed_rad_s=0.1, trocar=TROCAR)
+    np.testing.assert_allclose(fk(q, MH3F)[:3, 3], fk(q0, MH3F)[:3, 3], atol=1e-9)
+    assert rcm_error(q, TROCAR) < 1e-9
+    assert abs(forceps_roll(q, MH3F) - forceps_roll(q0, MH3F) - 0.01) < 1e-9
+    with pytest.raises(IKError, match="only rotation is the roll"):
+        jog_step(q, "base", "rz", 1, 0.001, speed_m_s=0.01, joint_speed_rad_s=0.1, trocar=TROCAR)

@@ -93,7 +93,7 @@ def test_insert_pivot_remove_keeps_the_rcm(console: Console) -> None:
     assert c.send("state").accepted and c.mode() == "non_trocar"
     r = c.send("insert")
     assert not r.accepted and "insert refused" in r.reason  # wrong mode: refused, nothing moves
-    assert not c.send("jog", "frame=base", "axis=rx", "direction=1").accepted  # not supported
+    assert not c.send("jog", "frame=base", "axis=rx", "direction=1").accepted  # motion mode is not jog
 
     # posture adjustment by PTP of J4/J5 toward the trocar
     assert c.send("begin_posture_adjust", "method=ptp").accepted

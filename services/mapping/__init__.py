@@ -18,6 +18,11 @@ The service publishes ``slave/<arm>/servo_jp`` for every master sample (``follow
 slave whether to track it) and ``slave/<arm>/setpoint_cp`` (the Cartesian target, at ``target_hz``
 for display) while following.
 
+Master modes (``master_mode``): ``pen`` maps the master position as the tip; ``virtual_trocar``
+(Jinno 2014, Fig. 7) treats it as the handle of a dummy forceps pivoting in a virtual trocar on the
+console and maps the dummy tip beyond the fulcrum (:func:`master_point`), so the surgeon feels the
+same fulcrum effect as with the real forceps in the patient.
+
 Engage needs a *new* pedal press: after any disengage not made by the operator (master stream
 stale, slave holding, operator absent) the pedal must be released and pressed again.
 
@@ -54,6 +59,7 @@ from shared.messages import (
 
 log = logging.getLogger(__name__)
 ORIENTATION_MODES = ("follow", "fixed")
+MASTER_MODES = ("pen", "virtual_trocar")
 
 
 @dataclass
@@ -65,6 +71,11 @@ class MappingConfig:
     pairs: list[str] = field(default_factory=lambda: ["m1:arm1"])  # "master_arm:slave_arm"
     scale: float = 0.5  # slave translation / master translation (motion scaling), 0 < scale <= 2
     orientation: str = "follow"  # follow: apply master rotation increments; fixed: keep engage pose
+    # pen: the master position is the tip; virtual_trocar (Jinno 2014, Fig. 7): it is the handle of
+    # a dummy forceps pivoting in a virtual trocar, and the dummy tip beyond it is mapped
+    master_mode: str = "pen"
+    virtual_trocar_mm: tuple[float, float, float] = (0.0, 0.0, -100.0)  # master frame
+    dummy_forceps_mm: float = 250.0  # handle → dummy tip, along the dummy forceps
     # Rotation of the master frame expressed in the slave base frame, roll/pitch/yaw in degrees.
     master_to_slave_rpy_deg: tuple[float, float, float] = (0.0, 0.0, 0.0)
     master_timeout_ms: float = 100.0  # ms: master stream older than this disengages
@@ -90,6 +101,10 @@ class MappingConfig:
             raise ConfigError(
                 f"orientation {self.orientation!r} invalid; valid: {', '.join(ORIENTATION_MODES)}"
             )
+        if self.master_mode not in MASTER_MODES:
+            raise ConfigError(f"master_mode {self.master_mode!r} invalid; valid: {', '.join(MASTER_MODES)}")
+        if not 10.0 <= self.dummy_forceps_mm <= 1000.0:
+            raise ConfigError(f"dummy_forceps_mm={self.dummy_forceps_mm} outside [10, 1000]")
         if any(a >= b for a, b in zip(self.workspace_min_mm, self.workspace_max_mm, strict=True)):
             raise ConfigError("workspace_min_mm must be below workspace_max_mm on every axis")
         for p in self.pairs:
@@ -102,6 +117,26 @@ def parse_pair(pair: str) -> tuple[str, str]:
     if not sep:
         raise ConfigError(f"pair {pair!r} must look like master_arm:slave_arm")
     return check_id("arm", master), check_id("arm", slave)
+
+
+def master_point(cfg: MappingConfig, position: tuple[float, float, float]) -> np.ndarray:
+    """The master point that is mapped to the slave tip, m, master frame.
+
+    ``pen``: the master position itself. ``virtual_trocar``: the position is the handle of a dummy
+    forceps that passes through a virtual trocar ``c`` (a fixed fulcrum on the master side); the
+    mapped point is the dummy tip ``h + L · unit(c − h)`` beyond it. As through a real trocar, the
+    tip moves opposite to the handle sideways and the same way along the shaft, so the surgeon's
+    hand motion matches what the slave forceps does about the patient's trocar.
+    """
+    h = np.array(position, dtype=float)
+    if cfg.master_mode == "pen":
+        return h
+    c = np.array(cfg.virtual_trocar_mm) / 1e3
+    d = c - h
+    n = float(np.linalg.norm(d))
+    u = d / n if n > 1e-6 else np.array([0.0, 0.0, -1.0])  # (handle in the fulcrum: straight down)
+    out: np.ndarray = h + (cfg.dummy_forceps_mm / 1e3) * u
+    return out
 
 
 def rpy_matrix(rpy_deg: tuple[float, float, float]) -> np.ndarray:
@@ -189,7 +224,7 @@ class ArmMapping:
                 # Re-anchor at the current target: the new scale applies to motion from here on.
                 lp, lt = self.last_pose, self.last_target
                 self.ref = (
-                    np.array(lp.position),
+                    master_point(self.cfg, lp.position),
                     matrix_from_quat(np.array(lp.orientation)),
                     lt[:3, 3].copy(),
                     lt[:3, :3].copy(),
@@ -247,7 +282,7 @@ class ArmMapping:
         assert self.q_meas is not None
         t_s0 = fk(self.q_meas, self.geom)
         self.ref = (
-            np.array(pose.position),
+            master_point(self.cfg, pose.position),
             matrix_from_quat(np.array(pose.orientation)),
             t_s0[:3, 3].copy(),
             t_s0[:3, :3].copy(),
@@ -276,7 +311,9 @@ class ArmMapping:
         assert self.ref is not None
         pm0, rm0, ps0, rs0 = self.ref
         t = np.eye(4)
-        p = ps0 + self.cfg.scale * self.safety_scale * (self.r_ms @ (np.array(pose.position) - pm0))
+        p = ps0 + self.cfg.scale * self.safety_scale * (
+            self.r_ms @ (master_point(self.cfg, pose.position) - pm0)
+        )
         clamped = np.clip(p, self.ws_lo, self.ws_hi)
         if np.any(clamped != p):
             self.clamped += 1

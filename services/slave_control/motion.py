@@ -8,8 +8,10 @@ lease. Pure (kinematics only), so it can be tested on its own.
   every joint arrives at the same time, linear in joint space.
 * :func:`jog_step` — one period of a jog: translation of the tip along an axis of the base
   (``world``, ``base``, ``work`` = base here) or forceps frame at ``speed_m_s``, orientation kept;
-  or one joint at ``joint_speed_rad_s``. In trocar mode a translation goes through the trocar IK,
-  so the forceps keeps pivoting about the trocar.
+  a rotation ``rx``/``ry``/``rz`` about that axis through the tip at ``joint_speed_rad_s``, tip
+  kept; or one joint at ``joint_speed_rad_s``. In trocar mode a translation goes through the
+  trocar IK, so the forceps keeps pivoting about the trocar, and the only rotation is the roll
+  about the shaft (forceps ``rx``).
 """
 
 from __future__ import annotations
@@ -20,11 +22,12 @@ import numpy as np
 
 from shared.errors import IKError
 from shared.kinematics import MH3F, fk, ik
-from shared.kinematics.trocar import trocar_ik
+from shared.kinematics.transforms import matrix_from_rotvec
+from shared.kinematics.trocar import forceps_roll, trocar_ik
 
-_AXES = {"x": 0, "y": 1, "z": 2}
-#: Jog axes this slave can execute (rotations are not implemented yet).
-SUPPORTED_JOG_AXES = ("x", "y", "z", "j1", "j2", "j3", "j4", "j5", "j6")
+_AXES = {"x": 0, "y": 1, "z": 2, "rx": 0, "ry": 1, "rz": 2}
+#: Jog axes this slave can execute.
+SUPPORTED_JOG_AXES = ("x", "y", "z", "rx", "ry", "rz", "j1", "j2", "j3", "j4", "j5", "j6")
 
 
 @dataclass
@@ -80,6 +83,16 @@ def jog_step(
     # forceps: the TCP frame's axis; world, base, work: the base frame's axis (work = base here)
     d = T[:3, _AXES[axis]] if frame == "forceps" else np.eye(3)[_AXES[axis]]
     T_next = T.copy()
+    if axis.startswith("r"):
+        angle = direction * joint_speed_rad_s * dt
+        if trocar is not None:
+            if (frame, axis) != ("forceps", "rx"):
+                raise IKError(
+                    f"in trocar mode the only rotation is the roll (forceps rx), not {frame} {axis}"
+                )
+            return trocar_ik(T[:3, 3], trocar, q, roll=forceps_roll(q, MH3F) + angle)
+        T_next[:3, :3] = matrix_from_rotvec(d * angle) @ T[:3, :3]
+        return ik(T_next, q, MH3F)
     T_next[:3, 3] = T[:3, 3] + direction * speed_m_s * dt * d
     if trocar is not None:
         return trocar_ik(T_next[:3, 3], trocar, q)
