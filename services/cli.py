@@ -28,6 +28,7 @@ COMMANDS = {
     "cmd": ("services.command", "send an operator command (trocar mode, jog, …) to a slave arm"),
     "bench": ("services.bench", "fault-injection and fuzz benchmarks (tables + JSON)"),
     "impair": ("shared.impair", "userspace TCP link impairer (cut / delay) for fault tests"),
+    "device": ("services.device", "serial device tools: emulate an encoder board on a pty, monitor one"),
     "experiment": ("services.experiment", "reproduce a paper's evaluation (figures + metrics.json)"),
 }
 

@@ -80,3 +80,24 @@ def test_speed_clipping_is_counted_and_reported() -> None:
     assert kinds.count("clipped") == 2
     assert "joint 2" in texts[0] and "0.0100 rad behind" in texts[0]
     assert "ended after 4 cycles" in texts[1]
+
+
+def test_interpolator_is_smooth_between_sparse_setpoints_and_never_overshoots() -> None:
+    from services.slave_control.control import SetpointInterpolator
+
+    ip = SetpointInterpolator()
+    assert ip.sample(0.0) is None
+    pts = [np.array([0.0]), np.array([0.1]), np.array([0.3]), np.array([0.3]), np.array([-0.2])]
+    out = []
+    for k, q in enumerate(pts):
+        ip.push(q, k * 0.04)  # 25 Hz
+        for i in range(40):  # 1 kHz in between
+            v = ip.sample(k * 0.04 + i * 0.001)
+            assert v is not None
+            out.append(float(v[0]))
+    out_a = np.array(out)
+    assert out_a.min() >= -0.2 - 1e-12 and out_a.max() <= 0.3 + 1e-12  # within the setpoints' range
+    steps = np.abs(np.diff(out_a))
+    assert steps.max() <= 0.5 / 40 + 1e-12  # the largest increment spread over 40 cycles
+    # constant speed within a period: second differences vanish except at segment changes
+    assert np.count_nonzero(np.abs(np.diff(steps)) > 1e-9) <= 2 * len(pts)

@@ -4,9 +4,15 @@ Publishes at ``rate_hz`` (default 500 Hz) on ``master/<arm>/measured_cp`` (Carte
 frame) and, for devices with joints, ``master/<arm>/measured_js``; ``master/<arm>/buttons``
 (MasterButtons) goes out before the pose on every change and at least at ``buttons_hz``.
 
-Example::
+While the device's reading is not valid (``DeviceSample.valid``: the serial encoder board is
+unplugged, silent for ``serial.stale_ms`` or refused), nothing is published — no pose, joints or
+buttons — so the watchdog's freshness check holds the slave; publishing resumes with the first fresh
+reading. Each such outage is logged once.
+
+Examples::
 
     telesurg master-capture --connect tcp/127.0.0.1:7447 --set arm=m1 --set scripted.radius=0.03
+    telesurg master-capture --set device=serial --set serial.port=/dev/ttyACM0
 """
 
 from __future__ import annotations
@@ -18,7 +24,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 from services.common import service_main
-from services.master_capture.devices import ScriptedConfig, make_device
+from services.master_capture.devices import ScriptedConfig, SerialMasterConfig, make_device
 from shared.bus import BusConfig, Node
 from shared.errors import ConfigError
 from shared.messages import CartesianPose, JointState, MasterButtons
@@ -36,8 +42,9 @@ class MasterCaptureConfig:
     arm: str = "m1"  # master arm id in keys master/<arm>/...
     rate_hz: float = 500.0  # Hz: publish rate of the pose (and joints)
     buttons_hz: float = 50.0  # Hz: buttons are sent on every change and at least this often
-    device: str = "scripted"  # device type; valid: scripted
+    device: str = "scripted"  # device type; valid: scripted, serial
     scripted: ScriptedConfig = field(default_factory=ScriptedConfig)  # scripted device settings
+    serial: SerialMasterConfig = field(default_factory=SerialMasterConfig)  # serial encoder-board settings
     bus: BusConfig = field(default_factory=BusConfig)  # zenoh session
 
 
@@ -45,7 +52,7 @@ def run(cfg: MasterCaptureConfig, stop: threading.Event) -> None:
     """Sample and publish until ``stop``."""
     if not 1.0 <= cfg.rate_hz <= 5000.0:
         raise ConfigError(f"rate_hz={cfg.rate_hz} outside [1, 5000]")
-    device = make_device(cfg.device, cfg.scripted)
+    device = make_device(cfg.device, cfg.scripted, cfg.serial)
     with device, Node(cfg.bus, cfg.site, cfg.service) as node:
         k = node.keys
         pose_out = node.outlet(k.master(cfg.arm, "measured_cp"))
@@ -55,9 +62,28 @@ def run(cfg: MasterCaptureConfig, stop: threading.Event) -> None:
         t0 = time.monotonic()
         buttons_every = max(1, round(cfg.rate_hz / cfg.buttons_hz))
         last_buttons: tuple[bool, bool] | None = None
+        outages = 0
+        invalid_since: float | None = None  # time.monotonic() when the reading became invalid
         log.info("publishing master %s at %.0f Hz (%s)", cfg.arm, cfg.rate_hz, cfg.device)
         while not stop.is_set():
             s = device.read(time.monotonic() - t0)
+            if not s.valid:  # stale / unplugged / refused: publish nothing, the watchdog holds
+                if invalid_since is None:
+                    invalid_since = time.monotonic()
+                    outages += 1
+                    log.warning(
+                        "master %s: no fresh device reading; not publishing until one arrives", cfg.arm
+                    )
+                last_buttons = None  # buttons go out first thing when readings resume
+                timer.wait()
+                continue
+            if invalid_since is not None:
+                log.info(
+                    "master %s: device fresh again after %.2f s; publishing",
+                    cfg.arm,
+                    time.monotonic() - invalid_since,
+                )
+                invalid_since = None
             buttons = (s.clutch, s.operator_present)
             if buttons != last_buttons or timer.cycles % buttons_every == 0:
                 last_buttons = buttons
@@ -66,7 +92,9 @@ def run(cfg: MasterCaptureConfig, stop: threading.Event) -> None:
             if js_out is not None:
                 js_out.put(JointState(js_out.header(), device.joint_names, s.joints))
             timer.wait()
-        log.info("sent %d samples, %d loop overruns", pose_out.sent, timer.overruns)
+        log.info(
+            "sent %d samples, %d loop overruns, %d device outages", pose_out.sent, timer.overruns, outages
+        )
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -37,6 +37,56 @@ def limit_step(want: np.ndarray, lim: np.ndarray) -> np.ndarray:
 
 
 @dataclass
+class SetpointInterpolator:
+    """Turns sparse setpoints (e.g. a 25 Hz console) into a smooth 1 kHz joint reference.
+
+    First-order hold delayed by one setpoint period: when setpoint ``k`` arrives the reference
+    moves linearly from where it is to ``k`` over the measured period between setpoints ``k-1`` and
+    ``k`` (``period`` clamped to [``min_period``, ``max_period``]). Every output is a convex
+    combination of the previous output and an accepted setpoint, so it never leaves the box of
+    the joint limits both lie in (no overshoot), and its speed is constant within a period (no
+    steps except at setpoint arrivals, bounded by the setpoint increments).
+
+    Attributes:
+        min_period: s; shortest interpolation time (faster streams are followed as they come).
+        max_period: s; longest (a late setpoint is not spread over the gap).
+    """
+
+    min_period: float = 0.001
+    max_period: float = 0.1
+    _from: np.ndarray | None = None
+    _to: np.ndarray | None = None
+    _t_to: float = 0.0  # arrival time of _to
+    _period: float = 0.0
+    _out: np.ndarray | None = None
+
+    def push(self, q: np.ndarray, t: float) -> None:
+        """A new setpoint ``q`` arrived at time ``t`` (s)."""
+        if self._to is None:
+            self._from = self._to = q.copy()
+            self._out = q.copy()
+            self._t_to = t
+            self._period = self.min_period
+            return
+        self._period = min(max(t - self._t_to, self.min_period), self.max_period)
+        self._from = self._out.copy() if self._out is not None else self._to.copy()
+        self._to = q.copy()
+        self._t_to = t
+
+    def sample(self, t: float) -> np.ndarray | None:
+        """Reference at time ``t`` (None before the first setpoint)."""
+        if self._to is None or self._from is None:
+            return None
+        s = min(max((t - self._t_to) / self._period, 0.0), 1.0)
+        self._out = self._from + s * (self._to - self._from)
+        return self._out
+
+    def reset(self) -> None:
+        """Forget the history (after a hold: the next setpoint starts a new segment)."""
+        self._from = self._to = self._out = None
+
+
+@dataclass
 class Lease:
     """Latest lease as seen by the slave (times on the local monotonic clock, s).
 

@@ -1,0 +1,201 @@
+"""``telesurg device``: tools for the master's encoder board (``docs/hardware.md``).
+
+* ``emulate --pty`` — an emulated encoder board on a new pseudo-terminal: prints the device path
+  (e.g. ``/dev/pts/7``) as the first line on stdout, then serves HELLO and SAMPLE frames of a
+  scripted motion (:mod:`services.device.emulator`) until SIGINT/SIGTERM or ``--seconds``.
+* ``monitor`` — opens the port of a master_capture config (``serial.*`` keys) and prints the
+  board's HELLO, raw readings, calibrated joints and frame counters: for wiring checks and
+  calibration.
+
+Examples::
+
+    telesurg device emulate --pty --rate 500 --motion sine          # prints /dev/pts/N
+    telesurg master-capture --set device=serial --set serial.port=/dev/pts/N
+    telesurg device monitor --set serial.port=/dev/ttyACM0 --seconds 10
+    python -m services.device emulate --pty --garbage-every 50 --drop-every 100
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import math
+import sys
+import threading
+import time
+from collections.abc import Sequence
+from typing import TYPE_CHECKING, TextIO
+
+from services.common import install_stop_handlers, setup_logging
+from services.device.emulator import MOTIONS, EmulatorOptions, run_pty
+from shared.encoder_protocol import Hello, HelloRequest, Sample, decode_message, send_message
+from shared.errors import MessageError, TelesurgError
+from shared.serial_link import SerialLink
+
+if TYPE_CHECKING:
+    from services.master_capture.devices import SerialMasterConfig
+
+log = logging.getLogger(__name__)
+
+
+def _parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="telesurg device",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    em = sub.add_parser("emulate", help="emulate the encoder board on a new pseudo-terminal")
+    em.add_argument(
+        "--pty", action="store_true", help="serve on a new pseudo-terminal pair (the only transport)"
+    )
+    em.add_argument("--rate", type=float, default=500.0, metavar="HZ", help="SAMPLE rate, Hz (500)")
+    em.add_argument("--motion", choices=MOTIONS, default="sine", help="scripted joint motion (sine)")
+    em.add_argument("--seconds", type=float, default=0.0, metavar="S", help="stop after S s (0: never)")
+    em.add_argument(
+        "--garbage-every",
+        type=int,
+        default=0,
+        metavar="N",
+        help="write 1-16 random bytes after every N-th SAMPLE",
+    )
+    em.add_argument(
+        "--drop-every", type=int, default=0, metavar="N", help="skip every N-th SAMPLE (a seq gap)"
+    )
+    em.add_argument("--seed", type=int, default=0, help="seed of the random garbage")
+    em.add_argument("--log-level", default="INFO", help="DEBUG, INFO, WARNING, ERROR")
+    mon = sub.add_parser("monitor", help="print the board's HELLO, readings and counters")
+    mon.add_argument("--config", metavar="FILE", help="master_capture TOML config (its [serial] table)")
+    mon.add_argument(
+        "--set", action="append", default=[], metavar="KEY=VALUE", help="override a master_capture key"
+    )
+    mon.add_argument("--seconds", type=float, default=0.0, metavar="S", help="stop after S s (0: never)")
+    mon.add_argument("--print-hz", type=float, default=5.0, metavar="HZ", help="reading lines per second (5)")
+    mon.add_argument("--log-level", default="INFO", help="DEBUG, INFO, WARNING, ERROR")
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """``telesurg device``; exit 0 on a requested stop, 1 on a device error, 2 on bad options."""
+    parser = _parser()
+    args = parser.parse_args(argv)
+    setup_logging(args.log_level, "device")
+    stop = threading.Event()
+    if args.command == "emulate":
+        if not args.pty:
+            parser.error("emulate needs a transport: --pty")
+        opts = EmulatorOptions(
+            rate_hz=args.rate,
+            motion=args.motion,
+            garbage_every=args.garbage_every,
+            drop_every=args.drop_every,
+            seed=args.seed,
+        )
+        try:
+            opts.validate()
+        except ValueError as exc:
+            print(f"telesurg device emulate: {exc}", file=sys.stderr)
+            return 2
+        install_stop_handlers(stop)
+        stats = run_pty(opts, stop, args.seconds)
+        log.info(
+            "sent %d SAMPLEs, %d HELLOs; dropped %d, garbage %d, HELLO_REQUESTs %d, overflow %d bytes",
+            stats.samples,
+            stats.hellos,
+            stats.dropped,
+            stats.garbage,
+            stats.requests,
+            stats.overflow_bytes,
+        )
+        return 0
+    return _monitor_main(args, stop)
+
+
+def _monitor_main(args: argparse.Namespace, stop: threading.Event) -> int:
+    from services.master_capture import MasterCaptureConfig  # zenoh: only for this subcommand
+    from shared.config import load_config
+
+    try:
+        cfg = load_config(MasterCaptureConfig, args.config, args.set).serial
+        cfg.validate()
+        if args.print_hz <= 0:
+            raise ValueError(f"--print-hz must be > 0, got {args.print_hz}")
+    except (TelesurgError, ValueError) as exc:
+        print(f"telesurg device monitor: {exc}", file=sys.stderr)
+        return 2
+    install_stop_handlers(stop)
+    try:
+        monitor(cfg, stop, seconds=args.seconds, print_hz=args.print_hz)
+    except (TelesurgError, ConnectionError) as exc:
+        log.error("%s", exc)
+        return 1
+    return 0
+
+
+def monitor(
+    cfg: SerialMasterConfig,
+    stop: threading.Event,
+    *,
+    seconds: float = 0.0,
+    print_hz: float = 5.0,
+    out: TextIO | None = None,
+) -> None:
+    """Print the board's HELLOs, a reading line at ``print_hz`` and the counters at the end.
+
+    Raises:
+        DeviceConnectionError: the port cannot be opened or fails.
+    """
+    stream = out or sys.stdout
+    cal = cfg.calibration
+    end = time.monotonic() + seconds if seconds > 0 else math.inf
+    latest: Sample | None = None
+    invalid = 0
+    next_print = time.monotonic()
+    with SerialLink(cfg.port, baudrate=cfg.baud) as link:
+        send_message(link, HelloRequest())
+        while not stop.is_set() and time.monotonic() < end:
+            first = link.receive(timeout=0.05)
+            for frame in [first, *link.poll()] if first is not None else []:
+                try:
+                    msg = decode_message(frame)
+                except MessageError as exc:
+                    invalid += 1
+                    print(f"invalid frame seq {frame.seq}: {exc}", file=stream, flush=True)
+                    continue
+                if isinstance(msg, Hello):
+                    try:
+                        cal.check_hello(msg)
+                        verdict = "matches the calibration"
+                    except MessageError as exc:
+                        verdict = f"REFUSED: {exc}"
+                    print(f"HELLO seq {frame.seq}: {msg.body()} — {verdict}", file=stream, flush=True)
+                elif isinstance(msg, Sample):
+                    latest = msg
+            if latest is not None and time.monotonic() >= next_print:
+                next_print = time.monotonic() + 1.0 / print_hz
+                print(_reading_line(cfg, latest), file=stream, flush=True)
+        r = link.reader
+        print(
+            f"frames {r.frames}, corrupt {r.error_count} {dict(r.errors)}, invalid {invalid}",
+            file=stream,
+            flush=True,
+        )
+
+
+def _reading_line(cfg: SerialMasterConfig, s: Sample) -> str:
+    """Raw counts, pot, switches, then every joint in deg (encoders) or mm (pot)."""
+    cal = cfg.calibration
+    raw = f"t_us={s.t_us} counts={list(s.counts)} pot={s.pot} sw=0b{s.sw:03b}"
+    try:
+        q = cal.convert(s).joints
+    except MessageError as exc:
+        return f"{raw} | {exc}"
+    parts = []
+    for i, (name, v) in enumerate(zip(cfg.joint_names, q, strict=True)):
+        if i + 1 in cal.encoder_joints:
+            parts.append(f"{name}={math.degrees(v):+7.2f}°")
+        elif i + 1 == cal.pot_joint:
+            parts.append(f"{name}={v * 1000:+6.2f}mm")
+        else:
+            parts.append(f"{name}=-")
+    return f"{raw} | {' '.join(parts)}"

@@ -1,0 +1,240 @@
+"""Encoder-board emulator: HELLO and SAMPLE frames of a scripted master on a file descriptor.
+
+:class:`BoardEmulator` speaks :mod:`shared.encoder_protocol` exactly like the reference firmware
+(``firmware/encoder_board``): a HELLO on start, every ``hello_every_s`` and on HELLO_REQUEST, and a
+SAMPLE at ``rate_hz`` generated from a scripted motion of the six master joints through the
+default :class:`~shared.encoder_protocol.Calibration` (so a host with the default calibration
+reads back the scripted joint values to within one count). It writes to any non-blocking fd — the
+controller side of a pseudo-terminal in :func:`run_pty` (``telesurg device emulate --pty``), or a
+test's own pty — and can inject line noise and dropped frames.
+
+Motions (``t`` in s since the emulator started):
+
+* ``sine`` — joints 2-5 swing ±0.35, ±0.30, ±0.25, ±0.50 rad at 0.20-0.33 Hz, the finger slide
+  ±10 mm at 0.4 Hz; joint 1 (a switch on the real device) stays 0 and its switch released;
+* ``still`` — every joint at 0.
+
+Both press the clutch pedal from t = 1 s on (a restarted master never engages in its first second)
+and report the operator present.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+import random
+import threading
+import time
+from dataclasses import dataclass, field
+
+from shared.encoder_protocol import (
+    SW_CLUTCH,
+    SW_OPERATOR,
+    T_US_MODULUS,
+    Calibration,
+    Hello,
+    HelloRequest,
+    Sample,
+    decode_message,
+    encode_message,
+)
+from shared.errors import MessageError
+from shared.serial_link import SEQ_MODULUS, FrameReader
+from shared.timing import CycleTimer
+
+log = logging.getLogger(__name__)
+
+MOTIONS = ("sine", "still")
+#: Bytes the emulator buffers while nobody reads the pty; beyond this it drops them (counted).
+MAX_PENDING_BYTES = 4096
+
+# joint (0-based), amplitude (rad / m), frequency (Hz), phase (rad) of the sine motion
+_SINE = (
+    (1, 0.35, 0.20, 0.0),
+    (2, 0.30, 0.27, 1.0),
+    (3, 0.25, 0.33, 2.0),
+    (4, 0.50, 0.15, 3.0),
+    (5, 0.010, 0.4, 0.5),
+)
+
+
+def motion_joints(motion: str, t: float, joints: int = 6) -> tuple[float, ...]:
+    """Joint values (rad / m) of ``motion`` at ``t`` s."""
+    q = [0.0] * joints
+    if motion == "sine":
+        for j, amp, hz, phase in _SINE:
+            if j < joints:
+                q[j] = amp * math.sin(2.0 * math.pi * hz * t + phase)
+    elif motion != "still":
+        raise ValueError(f"motion {motion!r} unknown; valid: {', '.join(MOTIONS)}")
+    return tuple(q)
+
+
+def motion_switches(t: float) -> int:
+    """``sw`` bits at ``t`` s: operator present always, clutch pressed from 1 s on."""
+    return SW_OPERATOR | (SW_CLUTCH if t >= 1.0 else 0)
+
+
+@dataclass
+class EmulatorOptions:
+    """What the emulated board sends."""
+
+    rate_hz: float = 500.0  # Hz: SAMPLE rate
+    motion: str = "sine"  # sine | still
+    garbage_every: int = 0  # after every N-th SAMPLE write 1-16 random bytes (0: never)
+    drop_every: int = 0  # skip every N-th SAMPLE, its seq used up: the host sees a gap (0: never)
+    hello_every_s: float = 1.0  # s: periodic HELLO (the firmware's HELLO_PERIOD_MS)
+    seed: int = 0  # random garbage seed
+    calibration: Calibration = field(default_factory=Calibration)  # joints → counts / ADC
+    model: str = "plas-master"  # HELLO model
+    fw: str = "emulator"  # HELLO firmware version
+
+    def validate(self) -> None:
+        if not 1.0 <= self.rate_hz <= 5000.0:
+            raise ValueError(f"rate {self.rate_hz} Hz outside [1, 5000]")
+        if self.motion not in MOTIONS:
+            raise ValueError(f"motion {self.motion!r} unknown; valid: {', '.join(MOTIONS)}")
+        if self.garbage_every < 0 or self.drop_every < 0:
+            raise ValueError("garbage_every and drop_every must be >= 0 (0: off)")
+        if self.hello_every_s <= 0:
+            raise ValueError("hello_every_s must be > 0")
+
+
+@dataclass
+class EmulatorStats:
+    """What the emulator did."""
+
+    samples: int = 0  # SAMPLEs written
+    hellos: int = 0  # HELLOs written
+    dropped: int = 0  # SAMPLEs skipped on purpose (drop_every)
+    garbage: int = 0  # noise bursts written (garbage_every)
+    requests: int = 0  # HELLO_REQUESTs received
+    overflow_bytes: int = 0  # bytes discarded because nobody read the pty
+
+
+class BoardEmulator:
+    """An emulated encoder board writing to ``fd`` (set non-blocking here) and reading from it.
+
+    One frame counter (``seq``) for every frame written, as a real board has. Not thread-safe:
+    one thread calls :meth:`serve` (or :meth:`step`) at a time.
+    """
+
+    def __init__(self, fd: int, opts: EmulatorOptions | None = None) -> None:
+        self.opts = opts or EmulatorOptions()
+        self.opts.validate()
+        self.fd = fd
+        os.set_blocking(fd, False)
+        cal = self.opts.calibration
+        self.hello = Hello(
+            model=self.opts.model,
+            fw=self.opts.fw,
+            joints=cal.joints,
+            encoders=cal.encoders,
+            counts_per_rev=cal.counts_per_rev,
+            rate_hz=round(self.opts.rate_hz),
+        )
+        self.stats = EmulatorStats()
+        self.seq = 0
+        self._t0 = time.monotonic()
+        self._next_hello = 0.0
+        self._reader = FrameReader()
+        self._out = bytearray()
+        self._rng = random.Random(self.opts.seed)
+
+    def serve(self, stop: threading.Event, seconds: float = 0.0) -> None:
+        """Send frames at ``rate_hz`` until ``stop`` is set or ``seconds`` (> 0) have passed."""
+        timer = CycleTimer(self.opts.rate_hz)
+        end = time.monotonic() + seconds if seconds > 0 else math.inf
+        while not stop.is_set() and time.monotonic() < end:
+            self.step()
+            timer.wait()
+
+    def step(self) -> None:
+        """Answer requests, send a HELLO if due, and one SAMPLE (or its planned drop / noise)."""
+        t = time.monotonic() - self._t0
+        self._read_requests()
+        if t >= self._next_hello:
+            self._next_hello = t + self.opts.hello_every_s
+            self.send_hello()
+        n = self.stats.samples + self.stats.dropped + 1  # this SAMPLE's number, from 1
+        cal = self.opts.calibration
+        counts, pot = cal.raw(motion_joints(self.opts.motion, t, cal.joints))
+        sample = Sample(t_us=int(t * 1e6) % T_US_MODULUS, counts=counts, pot=pot, sw=motion_switches(t))
+        if self.opts.drop_every and n % self.opts.drop_every == 0:
+            self.seq = (self.seq + 1) % SEQ_MODULUS  # as if lost on the wire
+            self.stats.dropped += 1
+        else:
+            self._send(encode_message(sample, self._next_seq()))
+            self.stats.samples += 1
+        if self.opts.garbage_every and n % self.opts.garbage_every == 0:
+            self._send(self._rng.randbytes(self._rng.randint(1, 16)))
+            self.stats.garbage += 1
+
+    def send_hello(self) -> None:
+        self._send(encode_message(self.hello, self._next_seq()))
+        self.stats.hellos += 1
+
+    def _next_seq(self) -> int:
+        seq = self.seq
+        self.seq = (seq + 1) % SEQ_MODULUS
+        return seq
+
+    def _read_requests(self) -> None:
+        try:
+            data = os.read(self.fd, 4096)
+        except BlockingIOError:
+            return
+        except OSError:  # EIO: no process has the pty's device side open (between host connections)
+            return
+        for frame in self._reader.feed(data):
+            try:
+                msg = decode_message(frame)
+            except MessageError as exc:
+                log.warning("ignored a frame from the host: %s", exc)
+                continue
+            if isinstance(msg, HelloRequest):
+                self.stats.requests += 1
+                self.send_hello()
+            else:
+                log.warning(
+                    "ignored a %s from the host (a host only sends HELLO_REQUEST)", type(msg).__name__
+                )
+
+    def _send(self, data: bytes) -> None:
+        self._out += data
+        try:
+            n = os.write(self.fd, self._out)
+        except (BlockingIOError, InterruptedError):
+            n = 0
+        del self._out[:n]
+        if len(self._out) > MAX_PENDING_BYTES:  # nobody reads: drop; the host resynchronises on 0x00
+            self.stats.overflow_bytes += len(self._out)
+            self._out.clear()
+
+
+def run_pty(opts: EmulatorOptions, stop: threading.Event, seconds: float = 0.0) -> EmulatorStats:
+    """Open a pseudo-terminal pair, print its device path on stdout, serve on it until ``stop``.
+
+    The device side is put in raw mode and kept open for the emulator's lifetime, so hosts can
+    open, close and re-open it.
+    """
+    import tty
+
+    controller, device = os.openpty()
+    try:
+        tty.setraw(device)
+        print(os.ttyname(device), flush=True)
+        emulator = BoardEmulator(controller, opts)
+        log.info(
+            "emulating %s on %s: %.0f Hz, motion %s",
+            opts.model,
+            os.ttyname(device),
+            opts.rate_hz,
+            opts.motion,
+        )
+        emulator.serve(stop, seconds)
+        return emulator.stats
+    finally:
+        os.close(controller)
+        os.close(device)
