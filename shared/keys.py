@@ -16,6 +16,7 @@ service instance id)::
     safety/<arm>/state           SafetyState     watchdog's view of the arm
     estop                        EStop           e-stop / reset, from the console or any service
     slave/<arm>/command          (queryable)     Command → CommandReply (operator commands)
+    mapping/<arm>/command        (queryable)     Command → CommandReply (VIP mapping: set/reallocate)
     echo/<service>               (queryable)     replies at once: round-trip time across hosts
     events/<service>             SafetyEvent     events (transitions, IK failures, ...)
     heartbeat/<service>          Heartbeat       2 Hz service heartbeat
@@ -87,6 +88,10 @@ class Keys:
     def echo(self, service: str = "*") -> str:
         """``telesurg/<site>/echo/<service>``: each service's echo queryable (RTT probes)."""
         return f"{self.prefix}/echo/{service if service == '*' else check_id('service', service)}"
+
+    def mapping_command(self, arm: str) -> str:
+        """``telesurg/<site>/mapping/<arm>/command``: the mapping's command queryable (VIP)."""
+        return f"{self.prefix}/mapping/{check_id('arm', arm)}/command"
 
     def events(self, service: str = "*") -> str:
         """``telesurg/<site>/events/<service>`` (``*`` matches every service)."""

@@ -407,7 +407,7 @@ class JointSetpoint(Message):
 
 
 OPERATING_STATES = frozenset({"DISABLED", "ENABLED", "PAUSED", "FAULT"})
-CONTROL_MODES = frozenset({"non_trocar", "transitional", "trocar"})
+CONTROL_MODES = frozenset({"non_trocar", "transitional", "trocar", "joint"})
 
 
 @_register
@@ -417,7 +417,8 @@ class OperatingState(Message):
 
     Attributes:
         state: ``ENABLED`` (moving under a lease), ``PAUSED`` (holding), ``DISABLED``, ``FAULT``.
-        control_mode: ``non_trocar`` / ``transitional`` / ``trocar``.
+        control_mode: ``non_trocar`` / ``transitional`` / ``trocar`` (the forceps arm), or
+            ``joint`` (a joint-space slave without trocar modes: PLAS, VIP arms).
         follow: True while the slave tracks servo_jp.
         lease_ok: True while a fresh watchdog lease allows motion.
         reason: why the slave holds ("" while following).

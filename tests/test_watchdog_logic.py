@@ -94,7 +94,9 @@ def test_not_following_setpoints_are_not_speed_checked() -> None:
 
 
 def test_workspace_and_rcm_limits() -> None:
-    from services.watchdog import _tip
+    from shared.robots import arm_profile
+
+    _tip = arm_profile("mh3f", "arm1").tip
 
     w = ArmSafety("arm1", WatchdogConfig().policy(), NAMES, tip_of=_tip)
     w.on_servo(sp(Q0, 0.0), 0.0)  # tip at (835, 0, 301) mm

@@ -193,6 +193,7 @@ class Pipeline:
         master: bool = True,
         probe: bool = True,
         log_level: str = "INFO",
+        config_dir: Path | None = None,
     ) -> None:
         self.log_dir = log_dir
         port = free_port()
@@ -206,7 +207,7 @@ class Pipeline:
         services += (("master_capture",) if master else ()) + (("mirror",) if mirror else ())
         self.spec = SiteSpec(
             port=port,
-            config_dir=default_config_dir(),
+            config_dir=config_dir or default_config_dir(),
             services=services,
             overrides=ov,
             log_dir=log_dir,

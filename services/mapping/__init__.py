@@ -42,6 +42,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from services.common import service_main
+from services.mapping.joints import AllJointsMapping, VipMapping
 from shared.bus import BusConfig, Node, Outlet, only
 from shared.errors import ConfigError, IKError
 from shared.keys import check_id
@@ -50,6 +51,7 @@ from shared.kinematics.transforms import rot_x, rot_y, rot_z
 from shared.kinematics.trocar import trocar_ik
 from shared.messages import (
     CartesianPose,
+    Command,
     JointSetpoint,
     JointState,
     MasterButtons,
@@ -60,6 +62,7 @@ from shared.messages import (
 log = logging.getLogger(__name__)
 ORIENTATION_MODES = ("follow", "fixed")
 MASTER_MODES = ("pen", "virtual_trocar")
+MAPPING_MODES = ("cartesian", "all_joints", "vip")
 
 
 @dataclass
@@ -69,6 +72,13 @@ class MappingConfig:
     site: str = "local"  # key prefix telesurg/<site>
     service: str = "mapping"  # instance id (liveliness alive/<service>, header src)
     pairs: list[str] = field(default_factory=lambda: ["m1:arm1"])  # "master_arm:slave_arm"
+    # cartesian: master pose → slave tip (6-axis IK / trocar IK; model mh3f); all_joints: master
+    # joints → slave joints (PLAS, model plas); vip: master pose → wrist, elbow by VIP (model vip)
+    mode: str = "cartesian"
+    model: str = "mh3f"  # slave robot model (shared/robots.py)
+    all_joints_mode: str = "factor"  # all_joints: factor (Table 6) or tip_exact (DLS Jacobian)
+    d1_speed_mm_s: float = 10.0  # all_joints: slave d1 speed while the master's joint-1 switch is on
+    vip_ev_mm: float = 50.0  # vip: |EV| of the VIP chosen from the joints (20–50 mm)
     scale: float = 0.5  # slave translation / master translation (motion scaling), 0 < scale <= 2
     orientation: str = "follow"  # follow: apply master rotation increments; fixed: keep engage pose
     # pen: the master position is the tip; virtual_trocar (Jinno 2014, Fig. 7): it is the handle of
@@ -101,6 +111,15 @@ class MappingConfig:
             raise ConfigError(
                 f"orientation {self.orientation!r} invalid; valid: {', '.join(ORIENTATION_MODES)}"
             )
+        if self.mode not in MAPPING_MODES:
+            raise ConfigError(f"mode {self.mode!r} invalid; valid: {', '.join(MAPPING_MODES)}")
+        want = {"cartesian": "mh3f", "all_joints": "plas", "vip": "vip"}[self.mode]
+        if self.model != want:
+            raise ConfigError(f"mapping mode {self.mode!r} drives model {want!r}, not {self.model!r}")
+        if self.all_joints_mode not in ("factor", "tip_exact"):
+            raise ConfigError(f"all_joints_mode {self.all_joints_mode!r} invalid; valid: factor, tip_exact")
+        if not 20.0 <= self.vip_ev_mm <= 50.0:
+            raise ConfigError(f"vip_ev_mm={self.vip_ev_mm} outside [20, 50] (Jang 2014, Step 5)")
         if self.master_mode not in MASTER_MODES:
             raise ConfigError(f"master_mode {self.master_mode!r} invalid; valid: {', '.join(MASTER_MODES)}")
         if not 10.0 <= self.dummy_forceps_mm <= 1000.0:
@@ -413,19 +432,32 @@ def run(cfg: MappingConfig, stop: threading.Event) -> None:
         work = threading.Event()  # set by every master sample
         for pair in cfg.pairs:
             master, slave = parse_pair(pair)
-            a = ArmMapping(cfg, node, master, slave, work)
             m_src, s_src, w_src = (
                 only(cfg.master_source),
                 only(cfg.slave_source),
                 only(cfg.watchdog_source),
             )
+            a: ArmMapping | AllJointsMapping | VipMapping
+            if cfg.mode == "all_joints":
+                a = AllJointsMapping(cfg, node, master, slave, work)
+                node.subscribe(k.master(master, "measured_js"), JointState, a.on_master_js, sources=m_src)
+            elif cfg.mode == "vip":
+                a = VipMapping(cfg, node, master, slave, work)
+                node.subscribe(
+                    k.master(master, "measured_cp"), CartesianPose, a.on_master_pose, sources=m_src
+                )
+                node.serve(k.mapping_command(slave), Command, a.on_command)
+            else:
+                a = ArmMapping(cfg, node, master, slave, work)
+                node.subscribe(
+                    k.master(master, "measured_cp"), CartesianPose, a.on_master_pose, sources=m_src
+                )
             node.subscribe(k.master(master, "buttons"), MasterButtons, a.on_buttons, sources=m_src)
-            node.subscribe(k.master(master, "measured_cp"), CartesianPose, a.on_master_pose, sources=m_src)
             node.subscribe(k.slave(slave, "measured_js"), JointState, a.on_slave_js, sources=s_src)
             node.subscribe(k.slave(slave, "operating_state"), OperatingState, a.on_slave_state, sources=s_src)
             node.subscribe(k.safety(slave, "state"), SafetyState, a.on_safety_state, sources=w_src)
             arms.append(a)
-            log.info("mapping %s → %s, scale %.2f", master, slave, cfg.scale)
+            log.info("mapping %s → %s (%s), scale %.2f", master, slave, cfg.mode, cfg.scale)
         check_period = 0.01  # s: master staleness check
         last_check = last_iter = time.monotonic()
         while not stop.is_set():

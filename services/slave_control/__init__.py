@@ -66,12 +66,16 @@ class SlaveControlConfig:
     service: str = "slave_control"  # instance id (liveliness alive/<service>, header src)
     arm: str = "arm1"  # slave arm id in keys slave/<arm>/...
     backend: str = "mujoco"  # valid: mujoco
-    model: str = "mh3f"  # robot model (services/slave_control/models/<model>)
+    # robot model (services/slave_control/models/<model>): mh3f (one forceps arm, trocar modes);
+    # plas, vip: two joint-space arms arm1/arm2 in one process (see joint_slave.py)
+    model: str = "mh3f"
     # rad: start pose — tip at (835, 0, 301) mm, forceps pitched 29° down
     q_home: tuple[float, ...] = (0.0, 0.2, 0.3, 0.0, -0.6, 0.0)
     publish_hz: float = 250.0  # Hz: measured_js and measured_cp
     state_hz: float = 20.0  # Hz: operating_state (also sent on every change)
     setpoint_timeout_ms: float = 100.0  # ms: an older setpoint is stale → hold
+    # ms: joint slaves interpolate sparse setpoints over their period, at most this long
+    interpolation_max_ms: float = 100.0
     engage_tolerance_rad: float = 0.02  # rad: first followed setpoint must be this close to the arm
     # rad: while following, a setpoint farther than this from the previous one is refused (a jump)
     max_setpoint_step_rad: float = 0.1
@@ -567,6 +571,14 @@ def _internal_step(
 
 def run(cfg: SlaveControlConfig, stop: threading.Event) -> None:
     """Run the slave until ``stop``."""
+    if cfg.model != "mh3f":
+        from services.slave_control.joint_slave import run_joint_slave
+        from shared.robots import arms_of
+
+        arms = arms_of(cfg.model)
+        backend = make_backend(cfg.backend, cfg.model, (), tuple(p.tip_site for p in arms))
+        run_joint_slave(cfg, stop, backend, arms)
+        return
     if len(cfg.q_home) != len(MH3F.joint_names):
         raise ConfigError(f"q_home needs {len(MH3F.joint_names)} values")
     backend = make_backend(cfg.backend, cfg.model, cfg.q_home)

@@ -38,6 +38,7 @@ class SlaveReading:
     tip_quat: np.ndarray
     sim_time: float
     external_torque: np.ndarray | None = None
+    site_positions: np.ndarray | None = None  # (k, 3) m: the backend's extra sites, in order
 
 
 #: Where the simulated hand can push the arm.
@@ -81,10 +82,11 @@ class MujocoBackend:
     forceps tip or the wrist (for direct teach); the estimate then equals ``Jᵀ F`` of that push.
     """
 
-    def __init__(self, model: str, q_home: tuple[float, ...]) -> None:
+    def __init__(self, model: str, q_home: tuple[float, ...], sites: tuple[str, ...] = ()) -> None:
         from services.slave_control.models import model_path
 
         self.scene = model_path(model)
+        self.sites = sites  # extra sites reported in read().site_positions (e.g. one tip per arm)
         self.q_home = np.array(q_home, dtype=float)
         self.joint_names: tuple[str, ...] = ()
         self.dt = 0.001
@@ -100,15 +102,23 @@ class MujocoBackend:
         m = mujoco.MjModel.from_xml_path(str(self.scene))
         d = mujoco.MjData(m)
         self.joint_names = tuple(m.joint(i).name for i in range(m.njnt))
+        if len(self.q_home) == 0:  # the model's own start pose: keyframe "home", else zeros
+            if "home" in {m.key(i).name for i in range(m.nkey)}:
+                mujoco.mj_resetDataKeyframe(m, d, m.key("home").id)
+            self.q_home = d.qpos.copy()
         if len(self.q_home) != m.nq:
             raise ConfigError(f"q_home has {len(self.q_home)} values, model has {m.nq} joints")
         d.qpos[:] = self.q_home
         d.ctrl[:] = self.q_home
         mujoco.mj_forward(m, d)
         self.dt = float(m.opt.timestep)
-        self._tip = m.site("tip").id
+        try:
+            self._site_ids = [m.site(n).id for n in self.sites]
+        except KeyError as exc:
+            raise ConfigError(f"model {self.scene.parent.name}: no site {exc}") from exc
+        self._tip = m.site("tip").id if "tip" in _names(m, "site") else self._site_ids[0]
         self._tip_body = int(m.site_bodyid[self._tip])
-        self._wrist_body = m.body("link6").id  # its origin is the wrist centre
+        self._wrist_body = m.body("link6").id if "link6" in _names(m, "body") else self._tip_body
         self._mq = np.zeros(m.nv)
         self._m, self._d, self._mj = m, d, mujoco
         return self
@@ -164,14 +174,23 @@ class MujocoBackend:
             np.array([quat[1], quat[2], quat[3], quat[0]]),
             float(d.time),
             tau_ext,
+            d.site_xpos[self._site_ids].copy() if self._site_ids else None,
         )
+
+
+def _names(m: Any, kind: str) -> set[str]:
+    count = {"site": m.nsite, "body": m.nbody}[kind]
+    getter = m.site if kind == "site" else m.body
+    return {getter(i).name for i in range(count)}
 
 
 BACKENDS = ("mujoco",)
 
 
-def make_backend(kind: str, model: str, q_home: tuple[float, ...]) -> SlaveBackend:
+def make_backend(
+    kind: str, model: str, q_home: tuple[float, ...], sites: tuple[str, ...] = ()
+) -> SlaveBackend:
     """The backend registered as ``kind``."""
     if kind == "mujoco":
-        return MujocoBackend(model, q_home)
+        return MujocoBackend(model, q_home, sites)
     raise ConfigError(f"slave backend {kind!r} unknown; valid: {', '.join(BACKENDS)}")

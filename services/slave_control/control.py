@@ -40,50 +40,73 @@ def limit_step(want: np.ndarray, lim: np.ndarray) -> np.ndarray:
 class SetpointInterpolator:
     """Turns sparse setpoints (e.g. a 25 Hz console) into a smooth 1 kHz joint reference.
 
-    First-order hold delayed by one setpoint period: when setpoint ``k`` arrives the reference
-    moves linearly from where it is to ``k`` over the measured period between setpoints ``k-1`` and
-    ``k`` (``period`` clamped to [``min_period``, ``max_period``]). Every output is a convex
-    combination of the previous output and an accepted setpoint, so it never leaves the box of
-    the joint limits both lie in (no overshoot), and its speed is constant within a period (no
-    steps except at setpoint arrivals, bounded by the setpoint increments).
+    A jitter buffer on the *source* clock: every setpoint carries the time it was sampled at the
+    source (the master's stamp, ``origin_ns``), and the reference replays that timeline, linearly
+    interpolated between consecutive setpoints, ``delay`` behind the second setpoint's arrival
+    (``delay`` = 1.5 source periods, at most ``max_period``). Arrival jitter up to half a period
+    therefore does not reach the motion, and the clocks need not agree (only their offset counts,
+    fixed when the timeline starts). The playback clock runs at the local clock's rate and never
+    jumps: if the buffer runs dry (the stream stalled) the reference holds the last setpoint and,
+    when setpoints come again, resumes from there (the timeline shifts by the stall).
+
+    Every output is a convex combination of two consecutive accepted setpoints, so it never leaves
+    the box of the joint limits they lie in (no overshoot); its speed is constant between
+    setpoints (no steps); it never extrapolates. :meth:`reset` starts a new timeline (engage).
 
     Attributes:
-        min_period: s; shortest interpolation time (faster streams are followed as they come).
-        max_period: s; longest (a late setpoint is not spread over the gap).
+        max_period: s; the longest delay.
+        window: setpoints kept.
     """
 
-    min_period: float = 0.001
     max_period: float = 0.1
-    _from: np.ndarray | None = None
-    _to: np.ndarray | None = None
-    _t_to: float = 0.0  # arrival time of _to
-    _period: float = 0.0
-    _out: np.ndarray | None = None
+    window: int = 50
+    _pts: list[tuple[float, np.ndarray]] = field(default_factory=list)  # (source time s, q)
+    _offset: float | None = None  # local time - source time of the playback clock, s
+    _delay: float = 0.0
 
-    def push(self, q: np.ndarray, t: float) -> None:
-        """A new setpoint ``q`` arrived at time ``t`` (s)."""
-        if self._to is None:
-            self._from = self._to = q.copy()
-            self._out = q.copy()
-            self._t_to = t
-            self._period = self.min_period
-            return
-        self._period = min(max(t - self._t_to, self.min_period), self.max_period)
-        self._from = self._out.copy() if self._out is not None else self._to.copy()
-        self._to = q.copy()
-        self._t_to = t
+    def push(self, q: np.ndarray, t_source: float, t_arrival: float) -> None:
+        """A setpoint ``q`` sampled at ``t_source`` (source clock, s) arrived at ``t_arrival``."""
+        pts = self._pts
+        if pts and t_source <= pts[-1][0]:
+            return  # duplicate or reordered: the timeline only moves forward
+        if self._offset is not None and pts:
+            behind = t_arrival - self._offset - self._delay - pts[-1][0]
+            if behind > 0.0:  # the reference has been holding the last setpoint: resume there
+                self._offset += behind
+        pts.append((t_source, q.copy()))
+        del pts[: -self.window]
+        if self._offset is None and len(pts) >= 2:
+            self._delay = min(1.5 * (pts[-1][0] - pts[-2][0]), self.max_period)
+            self._offset = t_arrival - t_source
+
+    @property
+    def delay(self) -> float:
+        """Buffer delay of the current timeline, s."""
+        return self._delay
 
     def sample(self, t: float) -> np.ndarray | None:
-        """Reference at time ``t`` (None before the first setpoint)."""
-        if self._to is None or self._from is None:
+        """Reference at local time ``t`` (s); None before the first setpoint."""
+        pts = self._pts
+        if not pts:
             return None
-        s = min(max((t - self._t_to) / self._period, 0.0), 1.0)
-        self._out = self._from + s * (self._to - self._from)
-        return self._out
+        if self._offset is None:
+            return pts[0][1]
+        tp = t - self._offset - self._delay  # the source time being played now
+        if tp <= pts[0][0]:
+            return pts[0][1]
+        if tp >= pts[-1][0]:
+            return pts[-1][1]  # ran dry: hold the newest setpoint
+        for (ta, qa), (tb, qb) in zip(pts[-2::-1], pts[:0:-1], strict=True):  # newest first
+            if ta <= tp:
+                out: np.ndarray = qa + (tp - ta) / (tb - ta) * (qb - qa)
+                return out
+        return pts[0][1]
 
     def reset(self) -> None:
-        """Forget the history (after a hold: the next setpoint starts a new segment)."""
-        self._from = self._to = self._out = None
+        """Forget the history (a new engage starts a new timeline)."""
+        self._pts.clear()
+        self._offset = None
+        self._delay = 0.0
 
 
 @dataclass
@@ -103,12 +126,14 @@ class Lease:
 
 @dataclass
 class Setpoint:
-    """Latest accepted setpoint (receive time on the local monotonic clock, s; control cycle)."""
+    """Latest accepted setpoint (receive time on the local monotonic clock, s; control cycle;
+    source sampling time, s on the source's clock, 0 if unknown)."""
 
     position: np.ndarray
     follow: bool
     received: float
     cycle: int | None = None
+    source_time: float = 0.0
 
 
 @dataclass

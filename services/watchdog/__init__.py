@@ -42,7 +42,6 @@ from services.mapping import parse_pair
 from services.watchdog.logic import ArmSafety, Policy, Verdict
 from shared.bus import BusConfig, Node, Outlet, only
 from shared.errors import ConfigError
-from shared.kinematics import MH3F, fk
 from shared.messages import (
     CartesianPose,
     EStop,
@@ -54,6 +53,7 @@ from shared.messages import (
     SafetyLease,
     SafetyState,
 )
+from shared.robots import arm_profile
 
 log = logging.getLogger(__name__)
 LATENCY_SOURCES = ("clock", "echo")
@@ -66,6 +66,7 @@ class WatchdogConfig:
     site: str = "local"  # key prefix telesurg/<site>
     service: str = "watchdog"  # instance id (liveliness alive/<service>, header src)
     pairs: list[str] = field(default_factory=lambda: ["m1:arm1"])  # "master_arm:slave_arm"
+    model: str = "mh3f"  # slave robot model (shared/robots.py): joint names, limits, tip for the workspace
     # services whose liveliness token must be present for any arm to move
     required_services: list[str] = field(
         default_factory=lambda: ["master_capture", "mapping", "slave_control"]
@@ -120,14 +121,15 @@ class WatchdogConfig:
         if any(a >= b for a, b in zip(self.workspace_min_mm, self.workspace_max_mm, strict=True)):
             raise ConfigError("workspace_min_mm must be below workspace_max_mm on every axis")
         for p in self.pairs:
-            parse_pair(p)
+            arm_profile(self.model, parse_pair(p)[1])
 
-    def policy(self) -> Policy:
-        """Per-arm limits: this config plus the MH3F model's joint limits."""
+    def policy(self, arm: str = "arm1") -> Policy:
+        """Per-arm limits: this config plus the robot model's joint limits for ``arm``."""
+        p = arm_profile(self.model, arm)
         return Policy(
-            lower=np.array(MH3F.lower),
-            upper=np.array(MH3F.upper),
-            max_velocity=np.array(MH3F.max_velocity),
+            lower=np.array(p.lower),
+            upper=np.array(p.upper),
+            max_velocity=np.array(p.max_velocity),
             velocity_hold_factor=self.velocity_hold_factor,
             workspace_min_mm=self.workspace_min_mm,
             workspace_max_mm=self.workspace_max_mm,
@@ -140,12 +142,6 @@ class WatchdogConfig:
             min_hold_ms=self.min_hold_ms,
             require_operator=self.require_operator,
         )
-
-
-def _tip(q: np.ndarray) -> np.ndarray:
-    """Forceps-tip position (m) of the MH3F at joint angles ``q``."""
-    out: np.ndarray = fk(q, MH3F)[:3, 3]
-    return out
 
 
 class ArmWatch:
@@ -166,7 +162,8 @@ class ArmWatch:
             k.slave(arm, "servo_jp"),
             k.slave(arm, "measured_js"),
         ]
-        self.safety = ArmSafety(arm, cfg.policy(), MH3F.joint_names, tip_of=_tip)
+        profile = arm_profile(cfg.model, arm)
+        self.safety = ArmSafety(arm, cfg.policy(arm), profile.joint_names, tip_of=profile.tip)
         self.loss: deque[tuple[float, int]] = deque()  # (mono s, lost + reordered so far)
         self.lease_out: Outlet = node.outlet(k.safety(arm, "lease"))
         self.state_out: Outlet = node.outlet(k.safety(arm, "state"), control=False)

@@ -1,0 +1,356 @@
+"""Mappings for the joint-space slaves: all-joints (PLAS, Shim 2015) and VIP (Jang 2014).
+
+Both keep the Cartesian mapping's rules: engage on a *new* clutch press with the operator present,
+a fresh slave joint state and a slave lease; the first setpoint is where the slave is (no jump);
+disengage on clutch release, operator absence, a stale master stream or a holding slave; every
+sample produces a ``servo_jp`` (``follow`` says whether to track it) with ``origin_ns`` = the
+master sample's stamp; the watchdog's safety scale multiplies the motion.
+
+* :class:`AllJointsMapping` (``mode = "all_joints"``): master ``measured_js`` increments become
+  slave joint increments, integrated per sample (:func:`shared.kinematics.plas.map_step`, Table-6
+  factors or the tip-exact alternative); the master's joint 1 is the on/off switch driving slave
+  d1 at ``d1_speed_mm_s``; joint limits clamp and report (one event per clamping episode).
+* :class:`VipMapping` (``mode = "vip"``): master tip increments (``measured_cp``, scaled) move the
+  wrist reference W; the elbow goes on the line W–V of the arm's virtual incision port V
+  (:func:`shared.kinematics.vip.vip_ik`). V is chosen at the first engage from the current joints
+  (:func:`~shared.kinematics.vip.select_vip`, ``vip_ev_mm``) and can be set or reallocated by an
+  operator command on ``mapping/<arm>/command`` while the arm is not following (a new V moves the
+  elbow); every change is an event. An IK failure (e.g. a joint limit) holds the last setpoint.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from services.slave_control.control import limit_step
+from shared.bus import Node, Outlet
+from shared.errors import IKError, KinematicsError
+from shared.messages import (
+    CartesianPose,
+    Command,
+    CommandReply,
+    JointSetpoint,
+    JointState,
+    MasterButtons,
+    OperatingState,
+    SafetyState,
+    Sequencer,
+)
+from shared.robots import arm_profile
+
+if TYPE_CHECKING:
+    from services.mapping import MappingConfig
+
+
+class _JointBase:
+    """Clutch, engage and timeout logic shared by the joint-space mappings (lock-protected)."""
+
+    def __init__(
+        self, cfg: MappingConfig, node: Node, master: str, slave: str, work: threading.Event
+    ) -> None:
+        self.cfg, self.node, self.master, self.slave, self.work = cfg, node, master, slave, work
+        self.profile = arm_profile(cfg.model, slave)
+        self.lower, self.upper = np.array(self.profile.lower), np.array(self.profile.upper)
+        self.lock = threading.Lock()
+        self.servo_out: Outlet = node.outlet(node.keys.slave(slave, "servo_jp"))
+        self.buttons: MasterButtons | None = None
+        self.q_meas: np.ndarray | None = None
+        self.q_meas_rx = 0.0
+        self.slave_state: OperatingState | None = None
+        self.master_rx = 0.0
+        self.following = False
+        self.need_release = True
+        self.want_engage = False
+        self.q_cmd: np.ndarray | None = None
+        self.safety_scale = 1.0
+        self.ik_failures = 0  # samples whose target could not be solved (held)
+        self.conflated = 0
+        self.clamped = 0  # samples with a joint held at its limit
+        self._clamping = False
+
+    # -- inputs (zenoh threads)
+    def on_buttons(self, msg: MasterButtons, key: str) -> None:
+        with self.lock:
+            self.buttons = msg
+            if not msg.clutch:
+                self.need_release = False
+                if self.following:
+                    self._disengage("clutch released", operator=True)
+            elif not msg.operator_present and self.following:
+                self._disengage("operator not present")
+            elif not self.following and not self.need_release:
+                self.want_engage = True
+
+    def on_slave_js(self, msg: JointState, key: str) -> None:
+        if msg.names != self.profile.joint_names:
+            return
+        with self.lock:
+            self.q_meas = np.array(msg.position)
+            self.q_meas_rx = time.monotonic()
+
+    def on_slave_state(self, msg: OperatingState, key: str) -> None:
+        with self.lock:
+            self.slave_state = msg
+            if self.following and not msg.lease_ok:
+                self._disengage(f"slave holding: {msg.reason or 'no lease'}")
+
+    def on_safety_state(self, msg: SafetyState, key: str) -> None:
+        with self.lock:
+            if msg.scale != self.safety_scale:
+                self.safety_scale = msg.scale
+                self._rescaled()
+
+    def _rescaled(self) -> None:
+        """The safety scale changed while following (lock held)."""
+
+    # -- logic (lock held)
+    def _engage_problem(self) -> str:
+        b, now = self.buttons, time.monotonic()
+        if b is None or not b.operator_present:
+            return "operator not present"
+        if self.q_meas is None or (now - self.q_meas_rx) * 1e3 > self.cfg.slave_timeout_ms:
+            return "no fresh slave joint state"
+        if self.slave_state is None or not self.slave_state.lease_ok:
+            why = self.slave_state.reason if self.slave_state else "no slave state"
+            return f"slave not allowed to move ({why})"
+        return ""
+
+    def _engaged(self) -> None:
+        """Take the references at engage (lock held; q_meas is fresh)."""
+
+    def _try_engage(self) -> None:
+        self.want_engage = False
+        self.need_release = True
+        if problem := self._engage_problem():
+            self.node.event(
+                "engage_refused", f"engage refused: {problem}", arm=self.slave, severity="warning"
+            )
+            return
+        assert self.q_meas is not None
+        self.q_cmd = self.q_meas.copy()
+        self._engaged()
+        self.following = True
+        self.node.event("engage", f"engaged {self.master} → {self.slave} ({self.cfg.mode})", arm=self.slave)
+
+    def _disengage(self, reason: str, *, operator: bool = False) -> None:
+        self.following = False
+        self.need_release = not operator
+        sev = "info" if operator else "warning"
+        self.node.event("disengage", f"disengaged: {reason}", arm=self.slave, severity=sev)
+
+    def _report_clamp(self, joints: tuple[str, ...]) -> None:
+        if joints:
+            self.clamped += 1
+            if not self._clamping:
+                self._clamping = True
+                text = f"joint limit holds {', '.join(joints)}"
+                self.node.event("clamped", text, arm=self.slave, severity="warning")
+        elif self._clamping:
+            self._clamping = False
+            self.node.event("clamped", "joints back inside their limits", arm=self.slave)
+
+    def check_timeouts(self) -> None:
+        with self.lock:
+            if self.following and (time.monotonic() - self.master_rx) * 1e3 > self.cfg.master_timeout_ms:
+                self._disengage("master stream stale")
+
+    def _put(self, origin_ns: int) -> None:
+        q = self.q_cmd if self.following and self.q_cmd is not None else self.q_meas
+        if q is None:
+            return
+        q = np.clip(q, self.lower, self.upper)
+        self.servo_out.put(
+            JointSetpoint(
+                self.servo_out.header(),
+                self.profile.joint_names,
+                tuple(float(x) for x in q),
+                follow=self.following,
+                origin_ns=origin_ns,
+            )
+        )
+
+
+class AllJointsMapping(_JointBase):
+    """Master joints → slave joints by the Table-6 factors (see the module docstring)."""
+
+    def __init__(
+        self, cfg: MappingConfig, node: Node, master: str, slave: str, work: threading.Event
+    ) -> None:
+        from shared.kinematics import plas
+
+        super().__init__(cfg, node, master, slave, work)
+        self.plas = plas
+        self.config = plas.MappingConfig(mode=cfg.all_joints_mode, d1_speed=cfg.d1_speed_mm_s / 1e3)  # type: ignore[arg-type]
+        self.pending: JointState | None = None
+        self.qm_prev: np.ndarray | None = None
+        self.t_prev = 0
+
+    def on_master_js(self, msg: JointState, key: str) -> None:
+        if len(msg.position) != 6:
+            return
+        with self.lock:
+            if self.pending is not None:
+                self.conflated += 1
+            self.pending = msg
+            self.master_rx = time.monotonic()
+        self.work.set()
+
+    def _engaged(self) -> None:
+        self.qm_prev = None
+
+    def process(self) -> None:
+        with self.lock:
+            msg, self.pending = self.pending, None
+            if self.want_engage and not self.following:
+                self._try_engage()
+            if msg is None:
+                return
+            qm = np.array(msg.position)
+            if self.following and self.q_cmd is not None:
+                if self.qm_prev is not None:
+                    dt = min(max((msg.header.stamp_ns - self.t_prev) / 1e9, 0.0), 0.1)
+                    switch = 1 if qm[0] >= 0.5 else 0
+                    dq = (qm - self.qm_prev) * self.safety_scale
+                    try:
+                        step = self.plas.map_step(
+                            self.q_cmd,
+                            self.qm_prev,
+                            dq,
+                            dt=dt * self.safety_scale,
+                            switch=switch,
+                            config=self.config,
+                        )
+                        self.q_cmd = step.q
+                        self._report_clamp(step.clamped)
+                    except KinematicsError as exc:
+                        self.ik_failures += 1
+                        if self.ik_failures <= 5:
+                            self.node.event(
+                                "ik_failure", f"holding: {exc}", arm=self.slave, severity="warning"
+                            )
+                self.qm_prev, self.t_prev = qm, msg.header.stamp_ns
+            self._put(msg.header.stamp_ns)
+
+
+class VipMapping(_JointBase):
+    """Master tip → wrist reference → VIP elbow → joints (see the module docstring)."""
+
+    def __init__(
+        self, cfg: MappingConfig, node: Node, master: str, slave: str, work: threading.Event
+    ) -> None:
+        from services.mapping import master_point, rpy_matrix
+        from shared.kinematics import vip
+
+        super().__init__(cfg, node, master, slave, work)
+        self.vip = vip
+        self.geom = vip.VIP_ARM1 if slave == "arm1" else vip.VIP_ARM2
+        self.r_ms = rpy_matrix(cfg.master_to_slave_rpy_deg)
+        self.master_point = master_point
+        self.pending: CartesianPose | None = None
+        self.V: np.ndarray | None = None  # the virtual incision port, m, world frame
+        self.ref: tuple[np.ndarray, np.ndarray] | None = None  # (master point, wrist) at engage
+        self.last: tuple[np.ndarray, np.ndarray] | None = None  # last (master point, wrist target)
+        self.reply_seq = Sequencer(cfg.service)
+        self.vmax = np.array(self.profile.max_velocity)
+        self.t_prev = 0
+
+    def on_master_pose(self, msg: CartesianPose, key: str) -> None:
+        with self.lock:
+            if self.pending is not None:
+                self.conflated += 1
+            self.pending = msg
+            self.master_rx = time.monotonic()
+        self.work.set()
+
+    def _engaged(self) -> None:
+        assert self.q_meas is not None and self.buttons is not None
+        if self.V is None:
+            self.V = self.vip.select_vip(self.q_meas, self.cfg.vip_ev_mm / 1e3, self.geom)
+            self._vip_event("VIP chosen at the first engage from the current joints")
+        self.ref = None  # taken from the next master sample
+
+    def _rescaled(self) -> None:
+        if self.following and self.last is not None:
+            self.ref = self.last  # re-anchor: the new scale applies from here on (no jump)
+
+    def _vip_event(self, why: str) -> None:
+        assert self.V is not None
+        mm = ", ".join(f"{v * 1e3:.1f}" for v in self.V)
+        self.node.event("vip", f"VIP of {self.slave} at ({mm}) mm: {why}", arm=self.slave)
+
+    def process(self) -> None:
+        with self.lock:
+            msg, self.pending = self.pending, None
+            if self.want_engage and not self.following:
+                self._try_engage()
+            if msg is None:
+                return
+            pm = self.master_point(self.cfg, msg.position)
+            if self.following and self.q_cmd is not None and self.V is not None:
+                if self.ref is None:
+                    self.ref = (pm, self.vip.fk(self.q_cmd, self.geom).wrist)
+                pm0, w0 = self.ref
+                w = w0 + self.cfg.scale * self.safety_scale * (self.r_ms @ (pm - pm0))
+                try:
+                    q = self.vip.vip_ik(w, self.V, self.geom, q4_ref=float(self.q_cmd[3]))
+                    # at most half the joint speed limits per sample: after a new VIP the elbow
+                    # moves over to its new line gradually instead of jumping
+                    dt = min(max((msg.header.stamp_ns - self.t_prev) / 1e9, 0.001), 0.1)
+                    self.q_cmd = self.q_cmd + limit_step(q - self.q_cmd, 0.5 * self.vmax * dt)
+                    self.last = (pm, w)
+                    self._report_clamp(())
+                except (IKError, KinematicsError) as exc:
+                    self.ik_failures += 1
+                    self._report_clamp(("IK: " + str(exc)[:200],))
+            self.t_prev = msg.header.stamp_ns
+            self._put(msg.header.stamp_ns)
+
+    def on_command(self, cmd: Command) -> CommandReply:
+        """``state``, ``set_vip x= y= z=`` (mm, world), ``reallocate_vip [ev_mm=]`` (from joints)."""
+        with self.lock:
+            ok, reason = self._command(cmd)
+        if ok and cmd.name != "state":
+            self._vip_event(f"{cmd.name} by the operator")
+        return CommandReply(self.reply_seq.next(), self.slave, cmd.name, ok, reason)
+
+    def _command(self, cmd: Command) -> tuple[bool, str]:
+        a = cmd.arg_map()
+        if cmd.arm != self.slave:
+            return False, f"{cmd.name} refused: this mapping drives {self.slave}, not {cmd.arm}"
+        if cmd.name == "state":
+            v = "none" if self.V is None else ", ".join(f"{x * 1e3:.1f}" for x in self.V)
+            return True, f"VIP ({v}) mm; {'following' if self.following else 'not following'}"
+        if cmd.name not in ("set_vip", "reallocate_vip"):
+            return False, f"unknown command {cmd.name!r}; valid: state, set_vip, reallocate_vip"
+        if self.following:
+            return False, f"{cmd.name} refused: release the clutch first (a new VIP moves the elbow)"
+        if self.q_meas is None:
+            return False, f"{cmd.name} refused: no slave joint state yet"
+        try:
+            if cmd.name == "set_vip":
+                V = np.array([float(a[k]) for k in ("x", "y", "z")]) / 1e3
+                w = self.vip.fk(self.q_meas, self.geom).wrist
+                self.vip.vip_ik(w, V, self.geom, q4_ref=float(self.q_meas[3]))  # reachable from here?
+            else:
+                ev = float(a.get("ev_mm", self.cfg.vip_ev_mm)) / 1e3
+                V = self.vip.select_vip(self.q_meas, ev, self.geom)
+        except KeyError as exc:
+            return False, f"set_vip refused: missing {exc} (x=, y=, z= in mm)"
+        except ValueError as exc:  # KinematicsError / IKError are ValueErrors, and float() errors
+            return False, f"{cmd.name} refused: {exc}"
+        self.V = V
+        mm = ", ".join(f"{x * 1e3:.1f}" for x in V)
+        w = self.vip.fk(self.q_meas, self.geom).wrist
+        moved = np.linalg.norm(
+            self.vip.vip_elbow(w, V, self.geom) - self.vip.fk(self.q_meas, self.geom).elbow
+        )
+        note = (
+            f"; the elbow moves {moved * 1e3:.1f} mm to its new line after the next engage"
+            if moved > 1e-4
+            else ""
+        )
+        return True, f"VIP at ({mm}) mm{note}"
