@@ -37,10 +37,7 @@ class Log:
 @pytest.fixture(scope="module")
 def site(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[Pipeline, Node, Log]]:
     logs = tmp_path_factory.mktemp("vip") / "logs"
-    both = '["m1:arm1", "m1:arm2"]'  # one console master drives both arms in this test
-    overrides = {
-        "mapping": [f"pairs={both}"],
-        "watchdog": [f"pairs={both}"],
+    overrides = {  # deploy/vip: the console master m1 drives both arms
         "master_capture": ["scripted.clutch=[[1.0, 1e9]]", "scripted.clutch_repeat_s=0.0"],  # one engage
     }
     with (

@@ -28,7 +28,7 @@ from typing import TYPE_CHECKING, TextIO
 
 from services.common import install_stop_handlers, setup_logging
 from services.device.emulator import MOTIONS, EmulatorOptions, run_pty
-from shared.encoder_protocol import Hello, HelloRequest, Sample, decode_message, send_message
+from shared.encoder_protocol import Calibration, Hello, HelloRequest, Sample, decode_message, send_message
 from shared.errors import MessageError, TelesurgError
 from shared.serial_link import SerialLink
 
@@ -63,6 +63,13 @@ def _parser() -> argparse.ArgumentParser:
         "--drop-every", type=int, default=0, metavar="N", help="skip every N-th SAMPLE (a seq gap)"
     )
     em.add_argument("--seed", type=int, default=0, help="seed of the random garbage")
+    em.add_argument(
+        "--counts-per-rev",
+        type=int,
+        default=400,
+        metavar="N",
+        help="encoder counts per revolution (400, the thesis's encoder; 1600 = 400 lines decoded x4)",
+    )
     em.add_argument("--log-level", default="INFO", help="DEBUG, INFO, WARNING, ERROR")
     mon = sub.add_parser("monitor", help="print the board's HELLO, readings and counters")
     mon.add_argument("--config", metavar="FILE", help="master_capture TOML config (its [serial] table)")
@@ -90,6 +97,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             garbage_every=args.garbage_every,
             drop_every=args.drop_every,
             seed=args.seed,
+            calibration=Calibration(counts_per_rev=args.counts_per_rev),
         )
         try:
             opts.validate()

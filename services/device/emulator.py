@@ -50,12 +50,12 @@ MOTIONS = ("sine", "still")
 MAX_PENDING_BYTES = 4096
 
 # joint (0-based), amplitude (rad / m), frequency (Hz), phase (rad) of the sine motion
-_SINE = (
-    (1, 0.35, 0.20, 0.0),
-    (2, 0.30, 0.27, 1.0),
-    (3, 0.25, 0.33, 2.0),
-    (4, 0.50, 0.15, 3.0),
-    (5, 0.010, 0.4, 0.5),
+_SINE = (  # (joint index, amplitude rad / m, Hz, phase): a calm surgeon's hand, < 0.3 rad/s
+    (1, 0.35, 0.10, 0.0),
+    (2, 0.30, 0.13, 1.0),
+    (3, 0.25, 0.17, 2.0),
+    (4, 0.50, 0.08, 3.0),
+    (5, 0.010, 0.2, 0.5),
 )
 
 

@@ -8,6 +8,9 @@ and PNG figures:
   services and MuJoCo (about 1.5 min on 2 cores). See ``docs/experiments/jinno.md``.
 * ``shim-mapping`` — Shim 2015: the PLAS all-joints mapping factors of Section 4 (kinematic,
   seconds). See ``docs/experiments/shim.md``.
+* ``jang-vip`` — Jang 2014: VIP redundancy resolution (Figs. 6, 9), elbow excursion VIP vs
+  pseudo-inverse, and the 25 Hz → 1 kHz interpolation in MuJoCo (seconds). See
+  ``docs/experiments/jang.md``.
 
 Exit codes: 0 done, 1 the experiment failed (the reason is printed), 2 bad arguments.
 """
@@ -25,6 +28,7 @@ from pathlib import Path
 EXPERIMENTS = {
     "jinno-insertion": "services.experiment.jinno",
     "shim-mapping": "services.experiment.shim",
+    "jang-vip": "services.experiment.jang",
 }
 
 

@@ -156,7 +156,12 @@ class ArmSafety:
             return
         if self.tip_of is not None:
             self.check_workspace(self.tip_of(q), now)
-        ts = msg.header.stamp_ns
+        # speed on the master's clock when the setpoint carries it (origin_ns): a mapping that
+        # caught up after a stall publishes several samples' motion within a few ms, which is
+        # not a faster motion
+        ts = msg.origin_ns or msg.header.stamp_ns
+        if self._history and ts <= self._history[-1][0]:
+            return
         hist = self._history
         hist.append((ts, q))
         span_ns = p.velocity_window_ms * 1e6
