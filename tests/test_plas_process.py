@@ -66,17 +66,21 @@ class Board:
         os.replace(tmp, self.link)  # atomic, like udev moving a by-id link
 
     def kill(self) -> None:
-        if self.proc is not None and self.proc.poll() is None:
+        if self.proc is None:
+            return
+        if self.proc.poll() is None:
             os.kill(self.proc.pid, signal.SIGKILL)
             self.proc.wait(5)
+        if self.proc.stdout is not None:
+            self.proc.stdout.close()
 
 
 class Log:
     def __init__(self) -> None:
         self.lock = threading.Lock()
-        self.master: list[tuple[float, np.ndarray]] = []
+        self.master: list[tuple[float, np.ndarray, int]] = []  # (t, q, stamp_ns)
         self.js: dict[str, list[tuple[float, np.ndarray]]] = {a: [] for a in ARMS}
-        self.sp: dict[str, list[tuple[float, np.ndarray, bool]]] = {a: [] for a in ARMS}
+        self.sp: dict[str, list[tuple[float, np.ndarray, bool, int]]] = {a: [] for a in ARMS}  # origin_ns
         self.state: dict[str, list[tuple[float, bool, bool]]] = {a: [] for a in ARMS}
         self.events: list[tuple[float, str, str, str]] = []
 
@@ -98,7 +102,7 @@ def site(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[Board, Log]
 
             def on_master(m: JointState, key: str) -> None:
                 with log.lock:
-                    log.master.append((time.monotonic(), np.array(m.position)))
+                    log.master.append((time.monotonic(), np.array(m.position), m.header.stamp_ns))
 
             node.subscribe(k.master("m1", "measured_js"), JointState, on_master)
             for arm in ARMS:
@@ -109,7 +113,7 @@ def site(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[Board, Log]
 
                 def on_sp(m: JointSetpoint, key: str, arm: str = arm) -> None:
                     with log.lock:
-                        log.sp[arm].append((time.monotonic(), np.array(m.position), m.follow))
+                        log.sp[arm].append((time.monotonic(), np.array(m.position), m.follow, m.origin_ns))
 
                 def on_state(m: OperatingState, key: str, arm: str = arm) -> None:
                     with log.lock:
@@ -159,7 +163,8 @@ def test_slave_joints_follow_the_mapped_master_joints(site: tuple[Board, Log]) -
         # the first uninterrupted stretch of following (a watchdog hold on this busy host ends it)
         t0 = next(t for t, f, _ in states[arm] if f)
         t_end = next((t for t, f, _ in states[arm] if t > t0 and not f), float("inf"))
-        follow = [(t, q) for t, q, f in sp[arm] if f and t0 - 0.1 <= t <= t_end]
+        follow_sp = [(t, q, o) for t, q, f, o in sp[arm] if f and t0 - 0.1 <= t <= t_end]
+        follow = [(t, q) for t, q, _ in follow_sp]
         # 1) the slave tracks its setpoints: every measured configuration is one commanded within
         #    the last 150 ms (judged on the path, so this busy host's scheduling delays don't count)
         ts = np.array([t for t, _ in follow])
@@ -174,7 +179,8 @@ def test_slave_joints_follow_the_mapped_master_joints(site: tuple[Board, Log]) -
         err = float(np.max(errs))
         # 2) the setpoints are the Table-6 mapping of the master's motion: replay the master
         #    samples seen while following through the same mapping, from the first setpoint
-        qm = np.array([q for t, q in master if follow[0][0] - 0.05 <= t <= follow[-1][0]])
+        o_first, o_last = follow_sp[0][2], follow_sp[-1][2]  # master stamps behind the setpoints
+        qm = np.array([q for _, q, st in master if o_first <= st <= o_last])
         q = qs[0].copy()
         cfg = plas.MappingConfig(d1_speed=0.010)
         for a, b in itertools.pairwise(qm):

@@ -46,6 +46,10 @@ if TYPE_CHECKING:
     from services.mapping import MappingConfig
 
 
+#: Samples without clamping that end a clamping episode.
+CLAMP_QUIET = 50
+
+
 class _JointBase:
     """Clutch, engage and timeout logic shared by the joint-space mappings (lock-protected)."""
 
@@ -71,6 +75,7 @@ class _JointBase:
         self.conflated = 0
         self.clamped = 0  # samples with a joint held at its limit
         self._clamping = False
+        self._unclamped = 0  # samples without clamping since the last clamped one
 
     # -- inputs (zenoh threads)
     def on_buttons(self, msg: MasterButtons, key: str) -> None:
@@ -143,15 +148,20 @@ class _JointBase:
         self.node.event("disengage", f"disengaged: {reason}", arm=self.slave, severity=sev)
 
     def _report_clamp(self, joints: tuple[str, ...]) -> None:
+        """Count clamped samples; one event when an episode starts and one when it has been over
+        for :data:`CLAMP_QUIET` samples (a joint riding its limit does not flood the log)."""
         if joints:
             self.clamped += 1
+            self._unclamped = 0
             if not self._clamping:
                 self._clamping = True
                 text = f"joint limit holds {', '.join(joints)}"
                 self.node.event("clamped", text, arm=self.slave, severity="warning")
         elif self._clamping:
-            self._clamping = False
-            self.node.event("clamped", "joints back inside their limits", arm=self.slave)
+            self._unclamped += 1
+            if self._unclamped >= CLAMP_QUIET:
+                self._clamping = False
+                self.node.event("clamped", "joints back inside their limits", arm=self.slave)
 
     def check_timeouts(self) -> None:
         with self.lock:
