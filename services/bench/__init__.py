@@ -4,6 +4,10 @@ Subcommands::
 
     telesurg bench faults [--json FILE] [--only kill:mapping,cut:0.6,...]
     telesurg bench fuzz --count N [--json FILE]
+    telesurg bench latency --rate 1000 --seconds 10 [--json FILE]
+    telesurg bench soak --rate 1000 --seconds 60 [--json FILE]
+    telesurg bench ik [--n 1000] [--json FILE]
+    telesurg bench sim [--seconds 5] [--json FILE]
 """
 
 from __future__ import annotations
@@ -15,6 +19,10 @@ from collections.abc import Sequence
 BENCHES = {
     "faults": ("services.bench.faults", "inject faults one at a time; detection, motion, recovery"),
     "fuzz": ("services.bench.fuzz", "malformed messages on every key while the pipeline runs"),
+    "latency": ("services.bench.perf", "one-way latency: bare zenoh relay vs the real pipeline"),
+    "soak": ("services.bench.perf", "long run: losses per stream, deadline misses, CPU and RSS"),
+    "ik": ("services.bench.perf", "analytic IK / mapping vs a generic numerical IK"),
+    "sim": ("services.bench.perf", "MuJoCo steps/s unpaced per robot model"),
 }
 
 
@@ -27,5 +35,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         print("\n".join(lines), file=sys.stdout if not args or args[0] in ("-h", "--help") else sys.stderr)
         return 0 if not args or args[0] in ("-h", "--help") else 2
     module = importlib.import_module(BENCHES[args[0]][0])
-    code: int = module.main(args[1:])
+    if BENCHES[args[0]][0] == "services.bench.perf":
+        code: int = module.main(args[1:], args[0])
+    else:
+        code = module.main(args[1:])
     return code

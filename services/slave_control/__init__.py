@@ -93,6 +93,9 @@ class SlaveControlConfig:
     # taught trocar (the current one) survives a restart
     state_file: str = ""
     teach: TeachConfig = field(default_factory=TeachConfig)  # direct-teach admittance
+    # .npy written at exit: one row per setpoint the control loop applied (origin_ns of the master
+    # sample, the setpoint's stamp, the wall time it was applied, ns) — for telesurg bench latency
+    latency_log: str = ""
     command_sources: list[str] = field(default_factory=list)  # who may send commands ([] = anyone)
     # The watchdog's liveliness token is watched too: its death revokes the lease at once
     # (in ms), instead of after the lease lifetime.
@@ -430,7 +433,14 @@ class SlaveService:
                 self.node.event("setpoint_rejected", reason, arm=self.cfg.arm, severity="warning")
             return
         with self.lock:
-            self.setpoint = Setpoint(q, msg.follow, time.monotonic(), self.cycle)
+            self.setpoint = Setpoint(
+                q,
+                msg.follow,
+                time.monotonic(),
+                self.cycle,
+                origin_ns=msg.origin_ns,
+                stamp_ns=msg.header.stamp_ns,
+            )
 
 
 #: Operator commands served on ``slave/<arm>/command`` (args as ``key=value``).
@@ -618,6 +628,9 @@ def run(cfg: SlaveControlConfig, stop: threading.Event) -> None:
             svc.update_modes(reading)
         last_state: tuple[bool, bool, str, str, bool] | None = None
         caught_up = 0
+        applied = np.zeros((300_000, 3), dtype=np.int64) if cfg.latency_log else None
+        n_applied = 0
+        last_sp: Setpoint | None = None
         log.info("slave %s (%s/%s) running at %.0f Hz", cfg.arm, cfg.backend, cfg.model, 1 / dt)
         cycle = 0
         while not stop.is_set():
@@ -639,6 +652,10 @@ def run(cfg: SlaveControlConfig, stop: threading.Event) -> None:
                 master_slave = (mode == "non_trocar" and motion is None) or (
                     mode in ("non_trocar", "trocar") and motion is MotionMode.MASTER_SLAVE
                 )
+            if applied is not None and sp is not None and sp is not last_sp and n_applied < len(applied):
+                applied[n_applied] = (sp.origin_ns, sp.stamp_ns, time.time_ns())
+                n_applied += 1
+            last_sp = sp
             if internal:
                 q_cmd = _internal_step(svc, ctl, cfg, reading, q_cmd, lease, now, dt, vmax, job)
             else:
@@ -708,6 +725,8 @@ def run(cfg: SlaveControlConfig, stop: threading.Event) -> None:
                         (float(svc.trocar[0]), float(svc.trocar[1]), float(svc.trocar[2])),
                     )
                 )
+        if applied is not None:
+            np.save(cfg.latency_log, applied[:n_applied])
         log.info(
             "stopped after %d cycles: %d overruns, %d periods caught up, %d holds, %d setpoints rejected, "
             "%d cycles speed-clipped",

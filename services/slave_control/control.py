@@ -134,6 +134,8 @@ class Setpoint:
     received: float
     cycle: int | None = None
     source_time: float = 0.0
+    origin_ns: int = 0  # master sample stamp behind the setpoint (wall clock, ns; 0: unknown)
+    stamp_ns: int = 0  # the setpoint's own header stamp (mapping publish time, ns)
 
 
 @dataclass

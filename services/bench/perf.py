@@ -1,0 +1,450 @@
+"""Performance benches: ``telesurg bench latency | soak | ik | sim`` (tables + ``--json FILE``).
+
+* ``latency`` — in one run, alternating blocks: (a) the transport floor, a bare three-process
+  zenoh relay (:mod:`services.bench.relay`) through the site router, and (b) the real pipeline
+  master_capture → mapping → slave_control with the real services, the setpoint timed when the
+  slave's control loop first uses it. One-way latency per hop and end to end (every process on one
+  host stamps with the same wall clock), p50/p90/p99/max, and the pipeline/relay ratios.
+* ``soak`` — the whole pipeline for ``--seconds`` with the recorder on the bus: messages, losses,
+  reorders and duplicates per stream (the recorder's summary), every fixed-rate loop's deadline
+  misses (from the services' own counters at exit), CPU % and RSS per service (psutil).
+* ``ik`` — the analytic solvers (trocar-mode IK, 6-axis IK, VIP IK, PLAS all-joints mapping step):
+  µs per call and solves/s, against a generic numerical IK on the same targets (``mink``, a
+  benchmark extra: ``pip install -e '.[bench]'``; skipped with a note when absent), with the
+  position and RCM error of each.
+* ``sim`` — MuJoCo steps/s unpaced per robot model, and the real-time factor.
+
+Nothing here asserts a time: the figures are printed and written, the goals are in
+``docs/performance.md``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import re
+import subprocess
+import sys
+import tempfile
+import time
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+PCTS = (50, 90, 99)
+
+
+def _stats_ms(ns: np.ndarray) -> dict[str, float]:
+    ms = np.asarray(ns, dtype=float) / 1e6
+    if len(ms) == 0:
+        return {"n": 0}
+    out = {f"p{p}": round(float(np.percentile(ms, p)), 4) for p in PCTS}
+    out["max"] = round(float(ms.max()), 4)
+    out["n"] = len(ms)
+    return out
+
+
+def _table(title: str, rows: list[tuple[str, dict[str, float]]]) -> None:
+    from rich.console import Console
+    from rich.table import Table
+
+    t = Table(title=title)
+    t.add_column("")
+    for c in ("n", "p50 ms", "p90 ms", "p99 ms", "max ms"):
+        t.add_column(c, justify="right")
+    for name, s in rows:
+        t.add_row(
+            name, str(s.get("n", 0)), *(f"{s.get(k, float('nan')):.3f}" for k in ("p50", "p90", "p99", "max"))
+        )
+    Console().print(t)
+
+
+# ---------------------------------------------------------------------------------- latency
+
+
+def _relay_block(endpoint: str, rate: float, seconds: float, tmp: Path, k: int) -> np.ndarray:
+    out = tmp / f"relay{k}.npy"
+    base = [sys.executable, "-m", "services.bench.relay"]
+    common = ["--connect", endpoint, "--rate", str(rate), "--seconds", str(seconds)]
+    sink = subprocess.Popen([*base, "sink", *common, "--out", str(out)], stdout=subprocess.DEVNULL)
+    relay = subprocess.Popen([*base, "relay", *common], stdout=subprocess.DEVNULL)
+    time.sleep(1.5)  # both subscribed
+    subprocess.run([*base, "source", *common], stdout=subprocess.DEVNULL, check=True, timeout=seconds + 30)
+    time.sleep(0.3)
+    for p in (relay, sink):
+        p.terminate()
+        p.wait(10)
+    rows: np.ndarray = np.load(out)
+    return rows
+
+
+def _pipeline_block(rate: float, seconds: float, tmp: Path, k: int) -> tuple[np.ndarray, dict[str, Any]]:
+    from services.bench.harness import Pipeline
+
+    npy = tmp / f"applied{k}.npy"
+    overrides = {
+        "master_capture": [f"rate_hz={rate}", "scripted.clutch=[[0.5, 1e9]]", "scripted.clutch_repeat_s=0.0"],
+        "slave_control": [f"latency_log={json.dumps(str(npy))}"],
+    }
+    with Pipeline(tmp / f"logs{k}", mirror=False, impair=False, probe=False, overrides=overrides) as p:
+        time.sleep(seconds + 1.0)
+        p.close()
+    rows: np.ndarray = np.load(npy)
+    logs = {f.stem: f.read_text() for f in (tmp / f"logs{k}").glob("*.log")}
+    return rows, {"holds": logs.get("watchdog", "").count("→ HOLD")}
+
+
+def latency(a: argparse.Namespace) -> dict[str, Any]:
+    from services.launcher import free_port
+    from shared.bus import BusConfig, open_session
+
+    rate = a.rate
+    res: dict[str, Any] = {"rate_hz": rate, "seconds_per_block": a.seconds, "blocks": a.blocks}
+    relay_rows, pipe_rows, holds = [], [], 0
+    with tempfile.TemporaryDirectory() as d:
+        tmp = Path(d)
+        for k in range(a.blocks):
+            ep = f"tcp/127.0.0.1:{free_port()}"
+            router = open_session(BusConfig(mode="router", listen=[ep]))
+            try:
+                relay_rows.append(_relay_block(ep, rate, a.seconds, tmp, k))
+            finally:
+                router.close()  # type: ignore[no-untyped-call]
+            rows, info = _pipeline_block(rate, a.seconds, tmp, k)
+            pipe_rows.append(rows)
+            holds += info["holds"]
+    r = np.concatenate(relay_rows)
+    pl = np.concatenate(pipe_rows)
+    pl = pl[(pl[:, 0] > 0) & (pl[:, 1] > 0)]
+    pl = pl[len(pl) // 20 :]  # drop the start-up transient
+    res["relay"] = {
+        "hop1": _stats_ms(r[:, 1] - r[:, 0]),
+        "hop2": _stats_ms(r[:, 2] - r[:, 1]),
+        "end_to_end": _stats_ms(r[:, 2] - r[:, 0]),
+    }
+    res["pipeline"] = {
+        "master_to_mapping_out": _stats_ms(pl[:, 1] - pl[:, 0]),
+        "mapping_out_to_slave_applied": _stats_ms(pl[:, 2] - pl[:, 1]),
+        "end_to_end": _stats_ms(pl[:, 2] - pl[:, 0]),
+    }
+    e_r, e_p = res["relay"]["end_to_end"], res["pipeline"]["end_to_end"]
+    res["ratio_p50"] = round(e_p["p50"] / e_r["p50"], 3)
+    res["ratio_p99"] = round(e_p["p99"] / e_r["p99"], 3)
+    res["pipeline_watchdog_holds"] = holds
+    _table(
+        f"one-way latency at {rate:g} Hz ({a.blocks} × {a.seconds:g} s each, alternating)",
+        [
+            ("relay: source → relay", res["relay"]["hop1"]),
+            ("relay: relay → sink", res["relay"]["hop2"]),
+            ("relay: end to end", e_r),
+            ("pipeline: master → mapping out", res["pipeline"]["master_to_mapping_out"]),
+            ("pipeline: mapping out → slave applied", res["pipeline"]["mapping_out_to_slave_applied"]),
+            ("pipeline: end to end", e_p),
+        ],
+    )
+    print(f"pipeline / relay: p50 × {res['ratio_p50']}, p99 × {res['ratio_p99']}; watchdog holds {holds}")
+    return res
+
+
+# ---------------------------------------------------------------------------------- soak
+
+_COUNTERS = {
+    "master_capture": r"sent (\d+) samples, (\d+) loop overruns",
+    "slave_control": r"stopped after (\d+) cycles: (\d+) overruns",
+}
+
+
+def soak(a: argparse.Namespace) -> dict[str, Any]:
+    import importlib
+
+    psutil: Any = importlib.import_module("psutil")  # (no type stubs)
+
+    from services.bench.harness import Pipeline
+
+    res: dict[str, Any] = {"rate_hz": a.rate, "seconds": a.seconds}
+    with tempfile.TemporaryDirectory() as d:
+        tmp = Path(d)
+        overrides = {
+            "master_capture": [
+                f"rate_hz={a.rate}",
+                "scripted.clutch=[[0.5, 1e9]]",
+                "scripted.clutch_repeat_s=0.0",
+            ]
+        }
+        with Pipeline(tmp / "logs", mirror=False, impair=False, probe=False, overrides=overrides) as p:
+            rec = subprocess.Popen(
+                [
+                    sys.executable,
+                    "-m",
+                    "services.record",
+                    "--out",
+                    str(tmp / "soak.mcap"),
+                    "--seconds",
+                    str(a.seconds),
+                    "--connect",
+                    p.spec.endpoint,
+                    "--json",
+                    str(tmp / "rec.json"),
+                ],
+                stdout=subprocess.DEVNULL,
+                stderr=subprocess.DEVNULL,
+            )
+            procs = {n: psutil.Process(pr.pid) for n, pr in p.site.procs.items()}
+            for pr in procs.values():
+                pr.cpu_percent(None)
+            rss: dict[str, float] = {}
+            time.sleep(a.seconds)
+            cpu = {n: round(pr.cpu_percent(None), 1) for n, pr in procs.items()}
+            for n, pr in procs.items():
+                rss[n] = round(pr.memory_info().rss / 2**20, 1)
+            rec.wait(60)
+            p.close()
+        logs = {f.stem: f.read_text() for f in (tmp / "logs").glob("*.log")}
+        summary = json.loads((tmp / "rec.json").read_text()) if (tmp / "rec.json").exists() else {}
+    misses: dict[str, Any] = {}
+    for svc, pat in _COUNTERS.items():
+        m = re.search(pat, logs.get(svc, ""))
+        if m:
+            total, over = int(m.group(1)), int(m.group(2))
+            misses[svc] = {
+                "cycles": total,
+                "overruns": over,
+                "miss_pct": round(100 * over / max(total, 1), 3),
+            }
+    res["streams"] = summary.get("keys", summary)
+    res["deadline_misses"] = misses
+    res["cpu_pct"] = cpu
+    res["cpu_total_pct"] = round(sum(cpu.values()), 1)
+    res["rss_mb"] = rss
+    res["watchdog_holds"] = logs.get("watchdog", "").count("→ HOLD")
+    from rich.console import Console
+    from rich.table import Table
+
+    t = Table(title=f"soak: {a.seconds:g} s at {a.rate:g} Hz")
+    for c in ("service", "CPU %", "RSS MB", "cycles", "overruns", "miss %"):
+        t.add_column(c, justify="right")
+    for n in cpu:
+        mi = misses.get(n, {})
+        t.add_row(
+            n,
+            f"{cpu[n]:.1f}",
+            f"{rss[n]:.1f}",
+            str(mi.get("cycles", "")),
+            str(mi.get("overruns", "")),
+            str(mi.get("miss_pct", "")),
+        )
+    Console().print(t)
+    total, holds = res["cpu_total_pct"], res["watchdog_holds"]
+    print(f"total CPU {total} % of one core (2 cores = 200 %); watchdog holds {holds}")
+    return res
+
+
+# ---------------------------------------------------------------------------------- ik
+
+
+def _time_calls(fn: Callable[[int], Any], n: int) -> float:
+    t = time.perf_counter()
+    for i in range(n):
+        fn(i)
+    return (time.perf_counter() - t) / n * 1e6
+
+
+def ik(a: argparse.Namespace) -> dict[str, Any]:
+    from shared.errors import IKError
+    from shared.kinematics import MH3F, fk, plas, vip
+    from shared.kinematics import ik as ik6
+    from shared.kinematics.trocar import posture_adjust, rcm_error, trocar_ik
+
+    rng = np.random.default_rng(0)
+    n = a.n
+    trocar = np.array([0.5, 0.0, 0.2])
+    q_seed = posture_adjust(np.array([0.0, -0.2, 0.6, 0.0, -0.3, 0.0]), trocar)
+    d = fk(q_seed, MH3F)[:3, 0]
+    q_in = trocar_ik(trocar + 0.06 * d, trocar, q_seed)
+    tip0 = fk(q_in, MH3F)[:3, 3]
+    tips: list[np.ndarray] = []
+    while len(tips) < n:  # targets within ±15 mm sideways and ±10 mm along the shaft, all reachable
+        t = tip0 + rng.uniform(-0.015, 0.015, 3) + d * rng.uniform(-0.01, 0.01)
+        try:
+            trocar_ik(t, trocar, q_in)
+        except IKError:
+            continue
+        tips.append(t)
+    res: dict[str, Any] = {"n": n}
+    sols = [trocar_ik(t, trocar, q_in) for t in tips]
+    res["trocar_ik"] = {
+        "us_per_call": round(_time_calls(lambda i: trocar_ik(tips[i], trocar, q_in), n), 2),
+        "pos_err_max_m": float(
+            max(np.linalg.norm(fk(q, MH3F)[:3, 3] - t) for q, t in zip(sols, tips, strict=True))
+        ),
+        "rcm_err_max_m": float(max(rcm_error(q, trocar) for q in sols)),
+    }
+    poses = [fk(q, MH3F) for q in sols]
+    res["ik_6axis"] = {"us_per_call": round(_time_calls(lambda i: ik6(poses[i], q_in, MH3F), n), 2)}
+    geom = vip.VIP_ARM1
+    w0 = vip.fk(geom.home, geom).wrist
+    V = vip.select_vip(np.array(geom.home), 0.05, geom)
+    ws = [w0 + rng.uniform(-0.01, 0.01, 3) for _ in range(n)]
+    res["vip_ik"] = {
+        "us_per_call": round(_time_calls(lambda i: vip.vip_ik(ws[i], V, geom, q4_ref=geom.home[3]), n), 2)
+    }
+    cfg = plas.MappingConfig()
+    res["plas_map_step"] = {
+        "us_per_call": round(
+            _time_calls(
+                lambda i: plas.map_step(np.zeros(6), np.full(6, 0.1), np.full(6, 1e-3), dt=0.005, config=cfg),
+                n,
+            ),
+            2,
+        )
+    }
+    for k in ("trocar_ik", "ik_6axis", "vip_ik", "plas_map_step"):
+        res[k]["solves_per_s"] = round(1e6 / res[k]["us_per_call"])
+    res["generic"] = _mink_baseline(tips, trocar, q_in, n)
+    if "us_per_call" in res["generic"]:
+        res["speedup_trocar_vs_generic"] = round(
+            res["generic"]["us_per_call"] / res["trocar_ik"]["us_per_call"], 1
+        )
+    from rich.console import Console
+    from rich.table import Table
+
+    tab = Table(title=f"IK, {n} targets (trocar at 500, 0, 200 mm; tips ±15 mm around 60 mm deep)")
+    for c in ("solver", "µs/call", "solves/s", "pos err max", "RCM err max"):
+        tab.add_column(c, justify="right")
+    for k in ("trocar_ik", "ik_6axis", "vip_ik", "plas_map_step", "generic"):
+        r = res[k]
+        tab.add_row(
+            r.get("name", k),
+            str(r.get("us_per_call", "—")),
+            str(r.get("solves_per_s", "—")),
+            f"{r['pos_err_max_m']:.2e} m" if "pos_err_max_m" in r else "",
+            f"{r['rcm_err_max_m']:.2e} m" if "rcm_err_max_m" in r else "",
+        )
+    Console().print(tab)
+    if "note" in res["generic"]:
+        print(res["generic"]["note"])
+    return res
+
+
+def _mink_baseline(tips: list[np.ndarray], trocar: np.ndarray, q0: np.ndarray, n: int) -> dict[str, Any]:
+    """mink (differential IK on the MuJoCo model, QP per iteration) to the same tip targets, with the
+    forceps axis through the trocar as a second task; iterate to convergence."""
+    import importlib
+
+    import mujoco
+
+    try:
+        mink: Any = importlib.import_module("mink")
+    except ImportError:
+        return {
+            "name": "mink (not installed)",
+            "note": "generic IK skipped: pip install -e '.[bench]' for mink",
+        }
+    from services.slave_control.models import model_path
+    from shared.kinematics import MH3F, fk
+    from shared.kinematics.trocar import rcm_error
+
+    model = mujoco.MjModel.from_xml_path(str(model_path("mh3f")))
+    cfg = mink.Configuration(model)
+    task = mink.FrameTask("tip", "site", position_cost=1.0, orientation_cost=1.0)
+    m = min(n, 50)  # mink is slow: a subset of the targets
+    errs, rcms, t_total, iters_total = [], [], 0.0, 0
+    for tip in tips[:m]:
+        cfg.update(q0.copy())
+        # target: tip position, orientation with x along trocar → tip (the RCM constraint as a pose)
+        x = (tip - trocar) / np.linalg.norm(tip - trocar)
+        T0 = fk(q0, MH3F)
+        y = T0[:3, 1] - x * float(T0[:3, 1] @ x)
+        y /= np.linalg.norm(y)
+        R = np.column_stack([x, y, np.cross(x, y)])
+        T = np.eye(4)
+        T[:3, :3], T[:3, 3] = R, tip
+        task.set_target(mink.SE3.from_matrix(T))
+        t = time.perf_counter()
+        iters = 0
+        while iters < 200:
+            iters += 1
+            vel = mink.solve_ik(cfg, [task], 0.01, "daqp", 1e-3)
+            cfg.integrate_inplace(vel, 0.01)
+            q = cfg.q.copy()
+            if np.linalg.norm(fk(q, MH3F)[:3, 3] - tip) < 1e-6:
+                break
+        t_total += time.perf_counter() - t
+        iters_total += iters
+        errs.append(float(np.linalg.norm(fk(q, MH3F)[:3, 3] - tip)))
+        rcms.append(rcm_error(q, trocar))
+    us = t_total / m * 1e6
+    return {
+        "name": f"mink {mink.__version__ if hasattr(mink, '__version__') else ''} (daqp)".strip(),
+        "us_per_call": round(us, 1),
+        "solves_per_s": round(1e6 / us),
+        "iterations_mean": round(iters_total / m, 1),
+        "pos_err_max_m": max(errs),
+        "rcm_err_max_m": max(rcms),
+        "targets": m,
+    }
+
+
+# ---------------------------------------------------------------------------------- sim
+
+
+def sim(a: argparse.Namespace) -> dict[str, Any]:
+    import mujoco
+
+    from services.slave_control.models import model_names, model_path
+
+    res: dict[str, Any] = {}
+    for name in model_names():
+        m = mujoco.MjModel.from_xml_path(str(model_path(name)))
+        d = mujoco.MjData(m)
+        steps = int(a.seconds / m.opt.timestep)
+        t = time.perf_counter()
+        mujoco.mj_step(m, d, nstep=steps)
+        wall = time.perf_counter() - t
+        res[name] = {
+            "steps_per_s": round(steps / wall),
+            "us_per_step": round(wall / steps * 1e6, 2),
+            "realtime_factor": round(steps * m.opt.timestep / wall, 1),
+            "dof": int(m.nv),
+        }
+    from rich.console import Console
+    from rich.table import Table
+
+    tab = Table(title=f"MuJoCo unpaced, {a.seconds:g} s of sim time per model")
+    for c in ("model", "DoF", "steps/s", "µs/step", "× real time"):
+        tab.add_column(c, justify="right")
+    for k, r in res.items():
+        tab.add_row(k, str(r["dof"]), str(r["steps_per_s"]), str(r["us_per_step"]), str(r["realtime_factor"]))
+    Console().print(tab)
+    return res
+
+
+BENCHES: dict[str, Callable[[argparse.Namespace], dict[str, Any]]] = {
+    "latency": latency,
+    "soak": soak,
+    "ik": ik,
+    "sim": sim,
+}
+
+
+def main(argv: Sequence[str] | None = None, name: str = "latency") -> int:
+    ap = argparse.ArgumentParser(prog=f"telesurg bench {name}", description=__doc__)
+    ap.add_argument("--json", type=Path, help="write the figures here")
+    if name in ("latency", "soak"):
+        ap.add_argument("--rate", type=float, default=1000.0, help="master rate, Hz (default 1000)")
+        ap.add_argument("--seconds", type=float, default=10.0 if name == "latency" else 60.0)
+    if name == "latency":
+        ap.add_argument("--blocks", type=int, default=2, help="alternating relay/pipeline blocks each")
+    if name == "ik":
+        ap.add_argument("--n", type=int, default=1000, help="targets")
+    if name == "sim":
+        ap.add_argument("--seconds", type=float, default=5.0, help="sim seconds per model")
+    a = ap.parse_args(argv)
+    res = BENCHES[name](a)
+    res["date"] = time.strftime("%Y-%m-%d %H:%M:%S")
+    res["machine"] = {"cpus": __import__("os").cpu_count(), "python": sys.version.split()[0]}
+    if a.json:
+        a.json.write_text(json.dumps(res, indent=2) + "\n")
+    return 0

@@ -1,0 +1,46 @@
+"""Smoke runs of the performance benches (issue #9): each prints its table and writes its JSON.
+No time is asserted here — the figures and the goals are in docs/performance.md."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+
+def bench(tmp_path: Path, *args: str) -> dict:  # type: ignore[type-arg]
+    out = tmp_path / f"{args[0]}.json"
+    r = subprocess.run(
+        [sys.executable, "-m", "services.cli", "bench", *args, "--json", str(out)],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    print(r.stdout, r.stderr[-2000:])
+    assert r.returncode == 0, r.stderr[-2000:]
+    data: dict = json.loads(out.read_text())  # type: ignore[type-arg]
+    return data
+
+
+def test_bench_sim_and_ik(tmp_path: Path) -> None:
+    sim = bench(tmp_path, "sim", "--seconds", "0.3")
+    assert set(sim) >= {"mh3f", "plas", "vip"} and all(
+        sim[m]["steps_per_s"] > 0 for m in ("mh3f", "plas", "vip")
+    )
+    ik = bench(tmp_path, "ik", "--n", "30")
+    assert ik["trocar_ik"]["rcm_err_max_m"] < 1e-9 and ik["trocar_ik"]["pos_err_max_m"] < 1e-9
+    for k in ("ik_6axis", "vip_ik", "plas_map_step"):
+        assert ik[k]["us_per_call"] > 0
+
+
+@pytest.mark.process
+def test_bench_latency_and_soak(tmp_path: Path) -> None:
+    lat = bench(tmp_path, "latency", "--rate", "250", "--seconds", "2", "--blocks", "1")
+    assert lat["relay"]["end_to_end"]["n"] > 300 and lat["pipeline"]["end_to_end"]["n"] > 200
+    assert lat["ratio_p50"] > 0
+    soak = bench(tmp_path, "soak", "--rate", "250", "--seconds", "3")
+    assert soak["streams"]["master/m1/measured_cp"]["messages"] > 500
+    assert set(soak["cpu_pct"]) >= {"slave_control", "mapping", "watchdog", "master_capture"}
