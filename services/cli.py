@@ -29,6 +29,7 @@ COMMANDS = {
     "bench": ("services.bench", "fault-injection and fuzz benchmarks (tables + JSON)"),
     "impair": ("shared.impair", "userspace TCP link impairer (cut / delay) for fault tests"),
     "device": ("services.device", "serial device tools: emulate an encoder board on a pty, monitor one"),
+    "console": ("services.console", "operator console (terminal UI): state, clutch, commands, e-stop"),
     "record": ("services.record", "record every message of a site into an MCAP file"),
     "replay": ("services.record.replay", "replay a recording's master streams into a live site, compare"),
     "experiment": ("services.experiment", "reproduce a paper's evaluation (figures + metrics.json)"),

@@ -16,7 +16,8 @@ service instance id)::
     safety/<arm>/state           SafetyState     watchdog's view of the arm
     estop                        EStop           e-stop / reset, from the console or any service
     slave/<arm>/command          (queryable)     Command → CommandReply (operator commands)
-    mapping/<arm>/command        (queryable)     Command → CommandReply (VIP mapping: set/reallocate)
+    mapping/<arm>/command        (queryable)     Command → CommandReply (scale; VIP set/reallocate)
+    console/<m>/clutch           MasterButtons   the console's keyboard clutch for master <m>
     echo/<service>               (queryable)     replies at once: round-trip time across hosts
     events/<service>             SafetyEvent     events (transitions, IK failures, ...)
     heartbeat/<service>          Heartbeat       2 Hz service heartbeat
@@ -88,6 +89,10 @@ class Keys:
     def echo(self, service: str = "*") -> str:
         """``telesurg/<site>/echo/<service>``: each service's echo queryable (RTT probes)."""
         return f"{self.prefix}/echo/{service if service == '*' else check_id('service', service)}"
+
+    def console_clutch(self, master: str) -> str:
+        """``telesurg/<site>/console/<master>/clutch``: the operator console's clutch for a master."""
+        return f"{self.prefix}/console/{check_id('arm', master)}/clutch"
 
     def mapping_command(self, arm: str) -> str:
         """``telesurg/<site>/mapping/<arm>/command``: the mapping's command queryable (VIP)."""

@@ -130,3 +130,16 @@ def test_virtual_trocar_master_maps_the_dummy_tip_with_the_fulcrum_effect() -> N
     np.testing.assert_allclose(master_point(pen, (0.01, 0.0, 0.1)), (0.01, 0.0, 0.1))
     with pytest.raises(ConfigError, match="master_mode"):
         MappingConfig(master_mode="joystick").validate()
+
+
+def test_operator_scale_commands_step_and_refuse_clearly(
+    rig: tuple[ArmMapping, list[JointSetpoint], list[SafetyEvent]],
+) -> None:
+    from shared.messages import Command
+
+    arm, _, _ = rig
+    assert arm.on_command(Command(H, "arm1", "scale_up", ())).reason == "scale 0.5 → 0.7"
+    assert arm.on_command(Command(H, "arm1", "scale_down", ())).reason == "scale 0.7 → 0.5"
+    bad = arm.on_command(Command(H, "arm1", "set_scale", ("value=5",)))
+    assert not bad.accepted and "(0, 2]" in bad.reason and arm.scale == 0.5
+    assert not arm.on_command(Command(H, "arm2", "scale_up", ())).accepted

@@ -52,17 +52,21 @@ from shared.kinematics.trocar import trocar_ik
 from shared.messages import (
     CartesianPose,
     Command,
+    CommandReply,
     JointSetpoint,
     JointState,
     MasterButtons,
     OperatingState,
     SafetyState,
+    Sequencer,
 )
 
 log = logging.getLogger(__name__)
 ORIENTATION_MODES = ("follow", "fixed")
 MASTER_MODES = ("pen", "virtual_trocar")
 MAPPING_MODES = ("cartesian", "all_joints", "vip")
+#: Motion scales the operator steps through with scale_up / scale_down.
+SCALE_STEPS = (0.1, 0.2, 0.3, 0.5, 0.7, 1.0, 1.5, 2.0)
 
 
 @dataclass
@@ -193,6 +197,8 @@ class ArmMapping:
         self.ik_failures = 0
         self.ik_streak = 0
         self.safety_scale = 1.0  # factor from the watchdog's safety state
+        self.scale = cfg.scale  # operator's motion scale (mapping/<arm>/command changes it)
+        self.reply_seq = Sequencer(cfg.service)
         self.last_pose: CartesianPose | None = None  # last master sample mapped while following
         self.last_target: np.ndarray | None = None  # its slave target (4×4)
         self.ws_lo = np.asarray(cfg.workspace_min_mm) / 1e3
@@ -239,26 +245,63 @@ class ArmMapping:
             if msg.scale == self.safety_scale:
                 return
             old, self.safety_scale = self.safety_scale, msg.scale
-            if self.following and self.last_pose is not None and self.last_target is not None:
-                # Re-anchor at the current target: the new scale applies to motion from here on.
-                lp, lt = self.last_pose, self.last_target
-                self.ref = (
-                    master_point(self.cfg, lp.position),
-                    matrix_from_quat(np.array(lp.orientation)),
-                    lt[:3, 3].copy(),
-                    lt[:3, :3].copy(),
-                )
+            self._reanchor()
         self.node.event(
             "scale",
-            f"motion scale {self.cfg.scale * old:.3g} → {self.cfg.scale * msg.scale:.3g} "
+            f"motion scale {self.scale * old:.3g} → {self.scale * msg.scale:.3g} "
             f"(safety {msg.state}{': ' + '; '.join(msg.causes) if msg.causes else ''})",
             arm=self.slave,
             severity="warning" if msg.scale < 1.0 else "info",
         )
 
+    def _reanchor(self) -> None:
+        """Re-anchor at the current target: a new scale applies to motion from here on (lock held)."""
+        if self.following and self.last_pose is not None and self.last_target is not None:
+            lp, lt = self.last_pose, self.last_target
+            self.ref = (
+                master_point(self.cfg, lp.position),
+                matrix_from_quat(np.array(lp.orientation)),
+                lt[:3, 3].copy(),
+                lt[:3, :3].copy(),
+            )
+
+    def on_command(self, cmd: Command) -> CommandReply:
+        """``state``, ``scale_up``, ``scale_down``, ``set_scale value=`` (the operator's motion scale)."""
+        with self.lock:
+            old = self.scale
+            ok, reason = True, ""
+            if cmd.arm != self.slave:
+                ok, reason = False, f"{cmd.name} refused: this mapping drives {self.slave}, not {cmd.arm}"
+            elif cmd.name == "state":
+                reason = f"scale {self.scale:.3g} (× safety {self.safety_scale:.3g})"
+            elif cmd.name in ("scale_up", "scale_down", "set_scale"):
+                if cmd.name == "set_scale":
+                    try:
+                        new = float(cmd.arg_map().get("value", "nan"))
+                    except ValueError:
+                        new = float("nan")
+                else:
+                    i = min(range(len(SCALE_STEPS)), key=lambda j: abs(SCALE_STEPS[j] - self.scale))
+                    i = min(i + 1, len(SCALE_STEPS) - 1) if cmd.name == "scale_up" else max(i - 1, 0)
+                    new = SCALE_STEPS[i]
+                if not 0.0 < new <= 2.0:
+                    ok, reason = False, f"{cmd.name} refused: scale must be in (0, 2], got {new}"
+                else:
+                    self.scale = new
+                    self._reanchor()
+                    reason = f"scale {old:.3g} → {new:.3g}"
+            else:
+                valid = "state, scale_up, scale_down, set_scale"
+                ok, reason = False, f"unknown command {cmd.name!r}; valid: {valid}"
+            seq = self.reply_seq.next()
+        if ok and self.scale != old:
+            self.node.event("scale", f"motion scale {reason} (operator)", arm=self.slave)
+        return CommandReply(seq, self.slave, cmd.name, ok, reason)
+
     def on_master_pose(self, msg: CartesianPose, key: str) -> None:
         with self.lock:
             self.master_rx = time.monotonic()
+
             if self.pending is not None:
                 self.conflated += 1
             self.pending = msg
@@ -312,7 +355,7 @@ class ArmMapping:
         self.ik_streak = 0
         self.node.event(
             "engage",
-            f"engaged {self.master} → {self.slave} at scale {self.cfg.scale * self.safety_scale:.3g}",
+            f"engaged {self.master} → {self.slave} at scale {self.scale * self.safety_scale:.3g}",
             arm=self.slave,
         )
 
@@ -330,9 +373,7 @@ class ArmMapping:
         assert self.ref is not None
         pm0, rm0, ps0, rs0 = self.ref
         t = np.eye(4)
-        p = ps0 + self.cfg.scale * self.safety_scale * (
-            self.r_ms @ (master_point(self.cfg, pose.position) - pm0)
-        )
+        p = ps0 + self.scale * self.safety_scale * (self.r_ms @ (master_point(self.cfg, pose.position) - pm0))
         clamped = np.clip(p, self.ws_lo, self.ws_hi)
         if np.any(clamped != p):
             self.clamped += 1
@@ -452,6 +493,7 @@ def run(cfg: MappingConfig, stop: threading.Event) -> None:
                 node.subscribe(
                     k.master(master, "measured_cp"), CartesianPose, a.on_master_pose, sources=m_src
                 )
+                node.serve(k.mapping_command(slave), Command, a.on_command)
             node.subscribe(k.master(master, "buttons"), MasterButtons, a.on_buttons, sources=m_src)
             node.subscribe(k.slave(slave, "measured_js"), JointState, a.on_slave_js, sources=s_src)
             node.subscribe(k.slave(slave, "operating_state"), OperatingState, a.on_slave_state, sources=s_src)

@@ -45,6 +45,10 @@ class MasterCaptureConfig:
     device: str = "scripted"  # device type; valid: scripted, serial
     scripted: ScriptedConfig = field(default_factory=ScriptedConfig)  # scripted device settings
     serial: SerialMasterConfig = field(default_factory=SerialMasterConfig)  # serial encoder-board settings
+    # The operator console's keyboard clutch (console/<arm>/clutch) is ORed with the device's
+    # pedal while it is fresh; "" turns it off. A console that dies or is cut off counts as released.
+    console_source: str = "console"
+    console_clutch_timeout_ms: float = 250.0
     bus: BusConfig = field(default_factory=BusConfig)  # zenoh session
 
 
@@ -63,6 +67,14 @@ def run(cfg: MasterCaptureConfig, stop: threading.Event) -> None:
         buttons_every = max(1, round(cfg.rate_hz / cfg.buttons_hz))
         last_buttons: tuple[bool, bool] | None = None
         outages = 0
+        console: list[tuple[bool, float]] = [(False, 0.0)]  # (pressed, monotonic time received)
+
+        def on_console(m: MasterButtons, key: str) -> None:
+            console[0] = (m.clutch, time.monotonic())
+
+        if cfg.console_source:
+            node.subscribe(k.console_clutch(cfg.arm), MasterButtons, on_console, sources=[cfg.console_source])
+        console_timeout = cfg.console_clutch_timeout_ms / 1e3
         invalid_since: float | None = None  # time.monotonic() when the reading became invalid
         log.info("publishing master %s at %.0f Hz (%s)", cfg.arm, cfg.rate_hz, cfg.device)
         while not stop.is_set():
@@ -84,7 +96,9 @@ def run(cfg: MasterCaptureConfig, stop: threading.Event) -> None:
                     time.monotonic() - invalid_since,
                 )
                 invalid_since = None
-            buttons = (s.clutch, s.operator_present)
+            pressed, at = console[0]
+            console_clutch = pressed and time.monotonic() - at <= console_timeout
+            buttons = (s.clutch or console_clutch, s.operator_present)
             if buttons != last_buttons or timer.cycles % buttons_every == 0:
                 last_buttons = buttons
                 buttons_out.put(MasterButtons(buttons_out.header(), *buttons))
