@@ -1,8 +1,13 @@
-"""``telesurg device``: tools for the master's encoder board (``docs/hardware.md``).
+"""``telesurg device``: tools for the master's encoder board and the slave's servo controller
+(``docs/hardware.md``).
 
 * ``emulate --pty`` — an emulated encoder board on a new pseudo-terminal: prints the device path
   (e.g. ``/dev/pts/7``) as the first line on stdout, then serves HELLO and SAMPLE frames of a
   scripted motion (:mod:`services.device.emulator`) until SIGINT/SIGTERM or ``--seconds``.
+* ``emulate-slave --pty --model mh3f|plas|vip`` — an emulated joint-servo controller of a slave
+  arm on a new pseudo-terminal (:mod:`services.device.servo_emulator`): prints the device path as
+  the first line on stdout, then serves the servo protocol (HELLO, STATE; follows SETPOINTs with
+  a lag and the speed limits; its own watchdog) with optional injected faults.
 * ``monitor`` — opens the port of a master_capture config (``serial.*`` keys) and prints the
   board's HELLO, raw readings, calibrated joints and frame counters: for wiring checks and
   calibration.
@@ -13,6 +18,8 @@ Examples::
     telesurg master-capture --set device=serial --set serial.port=/dev/pts/N
     telesurg device monitor --set serial.port=/dev/ttyACM0 --seconds 10
     python -m services.device emulate --pty --garbage-every 50 --drop-every 100
+    telesurg device emulate-slave --pty --model mh3f --stall-joint 1 --stall-at 10   # prints /dev/pts/N
+    telesurg slave-control --set backend=serial --set serial_port=/dev/pts/N --set shadow=true
 """
 
 from __future__ import annotations
@@ -28,6 +35,8 @@ from typing import TYPE_CHECKING, TextIO
 
 from services.common import install_stop_handlers, setup_logging
 from services.device.emulator import MOTIONS, EmulatorOptions, run_pty
+from services.device.servo_emulator import FAULTS, ServoEmulatorOptions
+from services.device.servo_emulator import run_pty as run_servo_pty
 from shared.encoder_protocol import Calibration, Hello, HelloRequest, Sample, decode_message, send_message
 from shared.errors import MessageError, TelesurgError
 from shared.serial_link import SerialLink
@@ -71,6 +80,7 @@ def _parser() -> argparse.ArgumentParser:
         help="encoder counts per revolution (400, the thesis's encoder; 1600 = 400 lines decoded x4)",
     )
     em.add_argument("--log-level", default="INFO", help="DEBUG, INFO, WARNING, ERROR")
+    _slave_parser(sub)
     mon = sub.add_parser("monitor", help="print the board's HELLO, readings and counters")
     mon.add_argument("--config", metavar="FILE", help="master_capture TOML config (its [serial] table)")
     mon.add_argument(
@@ -82,12 +92,105 @@ def _parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _slave_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
+    from shared.robots import MODELS
+
+    em = sub.add_parser(
+        "emulate-slave",
+        help="emulate a slave arm's joint-servo controller on a new pseudo-terminal",
+        description="Fault times count from the first ENABLE (when a host has taken control).",
+    )
+    em.add_argument(
+        "--pty", action="store_true", help="serve on a new pseudo-terminal pair (the only transport)"
+    )
+    em.add_argument("--model", choices=MODELS, default="mh3f", help="robot model (mh3f)")
+    em.add_argument("--rate", type=float, default=200.0, metavar="HZ", help="STATE rate, Hz (200)")
+    em.add_argument("--lag-ms", type=float, default=20.0, metavar="MS", help="servo lag time constant (20)")
+    em.add_argument("--seconds", type=float, default=0.0, metavar="S", help="stop after S s (0: never)")
+    em.add_argument(
+        "--fault-at", type=float, metavar="S", help="raise a fault bit S s after the first ENABLE"
+    )
+    em.add_argument("--fault", choices=tuple(FAULTS), default="overcurrent", help="which (overcurrent)")
+    em.add_argument(
+        "--stall-joint", type=int, default=0, metavar="J", help="joint J (1-based) sticks at --stall-at"
+    )
+    em.add_argument("--stall-at", type=float, default=0.0, metavar="S", help="s after the first ENABLE (0)")
+    em.add_argument(
+        "--silence-at", type=float, metavar="S", help="stop writing frames S s after the first ENABLE"
+    )
+    em.add_argument(
+        "--silence-for", type=float, default=0.0, metavar="S", help="silence length, s (0: for good)"
+    )
+    em.add_argument(
+        "--garbage-every",
+        type=int,
+        default=0,
+        metavar="N",
+        help="write 1-16 random bytes after every N-th STATE",
+    )
+    em.add_argument(
+        "--drop-every", type=int, default=0, metavar="N", help="skip every N-th STATE (a seq gap)"
+    )
+    em.add_argument("--seed", type=int, default=0, help="seed of the random garbage")
+    em.add_argument("--log-level", default="INFO", help="DEBUG, INFO, WARNING, ERROR")
+
+
+def _emulate_slave(parser: argparse.ArgumentParser, args: argparse.Namespace, stop: threading.Event) -> int:
+    if not args.pty:
+        parser.error("emulate-slave needs a transport: --pty")
+    opts = ServoEmulatorOptions(
+        model=args.model,
+        rate_hz=args.rate,
+        lag_ms=args.lag_ms,
+        fault_at=args.fault_at,
+        fault=args.fault,
+        stall_joint=args.stall_joint,
+        stall_at=args.stall_at,
+        silence_at=args.silence_at,
+        silence_for=args.silence_for,
+        garbage_every=args.garbage_every,
+        drop_every=args.drop_every,
+        seed=args.seed,
+    )
+    try:
+        opts.validate()
+    except ValueError as exc:
+        print(f"telesurg device emulate-slave: {exc}", file=sys.stderr)
+        return 2
+    install_stop_handlers(stop)
+    s = run_servo_pty(opts, stop, args.seconds)
+    log.info(
+        "sent %d STATEs, %d HELLOs; applied %d SETPOINTs (%d stale, %d while disabled, %d refused); "
+        "%d ENABLEs, %d DISABLEs, %d watchdog trips; host frames corrupt %d, invalid %d, gaps %d; "
+        "silent %d frames, dropped %d, garbage %d, overflow %d bytes",
+        s.states,
+        s.hellos,
+        s.setpoints,
+        s.stale_setpoints,
+        s.ignored_setpoints,
+        s.bad_setpoints,
+        s.enables,
+        s.disables,
+        s.watchdog_trips,
+        s.corrupt,
+        s.invalid,
+        s.gaps,
+        s.silent_frames,
+        s.dropped,
+        s.garbage,
+        s.overflow_bytes,
+    )
+    return 0
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """``telesurg device``; exit 0 on a requested stop, 1 on a device error, 2 on bad options."""
     parser = _parser()
     args = parser.parse_args(argv)
     setup_logging(args.log_level, "device")
     stop = threading.Event()
+    if args.command == "emulate-slave":
+        return _emulate_slave(parser, args, stop)
     if args.command == "emulate":
         if not args.pty:
             parser.error("emulate needs a transport: --pty")

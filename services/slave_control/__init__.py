@@ -1,15 +1,24 @@
-"""slave_control: runs the slave arm (MuJoCo here) and tracks servo_jp under a watchdog lease.
+"""slave_control: runs the slave arm and tracks servo_jp under a watchdog lease.
+
+The arm is the MuJoCo simulation (``backend = "mujoco"``) or a real arm's joint-servo controller
+on a serial port (``backend = "serial"``, :mod:`services.slave_control.serial_backend`,
+``docs/hardware.md``), optionally with the MuJoCo model as its shadow. A backend fault (link lost,
+controller fault or watchdog, shadow divergence) holds the arm like a revoked lease, with the
+fault as the reason, until it clears and a new engage comes.
 
 The control loop runs at the backend period (1 ms for MuJoCo, in real time: missed periods are
-caught up by extra physics steps, and counted). Setpoints arrive on ``slave/<arm>/servo_jp``; they
-are validated (joint names, joint limits) and only followed as described in
-:mod:`services.slave_control.control`. The service publishes ``measured_js`` and the forceps-tip
-``measured_cp`` at ``publish_hz``, the estimated external wrench at the tip ``measured_cf`` (for
-masters with force feedback) with them, and its ``operating_state`` at ``state_hz`` and on change.
+caught up by extra physics steps, and counted; ``serial_rate_hz`` for a serial arm). Setpoints
+arrive on ``slave/<arm>/servo_jp``; they are validated (joint names, joint limits) and only
+followed as described in :mod:`services.slave_control.control`. The service publishes
+``measured_js`` and the forceps-tip ``measured_cp`` at ``publish_hz``, the estimated external
+wrench at the tip ``measured_cf`` (for masters with force feedback) with them, and its
+``operating_state`` at ``state_hz`` and on change.
 
 Example::
 
     telesurg slave-control --connect tcp/127.0.0.1:7447 --set arm=arm1
+    telesurg slave-control --connect tcp/127.0.0.1:7447 --set backend=serial \
+        --set serial_port=/dev/ttyACM0 --set shadow=true
 """
 
 from __future__ import annotations
@@ -23,7 +32,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from services.common import service_main
-from services.slave_control.backends import PUSH_POINTS, SlaveReading, make_backend
+from services.slave_control.backends import PUSH_POINTS, FaultHold, SlaveReading, make_backend
 from services.slave_control.control import FollowController, Lease, Setpoint, limit_step
 from services.slave_control.modes import ControlMode, ControlModes, Jog, MotionMode, Phase
 from services.slave_control.motion import SUPPORTED_JOG_AXES, PtpMotion, jog_step, ptp_duration
@@ -65,7 +74,7 @@ class SlaveControlConfig:
     site: str = "local"  # key prefix telesurg/<site>
     service: str = "slave_control"  # instance id (liveliness alive/<service>, header src)
     arm: str = "arm1"  # slave arm id in keys slave/<arm>/...
-    backend: str = "mujoco"  # valid: mujoco
+    backend: str = "mujoco"  # valid: mujoco, serial (a real arm's servo controller, docs/hardware.md)
     # robot model (services/slave_control/models/<model>): mh3f (one forceps arm, trocar modes);
     # plas, vip: two joint-space arms arm1/arm2 in one process (see joint_slave.py)
     model: str = "mh3f"
@@ -100,6 +109,29 @@ class SlaveControlConfig:
     # The watchdog's liveliness token is watched too: its death revokes the lease at once
     # (in ms), instead of after the lease lifetime.
     watchdog_service: str = "watchdog"
+    # -- backend = "serial": the joint-servo controller (shared/servo_protocol.py) --
+    # serial port or pyserial URL: /dev/ttyACM0, /dev/serial/by-id/... (survives re-plugging),
+    # /dev/pts/N (telesurg device emulate-slave), socket://host:port
+    serial_port: str = ""
+    serial_baud: int = 500_000  # bit/s: the firmware's BAUD (pseudo-terminals ignore it)
+    serial_rate_hz: float = 100.0  # Hz: control rate = one SETPOINT per period (the loop's rate)
+    # ms: sent in every SETPOINT: the controller stops the joints if no newer one comes in time
+    serial_timeout_ms: float = 100.0
+    serial_stale_ms: float = 100.0  # ms: no valid STATE for this long → link lost: HOLD, re-open
+    # ms: wait this long for the HELLO (an Arduino resets when the port opens: ~1.5 s boot)
+    serial_handshake_ms: float = 3000.0
+    serial_reconnect_s: float = 0.5  # s: re-open a lost port / re-enable after a watchdog trip this often
+    # (0, 1]: setpoints are rate-limited to this fraction of the joint speed limits (bring-up: 0.1)
+    serial_speed_fraction: float = 1.0
+    # false: handshake and read the arm but never ENABLE it (bring-up step 1: the slave holds
+    # with that cause, measured_js shows the joints as you move the arm by hand)
+    serial_enable: bool = True
+    # MuJoCo shadow (backend = "serial" only): the model runs beside the real arm, fed the same
+    # setpoints; a divergence above shadow_limit_rad on any joint for shadow_grace_ms → HOLD
+    shadow: bool = False
+    shadow_limit_rad: float = 0.05  # rad (m for prismatic joints): a stuck or slipping joint
+    shadow_grace_ms: float = 200.0  # ms: how long the divergence may exceed the limit
+    shadow_report_s: float = 1.0  # s: period of the "shadow" divergence events
     bus: BusConfig = field(default_factory=BusConfig)  # zenoh session
 
 
@@ -586,12 +618,12 @@ def run(cfg: SlaveControlConfig, stop: threading.Event) -> None:
         from shared.robots import arms_of
 
         arms = arms_of(cfg.model)
-        backend = make_backend(cfg.backend, cfg.model, (), tuple(p.tip_site for p in arms))
+        backend = make_backend(cfg.backend, cfg.model, (), tuple(p.tip_site for p in arms), cfg)
         run_joint_slave(cfg, stop, backend, arms)
         return
     if len(cfg.q_home) != len(MH3F.joint_names):
         raise ConfigError(f"q_home needs {len(MH3F.joint_names)} values")
-    backend = make_backend(cfg.backend, cfg.model, cfg.q_home)
+    backend = make_backend(cfg.backend, cfg.model, cfg.q_home, cfg=cfg)
     with backend, Node(cfg.bus, cfg.site, cfg.service) as node:
         names = backend.joint_names
         if names != MH3F.joint_names:
@@ -622,11 +654,14 @@ def run(cfg: SlaveControlConfig, stop: threading.Event) -> None:
         timer = CycleTimer(1.0 / dt)
         pub_every = max(1, round(1.0 / (dt * cfg.publish_hz)))
         state_every = max(1, round(1.0 / (dt * cfg.state_hz)))
-        q_cmd = np.array(cfg.q_home, dtype=float)
         reading = backend.read()
+        # start from the measured joints (MuJoCo: q_home; a real arm: wherever it stands)
+        q_cmd = svc.q_cmd = reading.position.copy()
         with svc.lock:  # the first operating_state already carries the measurements
             svc.update_modes(reading)
-        last_state: tuple[bool, bool, str, str, bool] | None = None
+        held = FaultHold()  # a backend fault (link, controller, shadow) holds like a revoked lease
+        shadow_every = max(1, round(cfg.shadow_report_s / dt))
+        last_state: tuple[bool, bool, str, str, bool, str] | None = None
         caught_up = 0
         applied = np.zeros((300_000, 3), dtype=np.int64) if cfg.latency_log else None
         n_applied = 0
@@ -656,7 +691,12 @@ def run(cfg: SlaveControlConfig, stop: threading.Event) -> None:
                 applied[n_applied] = (sp.origin_ns, sp.stamp_ns, time.time_ns())
                 n_applied += 1
             last_sp = sp
-            if internal:
+            if reading.fault or held.active:
+                if reading.fault and internal:
+                    svc.stop_internal(f"fault: {reading.fault}")
+                ctl.lease_valid = ctl.lease_ok(lease, now, svc.cycle)
+                q_cmd = held.update(ctl, reading.fault, reading.position)
+            elif internal:
                 q_cmd = _internal_step(svc, ctl, cfg, reading, q_cmd, lease, now, dt, vmax, job)
             else:
                 if not master_slave:
@@ -683,6 +723,8 @@ def run(cfg: SlaveControlConfig, stop: threading.Event) -> None:
             for kind, text in ctl.events:
                 node.event(kind, text, arm=cfg.arm, severity="warning" if kind in WARN else "info")
             ctl.events.clear()
+            if reading.divergence is not None and cycle % shadow_every == 0:
+                node.event("shadow", f"shadow divergence {reading.divergence.describe()}", arm=cfg.arm)
             if cycle % pub_every == 0:
                 js_out.put(
                     JointState(
@@ -706,14 +748,15 @@ def run(cfg: SlaveControlConfig, stop: threading.Event) -> None:
                     f, m = tip_wrench(reading.position, reading.external_torque)
                     cf_out.put(CartesianWrench(cf_out.header(), "base", f, m))
             lease_ok = ctl.lease_valid
-            state = (ctl.following, lease_ok, ctl.reason, svc.modes.control_mode, internal)
+            state = (ctl.following, lease_ok, ctl.reason, svc.modes.control_mode, internal, held.cause)
             if state != last_state or cycle % state_every == 0:
                 last_state = state
                 rejected = svc.rejected_setpoints + node.streams.get(k.slave(cfg.arm, "servo_jp")).rejected
+                op = "ENABLED" if ctl.following or internal else ("FAULT" if svc.estop else "PAUSED")
                 state_out.put(
                     OperatingState(
                         state_out.header(),
-                        "ENABLED" if ctl.following or internal else ("FAULT" if svc.estop else "PAUSED"),
+                        "FAULT" if held.active else op,
                         svc.modes.control_mode,
                         ctl.following,
                         lease_ok,

@@ -1,19 +1,52 @@
-"""Slave backends behind one interface: the MuJoCo simulation here (a serial device later).
+"""Slave backends behind one interface: the MuJoCo simulation and a real arm's servo controller.
 
 A backend is a context manager that owns the robot: ``command(q)`` sets joint position targets,
 ``step(n)`` advances it by ``n`` control periods, and ``read()`` returns the measured state.
-mujoco is imported lazily inside the MuJoCo backend.
+A backend that can fail at run time (the ``serial`` one: link loss, controller fault, controller
+timeout, shadow divergence) says so in ``SlaveReading.fault``; the control loops then hold
+(:class:`FaultHold`). mujoco is imported lazily inside the MuJoCo backend, pyserial inside the
+serial one (:mod:`services.slave_control.serial_backend`).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 from types import TracebackType
-from typing import Any, Protocol
+from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 
 from shared.errors import ConfigError
+
+if TYPE_CHECKING:
+    from services.slave_control import SlaveControlConfig
+    from services.slave_control.control import FollowController
+
+
+@dataclass(frozen=True)
+class ShadowDivergence:
+    """How far a real slave is from its MuJoCo shadow (fed the same setpoints).
+
+    Attributes:
+        max_rad: largest |predicted − measured| over the joints, rad (m for a prismatic joint).
+        joint: name of the joint where it is largest.
+        predicted: that joint's predicted position, rad / m.
+        measured: that joint's measured position, rad / m.
+        tip_m: largest distance between the predicted and the measured tip over the arms, m.
+    """
+
+    max_rad: float
+    joint: str
+    predicted: float
+    measured: float
+    tip_m: float
+
+    def describe(self) -> str:
+        """One line for events and hold causes."""
+        return (
+            f"{self.max_rad:.4f} rad at {self.joint} (predicted {self.predicted:+.4f}, "
+            f"measured {self.measured:+.4f}), tip {self.tip_m * 1e3:.1f} mm"
+        )
 
 
 @dataclass(frozen=True)
@@ -39,6 +72,54 @@ class SlaveReading:
     sim_time: float
     external_torque: np.ndarray | None = None
     site_positions: np.ndarray | None = None  # (k, 3) m: the backend's extra sites, in order
+    # why the backend cannot be trusted to move now ("" = fine): link lost, controller fault,
+    # controller watchdog, shadow divergence. Non-empty → the control loop holds (FaultHold).
+    fault: str = ""
+    divergence: ShadowDivergence | None = None  # vs the MuJoCo shadow, if one runs
+
+
+@dataclass
+class FaultHold:
+    """What a control loop does while its backend reports a fault (``SlaveReading.fault``).
+
+    Like a revoked lease, with the fault as the reason: the follow controller stops following and
+    is disarmed (after the fault a new engage — clutch released, then pressed — is needed), the
+    command freezes at the joints measured when the fault began, and when the fault clears the
+    command restarts from the joints measured then (the arm may have stopped or been moved
+    meanwhile: the old command must not pull it back). Events go to ``ctl.events``: ``hold`` with
+    the cause at the onset and whenever the cause changes, ``fault_cleared`` at the end.
+
+    Attributes:
+        cause: the fault being held ("" = none).
+    """
+
+    cause: str = ""
+    _q: np.ndarray | None = None
+
+    @property
+    def active(self) -> bool:
+        return bool(self.cause)
+
+    def update(self, ctl: FollowController, fault: str, q_meas: np.ndarray) -> np.ndarray:
+        """The joint command of this period, given the backend's ``fault`` ("" = none)."""
+        if not fault:
+            ctl.events.append(("fault_cleared", f"{self.cause}: cleared; waiting for a new engage"))
+            self.cause, self._q = "", None
+            q = q_meas.copy()
+            ctl.track(q)
+            return q
+        if self._q is None:
+            self._q = q_meas.copy()
+            if ctl.following:
+                ctl.holds += 1
+        if fault != self.cause:
+            ctl.events.append(("hold", fault))
+        self.cause = fault
+        ctl.following = False
+        ctl.armed = False
+        ctl.reason = fault
+        ctl.track(self._q)
+        return self._q.copy()
 
 
 #: Where the simulated hand can push the arm.
@@ -134,6 +215,14 @@ class MujocoBackend:
     def command(self, q: np.ndarray) -> None:
         self._d.ctrl[:] = q
 
+    def reset(self, q: np.ndarray) -> None:
+        """Put the arm at rest at joints ``q`` (rad), commanded to stay there (the shadow's re-sync)."""
+        d = self._d
+        d.qpos[:] = q
+        d.qvel[:] = 0.0
+        d.ctrl[:] = q
+        self._mj.mj_forward(self._m, d)
+
     def push(self, force: np.ndarray, seconds: float, at: str = "tip") -> None:
         """Push with ``force`` (N, base frame) for ``seconds`` of sim time, at the forceps ``tip``
         or at the ``wrist`` (the flange, where a hand grips the arm outside the patient)."""
@@ -184,13 +273,26 @@ def _names(m: Any, kind: str) -> set[str]:
     return {getter(i).name for i in range(count)}
 
 
-BACKENDS = ("mujoco",)
+BACKENDS = ("mujoco", "serial")
 
 
 def make_backend(
-    kind: str, model: str, q_home: tuple[float, ...], sites: tuple[str, ...] = ()
+    kind: str,
+    model: str,
+    q_home: tuple[float, ...],
+    sites: tuple[str, ...] = (),
+    cfg: SlaveControlConfig | None = None,
 ) -> SlaveBackend:
-    """The backend registered as ``kind``."""
+    """The backend registered as ``kind``; ``serial`` takes its ``serial_*`` and ``shadow*`` keys
+    from ``cfg`` (the slave_control config)."""
+    if cfg is not None and cfg.shadow and kind != "serial":
+        raise ConfigError(f'shadow = true needs backend = "serial" (backend is {kind!r})')
     if kind == "mujoco":
         return MujocoBackend(model, q_home, sites)
+    if kind == "serial":
+        if cfg is None:
+            raise ConfigError("the serial backend needs the slave_control config (serial_port, ...)")
+        from services.slave_control.serial_backend import make_serial_backend
+
+        return make_serial_backend(cfg)
     raise ConfigError(f"slave backend {kind!r} unknown; valid: {', '.join(BACKENDS)}")

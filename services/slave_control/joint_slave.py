@@ -5,7 +5,8 @@ watchdog (``safety/<arm>/lease``), its own ``servo_jp`` with the arm's joint nam
 follow/hold logic (:class:`~services.slave_control.control.FollowController`: lease, freshness,
 new engage, no jump, speed limit) and its own ``measured_js`` / ``measured_cp`` (the profile's
 controlled point) / ``operating_state`` (``control_mode = "joint"``). One arm holding does not stop
-the other. The e-stop latch applies per arm (``EStop.arm`` or ``*``).
+the other. The e-stop latch applies per arm (``EStop.arm`` or ``*``). A backend fault (a serial
+arm's link or controller, its shadow) holds every arm, with the fault as the reason.
 
 Sparse setpoints are interpolated to the control rate (:class:`SetpointInterpolator`: a console at
 25 Hz, the slave servoing at 1 kHz, no steps and no overshoot beyond the setpoints).
@@ -21,7 +22,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from services.slave_control.backends import SlaveBackend
+from services.slave_control.backends import FaultHold, SlaveBackend
 from services.slave_control.control import FollowController, Lease, Setpoint, SetpointInterpolator
 from shared.bus import Node, Outlet
 from shared.errors import ConfigError
@@ -69,6 +70,7 @@ class ArmSlave:
     last_state: tuple[object, ...] | None = None
     reply_seq: Sequencer | None = None
     node: Node | None = None
+    held: FaultHold = field(default_factory=FaultHold)  # a backend fault holds like a revoked lease
 
     def on_lease(self, msg: SafetyLease, key: str) -> None:
         now = time.monotonic()
@@ -181,6 +183,7 @@ def run_joint_slave(
         state_every = max(1, round(1.0 / (dt * cfg.state_hz)))
         reading = backend.read()
         q_cmd = reading.position.copy()
+        shadow_every = max(1, round(cfg.shadow_report_s / dt))
         log.info("joint slave %s: arms %s at %.0f Hz", cfg.model, ", ".join(p.arm for p in arms), 1 / dt)
         cycle = 0
         missed = 0
@@ -192,7 +195,13 @@ def run_joint_slave(
             for late in range(missed, -1, -1):
                 now = t_now - late * dt
                 for a in slaves:
-                    q_cmd[a.index] = _control(a, now, reading.position[a.index], q_cmd[a.index], dt)
+                    if reading.fault or a.held.active:  # no motion; a new engage after the fault
+                        with a.lock:
+                            lease = a.lease
+                        a.ctl.lease_valid = a.ctl.lease_ok(lease, now, a.cycle)
+                        q_cmd[a.index] = a.held.update(a.ctl, reading.fault, reading.position[a.index])
+                    else:
+                        q_cmd[a.index] = _control(a, now, reading.position[a.index], q_cmd[a.index], dt)
                 backend.command(q_cmd)
                 backend.step(1)
                 if late:
@@ -200,6 +209,8 @@ def run_joint_slave(
             missed = timer.wait()
             reading = backend.read()
             cycle += 1
+            if reading.divergence is not None and cycle % shadow_every == 0:
+                node.event("shadow", f"shadow divergence {reading.divergence.describe()}")
             for i, a in enumerate(slaves):
                 a.cycle = cycle
                 for kind, text in a.ctl.events:
@@ -215,7 +226,7 @@ def run_joint_slave(
                                 out.header(), "world", (float(tip[0]), float(tip[1]), float(tip[2]))
                             )
                         )
-                state = (a.ctl.following, a.ctl.lease_valid, a.ctl.reason, bool(a.estop))
+                state = (a.ctl.following, a.ctl.lease_valid, a.ctl.reason, bool(a.estop), a.held.cause)
                 if state != a.last_state or cycle % state_every == 0:
                     a.last_state = state
                     out = a.outlets["operating_state"]
@@ -223,7 +234,9 @@ def run_joint_slave(
                     out.put(
                         OperatingState(
                             out.header(),
-                            "ENABLED" if a.ctl.following else ("FAULT" if a.estop else "PAUSED"),
+                            "ENABLED"
+                            if a.ctl.following
+                            else ("FAULT" if a.estop or a.held.active else "PAUSED"),
                             "joint",
                             a.ctl.following,
                             a.ctl.lease_valid,
