@@ -30,6 +30,7 @@ COMMANDS = {
     "impair": ("shared.impair", "userspace TCP link impairer (cut / delay) for fault tests"),
     "device": ("services.device", "serial device tools: emulate an encoder board on a pty, monitor one"),
     "console": ("services.console", "operator console (terminal UI): state, clutch, commands, e-stop"),
+    "certs": ("services.certs", "make a CA and per-identity certificates for mutual TLS"),
     "record": ("services.record", "record every message of a site into an MCAP file"),
     "replay": ("services.record.replay", "replay a recording's master streams into a live site, compare"),
     "experiment": ("services.experiment", "reproduce a paper's evaluation (figures + metrics.json)"),

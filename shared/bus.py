@@ -6,6 +6,11 @@
   not find each other by accident.
 * ``transport/link/tx/lease`` set on every process (default 1000 ms, keep-alive every 250 ms), so a
   frozen peer is dropped within about a second, not zenoh's default 10 s.
+* TLS (``--tls-ca/--tls-cert/--tls-key``, ``--mtls``) for ``tls/`` endpoints, and a router-side
+  access-control file (``--acl``: zenoh ``access_control`` rules, JSON5 or TOML). A router with
+  TLS or an ACL refuses plain ``tcp/``/``udp/`` listeners beyond loopback unless
+  ``--allow-insecure-listen`` (local development): the plain loopback listener is for the site's
+  own services. See docs/deploy.md.
 * Control streams are published ``express`` (no batching) with ``Priority.REAL_TIME`` and
   ``CongestionControl.BLOCK``: nothing is dropped on a congested link (receivers check sequence
   continuity and the watchdog sees a blocked stream as stale). Other streams use
@@ -22,12 +27,16 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import ipaddress
 import json
 import logging
+import os
 import threading
 import time
+import tomllib
 from collections.abc import Callable, Collection
 from dataclasses import dataclass, field
+from pathlib import Path
 from types import TracebackType
 from typing import TYPE_CHECKING, Any, TypeVar
 
@@ -43,6 +52,8 @@ log = logging.getLogger(__name__)
 M = TypeVar("M", bound=Message)
 
 MODES = ("peer", "client", "router")
+PLAIN_PROTOCOLS = ("tcp", "udp")  # unencrypted, unauthenticated link protocols
+TLS_PROTOCOLS = ("tls", "quic")  # link protocols that use the tls_* settings
 
 
 @dataclass
@@ -55,6 +66,24 @@ class BusConfig:
     config_file: str = ""  # optional zenoh JSON5 config, applied before the fields above
     lease_ms: int = 1000  # transport lease, ms: a silent peer is dropped after this
     multicast: bool = False  # multicast scouting; off so robots never discover each other by accident
+    # TLS for tls/ endpoints (PEM files; "" = unset, zenoh's defaults). A client needs tls_root_ca
+    # to verify the router; with mtls both sides present tls_cert, and the router reads its CN.
+    tls_root_ca: str = ""  # CA certificate that verifies the other side's certificate
+    tls_cert: str = ""  # this process's certificate: server cert when listening, client cert with mtls
+    tls_key: str = ""  # private key of tls_cert (PKCS#8 PEM, e.g. from `telesurg certs`)
+    mtls: bool = False  # mutual TLS: a router requires, a client presents, a certificate from tls_root_ca
+    acl_file: str = ""  # access-control rules (zenoh `access_control` object; .json5/.json or .toml)
+    # A secured process (TLS or ACL) listens on plain tcp/ or udp/ only on loopback, unless this is
+    # set for local development: anyone reaching a plain listener bypasses the certificates.
+    allow_insecure_listen: bool = False
+    # zenoh's own log to stderr, a Rust tracing filter ("" = off; RUST_LOG wins if set), e.g.
+    # "zenoh::net::routing::interceptor::access_control=trace" logs every ACL denial (router)
+    zenoh_log: str = ""
+
+    @property
+    def secured(self) -> bool:
+        """TLS or access control is configured."""
+        return bool(self.tls_cert or self.tls_root_ca or self.mtls or self.acl_file)
 
     def validate(self) -> None:
         """Raise ConfigError naming the valid options."""
@@ -64,10 +93,68 @@ class BusConfig:
             raise ConfigError(f"bus lease_ms={self.lease_ms} outside [100, 60000]")
         if self.mode == "client" and not self.connect:
             raise ConfigError("bus mode 'client' needs at least one --connect endpoint")
+        for name in ("tls_root_ca", "tls_cert", "tls_key", "acl_file"):
+            path = getattr(self, name)
+            if path and not os.path.isfile(path):
+                raise ConfigError(f"bus {name}: file {path!r} not found")
+        if bool(self.tls_cert) != bool(self.tls_key):
+            raise ConfigError("bus tls_cert and tls_key go together (--tls-cert and --tls-key)")
+        if self.mtls and not (self.tls_root_ca and self.tls_cert):
+            raise ConfigError(
+                "bus mtls needs tls_root_ca, tls_cert and tls_key (--tls-ca/--tls-cert/--tls-key)"
+            )
+        if any(protocol_of(ep) in TLS_PROTOCOLS for ep in self.listen) and not self.tls_cert:
+            raise ConfigError(
+                "a tls/ or quic/ listen endpoint needs tls_cert and tls_key (--tls-cert/--tls-key)"
+            )
+        if any(protocol_of(ep) in TLS_PROTOCOLS for ep in self.connect) and not self.tls_root_ca:
+            raise ConfigError(
+                "a tls/ or quic/ connect endpoint needs tls_root_ca (--tls-ca) to verify the router"
+            )
+        if self.secured and not self.allow_insecure_listen:
+            for ep in self.listen:
+                if protocol_of(ep) in PLAIN_PROTOCOLS and not is_loopback(ep):
+                    raise ConfigError(
+                        f"plain listen endpoint {ep} on a secured bus (TLS/ACL): bind it to 127.0.0.1, "
+                        "or pass --allow-insecure-listen (local development only)"
+                    )
+
+
+def protocol_of(endpoint: str) -> str:
+    """``"tls"`` for ``tls/host:7447``."""
+    return endpoint.partition("/")[0].lower()
+
+
+def is_loopback(endpoint: str) -> bool:
+    """The endpoint's address is a loopback address (``127.0.0.0/8``, ``::1``, ``localhost``)."""
+    addr = endpoint.partition("/")[2]
+    for sep in ("?", "#"):  # zenoh endpoint metadata / config
+        addr = addr.partition(sep)[0]
+    host = addr.rpartition(":")[0].strip("[]")
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
+
+
+def load_acl(path: str) -> str:
+    """JSON5 text of the ``access_control`` object in ``path`` (TOML converted; JSON5 as is)."""
+    try:
+        text = Path(path).read_text(encoding="utf-8")
+    except OSError as exc:
+        raise ConfigError(f"acl file {path!r}: {exc}") from None
+    if path.endswith(".toml"):
+        try:
+            return json.dumps(tomllib.loads(text))
+        except tomllib.TOMLDecodeError as exc:
+            raise ConfigError(f"acl file {path!r}: {exc}") from None
+    return text
 
 
 def add_bus_args(parser: argparse.ArgumentParser) -> None:
-    """Add the common zenoh flags (``--mode --connect --listen --zenoh-config --lease-ms``)."""
+    """Add the common zenoh flags (``--mode --connect --listen --zenoh-config --lease-ms``, TLS, ACL)."""
     g = parser.add_argument_group("zenoh")
     g.add_argument("--mode", choices=MODES, help="zenoh mode (default: client)")
     g.add_argument("--connect", action="append", metavar="ENDPOINT", help="e.g. tcp/127.0.0.1:7447")
@@ -75,6 +162,18 @@ def add_bus_args(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--zenoh-config", metavar="FILE", help="zenoh JSON5 config file")
     g.add_argument("--lease-ms", type=int, help="transport lease, ms (default 1000)")
     g.add_argument("--multicast", action="store_true", default=None, help="enable multicast scouting")
+    g.add_argument("--tls-ca", metavar="FILE", help="CA certificate (PEM) that verifies the other side")
+    g.add_argument("--tls-cert", metavar="FILE", help="this process's certificate (PEM)")
+    g.add_argument("--tls-key", metavar="FILE", help="private key of --tls-cert (PEM)")
+    g.add_argument("--mtls", action="store_true", default=None, help="mutual TLS (both sides show a cert)")
+    g.add_argument("--acl", metavar="FILE", help="access-control rules, JSON5 or TOML (router)")
+    g.add_argument("--zenoh-log", metavar="FILTER", help="zenoh's own log, e.g. zenoh=info (stderr)")
+    g.add_argument(
+        "--allow-insecure-listen",
+        action="store_true",
+        default=None,
+        help="with TLS/ACL, still allow plain tcp/udp listeners beyond loopback (development only)",
+    )
 
 
 def bus_from_args(args: argparse.Namespace, base: BusConfig | None = None) -> BusConfig:
@@ -92,6 +191,17 @@ def bus_from_args(args: argparse.Namespace, base: BusConfig | None = None) -> Bu
         cfg.lease_ms = args.lease_ms
     if args.multicast:
         cfg.multicast = True
+    for flag, name in (("tls_ca", "tls_root_ca"), ("tls_cert", "tls_cert"), ("tls_key", "tls_key")):
+        if value := getattr(args, flag, None):
+            setattr(cfg, name, value)
+    if getattr(args, "mtls", None):
+        cfg.mtls = True
+    if acl := getattr(args, "acl", None):
+        cfg.acl_file = acl
+    if getattr(args, "allow_insecure_listen", None):
+        cfg.allow_insecure_listen = True
+    if zlog := getattr(args, "zenoh_log", None):
+        cfg.zenoh_log = zlog
     return cfg
 
 
@@ -111,6 +221,22 @@ def zenoh_config(cfg: BusConfig) -> zenoh.Config:
         z.insert_json5("scouting/gossip/enabled", json.dumps(cfg.mode != "client"))
     z.insert_json5("transport/link/tx/lease", json.dumps(cfg.lease_ms))
     z.insert_json5("transport/link/tx/keep_alive", json.dumps(4))
+    tls = "transport/link/tls"
+    if cfg.tls_root_ca:
+        z.insert_json5(f"{tls}/root_ca_certificate", json.dumps(os.path.abspath(cfg.tls_root_ca)))
+    if cfg.tls_cert:
+        for side in ("listen", "connect"):
+            z.insert_json5(f"{tls}/{side}_certificate", json.dumps(os.path.abspath(cfg.tls_cert)))
+            z.insert_json5(f"{tls}/{side}_private_key", json.dumps(os.path.abspath(cfg.tls_key)))
+    if cfg.mtls:
+        z.insert_json5(f"{tls}/enable_mtls", json.dumps(True))
+    if cfg.acl_file:
+        try:
+            z.insert_json5("access_control", load_acl(cfg.acl_file))
+        except zenoh.ZError as exc:
+            raise ConfigError(
+                f"acl file {cfg.acl_file!r} is not a valid zenoh access_control: {exc}"
+            ) from None
     return z
 
 
@@ -118,6 +244,8 @@ def open_session(cfg: BusConfig) -> zenoh.Session:
     """Open a zenoh session; errors name the endpoint that failed."""
     import zenoh
 
+    if cfg.zenoh_log:
+        zenoh.init_log_from_env_or(cfg.zenoh_log)
     try:
         return zenoh.open(zenoh_config(cfg))
     except zenoh.ZError as exc:

@@ -26,7 +26,20 @@ Example::
         link.set_delay(20)      # +20 ms each way
         link.reset_connections()
 
-Or as a process: ``telesurg impair --listen 127.0.0.1:7448 --target 127.0.0.1:7447 --delay-ms 20``.
+Or as a process: ``telesurg impair --listen 127.0.0.1:7448 --target 127.0.0.1:7447 --delay-ms 20``;
+with ``--control`` it also reads commands on stdin (``cut``, ``restore``, ``delay MS``, ``reset``,
+``stats``; one ``ok ...`` / ``error ...`` line back each), so a test can drive an impairer that
+runs inside a network namespace (``ip netns exec NS telesurg impair --control ...``).
+
+A TCP proxy cannot lose packets: TCP below it retransmits. For packet loss, :class:`PacketLink`
+(root only) joins two network namespaces with a TUN device in each and forwards every IP packet
+through this process with delay, random loss and cut, so TCP, TLS, UDP and QUIC links see real
+loss and the kernel's own retransmission (``services/bench/transport.py`` uses it)::
+
+    with NetNamespace("ts-a") as a, NetNamespace("ts-b") as b, PacketLink(a.name, b.name) as link:
+        link.set_delay(10)      # ms one way
+        link.set_loss(0.02)     # 2 % of packets, each direction, independently
+        subprocess.run(a.cmd(["python", "-m", "..."]))   # reaches b at link.addr_b
 """
 
 from __future__ import annotations
@@ -34,13 +47,17 @@ from __future__ import annotations
 import argparse
 import contextlib
 import errno
+import fcntl
 import logging
 import math
 import os
+import random
 import selectors
+import shutil
 import signal
 import socket
 import struct
+import subprocess
 import sys
 import threading
 import time
@@ -628,6 +645,246 @@ class LinkImpairer:
         log.debug("%s: %s closed%s", self.thread_name, pair.peer, " (reset)" if reset else "")
 
 
+# --------------------------------------------------------------------- packet link (root)
+
+_TUNSETIFF = 0x400454CA
+_IFF_TUN = 0x0001
+_IFF_NO_PI = 0x1000
+
+
+def netns_available() -> str:
+    """ "" if network namespaces and TUN devices can be used here, else the reason they cannot."""
+    if os.geteuid() != 0:
+        return "needs root (network namespaces, TUN devices)"
+    if shutil.which("ip") is None:
+        return "needs the `ip` command (iproute2)"
+    if not os.path.exists("/dev/net/tun"):
+        return "needs /dev/net/tun"
+    probe = f"ts-probe-{os.getpid()}"
+    r = subprocess.run(["ip", "netns", "add", probe], capture_output=True, text=True)
+    if r.returncode != 0:
+        return f"`ip netns add` failed: {r.stderr.strip()}"
+    subprocess.run(["ip", "netns", "del", probe], capture_output=True)
+    return ""
+
+
+def _ip(*args: str) -> None:
+    r = subprocess.run(["ip", *args], capture_output=True, text=True)
+    if r.returncode != 0:
+        raise OSError(f"ip {' '.join(args)}: {r.stderr.strip()}")
+
+
+class NetNamespace:
+    """A network namespace, created on enter (loopback up) and deleted on exit.
+
+    Args:
+        name: namespace name (``ip netns``); must not exist yet.
+    """
+
+    def __init__(self, name: str) -> None:
+        self.name = name
+        self._made = False
+
+    def __enter__(self) -> NetNamespace:
+        _ip("netns", "add", self.name)
+        self._made = True
+        try:
+            _ip("-n", self.name, "link", "set", "lo", "up")
+        except BaseException:
+            self.close()
+            raise
+        return self
+
+    def __exit__(
+        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None:
+        self.close()
+
+    def close(self) -> None:
+        """Delete the namespace (idempotent); its interfaces go with it."""
+        if self._made:
+            self._made = False
+            subprocess.run(["ip", "netns", "del", self.name], capture_output=True)
+
+    def cmd(self, argv: Sequence[str]) -> list[str]:
+        """``argv`` run inside the namespace (``ip netns exec`` execs it: same PID)."""
+        return ["ip", "netns", "exec", self.name, *argv]
+
+
+class PacketLink:
+    """A point-to-point IP link between two network namespaces, forwarded by this process.
+
+    A TUN device is made in each namespace (``addr_a`` in ``ns_a``, ``addr_b`` in ``ns_b``, a /32
+    route to each other); one thread (``packetlink-<name>``) reads every IP packet from one device
+    and writes it to the other no earlier than its read time plus the one-way delay, in order.
+    Each packet is dropped with probability ``loss`` (independently, per direction), and every
+    packet is dropped while the link is cut — as on a real link, the endpoints' own TCP (or
+    QUIC) retransmits, UDP datagrams are gone. Root only; the devices vanish on :meth:`close`.
+
+    Args:
+        ns_a, ns_b: existing network namespaces (e.g. :class:`NetNamespace`).
+        addr_a, addr_b: IPv4 addresses of the two ends.
+        name: device-name stem (``<name>a``, ``<name>b``; at most 14 characters).
+        seed: seed of the loss generator (reproducible drops for a given packet sequence).
+
+    Raises:
+        OSError: not root, no TUN support, or the namespaces do not exist.
+    """
+
+    def __init__(
+        self,
+        ns_a: str,
+        ns_b: str,
+        *,
+        addr_a: str = "10.251.0.1",
+        addr_b: str = "10.251.0.2",
+        name: str = "",
+        seed: int | None = None,
+    ) -> None:
+        self.addr_a, self.addr_b = addr_a, addr_b
+        stem = name or f"tsl{os.getpid() % 100000}"
+        if len(stem) > 14:
+            raise ValueError(f"device name stem {stem!r} longer than 14 characters")
+        self.name = stem
+        self._rng = random.Random(seed)
+        self._lock = threading.Lock()
+        self._delay_s = 0.0
+        self._loss = 0.0
+        self._cut = False
+        self._stop = False
+        self._thread: threading.Thread | None = None
+        self.counts = {"forwarded": 0, "lost": 0, "cut": 0}
+        self._fds: list[int] = []
+        try:
+            for ns, dev, mine, peer in (
+                (ns_a, f"{stem}a", addr_a, addr_b),
+                (ns_b, f"{stem}b", addr_b, addr_a),
+            ):
+                fd = os.open("/dev/net/tun", os.O_RDWR | os.O_CLOEXEC)
+                self._fds.append(fd)
+                fcntl.ioctl(fd, _TUNSETIFF, struct.pack("16sH", dev.encode(), _IFF_TUN | _IFF_NO_PI))
+                os.set_blocking(fd, False)
+                _ip("link", "set", "dev", dev, "netns", ns)
+                _ip("-n", ns, "addr", "add", mine, "peer", f"{peer}/32", "dev", dev)
+                _ip("-n", ns, "link", "set", dev, "up")
+            self._wake_r, self._wake_w = os.pipe()
+        except BaseException:
+            for fd in self._fds:
+                os.close(fd)
+            raise
+
+    @property
+    def state(self) -> str:
+        """``cut``, else ``impaired`` (delay or loss set), else ``pass``."""
+        if self._cut:
+            return "cut"
+        return "impaired" if self._delay_s > 0 or self._loss > 0 else "pass"
+
+    def set_delay(self, ms: float) -> None:
+        """One-way delay per direction, ms (finite, >= 0); packets already queued keep theirs."""
+        if not math.isfinite(ms) or ms < 0:
+            raise ValueError(f"delay must be a finite number of ms >= 0, got {ms!r}")
+        with self._lock:
+            self._delay_s = ms / 1000.0
+
+    def set_loss(self, probability: float) -> None:
+        """Drop each packet with this probability (0 <= p < 1), each direction independently."""
+        if not 0.0 <= probability < 1.0:
+            raise ValueError(f"loss probability must be in [0, 1), got {probability!r}")
+        with self._lock:
+            self._loss = probability
+
+    def cut(self) -> None:
+        """Drop every packet, both ways, until :meth:`restore` (queued packets are dropped too)."""
+        with self._lock:
+            self._cut = True
+
+    def restore(self) -> None:
+        """No cut, no delay, no loss."""
+        with self._lock:
+            self._cut = False
+            self._delay_s = 0.0
+            self._loss = 0.0
+
+    def start(self) -> None:
+        """Start forwarding (idempotent)."""
+        if self._thread is None:
+            self._thread = threading.Thread(target=self._run, name=f"packetlink-{self.name}", daemon=True)
+            self._thread.start()
+
+    def close(self) -> None:
+        """Stop the thread and close both devices (idempotent)."""
+        if not self._fds:
+            return
+        self._stop = True
+        with contextlib.suppress(OSError):
+            os.write(self._wake_w, b"\0")
+        if self._thread is not None:
+            self._thread.join(5.0)
+        for fd in (*self._fds, self._wake_r, self._wake_w):
+            with contextlib.suppress(OSError):
+                os.close(fd)
+        self._fds = []
+
+    def __enter__(self) -> PacketLink:
+        self.start()
+        return self
+
+    def __exit__(
+        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None:
+        self.close()
+
+    def _run(self) -> None:
+        fa, fb = self._fds
+        queues: dict[int, deque[tuple[float, bytes]]] = {fa: deque(), fb: deque()}  # by destination
+        sel = selectors.DefaultSelector()
+        sel.register(fa, selectors.EVENT_READ, fb)
+        sel.register(fb, selectors.EVENT_READ, fa)
+        sel.register(self._wake_r, selectors.EVENT_READ, None)
+        try:
+            while not self._stop:
+                now = time.monotonic()
+                due = [q[0][0] for q in queues.values() if q]
+                timeout = max(0.0, min(due) - now) if due else None
+                for key, _ in sel.select(timeout):
+                    if key.data is None:
+                        continue
+                    self._drain(int(key.fd), queues[key.data])
+                now = time.monotonic()
+                for dst, q in queues.items():
+                    while q and q[0][0] <= now:
+                        pkt = q.popleft()[1]
+                        with contextlib.suppress(OSError):  # ENOBUFS etc.: the packet is lost
+                            os.write(dst, pkt)
+        except Exception:
+            log.debug("packetlink %s failed", self.name, exc_info=True)
+        finally:
+            sel.close()
+
+    def _drain(self, src: int, queue: deque[tuple[float, bytes]]) -> None:
+        with self._lock:
+            cut, loss, delay = self._cut, self._loss, self._delay_s
+        if cut:
+            queue.clear()
+        now = time.monotonic()
+        while True:
+            try:
+                pkt = os.read(src, 65536)
+            except (BlockingIOError, InterruptedError):
+                return
+            except OSError:
+                return
+            if cut:
+                self.counts["cut"] += 1
+            elif loss > 0 and self._rng.random() < loss:
+                self.counts["lost"] += 1
+            else:
+                self.counts["forwarded"] += 1
+                due = max(now + delay, queue[-1][0]) if queue else now + delay
+                queue.append((due, pkt))
+
+
 # --------------------------------------------------------------------- CLI
 
 
@@ -667,6 +924,38 @@ def _hostport_arg(text: str) -> tuple[str, int]:
         raise argparse.ArgumentTypeError(str(exc)) from None
 
 
+def control_command(link: LinkImpairer, line: str) -> str:
+    """Apply one text command to ``link``; the reply line (``ok <state> <delay ms>`` or ``error ...``).
+
+    Commands: ``cut``, ``restore``, ``delay MS``, ``reset``, ``stats``.
+    """
+    words = line.split()
+    try:
+        match words:
+            case ["cut"]:
+                link.cut()
+            case ["restore"]:
+                link.restore()
+            case ["delay", ms]:
+                link.set_delay(float(ms))
+            case ["reset"]:
+                link.reset_connections()
+            case ["stats"]:
+                return "ok " + " ".join(f"{k}={v}" for k, v in link.stats().items())
+            case _:
+                return f"error unknown command {line.strip()!r}; valid: cut, restore, delay MS, reset, stats"
+    except (ValueError, RuntimeError) as exc:
+        return f"error {exc}"
+    return f"ok {link.state} {link.delay_ms:g}"
+
+
+def _control_loop(link: LinkImpairer, stop: threading.Event) -> None:
+    for line in sys.stdin:
+        if line.strip():
+            print(control_command(link, line), flush=True)
+    stop.set()  # EOF: whoever drove us is gone
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """``telesurg impair``: run a :class:`LinkImpairer` until SIGINT/SIGTERM.
 
@@ -703,6 +992,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         metavar="MS",
         help="one-way added latency per direction, ms (default 0)",
     )
+    parser.add_argument(
+        "--control",
+        action="store_true",
+        help="read commands on stdin (cut, restore, delay MS, reset, stats); EOF stops the impairer",
+    )
     parser.add_argument("--log-level", default="INFO", help="DEBUG, INFO, WARNING, ERROR")
     args = parser.parse_args(argv)
     if not math.isfinite(args.delay_ms) or args.delay_ms < 0:
@@ -735,6 +1029,8 @@ def main(argv: Sequence[str] | None = None) -> int:
                 f"{link.delay_ms:g} ms)",
                 flush=True,
             )
+            if args.control:
+                threading.Thread(target=_control_loop, args=(link, stop), daemon=True).start()
             stop.wait()
             log.info("stopping; %s", link.stats())
     finally:

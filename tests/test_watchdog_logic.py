@@ -182,3 +182,9 @@ def test_config_validation() -> None:
     with pytest.raises(ConfigError, match="workspace"):
         WatchdogConfig(workspace_min_mm=(0.0, 0.0, 900.0)).validate()
     assert np.all(WatchdogConfig().policy().max_velocity > 0)
+
+
+def test_echo_latency_is_judged_on_the_samples_echo_can_give() -> None:
+    # 20 probes/s over a 1 s window: a verdict needs half of them, not the clock source's 20
+    assert WatchdogConfig(latency_source="echo", echo_hz=20.0).policy().latency_min_samples == 10
+    assert WatchdogConfig(latency_source="clock").policy().latency_min_samples == 20

@@ -23,6 +23,7 @@ BENCHES = {
     "soak": ("services.bench.perf", "long run: losses per stream, deadline misses, CPU and RSS"),
     "ik": ("services.bench.perf", "analytic IK / mapping vs a generic numerical IK"),
     "sim": ("services.bench.perf", "MuJoCo steps/s unpaced per robot model"),
+    "transport": ("services.bench.transport", "zenoh links for a 1 kHz stream under packet loss (root)"),
 }
 
 

@@ -5,9 +5,16 @@ loopback endpoint. Ctrl-C (SIGINT) or SIGTERM stops the services in a safe order
 slave and router last — waits for them, and exits 0 if every process stopped cleanly. Children
 also stop by themselves if the launcher dies (they watch their parent PID).
 
-Example::
+A secured site (``deploy/slave-site.sh``) gives the router more listeners and its TLS / access
+control flags (``--listen``, ``--tls-*``, ``--mtls``, ``--acl``), which go to the router only;
+the services still connect to the plain loopback endpoint ``--host``:``--port``.
+
+Examples::
 
     telesurg up --port 7447 --log-dir out/logs --set mapping.scale=0.3
+    telesurg up --site lab --port 7448 --services watchdog,slave_control,mapping \
+        --listen tls/0.0.0.0:7447 --tls-ca certs/ca.pem --tls-cert certs/slave-site.pem \
+        --tls-key certs/slave-site.key --mtls --acl deploy/slave-site/acl.json5
 """
 
 from __future__ import annotations
@@ -29,6 +36,7 @@ from types import TracebackType
 from typing import IO
 
 from services.common import install_stop_handlers, setup_logging
+from shared.bus import BusConfig, add_bus_args, bus_from_args
 from shared.errors import ConfigError
 
 log = logging.getLogger("telesurg.launcher")
@@ -97,6 +105,8 @@ class SiteSpec:
     log_level: str = "INFO"  # service log level
     # service → endpoint it connects to instead of the router (e.g. through a link impairer)
     connect: dict[str, str] = field(default_factory=dict)
+    listen: tuple[str, ...] = ()  # more router endpoints, e.g. tls/0.0.0.0:7447 for remote consoles
+    router_flags: tuple[str, ...] = ()  # router-only flags: --tls-ca/--tls-cert/--tls-key/--mtls/--acl
 
     @property
     def endpoint(self) -> str:
@@ -109,7 +119,9 @@ def service_argv(spec: SiteSpec, name: str) -> list[str]:
     argv = [sys.executable, "-m", "services.cli", CLI_NAME[name], "--site", spec.site]
     argv += ["--log-level", spec.log_level, "--parent-pid", str(os.getpid())]
     if name == "router":
-        argv += ["--listen", spec.endpoint]
+        for ep in (spec.endpoint, *spec.listen):
+            argv += ["--listen", ep]
+        argv += spec.router_flags
     else:
         argv += ["--connect", spec.connect.get(name, spec.endpoint)]
     cfg = spec.config_dir / f"{name}.toml" if spec.config_dir else None
@@ -136,8 +148,13 @@ class Site:
         enough for the watchdog's deadlines to fire before the first engage.
         """
         self._spawn("router")
-        if not wait_port(self.spec.host, self.spec.port, 15.0):
-            raise ConnectionError(f"router did not open {self.spec.endpoint} within 15 s")
+        router = self.procs["router"]
+        deadline = time.monotonic() + 15.0
+        while not wait_port(self.spec.host, self.spec.port, 0.2):
+            if router.poll() is not None:
+                raise ConnectionError(f"router exited with code {router.returncode} (see its log)")
+            if time.monotonic() > deadline:
+                raise ConnectionError(f"router did not open {self.spec.endpoint} within 15 s")
         from shared.bus import BusConfig, open_session
         from shared.keys import Keys
 
@@ -294,11 +311,34 @@ def spec_from_args(args: argparse.Namespace, services: Sequence[str]) -> SiteSpe
     )
 
 
+def router_security_flags(args: argparse.Namespace) -> list[str]:
+    """The router's TLS / access-control flags from ``telesurg up``'s arguments."""
+    flags: list[str] = []
+    for name in ("tls_ca", "tls_cert", "tls_key", "acl"):
+        if value := getattr(args, name):
+            flags += [f"--{name.replace('_', '-')}", str(Path(value).resolve())]
+    for name in ("mtls", "allow_insecure_listen"):
+        if getattr(args, name):
+            flags.append(f"--{name.replace('_', '-')}")
+    if args.zenoh_log:
+        flags += ["--zenoh-log", args.zenoh_log]
+    return flags
+
+
+def router_bus(spec: SiteSpec) -> BusConfig:
+    """The router's bus config as its command line will build it (to validate it up front)."""
+    parser = argparse.ArgumentParser(add_help=False)
+    add_bus_args(parser)
+    args = parser.parse_args(list(spec.router_flags))
+    return bus_from_args(args, BusConfig(mode="router", listen=[spec.endpoint, *spec.listen]))
+
+
 def run_site(spec: SiteSpec, seconds: float, stop: threading.Event) -> int:
     """Run ``spec`` until ``stop`` or ``seconds``; 0 if every process stopped cleanly."""
     deadline = time.monotonic() + seconds if seconds > 0 else float("inf")
     with Site(spec) as site:
-        log.info("site %r up on %s; Ctrl-C stops everything", spec.site, spec.endpoint)
+        eps = ", ".join((spec.endpoint, *spec.listen))
+        log.info("site %r up on %s; Ctrl-C stops everything", spec.site, eps)
         reported: set[str] = set()
         while not stop.wait(0.2) and time.monotonic() < deadline:
             for name, rc in site.dead().items():
@@ -325,13 +365,47 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--no-mirror", action="store_true", help="do not start the mirror")
     parser.add_argument("--save", metavar="FILE.rrd", help="mirror writes this .rrd")
     parser.add_argument("--serve", action="store_true", help="mirror serves the rerun web viewer")
+    parser.add_argument(
+        "--services",
+        metavar="LIST",
+        help=f"comma-separated services to start (default: all; from {', '.join(SERVICES)})",
+    )
+    g = parser.add_argument_group("router security (the router only; see docs/deploy.md)")
+    g.add_argument("--listen", action="append", default=[], metavar="ENDPOINT", help="more router endpoints")
+    g.add_argument("--tls-ca", metavar="FILE", help="CA certificate that verifies the consoles")
+    g.add_argument("--tls-cert", metavar="FILE", help="the router's certificate (CN slave-site)")
+    g.add_argument("--tls-key", metavar="FILE", help="its private key")
+    g.add_argument("--mtls", action="store_true", help="require a client certificate from --tls-ca")
+    g.add_argument("--acl", metavar="FILE", help="access-control rules (e.g. deploy/slave-site/acl.json5)")
+    g.add_argument(
+        "--allow-insecure-listen",
+        action="store_true",
+        help="let a secured router listen on plain tcp/udp beyond loopback (development only)",
+    )
+    g.add_argument(
+        "--zenoh-log",
+        metavar="FILTER",
+        help="the router's zenoh log, e.g. zenoh::net::routing::interceptor::access_control=trace",
+    )
     args = parser.parse_args(argv)
     setup_logging("INFO", "launcher")
+    if args.services:
+        wanted = [s.strip() for s in args.services.split(",") if s.strip()]
+        unknown = [s for s in wanted if s not in SERVICES]
+        if unknown:
+            print(f"telesurg up: unknown service(s) {unknown}; valid: {', '.join(SERVICES)}", file=sys.stderr)
+            return 2
+    else:
+        wanted = list(SERVICES)
     services = [
-        s for s in SERVICES if not (s == "mirror" and (args.no_mirror or not (args.save or args.serve)))
+        s
+        for s in SERVICES
+        if s in wanted and not (s == "mirror" and (args.no_mirror or not (args.save or args.serve)))
     ]
     try:
         spec = spec_from_args(args, services)
+        spec.listen, spec.router_flags = tuple(args.listen), tuple(router_security_flags(args))
+        router_bus(spec).validate()
     except ConfigError as exc:
         print(f"telesurg up: {exc}", file=sys.stderr)
         return 2

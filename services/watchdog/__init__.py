@@ -137,6 +137,12 @@ class WatchdogConfig:
             latency_budget_ms=self.latency_budget_ms,
             latency_limit_ms=self.latency_limit_ms,
             latency_window_s=self.latency_window_s,
+            # echo probes are few (echo_hz per second): judge on half a window's worth of them
+            latency_min_samples=(
+                max(3, int(0.5 * self.echo_hz * self.latency_window_s))
+                if self.latency_source == "echo"
+                else 20
+            ),
             degraded_scale=self.degraded_scale,
             fault_latch_ms=self.fault_latch_ms,
             min_hold_ms=self.min_hold_ms,
@@ -331,8 +337,12 @@ class Watchdog:
 
 
 def _echo_loop(wd: Watchdog, cfg: WatchdogConfig, stop: threading.Event) -> None:
+    """Probe at ``echo_hz`` on a fixed schedule: the time a reply takes is not added to the period,
+    so the window gets its samples at any round-trip time below the period."""
     period = 1.0 / cfg.echo_hz
-    while not stop.wait(period):
+    next_t = time.monotonic() + period
+    while not stop.wait(max(0.0, next_t - time.monotonic())):
+        next_t = max(next_t + period, time.monotonic())
         try:
             rtt = wd.node.echo_rtt(cfg.echo_service, timeout=cfg.latency_limit_ms / 1e3)
         except Exception:  # session closing

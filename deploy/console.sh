@@ -1,0 +1,124 @@
+#!/usr/bin/env bash
+# Console site: master_capture (and the operator console, if installed) on this machine,
+# connected to a slave site over mutual TLS. Ctrl-C, SIGTERM or quitting the console stops all.
+set -euo pipefail
+here="$(cd "$(dirname "$0")/.." && pwd)"
+py="$here/.venv/bin/python"
+
+usage() {
+    cat <<USAGE
+usage: deploy/console.sh SLAVE_HOST [options]
+
+Connects to the slave site's router at tls/SLAVE_HOST:7447 (deploy/slave-site.sh there) with
+this machine's certificate, starts master_capture and, in the foreground, the operator console
+(telesurg console) when it is installed; configs from deploy/console/. Guide: docs/deploy.md.
+
+options:
+  --port N             the slave site's TLS port (default: 7447)
+  --protocol P         tls or quic (default: tls; quic needs --listen quic/... on the slave site)
+  --site ID            site id, as on the slave site (default: lab)
+  --certs DIR          ca.pem and IDENTITY.pem/.key (default: certs; telesurg certs)
+  --identity NAME      certificate common name (default: console; console-mapping with --mapping)
+  --config-dir DIR     <service>.toml files (default: deploy/console)
+  --mapping            also run the mapping here (the slave site runs with --no-mapping)
+  --no-console         no terminal UI: run master_capture until Ctrl-C / SIGTERM
+  --log-dir DIR        service logs (default: stderr; out/console-logs under the console UI)
+  --set SERVICE.KEY=VALUE
+                       override a config key of master_capture, mapping or console,
+                       e.g. --set master_capture.scripted.radius=0.02
+  -h, --help           this help
+USAGE
+}
+
+host=""
+port=7447
+protocol=tls
+site=lab
+certs=certs
+identity=""
+config_dir="$here/deploy/console"
+mapping=0
+ui=1
+log_dir=""
+declare -A sets=([master_capture]="" [mapping]="" [console]="")
+while [[ $# -gt 0 ]]; do
+    case "$1" in
+        -h|--help) usage; exit 0 ;;
+        --port) port="$2"; shift 2 ;;
+        --protocol) protocol="$2"; shift 2 ;;
+        --site) site="$2"; shift 2 ;;
+        --certs) certs="$2"; shift 2 ;;
+        --identity) identity="$2"; shift 2 ;;
+        --config-dir) config_dir="$2"; shift 2 ;;
+        --mapping) mapping=1; shift ;;
+        --no-console) ui=0; shift ;;
+        --log-dir) log_dir="$2"; shift 2 ;;
+        --set)
+            svc="${2%%.*}"
+            if [[ -z "${sets[$svc]+x}" || "$2" != *.*=* ]]; then
+                echo "deploy/console.sh: --set $2: expected master_capture|mapping|console.KEY=VALUE" >&2
+                exit 2
+            fi
+            sets[$svc]+="${2#*.}"$'\n'
+            shift 2 ;;
+        -*) echo "deploy/console.sh: unknown option $1 (see --help)" >&2; exit 2 ;;
+        *) if [[ -n "$host" ]]; then echo "deploy/console.sh: one SLAVE_HOST only" >&2; exit 2; fi
+           host="$1"; shift ;;
+    esac
+done
+if [[ -z "$host" ]]; then usage >&2; exit 2; fi
+case "$protocol" in tls|quic) ;; *) echo "deploy/console.sh: --protocol tls or quic" >&2; exit 2 ;; esac
+[[ -z "$identity" ]] && identity=$([[ $mapping == 1 ]] && echo console-mapping || echo console)
+for f in ca.pem "$identity.pem" "$identity.key"; do
+    if [[ ! -f "$certs/$f" ]]; then
+        echo "deploy/console.sh: $certs/$f missing (copy it from where telesurg certs ran)" >&2
+        exit 2
+    fi
+done
+[[ "$host" == *:* && "$host" != \[* ]] && host="[$host]"   # IPv6 literal
+bus=(--site "$site" --connect "$protocol/$host:$port" --tls-ca "$certs/ca.pem" --mtls
+     --tls-cert "$certs/$identity.pem" --tls-key "$certs/$identity.key")
+
+has_console=0
+if [[ $ui == 1 ]] && "$py" -c 'import importlib.util as u, sys; sys.exit(u.find_spec("services.console") is None)' 2>/dev/null; then
+    has_console=1
+    [[ -z "$log_dir" ]] && log_dir="$here/out/console-logs"
+fi
+[[ -n "$log_dir" ]] && mkdir -p "$log_dir"
+
+pids=()
+stop_all() {
+    trap - INT TERM EXIT
+    local pid
+    for pid in "${pids[@]}"; do kill -INT "$pid" 2>/dev/null || true; done   # master first
+    for pid in "${pids[@]}"; do wait "$pid" 2>/dev/null || true; done
+}
+trap 'stop_all; exit 0' INT TERM
+trap stop_all EXIT
+
+start() {  # start SERVICE (cli name) in the background with its config and overrides
+    local name="$1" cli="$2" args=()
+    [[ -f "$config_dir/$name.toml" ]] && args+=(--config "$config_dir/$name.toml")
+    while IFS= read -r item; do [[ -n "$item" ]] && args+=(--set "$item"); done <<< "${sets[$name]}"
+    if [[ -n "$log_dir" ]]; then
+        "$py" -m services.cli "$cli" "${bus[@]}" ${args[@]+"${args[@]}"} >>"$log_dir/$name.log" 2>&1 &
+    else
+        "$py" -m services.cli "$cli" "${bus[@]}" ${args[@]+"${args[@]}"} &
+    fi
+    pids+=($!)
+    echo "console.sh: started $name (pid $!) -> $protocol/$host:$port as $identity" >&2
+}
+
+start master_capture master-capture
+[[ $mapping == 1 ]] && start mapping mapping
+
+if [[ $has_console == 1 ]]; then
+    args=()
+    [[ -f "$config_dir/console.toml" ]] && args+=(--config "$config_dir/console.toml")
+    while IFS= read -r item; do [[ -n "$item" ]] && args+=(--set "$item"); done <<< "${sets[console]}"
+    "$py" -m services.cli console \
+        "${bus[@]}" --log-file "$log_dir/console.log" ${args[@]+"${args[@]}"} || true
+else
+    [[ $ui == 1 ]] && echo "console.sh: telesurg console is not installed; running master_capture only" >&2
+    wait "${pids[0]}" || { rc=$?; echo "console.sh: master_capture exited with code $rc" >&2; exit "$rc"; }
+fi

@@ -1,0 +1,86 @@
+#!/usr/bin/env bash
+# Slave site: a zenoh router on a TLS endpoint (mutual TLS + access control) and the slave-side
+# services, all on this machine. Ctrl-C or SIGTERM stops everything cleanly (telesurg up).
+set -euo pipefail
+here="$(cd "$(dirname "$0")/.." && pwd)"
+
+usage() {
+    cat <<USAGE
+usage: deploy/slave-site.sh [options] [-- telesurg up options]
+
+Starts the router (listening on --listen with mutual TLS and the access-control rules, plus a
+plain-TCP listener on 127.0.0.1:--local-port for this machine's services), then watchdog,
+slave_control and mapping (and the mirror with --mirror), configs from deploy/slave-site/.
+Consoles connect with deploy/console.sh SLAVE_HOST. Guide: docs/deploy.md.
+
+options:
+  --site ID            site id, key prefix telesurg/ID/... (default: lab)
+  --listen ENDPOINT    TLS endpoint for consoles, repeatable (default: tls/0.0.0.0:7447)
+  --local-port N       loopback plain-TCP port of the site's services (default: 7448)
+  --certs DIR          ca.pem, slave-site.pem, slave-site.key (default: certs; telesurg certs)
+  --acl FILE           access-control rules (default: deploy/slave-site/acl.json5)
+  --config-dir DIR     <service>.toml files (default: deploy/slave-site)
+  --no-mapping         the mapping runs on the console machine (identity console-mapping)
+  --mirror             also start the mirror (rerun viewer); with --serve or --save FILE.rrd
+  --serve | --save F   mirror options (imply --mirror)
+  --log-dir DIR        one log file per service
+  --acl-log            the router logs every access-control denial (its log: --log-dir)
+  --allow-insecure-listen
+                       let --listen take a plain tcp/ endpoint beyond loopback (development
+                       only: anyone who reaches it bypasses the certificates)
+  --set SERVICE.KEY=VALUE
+                       override a config key, e.g. --set watchdog.latency_budget_ms=80
+  -h, --help           this help
+Anything after -- goes to telesurg up unchanged.
+USAGE
+}
+
+site=lab
+listen=()
+local_port=7448
+certs=certs
+acl="$here/deploy/slave-site/acl.json5"
+config_dir="$here/deploy/slave-site"
+services=watchdog,slave_control,mapping
+mirror=0
+save=""
+extra=()
+while [[ $# -gt 0 ]]; do
+    case "$1" in
+        -h|--help) usage; exit 0 ;;
+        --site) site="$2"; shift 2 ;;
+        --listen) listen+=("$2"); shift 2 ;;
+        --local-port) local_port="$2"; shift 2 ;;
+        --certs) certs="$2"; shift 2 ;;
+        --acl) acl="$2"; shift 2 ;;
+        --config-dir) config_dir="$2"; shift 2 ;;
+        --no-mapping) services=watchdog,slave_control; shift ;;
+        --mirror|--serve) mirror=1; shift ;;
+        --save) mirror=1; save="$2"; shift 2 ;;
+        --log-dir) extra+=(--log-dir "$2"); shift 2 ;;
+        --allow-insecure-listen) extra+=(--allow-insecure-listen); shift ;;
+        --acl-log) extra+=(--zenoh-log "zenoh::net::routing::interceptor::access_control=trace"); shift ;;
+        --set) extra+=(--set "$2"); shift 2 ;;
+        --) shift; extra+=("$@"); break ;;
+        *) echo "deploy/slave-site.sh: unknown option $1 (see --help)" >&2; exit 2 ;;
+    esac
+done
+[[ ${#listen[@]} -eq 0 ]] && listen=(tls/0.0.0.0:7447)
+# --mirror alone serves the viewer; with --save the mirror writes the file instead
+if [[ $mirror == 1 ]]; then
+    services+=",mirror"
+    if [[ -n "$save" ]]; then extra=(--save "$save" ${extra[@]+"${extra[@]}"}); else extra=(--serve ${extra[@]+"${extra[@]}"}); fi
+fi
+for f in ca.pem slave-site.pem slave-site.key; do
+    if [[ ! -f "$certs/$f" ]]; then
+        echo "deploy/slave-site.sh: $certs/$f missing; make it with: telesurg certs --out $certs --host <this host>" >&2
+        exit 2
+    fi
+done
+
+args=(up --site "$site" --host 127.0.0.1 --port "$local_port" --config-dir "$config_dir" --services "$services")
+for ep in "${listen[@]}"; do args+=(--listen "$ep"); done
+args+=(--tls-ca "$certs/ca.pem" --tls-cert "$certs/slave-site.pem" --tls-key "$certs/slave-site.key")
+args+=(--mtls --acl "$acl")
+# exec: telesurg up gets the signals and stops the services in order
+exec "$here/.venv/bin/python" -m services.cli "${args[@]}" ${extra[@]+"${extra[@]}"}
