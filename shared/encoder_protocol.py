@@ -91,6 +91,9 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, ClassVar
 
 from shared.errors import ConfigError, MessageError
+from shared.serial_link import check_fields as _fields
+from shared.serial_link import check_int as _int
+from shared.serial_link import check_str as _str
 
 if TYPE_CHECKING:
     from shared.serial_link import Frame, SerialLink
@@ -116,34 +119,9 @@ MAX_JOINTS = 16
 #: The board clock ``t_us`` counts modulo this (Arduino ``micros()``).
 T_US_MODULUS = 1 << 32
 _I32_MIN, _I32_MAX = -(1 << 31), (1 << 31) - 1
-_MAX_STR = 32
 
 
 # --------------------------------------------------------------------------- field checks
-
-
-def _int(name: str, value: Any, lo: int, hi: int) -> int:
-    if isinstance(value, bool) or not isinstance(value, int):
-        raise MessageError(f"{name} must be an integer, got {type(value).__name__}")
-    if not lo <= value <= hi:
-        raise MessageError(f"{name}={value} outside [{lo}, {hi}]")
-    return value
-
-
-def _str(name: str, value: Any, min_len: int) -> str:
-    if not isinstance(value, str):
-        raise MessageError(f"{name} must be a string, got {type(value).__name__}")
-    if not min_len <= len(value) <= _MAX_STR:
-        raise MessageError(f"{name} must be {min_len}..{_MAX_STR} characters, got {len(value)}")
-    return value
-
-
-def _fields(kind: str, body: dict[str, Any], keys: frozenset[str]) -> None:
-    """Exact key set, or a MessageError naming what is missing / unknown."""
-    if missing := keys - body.keys():
-        raise MessageError(f"{kind} missing field(s) {sorted(missing)}; expected {', '.join(sorted(keys))}")
-    if unknown := body.keys() - keys:
-        raise MessageError(f"{kind} unknown field(s) {sorted(unknown)}; valid: {', '.join(sorted(keys))}")
 
 
 def _check_proto(kind: str, proto: int) -> None:

@@ -474,3 +474,48 @@ class SerialLink:
             raise
         if data:
             self._pending.extend(self._reader.feed(data))
+
+
+# --------------------------------------------------------------------------- body field checks
+# Shared by the device protocols built on this framing (encoder board, servo controller): each
+# raises a MessageError naming the field, so a bad frame is refused with a clear reason.
+
+#: Longest string field of a device message body.
+MAX_BODY_STR = 32
+
+
+def check_int(name: str, value: Any, lo: int, hi: int) -> int:
+    """``value`` if it is an int (not a bool) in ``[lo, hi]``."""
+    if isinstance(value, bool) or not isinstance(value, int):
+        raise MessageError(f"{name} must be an integer, got {type(value).__name__}")
+    if not lo <= value <= hi:
+        raise MessageError(f"{name}={value} outside [{lo}, {hi}]")
+    return value
+
+
+def check_bool(name: str, value: Any) -> bool:
+    """``value`` if it is a bool."""
+    if not isinstance(value, bool):
+        raise MessageError(f"{name} must be a boolean, got {type(value).__name__}")
+    return value
+
+
+def check_str(name: str, value: Any, min_len: int) -> str:
+    """``value`` if it is a string of ``min_len`` .. :data:`MAX_BODY_STR` characters."""
+    if not isinstance(value, str):
+        raise MessageError(f"{name} must be a string, got {type(value).__name__}")
+    if not min_len <= len(value) <= MAX_BODY_STR:
+        raise MessageError(f"{name} must be {min_len}..{MAX_BODY_STR} characters, got {len(value)}")
+    return value
+
+
+def check_fields(kind: str, body: dict[str, Any], keys: frozenset[str]) -> None:
+    """Exact key set, or a MessageError naming what is missing / unknown."""
+    if missing := keys - body.keys():
+        raise MessageError(
+            f"{kind} missing field(s) {sorted(missing)}; expected {', '.join(sorted(keys)) or 'none'}"
+        )
+    if unknown := body.keys() - keys:
+        raise MessageError(
+            f"{kind} unknown field(s) {sorted(unknown)}; valid: {', '.join(sorted(keys)) or 'none'}"
+        )

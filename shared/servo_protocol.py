@@ -153,6 +153,10 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, ClassVar
 
 from shared.errors import MessageError
+from shared.serial_link import check_bool as _bool
+from shared.serial_link import check_fields as _fields
+from shared.serial_link import check_int as _int
+from shared.serial_link import check_str as _str
 
 if TYPE_CHECKING:
     from shared.serial_link import Frame, SerialLink
@@ -201,7 +205,6 @@ MAX_JOINTS = 16
 U32_MODULUS = 1 << 32
 #: Longest controller-side timeout a SETPOINT may ask for, ms.
 MAX_TIMEOUT_MS = 10_000
-_MAX_STR = 32
 
 
 def describe_faults(bits: int) -> str:
@@ -218,28 +221,6 @@ def seq_delta32(a: int, b: int) -> int:
 
 
 # --------------------------------------------------------------------------- field checks
-
-
-def _int(name: str, value: Any, lo: int, hi: int) -> int:
-    if isinstance(value, bool) or not isinstance(value, int):
-        raise MessageError(f"{name} must be an integer, got {type(value).__name__}")
-    if not lo <= value <= hi:
-        raise MessageError(f"{name}={value} outside [{lo}, {hi}]")
-    return value
-
-
-def _bool(name: str, value: Any) -> bool:
-    if not isinstance(value, bool):
-        raise MessageError(f"{name} must be a boolean, got {type(value).__name__}")
-    return value
-
-
-def _str(name: str, value: Any, min_len: int) -> str:
-    if not isinstance(value, str):
-        raise MessageError(f"{name} must be a string, got {type(value).__name__}")
-    if not min_len <= len(value) <= _MAX_STR:
-        raise MessageError(f"{name} must be {min_len}..{_MAX_STR} characters, got {len(value)}")
-    return value
 
 
 def _reals(name: str, value: Any, n: int | None = None) -> tuple[float, ...]:
@@ -259,18 +240,6 @@ def _reals(name: str, value: Any, n: int | None = None) -> tuple[float, ...]:
             raise MessageError(f"{name}[{i}]={f} is not finite")
         out.append(f)
     return tuple(out)
-
-
-def _fields(kind: str, body: dict[str, Any], keys: frozenset[str]) -> None:
-    """Exact key set, or a MessageError naming what is missing / unknown."""
-    if missing := keys - body.keys():
-        raise MessageError(
-            f"{kind} missing field(s) {sorted(missing)}; expected {', '.join(sorted(keys)) or 'none'}"
-        )
-    if unknown := body.keys() - keys:
-        raise MessageError(
-            f"{kind} unknown field(s) {sorted(unknown)}; valid: {', '.join(sorted(keys)) or 'none'}"
-        )
 
 
 def _check_proto(kind: str, proto: int) -> None:

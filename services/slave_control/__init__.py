@@ -33,7 +33,7 @@ import numpy as np
 
 from services.common import service_main
 from services.slave_control.backends import PUSH_POINTS, FaultHold, SlaveReading, make_backend
-from services.slave_control.control import FollowController, Lease, Setpoint, limit_step
+from services.slave_control.control import WARN, FollowController, Lease, Setpoint, limit_step
 from services.slave_control.modes import ControlMode, ControlModes, Jog, MotionMode, Phase
 from services.slave_control.motion import SUPPORTED_JOG_AXES, PtpMotion, jog_step, ptp_duration
 from services.slave_control.teach import (
@@ -64,7 +64,6 @@ from shared.messages import (
 from shared.timing import CycleTimer
 
 log = logging.getLogger(__name__)
-WARN = frozenset({"hold", "clipped", "engage_refused"})
 
 
 @dataclass

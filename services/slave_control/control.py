@@ -36,6 +36,10 @@ def limit_step(want: np.ndarray, lim: np.ndarray) -> np.ndarray:
     return out
 
 
+#: Follow-controller event kinds published as warnings.
+WARN = frozenset({"hold", "clipped", "engage_refused"})
+
+
 @dataclass
 class SetpointInterpolator:
     """Turns sparse setpoints (e.g. a 25 Hz console) into a smooth 1 kHz joint reference.

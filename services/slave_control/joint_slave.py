@@ -23,7 +23,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from services.slave_control.backends import FaultHold, SlaveBackend
-from services.slave_control.control import FollowController, Lease, Setpoint, SetpointInterpolator
+from services.slave_control.control import WARN, FollowController, Lease, Setpoint, SetpointInterpolator
 from shared.bus import Node, Outlet
 from shared.errors import ConfigError
 from shared.messages import (
@@ -44,7 +44,6 @@ if TYPE_CHECKING:
     from services.slave_control import SlaveControlConfig
 
 log = logging.getLogger(__name__)
-WARN = frozenset({"hold", "clipped", "engage_refused"})
 
 
 @dataclass
