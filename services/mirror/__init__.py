@@ -1,12 +1,18 @@
-"""mirror: streams everything on the bus to rerun (web viewer on localhost, or an .rrd file).
+"""mirror: streams the site's bus to rerun (web viewer on localhost, or an .rrd file).
 
-Subscribes to ``telesurg/<site>/**``, decodes every sample with the strict decoder (malformed
-payloads are counted and dropped, never drawn) and draws at ``draw_hz``: joint series, tip and
-target trails, the slave arm from forward kinematics, the master tip, state changes and events.
-Entity paths and the layout are described in :mod:`services.mirror.view`.
+Subscribes to the streams it draws under ``telesurg/<site>/`` (slave joints, setpoints, tip poses
+and operating state; master poses and buttons; the watchdog's state; events), decodes every
+sample with the strict decoder (malformed payloads are counted and dropped, never drawn) and
+draws: joint series (measured vs setpoint), the tip tracking and RCM errors, latency, tip and
+target trails, each slave arm from its kinematic model (the robot is recognised by the joint names
+of ``measured_js``: mh3f, plas or vip, see :mod:`shared.robots`), the trocar / RCM / VIP points,
+the master tip, mode changes and events. Entity paths and the layout are described in
+:mod:`services.mirror.view`; the layout is sent once, when the slave arms are known.
 
-zenoh callbacks only decode and append to a buffer; the draw loop takes the whole buffer each tick
-and sends high-rate series in blocks (one ``send_columns`` per entity per tick).
+zenoh callbacks only decode and append to a buffer. The draw loop takes the whole buffer each tick
+and draws the 3D scene (latest state, trails thinned to ``trail_hz``) at ``draw_hz``; scalar
+samples are sent in blocks (one ``send_columns`` per entity) at ``series_hz``, so a 1 kHz stream
+costs a handful of rerun calls a second, never one per sample.
 
 Examples::
 
@@ -18,22 +24,28 @@ from __future__ import annotations
 
 import json
 import logging
+import re
+import resource
 import sys
 import threading
 import time
 from collections import deque
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import cast
+from typing import NamedTuple, cast
 
 import numpy as np
+import numpy.typing as npt
 
 from services.common import service_main
 from services.mirror.view import (
     EVENTS_PATH,
     MASTER_COLOR,
+    RCM_COLOR,
     SLAVE_COLOR,
     TARGET_COLOR,
+    TROCAR_COLOR,
+    VIP_COLOR,
     RerunView,
     master_path,
     safety_path,
@@ -41,7 +53,6 @@ from services.mirror.view import (
 )
 from shared.bus import BusConfig, Node
 from shared.errors import ConfigError, KinematicsError
-from shared.kinematics.mh3f import fk_frames
 from shared.messages import (
     AnyMessage,
     CartesianPose,
@@ -53,6 +64,7 @@ from shared.messages import (
     SafetyEvent,
     SafetyState,
 )
+from shared.robots import MODELS, ArmProfile, arm_profile
 from shared.timing import CycleTimer
 
 log = logging.getLogger(__name__)
@@ -60,6 +72,20 @@ log = logging.getLogger(__name__)
 #: Most distinct drawn streams (arm × stream); more are ignored so a misbehaving publisher cannot
 #: grow the recording without bound.
 MAX_STREAMS = 256
+
+#: Keys the mirror subscribes to, relative to ``telesurg/<site>/`` (what it draws; leases,
+#: wrenches and heartbeats are not received at all).
+SUBSCRIBED = (
+    "slave/*/measured_js",
+    "slave/*/servo_jp",
+    "slave/*/measured_cp",
+    "slave/*/setpoint_cp",
+    "slave/*/operating_state",
+    "master/*/measured_cp",
+    "master/*/buttons",
+    "safety/*/state",
+    "events/*",
+)
 
 
 @dataclass
@@ -72,13 +98,23 @@ class MirrorConfig:
     serve: bool = False  # serve gRPC (data, 127.0.0.1 only) + the web viewer; open the logged URL
     web_port: int = 9090  # TCP port of the web viewer, HTTP (static viewer files only, no data)
     grpc_port: int = 9876  # TCP port of the rerun gRPC data server on 127.0.0.1
-    draw_hz: float = 30.0  # Hz: how often buffered samples are sent to rerun (viewer frame rate)
+    draw_hz: float = 30.0  # Hz: how often the 3D scene is redrawn (arm, trails, points)
+    series_hz: float = (
+        5.0  # Hz: how often scalar samples are sent, in blocks (plot lag; rerun batches 3D at 5 Hz)
+    )
     trail_s: float = 5.0  # s: length of the tip / target / master trails
     trail_hz: float = 50.0  # Hz: trail points are thinned to at most this rate (file size)
+    error_hz: float = 50.0  # Hz: tip tracking error samples per arm, at most (two FKs each)
+    # Hz: joint series (measured, setpoint) are thinned to at most this rate per stream for
+    # display (a 1 kHz stream at 100 Hz: a tenth of the points for the viewer to plot; the MCAP
+    # recorder keeps every sample); 0 = draw every sample
+    plot_hz: float = 0.0
+    plot_window_s: float = 20.0  # s: time series show this much history before the time cursor
+    layout_wait_s: float = 0.5  # s after the first slave arm is seen before the layout is sent
     application_id: str = "telesurg"  # rerun application id (groups recordings in the viewer)
     recording_id: str = ""  # rerun recording id; "" = random; same id merges several processes
     # Only these services' master/, slave/ and safety/ streams are drawn (look-alikes from any
-    # other source are counted and dropped); events and heartbeats are drawn from anyone.
+    # other source are counted and dropped); events are drawn from anyone.
     trusted_sources: list[str] = field(
         default_factory=lambda: ["master_capture", "mapping", "slave_control", "watchdog"]
     )
@@ -88,12 +124,18 @@ class MirrorConfig:
         """Raise ConfigError naming what is wrong."""
         if not self.save and not self.serve:
             raise ConfigError("mirror needs an output: --set save=FILE.rrd and/or --set serve=true")
-        if not 1.0 <= self.draw_hz <= 240.0:
-            raise ConfigError(f"draw_hz={self.draw_hz} outside [1, 240]")
-        if not 0.1 <= self.trail_s <= 600.0:
-            raise ConfigError(f"trail_s={self.trail_s} outside [0.1, 600]")
-        if not 1.0 <= self.trail_hz <= 10_000.0:
-            raise ConfigError(f"trail_hz={self.trail_hz} outside [1, 10000]")
+        for name, value, lo, hi in (
+            ("draw_hz", self.draw_hz, 1.0, 240.0),
+            ("series_hz", self.series_hz, 0.5, 240.0),
+            ("trail_s", self.trail_s, 0.1, 600.0),
+            ("trail_hz", self.trail_hz, 1.0, 10_000.0),
+            ("error_hz", self.error_hz, 1.0, 1000.0),
+            ("plot_hz", self.plot_hz, 0.0, 100_000.0),
+            ("plot_window_s", self.plot_window_s, 1.0, 3600.0),
+            ("layout_wait_s", self.layout_wait_s, 0.0, 60.0),
+        ):
+            if not lo <= value <= hi:
+                raise ConfigError(f"{name}={value} outside [{lo:g}, {hi:g}]")
         for name, port in (("web_port", self.web_port), ("grpc_port", self.grpc_port)):
             if not 1 <= port <= 65535:
                 raise ConfigError(f"{name}={port} outside [1, 65535]")
@@ -132,18 +174,131 @@ class Inbox:
         return items
 
 
+# --------------------------------------------------------------------------- arm sketches
+
+
+class Sketch(NamedTuple):
+    """What is drawn of one slave arm, in the slave's world frame [m].
+
+    ``links`` (N, 3): the kinematic chain; ``forceps`` (M, 3) or None: the instrument;
+    ``rcm`` (3,) or None: the mechanism's own remote centre of motion (vip R).
+    """
+
+    links: npt.NDArray[np.float64]
+    forceps: npt.NDArray[np.float64] | None
+    rcm: npt.NDArray[np.float64] | None
+
+
+def recognise(arm: str, names: tuple[str, ...]) -> tuple[str, ArmProfile] | None:
+    """(model, profile) of the robot whose arm ``arm`` has exactly these joint names, or None."""
+    for model in MODELS:
+        try:
+            profile = arm_profile(model, arm)
+        except ConfigError:  # the model has no arm of that id (plas / vip: arm1, arm2)
+            continue
+        if profile.joint_names == names:
+            return model, profile
+    return None
+
+
+def sketch(model: str, arm: str, q: npt.NDArray[np.float64]) -> Sketch:
+    """Link points of ``arm`` of ``model`` at joints ``q`` (world frame, m).
+
+    * mh3f (:func:`shared.kinematics.fk_frames`): base, J2, J3, J4, wrist centre, flange; the
+      forceps from the flange to its tip (TCP).
+    * vip (:func:`shared.kinematics.vip.fk`): R–E–W; the RCM is R.
+    * plas (the DH chain of :class:`~shared.kinematics.plas.PlasSlaveGeometry` placed by
+      :func:`~shared.kinematics.plas_layout.arm_base`): the shaft channel from the skin down to
+      the arm base, the chain up to the pitch axis; the forceps (pillar) from the pitch axis to
+      the tip (= :func:`~shared.kinematics.plas_layout.arm_tip`).
+
+    Raises:
+        KinematicsError / ValueError: ``q`` does not fit the model.
+    """
+    if model == "mh3f":
+        from shared.kinematics import fk_frames
+
+        frames = fk_frames(q)
+        return Sketch(frames[:6], frames[5:7], None)
+    if model == "vip":
+        from shared.kinematics import vip
+
+        pose = vip.fk(q, vip.VIP_ARM1 if arm == "arm1" else vip.VIP_ARM2)
+        return Sketch(np.stack([pose.rcm, pose.elbow, pose.wrist]), None, pose.rcm)
+    if model == "plas":
+        from shared.kinematics.plas import PLAS_SLAVE
+        from shared.kinematics.plas_layout import arm_base
+
+        if len(q) != 6:
+            raise KinematicsError(f"plas arm needs 6 joints, got {len(q)}")
+        T = arm_base(arm)
+        skin = T[:3, 3].copy()
+        skin[2] = 0.0  # the channel enters the port at the skin, straight above the arm base
+        points = [skin, T[:3, 3].copy()]
+        for row, qi in zip(PLAS_SLAVE.dh, q, strict=True):
+            T = T @ row.transform(float(qi))
+            if np.linalg.norm(T[:3, 3] - points[-1]) > 1e-9:
+                points.append(T[:3, 3].copy())
+        pts = np.asarray(points)
+        return Sketch(pts[:-1], pts[-2:], None)
+    raise KinematicsError(f"no sketch for robot model {model!r}")
+
+
+def nearest_on_line(
+    a: npt.NDArray[np.float64], b: npt.NDArray[np.float64], p: npt.NDArray[np.float64]
+) -> npt.NDArray[np.float64]:
+    """The point of the line through ``a`` and ``b`` nearest to ``p`` (all (3,), m)."""
+    d = b - a
+    n = float(d @ d)
+    if n < 1e-18:
+        return a.copy()
+    out: npt.NDArray[np.float64] = a + (float((p - a) @ d) / n) * d
+    return out
+
+
+#: Measured joints kept for the tip error, ns of source time.
+_HISTORY_NS = 1_000_000_000
+#: Setpoints waiting for a later measured sample (for the tip error), at most.
+_MAX_PENDING = 256
+
+_VIP_TEXT = re.compile(r"\(\s*(-?[\d.]+),\s*(-?[\d.]+),\s*(-?[\d.]+)\s*\)\s*mm")
+
+
+def parse_vip_mm(text: str) -> tuple[float, float, float] | None:
+    """The VIP of a mapping ``vip`` event (``"VIP of arm1 at (1.0, -2.0, 30.5) mm: ..."``), m."""
+    m = _VIP_TEXT.search(text)
+    if m is None:
+        return None
+    try:
+        x, y, z = (float(g) / 1e3 for g in m.groups())
+    except ValueError:
+        return None
+    return (x, y, z) if all(np.isfinite((x, y, z))) else None
+
+
 # --------------------------------------------------------------------------- drawing state
 
 
 class _Series:
-    """Buffered joint samples of one (arm, kind, names) stream until the next draw."""
+    """Buffered samples of one stream until the next block is sent."""
 
-    __slots__ = ("positions", "rx", "src")
+    __slots__ = ("last_src", "positions", "rx", "src")
 
     def __init__(self) -> None:
         self.src: list[int] = []
         self.rx: list[int] = []
         self.positions: list[tuple[float, ...]] = []
+        self.last_src = -(1 << 62)  # stamp of the last sample kept (for thinning)
+
+    def add(self, src: int, rx: int, value: tuple[float, ...]) -> None:
+        self.src.append(src)
+        self.rx.append(rx)
+        self.positions.append(value)
+
+    def take(self) -> tuple[list[int], list[int], npt.NDArray[np.float64]]:
+        out = (self.src, self.rx, np.asarray(self.positions, np.float64))
+        self.src, self.rx, self.positions = [], [], []
+        return out
 
 
 class _Trail:
@@ -172,30 +327,75 @@ class _Trail:
             self.points.popleft()
 
 
-class Mirror:
-    """Turns decoded bus messages into rerun drawing calls (see :mod:`services.mirror.view`)."""
+class _Arm:
+    """What the mirror tracks of one slave arm."""
 
-    def __init__(self, view: RerunView, prefix: str, trail_s: float, trail_hz: float) -> None:
+    def __init__(self, names: tuple[str, ...], robot: tuple[str, ArmProfile] | None) -> None:
+        self.names = names
+        self.model = robot[0] if robot else ""
+        self.profile: ArmProfile | None = robot[1] if robot else None
+        self.q: tuple[int, int, tuple[float, ...]] | None = None  # latest measured (src, rx, q)
+        self.q_drawn = -1
+        # measured joints kept for the tip error: (src, q), oldest first
+        self.history: deque[tuple[int, tuple[float, ...]]] = deque(maxlen=4096)
+        self.pending: list[tuple[int, int, tuple[float, ...]]] = []  # setpoints awaiting a measured
+        self.last_error_src = 0
+        self.errors = _Series()
+        self.rcm_errors = _Series()
+        self.op: OperatingState | None = None
+        self.rcm_drawn = False
+
+
+class Mirror:
+    """Turns decoded bus messages into rerun drawing calls (see :mod:`services.mirror.view`).
+
+    :meth:`feed` sorts each batch into buffers; :meth:`draw` (at ``draw_hz``) draws the 3D scene
+    and, every ``1/series_hz`` s of receive time, sends the scalar blocks; :meth:`flush` sends
+    everything still buffered (the view calls it on close).
+    """
+
+    def __init__(
+        self,
+        view: RerunView,
+        prefix: str,
+        trail_s: float,
+        trail_hz: float,
+        *,
+        series_hz: float = 5.0,
+        error_hz: float = 50.0,
+        plot_hz: float = 0.0,
+        plot_window_s: float = 20.0,
+        layout_wait_s: float = 0.5,
+    ) -> None:
         self.view = view
         self._prefix = prefix.rstrip("/") + "/"
         self._span_ns = int(trail_s * 1e9)
         self._min_dt_ns = int(1e9 / trail_hz)
+        self._series_dt_ns = int(1e9 / series_hz)
+        self._error_dt_ns = int(1e9 / error_hz)
+        self._plot_dt_ns = int(1e9 / plot_hz) if plot_hz > 0 else 0
+        self._plot_window_s = plot_window_s
+        self._layout_wait_ns = int(layout_wait_s * 1e9)
         self._series: dict[tuple[str, str, tuple[str, ...]], _Series] = {}
+        self._scalars: dict[str, _Series] = {}  # entity path → samples (clutch, latency, scale)
         self._trails: dict[tuple[str, str, str], _Trail] = {}
-        self._q: dict[str, tuple[int, int, tuple[float, ...]]] = {}  # arm → latest measured
-        self._q_drawn: dict[str, int] = {}
-        self._clutch: dict[str, _Series] = {}
-        self._op_state: dict[str, tuple[str, bool, str]] = {}
+        self._arms: dict[str, _Arm] = {}
+        self._op_state: dict[str, tuple[str, str, bool, str]] = {}
         self._safety: dict[str, tuple[str, tuple[str, ...]]] = {}
         self._streams: set[tuple[str, str]] = set()
-        self.ignored = 0  # decoded messages that are not drawn (leases, heartbeats, unknown keys)
-        self.drawn = 0
+        self._now_rx = 0  # latest receive time fed: the clock of the series blocks and the layout
+        self._series_sent_rx = 0
+        self._first_arm_rx = 0
+        self.ignored = 0  # decoded messages that are not drawn (unknown keys, types or streams)
+        self.drawn = 0  # joint samples drawn (after plot_hz thinning)
         self._warned: set[str] = set()
+        view.add_flusher(self.flush)
 
     # -- dispatch ------------------------------------------------------------------------
     def feed(self, items: list[tuple[str, int, AnyMessage]]) -> None:
         """Sort one batch of received messages into the per-stream buffers."""
         for key, rx, msg in items:
+            self._now_rx = max(self._now_rx, rx)
             if not self._dispatch(key, rx, msg):
                 self.ignored += 1
 
@@ -223,10 +423,9 @@ class Mirror:
             return False
         if role == "slave":
             if stream == "measured_js" and isinstance(msg, JointState):
-                self._joint(arm, "measured", src, rx, msg.names, msg.position)
-                self._q[arm] = (src, rx, msg.position)
+                self._measured(arm, src, rx, msg)
             elif stream == "servo_jp" and isinstance(msg, JointSetpoint):
-                self._joint(arm, "setpoint", src, rx, msg.names, msg.position)
+                self._setpoint(arm, src, rx, msg)
             elif stream == "measured_cp" and isinstance(msg, CartesianPose):
                 self._trail("slave", arm, "tip").add(src, rx, msg.position)
             elif stream == "setpoint_cp" and isinstance(msg, CartesianPose):
@@ -239,10 +438,7 @@ class Mirror:
             if stream == "measured_cp" and isinstance(msg, CartesianPose):
                 self._trail("master", arm, "tip").add(src, rx, msg.position)
             elif stream == "buttons" and isinstance(msg, MasterButtons):
-                s = self._clutch.setdefault(arm, _Series())
-                s.src.append(src)
-                s.rx.append(rx)
-                s.positions.append((1.0 if msg.clutch else 0.0,))
+                self._scalar(master_path(arm, "clutch"), src, rx, 1.0 if msg.clutch else 0.0)
             else:
                 return False
         elif role == "safety" and stream == "state" and isinstance(msg, SafetyState):
@@ -251,21 +447,57 @@ class Mirror:
             return False
         return True
 
-    def _joint(
-        self,
-        arm: str,
-        kind: str,
-        src: int,
-        rx: int,
-        names: tuple[str, ...],
-        position: tuple[float, ...],
-    ) -> None:
-        s = self._series.get((arm, kind, names))
+    def _joint(self, arm: str, kind: str, src: int, rx: int, m: JointState | JointSetpoint) -> None:
+        s = self._series.get((arm, kind, m.names))
         if s is None:
-            s = self._series[(arm, kind, names)] = _Series()
-        s.src.append(src)
-        s.rx.append(rx)
-        s.positions.append(position)
+            s = self._series[(arm, kind, m.names)] = _Series()
+        if self._plot_dt_ns:  # thinned for display: the first sample of each 1/plot_hz
+            if 0 <= src - s.last_src < self._plot_dt_ns:
+                return
+            s.last_src = src
+        s.add(src, rx, m.position)
+        self.drawn += 1  # buffered samples are all sent, at the latest by flush()
+
+    def _scalar(self, path: str, src: int, rx: int, value: float) -> None:
+        s = self._scalars.get(path)
+        if s is None:
+            s = self._scalars[path] = _Series()
+        s.add(src, rx, (value,))
+
+    def _arm(self, arm: str, names: tuple[str, ...], rx: int) -> _Arm:
+        a = self._arms.get(arm)
+        if a is None or a.names != names:
+            robot = recognise(arm, names)
+            if robot is None:
+                self._warn_once(
+                    f"model{arm}", f"{arm}: joints {', '.join(names)} match no robot model; arm not drawn"
+                )
+            a = self._arms[arm] = _Arm(names, robot)
+            if not self._first_arm_rx:
+                self._first_arm_rx = rx
+            elif self.view.blueprint_arms is not None and arm not in self.view.blueprint_arms:
+                self._warn_once(f"late{arm}", f"{arm} appeared after the layout was sent: no plot panel")
+        return a
+
+    def _measured(self, arm: str, src: int, rx: int, m: JointState) -> None:
+        self._joint(arm, "measured", src, rx, m)
+        a = self._arm(arm, m.names, rx)
+        a.q = (src, rx, m.position)
+        if a.profile is not None:
+            a.history.append((src, m.position))
+            while src - a.history[0][0] > _HISTORY_NS:  # a setpoint older than this gets no error
+                a.history.popleft()
+
+    def _setpoint(self, arm: str, src: int, rx: int, m: JointSetpoint) -> None:
+        self._joint(arm, "setpoint", src, rx, m)
+        a = self._arms.get(arm)
+        if a is None or a.profile is None or not m.follow or m.names != a.names:
+            return
+        if src - a.last_error_src >= self._error_dt_ns:  # thinned: two FKs per error sample
+            a.last_error_src = src
+            a.pending.append((src, rx, m.position))
+            if len(a.pending) > _MAX_PENDING:  # no measured joints arrive: keep the newest only
+                del a.pending[0]
 
     def _trail(self, role: str, arm: str, leaf: str) -> _Trail:
         t = self._trails.get((role, arm, leaf))
@@ -274,7 +506,14 @@ class Mirror:
         return t
 
     def _operating_state(self, arm: str, src: int, rx: int, m: OperatingState) -> None:
-        now = (m.state, m.follow, m.reason)
+        a = self._arms.get(arm)
+        if a is not None:
+            if a.op is None or a.op.trocar != m.trocar:
+                self.view.point(slave_path(arm, "trocar"), src, rx, m.trocar, TROCAR_COLOR, "trocar")
+            a.op = m
+            if m.control_mode == "trocar":  # the watchdog checks the RCM error only in trocar mode
+                a.rcm_errors.add(src, rx, (m.rcm_error_mm,))
+        now = (m.state, m.control_mode, m.follow, m.reason)
         if self._op_state.get(arm) == now:
             return
         self._op_state[arm] = now
@@ -285,15 +524,13 @@ class Mirror:
         self.view.text(slave_path(arm, "state"), src, rx, text, sev)
 
     def _safety_state(self, arm: str, src: int, rx: int, m: SafetyState) -> None:
-        base = safety_path(arm).rsplit("/", 1)[0]
-        figures = {
-            "latency/p50_ms": m.latency_p50_ms,
-            "latency/p90_ms": m.latency_p90_ms,
-            "latency/p99_ms": m.latency_p99_ms,
-            "scale": m.scale,
-        }
-        for name, value in figures.items():  # ~5 Hz: one row each is cheap
-            self.view.series(f"{base}/{name}", [src], [rx], np.array([value]))
+        for leaf, value in (
+            ("latency/p50_ms", m.latency_p50_ms),
+            ("latency/p90_ms", m.latency_p90_ms),
+            ("latency/p99_ms", m.latency_p99_ms),
+            ("scale", m.scale),
+        ):
+            self._scalar(safety_path(arm, leaf), src, rx, value)
         now = (m.state, m.causes)
         if self._safety.get(arm) == now:
             return
@@ -305,6 +542,10 @@ class Mirror:
     def _event(self, src: int, rx: int, m: SafetyEvent) -> None:
         text = f"{f'[{m.arm}] ' if m.arm else ''}{m.kind}: {m.text}"
         self.view.text(EVENTS_PATH, src, rx, text, m.severity)
+        if m.kind == "vip" and m.arm and self._admit(m.arm, "slave/vip"):
+            v = parse_vip_mm(m.text)
+            if v is not None:
+                self.view.point(slave_path(m.arm, "vip"), src, rx, v, VIP_COLOR, "VIP")
 
     def _warn_once(self, tag: str, text: str) -> None:
         if tag not in self._warned:
@@ -313,36 +554,93 @@ class Mirror:
 
     # -- drawing -------------------------------------------------------------------------
     def draw(self) -> None:
-        """Send everything buffered since the last draw; call at draw_hz and once at the end."""
-        for (arm, kind, names), s in self._series.items():
-            if not s.src:
-                continue
-            self.view.joints(arm, kind, names, s.src, s.rx, np.asarray(s.positions, np.float64))
-            self.drawn += len(s.src)
-            s.src, s.rx, s.positions = [], [], []
-        for arm, s in self._clutch.items():
-            if s.src:
-                values = np.asarray(s.positions, np.float64)[:, 0]
-                self.view.series(master_path(arm, "clutch"), s.src, s.rx, values)
-                s.src, s.rx, s.positions = [], [], []
+        """Draw the 3D scene; send the scalar blocks when ``1/series_hz`` s have passed."""
+        first = self._first_arm_rx
+        if self.view.blueprint_arms is None and first and self._now_rx - first >= self._layout_wait_ns:
+            self._send_layout()
         for (role, arm, leaf), t in self._trails.items():
             if t.dirty:
                 t.dirty = False
                 pts = np.asarray(t.points, np.float64)
                 self.view.trail(_trail_path(role, arm, leaf), t.src, t.rx, pts, _color(role, leaf))
-        for arm, (src, rx, q) in self._q.items():
-            if self._q_drawn.get(arm) == src:
-                continue
-            self._q_drawn[arm] = src
-            if len(q) != 6:
-                self._warn_once(f"q{arm}", f"{arm}: {len(q)} joints, cannot draw a 6-axis arm")
-                continue
+        for arm, a in self._arms.items():
+            self._draw_arm(arm, a)
+        if self._now_rx - self._series_sent_rx >= self._series_dt_ns:
+            self._series_sent_rx = self._now_rx
+            self._send_series()
+
+    def flush(self) -> None:
+        """Send everything buffered, and the layout if it has not been sent yet."""
+        self.draw()
+        self._send_series()
+        if self.view.blueprint_arms is None:
+            self._send_layout()
+
+    def _send_layout(self) -> None:
+        self.view.send_blueprint(
+            {arm: self._arms[arm].names for arm in sorted(self._arms)}, self._plot_window_s
+        )
+
+    def _draw_arm(self, arm: str, a: _Arm) -> None:
+        if a.q is None or a.profile is None or a.q_drawn == a.q[0]:
+            return
+        src, rx, q = a.q
+        a.q_drawn = src
+        try:
+            s = sketch(a.model, arm, np.asarray(q, np.float64))
+        except (KinematicsError, ValueError) as exc:
+            self._warn_once(f"fk{arm}", f"{arm}: forward kinematics failed: {exc}")
+            return
+        self.view.arm(arm, src, rx, s.links, s.forceps)
+        rcm = s.rcm
+        if rcm is None and s.forceps is not None and a.op is not None and a.op.control_mode == "trocar":
+            rcm = nearest_on_line(s.forceps[0], s.forceps[-1], np.asarray(a.op.trocar, np.float64))
+        if rcm is not None:
+            self.view.point(slave_path(arm, "rcm"), src, rx, rcm, RCM_COLOR, "RCM")
+            a.rcm_drawn = True
+        elif a.rcm_drawn:
+            self.view.hide_point(slave_path(arm, "rcm"), src, rx)
+            a.rcm_drawn = False
+
+    def _send_series(self) -> None:
+        for (arm, kind, names), s in self._series.items():
+            if s.src:
+                src, rx, values = s.take()
+                self.view.joints(arm, kind, names, src, rx, values)
+        for path, s in self._scalars.items():
+            if s.src:
+                src, rx, values = s.take()
+                self.view.series(path, src, rx, values[:, 0])
+        for arm, a in self._arms.items():
+            self._tip_errors(a)
+            for leaf, s in (("tip_error_mm", a.errors), ("rcm_error_mm", a.rcm_errors)):
+                if s.src:
+                    src, rx, values = s.take()
+                    self.view.series(slave_path(arm, leaf), src, rx, values[:, 0])
+
+    def _tip_errors(self, a: _Arm) -> None:
+        """|tip(setpoint) − tip(measured)| [mm] at each pending setpoint's stamp, the measured
+        joints interpolated there; setpoints newer than the last measured sample wait."""
+        if not a.pending or len(a.history) < 2 or a.profile is None:
+            return
+        t = np.fromiter((h[0] for h in a.history), np.int64, len(a.history))
+        last = int(t[-1])
+        ready = [p for p in a.pending if t[0] <= p[0] <= last]
+        a.pending = [p for p in a.pending if p[0] > last]
+        if not ready:
+            return
+        q = np.asarray([h[1] for h in a.history], np.float64)
+        tip = a.profile.tip
+        for src, rx, q_set in ready:
+            q_meas = np.array([np.interp(src, t, q[:, j]) for j in range(q.shape[1])])
             try:
-                frames = fk_frames(np.asarray(q, np.float64))
-            except (KinematicsError, ValueError) as exc:
-                self._warn_once(f"fk{arm}", f"{arm}: forward kinematics failed: {exc}")
+                err = float(np.linalg.norm(tip(np.asarray(q_set, np.float64)) - tip(q_meas)))
+            except (KinematicsError, ValueError):
                 continue
-            self.view.links(arm, src, rx, frames)
+            a.errors.add(src, rx, (err * 1e3,))
+        keep_from = int(np.searchsorted(t, ready[-1][0], side="right")) - 1
+        for _ in range(max(0, keep_from)):
+            a.history.popleft()
 
 
 def _trail_path(role: str, arm: str, leaf: str) -> str:
@@ -362,6 +660,7 @@ def run(cfg: MirrorConfig, stop: threading.Event) -> None:
     """Mirror the bus into rerun until ``stop``; the .rrd is complete when this returns."""
     cfg.validate()
     timer = CycleTimer(cfg.draw_hz)
+    wall0, cpu0 = time.monotonic(), _cpu_s()
     view = RerunView(
         cfg.application_id,
         cfg.recording_id,
@@ -377,14 +676,25 @@ def run(cfg: MirrorConfig, stop: threading.Event) -> None:
             log.info("recording to %s", cfg.save)
         inbox = Inbox()
         with Node(cfg.bus, cfg.site, cfg.service) as node:
-            mirror = Mirror(view, node.keys.prefix, cfg.trail_s, cfg.trail_hz)
+            mirror = Mirror(
+                view,
+                node.keys.prefix,
+                cfg.trail_s,
+                cfg.trail_hz,
+                series_hz=cfg.series_hz,
+                error_hz=cfg.error_hz,
+                plot_hz=cfg.plot_hz,
+                plot_window_s=cfg.plot_window_s,
+                layout_wait_s=cfg.layout_wait_s,
+            )
             trusted = frozenset(cfg.trusted_sources)
 
             def trust(key: str, source: str) -> bool:
                 role = key.split("/", 3)[2] if key.count("/") >= 3 else ""
                 return source in trusted or role not in ("master", "slave", "safety")
 
-            node.subscribe(node.keys.all, Message, inbox.on_message, sources=trust)
+            for rel in SUBSCRIBED:
+                node.subscribe(f"{node.keys.prefix}/{rel}", Message, inbox.on_message, sources=trust)
             draw_errors = 0
             while not stop.is_set():
                 try:
@@ -397,16 +707,26 @@ def run(cfg: MirrorConfig, stop: threading.Event) -> None:
                 timer.wait()
             rejected = node.rejected
         mirror.feed(inbox.take())  # whatever arrived before the subscriber closed
-        mirror.draw()
-        log.info(
-            "received %d, rejected %d, drew %d joint samples, %d draw overruns",
-            inbox.received,
-            rejected,
-            mirror.drawn,
-            timer.overruns,
-        )
     finally:
-        view.close()
+        view.close()  # sends what is still buffered first (Mirror.flush)
+    wall, cpu = time.monotonic() - wall0, _cpu_s() - cpu0
+    log.info(
+        "received %d, rejected %d, drew %d joint samples, %d draw overruns; "
+        "CPU %.2f s in %.1f s (%.3f of a core, rerun's threads included)",
+        inbox.received,
+        rejected,
+        mirror.drawn,
+        timer.overruns,
+        cpu,
+        wall,
+        cpu / wall if wall > 0 else 0.0,
+    )
+
+
+def _cpu_s() -> float:
+    """CPU time of this process (every thread), s."""
+    r = resource.getrusage(resource.RUSAGE_SELF)
+    return r.ru_utime + r.ru_stime
 
 
 def shortcut_args(argv: Sequence[str]) -> list[str]:

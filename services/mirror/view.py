@@ -2,26 +2,50 @@
 
 Entity paths (``<arm>`` an arm id, ``<joint>`` a joint name, both escaped for rerun)::
 
-    /slave/<arm>/joints/<joint>/measured   Scalars      rad, from slave/<arm>/measured_js
-    /slave/<arm>/joints/<joint>/setpoint   Scalars      rad, from slave/<arm>/servo_jp
+    /slave/<arm>/joints/<joint>/measured   Scalars       rad (m: prismatic), slave/<arm>/measured_js
+    /slave/<arm>/joints/<joint>/setpoint   Scalars       rad (m), slave/<arm>/servo_jp
+    /slave/<arm>/links                     LineStrips3D + Points3D  the arm's kinematic chain (from
+                                                         measured_js: mh3f base→flange, vip R–E–W,
+                                                         plas port→DH chain), m
+    /slave/<arm>/forceps                   LineStrips3D  the instrument (mh3f flange→forceps tip,
+                                                         plas pitch axis→tip), m
     /slave/<arm>/tip                       LineStrips3D + Points3D  measured_cp trail + current, m
     /slave/<arm>/target                    LineStrips3D + Points3D  setpoint_cp trail + current, m
-    /slave/<arm>/links                     LineStrips3D + Points3D  fk_frames of measured joints, m
-    /slave/<arm>/state                     TextLog      operating_state changes
-    /safety/<arm>/state                    TextLog      watchdog state changes
+    /slave/<arm>/trocar                    Points3D      operating_state.trocar (on change), m
+    /slave/<arm>/rcm                       Points3D      remote centre of motion: vip R; mh3f the
+                                                         point of the forceps axis nearest the trocar
+                                                         (trocar mode only), m
+    /slave/<arm>/vip                       Points3D      VIP from the mapping's "vip" events, m
+    /slave/<arm>/tip_error_mm              Scalars       |tip(servo_jp) − tip(measured_js)|, mm
+    /slave/<arm>/rcm_error_mm              Scalars       operating_state.rcm_error_mm (trocar mode)
+    /slave/<arm>/state                     TextLog       operating_state changes (state, mode, follow)
+    /safety/<arm>/state                    TextLog       watchdog state changes
     /safety/<arm>/latency/p50_ms|p90_ms|p99_ms  Scalars  command-path latency (watchdog, 1 s window)
-    /safety/<arm>/scale                    Scalars      motion-scale factor from the watchdog
+    /safety/<arm>/scale                    Scalars       motion-scale factor from the watchdog
     /master/<arm>/tip                      LineStrips3D + Points3D  master measured_cp, master frame
-    /master/<arm>/clutch                   Scalars      1 while the clutch pedal is pressed
-    /events                                TextLog      every SafetyEvent
-    /world/trocar                          Points3D     static, (0.5, 0, 0.2) m
+    /master/<arm>/clutch                   Scalars       1 while the clutch pedal is pressed
+    /events                                TextLog       every SafetyEvent
 
-The slave side lives in the slave base frame (+z up) and is shown in the "slave" 3D view together
-with ``/world``. The master pose is in the master device's own frame, which has no fixed relation
-to the slave base (the mapping applies a clutch offset and a scale), so ``/master`` gets its own
-3D view instead of being drawn at a made-up offset.
+The slave side is drawn in the slave's world frame (mh3f: the base frame; plas and vip: the port
+frame, +z up) in the "slave" 3D view. The master pose is in the master device's own frame, which
+has no fixed relation to the slave's (the mapping applies a clutch offset and a scale), so
+``/master`` gets its own 3D view instead of being drawn at a made-up offset.
 
-Two timelines: ``source_time`` (the header stamp of the message, wall clock at the publisher) and
+The layout (:func:`blueprint`) is sent once, when the slave arms are known::
+
+    ┌───────────────────────────────┬─────────────────────────────────────────┐
+    │ slave 3D (/slave/**)          │ <arm> joints: measured vs setpoint (one │
+    │  links, forceps, trocar/RCM/  │ plot per arm, side by side)             │
+    │  VIP, tip + target trails     ├─────────────────────────────────────────┤
+    │                               │ tip / RCM error [mm]                    │
+    │                               ├────────────────────┬────────────────────┤
+    ├───────────────┬───────────────┤ latency [ms]       │ scale, clutch      │
+    │ slave tip and │ master tip    ├────────────────────┴────────────────────┤
+    │ target trails │ (/master/**)  │ modes & safety events (text log)        │
+    └───────────────┴───────────────┴─────────────────────────────────────────┘
+
+Time series show the last ``plot_window_s`` before the time cursor. Two timelines:
+``source_time`` (the header stamp of the message, wall clock at the publisher) and
 ``receive_time`` (wall clock when the mirror received it). rerun is imported lazily, inside the
 functions and classes that use it.
 """
@@ -32,7 +56,7 @@ import functools
 import logging
 import socket
 import urllib.parse
-from collections.abc import Sequence
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -41,14 +65,27 @@ import numpy.typing as npt
 
 log = logging.getLogger(__name__)
 
-#: Trocar (remote centre of motion) in the slave base frame, m.
-TROCAR_M = (0.5, 0.0, 0.2)
+Color = tuple[int, int, int]
 
-SLAVE_COLOR = (80, 160, 255)
-TARGET_COLOR = (255, 170, 40)
-LINK_COLOR = (200, 200, 200)
-MASTER_COLOR = (120, 220, 120)
-TROCAR_COLOR = (255, 60, 60)
+SLAVE_COLOR: Color = (80, 160, 255)
+TARGET_COLOR: Color = (255, 170, 40)
+LINK_COLOR: Color = (200, 200, 200)
+FORCEPS_COLOR: Color = (250, 230, 90)
+MASTER_COLOR: Color = (120, 220, 120)
+TROCAR_COLOR: Color = (255, 60, 60)
+RCM_COLOR: Color = (255, 80, 220)
+VIP_COLOR: Color = (60, 230, 230)
+#: Joint colours in plots (joint i takes entry i mod len); setpoints are drawn paler and thinner.
+JOINT_COLORS: tuple[Color, ...] = (
+    (228, 26, 28),
+    (55, 126, 184),
+    (77, 175, 74),
+    (152, 78, 163),
+    (255, 127, 0),
+    (166, 86, 40),
+    (247, 129, 191),
+    (120, 120, 120),
+)
 
 _LEVELS = {"info": "INFO", "warning": "WARN", "error": "ERROR"}
 
@@ -71,7 +108,7 @@ def joint_path(arm: str, joint: str, kind: str) -> str:
 
 @functools.lru_cache(maxsize=4096)
 def slave_path(arm: str, leaf: str) -> str:
-    """``/slave/<arm>/<leaf>`` (``tip``, ``target``, ``links``, ``state``)."""
+    """``/slave/<arm>/<leaf>`` (``tip``, ``target``, ``links``, ``forceps``, ``state``, ...)."""
     return f"/slave/{_part(arm)}/{leaf}"
 
 
@@ -82,13 +119,12 @@ def master_path(arm: str, leaf: str) -> str:
 
 
 @functools.lru_cache(maxsize=4096)
-def safety_path(arm: str) -> str:
-    """``/safety/<arm>/state``."""
-    return f"/safety/{_part(arm)}/state"
+def safety_path(arm: str, leaf: str = "state") -> str:
+    """``/safety/<arm>/<leaf>`` (``state``, ``scale``, ``latency/p50_ms``, ...)."""
+    return f"/safety/{_part(arm)}/{leaf}"
 
 
 EVENTS_PATH = "/events"
-TROCAR_PATH = "/world/trocar"
 
 
 def viewer_url(grpc_uri: str, web_port: int) -> str:
@@ -100,26 +136,103 @@ def viewer_url(grpc_uri: str, web_port: int) -> str:
     return f"http://localhost:{web_port}/?url={urllib.parse.quote(grpc_uri, safe=':/')}"
 
 
-def blueprint() -> Any:
-    """Layout: slave + world 3D, master 3D, joint plots, state and event logs."""
+def _window(seconds: float) -> list[Any]:
+    """Visible time ranges: the last ``seconds`` before the cursor, on both timelines."""
     import rerun.blueprint as rrb
 
+    start = rrb.TimeRangeBoundary.cursor_relative(seconds=-seconds)
+    end = rrb.TimeRangeBoundary.cursor_relative(seconds=0.0)
+    return [rrb.VisibleTimeRange(t, start=start, end=end) for t in ("source_time", "receive_time")]
+
+
+#: Blueprint overrides: entity path → SeriesLines (rerun types its keys as EntityPath | str).
+_Overrides = dict[Any, Any]
+
+
+def _lines(name: str, color: Color, width: float) -> Any:
+    import rerun as rr
+
+    return rr.SeriesLines.from_fields(names=[name], colors=[color], widths=[width])
+
+
+def blueprint(slave_arms: Mapping[str, Sequence[str]] | None = None, plot_window_s: float = 20.0) -> Any:
+    """The layout drawn in the module docstring: one joint plot per slave arm (``slave_arms``:
+    arm → joint names; none: one plot of everything under ``/slave``). Series names, colours and
+    widths are blueprint overrides, so the recording holds only the samples."""
+    import rerun.blueprint as rrb
+
+    arms = dict(slave_arms or {})
+    window = _window(plot_window_s)
+    joints = []
+    for arm, names in arms.items():
+        style: _Overrides = {}
+        for j, name in enumerate(names):
+            color = JOINT_COLORS[j % len(JOINT_COLORS)]
+            style[joint_path(arm, name, "measured")] = _lines(f"{name} measured", color, 2.0)
+            style[joint_path(arm, name, "setpoint")] = _lines(f"{name} setpoint", _paler(color), 1.0)
+        joints.append(
+            rrb.TimeSeriesView(
+                name=f"{arm} joints: measured vs setpoint [rad | m]",
+                origin=slave_path(arm, "joints"),
+                time_ranges=window,
+                overrides=style,
+            )
+        )
+    if not joints:
+        joints.append(rrb.TimeSeriesView(name="slave joints [rad | m]", origin="/slave", time_ranges=window))
+    errors: _Overrides = {}
+    latency: _Overrides = {}
+    scale: _Overrides = {}
+    for i, arm in enumerate(arms):
+        errors[slave_path(arm, "tip_error_mm")] = _lines(
+            f"{arm} tip", JOINT_COLORS[2 * i % len(JOINT_COLORS)], 1.5
+        )
+        errors[slave_path(arm, "rcm_error_mm")] = _lines(
+            f"{arm} RCM", JOINT_COLORS[(2 * i + 1) % len(JOINT_COLORS)], 1.5
+        )
+        for k, q in enumerate(("p50", "p90", "p99")):
+            color = JOINT_COLORS[(3 * i + k) % len(JOINT_COLORS)]
+            latency[safety_path(arm, f"latency/{q}_ms")] = _lines(f"{arm} {q}", color, 1.5)
+        scale[safety_path(arm, "scale")] = _lines(f"{arm} scale", JOINT_COLORS[i % len(JOINT_COLORS)], 1.5)
+    # the trails alone: the camera fits them, not the whole arm (a 2 cm circle on a 1 m arm)
+    tips = [slave_path(a, leaf) for a in arms for leaf in ("tip", "target", "vip")] or ["/slave/**"]
+    right = rrb.Vertical(
+        rrb.Horizontal(*joints) if len(joints) > 1 else joints[0],
+        rrb.TimeSeriesView(
+            name="tip / RCM error [mm]",
+            contents=list(errors) or ["/slave/**"],
+            time_ranges=window,
+            overrides=errors,
+        ),
+        rrb.Horizontal(
+            rrb.TimeSeriesView(
+                name="latency [ms]",
+                contents=list(latency) or ["/safety/**"],
+                time_ranges=window,
+                overrides=latency,
+            ),
+            rrb.TimeSeriesView(
+                name="motion scale, clutch",
+                contents=[*scale, "/master/**"],
+                time_ranges=window,
+                overrides=scale,
+            ),
+        ),
+        rrb.TextLogView(name="modes & safety events", contents=["/slave/**", "/safety/**", EVENTS_PATH]),
+        row_shares=[3, 2, 2, 2],
+    )
     return rrb.Blueprint(
         rrb.Horizontal(
             rrb.Vertical(
-                rrb.Spatial3DView(name="slave", origin="/", contents=["/slave/**", "/world/**"]),
-                rrb.Spatial3DView(name="master", origin="/master"),
-                row_shares=[3, 1],
+                rrb.Spatial3DView(name="slave (world frame, m)", origin="/", contents=["+ /slave/**"]),
+                rrb.Horizontal(
+                    rrb.Spatial3DView(name="slave tip (blue) and target (orange)", origin="/", contents=tips),
+                    rrb.Spatial3DView(name="master tip (device frame)", origin="/master"),
+                ),
+                row_shares=[3, 2],
             ),
-            rrb.Vertical(
-                rrb.TimeSeriesView(name="joints [rad]", origin="/slave"),
-                rrb.TimeSeriesView(name="clutch", origin="/master"),
-                rrb.TimeSeriesView(name="latency [ms] / scale", origin="/safety"),
-                rrb.TextLogView(name="state", contents=["/slave/**", "/safety/**"]),
-                rrb.TextLogView(name="events", origin=EVENTS_PATH),
-                row_shares=[4, 1, 1, 2, 2],
-            ),
-            column_shares=[3, 2],
+            right,
+            column_shares=[1, 1],
         ),
         rrb.TimePanel(timeline="source_time"),
         collapse_panels=True,
@@ -139,8 +252,22 @@ def _ts(ns: npt.ArrayLike) -> npt.NDArray[np.datetime64]:
     return np.asarray(ns, dtype=np.int64).astype("datetime64[ns]")
 
 
+def _paler(c: Color) -> Color:
+    r, g, b = (round(0.55 * v + 0.45 * 255) for v in c)
+    return (r, g, b)
+
+
+#: Radii in UI points (rerun: negative = points on screen), so arms of 5 cm (PLAS) and of 1 m
+#: (MH3F) are drawn alike.
+_THIN, _LINE, _THICK, _DOT, _BIG_DOT = -1.0, -1.5, -3.0, -3.0, -6.0
+
+
 class RerunView:
     """A rerun recording with typed drawing calls; one instance per process, one thread uses it.
+
+    Every call logs one entity once (``send_columns`` for blocks of scalars); colours and radii of
+    3D entities are logged once per entity, static, so per-tick logs carry only positions (series
+    styles are in the blueprint).
 
     Args:
         application_id: rerun application id.
@@ -163,7 +290,9 @@ class RerunView:
 
         self._rr = rr
         self.url = ""
+        self.blueprint_arms: tuple[str, ...] | None = None  # set once the layout is sent
         self._styled: set[str] = set()
+        self._flushers: list[Callable[[], None]] = []
         self._rec: Any = rr.RecordingStream(application_id, recording_id=recording_id or None)
         self._rec.set_log_tick_enabled(False)
         self._rec.set_log_time_enabled(False)
@@ -183,22 +312,40 @@ class RerunView:
                 self._rec.disconnect()
                 raise ConnectionError(f"rerun web viewer on port {web_port}: {exc}") from exc
             self.url = viewer_url(server.uri, web_port)
-        self._rec.send_blueprint(blueprint(), make_active=True, make_default=True)
         self._rec.log("/", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
-        self._rec.log(
-            TROCAR_PATH,
-            rr.Points3D([TROCAR_M], colors=[TROCAR_COLOR], radii=[0.008], labels=["trocar"]),
-            static=True,
-        )
         self._rec.log("/master", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
 
-    # -- high-rate series: one send_columns per entity and call --------------------------
+    def send_blueprint(self, slave_arms: Mapping[str, Sequence[str]], plot_window_s: float = 20.0) -> None:
+        """Send the layout for these slave arms (arm → joint names), once (later calls do nothing)."""
+        if self.blueprint_arms is not None:
+            return
+        self.blueprint_arms = tuple(slave_arms)
+        self._rec.send_blueprint(blueprint(slave_arms, plot_window_s), make_active=True, make_default=True)
+
+    # -- styles, once per entity, static -------------------------------------------------
+    def _once(self, path: str) -> bool:
+        if path in self._styled:
+            return False
+        self._styled.add(path)
+        return True
+
+    def _style_3d(self, path: str, color: Color, line_radius: float, point_radius: float | None) -> None:
+        """Static colour and radii of a LineStrips3D (+ Points3D unless ``point_radius`` is None:
+        styling an archetype the entity never logs would make the viewer report it missing)."""
+        if self._once(path):
+            rr = self._rr
+            parts = [rr.LineStrips3D.from_fields(colors=[color], radii=[line_radius])]
+            if point_radius is not None:
+                parts.append(rr.Points3D.from_fields(colors=[color], radii=[point_radius]))
+            self._rec.log(path, *parts, static=True)
+
+    # -- scalars in blocks: one send_columns per entity and call ---------------------------
     def series(
         self,
         path: str,
         source_ns: npt.ArrayLike,
         receive_ns: npt.ArrayLike,
-        values: npt.NDArray[np.float64],
+        values: npt.ArrayLike,
     ) -> None:
         """Scalar samples ``values`` (N,) at the given stamps, in one block."""
         rr = self._rr
@@ -208,7 +355,7 @@ class RerunView:
                 rr.TimeColumn("source_time", timestamp=_ts(source_ns)),
                 rr.TimeColumn("receive_time", timestamp=_ts(receive_ns)),
             ],
-            columns=rr.Scalars.columns(scalars=values),
+            columns=rr.Scalars.columns(scalars=np.asarray(values, np.float64)),
         )
 
     def joints(
@@ -220,7 +367,7 @@ class RerunView:
         receive_ns: npt.ArrayLike,
         positions: npt.NDArray[np.float64],
     ) -> None:
-        """Joint positions (N, J) [rad] → one block per joint entity."""
+        """Joint positions (N, J) [rad, m] → one block per joint entity."""
         rr = self._rr
         indexes = [
             rr.TimeColumn("source_time", timestamp=_ts(source_ns)),
@@ -233,23 +380,10 @@ class RerunView:
                 columns=rr.Scalars.columns(scalars=positions[:, j]),
             )
 
-    # -- drawn at draw_hz -----------------------------------------------------------------
+    # -- 3D, drawn at draw_hz (latest state only) -----------------------------------------
     def _at(self, source_ns: int, receive_ns: int) -> None:
         self._rec.set_time("source_time", timestamp=np.datetime64(source_ns, "ns"))
         self._rec.set_time("receive_time", timestamp=np.datetime64(receive_ns, "ns"))
-
-    def _style(self, path: str, color: tuple[int, int, int], line_radius: float, point_radius: float) -> None:
-        """Colours and radii once, static: per-tick logs then carry only positions."""
-        if path in self._styled:
-            return
-        self._styled.add(path)
-        rr = self._rr
-        self._rec.log(
-            path,
-            rr.LineStrips3D.from_fields(colors=[color], radii=[line_radius]),
-            rr.Points3D.from_fields(colors=[color], radii=[point_radius]),
-            static=True,
-        )
 
     def trail(
         self,
@@ -257,38 +391,83 @@ class RerunView:
         source_ns: int,
         receive_ns: int,
         points: npt.NDArray[np.float64],
-        color: tuple[int, int, int],
+        color: Color,
     ) -> None:
         """A polyline through ``points`` (N, 3) [m] plus a dot at the last one."""
         rr = self._rr
-        self._style(path, color, 0.0015, 0.005)
+        self._style_3d(path, color, _THIN, _DOT)
         self._at(source_ns, receive_ns)
         self._rec.log(
             path,
-            rr.LineStrips3D.from_fields(strips=[points]),
+            rr.LineStrips3D.from_fields(strips=points),  # an (N, 3) array: one strip (fast path)
             rr.Points3D.from_fields(positions=points[-1:]),
         )
 
-    def links(self, arm: str, source_ns: int, receive_ns: int, points: npt.NDArray[np.float64]) -> None:
-        """The arm as a polyline through its link points (7, 3) [m], joints as dots."""
+    def arm(
+        self,
+        arm: str,
+        source_ns: int,
+        receive_ns: int,
+        links: npt.NDArray[np.float64],
+        forceps: npt.NDArray[np.float64] | None = None,
+    ) -> None:
+        """The arm as a polyline through its link points (N, 3) [m], joints as dots; the forceps
+        (M, 3) [m] as a thicker polyline of its own."""
         rr = self._rr
         path = slave_path(arm, "links")
-        self._style(path, LINK_COLOR, 0.006, 0.012)
+        self._style_3d(path, LINK_COLOR, _THICK, _DOT)
         self._at(source_ns, receive_ns)
         self._rec.log(
-            path,
-            rr.LineStrips3D.from_fields(strips=[points]),
-            rr.Points3D.from_fields(positions=points),
+            path, rr.LineStrips3D.from_fields(strips=links), rr.Points3D.from_fields(positions=links)
         )
+        if forceps is not None:
+            fpath = slave_path(arm, "forceps")
+            self._style_3d(fpath, FORCEPS_COLOR, _THICK, None)
+            self._rec.log(fpath, rr.LineStrips3D.from_fields(strips=forceps))
+
+    def point(
+        self,
+        path: str,
+        source_ns: int,
+        receive_ns: int,
+        position: Sequence[float] | npt.NDArray[np.float64],
+        color: Color,
+        label: str,
+    ) -> None:
+        """One labelled point [m] (trocar, RCM, VIP)."""
+        rr = self._rr
+        if self._once(path):
+            self._rec.log(
+                path,
+                rr.Points3D.from_fields(colors=[color], radii=[_BIG_DOT], labels=[label]),
+                static=True,
+            )
+        self._at(source_ns, receive_ns)
+        self._rec.log(path, rr.Points3D.from_fields(positions=np.asarray(position, np.float64).reshape(1, 3)))
+
+    def hide_point(self, path: str, source_ns: int, receive_ns: int) -> None:
+        """No point at ``path`` from this time on (e.g. the RCM when leaving trocar mode); its
+        static style stays for the next :meth:`point`."""
+        self._at(source_ns, receive_ns)
+        self._rec.log(path, self._rr.Points3D.from_fields(positions=np.empty((0, 3))))
 
     def text(self, path: str, source_ns: int, receive_ns: int, text: str, severity: str) -> None:
         """One TextLog line; ``severity`` info / warning / error."""
         self._at(source_ns, receive_ns)
         self._rec.log(path, self._rr.TextLog(text, level=_LEVELS.get(severity, "ERROR")))
 
+    def add_flusher(self, flush: Callable[[], None]) -> None:
+        """Have :meth:`close` call ``flush()`` first (a drawer's buffered samples reach the sinks)."""
+        self._flushers.append(flush)
+
     def close(self) -> None:
-        """Flush everything to the sinks and close them (the .rrd is complete after this)."""
-        self._rec.flush(timeout_sec=10.0)
+        """Send what the drawers still buffer, flush everything to the sinks and close them (the
+        .rrd is complete after this)."""
+        try:
+            for flush in self._flushers:
+                flush()
+        finally:
+            self._rec.flush(timeout_sec=10.0)
         self._rec.disconnect()
 
 

@@ -1,0 +1,400 @@
+"""The rerun web viewer of ``telesurg demo``, rendered in headless Debian chromium.
+
+A demo session (``telesurg demo --headless --seconds 15``: router and every service) is mirrored
+by ``telesurg mirror --serve`` (gRPC + the web viewer on loopback), which outlives the session.
+Chromium then opens the viewer URL and is driven over the DevTools protocol on a pipe
+(``--remote-debugging-pipe``: NUL-terminated JSON on fds 3 and 4; no websocket, no extra
+package). Screenshots are taken every 3 s until the viewer has drawn the session (software
+WebGL: 20 s or more); the last one is saved and its pixels checked: not blank, not the loading
+page, the arm and the plots drawn in colour.
+
+Needs ``/usr/bin/chromium`` (Debian: ``apt-get install -y chromium``); skipped without it.
+
+Also a script, to refresh the screenshot of ``docs/recording.md`` (a 20 s session, the time
+cursor put at 60 % of it)::
+
+    .venv/bin/python tests/test_viewer_browser.py docs/img/viewer.png 0.6
+"""
+
+from __future__ import annotations
+
+import base64
+import contextlib
+import fcntl
+import io
+import json
+import os
+import select
+import shutil
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from collections.abc import Iterator, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+pytestmark = pytest.mark.process
+
+ROOT = Path(__file__).resolve().parents[1]
+CHROMIUM = Path("/usr/bin/chromium")
+WINDOW = (1600, 900)  # px: viewport of the screenshot
+#: Flags for a closed network and a fresh profile (the profile dir is added per run).
+CHROMIUM_FLAGS = (
+    "--headless",
+    "--no-sandbox",
+    "--disable-gpu",
+    "--enable-unsafe-swiftshader",  # software WebGL (no GPU in CI)
+    "--disable-quic",
+    "--no-first-run",
+    "--no-default-browser-check",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+    "--disable-extensions",
+    "--mute-audio",
+    # a headless page may count as hidden: keep its animation frames and timers running
+    "--disable-renderer-backgrounding",
+    "--disable-background-timer-throttling",
+    "--disable-backgrounding-occluded-windows",
+    "--hide-scrollbars",
+    f"--window-size={WINDOW[0]},{WINDOW[1]}",
+    "--remote-debugging-pipe",
+)
+
+
+# --------------------------------------------------------------------------- DevTools over a pipe
+
+
+class DevTools:
+    """Minimal Chrome DevTools Protocol client over ``--remote-debugging-pipe``.
+
+    Chromium reads commands from its fd 3 and writes replies and events to its fd 4, each a JSON
+    object followed by a NUL byte. :meth:`call` sends one command and returns its ``result``,
+    skipping events; a protocol error raises RuntimeError.
+    """
+
+    def __init__(self, to_browser: int, from_browser: int) -> None:
+        self._out = to_browser
+        self._in = from_browser
+        self._buf = b""
+        self._id = 0
+
+    def call(
+        self, method: str, params: dict[str, Any] | None = None, session: str = "", timeout: float = 120.0
+    ) -> dict[str, Any]:
+        self._id += 1
+        msg: dict[str, Any] = {"id": self._id, "method": method, "params": params or {}}
+        if session:
+            msg["sessionId"] = session
+        data = json.dumps(msg).encode() + b"\0"
+        while data:
+            data = data[os.write(self._out, data) :]
+        deadline = time.monotonic() + timeout
+        while True:
+            reply = self._next(deadline, method)
+            if reply.get("id") == self._id:
+                if "error" in reply:
+                    raise RuntimeError(f"{method}: {reply['error']}")
+                result: dict[str, Any] = reply.get("result", {})
+                return result
+
+    def _next(self, deadline: float, method: str) -> dict[str, Any]:
+        while b"\0" not in self._buf:
+            left = deadline - time.monotonic()
+            if left <= 0:
+                raise TimeoutError(f"chromium did not answer {method}")
+            ready, _, _ = select.select([self._in], [], [], left)
+            if ready:
+                chunk = os.read(self._in, 1 << 20)
+                if not chunk:
+                    raise ConnectionError(f"chromium closed the DevTools pipe during {method}")
+                self._buf += chunk
+        raw, self._buf = self._buf.split(b"\0", 1)
+        out: dict[str, Any] = json.loads(raw)
+        return out
+
+
+def _high_fd(fd: int) -> int:
+    """``fd`` moved to a number >= 10 (the original is closed)."""
+    high = fcntl.fcntl(fd, fcntl.F_DUPFD_CLOEXEC, 10)
+    os.close(fd)
+    return high
+
+
+@contextlib.contextmanager
+def chromium(url: str, workdir: Path) -> Iterator[tuple[DevTools, str]]:
+    """Headless chromium showing ``url``: (DevTools client, page session id); killed on exit."""
+    profile = workdir / "chromium-profile"
+    profile.mkdir(parents=True, exist_ok=True)
+    cmd_r, cmd_w = os.pipe()  # we write commands → chromium's fd 3
+    out_r, out_w = os.pipe()  # chromium's fd 4 → we read replies
+    cmd_r, out_w = _high_fd(cmd_r), _high_fd(out_w)  # not 3 or 4 themselves: no clash when moved
+    # bash moves the pipe ends to fds 3 and 4 (multi-digit fds: dash cannot), then execs chromium
+    argv = [
+        "bash",
+        "-c",
+        f'exec 3<&{cmd_r} 4>&{out_w} {cmd_r}<&- {out_w}>&-; exec nice -n 10 "$@"',
+        "chromium",
+        str(CHROMIUM),
+        *CHROMIUM_FLAGS,
+        f"--user-data-dir={profile}",
+        "about:blank",
+    ]
+    log = (workdir / "chromium.log").open("wb")
+    proc = subprocess.Popen(
+        argv, pass_fds=(cmd_r, out_w), stdout=log, stderr=subprocess.STDOUT, start_new_session=True
+    )
+    os.close(cmd_r)
+    os.close(out_w)
+    try:
+        cdp = DevTools(cmd_w, out_r)
+        target = cdp.call("Target.createTarget", {"url": url})["targetId"]
+        session = cdp.call("Target.attachToTarget", {"targetId": target, "flatten": True})["sessionId"]
+        cdp.call(
+            "Emulation.setDeviceMetricsOverride",
+            {"width": WINDOW[0], "height": WINDOW[1], "deviceScaleFactor": 1, "mobile": False},
+            session,
+        )
+        cdp.call("Emulation.setFocusEmulationEnabled", {"enabled": True}, session)
+        cdp.call("Page.bringToFront", {}, session)
+        yield cdp, session
+    finally:
+        _stop_group(proc)
+        os.close(cmd_w)
+        os.close(out_r)
+        log.close()
+
+
+def _stop_group(proc: subprocess.Popen[bytes]) -> None:
+    """SIGTERM chromium's process group (its own session: browser, zygote, renderers, GPU
+    process), wait until every member is gone; SIGKILL after 10 s."""
+    for sig in (signal.SIGTERM, signal.SIGKILL):
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(proc.pid, sig)
+        deadline = time.monotonic() + 10.0
+        while time.monotonic() < deadline:
+            if proc.poll() is None:
+                time.sleep(0.1)
+                continue
+            try:
+                os.killpg(proc.pid, 0)  # any member left?
+            except ProcessLookupError:
+                return
+            time.sleep(0.1)
+    proc.wait(timeout=10)
+
+
+def screenshot(cdp: DevTools, session: str) -> bytes:
+    """PNG of the page's viewport."""
+    return base64.b64decode(cdp.call("Page.captureScreenshot", {"format": "png"}, session)["data"])
+
+
+# --------------------------------------------------------------------------- pixels
+
+
+def _near(img: np.ndarray, color: tuple[int, int, int], tol: int) -> np.ndarray:
+    return np.asarray(np.abs(img - np.asarray(color)).max(axis=2) <= tol)
+
+
+def pixel_stats(png: bytes) -> dict[str, float]:
+    """Figures of a screenshot: ``std`` (grey level, 0–255), ``colors`` (distinct colours after
+    quantising to 4 bits a channel), ``forceps`` (pixels of the forceps colour: the arm is
+    drawn), ``joints`` (pixels of the joint plot colours: the plots are drawn),
+    ``width``/``height``."""
+    from PIL import Image
+
+    from services.mirror.view import FORCEPS_COLOR, JOINT_COLORS
+
+    img = np.asarray(Image.open(io.BytesIO(png)).convert("RGB"), dtype=np.int32)
+    h, w, _ = img.shape
+    q = (img >> 4).reshape(-1, 3)
+    joints = np.zeros((h, w), dtype=bool)
+    for color in JOINT_COLORS[:6]:
+        joints |= _near(img, color, 24)
+    return {
+        "std": float(img.mean(axis=2).std()),
+        "colors": float(np.unique(q[:, 0] << 8 | q[:, 1] << 4 | q[:, 2]).size),
+        "forceps": float(_near(img, FORCEPS_COLOR, 40).sum()),
+        "joints": float(joints.sum()),
+        "width": w,
+        "height": h,
+    }
+
+
+def rendered(stats: dict[str, float]) -> bool:
+    """The viewer has drawn the session: the arm with its forceps, joint plots, a varied picture
+    (the loading page is a near-uniform dark page; an empty viewer has none of these colours)."""
+    drawn = stats["forceps"] >= 300 and stats["joints"] >= 1000  # rendered: ~1000 and 3000+ px
+    return drawn and stats["colors"] >= 150 and stats["std"] >= 8
+
+
+_FPS_JS = """new Promise(done => {
+  let n = 0; const t0 = performance.now();
+  const tick = () => {
+    n++;
+    if (performance.now() - t0 < 2000) requestAnimationFrame(tick); else done(n / 2);
+  };
+  requestAnimationFrame(tick);
+})"""
+
+
+def frame_rate(cdp: DevTools, session: str) -> float:
+    """Animation frames per second of the page over 2 s: ~1 while the viewer ingests a backlog
+    (one software-rendered frame a second), tens once it has everything."""
+    try:
+        r = cdp.call(
+            "Runtime.evaluate", {"expression": _FPS_JS, "awaitPromise": True, "returnByValue": True}, session
+        )
+    except RuntimeError:  # the page is (re)loading
+        return 0.0
+    return float(r.get("result", {}).get("value") or 0.0)
+
+
+# --------------------------------------------------------------------------- the demo
+
+
+@contextlib.contextmanager
+def served_demo(
+    workdir: Path, session_s: float, mirror_set: Sequence[str] = ()
+) -> Iterator[tuple[str, Path, subprocess.Popen[bytes]]]:
+    """A demo session seen by a mirror that serves the web viewer: (viewer URL, .rrd, mirror).
+
+    ``telesurg demo --headless --seconds session_s`` runs the router and every service; the
+    mirror (``telesurg mirror --serve --save``, the demo's own mirror command line) joins its
+    router and outlives the session, so the browser then renders a finished session: no
+    simulation competes with software WebGL for the CPU. On exit the mirror is stopped with
+    SIGINT (which completes the .rrd).
+    """
+    from services.launcher import free_port, wait_port
+    from services.mirror.view import viewer_url
+
+    port, web, grpc = free_port(), free_port(), free_port()
+    rrd = workdir / "session.rrd"
+    cli = [sys.executable, "-m", "services.cli"]
+    demo_argv = [*cli, "demo", "--headless", "--seconds", str(session_s), "--port", str(port)]
+    demo_argv += ["--log-dir", str(workdir / "logs"), "--report", str(workdir / "report.json")]
+    mirror_argv = [*cli, "mirror", "--connect", f"tcp/127.0.0.1:{port}", "--serve", "--save", str(rrd)]
+    mirror_argv += ["--set", f"web_port={web}", "--set", f"grpc_port={grpc}"]
+    for item in mirror_set:
+        mirror_argv += ["--set", item]
+    procs: list[subprocess.Popen[bytes]] = []
+    logs: list[Any] = []
+    try:
+        logs.append((workdir / "demo.out").open("wb"))
+        procs.append(subprocess.Popen(demo_argv, cwd=ROOT, stdout=logs[-1], stderr=subprocess.STDOUT))
+        assert wait_port("127.0.0.1", port, 60.0), "the demo's router did not open its port"
+        logs.append((workdir / "mirror.out").open("wb"))
+        procs.append(subprocess.Popen(mirror_argv, cwd=ROOT, stdout=logs[-1], stderr=subprocess.STDOUT))
+        demo_proc, mirror = procs
+        assert demo_proc.wait(timeout=session_s + 180.0) == 0, (workdir / "demo.out").read_text()[-3000:]
+        assert mirror.poll() is None, (workdir / "mirror.out").read_text()[-3000:]
+        assert wait_port("127.0.0.1", web, 30.0), "the mirror serves no web viewer"
+        yield viewer_url(f"rerun+http://127.0.0.1:{grpc}/proxy", web), rrd, mirror
+    finally:
+        for p in reversed(procs):
+            if p.poll() is None:
+                p.send_signal(signal.SIGINT)
+                try:
+                    p.wait(timeout=30)
+                except subprocess.TimeoutExpired:
+                    p.kill()
+                    p.wait(timeout=10)
+        for f in logs:
+            f.close()
+
+
+def capture(
+    url: str, workdir: Path, png_out: Path, timeout_s: float = 240.0
+) -> tuple[dict[str, float], list[dict[str, float]]]:
+    """Open ``url`` in chromium and screenshot it every 3 s until two shots in a row look
+    rendered, or ``timeout_s``; the last shot is saved to ``png_out``. Returns its stats and
+    every shot's."""
+    history: list[dict[str, float]] = []
+    with chromium(url, workdir) as (cdp, session):
+        deadline = time.monotonic() + timeout_s
+        ok_before = False
+        while True:
+            time.sleep(3.0)
+            png = screenshot(cdp, session)
+            stats = pixel_stats(png)
+            history.append(stats)
+            png_out.write_bytes(png)
+            ok = rendered(stats)
+            if (ok and ok_before) or time.monotonic() > deadline:
+                return stats, history
+            ok_before = ok
+
+
+# --------------------------------------------------------------------------- test
+
+
+@pytest.mark.timeout(900)
+def test_web_viewer_renders_the_demo_session(tmp_path: Path) -> None:
+    if not CHROMIUM.exists():
+        pytest.skip("needs Debian chromium at /usr/bin/chromium: apt-get install -y chromium")
+    if shutil.which("bash") is None:
+        pytest.skip("needs bash to hand chromium its DevTools pipe")
+    from services.mirror.view import entity_paths, scalar_counts
+
+    png = tmp_path / "viewer.png"
+    with served_demo(tmp_path, session_s=15.0) as (url, rrd, mirror):
+        stats, history = capture(url, tmp_path, png)
+        mirror.send_signal(signal.SIGINT)
+        assert mirror.wait(timeout=30) == 0
+    print(f"screenshot {png}: {stats}")
+    for i, s in enumerate(history):
+        print(f"  shot {i}: " + ", ".join(f"{k} {v:.0f}" for k, v in s.items()))
+    # a real picture of the viewer with the session drawn: the loading page ("Loading
+    # Application Bundle…" on a dark page) and an empty viewer have no forceps and no joint plots
+    assert png.stat().st_size > 20_000
+    assert (stats["width"], stats["height"]) == WINDOW
+    assert rendered(stats), f"the viewer never drew the session: {history}"
+    # what the viewer was given: the arm from its links, the forceps, the trocar, the errors
+    paths = entity_paths(rrd)
+    for p in ("links", "forceps", "trocar", "tip", "target", "tip_error_mm", "state"):
+        assert f"/slave/arm1/{p}" in paths, p
+    assert {"/master/m1/tip", "/safety/arm1/state", "/safety/arm1/latency/p99_ms", "/events"} <= paths
+    counts = scalar_counts(rrd)
+    assert counts["/slave/arm1/joints/j1/measured"] > 500 and counts["/slave/arm1/tip_error_mm"] > 50
+
+
+def _click(cdp: DevTools, session: str, x: float, y: float) -> None:
+    for kind in ("mouseMoved", "mousePressed", "mouseReleased"):
+        button = "none" if kind == "mouseMoved" else "left"
+        event = {"type": kind, "x": x, "y": y, "button": button, "clickCount": int(button == "left")}
+        cdp.call("Input.dispatchMouseEvent", event, session)
+        time.sleep(0.4)  # one software-rendered frame per event at least
+
+
+def docs_screenshot(out: Path, at: float) -> None:
+    """The screenshot of ``docs/recording.md``: a 20 s demo session, fully loaded, with the time
+    cursor at ``at`` (fraction of the recording: mid-session rather than its shutdown)."""
+    with tempfile.TemporaryDirectory() as tmp, served_demo(Path(tmp), session_s=20.0) as (url, _rrd, _mirror):
+        history: list[dict[str, float]] = []
+        with chromium(url, Path(tmp)) as (cdp, session):
+            deadline = time.monotonic() + 900.0
+            while time.monotonic() < deadline:  # rendered, and the whole session ingested
+                time.sleep(3.0)
+                history.append(pixel_stats(screenshot(cdp, session)))
+                if rendered(history[-1]) and frame_rate(cdp, session) > 20.0:
+                    break
+            # the time panel's stream area spans x = 192…1568 px at this window size
+            x = 192 + at * (1568 - 192)
+            for _ in range(2):  # the first click focuses the panel
+                _click(cdp, session, x, 850)
+            time.sleep(2.0)
+            png = screenshot(cdp, session)
+        out.write_bytes(png)
+        print(f"wrote {out}: {pixel_stats(png)} after {len(history)} shots")
+
+
+if __name__ == "__main__":
+    docs_screenshot(
+        Path(sys.argv[1] if len(sys.argv) > 1 else "viewer.png").resolve(),
+        float(sys.argv[2]) if len(sys.argv) > 2 else 0.6,
+    )
