@@ -28,7 +28,7 @@ from shared.messages import CONTROL_MODES, Header, OperatingState, decode
 
 DEG = math.radians(1.0)
 OUT = -0.100  # m: tip 100 mm before the trocar
-ALIGNED = 0.2 * DEG
+ALIGNED = 0.02 * DEG
 J45 = (0.2, -0.1)  # rad to go for J4 (+11.46°) and J5 (-5.73°)
 BASIC = ["master_slave", "jog", "direct_teach", "playback"]
 
@@ -65,7 +65,7 @@ def build(name: str) -> ControlModes:
         return m
     if name.startswith("posture_"):
         method = name.removeprefix("posture_")
-        ok(m.begin_posture_adjust(method, program_axis_angle_rad=0.5 * DEG))
+        ok(m.begin_posture_adjust(method, program_axis_angle_rad=0.02 * DEG))
         if method == "jog":
             ok(m.jog("joint", "j4", 1))
         return m
@@ -168,7 +168,7 @@ COMMANDS: dict[str, Command] = {
     "begin(ptp)": _begin("ptp"),
     "begin(jog)": _begin("jog"),
     "begin(direct_teach)": _begin("direct_teach"),
-    "begin(playback)": _begin("playback", 0.5 * DEG),
+    "begin(playback)": _begin("playback", 0.02 * DEG),
     "begin(playback, program 2°)": _begin("playback", 2.0 * DEG),
     "begin(playback, program unknown)": _begin("playback"),
     "begin(bogus)": _begin("bogus"),
@@ -259,7 +259,7 @@ REASONS = [
     ("non_trocar", "insert", "insert refused in non_trocar mode: adjust the posture first"),
     ("non_trocar", "mode(ptp)", "ptp refused in non_trocar mode: point-to-point is a posture-adjustment"),
     ("non_trocar", "jog(world x+)", "jog along world x+ refused: motion mode is none (select jog first)"),
-    ("non_trocar", "begin(playback, program 2°)", "taught point 2.0° off the trocar direction (limit 0.5°)"),
+    ("non_trocar", "begin(playback, program 2°)", "taught point 2.0° off the trocar direction (limit 0.05°)"),
     ("non_trocar", "begin(playback, program unknown)", "alignment of the program's taught point unknown"),
     ("non_trocar", "begin(bogus)", "unknown method 'bogus'"),
     ("non_trocar", "remove", "remove refused in non_trocar mode: the forceps is not inserted"),
@@ -473,7 +473,7 @@ def test_insert_refused_with_numbers_and_stopped_when_alignment_is_lost() -> Non
         )
     ]
     before = copy.deepcopy(m)
-    refused = "insert refused: forceps axis 7.3° off the trocar direction (limit 0.5°)"
+    refused = "insert refused: forceps axis 7.3° off the trocar direction (limit 0.05°)"
     assert m.insert() == Reply(False, refused)
     assert m == before
     ok(m.jog("forceps", "x", -1))  # backing away stays allowed
@@ -497,7 +497,7 @@ def test_unknown_measurements_count_as_missing() -> None:
     m = build("posture_ptp")
     m.update(None, ALIGNED, True)
     assert m.finish_posture_adjust() == Reply(False, "finish_posture_adjust refused: insertion depth unknown")
-    m.update(-0.001, -0.5 * DEG, True)  # aligned (the magnitude counts) but the tip is not outside
+    m.update(-0.001, -0.02 * DEG, True)  # aligned (the magnitude counts) but the tip is not outside
     reply = m.finish_posture_adjust()
     assert not reply.accepted and "tip at depth -1.0 mm" in reply.reason
 
@@ -509,7 +509,7 @@ def test_posture_jog_only_toward_the_target() -> None:
     ok(m.jog("joint", "j5", -1))
     m.update(OUT, 10 * DEG, True, j45_to_target_rad=(0.1, 0.001))  # J5 within the 0.1° deadband
     assert m.jog_command is None
-    stopped = "jog joint j5- stopped: J5 at its target (+0.06° to go, deadband 0.1°)"
+    stopped = "jog joint j5- stopped: J5 at its target (+0.06° to go, deadband 0.10°)"
     assert m.events[-1] == ("jog_stopped", stopped)
     reply = m.jog("joint", "j5", -1)
     assert not reply.accepted and "J5 at its target" in reply.reason
@@ -594,7 +594,7 @@ def test_events_and_transition_counts() -> None:
 
 
 def test_alignment_tolerance_boundary() -> None:
-    for angle, accepted in ((0.5 * DEG, True), (0.6 * DEG, False)):
+    for angle, accepted in ((0.05 * DEG, True), (0.06 * DEG, False)):
         m = build("posture_ptp")
         m.update(OUT, angle, True)
         assert m.finish_posture_adjust().accepted == accepted
@@ -604,7 +604,7 @@ def test_alignment_tolerance_boundary() -> None:
         reply = m.insert()
         assert reply.accepted == accepted
         if not accepted:
-            assert reply.reason == "insert refused: forceps axis 0.6° off the trocar direction (limit 0.5°)"
+            assert reply.reason == "insert refused: forceps axis 0.06° off the trocar direction (limit 0.05°)"
 
 
 def test_running_insertion_has_a_wider_alignment_tolerance() -> None:
@@ -613,6 +613,6 @@ def test_running_insertion_has_a_wider_alignment_tolerance() -> None:
     assert m.jog_command == Jog(Frame.FORCEPS, "x", 1)
     m.update(OUT, 2.1 * DEG, True)
     assert m.jog_command is None
-    assert m.insert().reason == "insert refused: forceps axis 2.1° off the trocar direction (limit 0.5°)"
+    assert m.insert().reason == "insert refused: forceps axis 2.1° off the trocar direction (limit 0.05°)"
     m.update(OUT, 1.5 * DEG, True)
-    assert not m.insert().accepted  # starting again needs the 0.5° of a fresh start
+    assert not m.insert().accepted  # starting again needs the 0.05° of a fresh start

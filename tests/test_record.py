@@ -289,7 +289,9 @@ def _recorded(path: Path, key: str) -> list[Any]:
 @pytest.mark.process
 def test_replay_reproduces_the_slave_response(recording: Path, tmp_path: Path) -> None:
     report_path = tmp_path / "diff.json"
+    live = tmp_path / "live.mcap"
     argv = [sys.executable, "-m", "services.record.replay", str(recording), "--json", str(report_path)]
+    argv += ["--record", str(live)]
     with Pipeline(tmp_path / "logs", mirror=False, impair=False, master=False, probe=False) as p:
         r = subprocess.run(
             [*argv, "--connect", p.spec.endpoint],
@@ -329,6 +331,49 @@ def test_replay_reproduces_the_slave_response(recording: Path, tmp_path: Path) -
     for name, j in arm["joints"].items():
         print(f"{name}: RMS {j['rms_rad']:.5f} rad, max {j['max_rad']:.5f} rad")
     assert all(j["rms_rad"] < 0.01 for j in arm["joints"].values())
+    # what a user sees: the forceps tip of the replayed run against the recorded one
+    tip_rms = _tip_rms_mm(recording, live, arm["recorded_follow_s"], end)
+    print(f"tip RMS difference replay vs recording over the compared window: {tip_rms:.3f} mm")
+    assert tip_rms < 0.5
+
+
+def _tips(path: Path) -> np.ndarray:
+    """(t since the first master sample, x, y, z) of the slave tip, s and m."""
+    t0 = _recorded(path, "master/m1/measured_cp")[0].header.stamp_ns
+    rows = [
+        ((m.header.stamp_ns - t0) / 1e9, *m.position)
+        for m in _recorded(path, "slave/arm1/measured_cp")
+        if m.header.source == "slave_control"
+    ]
+    return np.array(rows)
+
+
+def _tip_rms_mm(recorded: Path, live: Path, t_from: float, t_to: float) -> float:
+    a, b = _tips(recorded), _tips(live)
+    sel = a[(a[:, 0] >= t_from) & (a[:, 0] <= min(t_to, b[-1, 0]))]
+    want = np.stack([np.interp(sel[:, 0], b[:, 0], b[:, i]) for i in (1, 2, 3)], axis=1)
+    return float(np.sqrt(np.mean(np.sum((sel[:, 1:] - want) ** 2, axis=1)))) * 1e3
+
+
+@pytest.mark.process
+def test_replay_through_a_changed_limit_shows_the_difference(recording: Path, tmp_path: Path) -> None:
+    """The regression-test use: the same recorded session through a pipeline whose workspace
+    limit was tightened (y ≤ 5 mm): the replay reports the slave's response as different."""
+    report_path = tmp_path / "diff.json"
+    argv = [sys.executable, "-m", "services.record.replay", str(recording), "--json", str(report_path)]
+    tight = {"mapping": ["workspace_max_mm=[1100.0, 5.0, 800.0]"]}
+    with Pipeline(
+        tmp_path / "logs", mirror=False, impair=False, master=False, probe=False, overrides=tight
+    ) as p:
+        r = subprocess.run(
+            [*argv, "--connect", p.spec.endpoint], cwd=ROOT, capture_output=True, text=True, timeout=120
+        )
+    print(r.stdout, r.stderr[-3000:])
+    assert r.returncode == 0
+    arm = json.loads(report_path.read_text())["arms"]["arm1"]
+    worst = max(j["max_rad"] for j in arm["joints"].values())
+    print(f"changed limit: largest joint difference {worst:.4f} rad (diverged: {arm['diverged_because']})")
+    assert worst > 0.005  # the clamped target shows up as a difference (unchanged: < 0.004 rad)
 
 
 @pytest.mark.process

@@ -161,7 +161,7 @@ class Experiment:
             while time.monotonic() < deadline:
                 q = a.q()
                 d45 = (target - q)[3:5]
-                if np.max(np.abs(d45)) < math.radians(0.3):
+                if np.max(np.abs(d45)) < math.radians(0.01):  # J4/J5 stop exactly at the target
                     break
                 v = jacobian(q, MH3F)[:3, 3:5] @ d45
                 f = 25.0 * v / np.linalg.norm(v)

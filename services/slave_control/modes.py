@@ -169,7 +169,8 @@ def _parse(cls: type[_E], value: str) -> _E | None:
 
 
 def _deg(rad: float) -> str:
-    return f"{math.degrees(rad):.1f}°"
+    d = math.degrees(rad)
+    return f"{d:.2f}°" if abs(d) < 1.0 else f"{d:.1f}°"
 
 
 def _mm(m: float) -> str:
@@ -227,7 +228,7 @@ class ModeConfig:
 
     trocar_depth_m: float = TROCAR_MODE_DEPTH
     exit_margin_m: float = 0.002
-    align_tolerance_rad: float = math.radians(0.5)
+    align_tolerance_rad: float = math.radians(0.05)
     joint_deadband_rad: float = math.radians(0.1)
     align_running_tolerance_rad: float = math.radians(2.0)
 
