@@ -373,7 +373,7 @@ def test_replay_through_a_changed_limit_shows_the_difference(recording: Path, tm
     arm = json.loads(report_path.read_text())["arms"]["arm1"]
     worst = max(j["max_rad"] for j in arm["joints"].values())
     print(f"changed limit: largest joint difference {worst:.4f} rad (diverged: {arm['diverged_because']})")
-    assert worst > 0.005  # the clamped target shows up as a difference (unchanged: < 0.004 rad)
+    assert worst > 0.02  # the clamped target shows up (measured 0.044 rad; unchanged runs stay below 0.009)
 
 
 @pytest.mark.process
