@@ -136,6 +136,19 @@ def site(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[Board, Log]
         print(f"--- {f.name}\n{f.read_text()[-2500:]}")
 
 
+def _longest_follow(states: list[tuple[float, bool, bool]]) -> tuple[float, float]:
+    best, start = (0.0, 0.0), None
+    for t, f, _ in states:
+        if f and start is None:
+            start = t
+        elif not f and start is not None:
+            best = max(best, (start, t), key=lambda s: s[1] - s[0])
+            start = None
+    if start is not None:
+        best = max(best, (start, states[-1][0]), key=lambda s: s[1] - s[0])
+    return best
+
+
 def wait(pred, timeout: float) -> bool:  # type: ignore[no-untyped-def]
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
@@ -160,9 +173,9 @@ def test_slave_joints_follow_the_mapped_master_joints(site: tuple[Board, Log]) -
         js = {a: list(v) for a, v in log.js.items()}
         states = {a: list(v) for a, v in log.state.items()}
     for arm in ARMS:
-        # the first uninterrupted stretch of following (a watchdog hold on this busy host ends it)
-        t0 = next(t for t, f, _ in states[arm] if f)
-        t_end = next((t for t, f, _ in states[arm] if t > t0 and not f), float("inf"))
+        # the longest uninterrupted stretch of following (re-clutching, or a watchdog hold on this
+        # busy host, ends one)
+        t0, t_end = _longest_follow(states[arm])
         follow_sp = [(t, q, o) for t, q, f, o in sp[arm] if f and t0 - 0.1 <= t <= t_end]
         follow = [(t, q) for t, q, _ in follow_sp]
         # 1) the slave tracks its setpoints: every measured configuration is one commanded within
@@ -192,7 +205,7 @@ def test_slave_joints_follow_the_mapped_master_joints(site: tuple[Board, Log]) -
             f"mapping replay vs last setpoint {np.round(q - qs[-1], 4)}"
         )
         assert np.all(moved[1:4] > 0.02)  # θ2, θ3, θ4 really moved
-        assert len(errs) > 200 and err < 0.01  # rad (the slides move less than 0.01 m)
+        assert len(errs) > 150 and err < 0.01  # rad (the slides move less than 0.01 m)
         assert np.allclose(q[1:], qs[-1][1:], atol=0.02)  # the Table-6 mapping of the master motion
 
 

@@ -73,6 +73,13 @@ def _parser() -> argparse.ArgumentParser:
     )
     em.add_argument("--seed", type=int, default=0, help="seed of the random garbage")
     em.add_argument(
+        "--clutch-repeat",
+        type=float,
+        default=0.0,
+        metavar="S",
+        help="release the clutch for 0.3 s every S seconds (re-clutching; 0: keep it pressed)",
+    )
+    em.add_argument(
         "--counts-per-rev",
         type=int,
         default=400,
@@ -201,6 +208,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             drop_every=args.drop_every,
             seed=args.seed,
             calibration=Calibration(counts_per_rev=args.counts_per_rev),
+            clutch_repeat_s=args.clutch_repeat,
         )
         try:
             opts.validate()

@@ -71,9 +71,14 @@ def motion_joints(motion: str, t: float, joints: int = 6) -> tuple[float, ...]:
     return tuple(q)
 
 
-def motion_switches(t: float) -> int:
-    """``sw`` bits at ``t`` s: operator present always, clutch pressed from 1 s on."""
-    return SW_OPERATOR | (SW_CLUTCH if t >= 1.0 else 0)
+def motion_switches(t: float, clutch_repeat_s: float = 0.0) -> int:
+    """``sw`` bits at ``t`` s: operator present always, clutch pressed from 1 s on; with
+    ``clutch_repeat_s`` > 0 the pedal is released for 0.3 s every that many seconds (re-clutching,
+    as an operator does, e.g. after a hold)."""
+    pressed = t >= 1.0
+    if pressed and clutch_repeat_s > 0.0 and (t - 1.0) % clutch_repeat_s > clutch_repeat_s - 0.3:
+        pressed = False
+    return SW_OPERATOR | (SW_CLUTCH if pressed else 0)
 
 
 @dataclass
@@ -86,6 +91,7 @@ class EmulatorOptions:
     drop_every: int = 0  # skip every N-th SAMPLE, its seq used up: the host sees a gap (0: never)
     hello_every_s: float = 1.0  # s: periodic HELLO (the firmware's HELLO_PERIOD_MS)
     seed: int = 0  # random garbage seed
+    clutch_repeat_s: float = 0.0  # s: if > 0, the clutch is released for 0.3 s every this long
     calibration: Calibration = field(default_factory=Calibration)  # joints → counts / ADC
     model: str = "plas-master"  # HELLO model
     fw: str = "emulator"  # HELLO firmware version
@@ -160,7 +166,12 @@ class BoardEmulator:
         n = self.stats.samples + self.stats.dropped + 1  # this SAMPLE's number, from 1
         cal = self.opts.calibration
         counts, pot = cal.raw(motion_joints(self.opts.motion, t, cal.joints))
-        sample = Sample(t_us=int(t * 1e6) % T_US_MODULUS, counts=counts, pot=pot, sw=motion_switches(t))
+        sample = Sample(
+            t_us=int(t * 1e6) % T_US_MODULUS,
+            counts=counts,
+            pot=pot,
+            sw=motion_switches(t, self.opts.clutch_repeat_s),
+        )
         if self.opts.drop_every and n % self.opts.drop_every == 0:
             self.seq = (self.seq + 1) % SEQ_MODULUS  # as if lost on the wire
             self.stats.dropped += 1

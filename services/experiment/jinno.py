@@ -178,16 +178,24 @@ class Experiment:
         run.moved_other_joints_deg = float(np.degrees(np.abs(q1 - q0)[[0, 1, 2, 5]]).max())
 
     def insert(self, run: Run) -> None:
-        a = self.arm
-        a.must("insert")
-        self._must_wait(lambda: a.mode() == "trocar", 30, "never reached trocar mode")
+        self._until("insert", "trocar", "never reached trocar mode")
         run.t_trocar = time.monotonic()
         run.inserted = True
 
+    def _until(self, command: str, mode: str, what: str) -> None:
+        """Send ``command`` until the arm reaches ``mode``: a watchdog hold (a scheduling stall of a
+        busy host) stops a slave-side motion, and the operator simply commands it again."""
+        a = self.arm
+        for _ in range(4):
+            a.must(command)
+            if a.wait(lambda: a.mode() == mode, 20):
+                return
+            a.wait(a.lease_ok, 10)
+        raise RuntimeError(what)
+
     def remove(self) -> None:
         a = self.arm
-        a.must("remove")
-        self._must_wait(lambda: a.mode() == "non_trocar", 30, "never came back out")
+        self._until("remove", "non_trocar", "never came back out")
         a.must("set_motion_mode", "mode=jog")  # back off along the axis before moving elsewhere
         a.must("jog", "frame=forceps", "axis=x", "direction=-1")
         time.sleep(1.5)
