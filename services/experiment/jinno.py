@@ -215,11 +215,18 @@ class Experiment:
         self._must_wait(lambda: bool(a.log.states) and a.log.states[-1][4], 5, "the slave never followed")
         time.sleep(0.3)
         t0 = m.trace_t0 = time.monotonic()
-        time.sleep(TRACE_LAPS * TRACE_PERIOD_S + 0.5)
+        time.sleep(TRACE_LAPS * TRACE_PERIOD_S)  # whole laps: the master ends where it started
         self.trace = (t0, time.monotonic())
-        m.trace_t0 = None  # (the master stands still again: the slave stays where it is)
         m.clutch = False
+        m.trace_t0 = None
         self._must_wait(lambda: not a.log.states[-1][4], 2, "the slave never let go")
+        a.settle()
+        # back out the extra depth in trocar mode before the removal (the pose it was inserted in)
+        a.must("set_motion_mode", "mode=jog")
+        a.must("jog", "frame=forceps", "axis=x", "direction=-1")
+        time.sleep(TRACE_DEPTH_JOG_S)
+        a.must("stop")
+        a.settle()
 
     def one(self, name: str, start: str, method: str, *, trace: bool = False) -> Run:
         run = Run(name, start, method, t0=time.monotonic())
