@@ -130,12 +130,14 @@ class Experiment:
 
     def go_to(self, start: str) -> None:
         a = self.arm
-        a.must("set_motion_mode", "mode=playback")
-        t = time.monotonic()
-        a.must("play", f"program={start}")
-        if not a.wait_event("playback_done", t, 60):
-            raise RuntimeError(f"playback of {start} never finished")
-        a.settle()
+        for _ in range(4):  # a hold stops the playback: play it again, as an operator would
+            a.wait(a.lease_ok, 10)
+            a.send("set_motion_mode", "mode=playback")
+            t = time.monotonic()
+            if a.send("play", f"program={start}").accepted and a.wait_event("playback_done", t, 30):
+                a.settle()
+                return
+        raise RuntimeError(f"playback of {start} never finished")
 
     def adjust(self, run: Run) -> None:
         """Posture adjustment by ``run.method``, until finish_posture_adjust is accepted."""
