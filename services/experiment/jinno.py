@@ -65,6 +65,7 @@ class Run:
     t_trocar: float = 0.0
     t_end: float = 0.0
     inserted: bool = False
+    removed: bool = True
     posture_s: float = 0.0
     final_axis_deg: float = math.nan
     moved_other_joints_deg: float = math.nan
@@ -238,7 +239,12 @@ class Experiment:
         self.insert(run)
         if trace:
             self.trace_circle()
-        self.remove()
+            try:  # the last run: its removal may end at the arm's reach (known limitation)
+                self.remove()
+            except RuntimeError:
+                run.removed = False
+        else:
+            self.remove()
         run.t_end = time.monotonic()
         self.runs.append(run)
         return run
@@ -315,6 +321,7 @@ def _metrics(exp: Experiment, master: Master, wall_s: float) -> dict[str, Any]:
         "rcm_error_max_all_trocar_mm": round(max(trocar_rcm), 4),
         "insertions_succeeded": sum(r.inserted for r in exp.runs),
         "insertions_attempted": len(exp.runs),
+        "removals_succeeded": sum(r.removed for r in exp.runs),
         "mode_transitions": len(transitions),
         "mode_transition_log": [text for _, text in transitions],
         "holds": len(holds),
