@@ -62,7 +62,7 @@ def test_a_push_moves_the_arm_and_it_stays_when_released(arm: tuple[ArmClient, P
         f = np.array([w[1:] for w in c.log.forces if w[0] >= t0])
     pushed = f[np.linalg.norm(f, axis=1) > 5.0]
     print(f"measured_cf during the push: mean {pushed.mean(axis=0).round(2)} N over {len(pushed)} samples")
-    assert len(pushed) > 50 and np.allclose(pushed.mean(axis=0), [0.0, 20.0, 0.0], atol=1.0)
+    assert len(pushed) > 25 and np.allclose(pushed.mean(axis=0), [0.0, 20.0, 0.0], atol=1.0)  # 1 s at 50 Hz
     assert np.linalg.norm(f[-10:], axis=1).max() < 1.0  # and nothing once it ended
 
     assert c.send("set_motion_mode", "mode=direct_teach").accepted

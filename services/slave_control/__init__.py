@@ -11,8 +11,9 @@ caught up by extra physics steps, and counted; ``serial_rate_hz`` for a serial a
 arrive on ``slave/<arm>/servo_jp``; they are validated (joint names, joint limits) and only
 followed as described in :mod:`services.slave_control.control`. The service publishes
 ``measured_js`` and the forceps-tip ``measured_cp`` at ``publish_hz``, the estimated external
-wrench at the tip ``measured_cf`` (for masters with force feedback) with them, and its
-``operating_state`` at ``state_hz`` and on change.
+wrench at the tip ``measured_cf`` (for masters with force feedback) at ``wrench_hz``, and its
+``operating_state`` at ``state_hz`` and on change. Rates count periods of real time, so they
+hold when the loop wakes late and catches up.
 
 Example::
 
@@ -80,6 +81,7 @@ class SlaveControlConfig:
     # rad: start pose — tip at (835, 0, 301) mm, forceps pitched 29° down
     q_home: tuple[float, ...] = (0.0, 0.2, 0.3, 0.0, -0.6, 0.0)
     publish_hz: float = 250.0  # Hz: measured_js and measured_cp
+    wrench_hz: float = 50.0  # Hz: measured_cf (estimated tip wrench; MuJoCo and torque-sensing arms)
     state_hz: float = 20.0  # Hz: operating_state (also sent on every change)
     setpoint_timeout_ms: float = 100.0  # ms: an older setpoint is stale → hold
     # ms: joint slaves interpolate sparse setpoints over their period, at most this long
@@ -652,6 +654,7 @@ def run(cfg: SlaveControlConfig, stop: threading.Event) -> None:
         dt = svc.dt = backend.dt
         timer = CycleTimer(1.0 / dt)
         pub_every = max(1, round(1.0 / (dt * cfg.publish_hz)))
+        wrench_every = max(1, round(1.0 / (dt * cfg.wrench_hz)))
         state_every = max(1, round(1.0 / (dt * cfg.state_hz)))
         reading = backend.read()
         # start from the measured joints (MuJoCo: q_home; a real arm: wherever it stands)
@@ -713,7 +716,7 @@ def run(cfg: SlaveControlConfig, stop: threading.Event) -> None:
             svc.following = ctl.following
             svc.tip = reading.tip_position
             svc.reading = reading
-            if cycle % modes_every == 0:
+            if timer.every(modes_every):
                 with svc.lock:
                     svc.update_modes(reading)
                     mode_events, svc.modes.events = svc.modes.events, []
@@ -722,9 +725,9 @@ def run(cfg: SlaveControlConfig, stop: threading.Event) -> None:
             for kind, text in ctl.events:
                 node.event(kind, text, arm=cfg.arm, severity="warning" if kind in WARN else "info")
             ctl.events.clear()
-            if reading.divergence is not None and cycle % shadow_every == 0:
+            if reading.divergence is not None and timer.every(shadow_every):
                 node.event("shadow", f"shadow divergence {reading.divergence.describe()}", arm=cfg.arm)
-            if cycle % pub_every == 0:
+            if timer.every(pub_every):
                 js_out.put(
                     JointState(
                         js_out.header(),
@@ -743,12 +746,12 @@ def run(cfg: SlaveControlConfig, stop: threading.Event) -> None:
                         (float(qt[0]), float(qt[1]), float(qt[2]), float(qt[3])),
                     )
                 )
-                if reading.external_torque is not None:
-                    f, m = tip_wrench(reading.position, reading.external_torque)
-                    cf_out.put(CartesianWrench(cf_out.header(), "base", f, m))
+            if reading.external_torque is not None and timer.every(wrench_every):
+                f, m = tip_wrench(reading.position, reading.external_torque)
+                cf_out.put(CartesianWrench(cf_out.header(), "base", f, m))
             lease_ok = ctl.lease_valid
             state = (ctl.following, lease_ok, ctl.reason, svc.modes.control_mode, internal, held.cause)
-            if state != last_state or cycle % state_every == 0:
+            if state != last_state or timer.every(state_every):
                 last_state = state
                 rejected = svc.rejected_setpoints + node.streams.get(k.slave(cfg.arm, "servo_jp")).rejected
                 op = "ENABLED" if ctl.following or internal else ("FAULT" if svc.estop else "PAUSED")

@@ -208,14 +208,14 @@ def run_joint_slave(
             missed = timer.wait()
             reading = backend.read()
             cycle += 1
-            if reading.divergence is not None and cycle % shadow_every == 0:
+            if reading.divergence is not None and timer.every(shadow_every):
                 node.event("shadow", f"shadow divergence {reading.divergence.describe()}")
             for i, a in enumerate(slaves):
                 a.cycle = cycle
                 for kind, text in a.ctl.events:
                     node.event(kind, text, arm=a.profile.arm, severity="warning" if kind in WARN else "info")
                 a.ctl.events.clear()
-                if cycle % pub_every == 0:
+                if timer.every(pub_every):
                     _publish(a, reading.position[a.index], reading.velocity[a.index], reading.effort[a.index])
                     if reading.site_positions is not None:
                         tip = reading.site_positions[i]
@@ -226,7 +226,7 @@ def run_joint_slave(
                             )
                         )
                 state = (a.ctl.following, a.ctl.lease_valid, a.ctl.reason, bool(a.estop), a.held.cause)
-                if state != a.last_state or cycle % state_every == 0:
+                if state != a.last_state or timer.every(state_every):
                     a.last_state = state
                     out = a.outlets["operating_state"]
                     rejected = a.rejected + node.streams.get(k.slave(a.profile.arm, "servo_jp")).rejected
