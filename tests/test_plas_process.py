@@ -53,6 +53,8 @@ class Board:
                 "200",
                 "--counts-per-rev",
                 "1600",
+                "--clutch-repeat",  # the operator re-clutches every 3 s: a hold on this busy
+                "3",  # host ends one stretch of following, not the test
             ],
             stdout=subprocess.PIPE,
             text=True,
@@ -136,17 +138,18 @@ def site(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[Board, Log]
         print(f"--- {f.name}\n{f.read_text()[-2500:]}")
 
 
-def _longest_follow(states: list[tuple[float, bool, bool]]) -> tuple[float, float]:
-    best, start = (0.0, 0.0), None
+def _follow_stretches(states: list[tuple[float, bool, bool]]) -> list[tuple[float, float]]:
+    """(start, end) of every uninterrupted stretch of following."""
+    out, start = [], None
     for t, f, _ in states:
         if f and start is None:
             start = t
         elif not f and start is not None:
-            best = max(best, (start, t), key=lambda s: s[1] - s[0])
+            out.append((start, t))
             start = None
     if start is not None:
-        best = max(best, (start, states[-1][0]), key=lambda s: s[1] - s[0])
-    return best
+        out.append((start, states[-1][0]))
+    return out
 
 
 def wait(pred, timeout: float) -> bool:  # type: ignore[no-untyped-def]
@@ -173,45 +176,58 @@ def test_slave_joints_follow_the_mapped_master_joints(site: tuple[Board, Log]) -
         js = {a: list(v) for a, v in log.js.items()}
         states = {a: list(v) for a, v in log.state.items()}
     for arm in ARMS:
-        # the longest uninterrupted stretch of following (re-clutching, or a watchdog hold on this
-        # busy host, ends one)
-        t0, t_end = _longest_follow(states[arm])
-        follow_sp = [(t, q, o) for t, q, f, o in sp[arm] if f and t0 - 0.1 <= t <= t_end]
-        follow = [(t, q) for t, q, _ in follow_sp]
+        # every uninterrupted stretch of following (re-clutching every 3 s, or a watchdog hold on
+        # this busy host, ends one)
+        stretches = _follow_stretches(states[arm])
+        assert stretches, f"{arm} never followed"
+
+        def setpoints(t0: float, t_end: float) -> list[tuple[float, np.ndarray, int]]:
+            return [(t, q, o) for t, q, f, o in sp[arm] if f and t0 - 0.1 <= t <= t_end]  # noqa: B023
+
         # 1) the slave tracks its setpoints: every measured configuration is one commanded within
         #    the last 150 ms (judged on the path, so this busy host's scheduling delays don't count)
-        ts = np.array([t for t, _ in follow])
-        qs = np.array([q for _, q in follow])
-        errs = []
-        for t, q in js[arm]:
-            if not t0 + 0.3 <= t <= t_end - 0.05:
+        errs, qs_all = [], []
+        for t0, t_end in stretches:
+            follow_sp = setpoints(t0, t_end)
+            if not follow_sp:
                 continue
-            recent = qs[(ts >= t - 0.15) & (ts <= t)]
-            if len(recent):
-                errs.append(np.abs(recent - q).max(axis=1).min())
+            ts = np.array([t for t, _, _ in follow_sp])
+            qs = np.array([q for _, q, _ in follow_sp])
+            qs_all.append(qs)
+            for t, q in js[arm]:
+                if not t0 + 0.3 <= t <= t_end - 0.05:
+                    continue
+                recent = qs[(ts >= t - 0.15) & (ts <= t)]
+                if len(recent):
+                    errs.append(np.abs(recent - q).max(axis=1).min())
         err = float(np.max(errs))
         # 2) the setpoints are the Table-6 mapping of the master's motion: replay the master
-        #    samples seen while following through the same mapping, from the first setpoint
+        #    samples seen during the longest stretch through the same mapping, from its first
+        #    setpoint (each engage starts the integration anew)
+        follow_sp = setpoints(*max(stretches, key=lambda s: s[1] - s[0]))
+        qs = np.array([q for _, q, _ in follow_sp])
         o_first, o_last = follow_sp[0][2], follow_sp[-1][2]  # master stamps behind the setpoints
         qm = np.array([q for _, q, st in master if o_first <= st <= o_last])
         q = qs[0].copy()
         cfg = plas.MappingConfig(d1_speed=0.010)
         for a, b in itertools.pairwise(qm):
             q = plas.map_step(q, a, b - a, dt=0.005, config=cfg).q
-        moved = np.ptp(qs, axis=0)
+        moved = np.ptp(np.concatenate(qs_all), axis=0)
         print(
-            f"{arm}: followed {follow[-1][0] - follow[0][0]:.1f} s; slave joints moved {np.round(moved, 3)}; "
-            f"distance from the commanded path max {err:.4f}; "
-            f"mapping replay vs last setpoint {np.round(q - qs[-1], 4)}"
+            f"{arm}: followed {len(stretches)} stretches, the longest "
+            f"{follow_sp[-1][0] - follow_sp[0][0]:.1f} s; "
+            f"slave joints moved {np.round(moved, 3)}; distance from the commanded path max {err:.4f} "
+            f"over {len(errs)} samples; mapping replay vs last setpoint {np.round(q - qs[-1], 4)}"
         )
         assert np.all(moved[1:4] > 0.02)  # θ2, θ3, θ4 really moved
-        assert len(errs) > 150 and err < 0.01  # rad (the slides move less than 0.01 m)
+        # rad (the slides move less than 0.01 m); a stretch starts within the engage tolerance
+        assert len(errs) > 150 and err < 0.02
         assert np.allclose(q[1:], qs[-1][1:], atol=0.02)  # the Table-6 mapping of the master motion
 
 
 def test_unplugged_board_holds_and_a_new_board_needs_a_new_engage(site: tuple[Board, Log]) -> None:
     board, log = site
-    assert wait(lambda: all(following(log, a) for a in ARMS), 10)
+    assert wait(lambda: all(following(log, a) for a in ARMS), 15)
     t_kill = time.monotonic()
     board.kill()  # unplug
     assert wait(lambda: not any(following(log, a) for a in ARMS), 2.0), "the slave kept following"
