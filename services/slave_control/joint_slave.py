@@ -185,27 +185,31 @@ def run_joint_slave(
         shadow_every = max(1, round(cfg.shadow_report_s / dt))
         log.info("joint slave %s: arms %s at %.0f Hz", cfg.model, ", ".join(p.arm for p in arms), 1 / dt)
         cycle = 0
-        missed = 0
+
+        def period(now: float) -> None:
+            """One control period at time ``now``: each arm's next command, one physics step."""
+            for a in slaves:
+                if reading.fault or a.held.active:  # no motion; a new engage after the fault
+                    with a.lock:
+                        lease = a.lease
+                    a.ctl.lease_valid = a.ctl.lease_ok(lease, now, a.cycle)
+                    q_cmd[a.index] = a.held.update(a.ctl, reading.fault, reading.position[a.index])
+                else:
+                    q_cmd[a.index] = _control(a, now, reading.position[a.index], q_cmd[a.index], dt)
+            backend.command(q_cmd)
+            backend.step(1)
+
         while not stop.is_set():
-            t_now = time.monotonic()
-            # Periods the loop slept through (scheduling stalls) are replayed one by one, each with
-            # the reference of its own time: the arm keeps moving smoothly instead of holding the
-            # old command for the stall and jumping afterwards.
-            for late in range(missed, -1, -1):
-                now = t_now - late * dt
-                for a in slaves:
-                    if reading.fault or a.held.active:  # no motion; a new engage after the fault
-                        with a.lock:
-                            lease = a.lease
-                        a.ctl.lease_valid = a.ctl.lease_ok(lease, now, a.cycle)
-                        q_cmd[a.index] = a.held.update(a.ctl, reading.fault, reading.position[a.index])
-                    else:
-                        q_cmd[a.index] = _control(a, now, reading.position[a.index], q_cmd[a.index], dt)
-                backend.command(q_cmd)
-                backend.step(1)
-                if late:
-                    reading = backend.read()
+            period(time.monotonic())
             missed = timer.wait()
+            # Periods the loop slept through (scheduling stalls) are replayed at once, one by one,
+            # each with the reference of its own time: the arm keeps moving smoothly instead of
+            # holding the old command for the stall and jumping afterwards, and what is published
+            # next is the caught-up state.
+            t_wake = time.monotonic()
+            for late in range(missed, 0, -1):
+                reading = backend.read()
+                period(t_wake - late * dt)
             reading = backend.read()
             cycle += 1
             if reading.divergence is not None and timer.every(shadow_every):
