@@ -2,33 +2,57 @@
 
 from __future__ import annotations
 
-import time
-
 import pytest
 
+import shared.timing
 from shared.timing import CycleTimer
 
 
-def test_every_keeps_a_sub_rate_in_periods_when_the_loop_runs_late() -> None:
+class FakeClock:
+    """monotonic_ns and sleep for shared.timing: sleeping advances the clock exactly."""
+
+    def __init__(self) -> None:
+        self.ns = 1_000_000_000
+
+    def monotonic_ns(self) -> int:
+        return self.ns
+
+    def sleep(self, s: float) -> None:
+        self.ns += round(s * 1e9)
+
+
+@pytest.fixture
+def clock(monkeypatch: pytest.MonkeyPatch) -> FakeClock:
+    c = FakeClock()
+    monkeypatch.setattr(shared.timing.time, "monotonic_ns", c.monotonic_ns)
+    monkeypatch.setattr(shared.timing.time, "sleep", c.sleep)
+    return c
+
+
+def test_on_time_every_fires_once_per_n_periods(clock: FakeClock) -> None:
     timer = CycleTimer(rate_hz=1000.0)
-    fired = expected = 0
+    fired = []
+    for _ in range(40):
+        clock.ns += 200_000  # 0.2 ms of work per 1 ms cycle
+        assert timer.wait() == 0
+        fired.append(timer.every(4))
+    assert timer.periods == 40 and timer.overruns == 0
+    assert sum(fired) == 10 and fired[3] and not fired[2]
+
+
+def test_a_stall_is_counted_and_sub_rates_keep_their_rate_in_time(clock: FakeClock) -> None:
+    timer = CycleTimer(rate_hz=1000.0)
+    fired = 0
+    missed = []
     for i in range(40):
-        if i == 10:
-            time.sleep(0.0105)  # a stall: ~10 periods slept through in one cycle
-        before = timer.periods
-        timer.wait()
+        clock.ns += 10_500_000 if i == 10 else 200_000  # cycle 10 stalls for 10.5 ms
+        missed.append(timer.wait())
         fired += timer.every(4)
-        expected += timer.periods // 4 != before // 4  # a multiple of 4 periods was crossed
-    # 40 cycles plus the ~10 missed periods: the 4-period task ran once per 4 periods of time
-    # crossed (at most once per wakeup), more often than once per 4 loop iterations (10)
-    assert timer.periods >= 49 and timer.overruns >= 1
-    assert fired == expected > 10
-
-
-def test_every_fires_once_per_n_periods_on_time() -> None:
-    timer = CycleTimer(rate_hz=500.0)
-    fired = [timer.wait() == 0 and timer.every(5) for _ in range(20)]
-    assert sum(fired) >= 3 and not any(fired[i] and fired[i + 1] for i in range(19))
+    assert missed[10] == 10 and sum(missed) == 10 and timer.overruns == 1
+    assert timer.periods == 50
+    # 50 periods of time hold 12 multiples of 4; the stall's one wakeup crossed three of them
+    # (12, 16, 20) and runs the task once, with the caught-up state
+    assert fired == 12 - 2
 
 
 def test_rate_must_be_positive() -> None:
