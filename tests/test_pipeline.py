@@ -23,7 +23,7 @@ import numpy as np
 import pytest
 
 from services.launcher import SiteSpec, default_config_dir, free_port, service_argv, wait_port
-from services.launcher.report import split_by_scale, tracking_error
+from services.launcher.report import engaged_segments, split_by_scale, tracking_error
 from shared.bus import BusConfig, Node
 from shared.messages import CartesianPose, JointSetpoint, JointState, OperatingState, SafetyState
 
@@ -109,6 +109,10 @@ def site(tmp_path: Path) -> Iterator[tuple[subprocess.Popen[bytes], SiteSpec, Pa
     rrd = tmp_path / "session.rrd"
     argv = [sys.executable, "-m", "services.cli", "up", "--port", str(port), "--log-dir", str(logs)]
     argv += ["--save", str(rrd)]
+    # the operator re-clutches every 3 s (pedal down 0.5-2.8 s of each 3 s): a watchdog hold on
+    # this busy host ends one engagement, not the test
+    argv += ["--set", "master_capture.scripted.clutch_repeat_s=3.0"]
+    argv += ["--set", "master_capture.scripted.clutch=[[0.5, 2.8]]"]
     launcher_log = (tmp_path / "launcher.log").open("wb")
     proc = subprocess.Popen(argv, stderr=launcher_log)
     spec = SiteSpec(port=port, config_dir=default_config_dir(), log_dir=logs)
@@ -143,9 +147,13 @@ def test_pipeline_follow_kill_restart_shutdown(
         t_end = int(min(master[-1, 0], slave[-1, 0]))
         with probe.lock:
             factors = sorted(probe.factors)
-        # The watchdog may lower the motion scale (DEGRADED, e.g. latency over budget on a busy
-        # host); the mapping re-anchors there, so each part is checked with its own scale.
-        parts = split_by_scale([(t_follow, t_end)], factors, SCALE)
+            follow = sorted(probe.follow)
+        # Judged while the slave followed: each engagement (the operator re-clutches; a hold
+        # ends one) re-anchors the mapping. The watchdog may also lower the motion scale
+        # (DEGRADED, e.g. latency over budget on a busy host); the mapping re-anchors there too,
+        # so each part is checked with its own scale.
+        engaged = [(max(a, t_follow), min(b, t_end)) for a, b in engaged_segments(follow) if b > t_follow]
+        parts = split_by_scale([(a, b) for a, b in engaged if b > a], factors, SCALE)
         err = tracking_error(master, slave, parts, SCALE, np.eye(3), settle_s=0.5)
         sel = (slave[:, 0] > t_follow + 0.5e9) & (slave[:, 0] < t_end)
         travel_mm = np.ptp(slave[sel, 1:], axis=0).max() * 1e3
@@ -154,7 +162,7 @@ def test_pipeline_follow_kill_restart_shutdown(
             f"tracking error mean {err.mean_mm:.3f} mm, max {err.max_mm:.3f} mm over {err.samples} "
             f"samples, travel {travel_mm:.1f} mm, scales {scales}"
         )
-        assert err.samples > 750, f"only {err.samples} slave samples while following"  # ≥ 3 s at 250 Hz
+        assert err.samples > 500, f"only {err.samples} slave samples while following"  # ≥ 2 s at 250 Hz
         # 40 mm master radius × 0.5 → a 40 mm circle (20 mm at a degraded scale)
         assert travel_mm > (30.0 if scales == [SCALE] else 15.0), "the slave did not draw the circle"
         assert err.max_mm < 2.0

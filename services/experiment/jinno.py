@@ -69,7 +69,7 @@ class Run:
     t_trocar: float = 0.0
     t_end: float = 0.0
     inserted: bool = False
-    removed: bool = True
+    removed: bool = False
     posture_s: float = 0.0
     final_axis_deg: float = math.nan
     moved_other_joints_deg: float = math.nan
@@ -91,7 +91,10 @@ class Master(threading.Thread):
         if self.trace_t0 is None:
             return (0.0, 0.0, 0.0)
         a = 2 * math.pi * (t - self.trace_t0) / TRACE_PERIOD_S
-        return (TRACE_RADIUS_M * (math.cos(a) - 1.0), TRACE_RADIUS_M * math.sin(a), 0.0)
+        # the circle lies on the far side (+x) of the start: the tip moves away from the robot's
+        # base, so the wrist, on the other side of the trocar pivot, moves toward it and stays
+        # well inside the arm's reach at this depth (the -x side took it to the reach limit)
+        return (TRACE_RADIUS_M * (1.0 - math.cos(a)), TRACE_RADIUS_M * math.sin(a), 0.0)
 
     def run(self) -> None:
         t0 = time.monotonic()
@@ -253,12 +256,8 @@ class Experiment:
         self.insert(run)
         if trace:
             self.trace_circle()
-            try:  # the last run: its removal may end at the arm's reach (known limitation)
-                self.remove()
-            except RuntimeError:
-                run.removed = False
-        else:
-            self.remove()
+        self.remove()
+        run.removed = True
         run.t_end = time.monotonic()
         self.runs.append(run)
         return run
@@ -312,6 +311,7 @@ def run(out: Path, progress: Progress | None = None, *, keep_logs: bool = True) 
             master.join(2)
     metrics = _metrics(exp, master, time.monotonic() - t_begin)
     _figures(out, exp, master)
+    _save_trace(out / "trace.npz", exp, master)
     (out / "metrics.json").write_text(json.dumps(metrics, indent=2) + "\n")
     say("done", 1.0)
     return metrics
@@ -357,6 +357,16 @@ def _metrics(exp: Experiment, master: Master, wall_s: float) -> dict[str, Any]:
         "trocar_mm": list(TROCAR_MM),
         "wall_time_s": round(wall_s, 1),
     }
+
+
+def _save_trace(path: Path, exp: Experiment, master: Master) -> None:
+    """The trace's raw series (monotonic s): slave tip, master target, slave states."""
+    log = exp.arm.log
+    with log.lock:
+        tips = np.array(log.tips)
+        states = np.array([(s[0], s[2], float(s[4])) for s in log.states])  # t, rcm mm, follow
+    window, m = np.array(exp.trace), np.array(master.log)
+    np.savez_compressed(path, window=window, tips=tips, master=m, states=states)
 
 
 def _tracking_error(tips: np.ndarray, master: Master, window: tuple[float, float]) -> tuple[float, float]:
