@@ -23,7 +23,7 @@ import numpy as np
 import pytest
 
 from services.launcher import SiteSpec, default_config_dir, free_port, service_argv, wait_port
-from services.launcher.report import engaged_segments, split_by_scale, tracking_error
+from services.launcher.report import RELEASE_TRIM_S, engaged_segments, split_by_scale, tracking_error
 from shared.bus import BusConfig, Node
 from shared.messages import CartesianPose, JointSetpoint, JointState, OperatingState, SafetyState
 
@@ -152,11 +152,10 @@ def test_pipeline_follow_kill_restart_shutdown(
         # ends one) re-anchors the mapping. The watchdog may also lower the motion scale
         # (DEGRADED, e.g. latency over budget on a busy host); the mapping re-anchors there too,
         # so each part is checked with its own scale.
-        # The slave's follow flag outlives a clutch release by up to its setpoint timeout (100 ms)
-        # while the master moves on: each engagement is judged up to 150 ms before it ended.
-        trim = 150_000_000
-        segs = [(a, b) for a, b in engaged_segments(follow) if b > t_follow]
-        engaged = [(max(a, t_follow), min(b - trim, t_end)) for a, b in segs]
+        # The slave's follow flag outlives a clutch release by up to its setpoint timeout while
+        # the master moves on: the last RELEASE_TRIM_S of each engagement are not judged.
+        segs = engaged_segments(follow, RELEASE_TRIM_S)
+        engaged = [(max(a, t_follow), min(b, t_end)) for a, b in segs if b > t_follow]
         parts = split_by_scale([(a, b) for a, b in engaged if b > a], factors, SCALE)
         err = tracking_error(master, slave, parts, SCALE, np.eye(3), settle_s=0.5)
         sel = (slave[:, 0] > t_follow + 0.5e9) & (slave[:, 0] < t_end)

@@ -8,6 +8,10 @@ a slave sample is the last master sample published at or before the slave sample
 (all processes share the host's wall clock): the slave cannot follow motion the master never
 published, e.g. while the master process was descheduled.
 
+A segment ends when the slave's ``follow`` flag drops, which is up to the slave's setpoint
+timeout (100 ms) after the master's clutch release; the master moves on meanwhile, so the last
+``RELEASE_TRIM_S`` of each segment are not judged.
+
 When the watchdog changes the motion-scale factor (DEGRADED, e.g. over the latency budget), the
 mapping re-anchors; the segment is split there and each part uses the scale then in effect.
 """
@@ -52,8 +56,12 @@ class TrackingError:
         }
 
 
-def engaged_segments(follow: list[tuple[int, bool]]) -> list[tuple[int, int]]:
-    """[(t_start_ns, t_end_ns)] where ``follow`` (time-sorted (ns, flag) samples) is True."""
+RELEASE_TRIM_S = 0.15  # s: not judged at the end of an engagement (setpoint timeout + margin)
+
+
+def engaged_segments(follow: list[tuple[int, bool]], trim_end_s: float = 0.0) -> list[tuple[int, int]]:
+    """[(t_start_ns, t_end_ns)] where ``follow`` (time-sorted (ns, flag) samples) is True, each
+    end moved ``trim_end_s`` earlier (segments that vanish are dropped)."""
     out = []
     start: int | None = None
     for t, f in follow:
@@ -64,7 +72,8 @@ def engaged_segments(follow: list[tuple[int, bool]]) -> list[tuple[int, int]]:
             start = None
     if start is not None and follow:
         out.append((start, follow[-1][0]))
-    return out
+    trim = round(trim_end_s * 1e9)
+    return [(a, b - trim) for a, b in out if b - trim > a]
 
 
 def split_by_scale(
@@ -207,7 +216,7 @@ class SessionRecorder:
             factors = sorted(self.factors)
             events = list(self.events)
             holds = self.holds
-        parts = split_by_scale(engaged_segments(follow), factors, scale)
+        parts = split_by_scale(engaged_segments(follow, RELEASE_TRIM_S), factors, scale)
         err = tracking_error(master, slave, parts, scale, r_ms)
         streams = {name: self.node.streams.get(key).as_dict() for name, key in self.keys.items()}
         return {
