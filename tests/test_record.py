@@ -341,7 +341,9 @@ def test_replay_reproduces_the_slave_response(recording: Path, tmp_path: Path) -
     # what a user sees: the forceps tip of the replayed run against the recorded one
     tip_rms = _tip_rms_mm(recording, live, arm["recorded_follow_s"], end)
     print(f"tip RMS difference replay vs recording over the compared window: {tip_rms:.3f} mm")
-    assert tip_rms < 0.5
+    # a busy host delays one run more than the other (0.33 mm measured on an idle one); the
+    # changed workspace limit below moves the tip by ~15 mm
+    assert tip_rms < 1.0
 
 
 def _tips(path: Path) -> np.ndarray:
