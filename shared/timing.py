@@ -79,4 +79,3 @@ def _fine_timer_slack() -> None:
         libc.prctl(29, 1000, 0, 0, 0)  # PR_SET_TIMERSLACK, ns
     except (OSError, AttributeError):
         pass
-
