@@ -23,7 +23,13 @@ import numpy as np
 import pytest
 
 from services.launcher import SiteSpec, default_config_dir, free_port, service_argv, wait_port
-from services.launcher.report import RELEASE_TRIM_S, engaged_segments, split_by_scale, tracking_error
+from services.launcher.report import (
+    RELEASE_TRIM_S,
+    TrackingError,
+    engaged_segments,
+    split_by_scale,
+    tracking_error,
+)
 from shared.bus import BusConfig, Node
 from shared.messages import CartesianPose, JointSetpoint, JointState, OperatingState, SafetyState
 
@@ -140,30 +146,39 @@ def test_pipeline_follow_kill_restart_shutdown(
         probe = Probe(node)
         wait_for(probe.following, 20, "the slave to follow the master")
         t_follow = time.time_ns()
-        time.sleep(6.0)  # ≥ 5 s of scripted motion
 
         # --- 2. the slave tip followed the scaled master motion within 2 mm after settling
-        master, slave = probe.arrays()
-        t_end = int(min(master[-1, 0], slave[-1, 0]))
-        with probe.lock:
-            factors = sorted(probe.factors)
-            follow = sorted(probe.follow)
-        # Judged while the slave followed: each engagement (the operator re-clutches; a hold
-        # ends one) re-anchors the mapping. The watchdog may also lower the motion scale
-        # (DEGRADED, e.g. latency over budget on a busy host); the mapping re-anchors there too,
-        # so each part is checked with its own scale.
-        # The slave's follow flag outlives a clutch release by up to its setpoint timeout while
-        # the master moves on: the last RELEASE_TRIM_S of each engagement are not judged.
-        segs = engaged_segments(follow, RELEASE_TRIM_S)
-        engaged = [(max(a, t_follow), min(b, t_end)) for a, b in segs if b > t_follow]
-        parts = split_by_scale([(a, b) for a, b in engaged if b > a], factors, SCALE)
-        err = tracking_error(master, slave, parts, SCALE, np.eye(3), settle_s=0.5)
+        def judge() -> tuple[np.ndarray, int, list[tuple[int, int, float, bool]], TrackingError]:
+            master, slave = probe.arrays()
+            t_end = int(min(master[-1, 0], slave[-1, 0]))
+            with probe.lock:
+                factors = sorted(probe.factors)
+                follow = sorted(probe.follow)
+            # Judged while the slave followed: each engagement (the operator re-clutches; a hold
+            # ends one) re-anchors the mapping. The watchdog may also lower the motion scale
+            # (DEGRADED, e.g. latency over budget on a busy host); the mapping re-anchors there
+            # too, so each part is checked with its own scale. The slave's follow flag outlives a
+            # clutch release by up to its setpoint timeout while the master moves on: the last
+            # RELEASE_TRIM_S of each engagement are not judged.
+            segs = engaged_segments(follow, RELEASE_TRIM_S)
+            engaged = [(max(a, t_follow), min(b, t_end)) for a, b in segs if b > t_follow]
+            parts = split_by_scale([(a, b) for a, b in engaged if b > a], factors, SCALE)
+            return slave, t_end, parts, tracking_error(master, slave, parts, SCALE, np.eye(3), settle_s=0.5)
+
+        # ≥ 5 s of scripted motion; on a busy host whose stalls make the watchdog hold now and
+        # then (the operator re-clutches every 3 s), up to 30 s until 2 s of following are judged
+        while True:
+            time.sleep(1.0)
+            slave, t_end, parts, err = judge()
+            waited = (time.time_ns() - t_follow) / 1e9
+            if (waited >= 6.0 and err.samples > 500) or waited > 30.0:
+                break
         sel = (slave[:, 0] > t_follow + 0.5e9) & (slave[:, 0] < t_end)
         travel_mm = np.ptp(slave[sel, 1:], axis=0).max() * 1e3
         scales = sorted({round(p[2], 3) for p in parts})
         print(
             f"tracking error mean {err.mean_mm:.3f} mm, max {err.max_mm:.3f} mm over {err.samples} "
-            f"samples, travel {travel_mm:.1f} mm, scales {scales}"
+            f"samples in {waited:.0f} s, travel {travel_mm:.1f} mm, scales {scales}"
         )
         assert err.samples > 500, f"only {err.samples} slave samples while following"  # ≥ 2 s at 250 Hz
         # 40 mm master radius × 0.5 → a 40 mm circle (20 mm at a degraded scale)
