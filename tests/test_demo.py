@@ -9,6 +9,7 @@ from pathlib import Path
 
 import pytest
 
+from services.bench.harness import clutch_flags
 from services.mirror.view import scalar_counts
 
 pytestmark = pytest.mark.process
@@ -18,10 +19,9 @@ def test_demo_headless_report(tmp_path: Path) -> None:
     report, rrd = tmp_path / "report.json", tmp_path / "demo.rrd"
     argv = [sys.executable, "-m", "services.cli", "demo", "--headless", "--seconds", "8", "--port", "0"]
     argv += ["--save", str(rrd), "--report", str(report), "--log-dir", str(tmp_path / "logs")]
-    # the operator re-clutches every 3 s (pedal down 0.5-2.8 s of each 3 s): a watchdog hold on
-    # this busy host ends one engagement, not the demo
-    argv += ["--set", "master_capture.scripted.clutch_repeat_s=3.0"]
-    argv += ["--set", "master_capture.scripted.clutch=[[0.5, 2.8]]"]
+    # the operator re-clutches every 4 s: a watchdog hold on this busy host ends one
+    # engagement, not the demo
+    argv += clutch_flags()
     proc = subprocess.run(argv, capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0, proc.stderr[-3000:]
     r = json.loads(report.read_text())

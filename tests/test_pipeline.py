@@ -22,6 +22,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from services.bench.harness import clutch_flags
 from services.launcher import SiteSpec, default_config_dir, free_port, service_argv, wait_port
 from services.launcher.report import (
     RELEASE_TRIM_S,
@@ -115,10 +116,9 @@ def site(tmp_path: Path) -> Iterator[tuple[subprocess.Popen[bytes], SiteSpec, Pa
     rrd = tmp_path / "session.rrd"
     argv = [sys.executable, "-m", "services.cli", "up", "--port", str(port), "--log-dir", str(logs)]
     argv += ["--save", str(rrd)]
-    # the operator re-clutches every 3 s (pedal down 0.5-2.8 s of each 3 s): a watchdog hold on
-    # this busy host ends one engagement, not the test
-    argv += ["--set", "master_capture.scripted.clutch_repeat_s=3.0"]
-    argv += ["--set", "master_capture.scripted.clutch=[[0.5, 2.8]]"]
+    # the operator re-clutches every 4 s: a watchdog hold on this busy host ends one
+    # engagement, not the test
+    argv += clutch_flags()
     launcher_log = (tmp_path / "launcher.log").open("wb")
     proc = subprocess.Popen(argv, stderr=launcher_log)
     spec = SiteSpec(port=port, config_dir=default_config_dir(), log_dir=logs)
@@ -166,7 +166,7 @@ def test_pipeline_follow_kill_restart_shutdown(
             return slave, t_end, parts, tracking_error(master, slave, parts, SCALE, np.eye(3), settle_s=0.5)
 
         # ≥ 5 s of scripted motion; on a busy host whose stalls make the watchdog hold now and
-        # then (the operator re-clutches every 3 s), up to 30 s until 2 s of following are judged
+        # then (the operator re-clutches every 4 s), up to 30 s until 2 s of following are judged
         while True:
             time.sleep(1.0)
             slave, t_end, parts, err = judge()

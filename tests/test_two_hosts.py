@@ -42,6 +42,7 @@ REPO = Path(__file__).resolve().parents[1]
 if str(REPO) not in sys.path:  # run as a script inside a namespace
     sys.path.insert(0, str(REPO))
 
+from services.bench.harness import clutch_flags  # noqa: E402
 from shared.impair import NetNamespace, netns_available  # noqa: E402
 
 pytestmark = [pytest.mark.process, pytest.mark.timeout(240)]
@@ -53,7 +54,6 @@ ROUTER_TLS = f"tls/127.0.0.1:{TLS_PORT}"  # the router's TLS listener, behind th
 PUBLIC = f"tls/{SLAVE_ADDR}:{TLS_PORT}"  # what the console dials: the impairer
 LEASE_S = 0.25  # deploy/slave-site/watchdog.toml lease_valid_ms
 DEGRADED_SCALE = 0.5  # deploy/slave-site/watchdog.toml degraded_scale
-CLUTCH = ["master_capture.scripted.clutch=[[0.5, 3.5]]", "master_capture.scripted.clutch_repeat_s=4.0"]
 
 
 # ============================================================================ helpers (namespaces)
@@ -486,8 +486,7 @@ def _console(h: TwoHosts) -> subprocess.Popen[str]:
     if "console" not in h.procs:
         argv = [str(REPO / "deploy" / "console.sh"), SLAVE_ADDR, "--no-console", "--site", SITE]
         argv += ["--certs", str(h.certs), "--log-dir", str(h.logs / "console")]
-        for item in CLUTCH:
-            argv += ["--set", item]
+        argv += clutch_flags()
         h.spawn("console", h.console, argv)
     return h.procs["console"]
 

@@ -38,6 +38,8 @@ from typing import Any
 import numpy as np
 import pytest
 
+from services.bench.harness import clutch_flags
+
 pytestmark = pytest.mark.process
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -278,10 +280,9 @@ def served_demo(
     cli = [sys.executable, "-m", "services.cli"]
     demo_argv = [*cli, "demo", "--headless", "--seconds", str(session_s), "--port", str(port)]
     demo_argv += ["--log-dir", str(workdir / "logs"), "--report", str(workdir / "report.json")]
-    # the operator re-clutches every 3 s: a watchdog hold on this busy host ends one engagement,
-    # not the session the viewer shows
-    demo_argv += ["--set", "master_capture.scripted.clutch_repeat_s=3.0"]
-    demo_argv += ["--set", "master_capture.scripted.clutch=[[0.5, 2.8]]"]
+    # the operator re-clutches every 4 s: a watchdog hold on this busy host ends one
+    # engagement, not the session the viewer shows
+    demo_argv += clutch_flags()
     mirror_argv = [*cli, "mirror", "--connect", f"tcp/127.0.0.1:{port}", "--serve", "--save", str(rrd)]
     mirror_argv += ["--set", f"web_port={web}", "--set", f"grpc_port={grpc}"]
     for item in mirror_set:

@@ -361,10 +361,10 @@ def _metrics(exp: Experiment, master: Master, wall_s: float) -> dict[str, Any]:
 
 def _save_trace(path: Path, exp: Experiment, master: Master) -> None:
     """The trace's raw series (monotonic s): slave tip, master target, slave states."""
-    log = exp.arm.log
-    with log.lock:
-        tips = np.array(log.tips)
-        states = np.array([(s[0], s[2], float(s[4])) for s in log.states])  # t, rcm mm, follow
+    arm_log = exp.arm.log
+    with arm_log.lock:
+        tips = np.array(arm_log.tips)
+        states = np.array([(s[0], s[2], float(s[4])) for s in arm_log.states])  # t, rcm mm, follow
     window, m = np.array(exp.trace), np.array(master.log)
     np.savez_compressed(path, window=window, tips=tips, master=m, states=states)
 

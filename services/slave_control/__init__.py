@@ -664,7 +664,6 @@ def run(cfg: SlaveControlConfig, stop: threading.Event) -> None:
         held = FaultHold()  # a backend fault (link, controller, shadow) holds like a revoked lease
         shadow_every = max(1, round(cfg.shadow_report_s / dt))
         last_state: tuple[bool, bool, str, str, bool, str] | None = None
-        caught_up = 0
         applied = np.zeros((300_000, 3), dtype=np.int64) if cfg.latency_log else None
         n_applied = 0
         last_sp: Setpoint | None = None
@@ -709,7 +708,6 @@ def run(cfg: SlaveControlConfig, stop: threading.Event) -> None:
             backend.command(q_cmd)
             missed = timer.wait()
             backend.step(1 + missed)  # stay in real time: catch up missed periods
-            caught_up += missed
             reading = backend.read()
             cycle += 1
             svc.cycle = cycle
@@ -777,7 +775,7 @@ def run(cfg: SlaveControlConfig, stop: threading.Event) -> None:
             "%d cycles speed-clipped",
             cycle,
             timer.overruns,
-            caught_up,
+            timer.periods - timer.cycles,  # periods caught up
             ctl.holds,
             svc.rejected_setpoints,
             ctl.clipped,
