@@ -36,8 +36,10 @@ class StreamStats:
     jumps: int = 0
     _jump_to: int = -1
 
-    def accept(self, source: str, seq: int) -> bool:
-        """Account one decoded message; False means drop it (old, duplicate or implausible)."""
+    def accept(self, source: str, seq: int, rx_ns: int = 0) -> bool:
+        """Account one decoded message; False means drop it (old, duplicate or implausible).
+
+        ``rx_ns``: when it arrived (monotonic ns; 0 = now), for a message read from a buffer."""
         if source == self.source and self.last_seq >= 0 and seq > self.last_seq + MAX_SEQ_JUMP:
             if seq != self._jump_to + 1:
                 self._jump_to = seq
@@ -62,7 +64,7 @@ class StreamStats:
             self.lost += seq - self.last_seq - 1
         self.last_seq = seq
         self.received += 1
-        self.last_rx_ns = time.monotonic_ns()
+        self.last_rx_ns = rx_ns or time.monotonic_ns()
         return True
 
     def age_s(self) -> float:

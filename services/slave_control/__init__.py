@@ -418,8 +418,13 @@ class SlaveService:
         if self.modes.phase is None:
             self.posture_target = None
 
+    def received(self, key: str) -> float:
+        """When the message being delivered on ``key`` arrived (monotonic s): for a polled stream the
+        previous tick, the earliest it can have come, so a lease never lasts longer than granted."""
+        return self.node.streams.get(key).last_rx_ns / 1e9 or time.monotonic()
+
     def on_lease(self, msg: SafetyLease, key: str) -> None:
-        now = time.monotonic()
+        now = self.received(key)
         with self.lock:
             valid_cycles = round(msg.valid_for_ms / 1e3 / self.dt)
             self.lease = Lease(msg.allow, now + msg.valid_for_ms / 1e3, msg.reason, self.cycle, valid_cycles)
@@ -469,7 +474,7 @@ class SlaveService:
             self.setpoint = Setpoint(
                 q,
                 msg.follow,
-                time.monotonic(),
+                self.received(key),
                 self.cycle,
                 origin_ns=msg.origin_ns,
                 stamp_ns=msg.header.stamp_ns,
@@ -636,10 +641,11 @@ def run(cfg: SlaveControlConfig, stop: threading.Event) -> None:
         cp_out = node.outlet(k.slave(cfg.arm, "measured_cp"))
         cf_out = node.outlet(k.slave(cfg.arm, "measured_cf"))
         state_out = node.outlet(k.slave(cfg.arm, "operating_state"))
-        node.subscribe(k.safety(cfg.arm, "lease"), SafetyLease, svc.on_lease, sources=[cfg.watchdog_service])
-        node.subscribe(
-            k.slave(cfg.arm, "servo_jp"), JointSetpoint, svc.on_setpoint, sources=[cfg.setpoint_source]
-        )
+        # Leases and setpoints are read by the control loop at each tick (Node.poll): the loop
+        # wakes every period anyway, and a callback thread per message cost a GIL hand-over each.
+        lease_key, servo_key = k.safety(cfg.arm, "lease"), k.slave(cfg.arm, "servo_jp")
+        node.subscribe(lease_key, SafetyLease, svc.on_lease, sources=[cfg.watchdog_service], polled=True)
+        node.subscribe(servo_key, JointSetpoint, svc.on_setpoint, sources=[cfg.setpoint_source], polled=True)
         node.subscribe(k.estop, EStop, svc.on_estop)
         node.watch_liveliness(k.alive(cfg.watchdog_service), svc.on_watchdog_alive)
         node.serve(k.command(cfg.arm), Command, svc.on_command, sources=cfg.command_sources or None)
@@ -670,6 +676,7 @@ def run(cfg: SlaveControlConfig, stop: threading.Event) -> None:
         log.info("slave %s (%s/%s) running at %.0f Hz", cfg.arm, cfg.backend, cfg.model, 1 / dt)
         cycle = 0
         while not stop.is_set():
+            node.poll()
             now = time.monotonic()
             with svc.lock:
                 lease, sp = svc.lease, svc.setpoint

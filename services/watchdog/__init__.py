@@ -194,10 +194,11 @@ class Watchdog:
         m, mp, sl = only(cfg.master_source), only(cfg.mapping_source), only(cfg.slave_source)
         for a in self.arms:
             sub = node.subscribe
-            sub(k.master(a.master, "measured_cp"), CartesianPose, self._on_stream, sources=m)
+            # staleness-only streams are read at the tick (Node.poll), not woken for per message
+            sub(k.master(a.master, "measured_cp"), CartesianPose, self._on_stream, sources=m, polled=True)
             sub(k.master(a.master, "buttons"), MasterButtons, self._bind(a, self._on_buttons), sources=m)
             sub(k.slave(a.arm, "servo_jp"), JointSetpoint, self._bind(a, self._on_servo), sources=mp)
-            sub(k.slave(a.arm, "measured_js"), JointState, self._on_stream, sources=sl)
+            sub(k.slave(a.arm, "measured_js"), JointState, self._on_stream, sources=sl, polled=True)
             sub(k.slave(a.arm, "operating_state"), OperatingState, self._bind(a, self._on_slave), sources=sl)
         node.subscribe(k.estop, EStop, self._on_estop)
         node.watch_liveliness(k.alive(), self._on_alive)
@@ -290,6 +291,7 @@ class Watchdog:
 
     def _tick(self, force_state: bool) -> None:
         self.ticks += 1
+        self.node.poll()  # the polled streams, counted as seen at this tick
         now = time.monotonic()
         for a in self.arms:
             hold = self.hold_causes(a)
