@@ -34,6 +34,7 @@ Example::
 from __future__ import annotations
 
 import logging
+import math
 import threading
 import time
 from collections.abc import Sequence
@@ -203,6 +204,8 @@ class ArmMapping:
         self.last_target: np.ndarray | None = None  # its slave target (4×4)
         self.ws_lo = np.asarray(cfg.workspace_min_mm) / 1e3
         self.ws_hi = np.asarray(cfg.workspace_max_mm) / 1e3
+        self.ws_lo_t, self.ws_hi_t = self.ws_lo.tolist(), self.ws_hi.tolist()
+        self._ref_f: tuple[list[float], list[float], list[list[float]], np.ndarray] | None = None
         self.clamped = 0  # samples whose target was clamped into the workspace
         self._clamping = False
         # Newest master sample not yet mapped. The zenoh callback only stores it; the service
@@ -258,7 +261,7 @@ class ArmMapping:
         """Re-anchor at the current target: a new scale applies to motion from here on (lock held)."""
         if self.following and self.last_pose is not None and self.last_target is not None:
             lp, lt = self.last_pose, self.last_target
-            self.ref = (
+            self._set_ref(
                 master_point(self.cfg, lp.position),
                 matrix_from_quat(np.array(lp.orientation)),
                 lt[:3, 3].copy(),
@@ -343,7 +346,7 @@ class ArmMapping:
             return
         assert self.q_meas is not None
         t_s0 = fk(self.q_meas, self.geom)
-        self.ref = (
+        self._set_ref(
             master_point(self.cfg, pose.position),
             matrix_from_quat(np.array(pose.orientation)),
             t_s0[:3, 3].copy(),
@@ -369,13 +372,26 @@ class ArmMapping:
             severity="info" if operator else "warning",
         )
 
+    def _set_ref(self, pm0: np.ndarray, rm0: np.ndarray, ps0: np.ndarray, rs0: np.ndarray) -> None:
+        """Anchor (master point, master rotation, slave tip, slave rotation) and what
+        :meth:`_target` derives from it once: floats for the position arithmetic and
+        ``B = rm0ᵀ r_msᵀ rs0``, so the target rotation is ``r_ms R(q) B``."""
+        self.ref = (pm0, rm0, ps0, rs0)
+        self._ref_f = (pm0.tolist(), ps0.tolist(), self.r_ms.tolist(), rm0.T @ self.r_ms.T @ rs0)
+
     def _target(self, pose: CartesianPose) -> np.ndarray:
-        assert self.ref is not None
-        pm0, rm0, ps0, rs0 = self.ref
+        # Runs for every master sample: plain floats for the 3-vectors (numpy on 3 values costs
+        # several µs per operation), numpy only for the two 3×3 products.
+        assert self.ref is not None and self._ref_f is not None
+        rs0 = self.ref[3]
+        pm, ps, r, b_rot = self._ref_f
+        m = pose.position if self.cfg.master_mode == "pen" else master_point(self.cfg, pose.position).tolist()
+        k = self.scale * self.safety_scale
+        d0, d1, d2 = m[0] - pm[0], m[1] - pm[1], m[2] - pm[2]
+        p = [ps[i] + k * (r[i][0] * d0 + r[i][1] * d1 + r[i][2] * d2) for i in range(3)]
+        clamped = [min(max(v, lo), hi) for v, lo, hi in zip(p, self.ws_lo_t, self.ws_hi_t, strict=True)]
         t = np.eye(4)
-        p = ps0 + self.scale * self.safety_scale * (self.r_ms @ (master_point(self.cfg, pose.position) - pm0))
-        clamped = np.clip(p, self.ws_lo, self.ws_hi)
-        if np.any(clamped != p):
+        if clamped != p:
             self.clamped += 1
             if not self._clamping:
                 self._clamping = True
@@ -395,8 +411,7 @@ class ArmMapping:
             self.node.event("clamped", "target back inside the workspace", arm=self.slave)
         t[:3, 3] = clamped
         if self.cfg.orientation == "follow":
-            d_rot = matrix_from_quat(np.array(pose.orientation)) @ rm0.T
-            t[:3, :3] = self.r_ms @ d_rot @ self.r_ms.T @ rs0
+            t[:3, :3] = self.r_ms @ _rotation(pose.orientation) @ b_rot
         else:
             t[:3, :3] = rs0
         return t
@@ -449,11 +464,25 @@ class ArmMapping:
             JointSetpoint(
                 self.servo_out.header(),
                 self.geom.joint_names,
-                tuple(float(x) for x in q_pub),
+                tuple(q_pub.tolist()),
                 follow=self.following,
                 origin_ns=pose.header.stamp_ns,
             )
         )
+
+
+def _rotation(q: tuple[float, float, float, float]) -> np.ndarray:
+    """Rotation matrix of a message quaternion [x, y, z, w] (unit within 1e-3: normalised here)."""
+    x, y, z, w = q
+    n = 1.0 / math.sqrt(x * x + y * y + z * z + w * w)
+    x, y, z, w = x * n, y * n, z * n, w * n
+    return np.array(
+        [
+            [1.0 - 2.0 * (y * y + z * z), 2.0 * (x * y - z * w), 2.0 * (x * z + y * w)],
+            [2.0 * (x * y + z * w), 1.0 - 2.0 * (x * x + z * z), 2.0 * (y * z - x * w)],
+            [2.0 * (x * z - y * w), 2.0 * (y * z + x * w), 1.0 - 2.0 * (x * x + y * y)],
+        ]
+    )
 
 
 def _vec3(v: np.ndarray) -> tuple[float, float, float]:

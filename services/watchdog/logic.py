@@ -21,9 +21,11 @@ last offending message, so a fault cannot flicker the lease.
 
 from __future__ import annotations
 
+import math
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from functools import cached_property
 
 import numpy as np
 
@@ -70,6 +72,16 @@ class Policy:
     fault_latch_ms: float = 500.0
     min_hold_ms: float = 250.0
     require_operator: bool = True
+
+    @cached_property
+    def lower_t(self) -> tuple[float, ...]:
+        """``lower`` as floats (per-message checks without numpy)."""
+        return tuple(float(v) for v in self.lower)
+
+    @cached_property
+    def upper_t(self) -> tuple[float, ...]:
+        """``upper`` as floats."""
+        return tuple(float(v) for v in self.upper)
 
 
 @dataclass(frozen=True)
@@ -141,19 +153,20 @@ class ArmSafety:
         if msg.names != self.names:
             self._fault("joints", f"servo_jp joint names {list(msg.names)} != {list(self.names)}", now)
             return
-        q = np.asarray(msg.position)
         p = self.policy
-        bad = (q < p.lower) | (q > p.upper)
-        if bad.any():
+        pos = msg.position
+        # plain float comparisons first (1 kHz; numpy on 6 values costs ~10× more)
+        if not all(lo <= v <= hi for v, lo, hi in zip(pos, p.lower_t, p.upper_t, strict=True)):
             text = ", ".join(
-                f"{n}={np.degrees(v):.1f}° (limits {np.degrees(lo):.0f}..{np.degrees(hi):.0f}°)"
-                for n, v, lo, hi, b in zip(self.names, q, p.lower, p.upper, bad, strict=True)
-                if b
+                f"{n}={math.degrees(v):.1f}° (limits {math.degrees(lo):.0f}..{math.degrees(hi):.0f}°)"
+                for n, v, lo, hi in zip(self.names, pos, p.lower_t, p.upper_t, strict=True)
+                if not lo <= v <= hi
             )
             self._fault("joint_limit", f"servo_jp outside joint limits: {text}", now)
         if not msg.follow:
             self._history.clear()
             return
+        q = np.asarray(pos)
         if self.tip_of is not None:
             self.check_workspace(self.tip_of(q), now)
         # speed on the master's clock when the setpoint carries it (origin_ns): a mapping that
