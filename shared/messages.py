@@ -136,6 +136,10 @@ def _floats(
         raise MessageError(f"field {key!r} must have {length} elements, got {len(v)}")
     if len(v) > max_len:
         raise MessageError(f"field {key!r} has {len(v)} elements, limit {max_len}")
+    # fast path (every control message): all floats, and a finite sum means no nan/inf among
+    # them; anything else (ints, a bad element, a sum that overflows) takes the checked loop
+    if all(type(x) is float for x in v) and math.isfinite(sum(v)):
+        return tuple(v)
     out = []
     for i, x in enumerate(v):
         if isinstance(x, bool) or not isinstance(x, (int, float)):
@@ -161,7 +165,27 @@ def _strs(d: dict[str, Any], key: str, *, max_len: int = MAX_LIST) -> tuple[str,
     return tuple(out)
 
 
+_NAMES_SEEN: dict[tuple[Any, ...], tuple[str, ...]] = {}  # joint-name lists already validated
+_NAMES_SEEN_MAX = 64
+
+
 def _joint_names(d: dict[str, Any]) -> tuple[str, ...]:
+    v = d.get("name")
+    if type(v) is list:
+        try:
+            known = _NAMES_SEEN.get(tuple(v))  # a stream repeats its names in every message
+        except TypeError:  # an unhashable element: the checks below reject it
+            known = None
+        if known is not None:
+            return known
+    names = _validated_joint_names(d)
+    if len(_NAMES_SEEN) >= _NAMES_SEEN_MAX:
+        _NAMES_SEEN.clear()
+    _NAMES_SEEN[names] = names
+    return names
+
+
+def _validated_joint_names(d: dict[str, Any]) -> tuple[str, ...]:
     names = _strs(d, "name", max_len=MAX_JOINTS)
     if not names:
         raise MessageError("field 'name' must list at least one joint")
@@ -170,11 +194,22 @@ def _joint_names(d: dict[str, Any]) -> tuple[str, ...]:
     return names
 
 
-def _no_duplicate_keys(pairs: list[tuple[Any, Any]]) -> dict[Any, Any]:
-    d = dict(pairs)
-    if len(d) != len(pairs):
-        raise MessageError("duplicate keys in a map")
-    return d
+def _map_len(payload: bytes | bytearray | memoryview) -> int:
+    """Entries declared by the MessagePack map header at the start of ``payload`` (-1: not a map).
+
+    A map that decodes to fewer keys than it declares had duplicate keys (the decoder keeps the
+    last one). Messages have no nested maps (no field takes one), so the top level is all there
+    is to check."""
+    b = bytes(payload[:5])
+    if not b:
+        return -1
+    if 0x80 <= b[0] <= 0x8F:
+        return b[0] & 0x0F
+    if b[0] == 0xDE and len(b) >= 3:
+        return int.from_bytes(b[1:3], "big")
+    if b[0] == 0xDF and len(b) >= 5:
+        return int.from_bytes(b[1:5], "big")
+    return -1
 
 
 def _choice(d: dict[str, Any], key: str, options: frozenset[str]) -> str:
@@ -806,13 +841,14 @@ def decode(payload: bytes | bytearray | memoryview) -> AnyMessage:
             max_bin_len=0,
             max_array_len=MAX_JOINTS * 4,
             max_map_len=32,
-            object_pairs_hook=_no_duplicate_keys,
             max_ext_len=0,
         )
     except Exception as exc:  # msgpack raises a family of unrelated exception types
         raise MessageError(f"not a valid MessagePack payload: {type(exc).__name__}: {exc}") from None
     if not isinstance(d, dict):
         raise MessageError(f"payload must be a map, got {type(d).__name__}")
+    if len(d) != _map_len(payload):
+        raise MessageError("duplicate keys in a map")
     version = d.get("v")
     if type(version) is not int or version != SCHEMA_VERSION:
         raise MessageError(f"unknown schema version {version!r}, expected {SCHEMA_VERSION}")

@@ -169,3 +169,18 @@ def test_rejects_float_and_bool_versions() -> None:
         d["v"] = v
         with pytest.raises(MessageError, match="unknown schema version"):
             decode(_pack(d))
+
+
+def _raw_map(pairs: list[tuple[str, object]], header: str) -> bytes:
+    n = len(pairs)
+    head = bytes([0x80 | n]) if header == "fixmap" else b"\xde" + n.to_bytes(2, "big")
+    return head + b"".join(msgpack.packb(k) + msgpack.packb(v) for k, v in pairs)
+
+
+@pytest.mark.parametrize("header", ["fixmap", "map16"])
+def test_a_duplicated_key_is_rejected(header: str) -> None:
+    good = CartesianPose(Header("m", 1, 2), "base", (0.1, 0.2, 0.3), (0.0, 0.0, 0.0, 1.0)).encode()
+    pairs = list(msgpack.unpackb(good).items())
+    assert decode(_raw_map(pairs, header)) == decode(good)
+    with pytest.raises(MessageError, match="duplicate keys"):
+        decode(_raw_map([*pairs, ("frame", "tool")], header))

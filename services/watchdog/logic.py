@@ -83,6 +83,11 @@ class Policy:
         """``upper`` as floats."""
         return tuple(float(v) for v in self.upper)
 
+    @cached_property
+    def max_velocity_t(self) -> tuple[float, ...]:
+        """``max_velocity`` as floats."""
+        return tuple(float(v) for v in self.max_velocity)
+
 
 @dataclass(frozen=True)
 class Verdict:
@@ -116,7 +121,7 @@ class ArmSafety:
     causes: tuple[str, ...] = ("starting",)
     _latched: dict[str, tuple[str, float]] = field(default_factory=dict)  # tag → (text, until)
     _latency: deque[tuple[float, float]] = field(default_factory=deque)  # (mono s, ms)
-    _history: deque[tuple[int, np.ndarray]] = field(default_factory=deque)  # (src ts ns, q)
+    _history: deque[tuple[int, tuple[float, ...]]] = field(default_factory=deque)  # (src ts ns, q)
     _hold_until: float = 0.0
     _hold_causes: tuple[str, ...] = ()
     counters: dict[str, int] = field(default_factory=dict)
@@ -176,32 +181,34 @@ class ArmSafety:
         if self._history and ts <= self._history[-1][0]:
             return
         hist = self._history
-        hist.append((ts, q))
+        hist.append((ts, pos))
         span_ns = p.velocity_window_ms * 1e6
         while len(hist) > 2 and ts - hist[1][0] >= span_ns:
             hist.popleft()
         t0, q0 = hist[0]
         if ts - t0 >= span_ns:
-            speed = np.abs(q - q0) / ((ts - t0) / 1e9)
-            ratio = speed / p.max_velocity
-            j = int(np.argmax(ratio))
-            text = f"servo_jp {self.names[j]} at {speed[j]:.2f} rad/s (limit {p.max_velocity[j]:.2f})"
-            if ratio[j] > p.velocity_hold_factor:
-                self._fault("jump", f"{text}: a jump, over {p.velocity_hold_factor:g}× the limit", now)
-            elif ratio[j] > 1.0:
-                self._latch("speed", f"{text}: the slave clips it", now)
+            per_s = 1e9 / (ts - t0)
+            ratio = [abs(a - b) * per_s / v for a, b, v in zip(pos, q0, p.max_velocity_t, strict=True)]
+            worst = max(ratio)
+            if worst > 1.0:
+                j = ratio.index(worst)
+                speed, limit = worst * p.max_velocity_t[j], p.max_velocity_t[j]
+                text = f"servo_jp {self.names[j]} at {speed:.2f} rad/s (limit {limit:.2f})"
+                if worst > p.velocity_hold_factor:
+                    self._fault("jump", f"{text}: a jump, over {p.velocity_hold_factor:g}× the limit", now)
+                else:
+                    self._latch("speed", f"{text}: the slave clips it", now)
 
     def check_workspace(self, position: np.ndarray, now: float) -> None:
         """Fault if the tip ``position`` (m, base frame) is outside the workspace box."""
         p = self.policy
-        mm = position * 1e3
-        lo, hi = np.asarray(p.workspace_min_mm), np.asarray(p.workspace_max_mm)
-        out = (mm < lo) | (mm > hi)
-        if out.any():
+        lo, hi = p.workspace_min_mm, p.workspace_max_mm
+        mm = [v * 1e3 for v in position.tolist()]
+        if not all(a <= v <= b for v, a, b in zip(mm, lo, hi, strict=True)):
             text = ", ".join(
                 f"{ax}={v:.0f} mm ({a:.0f}..{b:.0f})"
-                for ax, v, a, b, o in zip("xyz", mm, lo, hi, out, strict=True)
-                if o
+                for ax, v, a, b in zip("xyz", mm, lo, hi, strict=True)
+                if not a <= v <= b
             )
             self._fault("workspace", f"target outside the workspace: {text}", now)
 
