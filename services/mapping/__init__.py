@@ -428,7 +428,7 @@ class ArmMapping:
                     q = trocar_ik(target[:3, 3], np.array(st.trocar), self.q_last, geom=self.geom)
                 else:
                     q = ik(target, self.q_last, self.geom)
-                step = float(np.max(np.abs(q - self.q_last)))
+                step = max(abs(a - b) for a, b in zip(q.tolist(), self.q_last.tolist(), strict=True))
                 if step > self.cfg.max_joint_step_rad:
                     raise IKError(f"branch flip: joint step {step:.3f} rad")
             except IKError as exc:
