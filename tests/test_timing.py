@@ -58,3 +58,17 @@ def test_a_stall_is_counted_and_sub_rates_keep_their_rate_in_time(clock: FakeClo
 def test_rate_must_be_positive() -> None:
     with pytest.raises(ValueError, match="rate_hz"):
         CycleTimer(rate_hz=0.0)
+
+
+def test_sub_rates_with_different_phases_never_share_a_cycle(clock: FakeClock) -> None:
+    timer = CycleTimer(rate_hz=1000.0)
+    tasks = ((4, 0), (10, 1), (20, 2), (50, 3))  # slave_control's measured, modes, wrench, state
+    fired = {t: 0 for t in tasks}
+    for _ in range(1000):
+        clock.ns += 200_000
+        timer.wait()
+        due = [t for t in tasks if timer.every(*t)]
+        assert len(due) <= 1, (timer.periods, due)
+        for t in due:
+            fired[t] += 1
+    assert fired == {(4, 0): 250, (10, 1): 100, (20, 2): 50, (50, 3): 20}

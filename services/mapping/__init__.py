@@ -61,6 +61,7 @@ from shared.messages import (
     SafetyState,
     Sequencer,
 )
+from shared.timing import settle_gc
 
 log = logging.getLogger(__name__)
 ORIENTATION_MODES = ("follow", "fixed")
@@ -530,6 +531,7 @@ def run(cfg: MappingConfig, stop: threading.Event) -> None:
             arms.append(a)
             log.info("mapping %s → %s (%s), scale %.2f", master, slave, cfg.mode, cfg.scale)
         check_period = 0.01  # s: master staleness check
+        settle_gc()
         last_check = last_iter = time.monotonic()
         while not stop.is_set():
             work.wait(check_period)

@@ -28,7 +28,7 @@ from services.master_capture.devices import ScriptedConfig, SerialMasterConfig, 
 from shared.bus import BusConfig, Node
 from shared.errors import ConfigError
 from shared.messages import CartesianPose, JointState, MasterButtons
-from shared.timing import CycleTimer
+from shared.timing import CycleTimer, settle_gc
 
 log = logging.getLogger(__name__)
 
@@ -77,6 +77,7 @@ def run(cfg: MasterCaptureConfig, stop: threading.Event) -> None:
         console_timeout = cfg.console_clutch_timeout_ms / 1e3
         invalid_since: float | None = None  # time.monotonic() when the reading became invalid
         log.info("publishing master %s at %.0f Hz (%s)", cfg.arm, cfg.rate_hz, cfg.device)
+        settle_gc()
         while not stop.is_set():
             s = device.read(time.monotonic() - t0)
             if not s.valid:  # stale / unplugged / refused: publish nothing, the watchdog holds

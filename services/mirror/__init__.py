@@ -65,7 +65,7 @@ from shared.messages import (
     SafetyState,
 )
 from shared.robots import MODELS, ArmProfile, arm_profile
-from shared.timing import CycleTimer
+from shared.timing import CycleTimer, settle_gc
 
 log = logging.getLogger(__name__)
 
@@ -696,6 +696,7 @@ def run(cfg: MirrorConfig, stop: threading.Event) -> None:
             for rel in SUBSCRIBED:
                 node.subscribe(f"{node.keys.prefix}/{rel}", Message, inbox.on_message, sources=trust)
             draw_errors = 0
+            settle_gc()
             while not stop.is_set():
                 try:
                     mirror.feed(inbox.take())

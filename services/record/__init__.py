@@ -54,6 +54,7 @@ from shared.bus import BusConfig, Node, add_bus_args, bus_from_args
 from shared.errors import ConfigError, MessageError, TelesurgError
 from shared.keys import Keys, check_id
 from shared.messages import MESSAGE_TYPES, SCHEMA_VERSION, Header, Message, decode
+from shared.timing import settle_gc
 
 if TYPE_CHECKING:
     from mcap.reader import McapReader
@@ -587,6 +588,7 @@ def run(cfg: RecordConfig, stop: threading.Event) -> dict[str, dict[str, Any]]:
     ):
         rec.subscribe(node.session, node.keys.all)
         log.info("recording %s to %s", node.keys.all, cfg.out)
+        settle_gc()
         deadline = time.monotonic() + cfg.seconds if cfg.seconds > 0 else float("inf")
         warned = False
         while not stop.wait(0.2) and time.monotonic() < deadline:

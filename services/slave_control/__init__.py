@@ -63,7 +63,7 @@ from shared.messages import (
     SafetyLease,
     Sequencer,
 )
-from shared.timing import CycleTimer
+from shared.timing import CycleTimer, settle_gc
 
 log = logging.getLogger(__name__)
 
@@ -657,6 +657,9 @@ def run(cfg: SlaveControlConfig, stop: threading.Event) -> None:
         node.serve(k.command(cfg.arm), Command, svc.on_command, sources=cfg.command_sources or None)
         vmax = np.array(MH3F.max_velocity)
         modes_every = 10  # control cycles between mode-machine updates (100 Hz)
+        # Sub-rate tasks run in different cycles (phases 0-3 below: with these periods of 4, 10,
+        # 20 and 50 cycles no two of them ever share a cycle), so no cycle carries the sum of their
+        # work: measured_js/cp at phase 0, modes 1, measured_cf 2, operating_state 3.
 
         ctl = FollowController(
             np.array(MH3F.max_velocity),
@@ -680,6 +683,7 @@ def run(cfg: SlaveControlConfig, stop: threading.Event) -> None:
         n_applied = 0
         last_sp: Setpoint | None = None
         log.info("slave %s (%s/%s) running at %.0f Hz", cfg.arm, cfg.backend, cfg.model, 1 / dt)
+        settle_gc()
         cycle = 0
         while not stop.is_set():
             node.poll()
@@ -727,7 +731,7 @@ def run(cfg: SlaveControlConfig, stop: threading.Event) -> None:
             svc.following = ctl.following
             svc.tip = reading.tip_position
             svc.reading = reading
-            if timer.every(modes_every):
+            if timer.every(modes_every, 1):
                 with svc.lock:
                     svc.update_modes(reading)
                     mode_events, svc.modes.events = svc.modes.events, []
@@ -757,12 +761,12 @@ def run(cfg: SlaveControlConfig, stop: threading.Event) -> None:
                         (float(qt[0]), float(qt[1]), float(qt[2]), float(qt[3])),
                     )
                 )
-            if reading.external_torque is not None and timer.every(wrench_every):
+            if reading.external_torque is not None and timer.every(wrench_every, 2):
                 f, m = tip_wrench(reading.position, reading.external_torque)
                 cf_out.put(CartesianWrench(cf_out.header(), "base", f, m))
             lease_ok = ctl.lease_valid
             state = (ctl.following, lease_ok, ctl.reason, svc.modes.control_mode, internal, held.cause)
-            if state != last_state or timer.every(state_every):
+            if state != last_state or timer.every(state_every, 3):
                 last_state = state
                 rejected = svc.rejected_setpoints + node.streams.get(k.slave(cfg.arm, "servo_jp")).rejected
                 op = "ENABLED" if ctl.following or internal else ("FAULT" if svc.estop else "PAUSED")

@@ -38,7 +38,7 @@ from shared.messages import (
     Sequencer,
 )
 from shared.robots import ArmProfile
-from shared.timing import CycleTimer
+from shared.timing import CycleTimer, settle_gc
 
 if TYPE_CHECKING:
     from services.slave_control import SlaveControlConfig
@@ -184,6 +184,7 @@ def run_joint_slave(
         q_cmd = reading.position.copy()
         shadow_every = max(1, round(cfg.shadow_report_s / dt))
         log.info("joint slave %s: arms %s at %.0f Hz", cfg.model, ", ".join(p.arm for p in arms), 1 / dt)
+        settle_gc()
         cycle = 0
 
         def period(now: float) -> None:
@@ -230,7 +231,7 @@ def run_joint_slave(
                             )
                         )
                 state = (a.ctl.following, a.ctl.lease_valid, a.ctl.reason, bool(a.estop), a.held.cause)
-                if state != a.last_state or timer.every(state_every):
+                if state != a.last_state or timer.every(state_every, 1):
                     a.last_state = state
                     out = a.outlets["operating_state"]
                     rejected = a.rejected + node.streams.get(k.slave(a.profile.arm, "servo_jp")).rejected

@@ -54,6 +54,7 @@ from shared.messages import (
     SafetyState,
 )
 from shared.robots import arm_profile
+from shared.timing import settle_gc
 
 log = logging.getLogger(__name__)
 LATENCY_SOURCES = ("clock", "echo")
@@ -364,6 +365,7 @@ def run(cfg: WatchdogConfig, stop: threading.Event) -> None:
         n = 0
         next_t = time.monotonic()
         log.info("watching %s; required services: %s", cfg.pairs, cfg.required_services)
+        settle_gc()
         while not stop.is_set():
             wd.tick()
             n += 1
