@@ -410,6 +410,11 @@ class Node:
         else:
             self._inputs.append(self.session.declare_subscriber(key, on_sample))
 
+    def received(self, key: str) -> float:
+        """When the message being handled on ``key`` arrived (monotonic s); for a polled stream
+        that is the previous poll, the earliest it can have come; now if nothing is recorded."""
+        return self.streams.get(key).last_rx_ns / 1e9 or time.monotonic()
+
     def poll(self) -> int:
         """Deliver what the ``polled`` subscriptions buffered since the last call; returns the count.
 

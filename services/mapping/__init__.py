@@ -233,7 +233,7 @@ class ArmMapping:
             return
         with self.lock:
             self.q_meas = np.array(msg.position)
-            self.q_meas_rx = time.monotonic()
+            self.q_meas_rx = self.node.received(key)
 
     def on_slave_state(self, msg: OperatingState, key: str) -> None:
         with self.lock:
@@ -524,10 +524,19 @@ def run(cfg: MappingConfig, stop: threading.Event) -> None:
                     k.master(master, "measured_cp"), CartesianPose, a.on_master_pose, sources=m_src
                 )
                 node.serve(k.mapping_command(slave), Command, a.on_command)
-            node.subscribe(k.master(master, "buttons"), MasterButtons, a.on_buttons, sources=m_src)
-            node.subscribe(k.slave(slave, "measured_js"), JointState, a.on_slave_js, sources=s_src)
-            node.subscribe(k.slave(slave, "operating_state"), OperatingState, a.on_slave_state, sources=s_src)
-            node.subscribe(k.safety(slave, "state"), SafetyState, a.on_safety_state, sources=w_src)
+            # The other inputs are read by the service loop (Node.poll) right before it maps a
+            # sample: no callback thread per message contending for the GIL with the mapping.
+            sub = node.subscribe
+            sub(k.master(master, "buttons"), MasterButtons, a.on_buttons, sources=m_src, polled=True)
+            sub(k.slave(slave, "measured_js"), JointState, a.on_slave_js, sources=s_src, polled=True)
+            sub(
+                k.slave(slave, "operating_state"),
+                OperatingState,
+                a.on_slave_state,
+                sources=s_src,
+                polled=True,
+            )
+            sub(k.safety(slave, "state"), SafetyState, a.on_safety_state, sources=w_src, polled=True)
             arms.append(a)
             log.info("mapping %s → %s (%s), scale %.2f", master, slave, cfg.mode, cfg.scale)
         check_period = 0.01  # s: master staleness check
@@ -536,6 +545,7 @@ def run(cfg: MappingConfig, stop: threading.Event) -> None:
         while not stop.is_set():
             work.wait(check_period)
             work.clear()
+            node.poll()
             for a in arms:
                 a.process()
             now = time.monotonic()

@@ -95,7 +95,7 @@ class _JointBase:
             return
         with self.lock:
             self.q_meas = np.array(msg.position)
-            self.q_meas_rx = time.monotonic()
+            self.q_meas_rx = self.node.received(key)
 
     def on_slave_state(self, msg: OperatingState, key: str) -> None:
         with self.lock:

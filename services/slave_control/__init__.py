@@ -420,13 +420,8 @@ class SlaveService:
         if self.modes.phase is None:
             self.posture_target = None
 
-    def received(self, key: str) -> float:
-        """When the message being delivered on ``key`` arrived (monotonic s): for a polled stream the
-        previous tick, the earliest it can have come, so a lease never lasts longer than granted."""
-        return self.node.streams.get(key).last_rx_ns / 1e9 or time.monotonic()
-
     def on_lease(self, msg: SafetyLease, key: str) -> None:
-        now = self.received(key)
+        now = self.node.received(key)  # polled: the previous tick, so a lease never outlasts its grant
         with self.lock:
             valid_cycles = round(msg.valid_for_ms / 1e3 / self.dt)
             self.lease = Lease(msg.allow, now + msg.valid_for_ms / 1e3, msg.reason, self.cycle, valid_cycles)
@@ -479,7 +474,7 @@ class SlaveService:
             self.setpoint = Setpoint(
                 np.array(pos),
                 msg.follow,
-                self.received(key),
+                self.node.received(key),
                 self.cycle,
                 origin_ns=msg.origin_ns,
                 stamp_ns=msg.header.stamp_ns,
