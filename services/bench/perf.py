@@ -160,6 +160,11 @@ def latency(a: argparse.Namespace) -> dict[str, Any]:
         ],
     )
     print(f"pipeline / relay: p50 × {res['ratio_p50']}, p99 × {res['ratio_p99']}; watchdog holds {holds}")
+    if a.plot:
+        from services.bench.plots import plot_latency
+
+        plot_latency([res], a.plot)
+        print(f"figure: {a.plot}")
     return res
 
 
@@ -481,6 +486,7 @@ def main(argv: Sequence[str] | None = None, name: str = "latency") -> int:
         ap.add_argument("--seconds", type=float, default=10.0 if name == "latency" else 60.0)
     if name == "latency":
         ap.add_argument("--blocks", type=int, default=2, help="alternating relay/pipeline blocks each")
+        ap.add_argument("--plot", type=Path, help="write a PNG of the percentiles here")
     if name == "ik":
         ap.add_argument("--n", type=int, default=1000, help="targets")
     if name == "sim":

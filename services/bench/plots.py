@@ -105,3 +105,37 @@ def _clutch_bar(ax: Any, clutch: list[tuple[int, bool]], start: float, end: floa
             pressed_since = None
     if pressed_since is not None and pressed_since <= end:
         ax.axvspan((pressed_since - t0) / 1e9, (end - t0) / 1e9, ymin=0, ymax=0.04, color="0.6")
+
+
+def plot_latency(results: list[dict[str, Any]], out: Path) -> None:
+    """One panel per ``telesurg bench latency`` result: p50/p90/p99 of the bare relay and of the
+    pipeline, end to end, with the goal (1.25 × the relay) marked, and the pipeline's two hops."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    pcts = ("p50", "p90", "p99")
+    fig, axes = plt.subplots(1, len(results), figsize=(5.0 * len(results), 3.6), squeeze=False)
+    for ax, res in zip(axes.flat, results, strict=True):
+        relay, pipe = res["relay"]["end_to_end"], res["pipeline"]
+        x = np.arange(len(pcts))
+        w = 0.38
+        ax.bar(x - w / 2, [relay[p] for p in pcts], w, label="bare relay (3 processes)", color="#8aa")
+        hop1 = [pipe["master_to_mapping_out"][p] for p in pcts]
+        e2e = [pipe["end_to_end"][p] for p in pcts]
+        ax.bar(x + w / 2, e2e, w, label="pipeline, end to end", color="#c75")
+        ax.plot(x + w / 2, hop1, "k_", markersize=18, label="… of which master → mapping out")
+        for i, p in enumerate(pcts):
+            ax.hlines(1.25 * relay[p], i - w, i + w, colors="g", linestyles="--", linewidth=1)
+            ax.text(i + w / 2, e2e[i], f"{e2e[i]:.2f}", ha="center", va="bottom", fontsize=8)
+        ax.hlines([], 0, 0, colors="g", linestyles="--", label="goal: 1.25 × relay")
+        rate = res["rate_hz"]
+        ax.set_title(f"{rate:g} Hz" if rate > 0 else "unpaced", fontsize=10)
+        ax.set_xticks(x, pcts)
+        ax.set_ylabel("one-way latency, ms")
+        ax.legend(fontsize=7, loc="upper left")
+    fig.suptitle("master sample → setpoint used by the slave loop, against the bare transport", fontsize=10)
+    fig.tight_layout()
+    fig.savefig(out, dpi=110)
+    plt.close(fig)
