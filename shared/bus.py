@@ -419,7 +419,8 @@ class Node:
         """Deliver what the ``polled`` subscriptions buffered since the last call; returns the count.
 
         A buffered message counts as received at the previous poll (the earliest it can have
-        come), so a stream's age is never under-estimated by the polling interval."""
+        come), so a stream's age is never under-estimated by the polling interval. Call it from
+        one thread at a time (each service polls from its own loop)."""
         now = time.monotonic_ns()
         since = self._last_poll_ns or now
         self._last_poll_ns = now

@@ -34,7 +34,6 @@ Example::
 from __future__ import annotations
 
 import logging
-import math
 import threading
 import time
 from collections.abc import Sequence
@@ -180,6 +179,7 @@ class ArmMapping:
         self.cfg, self.node, self.master, self.slave = cfg, node, master, slave
         self.geom = MH3F
         self.r_ms = rpy_matrix(cfg.master_to_slave_rpy_deg)
+        self.r_ms_rows: list[list[float]] = self.r_ms.tolist()
         self.lock = threading.Lock()
         self.servo_out: Outlet = node.outlet(node.keys.slave(slave, "servo_jp"))
         self.target_out: Outlet = node.outlet(node.keys.slave(slave, "setpoint_cp"), control=False)
@@ -195,7 +195,9 @@ class ArmMapping:
         self.following = False
         self.need_release = True  # an engage needs a pedal press seen after a release
         self.q_last: np.ndarray | None = None
-        self.ref: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None
+        # anchor of the engagement: master point, slave tip (floats), B = rm0ᵀ r_msᵀ rs0 (the target
+        # rotation is r_ms R(q) B) and the slave rotation rs0 (see _set_ref)
+        self.ref: tuple[list[float], list[float], np.ndarray, np.ndarray] | None = None
         self.ik_failures = 0
         self.ik_streak = 0
         self.safety_scale = 1.0  # factor from the watchdog's safety state
@@ -206,7 +208,6 @@ class ArmMapping:
         self.ws_lo = np.asarray(cfg.workspace_min_mm) / 1e3
         self.ws_hi = np.asarray(cfg.workspace_max_mm) / 1e3
         self.ws_lo_t, self.ws_hi_t = self.ws_lo.tolist(), self.ws_hi.tolist()
-        self._ref_f: tuple[list[float], list[float], list[list[float]], np.ndarray] | None = None
         self.clamped = 0  # samples whose target was clamped into the workspace
         self._clamping = False
         # Newest master sample not yet mapped. The zenoh callback only stores it; the service
@@ -374,18 +375,17 @@ class ArmMapping:
         )
 
     def _set_ref(self, pm0: np.ndarray, rm0: np.ndarray, ps0: np.ndarray, rs0: np.ndarray) -> None:
-        """Anchor (master point, master rotation, slave tip, slave rotation) and what
-        :meth:`_target` derives from it once: floats for the position arithmetic and
-        ``B = rm0ᵀ r_msᵀ rs0``, so the target rotation is ``r_ms R(q) B``."""
-        self.ref = (pm0, rm0, ps0, rs0)
-        self._ref_f = (pm0.tolist(), ps0.tolist(), self.r_ms.tolist(), rm0.T @ self.r_ms.T @ rs0)
+        """Anchor at (master point, master rotation, slave tip, slave rotation), kept in the form
+        :meth:`_target` uses for every sample: floats for the positions, ``B = rm0ᵀ r_msᵀ rs0`` so
+        the target rotation is ``r_ms R(q) B``."""
+        self.ref = (pm0.tolist(), ps0.tolist(), rm0.T @ self.r_ms.T @ rs0, rs0)
 
     def _target(self, pose: CartesianPose) -> np.ndarray:
         # Runs for every master sample: plain floats for the 3-vectors (numpy on 3 values costs
         # several µs per operation), numpy only for the two 3×3 products.
-        assert self.ref is not None and self._ref_f is not None
-        rs0 = self.ref[3]
-        pm, ps, r, b_rot = self._ref_f
+        assert self.ref is not None
+        pm, ps, b_rot, rs0 = self.ref
+        r = self.r_ms_rows
         m = pose.position if self.cfg.master_mode == "pen" else master_point(self.cfg, pose.position).tolist()
         k = self.scale * self.safety_scale
         d0, d1, d2 = m[0] - pm[0], m[1] - pm[1], m[2] - pm[2]
@@ -412,7 +412,7 @@ class ArmMapping:
             self.node.event("clamped", "target back inside the workspace", arm=self.slave)
         t[:3, 3] = clamped
         if self.cfg.orientation == "follow":
-            t[:3, :3] = self.r_ms @ _rotation(pose.orientation) @ b_rot
+            t[:3, :3] = self.r_ms @ matrix_from_quat(pose.orientation) @ b_rot
         else:
             t[:3, :3] = rs0
         return t
@@ -470,20 +470,6 @@ class ArmMapping:
                 origin_ns=pose.header.stamp_ns,
             )
         )
-
-
-def _rotation(q: tuple[float, float, float, float]) -> np.ndarray:
-    """Rotation matrix of a message quaternion [x, y, z, w] (unit within 1e-3: normalised here)."""
-    x, y, z, w = q
-    n = 1.0 / math.sqrt(x * x + y * y + z * z + w * w)
-    x, y, z, w = x * n, y * n, z * n, w * n
-    return np.array(
-        [
-            [1.0 - 2.0 * (y * y + z * z), 2.0 * (x * y - z * w), 2.0 * (x * z + y * w)],
-            [2.0 * (x * y + z * w), 1.0 - 2.0 * (x * x + z * z), 2.0 * (y * z - x * w)],
-            [2.0 * (x * z - y * w), 2.0 * (y * z + x * w), 1.0 - 2.0 * (x * x + y * y)],
-        ]
-    )
 
 
 def _vec3(v: np.ndarray) -> tuple[float, float, float]:

@@ -142,8 +142,6 @@ class SlaveService:
 
     def __init__(self, cfg: SlaveControlConfig, node: Node, names: tuple[str, ...]) -> None:
         self.cfg, self.node, self.names = cfg, node, names
-        self.lower = np.array(MH3F.lower)
-        self.upper = np.array(MH3F.upper)
         self.limits_lo, self.limits_hi = tuple(MH3F.lower), tuple(MH3F.upper)
         self.lock = threading.Lock()
         self.lease = Lease()
@@ -461,8 +459,7 @@ class SlaveService:
             ]
             reason = f"outside joint limits: {', '.join(bad)}"
         elif self.following and msg.follow and prev is not None and prev.follow:
-            ref = prev.values or tuple(prev.position.tolist())
-            jump = max(abs(v - w) for v, w in zip(pos, ref, strict=True))
+            jump = max(abs(v - w) for v, w in zip(pos, prev.position.tolist(), strict=True))
             if jump > self.cfg.max_setpoint_step_rad:
                 reason = f"jump of {jump:.3f} rad from the previous setpoint"
         if reason:
@@ -478,7 +475,6 @@ class SlaveService:
                 self.cycle,
                 origin_ns=msg.origin_ns,
                 stamp_ns=msg.header.stamp_ns,
-                values=pos,
             )
 
 

@@ -140,7 +140,6 @@ class Setpoint:
     source_time: float = 0.0
     origin_ns: int = 0  # master sample stamp behind the setpoint (wall clock, ns; 0: unknown)
     stamp_ns: int = 0  # the setpoint's own header stamp (mapping publish time, ns)
-    values: tuple[float, ...] = ()  # ``position`` as the message's floats (cheap to compare)
 
 
 @dataclass

@@ -134,9 +134,22 @@ def quat_from_matrix(R: npt.ArrayLike) -> FloatArray:
     return quat
 
 
+def _unit_quat_floats(q: npt.ArrayLike) -> tuple[float, float, float, float]:
+    """:func:`quat_normalize` as four floats. A tuple of four finite floats (a message's
+    orientation, every master sample) is normalised in plain arithmetic, without the ~10 µs of
+    numpy validation; anything else goes through :func:`quat_normalize` and its errors."""
+    if isinstance(q, tuple) and len(q) == 4 and all(type(v) is float for v in q):
+        x, y, z, w = q
+        n = math.sqrt(x * x + y * y + z * z + w * w)
+        if math.isfinite(n) and n >= 1e-12:
+            return (x / n, y / n, z / n, w / n)
+    a, b, c, d = quat_normalize(q).tolist()
+    return (a, b, c, d)
+
+
 def matrix_from_quat(q: npt.ArrayLike) -> FloatArray:
     """Rotation matrix ``(3, 3)`` of quaternion ``q`` ``(4,)`` [x, y, z, w] (normalized first)."""
-    x, y, z, w = quat_normalize(q)
+    x, y, z, w = _unit_quat_floats(q)
     return np.array(
         [
             [1.0 - 2.0 * (y * y + z * z), 2.0 * (x * y - z * w), 2.0 * (x * z + y * w)],
