@@ -47,3 +47,7 @@ def test_bench_latency_and_soak(tmp_path: Path) -> None:
     soak = bench(tmp_path, "soak", "--rate", "250", "--seconds", "3")
     assert soak["streams"]["master/m1/measured_cp"]["messages"] > 500
     assert set(soak["cpu_pct"]) >= {"slave_control", "mapping", "watchdog", "master_capture"}
+    assert soak["recorder"]["cpu_pct"] > 0  # the recorder's own load is reported, not in the total
+    bare = bench(tmp_path, "soak", "--rate", "250", "--seconds", "3", "--no-record")
+    assert bare["recorder"] is None and bare["streams"] == {}
+    assert set(bare["deadline_misses"]) == {"slave_control", "master_capture"}

@@ -9,7 +9,8 @@
   rate (:data:`UNPACED_MASTER_HZ`).
 * ``soak`` — the whole pipeline for ``--seconds`` with the recorder on the bus: messages, losses,
   reorders and duplicates per stream (the recorder's summary), every fixed-rate loop's deadline
-  misses (from the services' own counters at exit), CPU % and RSS per service (psutil).
+  misses (from the services' own counters at exit), CPU % and RSS per service and of the recorder
+  (psutil). ``--no-record`` leaves the recorder out (it loads the loops too).
 * ``ik`` — the analytic solvers (trocar-mode IK, 6-axis IK, VIP IK, PLAS all-joints mapping step):
   µs per call and solves/s, against a generic numerical IK on the same targets (``mink``, a
   benchmark extra: ``pip install -e '.[bench]'``; skipped with a note when absent), with the
@@ -194,33 +195,38 @@ def soak(a: argparse.Namespace) -> dict[str, Any]:
             ]
         }
         with Pipeline(tmp / "logs", mirror=False, impair=False, probe=False, overrides=overrides) as p:
-            rec = subprocess.Popen(
-                [
-                    sys.executable,
-                    "-m",
-                    "services.record",
-                    "--out",
-                    str(tmp / "soak.mcap"),
-                    "--seconds",
-                    str(a.seconds),
-                    "--connect",
-                    p.spec.endpoint,
-                    "--json",
-                    str(tmp / "rec.json"),
-                ],
-                stdout=subprocess.DEVNULL,
-                stderr=subprocess.DEVNULL,
+            rec = (
+                subprocess.Popen(
+                    [
+                        sys.executable,
+                        "-m",
+                        "services.record",
+                        "--out",
+                        str(tmp / "soak.mcap"),
+                        "--seconds",
+                        str(a.seconds),
+                        "--connect",
+                        p.spec.endpoint,
+                        "--json",
+                        str(tmp / "rec.json"),
+                    ],
+                    stdout=subprocess.DEVNULL,
+                    stderr=subprocess.DEVNULL,
+                )
+                if a.record
+                else None
             )
             procs = {n: psutil.Process(pr.pid) for n, pr in p.site.procs.items()}
-            for pr in procs.values():
+            watched = dict(procs) if rec is None else {**procs, "recorder": psutil.Process(rec.pid)}
+            for pr in watched.values():
                 pr.cpu_percent(None)
-            rss: dict[str, float] = {}
             time.sleep(a.seconds)
-            cpu = {n: round(pr.cpu_percent(None), 1) for n, pr in procs.items()}
-            for n, pr in procs.items():
-                rss[n] = round(pr.memory_info().rss / 2**20, 1)
-            rec.wait(60)
+            cpu_all = {n: round(pr.cpu_percent(None), 1) for n, pr in watched.items()}
+            rss = {n: round(pr.memory_info().rss / 2**20, 1) for n, pr in watched.items()}
+            if rec is not None:
+                rec.wait(60)
             p.close()
+        cpu = {n: c for n, c in cpu_all.items() if n in procs}  # the pipeline's own services
         logs = {f.stem: f.read_text() for f in (tmp / "logs").glob("*.log")}
         summary = json.loads((tmp / "rec.json").read_text()) if (tmp / "rec.json").exists() else {}
     misses: dict[str, Any] = {}
@@ -237,19 +243,20 @@ def soak(a: argparse.Namespace) -> dict[str, Any]:
     res["deadline_misses"] = misses
     res["cpu_pct"] = cpu
     res["cpu_total_pct"] = round(sum(cpu.values()), 1)
+    res["recorder"] = {"cpu_pct": cpu_all["recorder"], "rss_mb": rss["recorder"]} if a.record else None
     res["rss_mb"] = rss
     res["watchdog_holds"] = logs.get("watchdog", "").count("→ HOLD")
     from rich.console import Console
     from rich.table import Table
 
-    t = Table(title=f"soak: {a.seconds:g} s at {a.rate:g} Hz")
+    t = Table(title=f"soak: {a.seconds:g} s at {a.rate:g} Hz" + ("" if a.record else ", no recorder"))
     for c in ("service", "CPU %", "RSS MB", "cycles", "overruns", "miss %"):
         t.add_column(c, justify="right")
-    for n in cpu:
+    for n in cpu_all:
         mi = misses.get(n, {})
         t.add_row(
             n,
-            f"{cpu[n]:.1f}",
+            f"{cpu_all[n]:.1f}",
             f"{rss[n]:.1f}",
             str(mi.get("cycles", "")),
             str(mi.get("overruns", "")),
@@ -257,7 +264,7 @@ def soak(a: argparse.Namespace) -> dict[str, Any]:
         )
     Console().print(t)
     total, holds = res["cpu_total_pct"], res["watchdog_holds"]
-    print(f"total CPU {total} % of one core (2 cores = 200 %); watchdog holds {holds}")
+    print(f"total CPU of the pipeline {total} % of one core (2 cores = 200 %); watchdog holds {holds}")
     return res
 
 
@@ -484,6 +491,13 @@ def main(argv: Sequence[str] | None = None, name: str = "latency") -> int:
             help="master rate, Hz (default 1000; latency: 0 = unpaced)",
         )
         ap.add_argument("--seconds", type=float, default=10.0 if name == "latency" else 60.0)
+    if name == "soak":
+        ap.add_argument(
+            "--no-record",
+            dest="record",
+            action="store_false",
+            help="without the recorder on the bus (no per-stream table; loop misses and CPU alone)",
+        )
     if name == "latency":
         ap.add_argument("--blocks", type=int, default=2, help="alternating relay/pipeline blocks each")
         ap.add_argument("--plot", type=Path, help="write a PNG of the percentiles here")
