@@ -164,7 +164,8 @@ async def drive(app: ConsoleApp, tap: Tap) -> None:
         assert await until(pilot, lambda: (m := tap.last_clutch()) is not None and m.clutch, SHOWN_S)
         await pilot.press("c")
         assert await until(pilot, lambda: (m := tap.last_clutch()) is not None and not m.clutch, SHOWN_S)
-        assert "console clutch released" in panel_text()
+        # (the panel redraws every 0.1 s; the message is published at once, so it may come first)
+        assert await until(pilot, lambda: "console clutch released" in panel_text(), SHOWN_S), panel_text()
         # engage (g) is a fresh press, also when the clutch is pressed already; d releases it
         await pilot.press("g")
         assert await until(pilot, lambda: "console clutch PRESSED" in panel_text(), SHOWN_S), panel_text()
