@@ -104,6 +104,10 @@ class Tap:
         with self.lock:
             return any(f for ts, f in self.follow if ts >= t)
 
+    def last_follow(self) -> bool | None:
+        with self.lock:
+            return self.follow[-1][1] if self.follow else None
+
 
 async def drive(app: ConsoleApp, tap: Tap) -> None:
     async with app.run_test(size=(140, 50), notifications=True) as pilot:
@@ -139,6 +143,9 @@ async def drive(app: ConsoleApp, tap: Tap) -> None:
             pilot, lambda: "FAULT" in panel_text() and "FOLLOWING" not in panel_text(), SHOWN_S
         )
         assert await until(pilot, lambda: "estop of * confirmed" in screen_text(app), SHOWN_S)
+        # the tap is another session: a state from before the e-stop may still reach it after the
+        # panel showed the hold (it would count as following after the e-stop)
+        assert await until(pilot, lambda: tap.last_follow() is False, SHOWN_S), "the tap saw no hold"
         t_latched = time.monotonic()
         await pilot.pause(4.5)  # a whole pedal cycle: the scripted master presses again
         assert not tap.followed_since(t_latched), "the slave followed after the e-stop"
@@ -169,6 +176,8 @@ async def drive(app: ConsoleApp, tap: Tap) -> None:
         # engage (g) is a fresh press, also when the clutch is pressed already; d releases it
         await pilot.press("g")
         assert await until(pilot, lambda: "console clutch PRESSED" in panel_text(), SHOWN_S), panel_text()
+        # (the press must be on the bus before counting, else its edge would pass for the next one)
+        assert await until(pilot, lambda: (m := tap.last_clutch()) is not None and m.clutch, SHOWN_S)
         n = len(tap.clutch)
         await pilot.press("g")
         assert await until(pilot, lambda: tap.clutch_edges(n)[-2:] == [False, True], SHOWN_S), (

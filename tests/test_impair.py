@@ -258,7 +258,7 @@ def test_connection_accepted_during_cut_is_forwarded_after_restore(
     with connect(link) as sock:
         sock.sendall(b"knock")
         assert nothing_arrives(sock, 0.3)
-        assert link.stats()["accepted"] == 1
+        assert wait_until(lambda: link.stats()["accepted"] == 1)  # (the impairer's thread accepts)
         assert echo.accepted == 0  # not connected to the target while cut
         link.restore()
         assert recv_exact(sock, 5) == b"knock"

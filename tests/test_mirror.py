@@ -73,10 +73,13 @@ def test_mirror_records_bus_traffic_to_rrd(tmp_path: Path) -> None:
             events = node.outlet(node.keys.events("slave_control"), control=False)
             fake = intruder.outlet(node.keys.slave("arm1", "measured_js"), control=False)
             raw = node.session.declare_publisher(node.keys.slave("arm1", "measured_js"))
-            # The liveliness token precedes the subscriber by a few ms; wait until it matches.
+            # The liveliness token precedes the subscribers by a few ms; wait until they match
+            # (events/* is the mirror's last subscription: a stall may delay it behind the others).
+            raw_events = node.session.declare_publisher(node.keys.events("slave_control"))
             deadline = time.monotonic() + 5.0
-            while not _matching(raw) and time.monotonic() < deadline:
+            while not (_matching(raw) and _matching(raw_events)) and time.monotonic() < deadline:
                 time.sleep(0.02)
+            raw_events.undeclare()  # type: ignore[no-untyped-call]
             time.sleep(0.2)
 
             sent = 0
@@ -93,7 +96,7 @@ def test_mirror_records_bus_traffic_to_rrd(tmp_path: Path) -> None:
                     events.put(SafetyEvent(events.header(), "arm1", "test", "warning", f"event {i}"))
                 time.sleep(max(0.0, t0 + (i + 1) / 250 - time.monotonic()))
             raw.undeclare()  # type: ignore[no-untyped-call]
-            time.sleep(0.3)  # let the last samples reach the mirror
+            time.sleep(1.0)  # let the last samples (and the last event) reach the mirror
 
         proc.send_signal(signal.SIGINT)
         _, stderr = proc.communicate(timeout=15)

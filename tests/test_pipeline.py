@@ -144,7 +144,9 @@ def test_pipeline_follow_kill_restart_shutdown(
     launcher, spec, rrd = site
     with Node(BusConfig(connect=[spec.endpoint]), "local", "test_probe") as node:
         probe = Probe(node)
-        wait_for(probe.following, 20, "the slave to follow the master")
+        # (the launcher starts the services one at a time, each once the previous one is on the
+        # bus: on a loaded 2-core host that alone can take tens of seconds)
+        wait_for(probe.following, 60, "the slave to follow the master")
         t_follow = time.time_ns()
 
         # --- 2. the slave tip followed the scaled master motion within 2 mm after settling

@@ -84,7 +84,7 @@ class Log:
         self.js: dict[str, list[tuple[float, np.ndarray]]] = {a: [] for a in ARMS}
         self.sp: dict[str, list[tuple[float, np.ndarray, bool, int]]] = {a: [] for a in ARMS}  # origin_ns
         self.state: dict[str, list[tuple[float, bool, bool]]] = {a: [] for a in ARMS}
-        self.events: list[tuple[float, str, str, str]] = []
+        self.events: list[tuple[float, str, str, str]] = []  # (sent, on the monotonic clock)
 
 
 @pytest.fixture(scope="module")
@@ -127,7 +127,10 @@ def site(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[Board, Log]
 
             def on_event(m: SafetyEvent, key: str) -> None:
                 with log.lock:
-                    log.events.append((time.monotonic(), m.arm, m.kind, m.text))
+                    # when it was sent, on this clock: an event (DATA_HIGH, batched) may arrive
+                    # after a real-time state its sender published later
+                    sent = time.monotonic() - max(0.0, (time.time_ns() - m.header.stamp_ns) / 1e9)
+                    log.events.append((sent, m.arm, m.kind, m.text))
 
             node.subscribe(k.events(), SafetyEvent, on_event)
             board.start()  # after the site is up: the clutch is released for 1 s, then pressed
@@ -249,6 +252,12 @@ def test_unplugged_board_holds_and_a_new_board_needs_a_new_engage(site: tuple[Bo
     t_new = time.monotonic()
     board.start()  # a new board on a new pty behind the same link
     assert wait(lambda: all(following(log, a) for a in ARMS), 15), "never resumed after the new board"
+
+    def engaged() -> bool:
+        with log.lock:
+            return any(k == "engage" and t >= t_new for t, _, k, _ in log.events)
+
+    assert wait(engaged, 5), "resumed without an engage event"
     with log.lock:
         engages = [t for t, a, k, _ in log.events if k == "engage" and t >= t_new]
         first_follow = min(t for a in ARMS for t, f, _ in log.state[a] if t >= t_new and f)

@@ -63,7 +63,13 @@ def test_a_push_moves_the_arm_and_it_stays_when_released(arm: tuple[ArmClient, P
     pushed = f[np.linalg.norm(f, axis=1) > 5.0]
     print(f"measured_cf during the push: mean {pushed.mean(axis=0).round(2)} N over {len(pushed)} samples")
     assert len(pushed) > 25 and np.allclose(pushed.mean(axis=0), [0.0, 20.0, 0.0], atol=1.0)  # 1 s at 50 Hz
-    assert np.linalg.norm(f[-10:], axis=1).max() < 1.0  # and nothing once it ended
+
+    def released() -> bool:  # and nothing once it ended (a stalled slave may end it a little late)
+        with c.log.lock:
+            last = np.array([w[1:] for w in c.log.forces[-10:]])
+        return len(last) == 10 and float(np.linalg.norm(last, axis=1).max()) < 1.0
+
+    assert c.wait(released, 5), "measured_cf still shows a force after the push"
 
     assert c.send("set_motion_mode", "mode=direct_teach").accepted
     before = c.settle()
@@ -146,7 +152,8 @@ def test_posture_by_direct_teach_then_teach_in_trocar_mode_keeps_the_rcm(arm: tu
     )
     assert np.max(np.abs((q - target)[[0, 1, 2, 5]])) < np.radians(0.05)  # J4/J5 only
     time.sleep(0.3)
-    assert c.send("finish_posture_adjust").accepted
+    # (the alignment is judged on the measured joints: a stalled slave may need a little longer)
+    assert c.wait(lambda: c.send("finish_posture_adjust").accepted, 5), "not aligned after the push"
     assert c.send("insert").accepted
     assert c.wait(lambda: c.mode() == "trocar", 20), "never reached trocar mode"
     assert c.send("set_motion_mode", "mode=direct_teach").accepted

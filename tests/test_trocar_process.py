@@ -101,7 +101,8 @@ def test_insert_pivot_remove_keeps_the_rcm(console: Console) -> None:
     assert not c.send("finish_posture_adjust").accepted  # the PTP is still running
     assert c.wait(lambda: c.saw_event("ptp_done"), 20), "PTP never finished"
     time.sleep(0.3)  # let the servo settle
-    assert c.send("finish_posture_adjust").accepted
+    # (the alignment is judged on the measured joints: a stalled slave may need a little longer)
+    assert c.wait(lambda: c.send("finish_posture_adjust").accepted, 5), "not aligned after the PTP"
 
     # insert along the forceps axis: trocar mode once 50 mm deep
     t_insert = time.monotonic()

@@ -76,9 +76,20 @@ def site(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[Pipeline, N
         print(f"--- {f.name}\n{f.read_text()[-2000:]}")
 
 
+def followed(log: Log) -> bool:
+    """Both arms have received a followed setpoint."""
+    with log.lock:
+        return all(any(f for _, _, f in log.sp[a]) for a in ARMS)
+
+
 def test_both_wrists_follow_25hz_commands_smoothly(site: tuple[Pipeline, Node, Log]) -> None:
     _, _, log = site
-    time.sleep(9.0)  # engage at 1 s, then 8 s = one full 20 mm wrist circle
+    # engage at 1 s of the master's clock (later if this loaded host was slow to start it), then
+    # 8 s = one full 20 mm wrist circle
+    deadline = time.monotonic() + 30.0
+    while not followed(log) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    time.sleep(8.0)
     with log.lock:
         sp = {a: list(v) for a, v in log.sp.items()}
         js = {a: list(v) for a, v in log.js.items()}

@@ -34,7 +34,9 @@ def test_echo_latency_source_and_estop(endpoint: str) -> None:
             time.sleep(0.2)
             out.put(EStop(out.header(), "*", "estop", "test"))
             assert wait_until(lambda: bool(leases) and leases[-1].reason.startswith("ESTOP"), 2.0)
-            assert not leases[-1].allow and wd.arms[0].verdict.state == "ESTOP"
+            # (the lease is put before the e-stop callback's tick records the verdict)
+            assert not leases[-1].allow
+            assert wait_until(lambda: wd.arms[0].verdict.state == "ESTOP", 2.0)
             wd.tick()
             assert wd.arms[0].verdict.state == "ESTOP"  # latched
             out.put(EStop(out.header(), "arm1", "reset", "test"))
