@@ -91,12 +91,13 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, ClassVar
 
 from shared.errors import ConfigError, MessageError
+from shared.serial_link import HelloRequestBase, MessageSet, check_proto
 from shared.serial_link import check_fields as _fields
 from shared.serial_link import check_int as _int
 from shared.serial_link import check_str as _str
 
 if TYPE_CHECKING:
-    from shared.serial_link import Frame, SerialLink
+    from shared.serial_link import Frame
 
 #: Version of the body layouts below; HELLO and HELLO_REQUEST carry it as ``proto``.
 PROTO_VERSION = 1
@@ -125,10 +126,7 @@ _I32_MIN, _I32_MAX = -(1 << 31), (1 << 31) - 1
 
 
 def _check_proto(kind: str, proto: int) -> None:
-    if proto != PROTO_VERSION:
-        raise MessageError(
-            f"{kind} proto={proto} unsupported; this host speaks encoder protocol {PROTO_VERSION}"
-        )
+    check_proto("encoder", PROTO_VERSION, kind, proto)
 
 
 # --------------------------------------------------------------------------- messages
@@ -162,7 +160,7 @@ class Hello:
     proto: int = PROTO_VERSION
 
     def __post_init__(self) -> None:
-        _check_proto("HELLO", _int("HELLO proto", self.proto, 0, 255))
+        _check_proto("HELLO", self.proto)
         _str("HELLO model", self.model, 1)
         _str("HELLO fw", self.fw, 0)
         _int("HELLO joints", self.joints, 1, MAX_JOINTS)
@@ -249,58 +247,35 @@ class Sample:
 
 
 @dataclass(frozen=True, slots=True)
-class HelloRequest:
+class HelloRequest(HelloRequestBase):
     """HELLO_REQUEST (host → board): please send a HELLO now."""
 
     KIND: ClassVar[int] = KIND_HELLO_REQUEST
-    KEYS: ClassVar[frozenset[str]] = frozenset({"proto"})
+    PROTOCOL: ClassVar[str] = "encoder"
+    VERSION: ClassVar[int] = PROTO_VERSION
 
     proto: int = PROTO_VERSION
 
-    def __post_init__(self) -> None:
-        _check_proto("HELLO_REQUEST", _int("HELLO_REQUEST proto", self.proto, 0, 255))
-
-    def body(self) -> dict[str, Any]:
-        return {"proto": self.proto}
-
-    @classmethod
-    def from_body(cls, body: dict[str, Any]) -> HelloRequest:
-        _fields("HELLO_REQUEST", body, cls.KEYS)
-        return cls(proto=body["proto"])
-
 
 EncoderMessage = Hello | Sample | HelloRequest
-_BY_KIND: dict[int, type[Hello] | type[Sample] | type[HelloRequest]] = {
-    KIND_HELLO: Hello,
-    KIND_SAMPLE: Sample,
-    KIND_HELLO_REQUEST: HelloRequest,
-}
+#: The encoder protocol's messages by kind.
+MESSAGES: MessageSet[EncoderMessage] = MessageSet("encoder", (Hello, Sample, HelloRequest), KIND_NAMES)
 
 
 def decode_message(frame: Frame) -> EncoderMessage:
-    """The encoder-protocol message in a decoded frame.
+    """The encoder-protocol message in a decoded frame (see :meth:`MessageSet.decode`).
 
     Raises:
         MessageError: unknown kind, or a body with missing/unknown keys, wrong types or values
             out of range; the message names the kind and the field.
     """
-    cls = _BY_KIND.get(frame.kind)
-    if cls is None:
-        valid = ", ".join(f"0x{k:02X} {n}" for k, n in KIND_NAMES.items())
-        raise MessageError(f"unknown encoder frame kind 0x{frame.kind:02X}; valid: {valid}")
-    return cls.from_body(frame.body)
+    return MESSAGES.decode(frame)
 
 
-def encode_message(msg: EncoderMessage, seq: int) -> bytes:
-    """Wire bytes of ``msg`` as frame number ``seq`` (COBS frame with its 0x00)."""
-    from shared.serial_link import encode_frame
-
-    return encode_frame(msg.KIND, seq, msg.body())
-
-
-def send_message(link: SerialLink, msg: EncoderMessage) -> int:
-    """Send ``msg`` on ``link``; return the frame's seq. Raises as :meth:`SerialLink.send`."""
-    return link.send(msg.KIND, msg.body())
+#: Wire bytes of a message as frame number ``seq``: ``encode_message(msg, seq)``.
+encode_message = MESSAGES.encode
+#: Send a message on a :class:`SerialLink`, return its seq: ``send_message(link, msg)``.
+send_message = MESSAGES.send
 
 
 # --------------------------------------------------------------------------- calibration

@@ -57,9 +57,10 @@ import struct
 import threading
 import time
 from collections import Counter, deque
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from types import TracebackType
-from typing import Any, Literal
+from typing import Any, ClassVar, Generic, Literal, Protocol, Self, TypeVar
 
 import msgpack
 import serial
@@ -519,3 +520,100 @@ def check_fields(kind: str, body: dict[str, Any], keys: frozenset[str]) -> None:
         raise MessageError(
             f"{kind} unknown field(s) {sorted(unknown)}; valid: {', '.join(sorted(keys)) or 'none'}"
         )
+
+
+def check_proto(protocol: str, version: int, kind: str, proto: Any) -> None:
+    """``proto`` is an int 0..255 equal to ``version``, the ``protocol`` this host speaks."""
+    check_int(f"{kind} proto", proto, 0, 255)
+    if proto != version:
+        raise MessageError(
+            f"{kind} proto={proto} unsupported; this host speaks {protocol} protocol {version}"
+        )
+
+
+class WireMessage(Protocol):
+    """A device-protocol message: its frame kind and its body (the frame's MessagePack map)."""
+
+    KIND: ClassVar[int]
+
+    def body(self) -> dict[str, Any]: ...
+
+
+@dataclass(frozen=True, slots=True)
+class HelloRequestBase:
+    """HELLO_REQUEST (host → device): please send a HELLO now. Each device protocol subclasses
+    it with its ``KIND``, ``PROTOCOL`` name and ``VERSION``."""
+
+    KIND: ClassVar[int]
+    PROTOCOL: ClassVar[str]
+    VERSION: ClassVar[int]
+    KEYS: ClassVar[frozenset[str]] = frozenset({"proto"})
+
+    proto: int
+
+    def __post_init__(self) -> None:
+        check_proto(self.PROTOCOL, self.VERSION, "HELLO_REQUEST", self.proto)
+
+    def body(self) -> dict[str, Any]:
+        return {"proto": self.proto}
+
+    @classmethod
+    def from_body(cls, body: dict[str, Any]) -> Self:
+        check_fields("HELLO_REQUEST", body, cls.KEYS)
+        return cls(**body)
+
+
+M = TypeVar("M")
+
+
+class MessageSet(Generic[M]):
+    """The messages of one device protocol, by frame kind: decode a frame, encode or send one.
+
+    Args:
+        protocol: its name in errors (``"encoder"``, ``"servo"``).
+        classes: the message classes; each has ``KIND`` and ``from_body(body)``.
+        foreign: kinds of another device's protocol, explained in the error when one arrives
+            (``{0x02: "the encoder board's SAMPLE: a master's board on this port"}``).
+    """
+
+    def __init__(
+        self,
+        protocol: str,
+        classes: Sequence[Any],
+        names: Mapping[int, str],
+        foreign: Mapping[int, str] | None = None,
+    ) -> None:
+        self.protocol = protocol
+        self.by_kind: dict[int, Any] = {c.KIND: c for c in classes}
+        if len(self.by_kind) != len(classes) or set(self.by_kind) != set(names):
+            raise ValueError(f"{protocol}: kinds {sorted(self.by_kind)} do not match the names {dict(names)}")
+        self.names = dict(names)
+        self.foreign = dict(foreign or {})
+
+    def decode(self, frame: Frame) -> M:
+        """The message in a decoded frame.
+
+        Raises:
+            MessageError: unknown kind (another device's kinds are named as such), or a body
+                with missing/unknown keys, wrong types or values out of range; the message names
+                the kind and the field.
+        """
+        cls = self.by_kind.get(frame.kind)
+        if cls is None:
+            valid = ", ".join(f"0x{k:02X} {n}" for k, n in self.names.items())
+            hint = ""
+            if frame.kind in self.foreign:
+                hint = f" (0x{frame.kind:02X} is {self.foreign[frame.kind]}?)"
+            raise MessageError(f"unknown {self.protocol} frame kind 0x{frame.kind:02X}{hint}; valid: {valid}")
+        msg: M = cls.from_body(frame.body)
+        return msg
+
+    @staticmethod
+    def encode(msg: WireMessage, seq: int) -> bytes:
+        """Wire bytes of ``msg`` as frame number ``seq`` (COBS frame with its 0x00)."""
+        return encode_frame(msg.KIND, seq, msg.body())
+
+    @staticmethod
+    def send(link: SerialLink, msg: WireMessage) -> int:
+        """Send ``msg`` on ``link``; return the frame's seq. Raises as :meth:`SerialLink.send`."""
+        return link.send(msg.KIND, msg.body())

@@ -153,13 +153,14 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, ClassVar
 
 from shared.errors import MessageError
+from shared.serial_link import HelloRequestBase, MessageSet, check_proto
 from shared.serial_link import check_bool as _bool
 from shared.serial_link import check_fields as _fields
 from shared.serial_link import check_int as _int
 from shared.serial_link import check_str as _str
 
 if TYPE_CHECKING:
-    from shared.serial_link import Frame, SerialLink
+    from shared.serial_link import Frame
 
 #: Version of the body layouts above; HELLO and HELLO_REQUEST carry it as ``proto``.
 PROTO_VERSION = 1
@@ -243,10 +244,7 @@ def _reals(name: str, value: Any, n: int | None = None) -> tuple[float, ...]:
 
 
 def _check_proto(kind: str, proto: int) -> None:
-    if proto != PROTO_VERSION:
-        raise MessageError(
-            f"{kind} proto={proto} unsupported; this host speaks servo protocol {PROTO_VERSION}"
-        )
+    check_proto("servo", PROTO_VERSION, kind, proto)
 
 
 # --------------------------------------------------------------------------- messages
@@ -281,7 +279,7 @@ class Hello:
     proto: int = PROTO_VERSION
 
     def __post_init__(self) -> None:
-        _check_proto("HELLO", _int("HELLO proto", self.proto, 0, 255))
+        _check_proto("HELLO", self.proto)
         _str("HELLO model", self.model, 1)
         _str("HELLO fw", self.fw, 0)
         n = _int("HELLO joints", self.joints, 1, MAX_JOINTS)
@@ -382,24 +380,14 @@ class State:
 
 
 @dataclass(frozen=True, slots=True)
-class HelloRequest:
+class HelloRequest(HelloRequestBase):
     """HELLO_REQUEST (host → controller): please send a HELLO now."""
 
     KIND: ClassVar[int] = KIND_HELLO_REQUEST
-    KEYS: ClassVar[frozenset[str]] = frozenset({"proto"})
+    PROTOCOL: ClassVar[str] = "servo"
+    VERSION: ClassVar[int] = PROTO_VERSION
 
     proto: int = PROTO_VERSION
-
-    def __post_init__(self) -> None:
-        _check_proto("HELLO_REQUEST", _int("HELLO_REQUEST proto", self.proto, 0, 255))
-
-    def body(self) -> dict[str, Any]:
-        return {"proto": self.proto}
-
-    @classmethod
-    def from_body(cls, body: dict[str, Any]) -> HelloRequest:
-        _fields("HELLO_REQUEST", body, cls.KEYS)
-        return cls(**body)
 
 
 @dataclass(frozen=True, slots=True)
@@ -475,46 +463,30 @@ class Setpoint:
 
 
 ServoMessage = Hello | State | HelloRequest | Enable | Disable | Setpoint
-_BY_KIND: dict[int, Any] = {
-    KIND_HELLO: Hello,
-    KIND_STATE: State,
-    KIND_HELLO_REQUEST: HelloRequest,
-    KIND_ENABLE: Enable,
-    KIND_DISABLE: Disable,
-    KIND_SETPOINT: Setpoint,
-}
+#: The servo protocol's messages by kind; the encoder board's kinds are named when one arrives.
+MESSAGES: MessageSet[ServoMessage] = MessageSet(
+    "servo",
+    (Hello, State, HelloRequest, Enable, Disable, Setpoint),
+    KIND_NAMES,
+    foreign={k: f"the encoder board's {n}: a master's board on this port" for k, n in ENCODER_KINDS.items()},
+)
 
 
 def decode_message(frame: Frame) -> ServoMessage:
-    """The servo-protocol message in a decoded frame.
+    """The servo-protocol message in a decoded frame (see :meth:`MessageSet.decode`).
 
     Raises:
         MessageError: unknown kind (an encoder board's kinds are named as such), or a body with
             missing/unknown keys, wrong types or values out of range; the message names the kind
             and the field.
     """
-    cls = _BY_KIND.get(frame.kind)
-    if cls is None:
-        valid = ", ".join(f"0x{k:02X} {n}" for k, n in KIND_NAMES.items())
-        hint = ""
-        if frame.kind in ENCODER_KINDS:
-            name = ENCODER_KINDS[frame.kind]
-            hint = f" (0x{frame.kind:02X} is the encoder board's {name}: a master's board on this port?)"
-        raise MessageError(f"unknown servo frame kind 0x{frame.kind:02X}{hint}; valid: {valid}")
-    msg: ServoMessage = cls.from_body(frame.body)
-    return msg
+    return MESSAGES.decode(frame)
 
 
-def encode_message(msg: ServoMessage, seq: int) -> bytes:
-    """Wire bytes of ``msg`` as frame number ``seq`` (COBS frame with its 0x00)."""
-    from shared.serial_link import encode_frame
-
-    return encode_frame(msg.KIND, seq, msg.body())
-
-
-def send_message(link: SerialLink, msg: ServoMessage) -> int:
-    """Send ``msg`` on ``link``; return the frame's seq. Raises as :meth:`SerialLink.send`."""
-    return link.send(msg.KIND, msg.body())
+#: Wire bytes of a message as frame number ``seq``: ``encode_message(msg, seq)``.
+encode_message = MESSAGES.encode
+#: Send a message on a :class:`SerialLink`, return its seq: ``send_message(link, msg)``.
+send_message = MESSAGES.send
 
 
 # --------------------------------------------------------------------------- the expected robot
