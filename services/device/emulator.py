@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import logging
 import math
-import os
 import random
 import threading
 import time
@@ -40,14 +39,13 @@ from shared.encoder_protocol import (
     encode_message,
 )
 from shared.errors import MessageError
-from shared.serial_link import SEQ_MODULUS, FrameReader
-from shared.timing import CycleTimer
+from shared.serial_link import SEQ_MODULUS
+
+from .port import DevicePort, pty_device, serve_at
 
 log = logging.getLogger(__name__)
 
 MOTIONS = ("sine", "still")
-#: Bytes the emulator buffers while nobody reads the pty; beyond this it drops them (counted).
-MAX_PENDING_BYTES = 4096
 
 # joint (0-based), amplitude (rad / m), frequency (Hz), phase (rad) of the sine motion
 _SINE = (  # (joint index, amplitude rad / m, Hz, phase): a calm surgeon's hand, < 0.3 rad/s
@@ -129,8 +127,7 @@ class BoardEmulator:
     def __init__(self, fd: int, opts: EmulatorOptions | None = None) -> None:
         self.opts = opts or EmulatorOptions()
         self.opts.validate()
-        self.fd = fd
-        os.set_blocking(fd, False)
+        self.port = DevicePort(fd)
         cal = self.opts.calibration
         self.hello = Hello(
             model=self.opts.model,
@@ -144,17 +141,11 @@ class BoardEmulator:
         self.seq = 0
         self._t0 = time.monotonic()
         self._next_hello = 0.0
-        self._reader = FrameReader()
-        self._out = bytearray()
         self._rng = random.Random(self.opts.seed)
 
     def serve(self, stop: threading.Event, seconds: float = 0.0) -> None:
         """Send frames at ``rate_hz`` until ``stop`` is set or ``seconds`` (> 0) have passed."""
-        timer = CycleTimer(self.opts.rate_hz)
-        end = time.monotonic() + seconds if seconds > 0 else math.inf
-        while not stop.is_set() and time.monotonic() < end:
-            self.step()
-            timer.wait()
+        serve_at(self.opts.rate_hz, self.step, stop, seconds)
 
     def step(self) -> None:
         """Answer requests, send a HELLO if due, and one SAMPLE (or its planned drop / noise)."""
@@ -192,13 +183,7 @@ class BoardEmulator:
         return seq
 
     def _read_requests(self) -> None:
-        try:
-            data = os.read(self.fd, 4096)
-        except BlockingIOError:
-            return
-        except OSError:  # EIO: no process has the pty's device side open (between host connections)
-            return
-        for frame in self._reader.feed(data):
+        for frame in self.port.read_frames():
             try:
                 msg = decode_message(frame)
             except MessageError as exc:
@@ -213,39 +198,13 @@ class BoardEmulator:
                 )
 
     def _send(self, data: bytes) -> None:
-        self._out += data
-        try:
-            n = os.write(self.fd, self._out)
-        except (BlockingIOError, InterruptedError):
-            n = 0
-        del self._out[:n]
-        if len(self._out) > MAX_PENDING_BYTES:  # nobody reads: drop; the host resynchronises on 0x00
-            self.stats.overflow_bytes += len(self._out)
-            self._out.clear()
+        self.stats.overflow_bytes += self.port.write(data)
 
 
 def run_pty(opts: EmulatorOptions, stop: threading.Event, seconds: float = 0.0) -> EmulatorStats:
-    """Open a pseudo-terminal pair, print its device path on stdout, serve on it until ``stop``.
-
-    The device side is put in raw mode and kept open for the emulator's lifetime, so hosts can
-    open, close and re-open it.
-    """
-    import tty
-
-    controller, device = os.openpty()
-    try:
-        tty.setraw(device)
-        print(os.ttyname(device), flush=True)
-        emulator = BoardEmulator(controller, opts)
-        log.info(
-            "emulating %s on %s: %.0f Hz, motion %s",
-            opts.model,
-            os.ttyname(device),
-            opts.rate_hz,
-            opts.motion,
-        )
+    """Serve on a new pseudo-terminal (its device path printed on stdout) until ``stop``."""
+    with pty_device() as (fd, path):
+        emulator = BoardEmulator(fd, opts)
+        log.info("emulating %s on %s: %.0f Hz, motion %s", opts.model, path, opts.rate_hz, opts.motion)
         emulator.serve(stop, seconds)
         return emulator.stats
-    finally:
-        os.close(controller)
-        os.close(device)

@@ -26,8 +26,6 @@ It writes to any non-blocking fd — the controller side of a pseudo-terminal in
 from __future__ import annotations
 
 import logging
-import math
-import os
 import random
 import threading
 import time
@@ -37,7 +35,7 @@ import numpy as np
 
 from shared.errors import MessageError
 from shared.robots import MODELS
-from shared.serial_link import SEQ_MODULUS, FrameReader, seq_delta
+from shared.serial_link import SEQ_MODULUS, seq_delta
 from shared.servo_protocol import (
     FAULT_ESTOP,
     FAULT_FOLLOWING,
@@ -59,12 +57,11 @@ from shared.servo_protocol import (
     encode_message,
     seq_delta32,
 )
-from shared.timing import CycleTimer
+
+from .port import DevicePort, pty_device, serve_at
 
 log = logging.getLogger(__name__)
 
-#: Bytes the emulator buffers while nobody reads the pty; beyond this it drops them (counted).
-MAX_PENDING_BYTES = 4096
 #: ``--fault`` names → fault bits.
 FAULTS = {
     "overcurrent": FAULT_OVERCURRENT,
@@ -157,8 +154,7 @@ class ServoEmulator:
     def __init__(self, fd: int, opts: ServoEmulatorOptions | None = None) -> None:
         self.opts = opts or ServoEmulatorOptions()
         self.opts.validate()
-        self.fd = fd
-        os.set_blocking(fd, False)
+        self.port = DevicePort(fd)
         self.robot = ServoRobot.of(self.opts.model)
         self.hello: Hello = self.robot.hello(round(self.opts.rate_hz), self.opts.fw)
         n = self.robot.joints
@@ -184,21 +180,15 @@ class ServoEmulator:
         self._fault_injected = False
         self._silent_logged = False
         self._host_seq: int | None = None
-        self._reader = FrameReader()
-        self._out = bytearray()
         self._rng = random.Random(self.opts.seed)
 
     # ----------------------------------------------------------------- loop
 
     def serve(self, stop: threading.Event, seconds: float = 0.0) -> None:
         """Run at ``rate_hz`` until ``stop`` is set or ``seconds`` (> 0) have passed."""
-        timer = CycleTimer(self.opts.rate_hz)
-        end = time.monotonic() + seconds if seconds > 0 else math.inf
         self.send(self.hello)  # at boot
         self.stats.hellos += 1
-        while not stop.is_set() and time.monotonic() < end:
-            self.step()
-            timer.wait()
+        serve_at(self.opts.rate_hz, self.step, stop, seconds)
 
     def step(self) -> None:
         """Read the host's frames, advance the joints, check the watchdog, write one STATE."""
@@ -309,15 +299,9 @@ class ServoEmulator:
         self.current = np.clip(CURRENT_PER_RAD * (self.target - self.q), -CURRENT_MAX_A, CURRENT_MAX_A)
 
     def _read_host(self, now: float) -> None:
-        try:
-            data = os.read(self.fd, 4096)
-        except (BlockingIOError, InterruptedError):
-            return
-        except OSError:  # EIO: no process has the pty's device side open (between host connections)
-            return
-        before = self._reader.error_count
-        frames = self._reader.feed(data)
-        self.stats.corrupt += self._reader.error_count - before
+        before = self.port.reader.error_count
+        frames = self.port.read_frames()
+        self.stats.corrupt += self.port.reader.error_count - before
         for frame in frames:
             if self._host_seq is not None and seq_delta(self._host_seq, frame.seq) > 1:
                 self.stats.gaps += 1
@@ -388,17 +372,7 @@ class ServoEmulator:
         self.stats.setpoints += 1
 
     def _write(self, data: bytes) -> None:
-        self._out += data
-        try:
-            n = os.write(self.fd, self._out)
-        except (BlockingIOError, InterruptedError):
-            n = 0
-        except OSError:  # EIO: the device side is closed
-            n = len(self._out)
-        del self._out[:n]
-        if len(self._out) > MAX_PENDING_BYTES:  # nobody reads: drop; the host resynchronises on 0x00
-            self.stats.overflow_bytes += len(self._out)
-            self._out.clear()
+        self.stats.overflow_bytes += self.port.write(data)
 
 
 def _fmt(q: np.ndarray) -> str:
@@ -406,28 +380,16 @@ def _fmt(q: np.ndarray) -> str:
 
 
 def run_pty(opts: ServoEmulatorOptions, stop: threading.Event, seconds: float = 0.0) -> ServoEmulatorStats:
-    """Open a pseudo-terminal pair, print its device path on stdout, serve on it until ``stop``.
-
-    The device side is put in raw mode and kept open for the emulator's lifetime, so hosts can
-    open, close and re-open it.
-    """
-    import tty
-
-    controller, device = os.openpty()
-    try:
-        tty.setraw(device)
-        print(os.ttyname(device), flush=True)
-        emulator = ServoEmulator(controller, opts)
+    """Serve on a new pseudo-terminal (its device path printed on stdout) until ``stop``."""
+    with pty_device() as (fd, path):
+        emulator = ServoEmulator(fd, opts)
         log.info(
             "emulating the %s servo controller (%d joints) on %s: STATE at %.0f Hz, lag %.0f ms",
             opts.model,
             emulator.robot.joints,
-            os.ttyname(device),
+            path,
             opts.rate_hz,
             opts.lag_ms,
         )
         emulator.serve(stop, seconds)
         return emulator.stats
-    finally:
-        os.close(controller)
-        os.close(device)
