@@ -11,6 +11,7 @@ import pytest
 
 from services.launcher import free_port
 from services.mapping import ArmMapping, MappingConfig, master_point
+from services.mapping.joints import AllJointsMapping
 from shared.bus import BusConfig, Node, open_session
 from shared.errors import ConfigError
 from shared.kinematics import MH3F, fk
@@ -112,6 +113,77 @@ def test_holding_slave_disengages_and_needs_new_press(
     assert not arm.following
     feed(arm, (0.0, 0.0, 0.0), clutch=False)
     feed(arm, (0.0, 0.0, 0.0), clutch=True)
+    assert arm.following
+
+
+def test_a_press_released_before_the_next_sample_does_not_engage(
+    rig: tuple[ArmMapping, list[JointSetpoint], list[SafetyEvent]],
+) -> None:
+    # polled buttons: a stalled loop may read a press and its release before mapping a sample
+    arm, setpoints, _ = rig
+    feed(arm, (0.0, 0.0, 0.0), clutch=False)
+    arm.on_buttons(MasterButtons(H, True, True), "")
+    arm.on_buttons(MasterButtons(H, False, True), "")
+    arm.on_master_pose(CartesianPose(H, "master", (0.0, 0.0, 0.0)), "")
+    arm.process()
+    assert not arm.following
+    settle(2, setpoints)
+    assert [s.follow for s in setpoints] == [False, False]
+    feed(arm, (0.0, 0.0, 0.0), clutch=True)  # the next press engages
+    assert arm.following
+
+
+def test_a_change_of_the_slave_control_mode_disengages_and_needs_a_new_press(
+    rig: tuple[ArmMapping, list[JointSetpoint], list[SafetyEvent]],
+) -> None:
+    arm, _, events = rig
+    feed(arm, (0.0, 0.0, 0.0), clutch=False)
+    feed(arm, (0.0, 0.0, 0.0), clutch=True)
+    assert arm.following
+    arm.on_slave_state(OperatingState(H, "ENABLED", "transitional", True, True, "", 1), "")
+    assert not arm.following
+    feed(arm, (0.0, 0.0, 0.0), clutch=True)  # pedal still down: no re-engage
+    assert not arm.following
+    deadline = time.monotonic() + 3
+    while not any(e.kind == "disengage" for e in events) and time.monotonic() < deadline:
+        time.sleep(0.01)
+    assert any("control mode non_trocar → transitional" in e.text for e in events if e.kind == "disengage")
+
+
+def test_joint_space_mapping_follows_the_same_engage_rules(
+    rig: tuple[ArmMapping, list[JointSetpoint], list[SafetyEvent]],
+) -> None:
+    # the PLAS all-joints mapping shares the clutch rules (services/mapping/engage.py)
+    arm0, _, _ = rig
+    cfg = MappingConfig(mode="all_joints", model="plas")
+    cfg.validate()
+    arm = AllJointsMapping(cfg, arm0.node, "m1", "arm1", threading.Event())
+    names = arm.profile.joint_names
+    arm.on_slave_js(JointState(H, names, tuple(0.0 for _ in names)), "")
+    arm.on_slave_state(OperatingState(H, "PAUSED", "joint", False, True, "", 0), "")
+
+    def sample(clutch: bool | None) -> None:
+        if clutch is not None:
+            arm.on_buttons(MasterButtons(H, clutch, True), "")
+        arm.on_master_js(JointState(H, tuple(f"m{i}" for i in range(6)), (0.0,) * 6), "")
+        arm.process()
+
+    sample(True)  # pedal down at start: not an engage
+    assert not arm.following
+    sample(False)
+    arm.on_buttons(MasterButtons(H, True, True), "")  # a press and its release in one poll
+    arm.on_buttons(MasterButtons(H, False, True), "")
+    sample(None)
+    assert not arm.following
+    sample(True)
+    assert arm.following
+    arm.on_slave_state(OperatingState(H, "ENABLED", "joint", True, False, "lease expired", 1), "")
+    assert not arm.following
+    arm.on_slave_state(OperatingState(H, "ENABLED", "joint", False, True, "", 2), "")
+    sample(True)  # pedal still down: no re-engage
+    assert not arm.following
+    sample(False)
+    sample(True)
     assert arm.following
 
 

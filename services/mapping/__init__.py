@@ -42,6 +42,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from services.common import service_main
+from services.mapping.engage import EngageGate
 from services.mapping.joints import AllJointsMapping, VipMapping
 from shared.bus import BusConfig, Node, Outlet, only
 from shared.errors import ConfigError, IKError
@@ -170,37 +171,25 @@ def rpy_matrix(rpy_deg: tuple[float, float, float]) -> np.ndarray:
     return out
 
 
-class ArmMapping:
+class ArmMapping(EngageGate):
     """Mapping state of one master → slave pair. Thread-safe: zenoh callbacks call in."""
 
     def __init__(
         self, cfg: MappingConfig, node: Node, master: str, slave: str, work: threading.Event
     ) -> None:
-        self.cfg, self.node, self.master, self.slave = cfg, node, master, slave
+        super().__init__(cfg, node, master, slave, work, MH3F.joint_names)
         self.geom = MH3F
         self.r_ms = rpy_matrix(cfg.master_to_slave_rpy_deg)
         self.r_ms_rows: list[list[float]] = self.r_ms.tolist()
-        self.lock = threading.Lock()
         self.servo_out: Outlet = node.outlet(node.keys.slave(slave, "servo_jp"))
         self.target_out: Outlet = node.outlet(node.keys.slave(slave, "setpoint_cp"), control=False)
         self.target_period = 1.0 / cfg.target_hz
         self.target_next = 0.0
-        # inputs
-        self.buttons: MasterButtons | None = None
-        self.q_meas: np.ndarray | None = None
-        self.q_meas_rx = 0.0
-        self.slave_state: OperatingState | None = None
-        self.master_rx = 0.0
-        # follow state
-        self.following = False
-        self.need_release = True  # an engage needs a pedal press seen after a release
         self.q_last: np.ndarray | None = None
         # anchor of the engagement: master point, slave tip (floats), B = rm0ᵀ r_msᵀ rs0 (the target
         # rotation is r_ms R(q) B) and the slave rotation rs0 (see _set_ref)
         self.ref: tuple[list[float], list[float], np.ndarray, np.ndarray] | None = None
-        self.ik_failures = 0
         self.ik_streak = 0
-        self.safety_scale = 1.0  # factor from the watchdog's safety state
         self.scale = cfg.scale  # operator's motion scale (mapping/<arm>/command changes it)
         self.reply_seq = Sequencer(cfg.service)
         self.last_pose: CartesianPose | None = None  # last master sample mapped while following
@@ -208,43 +197,13 @@ class ArmMapping:
         self.ws_lo = np.asarray(cfg.workspace_min_mm) / 1e3
         self.ws_hi = np.asarray(cfg.workspace_max_mm) / 1e3
         self.ws_lo_t, self.ws_hi_t = self.ws_lo.tolist(), self.ws_hi.tolist()
-        self.clamped = 0  # samples whose target was clamped into the workspace
         self._clamping = False
         # Newest master sample not yet mapped. The zenoh callback only stores it; the service
         # loop maps it. If mapping ever falls behind, it maps the newest sample and skips the
         # rest (counted in ``conflated``) instead of queueing latency.
         self.pending: CartesianPose | None = None
-        self.conflated = 0
-        self.work = work
 
     # -- inputs -----------------------------------------------------------------------
-    def on_buttons(self, msg: MasterButtons, key: str) -> None:
-        with self.lock:
-            self.buttons = msg
-            if not msg.clutch:
-                self.need_release = False
-                if self.following:
-                    self._disengage("clutch released", operator=True)
-            elif not msg.operator_present and self.following:
-                self._disengage("operator not present")
-
-    def on_slave_js(self, msg: JointState, key: str) -> None:
-        if msg.names != self.geom.joint_names:
-            log.warning("slave %s joint names %s do not match the model", self.slave, msg.names)
-            return
-        with self.lock:
-            self.q_meas = np.array(msg.position)
-            self.q_meas_rx = self.node.received(key)
-
-    def on_slave_state(self, msg: OperatingState, key: str) -> None:
-        with self.lock:
-            old = self.slave_state
-            self.slave_state = msg
-            if self.following and not msg.lease_ok:
-                self._disengage(f"slave holding: {msg.reason or 'no lease'}")
-            elif self.following and old is not None and old.control_mode != msg.control_mode:
-                self._disengage(f"slave control mode {old.control_mode} → {msg.control_mode}")
-
     def on_safety_state(self, msg: SafetyState, key: str) -> None:
         with self.lock:
             if msg.scale == self.safety_scale:
@@ -318,33 +277,13 @@ class ArmMapping:
             msg, self.pending = self.pending, None
             if msg is None:
                 return
-            b = self.buttons
-            if not self.following and b is not None and b.clutch and not self.need_release:
+            if self.want_engage and not self.following:
                 self._try_engage(msg)
             self._publish(msg)
 
-    def check_timeouts(self) -> None:
-        """Disengage on a stale master stream (called at a low rate from the service loop)."""
-        with self.lock:
-            age_ms = (time.monotonic() - self.master_rx) * 1e3
-            if self.following and age_ms > self.cfg.master_timeout_ms:
-                self._disengage(f"master stream stale ({age_ms:.0f} ms)")
-
     # -- internals (lock held) ------------------------------------------------------------
     def _try_engage(self, pose: CartesianPose) -> None:
-        self.need_release = True  # whatever happens, the next try needs a new press
-        b = self.buttons
-        now = time.monotonic()
-        reason = ""
-        if b is None or not b.operator_present:
-            reason = "operator not present"
-        elif self.q_meas is None or (now - self.q_meas_rx) * 1e3 > self.cfg.slave_timeout_ms:
-            reason = "no fresh slave joint state"
-        elif self.slave_state is None or not self.slave_state.lease_ok:
-            why = self.slave_state.reason if self.slave_state else "no slave state"
-            reason = f"slave not allowed to move ({why})"
-        if reason:
-            self.node.event("engage_refused", f"engage refused: {reason}", arm=self.slave, severity="warning")
+        if not self._may_engage():
             return
         assert self.q_meas is not None
         t_s0 = fk(self.q_meas, self.geom)
@@ -362,16 +301,6 @@ class ArmMapping:
             "engage",
             f"engaged {self.master} → {self.slave} at scale {self.scale * self.safety_scale:.3g}",
             arm=self.slave,
-        )
-
-    def _disengage(self, reason: str, *, operator: bool = False) -> None:
-        self.following = False
-        self.need_release = not operator
-        self.node.event(
-            "disengage",
-            f"disengaged: {reason}",
-            arm=self.slave,
-            severity="info" if operator else "warning",
         )
 
     def _set_ref(self, pm0: np.ndarray, rm0: np.ndarray, ps0: np.ndarray, rs0: np.ndarray) -> None:

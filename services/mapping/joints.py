@@ -26,6 +26,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from services.mapping.engage import EngageGate
 from services.slave_control.control import limit_step
 from shared.bus import Node, Outlet
 from shared.errors import IKError, KinematicsError
@@ -35,8 +36,6 @@ from shared.messages import (
     CommandReply,
     JointSetpoint,
     JointState,
-    MasterButtons,
-    OperatingState,
     SafetyState,
     Sequencer,
 )
@@ -50,59 +49,22 @@ if TYPE_CHECKING:
 CLAMP_QUIET = 50
 
 
-class _JointBase:
-    """Clutch, engage and timeout logic shared by the joint-space mappings (lock-protected)."""
+class _JointBase(EngageGate):
+    """Engage and clamp reporting shared by the joint-space mappings (lock-protected)."""
 
     def __init__(
         self, cfg: MappingConfig, node: Node, master: str, slave: str, work: threading.Event
     ) -> None:
-        self.cfg, self.node, self.master, self.slave, self.work = cfg, node, master, slave, work
-        self.profile = arm_profile(cfg.model, slave)
-        self.lower, self.upper = np.array(self.profile.lower), np.array(self.profile.upper)
-        self.lock = threading.Lock()
+        profile = arm_profile(cfg.model, slave)
+        super().__init__(cfg, node, master, slave, work, profile.joint_names)
+        self.profile = profile
+        self.lower, self.upper = np.array(profile.lower), np.array(profile.upper)
         self.servo_out: Outlet = node.outlet(node.keys.slave(slave, "servo_jp"))
-        self.buttons: MasterButtons | None = None
-        self.q_meas: np.ndarray | None = None
-        self.q_meas_rx = 0.0
-        self.slave_state: OperatingState | None = None
-        self.master_rx = 0.0
-        self.following = False
-        self.need_release = True
-        self.want_engage = False
         self.q_cmd: np.ndarray | None = None
-        self.safety_scale = 1.0
-        self.ik_failures = 0  # samples whose target could not be solved (held)
-        self.conflated = 0
-        self.clamped = 0  # samples with a joint held at its limit
         self._clamping = False
         self._unclamped = 0  # samples without clamping since the last clamped one
 
     # -- inputs (zenoh threads)
-    def on_buttons(self, msg: MasterButtons, key: str) -> None:
-        with self.lock:
-            self.buttons = msg
-            if not msg.clutch:
-                self.need_release = False
-                if self.following:
-                    self._disengage("clutch released", operator=True)
-            elif not msg.operator_present and self.following:
-                self._disengage("operator not present")
-            elif not self.following and not self.need_release:
-                self.want_engage = True
-
-    def on_slave_js(self, msg: JointState, key: str) -> None:
-        if msg.names != self.profile.joint_names:
-            return
-        with self.lock:
-            self.q_meas = np.array(msg.position)
-            self.q_meas_rx = self.node.received(key)
-
-    def on_slave_state(self, msg: OperatingState, key: str) -> None:
-        with self.lock:
-            self.slave_state = msg
-            if self.following and not msg.lease_ok:
-                self._disengage(f"slave holding: {msg.reason or 'no lease'}")
-
     def on_safety_state(self, msg: SafetyState, key: str) -> None:
         with self.lock:
             if msg.scale != self.safety_scale:
@@ -113,39 +75,17 @@ class _JointBase:
         """The safety scale changed while following (lock held)."""
 
     # -- logic (lock held)
-    def _engage_problem(self) -> str:
-        b, now = self.buttons, time.monotonic()
-        if b is None or not b.operator_present:
-            return "operator not present"
-        if self.q_meas is None or (now - self.q_meas_rx) * 1e3 > self.cfg.slave_timeout_ms:
-            return "no fresh slave joint state"
-        if self.slave_state is None or not self.slave_state.lease_ok:
-            why = self.slave_state.reason if self.slave_state else "no slave state"
-            return f"slave not allowed to move ({why})"
-        return ""
-
     def _engaged(self) -> None:
         """Take the references at engage (lock held; q_meas is fresh)."""
 
     def _try_engage(self) -> None:
-        self.want_engage = False
-        self.need_release = True
-        if problem := self._engage_problem():
-            self.node.event(
-                "engage_refused", f"engage refused: {problem}", arm=self.slave, severity="warning"
-            )
+        if not self._may_engage():
             return
         assert self.q_meas is not None
         self.q_cmd = self.q_meas.copy()
         self._engaged()
         self.following = True
         self.node.event("engage", f"engaged {self.master} → {self.slave} ({self.cfg.mode})", arm=self.slave)
-
-    def _disengage(self, reason: str, *, operator: bool = False) -> None:
-        self.following = False
-        self.need_release = not operator
-        sev = "info" if operator else "warning"
-        self.node.event("disengage", f"disengaged: {reason}", arm=self.slave, severity=sev)
 
     def _report_clamp(self, joints: tuple[str, ...]) -> None:
         """Count clamped samples; one event when an episode starts and one when it has been over
@@ -162,11 +102,6 @@ class _JointBase:
             if self._unclamped >= CLAMP_QUIET:
                 self._clamping = False
                 self.node.event("clamped", "joints back inside their limits", arm=self.slave)
-
-    def check_timeouts(self) -> None:
-        with self.lock:
-            if self.following and (time.monotonic() - self.master_rx) * 1e3 > self.cfg.master_timeout_ms:
-                self._disengage("master stream stale")
 
     def _put(self, origin_ns: int) -> None:
         q = self.q_cmd if self.following and self.q_cmd is not None else self.q_meas
