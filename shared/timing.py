@@ -12,8 +12,14 @@ Example::
 from __future__ import annotations
 
 import gc
+import logging
+import os
 import time
 from dataclasses import dataclass, field
+
+from shared.errors import ConfigError
+
+log = logging.getLogger(__name__)
 
 
 @dataclass
@@ -80,6 +86,48 @@ def settle_gc() -> None:
     set-up service's ~10⁵ objects takes milliseconds, more than a 1 ms control period."""
     gc.collect()
     gc.freeze()
+
+
+def start_loop(rt_priority: int = 0) -> None:
+    """Call in a loop's thread when the service is set up, right before the loop: settle the
+    garbage collector (:func:`settle_gc`) and, if ``rt_priority`` > 0, run the thread under
+    ``SCHED_FIFO`` (:func:`set_realtime`; a refusal is logged as a warning, the loop runs on)."""
+    settle_gc()
+    if why := set_realtime(rt_priority):
+        log.warning("%s", why)
+    elif rt_priority:
+        log.info("loop thread under SCHED_FIFO, priority %d", rt_priority)
+
+
+def check_rt_priority(priority: int) -> None:
+    """Raise ConfigError unless ``priority`` is 0 (normal scheduling) or 1..99 (SCHED_FIFO)."""
+    if isinstance(priority, bool) or not isinstance(priority, int) or not 0 <= priority <= 99:
+        raise ConfigError(f"rt_priority={priority!r}: 0 (normal scheduling) or 1..99 (SCHED_FIFO)")
+
+
+def set_realtime(priority: int) -> str:
+    """Run the calling thread under ``SCHED_FIFO`` at ``priority`` (1-99); 0 leaves it as it is.
+
+    For a fixed-rate loop on a busy host: a FIFO thread is never preempted by normal threads, so
+    its cycle is not cut by them. Only this thread changes (not the process's other threads), and
+    threads it starts later get the normal policy back (``SCHED_RESET_ON_FORK``). Linux throttles
+    real-time threads to 95 % of each second, so a runaway loop cannot freeze the host.
+
+    Returns:
+        "" when set (or 0), else why not; the thread then keeps its normal policy.
+    """
+    check_rt_priority(priority)
+    if priority == 0:
+        return ""
+    try:
+        policy = os.SCHED_FIFO | getattr(os, "SCHED_RESET_ON_FORK", 0)
+        os.sched_setscheduler(0, policy, os.sched_param(priority))
+    except (OSError, AttributeError) as exc:
+        return (
+            f"SCHED_FIFO {priority} refused ({exc}): it needs root, CAP_SYS_NICE or an rtprio "
+            "limit (docs/deploy.md); running under the normal scheduler"
+        )
+    return ""
 
 
 def _fine_timer_slack() -> None:

@@ -2,10 +2,23 @@
 
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
+import threading
+from collections.abc import Callable
+from pathlib import Path
+
 import pytest
 
 import shared.timing
-from shared.timing import CycleTimer
+from services.mapping import MappingConfig
+from services.slave_control import SlaveControlConfig
+from services.slave_control import run as run_slave
+from shared.errors import ConfigError
+from shared.timing import CycleTimer, check_rt_priority, set_realtime
+
+ROOT = Path(__file__).resolve().parents[1]
 
 
 class FakeClock:
@@ -72,3 +85,57 @@ def test_sub_rates_with_different_phases_never_share_a_cycle(clock: FakeClock) -
         for t in due:
             fired[t] += 1
     assert fired == {(4, 0): 250, (10, 1): 100, (20, 2): 50, (50, 3): 20}
+
+
+def _policy_in_thread(fn: Callable[[], object]) -> tuple[object, int, int, int]:
+    """Run ``fn`` in a new thread; its result, that thread's policy and priority afterwards, and
+    the policy of a thread it starts then."""
+    out: list[tuple[object, int, int, int]] = []
+
+    def body() -> None:
+        r = fn()
+        child: list[int] = []
+        t = threading.Thread(target=lambda: child.append(os.sched_getscheduler(0)))
+        t.start()
+        t.join()
+        out.append((r, os.sched_getscheduler(0), os.sched_getparam(0).sched_priority, child[0]))
+
+    th = threading.Thread(target=body)
+    th.start()
+    th.join()
+    return out[0]
+
+
+def test_rt_priority_is_checked() -> None:
+    for bad in (-1, 100, True, 2.5, "20"):
+        with pytest.raises(ConfigError, match="rt_priority"):
+            check_rt_priority(bad)  # type: ignore[arg-type]
+    with pytest.raises(ConfigError, match=r"rt_priority=100"):
+        MappingConfig(rt_priority=100).validate()
+    with pytest.raises(ConfigError, match=r"rt_priority=-1"):  # refused before anything starts
+        run_slave(SlaveControlConfig(rt_priority=-1), threading.Event())
+
+
+def test_set_realtime_changes_only_the_calling_thread() -> None:
+    before = os.sched_getscheduler(0)
+    assert _policy_in_thread(lambda: set_realtime(0))[1] == before  # 0: left as it is
+    why, policy, prio, child = _policy_in_thread(lambda: set_realtime(7))
+    if why:  # not permitted here: the thread keeps its policy, and the reason says what is needed
+        assert "CAP_SYS_NICE" in str(why) and policy == before
+    else:
+        assert policy & ~getattr(os, "SCHED_RESET_ON_FORK", 0) == os.SCHED_FIFO and prio == 7
+        assert child == os.SCHED_OTHER  # threads it starts get the normal policy back
+    assert os.sched_getscheduler(0) == before  # this (the calling) thread is untouched
+
+
+def test_set_realtime_refused_without_the_privilege() -> None:
+    code = (  # (root drops to "nobody", and with it CAP_SYS_NICE)
+        "import os, sys\n"
+        "from shared.timing import set_realtime\n"
+        "os.setuid(65534) if os.getuid() == 0 else None\n"
+        "why = set_realtime(7)\n"
+        "print(repr(why)); sys.exit(0 if why and os.sched_getscheduler(0) == os.SCHED_OTHER else 1)\n"
+    )
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60, cwd=ROOT)
+    assert r.returncode == 0, r.stdout + r.stderr
+    assert "needs root, CAP_SYS_NICE or an rtprio" in r.stdout

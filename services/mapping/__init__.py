@@ -61,7 +61,7 @@ from shared.messages import (
     SafetyState,
     Sequencer,
 )
-from shared.timing import settle_gc
+from shared.timing import check_rt_priority, start_loop
 
 log = logging.getLogger(__name__)
 ORIENTATION_MODES = ("follow", "fixed")
@@ -105,10 +105,14 @@ class MappingConfig:
     master_source: str = "master_capture"
     slave_source: str = "slave_control"
     watchdog_source: str = "watchdog"
+    # SCHED_FIFO priority of the thread that maps the samples, 1-99 (0: the normal scheduler): it
+    # is not preempted mid-sample by the other processes' threads; needs root or CAP_SYS_NICE
+    rt_priority: int = 0
     bus: BusConfig = field(default_factory=BusConfig)  # zenoh session
 
     def validate(self) -> None:
         """Raise ConfigError naming the valid options."""
+        check_rt_priority(self.rt_priority)
         if not 1.0 <= self.target_hz <= 1000.0:
             raise ConfigError(f"target_hz={self.target_hz} outside [1, 1000]")
         if not 0.0 < self.scale <= 2.0:
@@ -455,7 +459,7 @@ def run(cfg: MappingConfig, stop: threading.Event) -> None:
             arms.append(a)
             log.info("mapping %s → %s (%s), scale %.2f", master, slave, cfg.mode, cfg.scale)
         check_period = 0.01  # s: master staleness check
-        settle_gc()
+        start_loop(cfg.rt_priority)
         last_check = last_iter = time.monotonic()
         while not stop.is_set():
             work.wait(check_period)

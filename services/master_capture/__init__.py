@@ -28,7 +28,7 @@ from services.master_capture.devices import ScriptedConfig, SerialMasterConfig, 
 from shared.bus import BusConfig, Node
 from shared.errors import ConfigError
 from shared.messages import CartesianPose, JointState, MasterButtons
-from shared.timing import CycleTimer, settle_gc
+from shared.timing import CycleTimer, check_rt_priority, start_loop
 
 log = logging.getLogger(__name__)
 
@@ -49,6 +49,9 @@ class MasterCaptureConfig:
     # pedal while it is fresh; "" turns it off. A console that dies or is cut off counts as released.
     console_source: str = "console"
     console_clutch_timeout_ms: float = 250.0
+    # SCHED_FIFO priority of the sampling loop's thread, 1-99 (0: the normal scheduler): a FIFO
+    # loop is not preempted by the other processes' threads; needs root or CAP_SYS_NICE (docs/deploy.md)
+    rt_priority: int = 0
     bus: BusConfig = field(default_factory=BusConfig)  # zenoh session
 
 
@@ -56,6 +59,7 @@ def run(cfg: MasterCaptureConfig, stop: threading.Event) -> None:
     """Sample and publish until ``stop``."""
     if not 1.0 <= cfg.rate_hz <= 5000.0:
         raise ConfigError(f"rate_hz={cfg.rate_hz} outside [1, 5000]")
+    check_rt_priority(cfg.rt_priority)
     device = make_device(cfg.device, cfg.scripted, cfg.serial)
     with device, Node(cfg.bus, cfg.site, cfg.service) as node:
         k = node.keys
@@ -77,7 +81,7 @@ def run(cfg: MasterCaptureConfig, stop: threading.Event) -> None:
         console_timeout = cfg.console_clutch_timeout_ms / 1e3
         invalid_since: float | None = None  # time.monotonic() when the reading became invalid
         log.info("publishing master %s at %.0f Hz (%s)", cfg.arm, cfg.rate_hz, cfg.device)
-        settle_gc()
+        start_loop(cfg.rt_priority)
         while not stop.is_set():
             s = device.read(time.monotonic() - t0)
             if not s.valid:  # stale / unplugged / refused: publish nothing, the watchdog holds

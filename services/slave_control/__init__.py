@@ -63,7 +63,7 @@ from shared.messages import (
     SafetyLease,
     Sequencer,
 )
-from shared.timing import CycleTimer, settle_gc
+from shared.timing import CycleTimer, check_rt_priority, start_loop
 
 log = logging.getLogger(__name__)
 
@@ -134,6 +134,9 @@ class SlaveControlConfig:
     shadow_limit_rad: float = 0.05  # rad (m for prismatic joints): a stuck or slipping joint
     shadow_grace_ms: float = 200.0  # ms: how long the divergence may exceed the limit
     shadow_report_s: float = 1.0  # s: period of the "shadow" divergence events
+    # SCHED_FIFO priority of the control loop's thread, 1-99 (0: the normal scheduler): a FIFO
+    # loop is not preempted by the other processes' threads; needs root or CAP_SYS_NICE (docs/deploy.md)
+    rt_priority: int = 0
     bus: BusConfig = field(default_factory=BusConfig)  # zenoh session
 
 
@@ -616,6 +619,7 @@ def _internal_step(
 
 def run(cfg: SlaveControlConfig, stop: threading.Event) -> None:
     """Run the slave until ``stop``."""
+    check_rt_priority(cfg.rt_priority)
     if cfg.model != "mh3f":
         from services.slave_control.joint_slave import run_joint_slave
         from shared.robots import arms_of
@@ -674,7 +678,7 @@ def run(cfg: SlaveControlConfig, stop: threading.Event) -> None:
         n_applied = 0
         last_sp: Setpoint | None = None
         log.info("slave %s (%s/%s) running at %.0f Hz", cfg.arm, cfg.backend, cfg.model, 1 / dt)
-        settle_gc()
+        start_loop(cfg.rt_priority)
         cycle = 0
         while not stop.is_set():
             node.poll()

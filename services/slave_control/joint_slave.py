@@ -38,7 +38,7 @@ from shared.messages import (
     Sequencer,
 )
 from shared.robots import ArmProfile
-from shared.timing import CycleTimer, settle_gc
+from shared.timing import CycleTimer, start_loop
 
 if TYPE_CHECKING:
     from services.slave_control import SlaveControlConfig
@@ -184,7 +184,7 @@ def run_joint_slave(
         q_cmd = reading.position.copy()
         shadow_every = max(1, round(cfg.shadow_report_s / dt))
         log.info("joint slave %s: arms %s at %.0f Hz", cfg.model, ", ".join(p.arm for p in arms), 1 / dt)
-        settle_gc()
+        start_loop(cfg.rt_priority)
         cycle = 0
 
         def period(now: float) -> None:
