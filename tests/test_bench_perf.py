@@ -4,6 +4,7 @@ No time is asserted here — the figures and the goals are in docs/performance.m
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -48,6 +49,15 @@ def test_bench_latency_and_soak(tmp_path: Path) -> None:
     assert soak["streams"]["master/m1/measured_cp"]["messages"] > 500
     assert set(soak["cpu_pct"]) >= {"slave_control", "mapping", "watchdog", "master_capture"}
     assert soak["recorder"]["cpu_pct"] > 0  # the recorder's own load is reported, not in the total
-    bare = bench(tmp_path, "soak", "--rate", "250", "--seconds", "3", "--no-record")
+    # the deploy configs run one loop thread of each of these under SCHED_FIFO (where permitted)
+    rt = 1 if os.geteuid() == 0 else 0
+    assert {n: soak["fifo_threads"][n] for n in ("master_capture", "mapping", "slave_control")} == {
+        "master_capture": rt,
+        "mapping": rt,
+        "slave_control": rt,
+    }
+    assert soak["fifo_threads"]["watchdog"] == soak["fifo_threads"]["router"] == 0
+    bare = bench(tmp_path, "soak", "--rate", "250", "--seconds", "3", "--no-record", "--rt-priority", "0")
     assert bare["recorder"] is None and bare["streams"] == {}
     assert set(bare["deadline_misses"]) == {"slave_control", "master_capture"}
+    assert sum(bare["fifo_threads"].values()) == 0  # --rt-priority 0: the normal scheduler

@@ -10,7 +10,12 @@
 * ``soak`` — the whole pipeline for ``--seconds`` with the recorder on the bus: messages, losses,
   reorders and duplicates per stream (the recorder's summary), every fixed-rate loop's deadline
   misses (from the services' own counters at exit), CPU % and RSS per service and of the recorder
-  (psutil). ``--no-record`` leaves the recorder out (it loads the loops too).
+  (psutil), and how many of each service's threads run under SCHED_FIFO. ``--no-record`` leaves
+  the recorder out (it loads the loops too).
+
+Both run the services with the deploy configs (``deploy/local``), whose master, mapping and slave
+loop threads run under SCHED_FIFO (``rt_priority = 20``, where the host allows it);
+``--rt-priority N`` sets another priority for the three, 0 the normal scheduler.
 * ``ik`` — the analytic solvers (trocar-mode IK, 6-axis IK, VIP IK, PLAS all-joints mapping step):
   µs per call and solves/s, against a generic numerical IK on the same targets (``mink``, a
   benchmark extra: ``pip install -e '.[bench]'``; skipped with a note when absent), with the
@@ -25,6 +30,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import re
 import subprocess
 import sys
@@ -86,7 +92,32 @@ def _relay_block(endpoint: str, rate: float, seconds: float, tmp: Path, k: int) 
     return rows
 
 
-def _pipeline_block(rate: float, seconds: float, tmp: Path, k: int) -> tuple[np.ndarray, dict[str, Any]]:
+#: The services whose loop thread ``rt_priority`` puts under SCHED_FIFO.
+RT_SERVICES = ("master_capture", "mapping", "slave_control")
+
+
+def _with_rt(overrides: dict[str, list[str]], rt_priority: int | None) -> dict[str, list[str]]:
+    """``overrides`` plus ``rt_priority`` for :data:`RT_SERVICES` (None: the deploy configs')."""
+    if rt_priority is None:
+        return overrides
+    return {**overrides, **{s: [*overrides.get(s, []), f"rt_priority={rt_priority}"] for s in RT_SERVICES}}
+
+
+def fifo_threads(pid: int) -> int:
+    """Threads of process ``pid`` running under SCHED_FIFO now."""
+    n = 0
+    for tid in os.listdir(f"/proc/{pid}/task"):
+        try:
+            policy = os.sched_getscheduler(int(tid)) & ~getattr(os, "SCHED_RESET_ON_FORK", 0)
+        except OSError:  # the thread ended meanwhile
+            continue
+        n += policy == os.SCHED_FIFO
+    return n
+
+
+def _pipeline_block(
+    rate: float, seconds: float, tmp: Path, k: int, rt_priority: int | None = None
+) -> tuple[np.ndarray, dict[str, Any]]:
     from services.bench.harness import Pipeline
 
     npy = tmp / f"applied{k}.npy"
@@ -98,12 +129,14 @@ def _pipeline_block(rate: float, seconds: float, tmp: Path, k: int) -> tuple[np.
         ],
         "slave_control": [f"latency_log={json.dumps(str(npy))}"],
     }
+    overrides = _with_rt(overrides, rt_priority)
     with Pipeline(tmp / f"logs{k}", mirror=False, impair=False, probe=False, overrides=overrides) as p:
         time.sleep(seconds + 1.0)
+        fifo = {n: fifo_threads(pr.pid) for n, pr in p.site.procs.items() if n in RT_SERVICES}
         p.close()
     rows: np.ndarray = np.load(npy)
     logs = {f.stem: f.read_text() for f in (tmp / f"logs{k}").glob("*.log")}
-    return rows, {"holds": logs.get("watchdog", "").count("→ HOLD")}
+    return rows, {"holds": logs.get("watchdog", "").count("→ HOLD"), "fifo_threads": fifo}
 
 
 def latency(a: argparse.Namespace) -> dict[str, Any]:
@@ -127,9 +160,10 @@ def latency(a: argparse.Namespace) -> dict[str, Any]:
                 relay_rows.append(_relay_block(ep, rate, a.seconds, tmp, k))
             finally:
                 router.close()  # type: ignore[no-untyped-call]
-            rows, info = _pipeline_block(rate, a.seconds, tmp, k)
+            rows, info = _pipeline_block(rate, a.seconds, tmp, k, a.rt_priority)
             pipe_rows.append(rows)
             holds += info["holds"]
+            res["pipeline_fifo_threads"] = info["fifo_threads"]
     r = np.concatenate(relay_rows)
     pl = np.concatenate(pipe_rows)
     pl = pl[(pl[:, 0] > 0) & (pl[:, 1] > 0)]
@@ -161,6 +195,7 @@ def latency(a: argparse.Namespace) -> dict[str, Any]:
         ],
     )
     print(f"pipeline / relay: p50 × {res['ratio_p50']}, p99 × {res['ratio_p99']}; watchdog holds {holds}")
+    print(f"SCHED_FIFO threads of the pipeline: {res['pipeline_fifo_threads']}")
     if a.plot:
         from services.bench.plots import plot_latency
 
@@ -194,6 +229,7 @@ def soak(a: argparse.Namespace) -> dict[str, Any]:
                 "scripted.clutch_repeat_s=0.0",
             ]
         }
+        overrides = _with_rt(overrides, a.rt_priority)
         with Pipeline(tmp / "logs", mirror=False, impair=False, probe=False, overrides=overrides) as p:
             rec = (
                 subprocess.Popen(
@@ -222,6 +258,7 @@ def soak(a: argparse.Namespace) -> dict[str, Any]:
                 pr.cpu_percent(None)
             time.sleep(a.seconds)
             cpu_all = {n: round(pr.cpu_percent(None), 1) for n, pr in watched.items()}
+            fifo = {n: fifo_threads(pr.pid) for n, pr in watched.items()}
             rss = {n: round(pr.memory_info().rss / 2**20, 1) for n, pr in watched.items()}
             if rec is not None:
                 rec.wait(60)
@@ -245,12 +282,13 @@ def soak(a: argparse.Namespace) -> dict[str, Any]:
     res["cpu_total_pct"] = round(sum(cpu.values()), 1)
     res["recorder"] = {"cpu_pct": cpu_all["recorder"], "rss_mb": rss["recorder"]} if a.record else None
     res["rss_mb"] = rss
+    res["fifo_threads"] = fifo
     res["watchdog_holds"] = logs.get("watchdog", "").count("→ HOLD")
     from rich.console import Console
     from rich.table import Table
 
     t = Table(title=f"soak: {a.seconds:g} s at {a.rate:g} Hz" + ("" if a.record else ", no recorder"))
-    for c in ("service", "CPU %", "RSS MB", "cycles", "overruns", "miss %"):
+    for c in ("service", "CPU %", "RSS MB", "FIFO threads", "cycles", "overruns", "miss %"):
         t.add_column(c, justify="right")
     for n in cpu_all:
         mi = misses.get(n, {})
@@ -258,6 +296,7 @@ def soak(a: argparse.Namespace) -> dict[str, Any]:
             n,
             f"{cpu_all[n]:.1f}",
             f"{rss[n]:.1f}",
+            str(fifo[n]),
             str(mi.get("cycles", "")),
             str(mi.get("overruns", "")),
             str(mi.get("miss_pct", "")),
@@ -491,6 +530,12 @@ def main(argv: Sequence[str] | None = None, name: str = "latency") -> int:
             help="master rate, Hz (default 1000; latency: 0 = unpaced)",
         )
         ap.add_argument("--seconds", type=float, default=10.0 if name == "latency" else 60.0)
+        ap.add_argument(
+            "--rt-priority",
+            type=int,
+            help="SCHED_FIFO priority of the master, mapping and slave loop threads, 0 = normal "
+            "scheduling (default: the deploy configs', 20)",
+        )
     if name == "soak":
         ap.add_argument(
             "--no-record",
@@ -506,11 +551,13 @@ def main(argv: Sequence[str] | None = None, name: str = "latency") -> int:
     if name == "sim":
         ap.add_argument("--seconds", type=float, default=5.0, help="sim seconds per model")
     a = ap.parse_args(argv)
+    if getattr(a, "rt_priority", None) is not None and not 0 <= a.rt_priority <= 99:
+        ap.error(f"--rt-priority {a.rt_priority}: 0 (normal scheduling) or 1..99 (SCHED_FIFO)")
     if name == "soak" and not 1.0 <= a.rate <= 5000.0:
         ap.error(f"--rate {a.rate:g}: the soak runs the master at a fixed rate in [1, 5000] Hz")
     res = BENCHES[name](a)
     res["date"] = time.strftime("%Y-%m-%d %H:%M:%S")
-    res["machine"] = {"cpus": __import__("os").cpu_count(), "python": sys.version.split()[0]}
+    res["machine"] = {"cpus": os.cpu_count(), "python": sys.version.split()[0]}
     if a.json:
         a.json.write_text(json.dumps(res, indent=2) + "\n")
     return 0
