@@ -99,21 +99,33 @@ def test_ik_failure_holds_last_setpoint_and_reports(
     assert len(failures) == 1 and "holding last valid setpoint" in failures[0].text
 
 
-def test_holding_slave_disengages_and_needs_new_press(
-    rig: tuple[ArmMapping, list[JointSetpoint], list[SafetyEvent]],
+@pytest.mark.parametrize(
+    ("state", "why"),
+    [
+        (OperatingState(H, "PAUSED", "non_trocar", False, False, "lease expired", 1), "slave holding"),
+        (OperatingState(H, "ENABLED", "transitional", True, True, "", 1), "non_trocar → transitional"),
+    ],
+    ids=["slave holding", "control mode change"],
+)
+def test_a_slave_hold_or_mode_change_disengages_and_needs_a_new_press(
+    rig: tuple[ArmMapping, list[JointSetpoint], list[SafetyEvent]], state: OperatingState, why: str
 ) -> None:
-    arm, _, _ = rig
+    arm, _, events = rig
     feed(arm, (0.0, 0.0, 0.0), clutch=False)
     feed(arm, (0.0, 0.0, 0.0), clutch=True)
     assert arm.following
-    arm.on_slave_state(OperatingState(H, "PAUSED", "non_trocar", False, False, "lease expired", 1), "")
+    arm.on_slave_state(state, "")
     assert not arm.following
-    arm.on_slave_state(OperatingState(H, "PAUSED", "non_trocar", False, True, "", 1), "")
+    arm.on_slave_state(OperatingState(H, "PAUSED", state.control_mode, False, True, "", 2), "")
     feed(arm, (0.0, 0.0, 0.0), clutch=True)  # pedal still down: no re-engage
     assert not arm.following
     feed(arm, (0.0, 0.0, 0.0), clutch=False)
     feed(arm, (0.0, 0.0, 0.0), clutch=True)
     assert arm.following
+    deadline = time.monotonic() + 3
+    while not any(why in e.text for e in events if e.kind == "disengage") and time.monotonic() < deadline:
+        time.sleep(0.01)
+    assert any(why in e.text for e in events if e.kind == "disengage"), [e.text for e in events]
 
 
 def test_a_press_released_before_the_next_sample_does_not_engage(
@@ -131,23 +143,6 @@ def test_a_press_released_before_the_next_sample_does_not_engage(
     assert [s.follow for s in setpoints] == [False, False]
     feed(arm, (0.0, 0.0, 0.0), clutch=True)  # the next press engages
     assert arm.following
-
-
-def test_a_change_of_the_slave_control_mode_disengages_and_needs_a_new_press(
-    rig: tuple[ArmMapping, list[JointSetpoint], list[SafetyEvent]],
-) -> None:
-    arm, _, events = rig
-    feed(arm, (0.0, 0.0, 0.0), clutch=False)
-    feed(arm, (0.0, 0.0, 0.0), clutch=True)
-    assert arm.following
-    arm.on_slave_state(OperatingState(H, "ENABLED", "transitional", True, True, "", 1), "")
-    assert not arm.following
-    feed(arm, (0.0, 0.0, 0.0), clutch=True)  # pedal still down: no re-engage
-    assert not arm.following
-    deadline = time.monotonic() + 3
-    while not any(e.kind == "disengage" for e in events) and time.monotonic() < deadline:
-        time.sleep(0.01)
-    assert any("control mode non_trocar → transitional" in e.text for e in events if e.kind == "disengage")
 
 
 def test_joint_space_mapping_follows_the_same_engage_rules(
