@@ -198,9 +198,9 @@ class ArmMapping(EngageGate):
         self.reply_seq = Sequencer(cfg.service)
         self.last_pose: CartesianPose | None = None  # last master sample mapped while following
         self.last_target: np.ndarray | None = None  # its slave target (4×4)
-        self.ws_lo = np.asarray(cfg.workspace_min_mm) / 1e3
-        self.ws_hi = np.asarray(cfg.workspace_max_mm) / 1e3
-        self.ws_lo_t, self.ws_hi_t = self.ws_lo.tolist(), self.ws_hi.tolist()
+        # workspace box, m, as floats (the per-sample clamp in _target)
+        self.ws_lo = [v / 1e3 for v in cfg.workspace_min_mm]
+        self.ws_hi = [v / 1e3 for v in cfg.workspace_max_mm]
         self._clamping = False
         # Newest master sample not yet mapped. The zenoh callback only stores it; the service
         # loop maps it. If mapping ever falls behind, it maps the newest sample and skips the
@@ -323,7 +323,7 @@ class ArmMapping(EngageGate):
         k = self.scale * self.safety_scale
         d0, d1, d2 = m[0] - pm[0], m[1] - pm[1], m[2] - pm[2]
         p = [ps[i] + k * (r[i][0] * d0 + r[i][1] * d1 + r[i][2] * d2) for i in range(3)]
-        clamped = [min(max(v, lo), hi) for v, lo, hi in zip(p, self.ws_lo_t, self.ws_hi_t, strict=True)]
+        clamped = [min(max(v, lo), hi) for v, lo, hi in zip(p, self.ws_lo, self.ws_hi, strict=True)]
         t = np.eye(4)
         if clamped != p:
             self.clamped += 1
