@@ -12,15 +12,15 @@
   misses (from the services' own counters at exit), CPU % and RSS per service and of the recorder
   (psutil), and how many of each service's threads run under SCHED_FIFO. ``--no-record`` leaves
   the recorder out (it loads the loops too).
-
-Both run the services with the deploy configs (``deploy/local``), whose master, mapping and slave
-loop threads run under SCHED_FIFO (``rt_priority = 20``, where the host allows it);
-``--rt-priority N`` sets another priority for the three, 0 the normal scheduler.
 * ``ik`` — the analytic solvers (trocar-mode IK, 6-axis IK, VIP IK, PLAS all-joints mapping step):
   µs per call and solves/s, against a generic numerical IK on the same targets (``mink``, a
   benchmark extra: ``pip install -e '.[bench]'``; skipped with a note when absent), with the
   position and RCM error of each.
 * ``sim`` — MuJoCo steps/s unpaced per robot model, and the real-time factor.
+
+``latency`` and ``soak`` run the services with the deploy configs (``deploy/local``), whose
+master, mapping and slave loop threads run under SCHED_FIFO (``rt_priority = 20``, where the host
+allows it); ``--rt-priority N`` sets another priority for the three, 0 the normal scheduler.
 
 Nothing here asserts a time: the figures are printed and written, the goals are in
 ``docs/performance.md``.
@@ -96,11 +96,18 @@ def _relay_block(endpoint: str, rate: float, seconds: float, tmp: Path, k: int) 
 RT_SERVICES = ("master_capture", "mapping", "slave_control")
 
 
-def _with_rt(overrides: dict[str, list[str]], rt_priority: int | None) -> dict[str, list[str]]:
-    """``overrides`` plus ``rt_priority`` for :data:`RT_SERVICES` (None: the deploy configs')."""
-    if rt_priority is None:
-        return overrides
-    return {**overrides, **{s: [*overrides.get(s, []), f"rt_priority={rt_priority}"] for s in RT_SERVICES}}
+def _overrides(master_hz: float, rt_priority: int | None, **extra: list[str]) -> dict[str, list[str]]:
+    """Config overrides of a bench pipeline: the master at ``master_hz`` with its pedal pressed
+    from 0.5 s on (one engage, held), ``rt_priority`` for :data:`RT_SERVICES` (None: the deploy
+    configs'), and ``extra`` per service."""
+    pedal = ["scripted.clutch=[[0.5, 1e9]]", "scripted.clutch_repeat_s=0.0"]
+    out: dict[str, list[str]] = {"master_capture": [f"rate_hz={master_hz}", *pedal]}
+    for svc, items in extra.items():
+        out.setdefault(svc, []).extend(items)
+    if rt_priority is not None:
+        for svc in RT_SERVICES:
+            out.setdefault(svc, []).append(f"rt_priority={rt_priority}")
+    return out
 
 
 def fifo_threads(pid: int) -> int:
@@ -121,15 +128,11 @@ def _pipeline_block(
     from services.bench.harness import Pipeline
 
     npy = tmp / f"applied{k}.npy"
-    overrides = {
-        "master_capture": [
-            f"rate_hz={rate if rate > 0 else UNPACED_MASTER_HZ}",
-            "scripted.clutch=[[0.5, 1e9]]",
-            "scripted.clutch_repeat_s=0.0",
-        ],
-        "slave_control": [f"latency_log={json.dumps(str(npy))}"],
-    }
-    overrides = _with_rt(overrides, rt_priority)
+    overrides = _overrides(
+        rate if rate > 0 else UNPACED_MASTER_HZ,
+        rt_priority,
+        slave_control=[f"latency_log={json.dumps(str(npy))}"],
+    )
     with Pipeline(tmp / f"logs{k}", mirror=False, impair=False, probe=False, overrides=overrides) as p:
         time.sleep(seconds + 1.0)
         fifo = {n: fifo_threads(pr.pid) for n, pr in p.site.procs.items() if n in RT_SERVICES}
@@ -222,14 +225,7 @@ def soak(a: argparse.Namespace) -> dict[str, Any]:
     res: dict[str, Any] = {"rate_hz": a.rate, "seconds": a.seconds}
     with tempfile.TemporaryDirectory() as d:
         tmp = Path(d)
-        overrides = {
-            "master_capture": [
-                f"rate_hz={a.rate}",
-                "scripted.clutch=[[0.5, 1e9]]",
-                "scripted.clutch_repeat_s=0.0",
-            ]
-        }
-        overrides = _with_rt(overrides, a.rt_priority)
+        overrides = _overrides(a.rate, a.rt_priority)
         with Pipeline(tmp / "logs", mirror=False, impair=False, probe=False, overrides=overrides) as p:
             rec = (
                 subprocess.Popen(
