@@ -23,8 +23,13 @@ lint: $(STAMP)
 	$(BIN)/ruff check shared services tests
 	$(BIN)/ruff format --check shared services tests
 
+# mypy checks the sources under their installed names (telesurg.shared, telesurg.services): a tree
+# of links in the venv maps the user's folders under the telesurg namespace, as pyproject does.
 typecheck: $(STAMP)
-	$(BIN)/mypy
+	mkdir -p $(VENV)/typecheck/telesurg
+	ln -sfn ../../../shared $(VENV)/typecheck/telesurg/shared
+	ln -sfn ../../../services $(VENV)/typecheck/telesurg/services
+	MYPYPATH=$(VENV)/typecheck $(BIN)/mypy $(VENV)/typecheck/telesurg
 
 pytest: $(STAMP)
 	$(BIN)/pytest

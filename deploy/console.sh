@@ -80,7 +80,7 @@ bus=(--site "$site" --connect "$protocol/$host:$port" --tls-ca "$certs/ca.pem" -
      --tls-cert "$certs/$identity.pem" --tls-key "$certs/$identity.key")
 
 has_console=0
-if [[ $ui == 1 ]] && "$py" -c 'import importlib.util as u, sys; sys.exit(u.find_spec("services.console") is None)' 2>/dev/null; then
+if [[ $ui == 1 ]] && "$py" -c 'import importlib.util as u, sys; sys.exit(u.find_spec("telesurg.services.console") is None)' 2>/dev/null; then
     has_console=1
     [[ -z "$log_dir" ]] && log_dir="$here/out/console-logs"
 fi
@@ -101,9 +101,9 @@ start() {  # start SERVICE (cli name) in the background with its config and over
     [[ -f "$config_dir/$name.toml" ]] && args+=(--config "$config_dir/$name.toml")
     while IFS= read -r item; do [[ -n "$item" ]] && args+=(--set "$item"); done <<< "${sets[$name]}"
     if [[ -n "$log_dir" ]]; then
-        "$py" -m services.cli "$cli" "${bus[@]}" ${args[@]+"${args[@]}"} >>"$log_dir/$name.log" 2>&1 &
+        "$py" -m telesurg.services.cli "$cli" "${bus[@]}" ${args[@]+"${args[@]}"} >>"$log_dir/$name.log" 2>&1 &
     else
-        "$py" -m services.cli "$cli" "${bus[@]}" ${args[@]+"${args[@]}"} &
+        "$py" -m telesurg.services.cli "$cli" "${bus[@]}" ${args[@]+"${args[@]}"} &
     fi
     pids+=($!)
     echo "console.sh: started $name (pid $!) -> $protocol/$host:$port as $identity" >&2
@@ -116,7 +116,7 @@ if [[ $has_console == 1 ]]; then
     args=()
     [[ -f "$config_dir/console.toml" ]] && args+=(--config "$config_dir/console.toml")
     while IFS= read -r item; do [[ -n "$item" ]] && args+=(--set "$item"); done <<< "${sets[console]}"
-    "$py" -m services.cli console \
+    "$py" -m telesurg.services.cli console \
         "${bus[@]}" --log-file "$log_dir/console.log" ${args[@]+"${args[@]}"} || true
 else
     [[ $ui == 1 ]] && echo "console.sh: telesurg console is not installed; running master_capture only" >&2

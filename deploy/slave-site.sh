@@ -83,4 +83,4 @@ for ep in "${listen[@]}"; do args+=(--listen "$ep"); done
 args+=(--tls-ca "$certs/ca.pem" --tls-cert "$certs/slave-site.pem" --tls-key "$certs/slave-site.key")
 args+=(--mtls --acl "$acl")
 # exec: telesurg up gets the signals and stops the services in order
-exec "$here/.venv/bin/python" -m services.cli "${args[@]}" ${extra[@]+"${extra[@]}"}
+exec "$here/.venv/bin/python" -m telesurg.services.cli "${args[@]}" ${extra[@]+"${extra[@]}"}

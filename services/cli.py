@@ -16,24 +16,33 @@ from collections.abc import Sequence
 
 #: subcommand → module with a ``main(argv) -> int``
 COMMANDS = {
-    "router": ("services.router", "zenoh router for a site (Python process, no zenohd)"),
-    "master-capture": ("services.master_capture", "publish a master device's pose and buttons"),
-    "mapping": ("services.mapping", "master pose → slave joint setpoints (clutch, scale, IK)"),
-    "slave-control": ("services.slave_control", "run the slave arm (MuJoCo) under a lease"),
-    "watchdog": ("services.watchdog", "grant slave leases while every service is healthy"),
-    "mirror": ("services.mirror", "stream everything to rerun (web viewer or .rrd)"),
-    "up": ("services.launcher", "start router + all services locally; Ctrl-C stops all"),
-    "demo": ("services.launcher.demo", "the whole simulated teleop session (scripted circle)"),
-    "estop": ("services.estop", "e-stop (or --reset) one arm or every arm of a site"),
-    "cmd": ("services.command", "send an operator command (trocar mode, jog, …) to a slave arm"),
-    "bench": ("services.bench", "fault-injection and fuzz benchmarks (tables + JSON)"),
-    "impair": ("shared.impair", "userspace TCP link impairer (cut / delay) for fault tests"),
-    "device": ("services.device", "serial device tools: emulate an encoder board on a pty, monitor one"),
-    "console": ("services.console", "operator console (terminal UI): state, clutch, commands, e-stop"),
-    "certs": ("services.certs", "make a CA and per-identity certificates for mutual TLS"),
-    "record": ("services.record", "record every message of a site into an MCAP file"),
-    "replay": ("services.record.replay", "replay a recording's master streams into a live site, compare"),
-    "experiment": ("services.experiment", "reproduce a paper's evaluation (figures + metrics.json)"),
+    "router": ("telesurg.services.router", "zenoh router for a site (Python process, no zenohd)"),
+    "master-capture": ("telesurg.services.master_capture", "publish a master device's pose and buttons"),
+    "mapping": ("telesurg.services.mapping", "master pose → slave joint setpoints (clutch, scale, IK)"),
+    "slave-control": ("telesurg.services.slave_control", "run the slave arm (MuJoCo) under a lease"),
+    "watchdog": ("telesurg.services.watchdog", "grant slave leases while every service is healthy"),
+    "mirror": ("telesurg.services.mirror", "stream everything to rerun (web viewer or .rrd)"),
+    "up": ("telesurg.services.launcher", "start router + all services locally; Ctrl-C stops all"),
+    "demo": ("telesurg.services.launcher.demo", "the whole simulated teleop session (scripted circle)"),
+    "estop": ("telesurg.services.estop", "e-stop (or --reset) one arm or every arm of a site"),
+    "cmd": ("telesurg.services.command", "send an operator command (trocar mode, jog, …) to a slave arm"),
+    "bench": ("telesurg.services.bench", "fault-injection and fuzz benchmarks (tables + JSON)"),
+    "impair": ("telesurg.shared.impair", "userspace TCP link impairer (cut / delay) for fault tests"),
+    "device": (
+        "telesurg.services.device",
+        "serial device tools: emulate an encoder board on a pty, monitor one",
+    ),
+    "console": (
+        "telesurg.services.console",
+        "operator console (terminal UI): state, clutch, commands, e-stop",
+    ),
+    "certs": ("telesurg.services.certs", "make a CA and per-identity certificates for mutual TLS"),
+    "record": ("telesurg.services.record", "record every message of a site into an MCAP file"),
+    "replay": (
+        "telesurg.services.record.replay",
+        "replay a recording's master streams into a live site, compare",
+    ),
+    "experiment": ("telesurg.services.experiment", "reproduce a paper's evaluation (figures + metrics.json)"),
 }
 
 

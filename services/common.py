@@ -18,9 +18,9 @@ import threading
 from collections.abc import Callable, Sequence
 from typing import Any, Protocol, TypeVar
 
-from shared.bus import BusConfig, add_bus_args, bus_from_args
-from shared.config import load_config
-from shared.errors import TelesurgError
+from telesurg.shared.bus import BusConfig, add_bus_args, bus_from_args
+from telesurg.shared.config import load_config
+from telesurg.shared.errors import TelesurgError
 
 log = logging.getLogger("telesurg")
 

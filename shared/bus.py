@@ -40,10 +40,10 @@ from pathlib import Path
 from types import TracebackType
 from typing import TYPE_CHECKING, Any, TypeVar
 
-from shared.errors import ConfigError, MessageError
-from shared.keys import Keys, check_id
-from shared.messages import Header, Heartbeat, Message, SafetyEvent, Sequencer, decode_as
-from shared.streams import StreamTable
+from telesurg.shared.errors import ConfigError, MessageError
+from telesurg.shared.keys import Keys, check_id
+from telesurg.shared.messages import Header, Heartbeat, Message, SafetyEvent, Sequencer, decode_as
+from telesurg.shared.streams import StreamTable
 
 if TYPE_CHECKING:
     import zenoh

@@ -15,7 +15,7 @@ import typing
 from pathlib import Path
 from typing import Any, TypeVar
 
-from shared.errors import ConfigError
+from telesurg.shared.errors import ConfigError
 
 T = TypeVar("T")
 

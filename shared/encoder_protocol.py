@@ -1,13 +1,13 @@
-"""Encoder-board protocol: what the master's microcontroller sends over :mod:`shared.serial_link`.
+"""Encoder-board protocol: what the master's microcontroller sends over :mod:`telesurg.shared.serial_link`.
 
 The all-joints ergonomic master (Shim 2015, Table 3 / Section 2.3) has six joints: joint 1, the
 shoulder slide, is read as an on/off switch; joints 2-5 (elbow yaw, wrist yaw, wrist pitch, wrist
 roll) by rotary quadrature encoders of 400 counts per revolution; joint 6, the finger slide, by a
 linear potentiometer. A microcontroller (reference sketch: ``firmware/encoder_board``) samples them
 and streams frames to the host; :class:`Calibration` turns the raw readings into joint values
-(rad / m). Pure module: no I/O, no threads; :mod:`shared.serial_link` is imported lazily.
+(rad / m). Pure module: no I/O, no threads; :mod:`telesurg.shared.serial_link` is imported lazily.
 
-Frame layout (from :mod:`shared.serial_link`, version 1)
+Frame layout (from :mod:`telesurg.shared.serial_link`, version 1)
 --------------------------------------------------------
 Every message is one frame, ``COBS(raw) 0x00`` on the wire, with the raw frame::
 
@@ -31,7 +31,7 @@ kind   name             direction        when
 0x10   HELLO_REQUEST    host → board     when the host opens the port
 =====  ===============  ===============  ==================================================
 
-Any other kind is rejected (:class:`~shared.errors.MessageError`). Bodies hold exactly the keys
+Any other kind is rejected (:class:`~telesurg.shared.errors.MessageError`). Bodies hold exactly the keys
 below: a missing or an unknown key, a wrong type or a value out of range rejects the message.
 Integers are MessagePack integers of any width (a sender may always use the smallest, like
 ``msgpack.packb``, or fixed widths); booleans are not integers.
@@ -77,7 +77,7 @@ bit/s UART (11 520 bytes/s) carries at most ~198 SAMPLEs/s: the reference firmwa
 
 Example::
 
-    >>> from shared.encoder_protocol import Calibration, Sample
+    >>> from telesurg.shared.encoder_protocol import Calibration, Sample
     >>> r = Calibration().convert(Sample(t_us=0, counts=(100, 0, 0, 0), pot=512, sw=0b110))
     >>> round(r.joints[1], 6), r.clutch, r.operator_present   # 100 counts of 400 = 90° on joint 2
     (1.570796, True, True)
@@ -90,14 +90,14 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, ClassVar
 
-from shared.errors import ConfigError, MessageError
-from shared.serial_link import HelloRequestBase, MessageSet, check_proto
-from shared.serial_link import check_fields as _fields
-from shared.serial_link import check_int as _int
-from shared.serial_link import check_str as _str
+from telesurg.shared.errors import ConfigError, MessageError
+from telesurg.shared.serial_link import HelloRequestBase, MessageSet, check_proto
+from telesurg.shared.serial_link import check_fields as _fields
+from telesurg.shared.serial_link import check_int as _int
+from telesurg.shared.serial_link import check_str as _str
 
 if TYPE_CHECKING:
-    from shared.serial_link import Frame
+    from telesurg.shared.serial_link import Frame
 
 #: Version of the body layouts below; HELLO and HELLO_REQUEST carry it as ``proto``.
 PROTO_VERSION = 1
@@ -313,7 +313,7 @@ class Calibration:
 
         q = (pot - pot_zero) * pot_m_per_count                                     [m]
 
-    Joints no sensor reads are 0.0. Raises :class:`~shared.errors.ConfigError` when inconsistent.
+    Joints no sensor reads are 0.0. Raises :class:`~telesurg.shared.errors.ConfigError` when inconsistent.
     """
 
     joints: int = 6  # master joints (plas-master: d1, theta2..theta5, d6); HELLO must agree

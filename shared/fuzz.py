@@ -2,14 +2,15 @@
 
 Runtime code (used by the fuzz benchmark and the tests): it depends only on :mod:`random`, msgpack and
 the message classes, never on hypothesis. Everything is derived from the message classes at runtime —
-:data:`~shared.messages.MESSAGE_TYPES`, :meth:`~shared.messages.Message.encode` and ``BODY`` — so fields
+:data:`~telesurg.shared.messages.MESSAGE_TYPES`, :meth:`~telesurg.shared.messages.Message.encode`
+and ``BODY`` — so fields
 added to a message class are fuzzed without touching this module.
 
 Given the same seed (``random.Random(seed)``), the same templates and the same ``n``,
 :func:`fuzz_cases` yields the same payloads, in every process (no iteration over sets or hashes).
 
-Kinds (:data:`FUZZ_KINDS`); "always invalid" means :func:`~shared.messages.decode` must raise
-:class:`~shared.errors.MessageError` for every case of that kind derived from a *valid* template
+Kinds (:data:`FUZZ_KINDS`); "always invalid" means :func:`~telesurg.shared.messages.decode` must raise
+:class:`~telesurg.shared.errors.MessageError` for every case of that kind derived from a *valid* template
 (see :func:`always_invalid`):
 
 =================== ======= ====================================================================
@@ -56,7 +57,7 @@ boundary            no      values right at and just beyond limits: seq/ts 0, 2*
 Example::
 
     >>> import random
-    >>> from shared.fuzz import FUZZ_KINDS, default_templates, fuzz_cases
+    >>> from telesurg.shared.fuzz import FUZZ_KINDS, default_templates, fuzz_cases
     >>> cases = list(fuzz_cases(random.Random(1), default_templates(), 100))
     >>> len(cases), cases[0].kind in FUZZ_KINDS
     (100, True)
@@ -77,9 +78,8 @@ from functools import lru_cache
 from typing import Any, Final, TypeVar
 
 import msgpack
-
-from shared.errors import MessageError
-from shared.messages import (
+from telesurg.shared.errors import MessageError
+from telesurg.shared.messages import (
     MAX_JOINTS,
     MAX_LIST,
     MAX_PAYLOAD_BYTES,
@@ -121,7 +121,8 @@ FUZZ_KINDS: Final[tuple[str, ...]] = (
     "boundary",
 )
 
-#: Kinds for which :func:`~shared.messages.decode` must reject every case derived from a valid template.
+#: Kinds for which :func:`~telesurg.shared.messages.decode` must reject every case derived from a valid
+#: template.
 ALWAYS_INVALID_KINDS: Final[frozenset[str]] = frozenset(
     {
         "truncated",
@@ -291,7 +292,7 @@ def valid_template(cls: type[M], *, source: str = "fuzz", seq: int = 0, n_joints
     message class need no change here.
 
     Args:
-        cls: a registered message class (a value of :data:`~shared.messages.MESSAGE_TYPES`).
+        cls: a registered message class (a value of :data:`~telesurg.shared.messages.MESSAGE_TYPES`).
         source: header source id (must be non-empty).
         seq: header sequence number.
         n_joints: joint count of joint-space fields, 1..MAX_JOINTS (joint lists may not be empty).

@@ -29,7 +29,7 @@ from __future__ import annotations
 import re
 from dataclasses import dataclass
 
-from shared.errors import ConfigError
+from telesurg.shared.errors import ConfigError
 
 PREFIX_ROOT = "telesurg"
 _ID = re.compile(r"^[A-Za-z0-9_-]{1,64}$")

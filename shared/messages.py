@@ -13,11 +13,11 @@ Every payload is a MessagePack map with a common header::
 
 :func:`decode` is the only entry point for incoming bytes. It validates strictly — exact field set,
 types, array shapes, finite numbers, string and array sizes, total payload size — and raises
-:class:`~shared.errors.MessageError` with a message naming the field. Nothing half-decoded escapes.
+:class:`~telesurg.shared.errors.MessageError` with a message naming the field. Nothing half-decoded escapes.
 
 Example::
 
-    >>> from shared.messages import Header, JointSetpoint, decode
+    >>> from telesurg.shared.messages import Header, JointSetpoint, decode
     >>> m = JointSetpoint(Header("mapping", 0, 1), ("j1",), (0.1,), follow=True)
     >>> decode(m.encode()) == m
     True
@@ -33,8 +33,7 @@ from dataclasses import dataclass, field
 from typing import Any, ClassVar, TypeVar
 
 import msgpack
-
-from shared.errors import MessageError
+from telesurg.shared.errors import MessageError
 
 SCHEMA_VERSION = 2  # 2: safety fields (origin_ns, latency, scale, rcm, clipped), estop
 #: Largest payload accepted by :func:`decode`, bytes.

@@ -20,8 +20,7 @@ from dataclasses import dataclass
 from functools import cache
 
 import numpy as np
-
-from shared.errors import ConfigError
+from telesurg.shared.errors import ConfigError
 
 
 @dataclass(frozen=True)
@@ -51,7 +50,7 @@ class ArmProfile:
 
 
 def _mh3f(arm: str) -> tuple[ArmProfile, ...]:
-    from shared.kinematics import MH3F, fk
+    from telesurg.shared.kinematics import MH3F, fk
 
     def tip(q: np.ndarray) -> np.ndarray:
         out: np.ndarray = fk(q, MH3F)[:3, 3]
@@ -69,8 +68,8 @@ VIP_MAX_VELOCITY = (2.0, 2.0, 0.1, 2.0, 2.0)
 
 
 def _plas(arm: str) -> ArmProfile:
-    from shared.kinematics.plas import PLAS_SLAVE
-    from shared.kinematics.plas_layout import arm_tip
+    from telesurg.shared.kinematics.plas import PLAS_SLAVE
+    from telesurg.shared.kinematics.plas_layout import arm_tip
 
     def tip(q: np.ndarray) -> np.ndarray:
         return arm_tip(arm, q)
@@ -90,7 +89,7 @@ def _plas(arm: str) -> ArmProfile:
 
 
 def _vip(arm: str) -> ArmProfile:
-    from shared.kinematics import vip
+    from telesurg.shared.kinematics import vip
 
     geom = vip.VIP_ARM1 if arm == "arm1" else vip.VIP_ARM2
 

@@ -35,13 +35,13 @@ On the wire::
   :class:`SerialLink` writes one 0x00 on open so the peer drops any half-received frame.
 
 Libraries: ``cobs`` (C extension) for COBS, ``fastcrc`` (Rust) for the CRC, ``msgpack`` for bodies,
-``pyserial`` for ports. Errors: :class:`FrameError` is a :class:`~shared.errors.MessageError` (a
+``pyserial`` for ports. Errors: :class:`FrameError` is a :class:`~telesurg.shared.errors.MessageError` (a
 payload failed decoding, like every other strict decoder in telesurg); a port that cannot be
-opened, read or written raises :class:`~shared.errors.DeviceConnectionError` naming the port.
+opened, read or written raises :class:`~telesurg.shared.errors.DeviceConnectionError` naming the port.
 
 Example::
 
-    >>> from shared.serial_link import SerialLink, decode_frame, encode_frame
+    >>> from telesurg.shared.serial_link import SerialLink, decode_frame, encode_frame
     >>> decode_frame(encode_frame(kind=3, seq=7, body={"q": [0.1, 0.2]}))
     Frame(kind=3, seq=7, body={'q': [0.1, 0.2]})
     >>> with SerialLink("loop://") as link:  # or "/dev/ttyUSB0", "/dev/pts/4", "socket://host:port"
@@ -66,8 +66,7 @@ import msgpack
 import serial
 from cobs import cobs  # type: ignore[import-untyped]
 from fastcrc import crc16
-
-from shared.errors import DeviceConnectionError, MessageError
+from telesurg.shared.errors import DeviceConnectionError, MessageError
 
 #: Version byte of every frame this module writes; frames of other versions are rejected.
 FRAME_VERSION = 1

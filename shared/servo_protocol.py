@@ -1,14 +1,15 @@
-"""Joint-servo protocol: what the host and a slave arm's servo controller say over :mod:`shared.serial_link`.
+"""Joint-servo protocol: what the host and a slave arm's servo controller say over
+:mod:`~telesurg.shared.serial_link`.
 
 A real slave arm (a hobby-servo arm, a custom PLAS-like robot, an industrial arm behind a
 microcontroller bridge) is driven from joint position setpoints by a controller on a serial port.
 The host (slave_control's ``serial`` backend) sends setpoints at its control rate; the controller
 servoes the joints, streams its measured state and stops on its own when the setpoints stop (a
-second, hardware-side watchdog). Pure module: no I/O, no threads; :mod:`shared.serial_link` and
-:mod:`shared.robots` are imported lazily. Reference firmware: ``firmware/servo_controller``;
+second, hardware-side watchdog). Pure module: no I/O, no threads; :mod:`telesurg.shared.serial_link` and
+:mod:`telesurg.shared.robots` are imported lazily. Reference firmware: ``firmware/servo_controller``;
 emulator: ``telesurg device emulate-slave``; bring-up of a real arm: ``docs/hardware.md``.
 
-Frame layout (from :mod:`shared.serial_link`, frame version 1)
+Frame layout (from :mod:`telesurg.shared.serial_link`, frame version 1)
 --------------------------------------------------------------
 Every message is one frame, ``COBS(raw) 0x00`` on the wire, with the raw frame::
 
@@ -32,9 +33,9 @@ kind   name             direction            when
 0x33   SETPOINT         host → controller    once per host control period while enabled
 =====  ===============  ===================  ==============================================
 
-The kinds differ from the encoder board's (0x01, 0x02, 0x10, :mod:`shared.encoder_protocol`) so
+The kinds differ from the encoder board's (0x01, 0x02, 0x10, :mod:`telesurg.shared.encoder_protocol`) so
 an encoder board on the servo port is recognised and named in the error. Any other kind is
-rejected (:class:`~shared.errors.MessageError`). Bodies hold exactly the keys below: a missing or
+rejected (:class:`~telesurg.shared.errors.MessageError`). Bodies hold exactly the keys below: a missing or
 an unknown key, a wrong type or a value out of range rejects the message. Integers are
 MessagePack integers of any width; booleans are not integers. Reals are MessagePack float 32 or
 float 64 (an integer is accepted where a real is expected); every real must be finite. Joint
@@ -140,8 +141,8 @@ direction. 115 200 bit/s is too slow for 100 Hz in both directions with 6 joints
 
 Example::
 
-    >>> from shared.servo_protocol import Setpoint, decode_message, encode_message
-    >>> from shared.serial_link import decode_frame
+    >>> from telesurg.shared.servo_protocol import Setpoint, decode_message, encode_message
+    >>> from telesurg.shared.serial_link import decode_frame
     >>> decode_message(decode_frame(encode_message(Setpoint(7, (0.5, -0.25), 100), 9)))
     Setpoint(seq=7, q=(0.5, -0.25), timeout_ms=100)
 """
@@ -152,15 +153,15 @@ import math
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, ClassVar
 
-from shared.errors import MessageError
-from shared.serial_link import HelloRequestBase, MessageSet, check_proto
-from shared.serial_link import check_bool as _bool
-from shared.serial_link import check_fields as _fields
-from shared.serial_link import check_int as _int
-from shared.serial_link import check_str as _str
+from telesurg.shared.errors import MessageError
+from telesurg.shared.serial_link import HelloRequestBase, MessageSet, check_proto
+from telesurg.shared.serial_link import check_bool as _bool
+from telesurg.shared.serial_link import check_fields as _fields
+from telesurg.shared.serial_link import check_int as _int
+from telesurg.shared.serial_link import check_str as _str
 
 if TYPE_CHECKING:
-    from shared.serial_link import Frame
+    from telesurg.shared.serial_link import Frame
 
 #: Version of the body layouts above; HELLO and HELLO_REQUEST carry it as ``proto``.
 PROTO_VERSION = 1
@@ -497,7 +498,7 @@ class ServoRobot:
     """The robot a host expects behind its servo port: every joint of a model's arms, in order.
 
     Attributes:
-        model: robot model (:data:`shared.robots.MODELS`).
+        model: robot model (:data:`telesurg.shared.robots.MODELS`).
         joint_names: the model's joint names (MuJoCo names: ``j1`` … for mh3f, ``arm1_d1`` … for
             the two-arm models), the controller's joint order.
         lower, upper: joint limits, rad / m.
@@ -514,12 +515,12 @@ class ServoRobot:
 
     @classmethod
     def of(cls, model: str, arm: str = "arm1") -> ServoRobot:
-        """Every arm of ``model`` (``shared.robots.arms_of``), concatenated.
+        """Every arm of ``model`` (``telesurg.shared.robots.arms_of``), concatenated.
 
         Raises:
             ConfigError: unknown model (the message names the valid ones).
         """
-        from shared.robots import arms_of
+        from telesurg.shared.robots import arms_of
 
         arms = arms_of(model, arm)
         return cls(

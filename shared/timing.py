@@ -17,7 +17,7 @@ import os
 import time
 from dataclasses import dataclass, field
 
-from shared.errors import ConfigError
+from telesurg.shared.errors import ConfigError
 
 log = logging.getLogger(__name__)
 

@@ -6,9 +6,8 @@ import time
 from collections.abc import Callable, Iterator
 
 import pytest
-
-from services.launcher import free_port
-from shared.bus import BusConfig, open_session
+from telesurg.services.launcher import free_port
+from telesurg.shared.bus import BusConfig, open_session
 
 
 @pytest.fixture

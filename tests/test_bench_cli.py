@@ -11,7 +11,7 @@ import pytest
 
 pytestmark = pytest.mark.process
 
-BENCH = [sys.executable, "-m", "services.cli", "bench"]
+BENCH = [sys.executable, "-m", "telesurg.services.cli", "bench"]
 
 
 def test_bench_faults_smoke(tmp_path: Path) -> None:

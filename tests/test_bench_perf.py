@@ -15,7 +15,7 @@ import pytest
 def bench(tmp_path: Path, *args: str) -> dict:  # type: ignore[type-arg]
     out = tmp_path / f"{args[0]}.json"
     r = subprocess.run(
-        [sys.executable, "-m", "services.cli", "bench", *args, "--json", str(out)],
+        [sys.executable, "-m", "telesurg.services.cli", "bench", *args, "--json", str(out)],
         capture_output=True,
         text=True,
         timeout=300,

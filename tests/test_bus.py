@@ -6,10 +6,9 @@ import time
 
 import pytest
 from conftest import wait_until
-
-from shared.bus import BusConfig, Node
-from shared.errors import ConfigError
-from shared.messages import Header, JointSetpoint, JointState
+from telesurg.shared.bus import BusConfig, Node
+from telesurg.shared.errors import ConfigError
+from telesurg.shared.messages import Header, JointSetpoint, JointState
 
 
 def test_malformed_rejected_counted_never_delivered(endpoint: str) -> None:
@@ -67,7 +66,7 @@ def test_only_allowed_sources_reach_the_callback(endpoint: str) -> None:
 
 
 def test_a_single_forged_sequence_jump_cannot_silence_the_stream() -> None:
-    from shared.streams import MAX_SEQ_JUMP, StreamStats
+    from telesurg.shared.streams import MAX_SEQ_JUMP, StreamStats
 
     s = StreamStats()
     assert all(s.accept("mapping", i) for i in range(5))
@@ -84,9 +83,8 @@ def test_a_single_forged_sequence_jump_cannot_silence_the_stream() -> None:
 
 def test_slave_refuses_a_setpoint_jump_while_following(endpoint: str) -> None:
     import numpy as np
-
-    from services.slave_control import SlaveControlConfig, SlaveService
-    from shared.kinematics import MH3F
+    from telesurg.services.slave_control import SlaveControlConfig, SlaveService
+    from telesurg.shared.kinematics import MH3F
 
     names = MH3F.joint_names
     q0 = (0.0, 0.2, 0.3, 0.0, -0.6, 0.0)
@@ -133,8 +131,8 @@ def test_echo_round_trip(endpoint: str) -> None:
 
 
 def test_command_queryable_answers_refuses_and_survives(endpoint: str) -> None:
-    from shared.errors import MessageError
-    from shared.messages import Command, CommandReply
+    from telesurg.shared.errors import MessageError
+    from telesurg.shared.messages import Command, CommandReply
 
     bus = BusConfig(connect=[endpoint])
     seen: list[Command] = []

@@ -5,13 +5,12 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
-
-from services.mapping import MappingConfig
-from services.master_capture import MasterCaptureConfig
-from shared.config import load_config
-from shared.errors import ConfigError
-from shared.keys import Keys
-from shared.streams import StreamStats
+from telesurg.services.mapping import MappingConfig
+from telesurg.services.master_capture import MasterCaptureConfig
+from telesurg.shared.config import load_config
+from telesurg.shared.errors import ConfigError
+from telesurg.shared.keys import Keys
+from telesurg.shared.streams import StreamStats
 
 
 def test_toml_and_overrides(tmp_path: Path) -> None:

@@ -17,15 +17,14 @@ from collections.abc import Callable
 from pathlib import Path
 
 import pytest
+from telesurg.services.bench.harness import Pipeline
+from telesurg.services.console import ConsoleConfig, ConsoleModel, console_clutch_key
+from telesurg.services.console.app import ArmPanel, ConsoleApp
+from telesurg.shared.bus import BusConfig, Node
+from telesurg.shared.messages import MasterButtons, OperatingState
 from textual.geometry import Region
 from textual.pilot import Pilot
 from textual.widget import Widget
-
-from services.bench.harness import Pipeline
-from services.console import ConsoleConfig, ConsoleModel, console_clutch_key
-from services.console.app import ArmPanel, ConsoleApp
-from shared.bus import BusConfig, Node
-from shared.messages import MasterButtons, OperatingState
 
 pytestmark = pytest.mark.process
 

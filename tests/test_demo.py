@@ -8,16 +8,25 @@ import sys
 from pathlib import Path
 
 import pytest
-
-from services.bench.harness import clutch_flags
-from services.mirror.view import scalar_counts
+from telesurg.services.bench.harness import clutch_flags
+from telesurg.services.mirror.view import scalar_counts
 
 pytestmark = pytest.mark.process
 
 
 def test_demo_headless_report(tmp_path: Path) -> None:
     report, rrd = tmp_path / "report.json", tmp_path / "demo.rrd"
-    argv = [sys.executable, "-m", "services.cli", "demo", "--headless", "--seconds", "8", "--port", "0"]
+    argv = [
+        sys.executable,
+        "-m",
+        "telesurg.services.cli",
+        "demo",
+        "--headless",
+        "--seconds",
+        "8",
+        "--port",
+        "0",
+    ]
     argv += ["--save", str(rrd), "--report", str(report), "--log-dir", str(tmp_path / "logs")]
     # the operator re-clutches every 4 s: a watchdog hold on this busy host ends one
     # engagement, not the demo
@@ -41,6 +50,6 @@ def test_demo_headless_report(tmp_path: Path) -> None:
 
 def test_demo_headless_needs_seconds() -> None:
     proc = subprocess.run(
-        [sys.executable, "-m", "services.cli", "demo", "--headless"], capture_output=True, text=True
+        [sys.executable, "-m", "telesurg.services.cli", "demo", "--headless"], capture_output=True, text=True
     )
     assert proc.returncode == 2 and "--seconds" in proc.stderr

@@ -2,7 +2,7 @@
 
 Layers: pure message/calibration tests; round trips through pyserial over ``loop://`` and a real
 pseudo-terminal; the ``serial`` device against an in-process emulated board on a pty (damage,
-refusal, silence, unplug and re-plug); ``python -m services.device emulate --pty`` as a real
+refusal, silence, unplug and re-plug); ``python -m telesurg.services.device emulate --pty`` as a real
 process; master_capture on an in-process zenoh router publishing only fresh readings.
 """
 
@@ -26,23 +26,22 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+import telesurg.shared.encoder_protocol as ep
 from cobs import cobs  # type: ignore[import-untyped]
 from conftest import wait_until
-
-import shared.encoder_protocol as ep
-from services.device import main as device_main
-from services.device import monitor
-from services.device.emulator import BoardEmulator, EmulatorOptions, motion_joints
-from services.master_capture import MasterCaptureConfig, run
-from services.master_capture.devices import (
+from telesurg.services.device import main as device_main
+from telesurg.services.device import monitor
+from telesurg.services.device.emulator import BoardEmulator, EmulatorOptions, motion_joints
+from telesurg.services.master_capture import MasterCaptureConfig, run
+from telesurg.services.master_capture.devices import (
     PLAS_MASTER_JOINTS,
     SerialMasterConfig,
     SerialMasterDevice,
     make_device,
 )
-from shared.bus import BusConfig, Node
-from shared.config import load_config
-from shared.encoder_protocol import (
+from telesurg.shared.bus import BusConfig, Node
+from telesurg.shared.config import load_config
+from telesurg.shared.encoder_protocol import (
     KIND_HELLO,
     KIND_SAMPLE,
     Calibration,
@@ -53,9 +52,9 @@ from shared.encoder_protocol import (
     encode_message,
     send_message,
 )
-from shared.errors import ConfigError, MessageError
-from shared.messages import CartesianPose, JointState, MasterButtons
-from shared.serial_link import Frame, FrameReader, SerialLink, crc16_ccitt_false, decode_frame
+from telesurg.shared.errors import ConfigError, MessageError
+from telesurg.shared.messages import CartesianPose, JointState, MasterButtons
+from telesurg.shared.serial_link import Frame, FrameReader, SerialLink, crc16_ccitt_false, decode_frame
 
 pytestmark = pytest.mark.timeout(60)
 
@@ -500,7 +499,7 @@ def test_monitor_prints_hello_readings_and_counters(pty_pair: tuple[int, str]) -
 
 def start_emulator(*args: str) -> tuple[subprocess.Popen[str], str]:
     p = subprocess.Popen(
-        [sys.executable, "-m", "services.device", "emulate", "--pty", *args],
+        [sys.executable, "-m", "telesurg.services.device", "emulate", "--pty", *args],
         cwd=REPO,
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,

@@ -16,7 +16,7 @@ pytestmark = pytest.mark.process
 def test_jinno_insertion_experiment(tmp_path: Path) -> None:
     out = tmp_path / "jinno"
     r = subprocess.run(
-        [sys.executable, "-m", "services.cli", "experiment", "jinno-insertion", "--out", str(out)],
+        [sys.executable, "-m", "telesurg.services.cli", "experiment", "jinno-insertion", "--out", str(out)],
         capture_output=True,
         text=True,
         timeout=400,

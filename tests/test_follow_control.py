@@ -1,10 +1,9 @@
-"""The slave's follow/hold rules (services.slave_control.control), without I/O."""
+"""The slave's follow/hold rules (telesurg.services.slave_control.control), without I/O."""
 
 from __future__ import annotations
 
 import numpy as np
-
-from services.slave_control.control import FollowController, Lease, Setpoint
+from telesurg.services.slave_control.control import FollowController, Lease, Setpoint
 
 VMAX = np.full(6, 2.0)
 DT = 0.001
@@ -83,7 +82,7 @@ def test_speed_clipping_is_counted_and_reported() -> None:
 
 
 def test_interpolator_is_smooth_between_sparse_jittery_setpoints_and_never_overshoots() -> None:
-    from services.slave_control.control import SetpointInterpolator
+    from telesurg.services.slave_control.control import SetpointInterpolator
 
     rng = np.random.default_rng(3)
     ip = SetpointInterpolator()

@@ -1,4 +1,4 @@
-"""The fuzz payload generator (shared.fuzz) and the strict decoder under its payloads."""
+"""The fuzz payload generator (telesurg.shared.fuzz) and the strict decoder under its payloads."""
 
 from __future__ import annotations
 
@@ -16,12 +16,11 @@ from pathlib import Path
 
 import msgpack
 import pytest
+import telesurg.shared.fuzz as fz
 from hypothesis import given, settings
 from hypothesis import strategies as st
-
-import shared.fuzz as fz
-from shared.errors import MessageError
-from shared.fuzz import (
+from telesurg.shared.errors import MessageError
+from telesurg.shared.fuzz import (
     ALWAYS_INVALID_KINDS,
     FUZZ_KINDS,
     FuzzCase,
@@ -31,7 +30,7 @@ from shared.fuzz import (
     mutate,
     valid_template,
 )
-from shared.messages import MAX_JOINTS, MAX_PAYLOAD_BYTES, MESSAGE_TYPES, Message, decode, decode_as
+from telesurg.shared.messages import MAX_JOINTS, MAX_PAYLOAD_BYTES, MESSAGE_TYPES, Message, decode, decode_as
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -124,7 +123,7 @@ def test_deterministic_across_processes() -> None:
     """No dependence on str hashing (PYTHONHASHSEED) or other per-process state."""
     code = (  # _digest, inline
         "import hashlib, random\n"
-        "from shared.fuzz import default_templates, fuzz_cases\n"
+        "from telesurg.shared.fuzz import default_templates, fuzz_cases\n"
         "h = hashlib.sha256()\n"
         "for c in fuzz_cases(random.Random(3), default_templates(), 2000):\n"
         "    h.update(f'{c.kind}|{c.template}|'.encode() + c.payload)\n"

@@ -1,7 +1,7 @@
 """Property-based fuzzing of the *running* services (hypothesis → zenoh → real processes).
 
 Hypothesis builds batches of payloads — arbitrary bytes, and valid messages mutated by
-:func:`shared.fuzz.mutate` — and publishes them on every key the services subscribe to, while the
+:func:`telesurg.shared.fuzz.mutate` — and publishes them on every key the services subscribe to, while the
 scripted master drives the MuJoCo slave. Afterwards: every service is still alive, each one's
 rejection counter (from its heartbeat) equals what the same strict decoder and source rules say it
 must reject, the slave never left its joint limits, and it follows the master again.
@@ -19,11 +19,10 @@ import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
-
-from services.bench.fuzz import SERVICES, TARGETS, expected_rejections
-from services.bench.harness import Pipeline
-from shared.fuzz import mutate, valid_template
-from shared.kinematics import MH3F
+from telesurg.services.bench.fuzz import SERVICES, TARGETS, expected_rejections
+from telesurg.services.bench.harness import Pipeline
+from telesurg.shared.fuzz import mutate, valid_template
+from telesurg.shared.kinematics import MH3F
 
 pytestmark = pytest.mark.process
 

@@ -1,4 +1,4 @@
-"""Tests for shared.kinematics: SO(3)/SE(3) helpers and the MH3F forward/inverse kinematics."""
+"""Tests for telesurg.shared.kinematics: SO(3)/SE(3) helpers and the MH3F forward/inverse kinematics."""
 
 from __future__ import annotations
 
@@ -6,9 +6,8 @@ import math
 
 import numpy as np
 import pytest
-
-from shared.errors import IKError, KinematicsError
-from shared.kinematics import (
+from telesurg.shared.errors import IKError, KinematicsError
+from telesurg.shared.kinematics import (
     MH3F,
     MH3F_NO_TOOL,
     ArmGeometry,

@@ -8,14 +8,13 @@ from collections.abc import Iterator
 
 import numpy as np
 import pytest
-
-from services.launcher import free_port
-from services.mapping import ArmMapping, MappingConfig, master_point
-from services.mapping.joints import AllJointsMapping
-from shared.bus import BusConfig, Node, open_session
-from shared.errors import ConfigError
-from shared.kinematics import MH3F, fk
-from shared.messages import (
+from telesurg.services.launcher import free_port
+from telesurg.services.mapping import ArmMapping, MappingConfig, master_point
+from telesurg.services.mapping.joints import AllJointsMapping
+from telesurg.shared.bus import BusConfig, Node, open_session
+from telesurg.shared.errors import ConfigError
+from telesurg.shared.kinematics import MH3F, fk
+from telesurg.shared.messages import (
     CartesianPose,
     Header,
     JointSetpoint,
@@ -202,7 +201,7 @@ def test_virtual_trocar_master_maps_the_dummy_tip_with_the_fulcrum_effect() -> N
 def test_operator_scale_commands_step_and_refuse_clearly(
     rig: tuple[ArmMapping, list[JointSetpoint], list[SafetyEvent]],
 ) -> None:
-    from shared.messages import Command
+    from telesurg.shared.messages import Command
 
     arm, _, _ = rig
     assert arm.on_command(Command(H, "arm1", "scale_up", ())).reason == "scale 0.5 → 0.7"

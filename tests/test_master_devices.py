@@ -7,9 +7,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
-from services.master_capture.devices import ScriptedConfig, ScriptedDevice, make_device
-from shared.errors import ConfigError
+from telesurg.services.master_capture.devices import ScriptedConfig, ScriptedDevice, make_device
+from telesurg.shared.errors import ConfigError
 
 
 def test_circle_radius_period_and_clutch_schedule() -> None:

@@ -9,9 +9,8 @@ import msgpack
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
-
-from shared.errors import MessageError
-from shared.messages import (
+from telesurg.shared.errors import MessageError
+from telesurg.shared.messages import (
     MAX_PAYLOAD_BYTES,
     MESSAGE_TYPES,
     SCHEMA_VERSION,

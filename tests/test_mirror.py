@@ -13,10 +13,9 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-
-from services.mirror.view import entity_paths, scalar_counts, text_logs
-from shared.bus import BusConfig, Node, open_session
-from shared.messages import JointState, SafetyEvent
+from telesurg.services.mirror.view import entity_paths, scalar_counts, text_logs
+from telesurg.shared.bus import BusConfig, Node, open_session
+from telesurg.shared.messages import JointState, SafetyEvent
 
 ROOT = Path(__file__).resolve().parents[1]
 JOINTS = ("j1", "j2", "j3", "j4", "j5", "j6")
@@ -51,7 +50,7 @@ def test_mirror_records_bus_traffic_to_rrd(tmp_path: Path) -> None:
             [
                 sys.executable,
                 "-m",
-                "services.cli",
+                "telesurg.services.cli",
                 "mirror",
                 "--connect",
                 ep,

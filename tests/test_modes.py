@@ -1,4 +1,4 @@
-"""Control modes of the slave arm (services.slave_control.modes): non-trocar, transitional, trocar."""
+"""Control modes of the slave arm (slave_control.modes): non-trocar, transitional, trocar."""
 
 from __future__ import annotations
 
@@ -9,8 +9,7 @@ from collections.abc import Callable
 from itertools import pairwise
 
 import pytest
-
-from services.slave_control.modes import (
+from telesurg.services.slave_control.modes import (
     CARTESIAN_AXES,
     JOINT_AXES,
     ControlMode,
@@ -23,8 +22,8 @@ from services.slave_control.modes import (
     PostureMethod,
     Reply,
 )
-from shared.errors import ConfigError
-from shared.messages import CONTROL_MODES, Header, OperatingState, decode
+from telesurg.shared.errors import ConfigError
+from telesurg.shared.messages import CONTROL_MODES, Header, OperatingState, decode
 
 DEG = math.radians(1.0)
 OUT = -0.100  # m: tip 100 mm before the trocar

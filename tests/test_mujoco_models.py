@@ -7,8 +7,7 @@ import pathlib
 import mujoco
 import numpy as np
 import pytest
-
-from services.slave_control.models import model_names, model_path
+from telesurg.services.slave_control.models import model_names, model_path
 
 MODELS_DIR = pathlib.Path(model_path("mh3f")).parent.parent
 SCENES = sorted(MODELS_DIR.glob("*/scene.xml"))

@@ -21,18 +21,17 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
-from services.bench.harness import clutch_flags
-from services.launcher import SiteSpec, default_config_dir, free_port, service_argv, wait_port
-from services.launcher.report import (
+from telesurg.services.bench.harness import clutch_flags
+from telesurg.services.launcher import SiteSpec, default_config_dir, free_port, service_argv, wait_port
+from telesurg.services.launcher.report import (
     RELEASE_TRIM_S,
     TrackingError,
     engaged_segments,
     split_by_scale,
     tracking_error,
 )
-from shared.bus import BusConfig, Node
-from shared.messages import CartesianPose, JointSetpoint, JointState, OperatingState, SafetyState
+from telesurg.shared.bus import BusConfig, Node
+from telesurg.shared.messages import CartesianPose, JointSetpoint, JointState, OperatingState, SafetyState
 
 pytestmark = pytest.mark.process
 
@@ -114,7 +113,7 @@ def site(tmp_path: Path) -> Iterator[tuple[subprocess.Popen[bytes], SiteSpec, Pa
     port = free_port()
     logs = tmp_path / "logs"
     rrd = tmp_path / "session.rrd"
-    argv = [sys.executable, "-m", "services.cli", "up", "--port", str(port), "--log-dir", str(logs)]
+    argv = [sys.executable, "-m", "telesurg.services.cli", "up", "--port", str(port), "--log-dir", str(logs)]
     argv += ["--save", str(rrd)]
     # the operator re-clutches every 4 s: a watchdog hold on this busy host ends one
     # engagement, not the test
@@ -238,7 +237,7 @@ def test_pipeline_follow_kill_restart_shutdown(
     assert not alive, f"processes left behind: {alive}"
 
     # --- the mirror's recording holds the slave joint series
-    from services.mirror.view import scalar_counts
+    from telesurg.services.mirror.view import scalar_counts
 
     assert rrd.exists()
     counts = scalar_counts(rrd)

@@ -1,5 +1,5 @@
-"""Tests for shared.kinematics.plas (Shim 2015: PLAS slave, ergonomic master, Table-6 mapping)
-and for the Section-4 reproduction in services.experiment.shim."""
+"""Tests for telesurg.shared.kinematics.plas (Shim 2015: PLAS slave, ergonomic master, Table-6 mapping)
+and for the Section-4 reproduction in telesurg.services.experiment.shim."""
 
 from __future__ import annotations
 
@@ -9,10 +9,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
-from services.experiment.shim import run
-from shared.errors import KinematicsError
-from shared.kinematics.plas import (
+from telesurg.services.experiment.shim import run
+from telesurg.shared.errors import KinematicsError
+from telesurg.shared.kinematics.plas import (
     PLAS_MASTER,
     PLAS_SLAVE,
     MappingConfig,
@@ -31,7 +30,7 @@ from shared.kinematics.plas import (
     slave_tip_arm,
     tip_velocity_error,
 )
-from shared.kinematics.transforms import FloatArray, rot_x, rotvec_from_matrix
+from telesurg.shared.kinematics.transforms import FloatArray, rot_x, rotvec_from_matrix
 
 # Thesis dimensions [m] (Section 3.4), written out again so the tests do not read them back
 # from the module under test.

@@ -5,11 +5,10 @@ from __future__ import annotations
 import mujoco
 import numpy as np
 import pytest
-
-from services.slave_control.models import model_names, model_path
-from shared.errors import KinematicsError
-from shared.kinematics.plas import PLAS_MASTER, PLAS_SLAVE, master_fk, slave_fk
-from shared.kinematics.plas_layout import (
+from telesurg.services.slave_control.models import model_names, model_path
+from telesurg.shared.errors import KinematicsError
+from telesurg.shared.kinematics.plas import PLAS_MASTER, PLAS_SLAVE, master_fk, slave_fk
+from telesurg.shared.kinematics.plas_layout import (
     ARM_BASES,
     ARM_NAMES,
     SHAFT_AXIS,
@@ -17,7 +16,7 @@ from shared.kinematics.plas_layout import (
     arm_tip,
     arm_tip_pose,
 )
-from shared.kinematics.transforms import FloatArray
+from telesurg.shared.kinematics.transforms import FloatArray
 
 TOL = 1e-6  # [m] site vs analytic kinematics (they agree to ~1e-15)
 SETTLE_STEPS = 300  # 0.3 s at dt = 1 ms

@@ -23,11 +23,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
-from services.bench.harness import Pipeline
-from shared.bus import BusConfig, Node
-from shared.kinematics import plas
-from shared.messages import JointSetpoint, JointState, OperatingState, SafetyEvent
+from telesurg.services.bench.harness import Pipeline
+from telesurg.shared.bus import BusConfig, Node
+from telesurg.shared.kinematics import plas
+from telesurg.shared.messages import JointSetpoint, JointState, OperatingState, SafetyEvent
 
 pytestmark = pytest.mark.process
 DEPLOY = Path(__file__).resolve().parents[1] / "deploy" / "plas"
@@ -46,7 +45,7 @@ class Board:
             [
                 sys.executable,
                 "-m",
-                "services.device",
+                "telesurg.services.device",
                 "emulate",
                 "--pty",
                 "--rate",

@@ -20,9 +20,8 @@ from typing import Any
 import msgpack
 import numpy as np
 import pytest
-
-from services.bench.harness import Pipeline
-from services.record import (
+from telesurg.services.bench.harness import Pipeline
+from telesurg.services.record import (
     MESSAGE_ENCODING,
     RECORDING_METADATA,
     SCHEMA_ENCODING,
@@ -34,8 +33,8 @@ from services.record import (
     read_metadata,
     read_summary,
 )
-from services.record.replay import Response, compare
-from shared.messages import (
+from telesurg.services.record.replay import Response, compare
+from telesurg.shared.messages import (
     MESSAGE_TYPES,
     CartesianPose,
     Header,
@@ -234,7 +233,7 @@ def _logs(d: Path) -> None:
 def recording(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Path]:
     tmp = tmp_path_factory.mktemp("record")
     out = tmp / "run.mcap"
-    argv = [sys.executable, "-m", "services.record", "--out", str(out), "--seconds", "10"]
+    argv = [sys.executable, "-m", "telesurg.services.record", "--out", str(out), "--seconds", "10"]
     argv += ["--attach", str(ROOT / "deploy/local/mapping.toml")]
     with Pipeline(tmp / "logs", mirror=False, impair=False, master=False, probe=False) as p:
         rec = subprocess.Popen(
@@ -295,7 +294,14 @@ def test_replay_reproduces_the_slave_response(recording: Path, tmp_path: Path) -
     for attempt in range(1, 4):
         out = tmp_path / f"attempt{attempt}"
         report_path, live = out / "diff.json", out / "live.mcap"
-        argv = [sys.executable, "-m", "services.record.replay", str(recording), "--json", str(report_path)]
+        argv = [
+            sys.executable,
+            "-m",
+            "telesurg.services.record.replay",
+            str(recording),
+            "--json",
+            str(report_path),
+        ]
         argv += ["--record", str(live)]
         with Pipeline(out / "logs", mirror=False, impair=False, master=False, probe=False) as p:
             r = subprocess.run(
@@ -369,7 +375,14 @@ def test_replay_through_a_changed_limit_shows_the_difference(recording: Path, tm
     """The regression-test use: the same recorded session through a pipeline whose workspace
     limit was tightened (y ≤ 5 mm): the replay reports the slave's response as different."""
     report_path = tmp_path / "diff.json"
-    argv = [sys.executable, "-m", "services.record.replay", str(recording), "--json", str(report_path)]
+    argv = [
+        sys.executable,
+        "-m",
+        "telesurg.services.record.replay",
+        str(recording),
+        "--json",
+        str(report_path),
+    ]
     tight = {"mapping": ["workspace_max_mm=[1100.0, 5.0, 800.0]"]}
     with Pipeline(
         tmp_path / "logs", mirror=False, impair=False, master=False, probe=False, overrides=tight
@@ -389,12 +402,11 @@ def test_replay_through_a_changed_limit_shows_the_difference(recording: Path, tm
 def test_to_rerun_without_network(recording: Path, tmp_path: Path) -> None:
     import pyarrow as pa
     from rerun.chunk import RrdReader
-
-    from services.mirror.view import entity_paths, joint_path, scalar_counts, text_logs
+    from telesurg.services.mirror.view import entity_paths, joint_path, scalar_counts, text_logs
 
     rrd = tmp_path / "run.rrd"
     r = subprocess.run(
-        [sys.executable, "-m", "services.record.replay", str(recording), "--to-rerun", str(rrd)],
+        [sys.executable, "-m", "telesurg.services.record.replay", str(recording), "--to-rerun", str(rrd)],
         cwd=ROOT,
         capture_output=True,
         text=True,

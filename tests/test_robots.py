@@ -5,10 +5,9 @@ from __future__ import annotations
 import mujoco
 import numpy as np
 import pytest
-
-from services.slave_control.models import model_path
-from shared.errors import ConfigError
-from shared.robots import MODELS, arm_profile, arms_of
+from telesurg.services.slave_control.models import model_path
+from telesurg.shared.errors import ConfigError
+from telesurg.shared.robots import MODELS, arm_profile, arms_of
 
 
 @pytest.mark.parametrize("model", MODELS)

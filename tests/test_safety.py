@@ -14,9 +14,8 @@ import sys
 from collections.abc import Iterator
 
 import pytest
-
-from services.bench.faults import parse_only, run_fault
-from services.bench.harness import Pipeline
+from telesurg.services.bench.faults import parse_only, run_fault
+from telesurg.services.bench.harness import Pipeline
 
 pytestmark = pytest.mark.process
 
@@ -75,7 +74,7 @@ def test_estop_latches_and_reset_needs_reengage(pipe: Pipeline) -> None:
 
 
 def test_estop_cli_confirms(pipe: Pipeline) -> None:
-    base = [sys.executable, "-m", "services.cli", "estop", "--connect", pipe.spec.endpoint]
+    base = [sys.executable, "-m", "telesurg.services.cli", "estop", "--connect", pipe.spec.endpoint]
     out = subprocess.run([*base, "--reason", "test"], capture_output=True, text=True, timeout=30)
     assert out.returncode == 0 and "estop confirmed" in out.stdout and "arm1: ESTOP" in out.stdout, out
     assert pipe.wait(lambda: not pipe.p.following(), 2.0)
@@ -85,8 +84,15 @@ def test_estop_cli_confirms(pipe: Pipeline) -> None:
 
 
 def test_estop_cli_without_watchdog_fails_clearly() -> None:
-    from services.launcher import free_port
+    from telesurg.services.launcher import free_port
 
-    argv = [sys.executable, "-m", "services.cli", "estop", "--connect", f"tcp/127.0.0.1:{free_port()}"]
+    argv = [
+        sys.executable,
+        "-m",
+        "telesurg.services.cli",
+        "estop",
+        "--connect",
+        f"tcp/127.0.0.1:{free_port()}",
+    ]
     out = subprocess.run(argv, capture_output=True, text=True, timeout=30)
     assert out.returncode == 2 and "zenoh session failed" in out.stderr, out

@@ -21,9 +21,8 @@ import pytest
 from cobs import cobs  # type: ignore[import-untyped]
 from hypothesis import assume, given, settings
 from hypothesis import strategies as st
-
-from shared.errors import DeviceConnectionError, MessageError, TelesurgError
-from shared.serial_link import (
+from telesurg.shared.errors import DeviceConnectionError, MessageError, TelesurgError
+from telesurg.shared.serial_link import (
     FRAME_VERSION,
     MAX_FRAME_BYTES,
     Frame,

@@ -2,7 +2,7 @@
 
 The full local pipeline (scripted master → mapping → watchdog → slave_control) with
 ``slave_control backend = "serial"`` on the servo-controller emulator
-(``python -m services.device emulate-slave --pty --model mh3f``) on a real pseudo-terminal, and the
+(``python -m telesurg.services.device emulate-slave --pty --model mh3f``) on a real pseudo-terminal, and the
 MuJoCo shadow on. slave_control's port is a symlink to the emulator's pty, like
 ``/dev/serial/by-id/…`` on a real machine: each test starts a new emulator (with the fault it
 injects), moves the link to it and kills the old one — an unplug and re-plug, so every test also
@@ -32,12 +32,11 @@ from typing import IO
 
 import numpy as np
 import pytest
-
-from services.bench.harness import Pipeline
-from shared.bus import BusConfig, Node
-from shared.messages import JointSetpoint, JointState, OperatingState, SafetyEvent
-from shared.serial_link import SerialLink
-from shared.servo_protocol import HelloRequest, State, decode_message, send_message
+from telesurg.services.bench.harness import Pipeline
+from telesurg.shared.bus import BusConfig, Node
+from telesurg.shared.messages import JointSetpoint, JointState, OperatingState, SafetyEvent
+from telesurg.shared.serial_link import SerialLink
+from telesurg.shared.servo_protocol import HelloRequest, State, decode_message, send_message
 
 pytestmark = pytest.mark.process
 #: Generous link timeouts: this shared CI host stalls processes for 100+ ms under load.
@@ -66,7 +65,16 @@ class Controller:
         self.count += 1
         self.log_path = self.log_dir / f"emulator-{self.count}.log"
         self.err = self.log_path.open("w")
-        cmd = [sys.executable, "-m", "services.device", "emulate-slave", "--pty", "--model", "mh3f", *args]
+        cmd = [
+            sys.executable,
+            "-m",
+            "telesurg.services.device",
+            "emulate-slave",
+            "--pty",
+            "--model",
+            "mh3f",
+            *args,
+        ]
         self.proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=self.err, text=True)
         assert self.proc.stdout is not None
         pty = self.proc.stdout.readline().strip()

@@ -5,7 +5,7 @@ check); round trips through pyserial over ``loop://`` and a real pseudo-terminal
 own rules (sequence order, limits, watchdog) driven by hand; the ``serial`` backend against an
 in-process emulator on a pty (handshake, refusal of a wrong robot, damaged frames, sequence gaps,
 silence, the controller's watchdog and fault flag, clamps, the MuJoCo shadow); the fault hold of
-the control loops; ``python -m services.device emulate-slave`` as a real process.
+the control loops; ``python -m telesurg.services.device emulate-slave`` as a real process.
 """
 
 from __future__ import annotations
@@ -25,27 +25,26 @@ from typing import Any
 
 import numpy as np
 import pytest
+import telesurg.shared.servo_protocol as sp
 from conftest import wait_until
-
-import shared.servo_protocol as sp
-from services.device import main as device_main
-from services.device.emulator import BoardEmulator
-from services.device.servo_emulator import ServoEmulator, ServoEmulatorOptions
-from services.slave_control import SlaveControlConfig
-from services.slave_control.backends import FaultHold, MujocoBackend, make_backend
-from services.slave_control.control import FollowController, Lease, Setpoint
-from services.slave_control.serial_backend import (
+from telesurg.services.device import main as device_main
+from telesurg.services.device.emulator import BoardEmulator
+from telesurg.services.device.servo_emulator import ServoEmulator, ServoEmulatorOptions
+from telesurg.services.slave_control import SlaveControlConfig
+from telesurg.services.slave_control.backends import FaultHold, MujocoBackend, make_backend
+from telesurg.services.slave_control.control import FollowController, Lease, Setpoint
+from telesurg.services.slave_control.serial_backend import (
     SerialBackend,
     SerialBackendConfig,
     ShadowConfig,
     ShadowedBackend,
 )
-from shared.config import load_config
-from shared.errors import ConfigError, DeviceConnectionError, MessageError
-from shared.kinematics import MH3F, fk, quat_from_matrix
-from shared.robots import arms_of
-from shared.serial_link import Frame, FrameReader, SerialLink, decode_frame, encode_frame
-from shared.servo_protocol import (
+from telesurg.shared.config import load_config
+from telesurg.shared.errors import ConfigError, DeviceConnectionError, MessageError
+from telesurg.shared.kinematics import MH3F, fk, quat_from_matrix
+from telesurg.shared.robots import arms_of
+from telesurg.shared.serial_link import Frame, FrameReader, SerialLink, decode_frame, encode_frame
+from telesurg.shared.servo_protocol import (
     Disable,
     Enable,
     Hello,
@@ -597,7 +596,7 @@ def test_emulate_slave_process_serves_a_two_arm_robot() -> None:
         [
             sys.executable,
             "-m",
-            "services.device",
+            "telesurg.services.device",
             "emulate-slave",
             "--pty",
             "--model",

@@ -7,8 +7,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
-from services.slave_control.teach import (
+from telesurg.services.slave_control.teach import (
     MAX_POINTS,
     Playback,
     TaughtPoint,
@@ -18,9 +17,9 @@ from services.slave_control.teach import (
     direct_teach_step,
     playback_problem,
 )
-from shared.errors import ConfigError, IKError
-from shared.kinematics import MH3F, fk
-from shared.kinematics.trocar import insertion_depth, posture_adjust, rcm_error, trocar_ik
+from telesurg.shared.errors import ConfigError, IKError
+from telesurg.shared.kinematics import MH3F, fk
+from telesurg.shared.kinematics.trocar import insertion_depth, posture_adjust, rcm_error, trocar_ik
 
 TROCAR = np.array([0.5, 0.0, 0.2])
 START = np.array([0.0, -0.2, 0.6, 0.0, -0.3, 0.0])

@@ -14,12 +14,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
-from services.bench.harness import Pipeline
-from services.experiment.client import ArmClient
-from shared.bus import BusConfig, Node
-from shared.kinematics import MH3F, jacobian, wrist_center
-from shared.kinematics.trocar import posture_adjust
+from telesurg.services.bench.harness import Pipeline
+from telesurg.services.experiment.client import ArmClient
+from telesurg.shared.bus import BusConfig, Node
+from telesurg.shared.kinematics import MH3F, jacobian, wrist_center
+from telesurg.shared.kinematics.trocar import posture_adjust
 
 pytestmark = pytest.mark.process
 

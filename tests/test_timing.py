@@ -10,19 +10,18 @@ from collections.abc import Callable
 from pathlib import Path
 
 import pytest
-
-import shared.timing
-from services.mapping import MappingConfig
-from services.slave_control import SlaveControlConfig
-from services.slave_control import run as run_slave
-from shared.errors import ConfigError
-from shared.timing import CycleTimer, check_rt_priority, set_realtime
+import telesurg.shared.timing
+from telesurg.services.mapping import MappingConfig
+from telesurg.services.slave_control import SlaveControlConfig
+from telesurg.services.slave_control import run as run_slave
+from telesurg.shared.errors import ConfigError
+from telesurg.shared.timing import CycleTimer, check_rt_priority, set_realtime
 
 ROOT = Path(__file__).resolve().parents[1]
 
 
 class FakeClock:
-    """monotonic_ns and sleep for shared.timing: sleeping advances the clock exactly."""
+    """monotonic_ns and sleep for telesurg.shared.timing: sleeping advances the clock exactly."""
 
     def __init__(self) -> None:
         self.ns = 1_000_000_000
@@ -37,8 +36,8 @@ class FakeClock:
 @pytest.fixture
 def clock(monkeypatch: pytest.MonkeyPatch) -> FakeClock:
     c = FakeClock()
-    monkeypatch.setattr(shared.timing.time, "monotonic_ns", c.monotonic_ns)
-    monkeypatch.setattr(shared.timing.time, "sleep", c.sleep)
+    monkeypatch.setattr(telesurg.shared.timing.time, "monotonic_ns", c.monotonic_ns)
+    monkeypatch.setattr(telesurg.shared.timing.time, "sleep", c.sleep)
     return c
 
 
@@ -131,7 +130,7 @@ def test_set_realtime_changes_only_the_calling_thread() -> None:
 def test_set_realtime_refused_without_the_privilege() -> None:
     code = (  # (root drops to "nobody", and with it CAP_SYS_NICE)
         "import os, sys\n"
-        "from shared.timing import set_realtime\n"
+        "from telesurg.shared.timing import set_realtime\n"
         "os.setuid(65534) if os.getuid() == 0 else None\n"
         "why = set_realtime(7)\n"
         "print(repr(why)); sys.exit(0 if why and os.sched_getscheduler(0) == os.SCHED_OTHER else 1)\n"

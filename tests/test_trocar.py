@@ -7,9 +7,8 @@ import time
 
 import numpy as np
 import pytest
-
-from shared.errors import IKError, KinematicsError
-from shared.kinematics import (
+from telesurg.shared.errors import IKError, KinematicsError
+from telesurg.shared.kinematics import (
     MH3F,
     FloatArray,
     fk,
@@ -21,7 +20,7 @@ from shared.kinematics import (
     within_limits,
     wrist_center,
 )
-from shared.kinematics.trocar import (
+from telesurg.shared.kinematics.trocar import (
     STRAIGHT_FORCEPS,
     TROCAR_MODE_DEPTH,
     Forceps,
@@ -471,7 +470,7 @@ def test_forceps_description() -> None:
 
 
 def test_pose_to_trocar_matches_the_kinematic_measures() -> None:
-    from shared.kinematics.trocar import pose_to_trocar
+    from telesurg.shared.kinematics.trocar import pose_to_trocar
 
     rng = np.random.default_rng(5)
     trocar = np.array([0.5, 0.0, 0.2])
@@ -485,9 +484,9 @@ def test_pose_to_trocar_matches_the_kinematic_measures() -> None:
 
 def test_mujoco_arm_through_the_trocar_has_sub_mm_rcm_error() -> None:
     """Measured from MuJoCo's tip site (not from the command): a trocar-IK pose 60 mm deep."""
-    from services.slave_control.backends import make_backend
-    from shared.kinematics import matrix_from_quat
-    from shared.kinematics.trocar import pose_to_trocar
+    from telesurg.services.slave_control.backends import make_backend
+    from telesurg.shared.kinematics import matrix_from_quat
+    from telesurg.shared.kinematics.trocar import pose_to_trocar
 
     trocar = np.array([0.5, 0.0, 0.2])
     q_start = np.array([0.0, -0.2, 0.6, 0.0, -0.3, 0.0])  # a paper-like start (Fig. 10)

@@ -15,10 +15,9 @@ from collections.abc import Iterator
 
 import numpy as np
 import pytest
-
-from services.bench.harness import Pipeline
-from shared.bus import BusConfig, Node
-from shared.messages import CartesianPose, Command, CommandReply, MasterButtons, OperatingState
+from telesurg.services.bench.harness import Pipeline
+from telesurg.shared.bus import BusConfig, Node
+from telesurg.shared.messages import CartesianPose, Command, CommandReply, MasterButtons, OperatingState
 
 pytestmark = pytest.mark.process
 

@@ -11,10 +11,9 @@ import time
 from collections.abc import Iterator
 
 import pytest
-
-from services.bench.harness import Pipeline
-from shared.bus import BusConfig, Node
-from shared.messages import Command, CommandReply, OperatingState, SafetyEvent
+from telesurg.services.bench.harness import Pipeline
+from telesurg.shared.bus import BusConfig, Node
+from telesurg.shared.messages import Command, CommandReply, OperatingState, SafetyEvent
 
 pytestmark = pytest.mark.process
 
@@ -149,7 +148,7 @@ def test_cmd_cli_accepts_refuses_and_fails_clearly(console: Console) -> None:
     import subprocess
     import sys
 
-    base = [sys.executable, "-m", "services.cli", "cmd", "--connect", console.node_endpoint]
+    base = [sys.executable, "-m", "telesurg.services.cli", "cmd", "--connect", console.node_endpoint]
     ok = subprocess.run([*base, "state"], capture_output=True, text=True, timeout=30)
     assert ok.returncode == 0 and ok.stdout.startswith("accepted: non_trocar"), ok
     no = subprocess.run([*base, "finish_posture_adjust"], capture_output=True, text=True, timeout=30)

@@ -42,8 +42,8 @@ REPO = Path(__file__).resolve().parents[1]
 if str(REPO) not in sys.path:  # run as a script inside a namespace
     sys.path.insert(0, str(REPO))
 
-from services.bench.harness import clutch_flags  # noqa: E402
-from shared.impair import NetNamespace, netns_available  # noqa: E402
+from telesurg.services.bench.harness import clutch_flags  # noqa: E402
+from telesurg.shared.impair import NetNamespace, netns_available  # noqa: E402
 
 pytestmark = [pytest.mark.process, pytest.mark.timeout(240)]
 
@@ -60,7 +60,7 @@ DEGRADED_SCALE = 0.5  # deploy/slave-site/watchdog.toml degraded_scale
 
 
 def _bus(endpoint: str, certs: Path | None, ident: str, ca: Path | None = None) -> Any:
-    from shared.bus import BusConfig
+    from telesurg.shared.bus import BusConfig
 
     cfg = BusConfig(connect=[endpoint])
     if certs is not None:
@@ -84,8 +84,14 @@ def _emit(**rec: Any) -> None:
 
 def probe_main(endpoint: str) -> int:
     """Print what the slave site shows, one JSON line per record, until SIGINT/SIGTERM."""
-    from shared.bus import Node
-    from shared.messages import CartesianPose, MasterButtons, OperatingState, SafetyEvent, SafetyState
+    from telesurg.shared.bus import Node
+    from telesurg.shared.messages import (
+        CartesianPose,
+        MasterButtons,
+        OperatingState,
+        SafetyEvent,
+        SafetyState,
+    )
 
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
@@ -141,7 +147,7 @@ def probe_main(endpoint: str) -> int:
 
 
 def _try_open(cfg: Any) -> str:
-    from shared.bus import open_session
+    from telesurg.shared.bus import open_session
 
     try:
         session = open_session(cfg)
@@ -153,9 +159,9 @@ def _try_open(cfg: Any) -> str:
 
 def identities_main(endpoint: str, certs: Path, other: Path) -> int:
     """From the console host: strangers, the viewer identity, then the console identity."""
-    from shared.bus import Node
-    from shared.errors import MessageError
-    from shared.messages import (
+    from telesurg.shared.bus import Node
+    from telesurg.shared.errors import MessageError
+    from telesurg.shared.messages import (
         CartesianPose,
         Command,
         CommandReply,
@@ -409,7 +415,7 @@ def hosts(tmp_path_factory: pytest.TempPathFactory) -> Iterator[TwoHosts]:
     if why := netns_available():
         pytest.skip(f"two-host test {why}")
     pytest.importorskip("cryptography", reason="telesurg certs needs the cryptography package")
-    from services.certs import CertsConfig, make_certs
+    from telesurg.services.certs import CertsConfig, make_certs
 
     tmp = tmp_path_factory.mktemp("two_hosts")
     certs, other, logs = tmp / "certs", tmp / "other-ca", tmp / "logs"
@@ -453,7 +459,7 @@ def hosts(tmp_path_factory: pytest.TempPathFactory) -> Iterator[TwoHosts]:
                 str(logs / "slave"),
             ]
             h.spawn("slave-site", ns_s, site)
-            imp = [sys.executable, "-m", "shared.impair", "--control"]
+            imp = [sys.executable, "-m", "telesurg.shared.impair", "--control"]
             imp += ["--listen", f"{SLAVE_ADDR}:{TLS_PORT}", "--target", f"127.0.0.1:{TLS_PORT}"]
             p = h.spawn("impair", ns_s, imp, pipe=True)
             assert p.stdout is not None
@@ -508,7 +514,7 @@ ACL = REPO / "deploy" / "slave-site" / "acl.json5"
 def pki(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
     """The site's CA with every identity, and an unrelated CA with a "console"."""
     pytest.importorskip("cryptography", reason="telesurg certs needs the cryptography package")
-    from services.certs import CertsConfig, make_certs
+    from telesurg.services.certs import CertsConfig, make_certs
 
     tmp = tmp_path_factory.mktemp("pki")
     idents = ("slave-site", "console", "console-mapping", "viewer", "intruder")
@@ -518,8 +524,8 @@ def pki(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
 
 
 def test_secured_bus_config_is_checked(pki: tuple[Path, Path]) -> None:
-    from shared.bus import BusConfig
-    from shared.errors import ConfigError
+    from telesurg.shared.bus import BusConfig
+    from telesurg.shared.errors import ConfigError
 
     certs, _ = pki
     ok = BusConfig(mode="router", listen=["tls/0.0.0.0:7447", "tcp/127.0.0.1:7448"], mtls=True)
@@ -544,8 +550,8 @@ def test_secured_bus_config_is_checked(pki: tuple[Path, Path]) -> None:
 
 def test_mtls_and_access_control_on_loopback(pki: tuple[Path, Path]) -> None:
     """The site's ACL file, one host: who may connect, publish, query and receive."""
-    from services.launcher import free_port
-    from shared.bus import BusConfig, open_session
+    from telesurg.services.launcher import free_port
+    from telesurg.shared.bus import BusConfig, open_session
 
     certs, other = pki
     tls_ep, tcp_ep = f"tls/127.0.0.1:{free_port()}", f"tcp/127.0.0.1:{free_port()}"
@@ -609,8 +615,8 @@ def test_mtls_and_access_control_on_loopback(pki: tuple[Path, Path]) -> None:
 
 
 def test_packet_link_delays_drops_and_cuts() -> None:
-    """shared.impair.PacketLink between two namespaces: delay, loss and cut, with UDP datagrams."""
-    from shared.impair import PacketLink
+    """telesurg.shared.impair.PacketLink between two namespaces: delay, loss and cut, with UDP datagrams."""
+    from telesurg.shared.impair import PacketLink
 
     if why := netns_available():
         pytest.skip(f"packet link test {why}")

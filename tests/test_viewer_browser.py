@@ -37,8 +37,7 @@ from typing import Any
 
 import numpy as np
 import pytest
-
-from services.bench.harness import clutch_flags
+from telesurg.services.bench.harness import clutch_flags
 
 pytestmark = pytest.mark.process
 
@@ -209,8 +208,7 @@ def pixel_stats(png: bytes) -> dict[str, float]:
     drawn), ``joints`` (pixels of the joint plot colours: the plots are drawn),
     ``width``/``height``."""
     from PIL import Image
-
-    from services.mirror.view import FORCEPS_COLOR, JOINT_COLORS
+    from telesurg.services.mirror.view import FORCEPS_COLOR, JOINT_COLORS
 
     img = np.asarray(Image.open(io.BytesIO(png)).convert("RGB"), dtype=np.int32)
     h, w, _ = img.shape
@@ -272,12 +270,12 @@ def served_demo(
     simulation competes with software WebGL for the CPU. On exit the mirror is stopped with
     SIGINT (which completes the .rrd).
     """
-    from services.launcher import free_port, wait_port
-    from services.mirror.view import viewer_url
+    from telesurg.services.launcher import free_port, wait_port
+    from telesurg.services.mirror.view import viewer_url
 
     port, web, grpc = free_port(), free_port(), free_port()
     rrd = workdir / "session.rrd"
-    cli = [sys.executable, "-m", "services.cli"]
+    cli = [sys.executable, "-m", "telesurg.services.cli"]
     demo_argv = [*cli, "demo", "--headless", "--seconds", str(session_s), "--port", str(port)]
     demo_argv += ["--log-dir", str(workdir / "logs"), "--report", str(workdir / "report.json")]
     # the operator re-clutches every 4 s: a watchdog hold on this busy host ends one
@@ -344,7 +342,7 @@ def test_web_viewer_renders_the_demo_session(tmp_path: Path) -> None:
         pytest.skip("needs Debian chromium at /usr/bin/chromium: apt-get install -y chromium")
     if shutil.which("bash") is None:
         pytest.skip("needs bash to hand chromium its DevTools pipe")
-    from services.mirror.view import entity_paths, scalar_counts
+    from telesurg.services.mirror.view import entity_paths, scalar_counts
 
     png = tmp_path / "viewer.png"
     with served_demo(tmp_path, session_s=15.0) as (url, rrd, mirror):

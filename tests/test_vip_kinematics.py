@@ -9,10 +9,9 @@ from dataclasses import replace
 import mujoco
 import numpy as np
 import pytest
-
-from shared.errors import IKError, KinematicsError
-from shared.kinematics.transforms import FloatArray
-from shared.kinematics.vip import (
+from telesurg.shared.errors import IKError, KinematicsError
+from telesurg.shared.kinematics.transforms import FloatArray
+from telesurg.shared.kinematics.vip import (
     EV_MAX,
     EV_MIN,
     VIP_ARM,

@@ -14,11 +14,17 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
-from services.bench.harness import Pipeline
-from shared.bus import BusConfig, Node
-from shared.kinematics import vip
-from shared.messages import CartesianPose, Command, CommandReply, JointSetpoint, JointState, SafetyEvent
+from telesurg.services.bench.harness import Pipeline
+from telesurg.shared.bus import BusConfig, Node
+from telesurg.shared.kinematics import vip
+from telesurg.shared.messages import (
+    CartesianPose,
+    Command,
+    CommandReply,
+    JointSetpoint,
+    JointState,
+    SafetyEvent,
+)
 
 pytestmark = pytest.mark.process
 DEPLOY = Path(__file__).resolve().parents[1] / "deploy" / "vip"

@@ -1,15 +1,14 @@
-"""The watchdog's per-arm decision rules, without processes (services.watchdog.logic)."""
+"""The watchdog's per-arm decision rules, without processes (telesurg.services.watchdog.logic)."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
-
-from services.watchdog import WatchdogConfig
-from services.watchdog.logic import ArmSafety
-from shared.errors import ConfigError
-from shared.kinematics import MH3F
-from shared.messages import EStop, Header, JointSetpoint, MasterButtons, OperatingState
+from telesurg.services.watchdog import WatchdogConfig
+from telesurg.services.watchdog.logic import ArmSafety
+from telesurg.shared.errors import ConfigError
+from telesurg.shared.kinematics import MH3F
+from telesurg.shared.messages import EStop, Header, JointSetpoint, MasterButtons, OperatingState
 
 NAMES = MH3F.joint_names
 Q0 = (0.0, 0.2, 0.3, 0.0, -0.6, 0.0)
@@ -94,7 +93,7 @@ def test_not_following_setpoints_are_not_speed_checked() -> None:
 
 
 def test_workspace_and_rcm_limits() -> None:
-    from shared.robots import arm_profile
+    from telesurg.shared.robots import arm_profile
 
     _tip = arm_profile("mh3f", "arm1").tip
 

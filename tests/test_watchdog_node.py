@@ -6,10 +6,9 @@ import threading
 import time
 
 from conftest import wait_until
-
-from services.watchdog import Watchdog, WatchdogConfig, _echo_loop
-from shared.bus import BusConfig, Node
-from shared.messages import EStop, SafetyLease
+from telesurg.services.watchdog import Watchdog, WatchdogConfig, _echo_loop
+from telesurg.shared.bus import BusConfig, Node
+from telesurg.shared.messages import EStop, SafetyLease
 
 
 def test_echo_latency_source_and_estop(endpoint: str) -> None:

@@ -17,13 +17,16 @@ import sys
 from collections.abc import Sequence
 
 BENCHES = {
-    "faults": ("services.bench.faults", "inject faults one at a time; detection, motion, recovery"),
-    "fuzz": ("services.bench.fuzz", "malformed messages on every key while the pipeline runs"),
-    "latency": ("services.bench.perf", "one-way latency: bare zenoh relay vs the real pipeline"),
-    "soak": ("services.bench.perf", "long run: losses per stream, deadline misses, CPU and RSS"),
-    "ik": ("services.bench.perf", "analytic IK / mapping vs a generic numerical IK"),
-    "sim": ("services.bench.perf", "MuJoCo steps/s unpaced per robot model"),
-    "transport": ("services.bench.transport", "zenoh links for a 1 kHz stream under packet loss (root)"),
+    "faults": ("telesurg.services.bench.faults", "inject faults one at a time; detection, motion, recovery"),
+    "fuzz": ("telesurg.services.bench.fuzz", "malformed messages on every key while the pipeline runs"),
+    "latency": ("telesurg.services.bench.perf", "one-way latency: bare zenoh relay vs the real pipeline"),
+    "soak": ("telesurg.services.bench.perf", "long run: losses per stream, deadline misses, CPU and RSS"),
+    "ik": ("telesurg.services.bench.perf", "analytic IK / mapping vs a generic numerical IK"),
+    "sim": ("telesurg.services.bench.perf", "MuJoCo steps/s unpaced per robot model"),
+    "transport": (
+        "telesurg.services.bench.transport",
+        "zenoh links for a 1 kHz stream under packet loss (root)",
+    ),
 }
 
 
@@ -36,7 +39,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         print("\n".join(lines), file=sys.stdout if not args or args[0] in ("-h", "--help") else sys.stderr)
         return 0 if not args or args[0] in ("-h", "--help") else 2
     module = importlib.import_module(BENCHES[args[0]][0])
-    if BENCHES[args[0]][0] == "services.bench.perf":
+    if BENCHES[args[0]][0] == "telesurg.services.bench.perf":
         code: int = module.main(args[1:], args[0])
     else:
         code = module.main(args[1:])

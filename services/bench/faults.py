@@ -26,8 +26,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-
-from services.bench.harness import Pipeline, Probe, now_ns
+from telesurg.services.bench.harness import Pipeline, Probe, now_ns
 
 log = logging.getLogger(__name__)
 
@@ -302,7 +301,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                 print(f"[{i}/{len(faults)}] {f.name} ...", file=sys.stderr, flush=True)
                 rows.append(run_fault(pipe, f))
             if args.plot:
-                from services.bench.plots import plot_faults
+                from telesurg.services.bench.plots import plot_faults
 
                 plot_faults(pipe.p, rows, args.plot)
             codes = pipe.close()

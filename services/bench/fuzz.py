@@ -1,7 +1,7 @@
 """``telesurg bench fuzz``: malformed messages on every key while the pipeline runs.
 
 Publishes ``--count`` payloads (random bytes, mutated valid messages, boundary values — see
-:mod:`shared.fuzz`) round-robin on every key the services subscribe to, while the scripted master
+:mod:`telesurg.shared.fuzz`) round-robin on every key the services subscribe to, while the scripted master
 drives the slave. Reports: crashes (service processes that died: must be 0), messages each
 service rejected (from their heartbeats) against the number a local strict decoder says it must
 reject, slave holds during the run, and whether the slave ever got outside its joint limits or
@@ -28,13 +28,12 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-
-from services.bench.harness import Pipeline
-from services.mirror import SUBSCRIBED
-from shared.errors import MessageError
-from shared.fuzz import FUZZ_KINDS, always_invalid, fuzz_cases, valid_template
-from shared.kinematics import MH3F
-from shared.messages import (
+from telesurg.services.bench.harness import Pipeline
+from telesurg.services.mirror import SUBSCRIBED
+from telesurg.shared.errors import MessageError
+from telesurg.shared.fuzz import FUZZ_KINDS, always_invalid, fuzz_cases, valid_template
+from telesurg.shared.kinematics import MH3F
+from telesurg.shared.messages import (
     CartesianPose,
     EStop,
     JointSetpoint,
@@ -63,7 +62,7 @@ TARGETS: dict[str, tuple[type[Message], dict[str, str]]] = {
 }
 SERVICES = ("mapping", "watchdog", "slave_control", "mirror")
 MIRROR_TRUSTED = frozenset({"master_capture", "mapping", "slave_control", "watchdog"})
-MIRROR_SUBSCRIBED = SUBSCRIBED  # the keys the mirror draws (services.mirror.SUBSCRIBED)
+MIRROR_SUBSCRIBED = SUBSCRIBED  # the keys the mirror draws (telesurg.services.mirror.SUBSCRIBED)
 
 
 def expected_rejections(key: str, payload: bytes) -> dict[str, int]:

@@ -4,7 +4,7 @@ Used by ``telesurg bench faults`` / ``bench fuzz`` and by the process-level safe
 the figures in ``docs/safety.md`` and the test assertions come from the same code.
 
 The console side (master_capture) reaches the slave-side router through a
-:class:`~shared.impair.LinkImpairer` on loopback, so a link cut or delay can be injected between
+:class:`~telesurg.shared.impair.LinkImpairer` on loopback, so a link cut or delay can be injected between
 the two sides. The probe is a zenoh client that records, on its own monotonic clock, what a user
 would look at: the slave tip (from MuJoCo), the slave's operating state, the watchdog's state,
 the clutch pedal and every event.
@@ -30,11 +30,10 @@ from pathlib import Path
 from types import TracebackType
 
 import numpy as np
-
-from services.launcher import Site, SiteSpec, default_config_dir, free_port
-from shared.bus import BusConfig, Node, Outlet
-from shared.impair import LinkImpairer
-from shared.messages import (
+from telesurg.services.launcher import Site, SiteSpec, default_config_dir, free_port
+from telesurg.shared.bus import BusConfig, Node, Outlet
+from telesurg.shared.impair import LinkImpairer
+from telesurg.shared.messages import (
     CartesianPose,
     EStop,
     Heartbeat,

@@ -1,7 +1,7 @@
 """Performance benches: ``telesurg bench latency | soak | ik | sim`` (tables + ``--json FILE``).
 
 * ``latency`` — in one run, alternating blocks: (a) the transport floor, a bare three-process
-  zenoh relay (:mod:`services.bench.relay`) through the site router, and (b) the real pipeline
+  zenoh relay (:mod:`telesurg.services.bench.relay`) through the site router, and (b) the real pipeline
   master_capture → mapping → slave_control with the real services, the setpoint timed when the
   slave's control loop first uses it. One-way latency per hop and end to end (every process on one
   host stamps with the same wall clock), p50/p90/p99/max, and the pipeline/relay ratios.
@@ -78,7 +78,7 @@ def _table(title: str, rows: list[tuple[str, dict[str, float]]]) -> None:
 
 def _relay_block(endpoint: str, rate: float, seconds: float, tmp: Path, k: int) -> np.ndarray:
     out = tmp / f"relay{k}.npy"
-    base = [sys.executable, "-m", "services.bench.relay"]
+    base = [sys.executable, "-m", "telesurg.services.bench.relay"]
     common = ["--connect", endpoint, "--rate", str(rate), "--seconds", str(seconds)]
     sink = subprocess.Popen([*base, "sink", *common, "--out", str(out)], stdout=subprocess.DEVNULL)
     relay = subprocess.Popen([*base, "relay", *common], stdout=subprocess.DEVNULL)
@@ -125,7 +125,7 @@ def fifo_threads(pid: int) -> int:
 def _pipeline_block(
     rate: float, seconds: float, tmp: Path, k: int, rt_priority: int | None = None
 ) -> tuple[np.ndarray, dict[str, Any]]:
-    from services.bench.harness import Pipeline
+    from telesurg.services.bench.harness import Pipeline
 
     npy = tmp / f"applied{k}.npy"
     overrides = _overrides(
@@ -143,8 +143,8 @@ def _pipeline_block(
 
 
 def latency(a: argparse.Namespace) -> dict[str, Any]:
-    from services.launcher import free_port
-    from shared.bus import BusConfig, open_session
+    from telesurg.services.launcher import free_port
+    from telesurg.shared.bus import BusConfig, open_session
 
     rate = a.rate
     res: dict[str, Any] = {
@@ -200,7 +200,7 @@ def latency(a: argparse.Namespace) -> dict[str, Any]:
     print(f"pipeline / relay: p50 × {res['ratio_p50']}, p99 × {res['ratio_p99']}; watchdog holds {holds}")
     print(f"SCHED_FIFO threads of the pipeline: {res['pipeline_fifo_threads']}")
     if a.plot:
-        from services.bench.plots import plot_latency
+        from telesurg.services.bench.plots import plot_latency
 
         plot_latency([res], a.plot)
         print(f"figure: {a.plot}")
@@ -220,7 +220,7 @@ def soak(a: argparse.Namespace) -> dict[str, Any]:
 
     psutil: Any = importlib.import_module("psutil")  # (no type stubs)
 
-    from services.bench.harness import Pipeline
+    from telesurg.services.bench.harness import Pipeline
 
     res: dict[str, Any] = {"rate_hz": a.rate, "seconds": a.seconds}
     with tempfile.TemporaryDirectory() as d:
@@ -232,7 +232,7 @@ def soak(a: argparse.Namespace) -> dict[str, Any]:
                     [
                         sys.executable,
                         "-m",
-                        "services.record",
+                        "telesurg.services.record",
                         "--out",
                         str(tmp / "soak.mcap"),
                         "--seconds",
@@ -324,11 +324,11 @@ def _time_batch(fn: Callable[[], Any], min_s: float = 0.3) -> float:
 
 
 def ik(a: argparse.Namespace) -> dict[str, Any]:
-    from shared.errors import IKError
-    from shared.kinematics import MH3F, fk, plas, vip
-    from shared.kinematics import ik as ik6
-    from shared.kinematics.batch import ik_batch, trocar_ik_batch
-    from shared.kinematics.trocar import posture_adjust, rcm_error, trocar_ik
+    from telesurg.shared.errors import IKError
+    from telesurg.shared.kinematics import MH3F, fk, plas, vip
+    from telesurg.shared.kinematics import ik as ik6
+    from telesurg.shared.kinematics.batch import ik_batch, trocar_ik_batch
+    from telesurg.shared.kinematics.trocar import posture_adjust, rcm_error, trocar_ik
 
     rng = np.random.default_rng(0)
     n = a.n
@@ -428,9 +428,9 @@ def _mink_baseline(tips: list[np.ndarray], trocar: np.ndarray, q0: np.ndarray, n
             "name": "mink (not installed)",
             "note": "generic IK skipped: pip install -e '.[bench]' for mink",
         }
-    from services.slave_control.models import model_path
-    from shared.kinematics import MH3F, fk
-    from shared.kinematics.trocar import rcm_error
+    from telesurg.services.slave_control.models import model_path
+    from telesurg.shared.kinematics import MH3F, fk
+    from telesurg.shared.kinematics.trocar import rcm_error
 
     model = mujoco.MjModel.from_xml_path(str(model_path("mh3f")))
     cfg = mink.Configuration(model)
@@ -478,8 +478,7 @@ def _mink_baseline(tips: list[np.ndarray], trocar: np.ndarray, q0: np.ndarray, n
 
 def sim(a: argparse.Namespace) -> dict[str, Any]:
     import mujoco
-
-    from services.slave_control.models import model_names, model_path
+    from telesurg.services.slave_control.models import model_names, model_path
 
     res: dict[str, Any] = {}
     for name in model_names():

@@ -13,8 +13,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-
-from services.bench.harness import Probe
+from telesurg.services.bench.harness import Probe
 
 STATE_COLOURS = {"DEGRADED": "#f6d55c", "HOLD": "#ed553b", "ESTOP": "#8e44ad"}
 

@@ -6,9 +6,9 @@ same router as the services; the payload is a msgpack map padded to the size of 
 message. No decoding, no validation, no logic: what is left is the price of the transport and of
 a Python callback per hop. ``telesurg bench latency`` compares the real pipeline against it.
 
-    python -m services.bench.relay source --connect tcp/127.0.0.1:7447 --rate 1000 --seconds 5
-    python -m services.bench.relay relay  --connect …
-    python -m services.bench.relay sink   --connect … --out sink.npy   # rows: t_source, t_relay, t_sink (ns)
+    python -m telesurg.services.bench.relay source --connect tcp/127.0.0.1:7447 --rate 1000 --seconds 5
+    python -m telesurg.services.bench.relay relay  --connect …
+    python -m telesurg.services.bench.relay sink   --connect … --out sink.npy  # t_src t_relay t_sink
 """
 
 from __future__ import annotations
@@ -21,10 +21,9 @@ from typing import Any
 
 import msgpack
 import numpy as np
-
-from services.common import install_stop_handlers
-from shared.bus import BusConfig, open_session
-from shared.timing import CycleTimer
+from telesurg.services.common import install_stop_handlers
+from telesurg.shared.bus import BusConfig, open_session
+from telesurg.shared.timing import CycleTimer
 
 KEY_A = "telesurg/bench/relay/a"
 KEY_B = "telesurg/bench/relay/b"
@@ -40,7 +39,7 @@ def _publisher(session: Any, key: str) -> Any:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m services.bench.relay", description=__doc__)
+    ap = argparse.ArgumentParser(prog="python -m telesurg.services.bench.relay", description=__doc__)
     ap.add_argument("role", choices=("source", "relay", "sink"))
     ap.add_argument("--connect", required=True)
     ap.add_argument("--rate", type=float, default=1000.0, help="Hz (source; 0: unpaced)")

@@ -1,20 +1,20 @@
 """``telesurg bench transport``: zenoh link protocols for a 1 kHz control stream under packet loss.
 
-Two network namespaces are joined by a :class:`~shared.impair.PacketLink` — a TUN device in each,
+Two network namespaces are joined by a :class:`~telesurg.shared.impair.PacketLink` — a TUN device in each,
 every IP packet forwarded by this process with a one-way delay and independent random loss —
 so each protocol meets real packet loss and its own retransmission: TCP and TLS retransmit in
 the kernel and hold every later byte until the lost one arrives (head-of-line blocking), QUIC
 streams retransmit in user space, UDP and QUIC datagrams (``?rel=0``) do not retransmit at all.
 
 In one namespace a zenoh router subscribes (the slave site); in the other a client publishes a
-stream at ``--rate-hz`` with the control-stream QoS of :meth:`shared.bus.Node.outlet` (express,
+stream at ``--rate-hz`` with the control-stream QoS of :meth:`telesurg.shared.bus.Node.outlet` (express,
 real-time priority, congestion control BLOCK; reliable, except ``quic-mixed``: best effort over
 datagrams). Both stamp CLOCK_MONOTONIC, which namespaces share, so latency is one-way. The loss
 is switched on after the session is up and the stream flows (handshake robustness is not what
 is measured). Per protocol and loss rate: delivered %, one-way latency p50/p99/max, and
 **stalls** — receive gaps longer than ``--stall-ms`` (no sample reached the slave) — their
 count, p99 and longest. TLS and QUIC use mutual TLS with certificates from
-:mod:`services.certs`, as the deployed site does.
+:mod:`telesurg.services.certs`, as the deployed site does.
 
 Root only (namespaces, TUN devices). Nothing here asserts a time: the figures go to
 ``docs/deploy.md``.
@@ -43,10 +43,9 @@ from pathlib import Path
 from typing import IO, Any
 
 import numpy as np
-
-from shared.bus import BusConfig, open_session
-from shared.impair import NetNamespace, PacketLink, netns_available
-from shared.timing import CycleTimer
+from telesurg.shared.bus import BusConfig, open_session
+from telesurg.shared.impair import NetNamespace, PacketLink, netns_available
+from telesurg.shared.timing import CycleTimer
 
 #: name → (endpoint scheme, endpoint suffix, mutual TLS, best-effort publisher)
 TRANSPORTS: dict[str, tuple[str, str, bool, bool]] = {
@@ -235,7 +234,7 @@ def measure(
     """One run: fresh namespaces and link, router+subscriber, publisher, loss on after 1 s."""
     result = RunResult(transport, loss, delay_ms)
     tag = f"{os.getpid() % 100000}"
-    me = [sys.executable, "-m", "services.bench.transport"]
+    me = [sys.executable, "-m", "telesurg.services.bench.transport"]
     common = ["--transport", transport, "--certs", str(certs)]
     out = work / f"{transport}-{loss:g}.npy"
     with (
@@ -311,7 +310,7 @@ def table(results: Sequence[RunResult], stall_ms: float) -> str:
 
 
 def _make_certs(where: Path) -> Path:
-    from services.certs import CertsConfig, make_certs
+    from telesurg.services.certs import CertsConfig, make_certs
 
     make_certs(CertsConfig(out=where, hosts=("localhost", ADDR_SUB)))
     return where

@@ -18,7 +18,7 @@ Examples::
 
     telesurg certs --out certs --host slave.lab.example --host 192.168.1.20
     telesurg certs --out certs --identity console2          # one more console, same CA
-    python -m services.certs --out /tmp/other --identity console   # an unrelated CA (tests)
+    python -m telesurg.services.certs --out /tmp/other --identity console   # an unrelated CA (tests)
 """
 
 from __future__ import annotations
@@ -36,9 +36,8 @@ from cryptography import x509
 from cryptography.hazmat.primitives import hashes, serialization
 from cryptography.hazmat.primitives.asymmetric import ec
 from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
-
-from shared.errors import ConfigError
-from shared.keys import check_id
+from telesurg.shared.errors import ConfigError
+from telesurg.shared.keys import check_id
 
 #: The identities the slave site's access-control rules know (deploy/slave-site/acl.json5).
 IDENTITIES = ("slave-site", "console", "viewer")

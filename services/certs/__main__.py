@@ -1,6 +1,6 @@
-"""``python -m services.certs``: the same as ``telesurg certs``."""
+"""``python -m telesurg.services.certs``: the same as ``telesurg certs``."""
 
-from services.certs import main
+from telesurg.services.certs import main
 
 if __name__ == "__main__":
     raise SystemExit(main())

@@ -23,10 +23,10 @@ import os
 import sys
 from collections.abc import Sequence
 
-from shared.bus import Node, add_bus_args, bus_from_args
-from shared.errors import ConfigError, MessageError
-from shared.keys import check_id
-from shared.messages import Command, CommandReply
+from telesurg.shared.bus import Node, add_bus_args, bus_from_args
+from telesurg.shared.errors import ConfigError, MessageError
+from telesurg.shared.keys import check_id
+from telesurg.shared.messages import Command, CommandReply
 
 
 def main(argv: Sequence[str] | None = None) -> int:

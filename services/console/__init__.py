@@ -18,7 +18,7 @@ and lets the operator act:
 
 Bus work (subscriptions, the clutch publisher, command requests in a small thread pool) lives in
 :class:`ConsoleModel`; zenoh callbacks only store the latest message. The UI
-(:mod:`services.console.app`) redraws from a snapshot at 10 Hz.
+(:mod:`telesurg.services.console.app`) redraws from a snapshot at 10 Hz.
 
 Examples::
 
@@ -42,11 +42,11 @@ from collections.abc import Callable, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 
-from shared.bus import BusConfig, Node, add_bus_args, bus_from_args, only
-from shared.config import load_config
-from shared.errors import ConfigError, MessageError, TelesurgError
-from shared.keys import Keys, check_id
-from shared.messages import (
+from telesurg.shared.bus import BusConfig, Node, add_bus_args, bus_from_args, only
+from telesurg.shared.config import load_config
+from telesurg.shared.errors import ConfigError, MessageError, TelesurgError
+from telesurg.shared.keys import Keys, check_id
+from telesurg.shared.messages import (
     Command,
     CommandReply,
     EStop,
@@ -488,7 +488,7 @@ def parse_args(argv: Sequence[str] | None) -> tuple[ConsoleConfig, str]:
 def run(cfg: ConsoleConfig, ui: Callable[[ConsoleModel], None] | None = None) -> None:
     """Open the node and the model, run the UI until the operator quits, close everything."""
     if ui is None:
-        from services.console.app import run_app
+        from telesurg.services.console.app import run_app
 
         ui = run_app
     with Node(cfg.bus, cfg.site, cfg.service) as node:

@@ -1,4 +1,4 @@
-"""The console's terminal UI (textual) over a :class:`~services.console.ConsoleModel`.
+"""The console's terminal UI (textual) over a :class:`~telesurg.services.console.ConsoleModel`.
 
 Layout: a status line (site, live services), one panel per arm, the log (events, command replies,
 refusals), the command line and the key footer. The panels redraw from a model snapshot at
@@ -32,6 +32,7 @@ import time
 from typing import ClassVar
 
 from rich.text import Text
+from telesurg.services.console import JOG_AXES, JOG_FRAMES, ArmState, ConsoleConfig, ConsoleModel, Notice
 from textual import on
 from textual.app import App, ComposeResult
 from textual.binding import Binding, BindingType
@@ -39,8 +40,6 @@ from textual.containers import Horizontal, Vertical, VerticalScroll
 from textual.notifications import SeverityLevel
 from textual.screen import ModalScreen
 from textual.widgets import Button, Footer, Input, Label, RichLog, Static
-
-from services.console import JOG_AXES, JOG_FRAMES, ArmState, ConsoleConfig, ConsoleModel, Notice
 
 SAFETY_STYLE = {
     "OK": "bold green",

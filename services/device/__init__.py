@@ -3,9 +3,9 @@
 
 * ``emulate --pty`` — an emulated encoder board on a new pseudo-terminal: prints the device path
   (e.g. ``/dev/pts/7``) as the first line on stdout, then serves HELLO and SAMPLE frames of a
-  scripted motion (:mod:`services.device.emulator`) until SIGINT/SIGTERM or ``--seconds``.
+  scripted motion (:mod:`telesurg.services.device.emulator`) until SIGINT/SIGTERM or ``--seconds``.
 * ``emulate-slave --pty --model mh3f|plas|vip`` — an emulated joint-servo controller of a slave
-  arm on a new pseudo-terminal (:mod:`services.device.servo_emulator`): prints the device path as
+  arm on a new pseudo-terminal (:mod:`telesurg.services.device.servo_emulator`): prints the device path as
   the first line on stdout, then serves the servo protocol (HELLO, STATE; follows SETPOINTs with
   a lag and the speed limits; its own watchdog) with optional injected faults.
 * ``monitor`` — opens the port of a master_capture config (``serial.*`` keys) and prints the
@@ -17,7 +17,7 @@ Examples::
     telesurg device emulate --pty --rate 500 --motion sine          # prints /dev/pts/N
     telesurg master-capture --set device=serial --set serial.port=/dev/pts/N
     telesurg device monitor --set serial.port=/dev/ttyACM0 --seconds 10
-    python -m services.device emulate --pty --garbage-every 50 --drop-every 100
+    python -m telesurg.services.device emulate --pty --garbage-every 50 --drop-every 100
     telesurg device emulate-slave --pty --model mh3f --stall-joint 1 --stall-at 10   # prints /dev/pts/N
     telesurg slave-control --set backend=serial --set serial_port=/dev/pts/N --set shadow=true
 """
@@ -33,16 +33,23 @@ import time
 from collections.abc import Sequence
 from typing import TYPE_CHECKING, TextIO
 
-from services.common import install_stop_handlers, setup_logging
-from services.device.emulator import MOTIONS, EmulatorOptions, run_pty
-from services.device.servo_emulator import FAULTS, ServoEmulatorOptions
-from services.device.servo_emulator import run_pty as run_servo_pty
-from shared.encoder_protocol import Calibration, Hello, HelloRequest, Sample, decode_message, send_message
-from shared.errors import MessageError, TelesurgError
-from shared.serial_link import SerialLink
+from telesurg.services.common import install_stop_handlers, setup_logging
+from telesurg.services.device.emulator import MOTIONS, EmulatorOptions, run_pty
+from telesurg.services.device.servo_emulator import FAULTS, ServoEmulatorOptions
+from telesurg.services.device.servo_emulator import run_pty as run_servo_pty
+from telesurg.shared.encoder_protocol import (
+    Calibration,
+    Hello,
+    HelloRequest,
+    Sample,
+    decode_message,
+    send_message,
+)
+from telesurg.shared.errors import MessageError, TelesurgError
+from telesurg.shared.serial_link import SerialLink
 
 if TYPE_CHECKING:
-    from services.master_capture.devices import SerialMasterConfig
+    from telesurg.services.master_capture.devices import SerialMasterConfig
 
 log = logging.getLogger(__name__)
 
@@ -100,7 +107,7 @@ def _parser() -> argparse.ArgumentParser:
 
 
 def _slave_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
-    from shared.robots import MODELS
+    from telesurg.shared.robots import MODELS
 
     em = sub.add_parser(
         "emulate-slave",
@@ -231,8 +238,8 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 def _monitor_main(args: argparse.Namespace, stop: threading.Event) -> int:
-    from services.master_capture import MasterCaptureConfig  # zenoh: only for this subcommand
-    from shared.config import load_config
+    from telesurg.services.master_capture import MasterCaptureConfig  # zenoh: only for this subcommand
+    from telesurg.shared.config import load_config
 
     try:
         cfg = load_config(MasterCaptureConfig, args.config, args.set).serial

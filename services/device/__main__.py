@@ -1,6 +1,6 @@
-"""``python -m services.device``: the same as ``telesurg device``."""
+"""``python -m telesurg.services.device``: the same as ``telesurg device``."""
 
-from services.device import main
+from telesurg.services.device import main
 
 if __name__ == "__main__":
     raise SystemExit(main())

@@ -1,9 +1,9 @@
 """Encoder-board emulator: HELLO and SAMPLE frames of a scripted master on a file descriptor.
 
-:class:`BoardEmulator` speaks :mod:`shared.encoder_protocol` exactly like the reference firmware
+:class:`BoardEmulator` speaks :mod:`telesurg.shared.encoder_protocol` exactly like the reference firmware
 (``firmware/encoder_board``): a HELLO on start, every ``hello_every_s`` and on HELLO_REQUEST, and a
 SAMPLE at ``rate_hz`` generated from a scripted motion of the six master joints through the
-default :class:`~shared.encoder_protocol.Calibration` (so a host with the default calibration
+default :class:`~telesurg.shared.encoder_protocol.Calibration` (so a host with the default calibration
 reads back the scripted joint values to within one count). It writes to any non-blocking fd — the
 controller side of a pseudo-terminal in :func:`run_pty` (``telesurg device emulate --pty``), or a
 test's own pty — and can inject line noise and dropped frames.
@@ -27,7 +27,7 @@ import threading
 import time
 from dataclasses import dataclass, field
 
-from shared.encoder_protocol import (
+from telesurg.shared.encoder_protocol import (
     SW_CLUTCH,
     SW_OPERATOR,
     T_US_MODULUS,
@@ -38,8 +38,8 @@ from shared.encoder_protocol import (
     decode_message,
     encode_message,
 )
-from shared.errors import MessageError
-from shared.serial_link import SEQ_MODULUS
+from telesurg.shared.errors import MessageError
+from telesurg.shared.serial_link import SEQ_MODULUS
 
 from .port import DevicePort, pty_device, serve_at
 

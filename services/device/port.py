@@ -13,8 +13,8 @@ import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 
-from shared.serial_link import Frame, FrameReader
-from shared.timing import CycleTimer
+from telesurg.shared.serial_link import Frame, FrameReader
+from telesurg.shared.timing import CycleTimer
 
 #: Bytes the emulator keeps for a host that does not read; beyond that the backlog is dropped
 #: (the host resynchronises on the next 0x00, as with a real board's full USB buffer).

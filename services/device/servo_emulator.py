@@ -1,7 +1,7 @@
-"""Joint-servo controller emulator: a slave arm's controller speaking :mod:`shared.servo_protocol`.
+"""Joint-servo controller emulator: a slave arm's controller speaking :mod:`telesurg.shared.servo_protocol`.
 
 :class:`ServoEmulator` behaves like the reference firmware (``firmware/servo_controller``) in front
-of a robot of :mod:`shared.robots` (``mh3f``, ``plas``, ``vip``: every joint of every arm, limits
+of a robot of :mod:`telesurg.shared.robots` (``mh3f``, ``plas``, ``vip``: every joint of every arm, limits
 and speed limits from the profiles, start at the profiles' home pose):
 
 * a HELLO at start and on HELLO_REQUEST, a STATE every ``1 / rate_hz`` s;
@@ -32,11 +32,10 @@ import time
 from dataclasses import dataclass, field
 
 import numpy as np
-
-from shared.errors import MessageError
-from shared.robots import MODELS
-from shared.serial_link import SEQ_MODULUS, seq_delta
-from shared.servo_protocol import (
+from telesurg.shared.errors import MessageError
+from telesurg.shared.robots import MODELS
+from telesurg.shared.serial_link import SEQ_MODULUS, seq_delta
+from telesurg.shared.servo_protocol import (
     FAULT_ESTOP,
     FAULT_FOLLOWING,
     FAULT_INTERNAL,

@@ -19,10 +19,10 @@ import sys
 import threading
 from collections.abc import Sequence
 
-from shared.bus import Node, add_bus_args, bus_from_args
-from shared.errors import ConfigError
-from shared.keys import check_id
-from shared.messages import EStop, SafetyState
+from telesurg.shared.bus import Node, add_bus_args, bus_from_args
+from telesurg.shared.errors import ConfigError
+from telesurg.shared.keys import check_id
+from telesurg.shared.messages import EStop, SafetyState
 
 
 def main(argv: Sequence[str] | None = None) -> int:

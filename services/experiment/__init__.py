@@ -26,9 +26,9 @@ from pathlib import Path
 
 #: experiment name → module with ``run(out, progress) -> metrics``
 EXPERIMENTS = {
-    "jinno-insertion": "services.experiment.jinno",
-    "shim-mapping": "services.experiment.shim",
-    "jang-vip": "services.experiment.jang",
+    "jinno-insertion": "telesurg.services.experiment.jinno",
+    "shim-mapping": "telesurg.services.experiment.shim",
+    "jang-vip": "telesurg.services.experiment.jang",
 }
 
 

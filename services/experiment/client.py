@@ -13,9 +13,8 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
-
-from shared.bus import Node
-from shared.messages import (
+from telesurg.shared.bus import Node
+from telesurg.shared.messages import (
     CartesianPose,
     CartesianWrench,
     Command,
@@ -41,7 +40,7 @@ class ArmLog:
 
 
 class ArmClient:
-    """Commands and observations of one arm over an open :class:`~shared.bus.Node`."""
+    """Commands and observations of one arm over an open :class:`~telesurg.shared.bus.Node`."""
 
     def __init__(self, node: Node, arm: str = "arm1", *, verbose: bool = False) -> None:
         self.node, self.arm, self.verbose = node, arm, verbose

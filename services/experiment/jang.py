@@ -1,6 +1,6 @@
 """Jang 2014's evaluation of Virtual-Incision-Port (VIP) control, in kinematics and in MuJoCo.
 
-Reproduces, with the arm of :mod:`shared.kinematics.vip` and the two-arm model
+Reproduces, with the arm of :mod:`telesurg.shared.kinematics.vip` and the two-arm model
 ``services/slave_control/models/vip``:
 
 * **Fig. 6** — a reference wrist trajectory (a 20 mm circle around the Table I initial wrist,
@@ -9,17 +9,17 @@ Reproduces, with the arm of :mod:`shared.kinematics.vip` and the two-arm model
   and how far the elbow is from the line V-W (the "virtual instrument").
 * **The same trajectory in MuJoCo** — both arms, joint setpoints computed at 25 Hz (every
   40 ms, the paper's master rate), interpolated to 1 kHz by the slave's
-  :class:`~services.slave_control.control.SetpointInterpolator` into the position servos,
+  :class:`~telesurg.services.slave_control.control.SetpointInterpolator` into the position servos,
   ``mj_step`` at 1 ms; the wrist site against the reference and the joint-velocity steps.
 * **Fig. 9** — a target outside the working area of one VIP (the IK violates Table I) becomes
   reachable after reallocating the VIP with the paper's selection procedure.
 * **The central claim** — elbow excursion with VIP control against the pseudo-inverse Jacobian
-  resolution (:func:`~shared.kinematics.vip.pinv_step`) on the same wrist trajectory.
+  resolution (:func:`~telesurg.shared.kinematics.vip.pinv_step`) on the same wrist trajectory.
 
 The paper's VIP in the frame of ``vip.py``
 -------------------------------------------
 The paper gives the VIP in its "base coordinates": origin at the RCM point R, z1 up (the q1 axis).
-:data:`~shared.kinematics.vip.VIP_ARM` uses the same origin and z1, but the direction of x1 (the
+:data:`~telesurg.shared.kinematics.vip.VIP_ARM` uses the same origin and z1, but the direction of x1 (the
 zero of q1) is a convention the paper never shows, and with the chosen α, β, forearm and Table I
 our arm can only put its elbow at azimuths 72°-172° about z1, never at the paper's -52.8°. The
 printed VIP is therefore turned about z1 by :data:`VIP_ROTATION_DEG` (the angle that brings it
@@ -36,7 +36,7 @@ Output: ``metrics.json`` and ``jang-fig6.png``, ``jang-fig9.png``, ``jang-elbow.
 Example::
 
     telesurg experiment jang-vip --out /tmp/jang
-    python -c "from pathlib import Path; from services.experiment.jang import run; run(Path('/tmp/jang'))"
+    python -c "from pathlib import Path; import telesurg.services.experiment.jang as j; j.run(Path('/tmp/j'))"
 """
 
 from __future__ import annotations
@@ -50,11 +50,10 @@ from typing import Any
 
 import numpy as np
 import numpy.typing as npt
-
-from services.slave_control.control import SetpointInterpolator
-from services.slave_control.models import model_path
-from shared.kinematics.transforms import FloatArray, rot_z
-from shared.kinematics.vip import (
+from telesurg.services.slave_control.control import SetpointInterpolator
+from telesurg.services.slave_control.models import model_path
+from telesurg.shared.kinematics.transforms import FloatArray, rot_z
+from telesurg.shared.kinematics.vip import (
     EV_DEFAULT,
     EV_MAX,
     EV_MIN,

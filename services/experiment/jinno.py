@@ -31,12 +31,11 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-
-from services.experiment.client import ArmClient
-from shared.bus import BusConfig, Node
-from shared.kinematics import MH3F, fk, jacobian
-from shared.kinematics.trocar import posture_adjust
-from shared.messages import CartesianPose, MasterButtons
+from telesurg.services.experiment.client import ArmClient
+from telesurg.shared.bus import BusConfig, Node
+from telesurg.shared.kinematics import MH3F, fk, jacobian
+from telesurg.shared.kinematics.trocar import posture_adjust
+from telesurg.shared.messages import CartesianPose, MasterButtons
 
 log = logging.getLogger(__name__)
 
@@ -112,7 +111,7 @@ class Master(threading.Thread):
 
 def _write_store(path: Path) -> None:
     """Teach store with the trocar and one single-point program per start (joints → FK tip)."""
-    from services.slave_control.teach import TaughtPoint, TeachStore
+    from telesurg.services.slave_control.teach import TaughtPoint, TeachStore
 
     store = TeachStore(None, "arm1")
     store.path = path
@@ -265,7 +264,7 @@ class Experiment:
 
 def run(out: Path, progress: Progress | None = None, *, keep_logs: bool = True) -> dict[str, Any]:
     """Run the experiment; write ``metrics.json`` and figures into ``out``; return the metrics."""
-    from services.bench.harness import Pipeline
+    from telesurg.services.bench.harness import Pipeline
 
     out.mkdir(parents=True, exist_ok=True)
     say: Progress = progress or (lambda text, frac: None)
@@ -472,5 +471,5 @@ def _figures(out: Path, exp: Experiment, master: Master) -> None:
     plt.close(fig)
 
 
-def main(argv: list[str] | None = None) -> int:  # pragma: no cover - via services.experiment
+def main(argv: list[str] | None = None) -> int:  # pragma: no cover - via telesurg.services.experiment
     raise SystemExit("use: telesurg experiment jinno-insertion --out DIR")

@@ -1,6 +1,6 @@
 """Shim 2015, Section 4, reproduced kinematically: Table-6 mapping vs master tip (no bus, no sim).
 
-Runs the reconstructed PLAS slave and ergonomic master of :mod:`shared.kinematics.plas`
+Runs the reconstructed PLAS slave and ergonomic master of :mod:`telesurg.shared.kinematics.plas`
 through the experiments of the thesis's Section 4 and writes ``metrics.json`` and three PNGs:
 
 * ``shim-joints.png`` — Figs. 20-22: master joint 2, 3 or 4 turned 0→30° alone.
@@ -17,7 +17,7 @@ single-joint cases error-free ("both tips moved 103.6 mm at the same time").
 Example::
 
     telesurg experiment shim-mapping --out /tmp/shim
-    python -c "from pathlib import Path; from services.experiment.shim import run; run(Path('/tmp/shim'))"
+    python -c "from pathlib import Path; import telesurg.services.experiment.shim as s; s.run(Path('/tmp/s'))"
 """
 
 from __future__ import annotations
@@ -30,8 +30,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
-
-from shared.kinematics.plas import (
+from telesurg.shared.kinematics.plas import (
     MappingConfig,
     MappingMode,
     eq29_vx_error,
@@ -39,7 +38,7 @@ from shared.kinematics.plas import (
     master_tip_arm,
     slave_tip_arm,
 )
-from shared.kinematics.transforms import FloatArray
+from telesurg.shared.kinematics.transforms import FloatArray
 
 if TYPE_CHECKING:
     from matplotlib.axes import Axes

@@ -35,9 +35,9 @@ from pathlib import Path
 from types import TracebackType
 from typing import IO
 
-from services.common import install_stop_handlers, setup_logging
-from shared.bus import BusConfig, add_bus_args, bus_from_args
-from shared.errors import ConfigError
+from telesurg.services.common import install_stop_handlers, setup_logging
+from telesurg.shared.bus import BusConfig, add_bus_args, bus_from_args
+from telesurg.shared.errors import ConfigError
 
 log = logging.getLogger("telesurg.launcher")
 
@@ -116,7 +116,7 @@ class SiteSpec:
 
 def service_argv(spec: SiteSpec, name: str) -> list[str]:
     """Command line that starts service ``name`` of ``spec``."""
-    argv = [sys.executable, "-m", "services.cli", CLI_NAME[name], "--site", spec.site]
+    argv = [sys.executable, "-m", "telesurg.services.cli", CLI_NAME[name], "--site", spec.site]
     argv += ["--log-level", spec.log_level, "--parent-pid", str(os.getpid())]
     if name == "router":
         for ep in (spec.endpoint, *spec.listen):
@@ -155,8 +155,8 @@ class Site:
                 raise ConnectionError(f"router exited with code {router.returncode} (see its log)")
             if time.monotonic() > deadline:
                 raise ConnectionError(f"router did not open {self.spec.endpoint} within 15 s")
-        from shared.bus import BusConfig, open_session
-        from shared.keys import Keys
+        from telesurg.shared.bus import BusConfig, open_session
+        from telesurg.shared.keys import Keys
 
         keys = Keys(self.spec.site)
         session = open_session(BusConfig(connect=[self.spec.endpoint]))

@@ -21,13 +21,13 @@ import time
 from collections.abc import Sequence
 from pathlib import Path
 
-from services.common import install_stop_handlers, setup_logging
-from services.launcher import Site, add_site_args, spec_from_args
-from services.launcher.report import SessionRecorder
-from services.mapping import MappingConfig, parse_pair, rpy_matrix
-from shared.bus import BusConfig, Node
-from shared.config import load_config
-from shared.errors import TelesurgError
+from telesurg.services.common import install_stop_handlers, setup_logging
+from telesurg.services.launcher import Site, add_site_args, spec_from_args
+from telesurg.services.launcher.report import SessionRecorder
+from telesurg.services.mapping import MappingConfig, parse_pair, rpy_matrix
+from telesurg.shared.bus import BusConfig, Node
+from telesurg.shared.config import load_config
+from telesurg.shared.errors import TelesurgError
 
 log = logging.getLogger("telesurg.demo")
 
@@ -80,7 +80,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                 # --seconds of session once everything is up (start-up is not counted)
                 deadline = time.monotonic() + args.seconds if args.seconds > 0 else float("inf")
                 if not args.headless:
-                    from services.mirror.view import viewer_url
+                    from telesurg.services.mirror.view import viewer_url
 
                     url = viewer_url(f"rerun+http://127.0.0.1:{args.grpc_port}/proxy", args.web_port)
                     print(f"\nrerun web viewer: {url}\nCtrl-C stops everything.\n", flush=True)

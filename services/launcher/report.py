@@ -24,9 +24,8 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-
-from shared.bus import Node
-from shared.messages import (
+from telesurg.shared.bus import Node
+from telesurg.shared.messages import (
     CartesianPose,
     JointSetpoint,
     JointState,

@@ -40,17 +40,16 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
-
-from services.common import service_main
-from services.mapping.engage import EngageGate
-from services.mapping.joints import AllJointsMapping, VipMapping
-from shared.bus import BusConfig, Node, Outlet, only
-from shared.errors import ConfigError, IKError
-from shared.keys import check_id
-from shared.kinematics import MH3F, fk, ik, matrix_from_quat, quat_from_matrix
-from shared.kinematics.transforms import rot_x, rot_y, rot_z
-from shared.kinematics.trocar import trocar_ik
-from shared.messages import (
+from telesurg.services.common import service_main
+from telesurg.services.mapping.engage import EngageGate
+from telesurg.services.mapping.joints import AllJointsMapping, VipMapping
+from telesurg.shared.bus import BusConfig, Node, Outlet, only
+from telesurg.shared.errors import ConfigError, IKError
+from telesurg.shared.keys import check_id
+from telesurg.shared.kinematics import MH3F, fk, ik, matrix_from_quat, quat_from_matrix
+from telesurg.shared.kinematics.transforms import rot_x, rot_y, rot_z
+from telesurg.shared.kinematics.trocar import trocar_ik
+from telesurg.shared.messages import (
     CartesianPose,
     Command,
     CommandReply,
@@ -61,7 +60,7 @@ from shared.messages import (
     SafetyState,
     Sequencer,
 )
-from shared.timing import check_rt_priority, start_loop
+from telesurg.shared.timing import check_rt_priority, start_loop
 
 log = logging.getLogger(__name__)
 ORIENTATION_MODES = ("follow", "fixed")

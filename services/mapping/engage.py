@@ -18,12 +18,11 @@ import time
 from typing import TYPE_CHECKING
 
 import numpy as np
-
-from shared.messages import JointState, MasterButtons, OperatingState
+from telesurg.shared.messages import JointState, MasterButtons, OperatingState
 
 if TYPE_CHECKING:
-    from services.mapping import MappingConfig
-    from shared.bus import Node
+    from telesurg.services.mapping import MappingConfig
+    from telesurg.shared.bus import Node
 
 log = logging.getLogger(__name__)
 

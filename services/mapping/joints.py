@@ -7,13 +7,13 @@ sample produces a ``servo_jp`` (``follow`` says whether to track it) with ``orig
 master sample's stamp; the watchdog's safety scale multiplies the motion.
 
 * :class:`AllJointsMapping` (``mode = "all_joints"``): master ``measured_js`` increments become
-  slave joint increments, integrated per sample (:func:`shared.kinematics.plas.map_step`, Table-6
+  slave joint increments, integrated per sample (:func:`telesurg.shared.kinematics.plas.map_step`, Table-6
   factors or the tip-exact alternative); the master's joint 1 is the on/off switch driving slave
   d1 at ``d1_speed_mm_s``; joint limits clamp and report (one event per clamping episode).
 * :class:`VipMapping` (``mode = "vip"``): master tip increments (``measured_cp``, scaled) move the
   wrist reference W; the elbow goes on the line W–V of the arm's virtual incision port V
-  (:func:`shared.kinematics.vip.vip_ik`). V is chosen at the first engage from the current joints
-  (:func:`~shared.kinematics.vip.select_vip`, ``vip_ev_mm``) and can be set or reallocated by an
+  (:func:`telesurg.shared.kinematics.vip.vip_ik`). V is chosen at the first engage from the current joints
+  (:func:`~telesurg.shared.kinematics.vip.select_vip`, ``vip_ev_mm``) and can be set or reallocated by an
   operator command on ``mapping/<arm>/command`` while the arm is not following (a new V moves the
   elbow); every change is an event. An IK failure (e.g. a joint limit) holds the last setpoint.
 """
@@ -25,12 +25,11 @@ import time
 from typing import TYPE_CHECKING
 
 import numpy as np
-
-from services.mapping.engage import EngageGate
-from services.slave_control.control import limit_step
-from shared.bus import Node, Outlet
-from shared.errors import IKError, KinematicsError
-from shared.messages import (
+from telesurg.services.mapping.engage import EngageGate
+from telesurg.services.slave_control.control import limit_step
+from telesurg.shared.bus import Node, Outlet
+from telesurg.shared.errors import IKError, KinematicsError
+from telesurg.shared.messages import (
     CartesianPose,
     Command,
     CommandReply,
@@ -39,10 +38,10 @@ from shared.messages import (
     SafetyState,
     Sequencer,
 )
-from shared.robots import arm_profile
+from telesurg.shared.robots import arm_profile
 
 if TYPE_CHECKING:
-    from services.mapping import MappingConfig
+    from telesurg.services.mapping import MappingConfig
 
 
 #: Samples without clamping that end a clamping episode.
@@ -125,7 +124,7 @@ class AllJointsMapping(_JointBase):
     def __init__(
         self, cfg: MappingConfig, node: Node, master: str, slave: str, work: threading.Event
     ) -> None:
-        from shared.kinematics import plas
+        from telesurg.shared.kinematics import plas
 
         super().__init__(cfg, node, master, slave, work)
         self.plas = plas
@@ -187,8 +186,8 @@ class VipMapping(_JointBase):
     def __init__(
         self, cfg: MappingConfig, node: Node, master: str, slave: str, work: threading.Event
     ) -> None:
-        from services.mapping import master_point, rpy_matrix
-        from shared.kinematics import vip
+        from telesurg.services.mapping import master_point, rpy_matrix
+        from telesurg.shared.kinematics import vip
 
         super().__init__(cfg, node, master, slave, work)
         self.vip = vip

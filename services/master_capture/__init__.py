@@ -23,12 +23,12 @@ import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 
-from services.common import service_main
-from services.master_capture.devices import ScriptedConfig, SerialMasterConfig, make_device
-from shared.bus import BusConfig, Node
-from shared.errors import ConfigError
-from shared.messages import CartesianPose, JointState, MasterButtons
-from shared.timing import CycleTimer, check_rt_priority, start_loop
+from telesurg.services.common import service_main
+from telesurg.services.master_capture.devices import ScriptedConfig, SerialMasterConfig, make_device
+from telesurg.shared.bus import BusConfig, Node
+from telesurg.shared.errors import ConfigError
+from telesurg.shared.messages import CartesianPose, JointState, MasterButtons
+from telesurg.shared.timing import CycleTimer, check_rt_priority, start_loop
 
 log = logging.getLogger(__name__)
 

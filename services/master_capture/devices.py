@@ -4,8 +4,8 @@ A device is opened as a context manager and sampled with :meth:`MasterDevice.rea
 
 * ``scripted`` — a circle, a figure-eight or a CSV trajectory, with a clutch-pedal schedule — for
   demos, tests and replaying a surgeon's path;
-* ``serial`` — the all-joints ergonomic master's encoder board (:mod:`shared.encoder_protocol`
-  over :mod:`shared.serial_link`, see ``docs/hardware.md``), read in a background thread, with
+* ``serial`` — the all-joints ergonomic master's encoder board (:mod:`telesurg.shared.encoder_protocol`
+  over :mod:`telesurg.shared.serial_link`, see ``docs/hardware.md``), read in a background thread, with
   automatic reconnection. A reading older than ``stale_ms`` is marked invalid
   (``DeviceSample.valid``) and master_capture stops publishing, so the watchdog holds the slave.
 """
@@ -24,8 +24,7 @@ from types import TracebackType
 from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
-
-from shared.encoder_protocol import (
+from telesurg.shared.encoder_protocol import (
     KIND_HELLO,
     Calibration,
     Hello,
@@ -35,10 +34,10 @@ from shared.encoder_protocol import (
     decode_message,
     send_message,
 )
-from shared.errors import ConfigError, DeviceConnectionError, MessageError
+from telesurg.shared.errors import ConfigError, DeviceConnectionError, MessageError
 
 if TYPE_CHECKING:
-    from shared.serial_link import Frame, SerialLink
+    from telesurg.shared.serial_link import Frame, SerialLink
 
 log = logging.getLogger(__name__)
 
@@ -210,7 +209,7 @@ def _is_number(s: str) -> bool:
 # --------------------------------------------------------------------------- serial encoder board
 
 #: measured_js names of the all-joints master, in the order of
-#: ``shared.kinematics.plas.PlasMasterGeometry.joint_names``.
+#: ``telesurg.shared.kinematics.plas.PlasMasterGeometry.joint_names``.
 PLAS_MASTER_JOINTS = ("d1", "theta2", "theta3", "theta4", "theta5", "d6")
 _ORIGIN = (0.0, 0.0, 0.0)
 _IDENTITY = (0.0, 0.0, 0.0, 1.0)
@@ -294,7 +293,7 @@ class SerialMasterDevice:
     """
 
     def __init__(self, cfg: SerialMasterConfig) -> None:
-        from shared.serial_link import SerialLink, seq_delta
+        from telesurg.shared.serial_link import SerialLink, seq_delta
 
         cfg.validate()
         self.cfg = cfg

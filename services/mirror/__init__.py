@@ -5,9 +5,9 @@ and operating state; master poses and buttons; the watchdog's state; events), de
 sample with the strict decoder (malformed payloads are counted and dropped, never drawn) and
 draws: joint series (measured vs setpoint), the tip tracking and RCM errors, latency, tip and
 target trails, each slave arm from its kinematic model (the robot is recognised by the joint names
-of ``measured_js``: mh3f, plas or vip, see :mod:`shared.robots`), the trocar / RCM / VIP points,
+of ``measured_js``: mh3f, plas or vip, see :mod:`telesurg.shared.robots`), the trocar / RCM / VIP points,
 the master tip, mode changes and events. Entity paths and the layout are described in
-:mod:`services.mirror.view`; the layout is sent once, when the slave arms are known.
+:mod:`telesurg.services.mirror.view`; the layout is sent once, when the slave arms are known.
 
 zenoh callbacks only decode and append to a buffer. The draw loop takes the whole buffer each tick
 and draws the 3D scene (latest state, trails thinned to ``trail_hz``) at ``draw_hz``; scalar
@@ -36,9 +36,8 @@ from typing import NamedTuple, cast
 
 import numpy as np
 import numpy.typing as npt
-
-from services.common import service_main
-from services.mirror.view import (
+from telesurg.services.common import service_main
+from telesurg.services.mirror.view import (
     EVENTS_PATH,
     MASTER_COLOR,
     RCM_COLOR,
@@ -51,9 +50,9 @@ from services.mirror.view import (
     safety_path,
     slave_path,
 )
-from shared.bus import BusConfig, Node
-from shared.errors import ConfigError, KinematicsError
-from shared.messages import (
+from telesurg.shared.bus import BusConfig, Node
+from telesurg.shared.errors import ConfigError, KinematicsError
+from telesurg.shared.messages import (
     AnyMessage,
     CartesianPose,
     JointSetpoint,
@@ -64,8 +63,8 @@ from shared.messages import (
     SafetyEvent,
     SafetyState,
 )
-from shared.robots import MODELS, ArmProfile, arm_profile
-from shared.timing import CycleTimer, settle_gc
+from telesurg.shared.robots import MODELS, ArmProfile, arm_profile
+from telesurg.shared.timing import CycleTimer, settle_gc
 
 log = logging.getLogger(__name__)
 
@@ -150,7 +149,7 @@ class Inbox:
     """Thread-safe buffer between zenoh callbacks and the draw loop.
 
     :meth:`on_message` runs on zenoh threads for every message that passed the strict decoder
-    and the per-key sequence check of :meth:`shared.bus.Node.subscribe` (which also counts the
+    and the per-key sequence check of :meth:`telesurg.shared.bus.Node.subscribe` (which also counts the
     rejects); it stamps the receive time and appends ``(key, receive_ns, message)``;
     :meth:`take` hands the whole buffer to the draw loop.
     """
@@ -204,30 +203,30 @@ def recognise(arm: str, names: tuple[str, ...]) -> tuple[str, ArmProfile] | None
 def sketch(model: str, arm: str, q: npt.NDArray[np.float64]) -> Sketch:
     """Link points of ``arm`` of ``model`` at joints ``q`` (world frame, m).
 
-    * mh3f (:func:`shared.kinematics.fk_frames`): base, J2, J3, J4, wrist centre, flange; the
+    * mh3f (:func:`telesurg.shared.kinematics.fk_frames`): base, J2, J3, J4, wrist centre, flange; the
       forceps from the flange to its tip (TCP).
-    * vip (:func:`shared.kinematics.vip.fk`): R–E–W; the RCM is R.
-    * plas (the DH chain of :class:`~shared.kinematics.plas.PlasSlaveGeometry` placed by
-      :func:`~shared.kinematics.plas_layout.arm_base`): the shaft channel from the skin down to
+    * vip (:func:`telesurg.shared.kinematics.vip.fk`): R–E–W; the RCM is R.
+    * plas (the DH chain of :class:`~telesurg.shared.kinematics.plas.PlasSlaveGeometry` placed by
+      :func:`~telesurg.shared.kinematics.plas_layout.arm_base`): the shaft channel from the skin down to
       the arm base, the chain up to the pitch axis; the forceps (pillar) from the pitch axis to
-      the tip (= :func:`~shared.kinematics.plas_layout.arm_tip`).
+      the tip (= :func:`~telesurg.shared.kinematics.plas_layout.arm_tip`).
 
     Raises:
         KinematicsError / ValueError: ``q`` does not fit the model.
     """
     if model == "mh3f":
-        from shared.kinematics import fk_frames
+        from telesurg.shared.kinematics import fk_frames
 
         frames = fk_frames(q)
         return Sketch(frames[:6], frames[5:7], None)
     if model == "vip":
-        from shared.kinematics import vip
+        from telesurg.shared.kinematics import vip
 
         pose = vip.fk(q, vip.VIP_ARM1 if arm == "arm1" else vip.VIP_ARM2)
         return Sketch(np.stack([pose.rcm, pose.elbow, pose.wrist]), None, pose.rcm)
     if model == "plas":
-        from shared.kinematics.plas import PLAS_SLAVE
-        from shared.kinematics.plas_layout import arm_base
+        from telesurg.shared.kinematics.plas import PLAS_SLAVE
+        from telesurg.shared.kinematics.plas_layout import arm_base
 
         if len(q) != 6:
             raise KinematicsError(f"plas arm needs 6 joints, got {len(q)}")
@@ -347,7 +346,7 @@ class _Arm:
 
 
 class Mirror:
-    """Turns decoded bus messages into rerun drawing calls (see :mod:`services.mirror.view`).
+    """Turns decoded bus messages into rerun drawing calls (see :mod:`telesurg.services.mirror.view`).
 
     :meth:`feed` sorts each batch into buffers; :meth:`draw` (at ``draw_hz``) draws the 3D scene
     and, every ``1/series_hz`` s of receive time, sends the scalar blocks; :meth:`flush` sends

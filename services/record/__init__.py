@@ -8,7 +8,7 @@ re-encoded) and writes it to the MCAP file:
 * one **channel** per key expression (topic = the full key, e.g. ``telesurg/local/master/m1/buttons``),
   message encoding ``msgpack``;
 * one **schema** per message type (name ``telesurg.<type>``, encoding ``jsonschema``), generated
-  from the message dataclasses of :mod:`shared.messages` with each field's documented unit;
+  from the message dataclasses of :mod:`telesurg.shared.messages` with each field's documented unit;
 * ``log_time`` = receive time, ``publish_time`` = the header's ``stamp_ns`` (receive time if the
   payload does not decode), ``sequence`` = the header's ``seq`` (mod 2³²);
 * metadata ``telesurg.recording`` (site, host, start/stop time, versions) and, at close,
@@ -17,7 +17,7 @@ re-encoded) and writes it to the MCAP file:
 * attachments: files given with ``--attach`` (e.g. the run's TOML configs).
 
 SIGINT / SIGTERM (or ``--seconds``) close the file cleanly, with its summary and index. Replay and
-conversion to rerun: :mod:`services.record.replay`. Layout and examples: ``docs/recording.md``.
+conversion to rerun: :mod:`telesurg.services.record.replay`. Layout and examples: ``docs/recording.md``.
 
 Examples::
 
@@ -49,12 +49,12 @@ from pathlib import Path
 from types import TracebackType
 from typing import IO, TYPE_CHECKING, Any
 
-from services.common import install_stop_handlers, setup_logging
-from shared.bus import BusConfig, Node, add_bus_args, bus_from_args
-from shared.errors import ConfigError, MessageError, TelesurgError
-from shared.keys import Keys, check_id
-from shared.messages import MESSAGE_TYPES, SCHEMA_VERSION, Header, Message, decode
-from shared.timing import settle_gc
+from telesurg.services.common import install_stop_handlers, setup_logging
+from telesurg.shared.bus import BusConfig, Node, add_bus_args, bus_from_args
+from telesurg.shared.errors import ConfigError, MessageError, TelesurgError
+from telesurg.shared.keys import Keys, check_id
+from telesurg.shared.messages import MESSAGE_TYPES, SCHEMA_VERSION, Header, Message, decode
+from telesurg.shared.timing import settle_gc
 
 if TYPE_CHECKING:
     from mcap.reader import McapReader

@@ -1,6 +1,6 @@
-"""``python -m services.record``: the same as ``telesurg record``."""
+"""``python -m telesurg.services.record``: the same as ``telesurg record``."""
 
-from services.record import main
+from telesurg.services.record import main
 
 if __name__ == "__main__":
     raise SystemExit(main())

@@ -44,13 +44,12 @@ from typing import Any
 
 import numpy as np
 from mcap.exceptions import McapError
-
-from services.common import install_stop_handlers, setup_logging
-from services.record import Recorder, iter_decoded, open_mcap, recording_site
-from shared.bus import BusConfig, Node, Outlet, add_bus_args, bus_from_args
-from shared.errors import ConfigError, TelesurgError
-from shared.keys import Keys, check_id
-from shared.messages import JointState, Message, OperatingState, SafetyState
+from telesurg.services.common import install_stop_handlers, setup_logging
+from telesurg.services.record import Recorder, iter_decoded, open_mcap, recording_site
+from telesurg.shared.bus import BusConfig, Node, Outlet, add_bus_args, bus_from_args
+from telesurg.shared.errors import ConfigError, TelesurgError
+from telesurg.shared.keys import Keys, check_id
+from telesurg.shared.messages import JointState, Message, OperatingState, SafetyState
 
 log = logging.getLogger(__name__)
 
@@ -497,14 +496,14 @@ def print_report(report: dict[str, Any], file: Any = None) -> None:
 def to_rerun(path: str | Path, out: str | Path) -> dict[str, int]:
     """Convert a recording to an .rrd with the mirror's drawing code; no network involved.
 
-    Messages are fed to :class:`services.mirror.Mirror` in batches of one mirror draw period of
+    Messages are fed to :class:`telesurg.services.mirror.Mirror` in batches of one mirror draw period of
     log time, so the file looks like the live mirror's: joint series in blocks (``send_columns``),
     tip trails and points, state changes and events as text logs. Only the mirror's trusted
     sources are drawn on ``master/``, ``slave/`` and ``safety/`` keys (as live).
     Returns counts: ``messages``, ``undecodable``, ``untrusted``, ``drawn`` (joint samples).
     """
-    from services.mirror import Mirror, MirrorConfig
-    from services.mirror.view import RerunView
+    from telesurg.services.mirror import Mirror, MirrorConfig
+    from telesurg.services.mirror.view import RerunView
 
     mc = MirrorConfig()
     trusted = frozenset(mc.trusted_sources)

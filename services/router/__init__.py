@@ -12,8 +12,8 @@ import threading
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 
-from services.common import service_main
-from shared.bus import BusConfig, open_session
+from telesurg.services.common import service_main
+from telesurg.shared.bus import BusConfig, open_session
 
 log = logging.getLogger(__name__)
 

@@ -1,7 +1,7 @@
 """slave_control: runs the slave arm and tracks servo_jp under a watchdog lease.
 
 The arm is the MuJoCo simulation (``backend = "mujoco"``) or a real arm's joint-servo controller
-on a serial port (``backend = "serial"``, :mod:`services.slave_control.serial_backend`,
+on a serial port (``backend = "serial"``, :mod:`telesurg.services.slave_control.serial_backend`,
 ``docs/hardware.md``), optionally with the MuJoCo model as its shadow. A backend fault (link lost,
 controller fault or watchdog, shadow divergence) holds the arm like a revoked lease, with the
 fault as the reason, until it clears and a new engage comes.
@@ -9,7 +9,7 @@ fault as the reason, until it clears and a new engage comes.
 The control loop runs at the backend period (1 ms for MuJoCo, in real time: missed periods are
 caught up by extra physics steps, and counted; ``serial_rate_hz`` for a serial arm). Setpoints
 arrive on ``slave/<arm>/servo_jp``; they are validated (joint names, joint limits) and only
-followed as described in :mod:`services.slave_control.control`. The service publishes
+followed as described in :mod:`telesurg.services.slave_control.control`. The service publishes
 ``measured_js`` and the forceps-tip ``measured_cp`` at ``publish_hz``, the estimated external
 wrench at the tip ``measured_cf`` (for masters with force feedback) at ``wrench_hz``, and its
 ``operating_state`` at ``state_hz`` and on change. Rates count periods of real time, so they
@@ -32,13 +32,12 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
-
-from services.common import service_main
-from services.slave_control.backends import PUSH_POINTS, FaultHold, SlaveReading, make_backend
-from services.slave_control.control import WARN, FollowController, Lease, Setpoint, limit_step
-from services.slave_control.modes import ControlMode, ControlModes, Jog, MotionMode, Phase
-from services.slave_control.motion import SUPPORTED_JOG_AXES, PtpMotion, jog_step, ptp_duration
-from services.slave_control.teach import (
+from telesurg.services.common import service_main
+from telesurg.services.slave_control.backends import PUSH_POINTS, FaultHold, SlaveReading, make_backend
+from telesurg.services.slave_control.control import WARN, FollowController, Lease, Setpoint, limit_step
+from telesurg.services.slave_control.modes import ControlMode, ControlModes, Jog, MotionMode, Phase
+from telesurg.services.slave_control.motion import SUPPORTED_JOG_AXES, PtpMotion, jog_step, ptp_duration
+from telesurg.services.slave_control.teach import (
     NAME_RE,
     Playback,
     TaughtPoint,
@@ -47,11 +46,11 @@ from services.slave_control.teach import (
     direct_teach_step,
     playback_problem,
 )
-from shared.bus import BusConfig, Node
-from shared.errors import ConfigError, IKError, KinematicsError
-from shared.kinematics import MH3F, jacobian, matrix_from_quat, within_limits
-from shared.kinematics.trocar import axis_angle_to_trocar, pose_to_trocar, posture_adjust
-from shared.messages import (
+from telesurg.shared.bus import BusConfig, Node
+from telesurg.shared.errors import ConfigError, IKError, KinematicsError
+from telesurg.shared.kinematics import MH3F, jacobian, matrix_from_quat, within_limits
+from telesurg.shared.kinematics.trocar import axis_angle_to_trocar, pose_to_trocar, posture_adjust
+from telesurg.shared.messages import (
     CartesianPose,
     CartesianWrench,
     Command,
@@ -63,7 +62,7 @@ from shared.messages import (
     SafetyLease,
     Sequencer,
 )
-from shared.timing import CycleTimer, check_rt_priority, start_loop
+from telesurg.shared.timing import CycleTimer, check_rt_priority, start_loop
 
 log = logging.getLogger(__name__)
 
@@ -621,8 +620,8 @@ def run(cfg: SlaveControlConfig, stop: threading.Event) -> None:
     """Run the slave until ``stop``."""
     check_rt_priority(cfg.rt_priority)
     if cfg.model != "mh3f":
-        from services.slave_control.joint_slave import run_joint_slave
-        from shared.robots import arms_of
+        from telesurg.services.slave_control.joint_slave import run_joint_slave
+        from telesurg.shared.robots import arms_of
 
         arms = arms_of(cfg.model)
         backend = make_backend(cfg.backend, cfg.model, (), tuple(p.tip_site for p in arms), cfg)

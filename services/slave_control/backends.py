@@ -5,7 +5,7 @@ A backend is a context manager that owns the robot: ``command(q)`` sets joint po
 A backend that can fail at run time (the ``serial`` one: link loss, controller fault, controller
 timeout, shadow divergence) says so in ``SlaveReading.fault``; the control loops then hold
 (:class:`FaultHold`). mujoco is imported lazily inside the MuJoCo backend, pyserial inside the
-serial one (:mod:`services.slave_control.serial_backend`).
+serial one (:mod:`telesurg.services.slave_control.serial_backend`).
 """
 
 from __future__ import annotations
@@ -15,12 +15,11 @@ from types import TracebackType
 from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
-
-from shared.errors import ConfigError
+from telesurg.shared.errors import ConfigError
 
 if TYPE_CHECKING:
-    from services.slave_control import SlaveControlConfig
-    from services.slave_control.control import FollowController
+    from telesurg.services.slave_control import SlaveControlConfig
+    from telesurg.services.slave_control.control import FollowController
 
 
 @dataclass(frozen=True)
@@ -164,7 +163,7 @@ class MujocoBackend:
     """
 
     def __init__(self, model: str, q_home: tuple[float, ...], sites: tuple[str, ...] = ()) -> None:
-        from services.slave_control.models import model_path
+        from telesurg.services.slave_control.models import model_path
 
         self.scene = model_path(model)
         self.sites = sites  # extra sites reported in read().site_positions (e.g. one tip per arm)
@@ -292,7 +291,7 @@ def make_backend(
     if kind == "serial":
         if cfg is None:
             raise ConfigError("the serial backend needs the slave_control config (serial_port, ...)")
-        from services.slave_control.serial_backend import make_serial_backend
+        from telesurg.services.slave_control.serial_backend import make_serial_backend
 
         return make_serial_backend(cfg)
     raise ConfigError(f"slave backend {kind!r} unknown; valid: {', '.join(BACKENDS)}")

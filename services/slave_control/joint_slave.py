@@ -1,8 +1,8 @@
 """Joint-space slave for multi-arm models without trocar modes (PLAS, VIP): one process, N arms.
 
-Each arm of the robot profile (:mod:`shared.robots`) is a slave of its own: its own lease from the
+Each arm of the robot profile (:mod:`telesurg.shared.robots`) is a slave of its own: its own lease from the
 watchdog (``safety/<arm>/lease``), its own ``servo_jp`` with the arm's joint names, its own
-follow/hold logic (:class:`~services.slave_control.control.FollowController`: lease, freshness,
+follow/hold logic (:class:`~telesurg.services.slave_control.control.FollowController`: lease, freshness,
 new engage, no jump, speed limit) and its own ``measured_js`` / ``measured_cp`` (the profile's
 controlled point) / ``operating_state`` (``control_mode = "joint"``). One arm holding does not stop
 the other. The e-stop latch applies per arm (``EStop.arm`` or ``*``). A backend fault (a serial
@@ -21,12 +21,17 @@ from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
 import numpy as np
-
-from services.slave_control.backends import FaultHold, SlaveBackend
-from services.slave_control.control import WARN, FollowController, Lease, Setpoint, SetpointInterpolator
-from shared.bus import Node, Outlet
-from shared.errors import ConfigError
-from shared.messages import (
+from telesurg.services.slave_control.backends import FaultHold, SlaveBackend
+from telesurg.services.slave_control.control import (
+    WARN,
+    FollowController,
+    Lease,
+    Setpoint,
+    SetpointInterpolator,
+)
+from telesurg.shared.bus import Node, Outlet
+from telesurg.shared.errors import ConfigError
+from telesurg.shared.messages import (
     CartesianPose,
     Command,
     CommandReply,
@@ -37,11 +42,11 @@ from shared.messages import (
     SafetyLease,
     Sequencer,
 )
-from shared.robots import ArmProfile
-from shared.timing import CycleTimer, start_loop
+from telesurg.shared.robots import ArmProfile
+from telesurg.shared.timing import CycleTimer, start_loop
 
 if TYPE_CHECKING:
-    from services.slave_control import SlaveControlConfig
+    from telesurg.services.slave_control import SlaveControlConfig
 
 log = logging.getLogger(__name__)
 

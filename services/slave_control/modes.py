@@ -77,8 +77,8 @@ from dataclasses import dataclass, field
 from enum import StrEnum
 from typing import TypeVar
 
-from shared.errors import ConfigError
-from shared.kinematics.trocar import TROCAR_MODE_DEPTH
+from telesurg.shared.errors import ConfigError
+from telesurg.shared.kinematics.trocar import TROCAR_MODE_DEPTH
 
 __all__ = [
     "BASIC_MOTION_MODES",

@@ -19,11 +19,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-
-from shared.errors import IKError
-from shared.kinematics import MH3F, fk, ik
-from shared.kinematics.transforms import matrix_from_rotvec
-from shared.kinematics.trocar import forceps_roll, trocar_ik
+from telesurg.shared.errors import IKError
+from telesurg.shared.kinematics import MH3F, fk, ik
+from telesurg.shared.kinematics.transforms import matrix_from_rotvec
+from telesurg.shared.kinematics.trocar import forceps_roll, trocar_ik
 
 _AXES = {"x": 0, "y": 1, "z": 2, "rx": 0, "ry": 1, "rz": 2}
 #: Jog axes this slave can execute.

@@ -1,7 +1,8 @@
 """The ``serial`` slave backend: a real arm's joint-servo controller on a serial port.
 
-:class:`SerialBackend` speaks :mod:`shared.servo_protocol` (frames of :mod:`shared.serial_link`)
-behind the same :class:`~services.slave_control.backends.SlaveBackend` interface as MuJoCo, so
+:class:`SerialBackend` speaks :mod:`~telesurg.shared.servo_protocol` (frames of
+:mod:`~telesurg.shared.serial_link`)
+behind the same :class:`~telesurg.services.slave_control.backends.SlaveBackend` interface as MuJoCo, so
 slave_control's lease and hold logic is the same for both. One control period
 (``serial_rate_hz``) is one :meth:`~SerialBackend.step`: read every frame that has arrived, then
 write one SETPOINT. No thread: the control loop owns the link.
@@ -9,16 +10,16 @@ write one SETPOINT. No thread: the control loop owns the link.
 Safety rules:
 
 * Nothing but HELLO_REQUEST is written until a HELLO reports the expected model, joint count and
-  joint limits (:meth:`~shared.servo_protocol.ServoRobot.check_hello`). At start a different
+  joint limits (:meth:`~telesurg.shared.servo_protocol.ServoRobot.check_hello`). At start a different
   robot, a silent port or a port that cannot be opened is refused with an error naming what is
-  wrong (:class:`~shared.errors.DeviceConnectionError`: slave_control exits 1).
+  wrong (:class:`~telesurg.shared.errors.DeviceConnectionError`: slave_control exits 1).
 * Setpoints are limit-checked (clamped into the joint limits) and rate-checked (scaled down
   as a whole to ``serial_speed_fraction`` × the joint speed limits, measured from the previous
   setpoint) before they are written; both clamps are counted and logged
   (:attr:`SerialBackendStats.clipped_limit`, ``clipped_rate``; :attr:`SerialBackend.last_sent`).
 * Link loss (no valid STATE for ``serial_stale_ms``, a read/write error), a controller fault bit,
   the controller's watchdog and an unexpected disable make ``read().fault`` non-empty with the
-  cause: slave_control holds (:class:`~services.slave_control.backends.FaultHold`) and no SETPOINT
+  cause: slave_control holds (:class:`~telesurg.services.slave_control.backends.FaultHold`) and no SETPOINT
   is written. A lost link is re-opened every ``serial_reconnect_s`` with a new handshake; a
   watchdog trip is answered by a new ENABLE after ``serial_reconnect_s``; a controller fault
   stays until the link is re-opened or the controller restarts. Either way the slave moves again
@@ -46,12 +47,11 @@ from types import TracebackType
 from typing import TYPE_CHECKING
 
 import numpy as np
-
-from services.slave_control.backends import MujocoBackend, ShadowDivergence, SlaveReading
-from services.slave_control.control import limit_step
-from shared.errors import ConfigError, DeviceConnectionError, MessageError
-from shared.robots import ArmProfile, arms_of
-from shared.servo_protocol import (
+from telesurg.services.slave_control.backends import MujocoBackend, ShadowDivergence, SlaveReading
+from telesurg.services.slave_control.control import limit_step
+from telesurg.shared.errors import ConfigError, DeviceConnectionError, MessageError
+from telesurg.shared.robots import ArmProfile, arms_of
+from telesurg.shared.servo_protocol import (
     ENCODER_KINDS,
     KIND_HELLO,
     MAX_TIMEOUT_MS,
@@ -71,8 +71,8 @@ from shared.servo_protocol import (
 )
 
 if TYPE_CHECKING:
-    from services.slave_control import SlaveControlConfig
-    from shared.serial_link import Frame, SerialLink
+    from telesurg.services.slave_control import SlaveControlConfig
+    from telesurg.shared.serial_link import Frame, SerialLink
 
 log = logging.getLogger(__name__)
 
@@ -87,7 +87,7 @@ PHASES = ("down", "handshake", "sync", "enabling", "running", "tripped", "faulte
 
 @dataclass
 class SerialBackendConfig:
-    """The ``serial_*`` keys of slave_control (see :class:`~services.slave_control.SlaveControlConfig`)."""
+    """The ``serial_*`` keys of slave_control (:class:`SlaveControlConfig`)."""
 
     port: str
     baud: int = 500_000  # bit/s
@@ -382,7 +382,7 @@ class SerialBackend:
 
     def _tips(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
         if self.robot.model == "mh3f":
-            from shared.kinematics import MH3F, fk, quat_from_matrix
+            from telesurg.shared.kinematics import MH3F, fk, quat_from_matrix
 
             t = fk(q, MH3F)
             return t[:3, 3].copy(), quat_from_matrix(t[:3, :3]), None
@@ -445,7 +445,7 @@ class SerialBackend:
         self._fault = cause
 
     def _open(self, now: float, *, raise_errors: bool = False) -> None:
-        from shared.serial_link import SerialLink
+        from telesurg.shared.serial_link import SerialLink
 
         try:
             link = SerialLink(self.cfg.port, baudrate=self.cfg.baud)
@@ -539,7 +539,7 @@ class SerialBackend:
                 self._lose(f"serial link to the controller on {self.cfg.port} lost: {exc}", now)
 
     def _handle(self, frame: Frame, now: float) -> None:
-        from shared.serial_link import seq_delta
+        from telesurg.shared.serial_link import seq_delta
 
         if self._last_rx_seq is not None:
             d = seq_delta(self._last_rx_seq, frame.seq)

@@ -1,6 +1,6 @@
 """watchdog: grants each slave arm a short lease to move, only while everything is healthy.
 
-Signals, combined per arm into OK / DEGRADED / HOLD / ESTOP (see :mod:`services.watchdog.logic`
+Signals, combined per arm into OK / DEGRADED / HOLD / ESTOP (see :mod:`telesurg.services.watchdog.logic`
 and ``docs/safety.md``):
 
 * liveliness tokens ``alive/<service>`` of every required service — a crash is seen in ms;
@@ -36,13 +36,12 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
-
-from services.common import service_main
-from services.mapping import parse_pair
-from services.watchdog.logic import ArmSafety, Policy, Verdict
-from shared.bus import BusConfig, Node, Outlet, only
-from shared.errors import ConfigError
-from shared.messages import (
+from telesurg.services.common import service_main
+from telesurg.services.mapping import parse_pair
+from telesurg.services.watchdog.logic import ArmSafety, Policy, Verdict
+from telesurg.shared.bus import BusConfig, Node, Outlet, only
+from telesurg.shared.errors import ConfigError
+from telesurg.shared.messages import (
     CartesianPose,
     EStop,
     JointSetpoint,
@@ -53,8 +52,8 @@ from shared.messages import (
     SafetyLease,
     SafetyState,
 )
-from shared.robots import arm_profile
-from shared.timing import settle_gc
+from telesurg.shared.robots import arm_profile
+from telesurg.shared.timing import settle_gc
 
 log = logging.getLogger(__name__)
 LATENCY_SOURCES = ("clock", "echo")

@@ -28,8 +28,7 @@ from dataclasses import dataclass, field
 from functools import cached_property
 
 import numpy as np
-
-from shared.messages import EStop, JointSetpoint, MasterButtons, OperatingState
+from telesurg.shared.messages import EStop, JointSetpoint, MasterButtons, OperatingState
 
 STATES = ("OK", "DEGRADED", "HOLD", "ESTOP")  # in increasing severity
 

@@ -4,7 +4,7 @@ Units are metres and radians; quaternions are [x, y, z, w]. See :mod:`.mh3f` for
 and the IK derivation and :mod:`.transforms` for the conventions.
 """
 
-from shared.kinematics.mh3f import (
+from telesurg.shared.kinematics.mh3f import (
     LIMIT_TOL,
     MH3F,
     MH3F_NO_TOOL,
@@ -19,7 +19,7 @@ from shared.kinematics.mh3f import (
     within_limits,
     wrist_center,
 )
-from shared.kinematics.transforms import (
+from telesurg.shared.kinematics.transforms import (
     FloatArray,
     make_transform,
     matrix_from_quat,
@@ -63,7 +63,7 @@ __all__ = [
 ]
 
 # Trocar mode (RCM kinematics, J4/J5 posture adjustment); see :mod:`.trocar`.
-from shared.kinematics.trocar import (
+from telesurg.shared.kinematics.trocar import (
     MIN_TIP_DEPTH,
     ROLL_REF_SINGULAR_TOL,
     STRAIGHT_FORCEPS,

@@ -70,9 +70,8 @@ from typing import NamedTuple
 
 import numpy as np
 import numpy.typing as npt
-
-from shared.errors import IKError, KinematicsError
-from shared.kinematics.transforms import FloatArray, rot_x, rot_y, rot_z
+from telesurg.shared.errors import IKError, KinematicsError
+from telesurg.shared.kinematics.transforms import FloatArray, rot_x, rot_y, rot_z
 
 __all__ = [
     "LIMIT_TOL",

@@ -82,9 +82,8 @@ from typing import Literal, NamedTuple
 
 import numpy as np
 import numpy.typing as npt
-
-from shared.errors import KinematicsError
-from shared.kinematics.transforms import FloatArray, rot_x
+from telesurg.shared.errors import KinematicsError
+from telesurg.shared.kinematics.transforms import FloatArray, rot_x
 
 __all__ = [
     "DEFAULT_D1_SPEED",

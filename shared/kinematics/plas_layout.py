@@ -1,6 +1,6 @@
 """Placement of the two PLAS arms in the world frame of the MuJoCo model ``plas``.
 
-:func:`shared.kinematics.plas.slave_fk` gives one arm's tip in *its* base frame (``z0`` along the
+:func:`telesurg.shared.kinematics.plas.slave_fk` gives one arm's tip in *its* base frame (``z0`` along the
 shaft, pointing into the patient; ``x0`` the direction the arm points at ``θ2 = 0``). The model
 ``services/slave_control/models/plas`` puts two such arms side by side on one common body (the
 insertion part, thesis Fig. 7) that passes through a single port; this module is the fixed
@@ -34,10 +34,9 @@ import math
 
 import numpy as np
 import numpy.typing as npt
-
-from shared.errors import KinematicsError
-from shared.kinematics.plas import PLAS_SLAVE, PlasSlaveGeometry, slave_fk
-from shared.kinematics.transforms import FloatArray
+from telesurg.shared.errors import KinematicsError
+from telesurg.shared.kinematics.plas import PLAS_SLAVE, PlasSlaveGeometry, slave_fk
+from telesurg.shared.kinematics.transforms import FloatArray
 
 __all__ = [
     "ARM_BASES",

@@ -13,7 +13,7 @@ Conventions
   SO(3) logarithm and :func:`matrix_from_rotvec` the exponential.
 
 Every function validates shape and finiteness and raises
-:class:`shared.errors.KinematicsError` (a ``ValueError``) on bad input.
+:class:`telesurg.shared.errors.KinematicsError` (a ``ValueError``) on bad input.
 """
 
 from __future__ import annotations
@@ -22,8 +22,7 @@ import math
 
 import numpy as np
 import numpy.typing as npt
-
-from shared.errors import KinematicsError
+from telesurg.shared.errors import KinematicsError
 
 FloatArray = npt.NDArray[np.float64]
 

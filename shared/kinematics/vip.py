@@ -90,7 +90,7 @@ resolution the paper compares against, with the analytic wrist :func:`jacobian`.
 Example::
 
     import numpy as np
-    from shared.kinematics.vip import VIP_ARM, fk, select_vip, vip_ik
+    from telesurg.shared.kinematics.vip import VIP_ARM, fk, select_vip, vip_ik
 
     q = VIP_ARM.home_q                            # joint readings (Table I initial pose)
     V = select_vip(q)                             # VIP from the readings, |EV| = 0.05 m
@@ -106,9 +106,8 @@ from typing import NamedTuple
 
 import numpy as np
 import numpy.typing as npt
-
-from shared.errors import IKError, KinematicsError
-from shared.kinematics.transforms import FloatArray, matrix_from_quat, rot_y, rot_z
+from telesurg.shared.errors import IKError, KinematicsError
+from telesurg.shared.kinematics.transforms import FloatArray, matrix_from_quat, rot_y, rot_z
 
 __all__ = [
     "EV_DEFAULT",

@@ -1,0 +1,1 @@
+"""The site files and deploy scripts, shipped with the package (``telesurg.deploy``)."""
