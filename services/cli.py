@@ -27,7 +27,7 @@ COMMANDS = {
     "estop": ("telesurg.services.estop", "e-stop (or --reset) one arm or every arm of a site"),
     "cmd": ("telesurg.services.command", "send an operator command (trocar mode, jog, …) to a slave arm"),
     "bench": ("telesurg.services.bench", "fault-injection and fuzz benchmarks (tables + JSON)"),
-    "impair": ("telesurg.shared.impair", "userspace TCP link impairer (cut / delay) for fault tests"),
+    "impair": ("telesurg.services.bench.impair", "userspace TCP link impairer (cut / delay) for fault tests"),
     "device": (
         "telesurg.services.device",
         "serial device tools: emulate an encoder board on a pty, monitor one",

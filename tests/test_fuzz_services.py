@@ -1,10 +1,11 @@
 """Property-based fuzzing of the *running* services (hypothesis → zenoh → real processes).
 
 Hypothesis builds batches of payloads — arbitrary bytes, and valid messages mutated by
-:func:`telesurg.shared.fuzz.mutate` — and publishes them on every key the services subscribe to, while the
-scripted master drives the MuJoCo slave. Afterwards: every service is still alive, each one's
-rejection counter (from its heartbeat) equals what the same strict decoder and source rules say it
-must reject, the slave never left its joint limits, and it follows the master again.
+:func:`telesurg.services.bench.fuzzgen.mutate` — and publishes them on every key the services
+subscribe to, while the scripted master drives the MuJoCo slave. Afterwards: every service is still
+alive, each one's rejection counter (from its heartbeat) equals what the same strict decoder and
+source rules say it must reject, the slave never left its joint limits, and it follows the master
+again.
 """
 
 from __future__ import annotations
@@ -20,8 +21,8 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from telesurg.services.bench.fuzz import SERVICES, TARGETS, expected_rejections
+from telesurg.services.bench.fuzzgen import mutate, valid_template
 from telesurg.services.bench.harness import Pipeline
-from telesurg.shared.fuzz import mutate, valid_template
 from telesurg.shared.kinematics import MH3F
 
 pytestmark = pytest.mark.process

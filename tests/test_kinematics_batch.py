@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from telesurg.services.bench.ik_batch import ik_batch, trocar_ik_batch
 from telesurg.shared.errors import IKError, KinematicsError
-from telesurg.shared.kinematics.batch import ik_batch, trocar_ik_batch
 from telesurg.shared.kinematics.mh3f import MH3F, fk, ik
 from telesurg.shared.kinematics.trocar import rcm_error, trocar_ik
 

@@ -17,7 +17,7 @@ cleanly.
 Root and ``ip netns`` are required (those tests skip otherwise). Without root, the same access
 control is checked on loopback in one process (every identity's puts, queries and subscriptions,
 strangers refused) along with the secured-bus configuration errors; with root, also the packet
-link of ``shared/impair.py`` (delay, loss, cut). The helpers that run inside the namespaces are
+link of ``services/bench/impair.py`` (delay, loss, cut). The helpers that run inside the namespaces are
 this file run as a script: ``python tests/test_two_hosts.py probe|identities|udpecho|udpping ...``.
 """
 
@@ -43,7 +43,7 @@ if str(REPO) not in sys.path:  # run as a script inside a namespace
     sys.path.insert(0, str(REPO))
 
 from telesurg.services.bench.harness import clutch_flags  # noqa: E402
-from telesurg.shared.impair import NetNamespace, netns_available  # noqa: E402
+from telesurg.services.bench.impair import NetNamespace, netns_available  # noqa: E402
 
 pytestmark = [pytest.mark.process, pytest.mark.timeout(240)]
 
@@ -459,7 +459,7 @@ def hosts(tmp_path_factory: pytest.TempPathFactory) -> Iterator[TwoHosts]:
                 str(logs / "slave"),
             ]
             h.spawn("slave-site", ns_s, site)
-            imp = [sys.executable, "-m", "telesurg.shared.impair", "--control"]
+            imp = [sys.executable, "-m", "telesurg.services.bench.impair", "--control"]
             imp += ["--listen", f"{SLAVE_ADDR}:{TLS_PORT}", "--target", f"127.0.0.1:{TLS_PORT}"]
             p = h.spawn("impair", ns_s, imp, pipe=True)
             assert p.stdout is not None
@@ -615,8 +615,8 @@ def test_mtls_and_access_control_on_loopback(pki: tuple[Path, Path]) -> None:
 
 
 def test_packet_link_delays_drops_and_cuts() -> None:
-    """telesurg.shared.impair.PacketLink between two namespaces: delay, loss and cut, with UDP datagrams."""
-    from telesurg.shared.impair import PacketLink
+    """telesurg.services.bench.impair.PacketLink between two namespaces: delay, loss and cut (UDP)."""
+    from telesurg.services.bench.impair import PacketLink
 
     if why := netns_available():
         pytest.skip(f"packet link test {why}")

@@ -1,11 +1,11 @@
 """``telesurg bench fuzz``: malformed messages on every key while the pipeline runs.
 
 Publishes ``--count`` payloads (random bytes, mutated valid messages, boundary values — see
-:mod:`telesurg.shared.fuzz`) round-robin on every key the services subscribe to, while the scripted master
-drives the slave. Reports: crashes (service processes that died: must be 0), messages each
-service rejected (from their heartbeats) against the number a local strict decoder says it must
-reject, slave holds during the run, and whether the slave ever got outside its joint limits or
-jumped (must be never).
+:mod:`telesurg.services.bench.fuzzgen`) round-robin on every key the services subscribe to, while
+the scripted master drives the slave. Reports: crashes (service processes that died: must be 0),
+messages each service rejected (from their heartbeats) against the number a local strict decoder
+says it must reject, slave holds during the run, and whether the slave ever got outside its joint
+limits or jumped (must be never).
 
 Example::
 
@@ -28,10 +28,10 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from telesurg.services.bench.fuzzgen import FUZZ_KINDS, always_invalid, fuzz_cases, valid_template
 from telesurg.services.bench.harness import Pipeline
 from telesurg.services.mirror import SUBSCRIBED
 from telesurg.shared.errors import MessageError
-from telesurg.shared.fuzz import FUZZ_KINDS, always_invalid, fuzz_cases, valid_template
 from telesurg.shared.kinematics import MH3F
 from telesurg.shared.messages import (
     CartesianPose,

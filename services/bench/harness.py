@@ -4,10 +4,10 @@ Used by ``telesurg bench faults`` / ``bench fuzz`` and by the process-level safe
 the figures in ``docs/safety.md`` and the test assertions come from the same code.
 
 The console side (master_capture) reaches the slave-side router through a
-:class:`~telesurg.shared.impair.LinkImpairer` on loopback, so a link cut or delay can be injected between
-the two sides. The probe is a zenoh client that records, on its own monotonic clock, what a user
-would look at: the slave tip (from MuJoCo), the slave's operating state, the watchdog's state,
-the clutch pedal and every event.
+:class:`~telesurg.services.bench.impair.LinkImpairer` on loopback, so a link cut or delay can be
+injected between the two sides. The probe is a zenoh client that records, on its own monotonic
+clock, what a user would look at: the slave tip (from MuJoCo), the slave's operating state, the
+watchdog's state, the clutch pedal and every event.
 
 Example::
 
@@ -30,9 +30,9 @@ from pathlib import Path
 from types import TracebackType
 
 import numpy as np
+from telesurg.services.bench.impair import LinkImpairer
 from telesurg.services.launcher import Site, SiteSpec, default_config_dir, free_port
 from telesurg.shared.bus import BusConfig, Node, Outlet
-from telesurg.shared.impair import LinkImpairer
 from telesurg.shared.messages import (
     CartesianPose,
     EStop,

@@ -324,10 +324,10 @@ def _time_batch(fn: Callable[[], Any], min_s: float = 0.3) -> float:
 
 
 def ik(a: argparse.Namespace) -> dict[str, Any]:
+    from telesurg.services.bench.ik_batch import ik_batch, trocar_ik_batch
     from telesurg.shared.errors import IKError
     from telesurg.shared.kinematics import MH3F, fk, plas, vip
     from telesurg.shared.kinematics import ik as ik6
-    from telesurg.shared.kinematics.batch import ik_batch, trocar_ik_batch
     from telesurg.shared.kinematics.trocar import posture_adjust, rcm_error, trocar_ik
 
     rng = np.random.default_rng(0)
@@ -375,7 +375,7 @@ def ik(a: argparse.Namespace) -> dict[str, Any]:
     }
     for k in ("trocar_ik", "ik_6axis", "vip_ik", "plas_map_step"):
         res[k]["solves_per_s"] = round(1e6 / res[k]["us_per_call"])
-    # vectorised: every target in one call (shared/kinematics/batch.py)
+    # vectorised: every target in one call (services/bench/ik_batch.py)
     tip_arr, pose_arr = np.array(tips), np.array(poses)
     qb, okb = trocar_ik_batch(tip_arr, trocar, q_in)
     res["trocar_ik"]["batch_solves_per_s"] = round(

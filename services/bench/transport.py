@@ -1,7 +1,7 @@
 """``telesurg bench transport``: zenoh link protocols for a 1 kHz control stream under packet loss.
 
-Two network namespaces are joined by a :class:`~telesurg.shared.impair.PacketLink` — a TUN device in each,
-every IP packet forwarded by this process with a one-way delay and independent random loss —
+Two network namespaces are joined by a :class:`~telesurg.services.bench.impair.PacketLink` — a TUN
+device in each, every IP packet forwarded by this process with a one-way delay and independent random loss —
 so each protocol meets real packet loss and its own retransmission: TCP and TLS retransmit in
 the kernel and hold every later byte until the lost one arrives (head-of-line blocking), QUIC
 streams retransmit in user space, UDP and QUIC datagrams (``?rel=0``) do not retransmit at all.
@@ -43,8 +43,8 @@ from pathlib import Path
 from typing import IO, Any
 
 import numpy as np
+from telesurg.services.bench.impair import NetNamespace, PacketLink, netns_available
 from telesurg.shared.bus import BusConfig, open_session
-from telesurg.shared.impair import NetNamespace, PacketLink, netns_available
 from telesurg.shared.timing import CycleTimer
 
 #: name → (endpoint scheme, endpoint suffix, mutual TLS, best-effort publisher)

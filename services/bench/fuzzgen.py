@@ -1,6 +1,6 @@
 """Deterministic generator of malformed and adversarial message payloads for fuzzing the decoder.
 
-Runtime code (used by the fuzz benchmark and the tests): it depends only on :mod:`random`, msgpack and
+Bench code (used by the fuzz benchmark and the tests): it depends only on :mod:`random`, msgpack and
 the message classes, never on hypothesis. Everything is derived from the message classes at runtime —
 :data:`~telesurg.shared.messages.MESSAGE_TYPES`, :meth:`~telesurg.shared.messages.Message.encode`
 and ``BODY`` — so fields
@@ -57,7 +57,7 @@ boundary            no      values right at and just beyond limits: seq/ts 0, 2*
 Example::
 
     >>> import random
-    >>> from telesurg.shared.fuzz import FUZZ_KINDS, default_templates, fuzz_cases
+    >>> from telesurg.services.bench.fuzzgen import FUZZ_KINDS, default_templates, fuzz_cases
     >>> cases = list(fuzz_cases(random.Random(1), default_templates(), 100))
     >>> len(cases), cases[0].kind in FUZZ_KINDS
     (100, True)
