@@ -9,8 +9,9 @@ from collections.abc import Iterator
 import numpy as np
 import pytest
 from telesurg.services.launcher import free_port
-from telesurg.services.mapping import ArmMapping, MappingConfig, master_point
+from telesurg.services.mapping import ArmMapping, MappingConfig
 from telesurg.services.mapping.joints import AllJointsMapping
+from telesurg.services.mapping.master import master_point
 from telesurg.shared.bus import BusConfig, Node, open_session
 from telesurg.shared.errors import ConfigError
 from telesurg.shared.kinematics import MH3F, fk

@@ -271,7 +271,7 @@ def served_demo(
     SIGINT (which completes the .rrd).
     """
     from telesurg.services.launcher import free_port, wait_port
-    from telesurg.services.mirror.view import viewer_url
+    from telesurg.shared.viewer import viewer_url
 
     port, web, grpc = free_port(), free_port(), free_port()
     rrd = workdir / "session.rrd"

@@ -24,10 +24,13 @@ from pathlib import Path
 from telesurg.services.common import install_stop_handlers, setup_logging
 from telesurg.services.launcher import Site, add_site_args, spec_from_args
 from telesurg.services.launcher.report import SessionRecorder
-from telesurg.services.mapping import MappingConfig, parse_pair, rpy_matrix
+from telesurg.services.mapping import MappingConfig
 from telesurg.shared.bus import BusConfig, Node
 from telesurg.shared.config import load_config
 from telesurg.shared.errors import TelesurgError
+from telesurg.shared.kinematics.transforms import rpy_matrix
+from telesurg.shared.pairs import parse_pair
+from telesurg.shared.viewer import viewer_url
 
 log = logging.getLogger("telesurg.demo")
 
@@ -80,8 +83,6 @@ def main(argv: Sequence[str] | None = None) -> int:
                 # --seconds of session once everything is up (start-up is not counted)
                 deadline = time.monotonic() + args.seconds if args.seconds > 0 else float("inf")
                 if not args.headless:
-                    from telesurg.services.mirror.view import viewer_url
-
                     url = viewer_url(f"rerun+http://127.0.0.1:{args.grpc_port}/proxy", args.web_port)
                     print(f"\nrerun web viewer: {url}\nCtrl-C stops everything.\n", flush=True)
                 while not stop.wait(0.2) and time.monotonic() < deadline:

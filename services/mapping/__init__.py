@@ -43,11 +43,11 @@ import numpy as np
 from telesurg.services.common import service_main
 from telesurg.services.mapping.engage import EngageGate
 from telesurg.services.mapping.joints import AllJointsMapping, VipMapping
+from telesurg.services.mapping.master import master_point
 from telesurg.shared.bus import BusConfig, Node, Outlet, only
 from telesurg.shared.errors import ConfigError, IKError
-from telesurg.shared.keys import check_id
 from telesurg.shared.kinematics import MH3F, fk, ik, matrix_from_quat, quat_from_matrix
-from telesurg.shared.kinematics.transforms import rot_x, rot_y, rot_z
+from telesurg.shared.kinematics.transforms import rpy_matrix
 from telesurg.shared.kinematics.trocar import trocar_ik
 from telesurg.shared.messages import (
     CartesianPose,
@@ -60,6 +60,7 @@ from telesurg.shared.messages import (
     SafetyState,
     Sequencer,
 )
+from telesurg.shared.pairs import parse_pair
 from telesurg.shared.timing import check_rt_priority, start_loop
 
 log = logging.getLogger(__name__)
@@ -137,41 +138,6 @@ class MappingConfig:
             raise ConfigError("workspace_min_mm must be below workspace_max_mm on every axis")
         for p in self.pairs:
             parse_pair(p)
-
-
-def parse_pair(pair: str) -> tuple[str, str]:
-    """``"m1:arm1"`` → ``("m1", "arm1")``."""
-    master, sep, slave = pair.partition(":")
-    if not sep:
-        raise ConfigError(f"pair {pair!r} must look like master_arm:slave_arm")
-    return check_id("arm", master), check_id("arm", slave)
-
-
-def master_point(cfg: MappingConfig, position: tuple[float, float, float]) -> np.ndarray:
-    """The master point that is mapped to the slave tip, m, master frame.
-
-    ``pen``: the master position itself. ``virtual_trocar``: the position is the handle of a dummy
-    forceps that passes through a virtual trocar ``c`` (a fixed fulcrum on the master side); the
-    mapped point is the dummy tip ``h + L · unit(c − h)`` beyond it. As through a real trocar, the
-    tip moves opposite to the handle sideways and the same way along the shaft, so the surgeon's
-    hand motion matches what the slave forceps does about the patient's trocar.
-    """
-    h = np.array(position, dtype=float)
-    if cfg.master_mode == "pen":
-        return h
-    c = np.array(cfg.virtual_trocar_mm) / 1e3
-    d = c - h
-    n = float(np.linalg.norm(d))
-    u = d / n if n > 1e-6 else np.array([0.0, 0.0, -1.0])  # (handle in the fulcrum: straight down)
-    out: np.ndarray = h + (cfg.dummy_forceps_mm / 1e3) * u
-    return out
-
-
-def rpy_matrix(rpy_deg: tuple[float, float, float]) -> np.ndarray:
-    """R = Rz(yaw) · Ry(pitch) · Rx(roll), angles in degrees."""
-    r, p, y = np.radians(rpy_deg)
-    out: np.ndarray = rot_z(y) @ rot_y(p) @ rot_x(r)
-    return out
 
 
 class ArmMapping(EngageGate):

@@ -26,9 +26,11 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 from telesurg.services.mapping.engage import EngageGate
-from telesurg.services.slave_control.control import limit_step
+from telesurg.services.mapping.master import master_point
 from telesurg.shared.bus import Node, Outlet
 from telesurg.shared.errors import IKError, KinematicsError
+from telesurg.shared.kinematics.transforms import rpy_matrix
+from telesurg.shared.limits import limit_step
 from telesurg.shared.messages import (
     CartesianPose,
     Command,
@@ -186,7 +188,6 @@ class VipMapping(_JointBase):
     def __init__(
         self, cfg: MappingConfig, node: Node, master: str, slave: str, work: threading.Event
     ) -> None:
-        from telesurg.services.mapping import master_point, rpy_matrix
         from telesurg.shared.kinematics import vip
 
         super().__init__(cfg, node, master, slave, work)

@@ -55,13 +55,13 @@ from __future__ import annotations
 import functools
 import logging
 import socket
-import urllib.parse
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import numpy.typing as npt
+from telesurg.shared.viewer import viewer_url
 
 log = logging.getLogger(__name__)
 
@@ -125,15 +125,6 @@ def safety_path(arm: str, leaf: str = "state") -> str:
 
 
 EVENTS_PATH = "/events"
-
-
-def viewer_url(grpc_uri: str, web_port: int) -> str:
-    """Web viewer URL that opens ``grpc_uri``, the form rerun itself prints.
-
-    >>> viewer_url("rerun+http://127.0.0.1:9876/proxy", 9090)
-    'http://localhost:9090/?url=rerun%2Bhttp://127.0.0.1:9876/proxy'
-    """
-    return f"http://localhost:{web_port}/?url={urllib.parse.quote(grpc_uri, safe=':/')}"
 
 
 def _window(seconds: float) -> list[Any]:

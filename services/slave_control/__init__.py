@@ -34,7 +34,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from telesurg.services.common import service_main
 from telesurg.services.slave_control.backends import PUSH_POINTS, FaultHold, SlaveReading, make_backend
-from telesurg.services.slave_control.control import WARN, FollowController, Lease, Setpoint, limit_step
+from telesurg.services.slave_control.control import WARN, FollowController, Lease, Setpoint
 from telesurg.services.slave_control.modes import ControlMode, ControlModes, Jog, MotionMode, Phase
 from telesurg.services.slave_control.motion import SUPPORTED_JOG_AXES, PtpMotion, jog_step, ptp_duration
 from telesurg.services.slave_control.teach import (
@@ -50,6 +50,7 @@ from telesurg.shared.bus import BusConfig, Node
 from telesurg.shared.errors import ConfigError, IKError, KinematicsError
 from telesurg.shared.kinematics import MH3F, jacobian, matrix_from_quat, within_limits
 from telesurg.shared.kinematics.trocar import axis_angle_to_trocar, pose_to_trocar, posture_adjust
+from telesurg.shared.limits import limit_step
 from telesurg.shared.messages import (
     CartesianPose,
     CartesianWrench,

@@ -25,16 +25,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-
-
-def limit_step(want: np.ndarray, lim: np.ndarray) -> np.ndarray:
-    """``want`` scaled down uniformly so that no joint exceeds its step limit ``lim`` (> 0)."""
-    ratio = float(np.max(np.abs(want) / lim))
-    if ratio <= 1.0:
-        return want
-    out: np.ndarray = want / ratio
-    return out
-
+from telesurg.shared.limits import limit_step
 
 #: Follow-controller event kinds published as warnings.
 WARN = frozenset({"hold", "clipped", "engage_refused"})

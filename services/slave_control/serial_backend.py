@@ -48,8 +48,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 from telesurg.services.slave_control.backends import MujocoBackend, ShadowDivergence, SlaveReading
-from telesurg.services.slave_control.control import limit_step
 from telesurg.shared.errors import ConfigError, DeviceConnectionError, MessageError
+from telesurg.shared.limits import limit_step
 from telesurg.shared.robots import ArmProfile, arms_of
 from telesurg.shared.servo_protocol import (
     ENCODER_KINDS,

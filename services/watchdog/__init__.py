@@ -37,7 +37,6 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from telesurg.services.common import service_main
-from telesurg.services.mapping import parse_pair
 from telesurg.services.watchdog.logic import ArmSafety, Policy, Verdict
 from telesurg.shared.bus import BusConfig, Node, Outlet, only
 from telesurg.shared.errors import ConfigError
@@ -52,6 +51,7 @@ from telesurg.shared.messages import (
     SafetyLease,
     SafetyState,
 )
+from telesurg.shared.pairs import parse_pair
 from telesurg.shared.robots import arm_profile
 from telesurg.shared.timing import settle_gc
 

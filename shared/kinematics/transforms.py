@@ -38,6 +38,7 @@ __all__ = [
     "rot_z",
     "rotation_angle_between",
     "rotvec_from_matrix",
+    "rpy_matrix",
     "skew",
 ]
 
@@ -71,6 +72,14 @@ def rot_z(a: float) -> FloatArray:
     """Rotation about +z by ``a`` radians (positive turns +x toward +y). Returns ``(3, 3)``."""
     c, s = math.cos(a), math.sin(a)
     return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]], dtype=np.float64)
+
+
+def rpy_matrix(rpy_deg: tuple[float, float, float]) -> FloatArray:
+    """R = Rz(yaw) · Ry(pitch) · Rx(roll) from ``(roll, pitch, yaw)`` in **degrees** (e.g. the
+    mapping's ``master_to_slave_rpy_deg``)."""
+    r, p, y = np.radians(rpy_deg)
+    out: FloatArray = rot_z(float(y)) @ rot_y(float(p)) @ rot_x(float(r))
+    return out
 
 
 def make_transform(R: npt.ArrayLike, p: npt.ArrayLike) -> FloatArray:

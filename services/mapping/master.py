@@ -1,0 +1,35 @@
+"""The master point the mapping maps to the slave tip (``master_mode``: ``pen`` or ``virtual_trocar``).
+
+Used by the Cartesian mapping (:class:`telesurg.services.mapping.ArmMapping`) and the VIP mapping
+(:class:`telesurg.services.mapping.joints.VipMapping`); a module of its own so that neither
+imports the other for it.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+if TYPE_CHECKING:
+    from telesurg.services.mapping import MappingConfig
+
+
+def master_point(cfg: MappingConfig, position: tuple[float, float, float]) -> np.ndarray:
+    """The master point that is mapped to the slave tip, m, master frame.
+
+    ``pen``: the master position itself. ``virtual_trocar``: the position is the handle of a dummy
+    forceps that passes through a virtual trocar ``c`` (a fixed fulcrum on the master side); the
+    mapped point is the dummy tip ``h + L · unit(c − h)`` beyond it. As through a real trocar, the
+    tip moves opposite to the handle sideways and the same way along the shaft, so the surgeon's
+    hand motion matches what the slave forceps does about the patient's trocar.
+    """
+    h = np.array(position, dtype=float)
+    if cfg.master_mode == "pen":
+        return h
+    c = np.array(cfg.virtual_trocar_mm) / 1e3
+    d = c - h
+    n = float(np.linalg.norm(d))
+    u = d / n if n > 1e-6 else np.array([0.0, 0.0, -1.0])  # (handle in the fulcrum: straight down)
+    out: np.ndarray = h + (cfg.dummy_forceps_mm / 1e3) * u
+    return out
