@@ -8,8 +8,7 @@ import sys
 from pathlib import Path
 
 import pytest
-from telesurg.services.bench.harness import clutch_flags
-from telesurg.services.mirror.view import scalar_counts
+from helpers import clutch_flags, scalar_counts
 
 pytestmark = pytest.mark.process
 

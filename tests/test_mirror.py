@@ -13,7 +13,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from telesurg.services.mirror.view import entity_paths, scalar_counts, text_logs
+from helpers import entity_paths, scalar_counts, text_logs
 from telesurg.shared.bus import BusConfig, Node, open_session
 from telesurg.shared.messages import JointState, SafetyEvent
 

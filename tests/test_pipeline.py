@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from telesurg.services.bench.harness import clutch_flags
+from helpers import clutch_flags
 from telesurg.services.launcher import SiteSpec, default_config_dir, free_port, service_argv, wait_port
 from telesurg.services.launcher.report import (
     RELEASE_TRIM_S,
@@ -237,7 +237,7 @@ def test_pipeline_follow_kill_restart_shutdown(
     assert not alive, f"processes left behind: {alive}"
 
     # --- the mirror's recording holds the slave joint series
-    from telesurg.services.mirror.view import scalar_counts
+    from helpers import scalar_counts
 
     assert rrd.exists()
     counts = scalar_counts(rrd)

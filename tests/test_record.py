@@ -401,8 +401,9 @@ def test_replay_through_a_changed_limit_shows_the_difference(recording: Path, tm
 @pytest.mark.process
 def test_to_rerun_without_network(recording: Path, tmp_path: Path) -> None:
     import pyarrow as pa
+    from helpers import entity_paths, scalar_counts, text_logs
     from rerun.chunk import RrdReader
-    from telesurg.services.mirror.view import entity_paths, joint_path, scalar_counts, text_logs
+    from telesurg.services.mirror.view import joint_path
 
     rrd = tmp_path / "run.rrd"
     r = subprocess.run(

@@ -42,7 +42,7 @@ REPO = Path(__file__).resolve().parents[1]
 if str(REPO) not in sys.path:  # run as a script inside a namespace
     sys.path.insert(0, str(REPO))
 
-from telesurg.services.bench.harness import clutch_flags  # noqa: E402
+from helpers import clutch_flags  # noqa: E402
 from telesurg.services.bench.impair import NetNamespace, netns_available  # noqa: E402
 
 pytestmark = [pytest.mark.process, pytest.mark.timeout(240)]

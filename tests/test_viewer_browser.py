@@ -37,7 +37,7 @@ from typing import Any
 
 import numpy as np
 import pytest
-from telesurg.services.bench.harness import clutch_flags
+from helpers import clutch_flags
 
 pytestmark = pytest.mark.process
 
@@ -342,7 +342,7 @@ def test_web_viewer_renders_the_demo_session(tmp_path: Path) -> None:
         pytest.skip("needs Debian chromium at /usr/bin/chromium: apt-get install -y chromium")
     if shutil.which("bash") is None:
         pytest.skip("needs bash to hand chromium its DevTools pipe")
-    from telesurg.services.mirror.view import entity_paths, scalar_counts
+    from helpers import entity_paths, scalar_counts
 
     png = tmp_path / "viewer.png"
     with served_demo(tmp_path, session_s=15.0) as (url, rrd, mirror):

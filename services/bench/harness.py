@@ -52,12 +52,6 @@ log = logging.getLogger(__name__)
 BENCH_CLUTCH = ["scripted.clutch=[[0.5, 3.5]]", "scripted.clutch_repeat_s=4.0"]
 
 
-def clutch_flags() -> list[str]:
-    """``--set`` flags for ``telesurg up`` / ``demo`` / ``deploy/console.sh`` that give the
-    site's scripted master the bench's clutch schedule (a hold ends one engagement, not a run)."""
-    return [arg for item in BENCH_CLUTCH for arg in ("--set", f"master_capture.{item}")]
-
-
 HEARTBEAT_SOURCES = ("watchdog", "slave_control", "mapping", "master_capture", "mirror")
 CONTROL_STREAMS = ("master/m1/measured_cp", "slave/arm1/servo_jp", "slave/arm1/measured_js")
 

@@ -1,4 +1,4 @@
-"""The one module that talks to rerun: entity paths by role, the blueprint, and .rrd readers.
+"""The one module that talks to rerun: entity paths by role, the blueprint, the recording stream.
 
 Entity paths (``<arm>`` an arm id, ``<joint>`` a joint name, both escaped for rerun)::
 
@@ -460,46 +460,3 @@ class RerunView:
         finally:
             self._rec.flush(timeout_sec=10.0)
         self._rec.disconnect()
-
-
-# --------------------------------------------------------------------------- reading an .rrd
-
-
-def _chunks(path: str | Path) -> Any:
-    from rerun.chunk import RrdReader
-
-    return RrdReader(str(path)).stream()
-
-
-def entity_paths(path: str | Path) -> set[str]:
-    """Every entity path with data in the first recording of an .rrd (properties excluded)."""
-    return {c.entity_path for c in _chunks(path) if not c.entity_path.startswith("/__")}
-
-
-def scalar_counts(path: str | Path) -> dict[str, int]:
-    """Number of Scalars rows per entity path in an .rrd."""
-    counts: dict[str, int] = {}
-    for c in _chunks(path):
-        names = c.to_record_batch().schema.names
-        if any(n.startswith("Scalars:") for n in names):
-            counts[c.entity_path] = counts.get(c.entity_path, 0) + c.num_rows
-    return counts
-
-
-def text_logs(path: str | Path) -> list[tuple[str, str, str]]:
-    """``(entity_path, level, text)`` of every TextLog row in an .rrd, in file order."""
-    out: list[tuple[str, str, str]] = []
-    for c in _chunks(path):
-        batch = c.to_record_batch()
-        names = batch.schema.names
-        if "TextLog:text" not in names:
-            continue
-        texts = batch.column("TextLog:text").to_pylist()
-        levels = (
-            batch.column("TextLog:level").to_pylist() if "TextLog:level" in names else [None] * len(texts)
-        )
-        for t, lv in zip(texts, levels, strict=True):
-            for i, line in enumerate(t or []):
-                level = lv[i] if lv and i < len(lv) else ""
-                out.append((c.entity_path, str(level or ""), str(line)))
-    return out

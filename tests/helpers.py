@@ -1,0 +1,58 @@
+"""Helpers only the tests use (imported as ``from helpers import ...``; ``tests/`` is on the path).
+
+* .rrd readers — what the mirror wrote, read back with rerun's own chunk reader;
+* :func:`clutch_flags` — the bench's clutch schedule as ``--set`` flags for a launched site.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+from telesurg.services.bench.harness import BENCH_CLUTCH
+
+
+def clutch_flags() -> list[str]:
+    """``--set`` flags for ``telesurg up`` / ``demo`` / ``deploy/console.sh`` that give the
+    site's scripted master the bench's clutch schedule (a hold ends one engagement, not a run)."""
+    return [arg for item in BENCH_CLUTCH for arg in ("--set", f"master_capture.{item}")]
+
+
+def _chunks(path: str | Path) -> Any:
+    from rerun.chunk import RrdReader
+
+    return RrdReader(str(path)).stream()
+
+
+def entity_paths(path: str | Path) -> set[str]:
+    """Every entity path with data in the first recording of an .rrd (properties excluded)."""
+    return {c.entity_path for c in _chunks(path) if not c.entity_path.startswith("/__")}
+
+
+def scalar_counts(path: str | Path) -> dict[str, int]:
+    """Number of Scalars rows per entity path in an .rrd."""
+    counts: dict[str, int] = {}
+    for c in _chunks(path):
+        names = c.to_record_batch().schema.names
+        if any(n.startswith("Scalars:") for n in names):
+            counts[c.entity_path] = counts.get(c.entity_path, 0) + c.num_rows
+    return counts
+
+
+def text_logs(path: str | Path) -> list[tuple[str, str, str]]:
+    """``(entity_path, level, text)`` of every TextLog row in an .rrd, in file order."""
+    out: list[tuple[str, str, str]] = []
+    for c in _chunks(path):
+        batch = c.to_record_batch()
+        names = batch.schema.names
+        if "TextLog:text" not in names:
+            continue
+        texts = batch.column("TextLog:text").to_pylist()
+        levels = (
+            batch.column("TextLog:level").to_pylist() if "TextLog:level" in names else [None] * len(texts)
+        )
+        for t, lv in zip(texts, levels, strict=True):
+            for i, line in enumerate(t or []):
+                level = lv[i] if lv and i < len(lv) else ""
+                out.append((c.entity_path, str(level or ""), str(line)))
+    return out
