@@ -1,0 +1,289 @@
+"""The import rules of the package layout (docs/architecture.md, "Layout"), checked on the source.
+
+Every ``import`` statement under ``shared/`` and ``services/`` is read with :mod:`ast` — at module
+level, inside functions and under ``if TYPE_CHECKING:`` alike — and checked against the rooms:
+
+* ``shared/`` (``telesurg.shared``), the runtime library: imports only ``shared``.
+* ``services/common.py``, the service chassis: imports only ``shared``.
+* a **service** — every package under ``services/`` that is not a tool, the launcher included
+  (it starts services as ``python -m telesurg.services.cli <command>`` processes, never imports
+  them): imports ``shared``, ``services/common.py`` and its own package, nothing else under
+  ``services/``.
+* a **tool** — ``services/cli.py``, ``services/bench``, ``services/experiment``,
+  ``services/device`` and ``services/record/replay.py``: may import any service (tools drive
+  and compose services); only tools import tools.
+* nothing under ``shared/`` or ``services/`` imports the tests.
+* no import cycle between modules. A lazy import (inside a function) counts — it only hides the
+  loop until the function runs; an ``if TYPE_CHECKING:`` import does not (it never runs).
+"""
+
+from __future__ import annotations
+
+import ast
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+FOLDERS = ("shared", "services")
+SHARED = "telesurg.shared"
+SERVICES = "telesurg.services"
+COMMON = "telesurg.services.common"
+#: modules and packages that drive or compose services (a package name covers its submodules)
+TOOLS = (
+    "telesurg.services.cli",
+    "telesurg.services.bench",
+    "telesurg.services.experiment",
+    "telesurg.services.device",
+    "telesurg.services.record.replay",
+)
+#: top-level names the test tree can be imported as (``tests``, or a file of it on ``sys.path``)
+TEST_NAMES = frozenset({"tests"} | {p.stem for p in (ROOT / "tests").glob("*.py")})
+
+# Violations that remain, each named with what removes it (delete the entry when that is merged;
+# the tests below fail on an entry that no longer occurs): (importer, imported) for a rule, the
+# sorted modules of a cycle.
+ALLOWED_RULE_VIOLATIONS: frozenset[tuple[str, str]] = frozenset(
+    {
+        # d-teleop: the demo report judges from what the mapping published, not its config
+        # (scale, rotation); c-site: the pairs come from the site file's shared facts
+        ("telesurg.services.launcher.demo", "telesurg.services.mapping"),
+    }
+)
+ALLOWED_CYCLES: frozenset[tuple[str, ...]] = frozenset(
+    {
+        # b-armcore: backends.py ↔ serial_backend.py (one arm core)
+        (
+            "telesurg.services.slave_control.backends",
+            "telesurg.services.slave_control.serial_backend",
+        ),
+        # not assigned in issue #16 (console is d-teleop's area): the console package runs its
+        # textual app (console/app.py, a lazy import in run()), and the app imports the model,
+        # config and constants from console/__init__.py; a console/model.py both import ends it
+        ("telesurg.services.console", "telesurg.services.console.app"),
+    }
+)
+
+
+@dataclass(frozen=True)
+class Import:
+    """One imported module: the importer, the most specific module named, and the line."""
+
+    importer: str
+    imported: str
+    line: int
+    runtime: bool = True  # False under ``if TYPE_CHECKING:``
+
+    def __str__(self) -> str:
+        return f"{self.importer} imports {self.imported} (line {self.line})"
+
+
+def source_modules() -> dict[str, Path]:
+    """Installed module name (``telesurg.…``) → file, for every module under the folders."""
+    out: dict[str, Path] = {}
+    for folder in FOLDERS:
+        for path in sorted((ROOT / folder).rglob("*.py")):
+            parts = path.relative_to(ROOT).with_suffix("").parts
+            if parts[-1] == "__init__":
+                parts = parts[:-1]
+            out[".".join(("telesurg", *parts))] = path
+    return out
+
+
+MODULES = source_modules()
+
+
+def _resolve(name: str) -> str:
+    """The longest prefix of ``name`` that is one of our modules (``name`` itself if none)."""
+    probe = name
+    while probe and probe not in MODULES:
+        probe = probe.rpartition(".")[0]
+    return probe or name
+
+
+def _type_checking_only(tree: ast.AST) -> set[ast.AST]:
+    """The import nodes inside ``if TYPE_CHECKING:`` (or ``typing.TYPE_CHECKING``) blocks."""
+    out: set[ast.AST] = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.If):
+            test = node.test
+            name = test.id if isinstance(test, ast.Name) else getattr(test, "attr", "")
+            if name == "TYPE_CHECKING":
+                out |= {n for stmt in node.body for n in ast.walk(stmt)}
+    return out
+
+
+def imports_of(module: str, path: Path) -> Iterator[Import]:
+    """Every module ``module`` imports: ``import a.b`` → a.b; ``from a import b`` → a.b if that
+    is a module, else a; relative imports resolved against the package."""
+    package = module if path.name == "__init__.py" else module.rpartition(".")[0]
+    tree = ast.parse(path.read_text(), str(path))
+    typing_only = _type_checking_only(tree)
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            for alias in node.names:
+                yield Import(module, _resolve(alias.name), node.lineno, node not in typing_only)
+        elif isinstance(node, ast.ImportFrom):
+            base = node.module or ""
+            if node.level:
+                anchor = package.rsplit(".", node.level - 1)[0] if node.level > 1 else package
+                base = f"{anchor}.{base}" if base else anchor
+            for alias in node.names:
+                yield Import(module, _resolve(f"{base}.{alias.name}"), node.lineno, node not in typing_only)
+
+
+ALL_IMPORTS = [imp for mod, path in MODULES.items() for imp in imports_of(mod, path)]
+
+
+def within(module: str, package: str) -> bool:
+    """``module`` is ``package`` or inside it."""
+    return module == package or module.startswith(package + ".")
+
+
+def is_tool(module: str) -> bool:
+    """``module`` is a tool (or inside one)."""
+    return any(within(module, t) for t in TOOLS)
+
+
+def service_of(module: str) -> str:
+    """The service package (``telesurg.services.<name>``) ``module`` belongs to."""
+    return ".".join(module.split(".")[:3])
+
+
+def rule_broken(imp: Import) -> str | None:
+    """Why ``imp`` breaks a layout rule, or None if it keeps them."""
+    a, b = imp.importer, imp.imported
+    if b.split(".")[0] in TEST_NAMES:
+        return "production code imports the tests"
+    if not within(b, "telesurg"):
+        return None  # stdlib or a third-party library
+    if within(a, SHARED):
+        return None if within(b, SHARED) else "shared imports only shared"
+    if within(b, SHARED):
+        return None
+    if is_tool(a):
+        return None
+    if is_tool(b):
+        return "only tools import tools"
+    if a == COMMON:
+        return "services/common.py imports only shared"
+    if b in (COMMON, SERVICES) or within(b, service_of(a)):
+        return None
+    return "a service imports only shared, services/common.py and its own package"
+
+
+def test_the_source_tree_is_read() -> None:
+    """The checks below see the real tree (guards against a wrong ROOT or a vacuous walk)."""
+    assert {"telesurg.shared.messages", "telesurg.services.mapping", "telesurg.services.cli"} <= set(MODULES)
+    assert Import("telesurg.services.mapping", "telesurg.shared.messages", 0).imported in {
+        i.imported for i in ALL_IMPORTS if i.importer == "telesurg.services.mapping"
+    }
+    assert any(is_tool(m) for m in MODULES) and any(within(m, SHARED) for m in MODULES)
+    for tool in TOOLS:
+        assert tool in MODULES, f"{tool} listed as a tool but not in the tree"
+
+
+def test_the_rules_catch_what_they_forbid() -> None:
+    """Each rule rejects a made-up import of the kind it forbids, and allows the kinds it allows."""
+    bad = [
+        ("telesurg.shared.bus", "telesurg.services.common"),
+        ("telesurg.services.watchdog", "telesurg.services.mapping"),
+        ("telesurg.services.mapping.joints", "telesurg.services.slave_control.control"),
+        ("telesurg.services.launcher", "telesurg.services.mirror.view"),
+        ("telesurg.services.common", "telesurg.services.mapping"),
+        ("telesurg.services.slave_control", "telesurg.services.bench.harness"),
+        ("telesurg.services.record", "telesurg.services.record.replay"),
+        ("telesurg.services.bench.harness", "conftest"),
+        ("telesurg.shared.messages", "tests.helpers"),
+    ]
+    good = [
+        ("telesurg.shared.bus", "telesurg.shared.messages"),
+        ("telesurg.services.watchdog", "telesurg.services.watchdog.logic"),
+        ("telesurg.services.mapping.joints", "telesurg.services.mapping.engage"),
+        ("telesurg.services.mirror", "telesurg.services.common"),
+        ("telesurg.services.bench.fuzz", "telesurg.services.mirror"),
+        ("telesurg.services.experiment.jinno", "telesurg.services.bench.harness"),
+        ("telesurg.services.record.replay", "telesurg.services.mirror.view"),
+        ("telesurg.services.cli", "importlib"),
+    ]
+    for a, b in bad:
+        assert rule_broken(Import(a, b, 0)), (a, b)
+    for a, b in good:
+        assert rule_broken(Import(a, b, 0)) is None, (a, b)
+
+
+def test_imports_keep_the_rooms() -> None:
+    """No import under shared/ or services/ breaks a rule (beyond the named allow-list)."""
+    broken = {(i.importer, i.imported): f"{i}: {why}" for i in ALL_IMPORTS if (why := rule_broken(i))}
+    unexpected = sorted(msg for pair, msg in broken.items() if pair not in ALLOWED_RULE_VIOLATIONS)
+    assert not unexpected, "\n".join(unexpected)
+    stale = ALLOWED_RULE_VIOLATIONS - set(broken)
+    assert not stale, f"allow-list entries that no longer occur (delete them): {sorted(stale)}"
+
+
+def cycles(edges: dict[str, set[str]]) -> list[tuple[str, ...]]:
+    """The strongly connected components with more than one module (or a self-import), each
+    sorted (Tarjan's algorithm, iterative)."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    on_stack: set[str] = set()
+    out: list[tuple[str, ...]] = []
+    for root in sorted(edges):
+        if root in index:
+            continue
+        work: list[tuple[str, Iterator[str]]] = [(root, iter(sorted(edges.get(root, ()))))]
+        index[root] = low[root] = len(index)
+        stack.append(root)
+        on_stack.add(root)
+        while work:
+            node, children = work[-1]
+            child = next(children, None)
+            if child is not None:
+                if child not in index:
+                    index[child] = low[child] = len(index)
+                    stack.append(child)
+                    on_stack.add(child)
+                    work.append((child, iter(sorted(edges.get(child, ())))))
+                elif child in on_stack:
+                    low[node] = min(low[node], index[child])
+                continue
+            work.pop()
+            if work:
+                low[work[-1][0]] = min(low[work[-1][0]], low[node])
+            if low[node] == index[node]:
+                comp: list[str] = []
+                while True:
+                    top = stack.pop()
+                    on_stack.discard(top)
+                    comp.append(top)
+                    if top == node:
+                        break
+                if len(comp) > 1 or node in edges.get(node, ()):
+                    out.append(tuple(sorted(comp)))
+    return sorted(out)
+
+
+def test_the_cycle_check_finds_cycles() -> None:
+    """A three-module loop and a self-import are found; a diamond is not a cycle."""
+    loop = {"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"d"}, "e": {"f", "g"}, "f": {"h"}, "g": {"h"}}
+    assert cycles(loop) == [("a", "b", "c"), ("d",)]
+
+
+def test_no_import_cycles() -> None:
+    """No module imports itself through others at run time (lazy imports included)."""
+    runtime = [i for i in ALL_IMPORTS if i.runtime and i.imported in MODULES]
+    assert len(runtime) < len([i for i in ALL_IMPORTS if i.imported in MODULES])  # TYPE_CHECKING seen
+    edges: dict[str, set[str]] = {m: set() for m in MODULES}
+    for i in runtime:
+        if i.imported != i.importer:
+            edges[i.importer].add(i.imported)
+    found = cycles(edges)
+    unexpected = [c for c in found if c not in ALLOWED_CYCLES]
+    lines = []
+    for c in unexpected:
+        inside = sorted({str(i) for i in runtime if i.importer in c and i.imported in c})
+        lines.append(" ↔ ".join(c) + ": " + "; ".join(inside))
+    assert not unexpected, "\n".join(lines)
+    stale = ALLOWED_CYCLES - set(found)
+    assert not stale, f"allow-list cycles that no longer occur (delete them): {sorted(stale)}"
