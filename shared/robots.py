@@ -11,6 +11,15 @@ mapping to pick its IK. Pure and cheap: the kinematics modules are imported on f
   ``d1 theta2 theta3 theta4 d5 theta6``; the tip is the arm's tip in the port frame.
 * ``vip`` — two conical-RCM arms with an elbow (Jang 2014), arms ``arm1``/``arm2`` with joints
   ``q1 … q5``; the "tip" is the wrist W (the controlled point), port frame.
+
+Frame convention (one for every robot): :meth:`ArmProfile.pose` is the pose ``(4, 4)`` of the
+arm's controlled point in the **world frame of the robot's MuJoCo scene**, equal to the pose of
+the MuJoCo site :attr:`ArmProfile.tip_site` (``site_xpos``, ``site_xmat``), with its real
+orientation (the site's axes). :meth:`ArmProfile.jacobian` is the geometric Jacobian ``(6, n)``
+of that point in the same frame: ``[v; ω] = J @ qdot``, rows ``v`` (the controlled point's
+linear velocity, m/s) then ``ω`` (the site frame's angular velocity, rad/s), world coordinates;
+``qdot`` in rad/s (m/s for prismatic joints). For ``mh3f`` the world frame is the robot base
+frame (the model puts the base at the world origin); for ``plas`` and ``vip`` it is the port frame.
 """
 
 from __future__ import annotations
@@ -20,7 +29,10 @@ from dataclasses import dataclass
 from functools import cache
 
 import numpy as np
+import numpy.typing as npt
 from telesurg.shared.errors import ConfigError
+
+FloatArray = npt.NDArray[np.float64]
 
 
 @dataclass(frozen=True)
@@ -35,7 +47,8 @@ class ArmProfile:
         max_velocity: joint speed limits (rad/s or m/s).
         home: start pose.
         tip_site: MuJoCo site of the controlled point.
-        tip: joints → controlled point (m, model world frame).
+        pose_of: joints ``(n,)`` → pose ``(4, 4)`` of the controlled point (module docstring).
+        jacobian_of: joints ``(n,)`` → geometric Jacobian ``(6, n)`` (module docstring).
     """
 
     arm: str
@@ -46,19 +59,36 @@ class ArmProfile:
     max_velocity: tuple[float, ...]
     home: tuple[float, ...]
     tip_site: str
-    tip: Callable[[np.ndarray], np.ndarray]
+    pose_of: Callable[[np.ndarray], np.ndarray]
+    jacobian_of: Callable[[np.ndarray], np.ndarray]
+
+    def pose(self, q: npt.ArrayLike) -> FloatArray:
+        """Pose ``(4, 4)`` of the controlled point (world frame of the scene, = the tip site)."""
+        return np.asarray(self.pose_of(np.asarray(q, dtype=np.float64)), dtype=np.float64)
+
+    def jacobian(self, q: npt.ArrayLike) -> FloatArray:
+        """Geometric Jacobian ``(6, n)`` of :meth:`pose`: ``[v; ω] = J @ qdot`` (world frame)."""
+        return np.asarray(self.jacobian_of(np.asarray(q, dtype=np.float64)), dtype=np.float64)
+
+    def tip(self, q: npt.ArrayLike) -> FloatArray:
+        """Position ``(3,)`` [m] of the controlled point (world frame of the scene)."""
+        out: FloatArray = self.pose(q)[:3, 3].copy()
+        return out
 
 
 def _mh3f(arm: str) -> tuple[ArmProfile, ...]:
-    from telesurg.shared.kinematics import MH3F, fk
+    from telesurg.shared.kinematics import mh3f
 
-    def tip(q: np.ndarray) -> np.ndarray:
-        out: np.ndarray = fk(q, MH3F)[:3, 3]
-        return out
+    def pose(q: np.ndarray) -> np.ndarray:
+        return mh3f.fk(q, mh3f.MH3F)
+
+    def jacobian(q: np.ndarray) -> np.ndarray:
+        return mh3f.jacobian(q, mh3f.MH3F)
 
     home = (0.0, 0.2, 0.3, 0.0, -0.6, 0.0)
-    names = MH3F.joint_names
-    return (ArmProfile(arm, names, names, MH3F.lower, MH3F.upper, MH3F.max_velocity, home, "tip", tip),)
+    g = mh3f.MH3F
+    names = g.joint_names
+    return (ArmProfile(arm, names, names, g.lower, g.upper, g.max_velocity, home, "tip", pose, jacobian),)
 
 
 #: PLAS joint speeds (the thesis gives none): 50 mm/s for the slides, 2 rad/s for the joints.
@@ -69,10 +99,13 @@ VIP_MAX_VELOCITY = (2.0, 2.0, 0.1, 2.0, 2.0)
 
 def _plas(arm: str) -> ArmProfile:
     from telesurg.shared.kinematics.plas import PLAS_SLAVE
-    from telesurg.shared.kinematics.plas_layout import arm_tip
+    from telesurg.shared.kinematics.plas_layout import arm_jacobian, arm_tip_pose
 
-    def tip(q: np.ndarray) -> np.ndarray:
-        return arm_tip(arm, q)
+    def pose(q: np.ndarray) -> np.ndarray:
+        return arm_tip_pose(arm, q)
+
+    def jacobian(q: np.ndarray) -> np.ndarray:
+        return arm_jacobian(arm, q)
 
     names = PLAS_SLAVE.joint_names
     return ArmProfile(
@@ -84,7 +117,8 @@ def _plas(arm: str) -> ArmProfile:
         PLAS_MAX_VELOCITY,
         (0.0,) * 6,
         f"{arm}_tip",
-        tip,
+        pose,
+        jacobian,
     )
 
 
@@ -93,9 +127,11 @@ def _vip(arm: str) -> ArmProfile:
 
     geom = vip.VIP_ARM1 if arm == "arm1" else vip.VIP_ARM2
 
-    def tip(q: np.ndarray) -> np.ndarray:
-        out: np.ndarray = vip.fk(q, geom).wrist
-        return out
+    def pose(q: np.ndarray) -> np.ndarray:
+        return vip.fk(q, geom).wrist_frame
+
+    def jacobian(q: np.ndarray) -> np.ndarray:
+        return vip.wrist_jacobian(q, geom)
 
     names = geom.joint_names
     return ArmProfile(
@@ -107,7 +143,8 @@ def _vip(arm: str) -> ArmProfile:
         VIP_MAX_VELOCITY,
         geom.home,
         f"{arm}_wrist",
-        tip,
+        pose,
+        jacobian,
     )
 
 
