@@ -193,7 +193,9 @@ class RobotSpec:
         Raises:
             ConfigError: the robot has no arm of that id (the message lists its arms).
         """
-        arms = arms_of(self.name, arm)
+        with _LOCK:
+            registered = _REGISTRY.get(self.name) is self
+        arms = arms_of(self.name, arm) if registered else self.arms(arm)  # (cached when registered)
         for a in arms:
             if a.arm == arm:
                 return a
