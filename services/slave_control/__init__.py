@@ -48,7 +48,8 @@ from telesurg.services.slave_control.teach import (
 )
 from telesurg.shared.bus import BusConfig, Node
 from telesurg.shared.errors import ConfigError, IKError, KinematicsError
-from telesurg.shared.kinematics import MH3F, jacobian, matrix_from_quat, within_limits
+from telesurg.shared.kinematics import matrix_from_quat
+from telesurg.shared.kinematics.mh3f import MH3F, jacobian, within_limits
 from telesurg.shared.kinematics.trocar import axis_angle_to_trocar, pose_to_trocar, posture_adjust
 from telesurg.shared.messages import (
     CartesianPose,

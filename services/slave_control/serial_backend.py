@@ -384,7 +384,8 @@ class SerialBackend:
         from telesurg.shared.robots import get as robot
 
         if robot(self.robot.model).slave_family == "trocar":
-            from telesurg.shared.kinematics import MH3F, fk, quat_from_matrix
+            from telesurg.shared.kinematics import quat_from_matrix
+            from telesurg.shared.kinematics.mh3f import MH3F, fk
 
             t = fk(q, MH3F)
             return t[:3, 3].copy(), quat_from_matrix(t[:3, :3]), None
