@@ -48,7 +48,8 @@ from telesurg.services.slave_control.teach import (
 )
 from telesurg.shared.bus import BusConfig, Node
 from telesurg.shared.errors import ConfigError, IKError, KinematicsError
-from telesurg.shared.kinematics import MH3F, jacobian, matrix_from_quat, within_limits
+from telesurg.shared.kinematics import matrix_from_quat
+from telesurg.shared.kinematics.mh3f import MH3F, jacobian, within_limits
 from telesurg.shared.kinematics.trocar import axis_angle_to_trocar, pose_to_trocar, posture_adjust
 from telesurg.shared.limits import limit_step
 from telesurg.shared.messages import (
@@ -620,7 +621,9 @@ def _internal_step(
 def run(cfg: SlaveControlConfig, stop: threading.Event) -> None:
     """Run the slave until ``stop``."""
     check_rt_priority(cfg.rt_priority)
-    if cfg.model != "mh3f":
+    from telesurg.shared import robots
+
+    if robots.get(cfg.model).slave_family != "trocar":
         from telesurg.services.slave_control.joint_slave import run_joint_slave
         from telesurg.shared.robots import arms_of
 

@@ -1,0 +1,38 @@
+"""The operator's motion scale commands, shared by every mapping mode.
+
+``scale_up`` / ``scale_down`` step through :data:`SCALE_STEPS` from the step nearest the current
+scale; ``set_scale value=V`` takes any V in (0, 2]. Anything else is refused with the reason, and
+the scale is left as it was.
+"""
+
+from __future__ import annotations
+
+#: the operator's scale steps (scale_up / scale_down)
+SCALE_STEPS = (0.1, 0.2, 0.3, 0.5, 0.7, 1.0, 1.5, 2.0)
+#: the largest scale an operator may set
+MAX_SCALE = 2.0
+SCALE_COMMANDS = ("scale_up", "scale_down", "set_scale")
+
+
+def new_scale(name: str, args: dict[str, str], current: float) -> tuple[float | None, str]:
+    """The scale a scale command asks for, or ``None`` and the refusal's reason.
+
+    Args:
+        name: ``scale_up``, ``scale_down`` or ``set_scale``.
+        args: the command's arguments (``value`` for ``set_scale``).
+        current: the scale in use.
+    """
+    if name == "set_scale":
+        try:
+            new = float(args.get("value", "nan"))
+        except ValueError:
+            new = float("nan")
+    elif name in ("scale_up", "scale_down"):
+        i = min(range(len(SCALE_STEPS)), key=lambda j: abs(SCALE_STEPS[j] - current))
+        i = min(i + 1, len(SCALE_STEPS) - 1) if name == "scale_up" else max(i - 1, 0)
+        new = SCALE_STEPS[i]
+    else:
+        return None, f"{name!r} is not a scale command; valid: {', '.join(SCALE_COMMANDS)}"
+    if not 0.0 < new <= MAX_SCALE:
+        return None, f"{name} refused: scale must be in (0, {MAX_SCALE:g}], got {new}"
+    return new, ""
