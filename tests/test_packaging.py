@@ -4,7 +4,7 @@ install of it into a fresh venv outside the checkout runs the demo on its packag
 The wheel is built from a copy of the user's folders (so the checkout gets no build/ litter) with
 ``pip wheel --no-deps``; the fresh venv (``python -m venv``, no system site-packages) installs it
 with its pinned dependencies from the same index / pip cache. Measured on the 2-core development
-host (under load from other work): build ~6 s, venv + install ~60 s, demo ~15 s.
+host while other work loaded it: build ~3-6 s, venv + install ~60-70 s, demo ~15 s: ~95 s in all.
 """
 
 from __future__ import annotations
