@@ -22,7 +22,7 @@ from collections.abc import Callable, Sequence
 from typing import Any, Protocol, TypeVar
 
 from telesurg.shared.bus import BusConfig, add_bus_args, bus_from_args
-from telesurg.shared.config import config_help, load_config, service_table
+from telesurg.shared.config import config_help, load_config, service_table, site_plugins
 from telesurg.shared.errors import TelesurgError
 
 log = logging.getLogger("telesurg")
@@ -80,6 +80,8 @@ def service_main(
     description: str = "",
 ) -> int:
     """Parse flags into ``config_cls``, then ``run`` until SIGINT/SIGTERM."""
+    from telesurg.shared import robots
+
     table = service_table(config_cls)
     parser = argparse.ArgumentParser(
         prog=f"telesurg {name}",
@@ -100,9 +102,20 @@ def service_main(
     parser.add_argument("--site", help="site id (key prefix telesurg/<site>)")
     parser.add_argument("--log-level", default="INFO", help="DEBUG, INFO, WARNING, ERROR")
     parser.add_argument("--parent-pid", type=int, help=argparse.SUPPRESS)
+    parser.add_argument(
+        "--plugin",
+        action="append",
+        default=[],
+        metavar="FILE",
+        help="robot plugin: a Python file that registers robots (telesurg.shared.robots); repeatable",
+    )
     add_bus_args(parser)
     args = parser.parse_args(argv)
     try:
+        # the robot plugins (--plugin and the site file's [site] plugins) before the config: it may
+        # name a plugin's robot
+        for plugin in [*args.plugin, *site_plugins(args.config)]:
+            robots.load_plugin(str(plugin))
         cfg = load_config(config_cls, args.config, args.set, table=args.table)
         if args.site:
             cfg.site = args.site

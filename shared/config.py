@@ -131,6 +131,16 @@ def read_site(path: str | Path) -> SiteFile:
     return _site_from_data(p, data)
 
 
+def site_plugins(path: str | Path | None) -> list[Path]:
+    """The ``[site] plugins`` of a site file, resolved against its folder ([] for no file or a
+    service's own TOML file): each service loads them before it builds its config."""
+    if not path:
+        return []
+    p = Path(path)
+    data = _read_toml(p, "config file")
+    return _site_from_data(p, data).plugins if is_site_data(data) else []
+
+
 def service_table(cls: type[Any]) -> str:
     """The site-file table of a service config: the default of its ``service`` field."""
     for f in dataclasses.fields(cls):

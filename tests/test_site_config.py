@@ -238,3 +238,17 @@ def test_mapping_help_through_the_cli(tmp_path: Path) -> None:
         "  master_timeout_ms : float = 100.0 [ms]\n      master stream older than this disengages" in r.stdout
     )
     assert "  scale : float = 0.5\n" in r.stdout and "(site file: [site] robot)" in r.stdout
+
+
+def test_site_plugins_load_relative_to_the_site_file_before_the_config(tmp_path: Path) -> None:
+    """``[site] plugins`` (contract 1): each service and the launcher load them first."""
+    d = _site(tmp_path, '[site]\nplugins = ["robots/mine.py"]\n[mapping]\nscael = 0.3\n')
+    (d / "robots").mkdir()
+    (d / "robots" / "mine.py").write_text("import sys\nprint('plugin mine loaded', file=sys.stderr)\n")
+    for args in (("mapping", "--config", str(d / SITE_FILE)), ("up", "--config-dir", str(d))):
+        r = _telesurg(*args, cwd=tmp_path)  # from another folder: the path is the site file's
+        assert r.returncode == 2, r.stderr
+        assert r.stderr.index("plugin mine loaded") < r.stderr.index("unknown key 'scael'"), r.stderr
+    (d / "robots" / "mine.py").write_text("raise RuntimeError('broken robot')\n")
+    r = _telesurg("up", "--config-dir", str(d), cwd=tmp_path)
+    assert r.returncode == 2 and "mine.py" in r.stderr and "broken robot" in r.stderr, r.stderr

@@ -43,7 +43,7 @@ from typing import IO, Any
 
 from telesurg.services.common import install_stop_handlers, setup_logging
 from telesurg.shared.bus import BusConfig, add_bus_args, bus_from_args
-from telesurg.shared.config import SITE_FILE, load_config, read_site
+from telesurg.shared.config import SITE_FILE, load_config, read_site, site_plugins
 from telesurg.shared.errors import ConfigError
 
 log = logging.getLogger("telesurg.launcher")
@@ -151,6 +151,7 @@ class SiteSpec:
     connect: dict[str, str] = field(default_factory=dict)
     listen: tuple[str, ...] = ()  # more router endpoints, e.g. tls/0.0.0.0:7447 for remote consoles
     router_flags: tuple[str, ...] = ()  # router-only flags: --tls-ca/--tls-cert/--tls-key/--mtls/--acl
+    plugins: tuple[str, ...] = ()  # robot plugin files, passed to every service as --plugin FILE
 
     @property
     def site_file(self) -> Path | None:
@@ -173,6 +174,8 @@ def service_argv(spec: SiteSpec, name: str) -> list[str]:
         argv += spec.router_flags
     else:
         argv += ["--connect", spec.connect.get(name, spec.endpoint)]
+        for plugin in spec.plugins:
+            argv += ["--plugin", plugin]
     if spec.site_file is not None and name != "router":
         argv += ["--config", str(spec.site_file), "--table", name]
     for item in spec.overrides.get(name, []):
@@ -336,10 +339,17 @@ def add_site_args(parser: argparse.ArgumentParser) -> None:
         default=0.0,
         help="stop after this many seconds (default: run until Ctrl-C)",
     )
+    parser.add_argument(
+        "--plugin",
+        action="append",
+        default=[],
+        metavar="FILE",
+        help="robot plugin file, passed to every service (repeatable)",
+    )
 
 
 def spec_from_args(args: argparse.Namespace, services: Sequence[str]) -> SiteSpec:
-    """SiteSpec from the shared flags."""
+    """SiteSpec from the shared flags (loads the ``--plugin`` files, so a bad one fails here)."""
     overrides: dict[str, list[str]] = {}
     for item in args.set:
         service, dot, rest = item.partition(".")
@@ -353,6 +363,13 @@ def spec_from_args(args: argparse.Namespace, services: Sequence[str]) -> SiteSpe
             + ("" if config_dir.is_dir() else ": no such folder")
             + "; site folders: deploy/<site>/ or telesurg site init DIR)"
         )
+    from telesurg.shared import robots
+
+    plugins = tuple(str(Path(p).resolve()) for p in args.plugin)
+    # here too: a bad plugin fails before any service starts (the services load the site file's
+    # [site] plugins themselves, from the site file they are given)
+    for plugin in [*plugins, *site_plugins(config_dir / SITE_FILE)]:
+        robots.load_plugin(str(plugin))
     check_site(config_dir / SITE_FILE, [*services, *(n for n in overrides if n not in services)], overrides)
     port = args.port or free_port(args.host)
     return SiteSpec(
@@ -364,6 +381,7 @@ def spec_from_args(args: argparse.Namespace, services: Sequence[str]) -> SiteSpe
         overrides,
         args.log_dir,
         args.log_level,
+        plugins=plugins,
     )
 
 

@@ -619,7 +619,9 @@ def _internal_step(
 def run(cfg: SlaveControlConfig, stop: threading.Event) -> None:
     """Run the slave until ``stop``."""
     check_rt_priority(cfg.rt_priority)
-    if cfg.model != "mh3f":
+    from telesurg.shared import robots
+
+    if robots.get(cfg.model).slave_family != "trocar":
         from telesurg.services.slave_control.joint_slave import run_joint_slave
         from telesurg.shared.robots import arms_of
 

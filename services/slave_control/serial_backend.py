@@ -381,7 +381,9 @@ class SerialBackend:
     # ----------------------------------------------------------------- internals
 
     def _tips(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
-        if self.robot.model == "mh3f":
+        from telesurg.shared.robots import get as robot
+
+        if robot(self.robot.model).slave_family == "trocar":
             from telesurg.shared.kinematics import MH3F, fk, quat_from_matrix
 
             t = fk(q, MH3F)
@@ -829,5 +831,7 @@ def make_serial_backend(cfg: SlaveControlConfig) -> SerialBackend | ShadowedBack
     if not cfg.shadow:
         return real
     shadow = ShadowConfig(cfg.shadow_limit_rad, cfg.shadow_grace_ms)
-    sites = () if cfg.model == "mh3f" else tuple(a.tip_site for a in arms)
+    from telesurg.shared.robots import get as robot
+
+    sites = () if robot(cfg.model).slave_family == "trocar" else tuple(a.tip_site for a in arms)
     return ShadowedBackend(real, MujocoBackend(cfg.model, (), sites), shadow)

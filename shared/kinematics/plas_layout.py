@@ -35,7 +35,7 @@ import math
 import numpy as np
 import numpy.typing as npt
 from telesurg.shared.errors import KinematicsError
-from telesurg.shared.kinematics.plas import PLAS_SLAVE, PlasSlaveGeometry, slave_fk
+from telesurg.shared.kinematics.plas import PLAS_SLAVE, PlasSlaveGeometry, slave_fk, slave_jacobian
 from telesurg.shared.kinematics.transforms import FloatArray
 
 __all__ = [
@@ -45,6 +45,7 @@ __all__ = [
     "ARM_OFFSET",
     "SHAFT_AXIS",
     "arm_base",
+    "arm_jacobian",
     "arm_tip",
     "arm_tip_pose",
 ]
@@ -126,3 +127,14 @@ def arm_tip(
     Args: as :func:`arm_tip_pose`.
     """
     return arm_tip_pose(arm, q, insertion, geom)[:3, 3].copy()
+
+
+def arm_jacobian(arm: str, q: npt.ArrayLike, geom: PlasSlaveGeometry = PLAS_SLAVE) -> FloatArray:
+    """Geometric Jacobian ``(6, 6)`` of :func:`arm_tip_pose` in the world frame.
+
+    ``[v; ω] = J @ qdot`` (:func:`~telesurg.shared.kinematics.plas.slave_jacobian` turned by the
+    arm base's fixed rotation; the common body's insertion does not change it).
+    """
+    R = arm_base(arm)[:3, :3]
+    J = slave_jacobian(q, geom)
+    return np.vstack([R @ J[:3], R @ J[3:]])

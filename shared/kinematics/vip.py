@@ -133,6 +133,7 @@ __all__ = [
     "vip_elbow",
     "vip_ik",
     "within_limits",
+    "wrist_jacobian",
 ]
 
 EV_MIN = 0.02
@@ -384,6 +385,20 @@ def jacobian(q: npt.ArrayLike, geom: VipArmGeometry = VIP_ARM) -> FloatArray:
         np.cross(-f.R4[:, 1], ew),
     )
     return np.asarray(np.column_stack(cols), dtype=np.float64)
+
+
+def wrist_jacobian(q: npt.ArrayLike, geom: VipArmGeometry = VIP_ARM) -> FloatArray:
+    """Geometric Jacobian ``(6, 5)`` of the wrist frame (:attr:`VipPose.wrist_frame`), world frame.
+
+    ``[v; ω] = J @ qdot``: rows 0-2 are :func:`jacobian` (the velocity of W), rows 3-5 the angular
+    velocity of the wrist frame: ``z1``, ``z2``, ``0`` (q3 slides), ``z3``, ``-y4``.
+    """
+    f = _frames(q, geom)
+    rw, ew = f.wrist - f.rcm, f.wrist - f.elbow
+    z3, y4 = f.R3[:, 2], -f.R4[:, 1]
+    axes = (f.R1[:, 2], f.R2[:, 2], np.zeros(3), z3, y4)
+    linear = (np.cross(axes[0], rw), np.cross(axes[1], rw), z3, np.cross(z3, ew), np.cross(y4, ew))
+    return np.asarray(np.vstack([np.column_stack(linear), np.column_stack(axes)]), dtype=np.float64)
 
 
 def elbow_jacobian(q: npt.ArrayLike, geom: VipArmGeometry = VIP_ARM) -> FloatArray:
