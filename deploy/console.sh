@@ -7,7 +7,11 @@ here="$(cd "$(dirname "$0")" && pwd)"   # this script's folder, beside the site 
 py="$here/../.venv/bin/python"
 if [[ ! -x "$py" ]]; then
     ts="$(command -v telesurg || true)"
-    py="$([[ -n "$ts" && -x "$(dirname "$ts")/python" ]] && echo "$(dirname "$ts")/python" || echo python3)"
+    if [[ -z "$ts" ]]; then
+        echo "console.sh: telesurg not found (no ../.venv beside $here, none on the PATH): activate the venv it is installed in" >&2
+        exit 2
+    fi
+    py="$([[ -x "$(dirname "$ts")/python" ]] && echo "$(dirname "$ts")/python" || echo python3)"
 fi
 
 usage() {

@@ -6,5 +6,11 @@
 set -euo pipefail
 here="$(cd "$(dirname "$0")" && pwd)"
 ts="$here/../.venv/bin/telesurg"          # a checkout's venv; else telesurg on the PATH
-[[ -x "$ts" ]] || ts=telesurg
+if [[ ! -x "$ts" ]]; then
+    ts="$(command -v telesurg || true)"
+    if [[ -z "$ts" ]]; then
+        echo "local.sh: telesurg not found (no ../.venv beside $here, none on the PATH): activate the venv it is installed in" >&2
+        exit 2
+    fi
+fi
 exec "$ts" up --config-dir "$here/local" "$@"

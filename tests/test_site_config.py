@@ -50,6 +50,16 @@ def _telesurg(*args: str, cwd: Path) -> subprocess.CompletedProcess[str]:
     )
 
 
+def _cli(capsys: pytest.CaptureFixture[str], *args: str) -> tuple[int, str]:
+    """The CLI's own entry point in this process (exit code, stderr): the same code path as the
+    subprocess runs, without another interpreter start."""
+    try:
+        code = cli_main(list(args))
+    except SystemExit as exc:
+        code = int(exc.code or 0)
+    return code, capsys.readouterr().err
+
+
 def _site(tmp_path: Path, text: str) -> Path:
     d = tmp_path / "site"
     d.mkdir(exist_ok=True)
@@ -157,23 +167,25 @@ def test_site_init_writes_the_packaged_files(tmp_path: Path) -> None:
     (out / "local" / SITE_FILE).write_text("# mine\n[site]\n")
     assert init(out) == []  # an existing file is kept
     assert (out / "local" / SITE_FILE).read_text() == "# mine\n[site]\n"
-    r = _telesurg("site", "check", str(out / "plas" / SITE_FILE), cwd=tmp_path)
-    assert r.returncode == 0, r.stderr
-    assert "ok" in r.stdout
+    assert cli_main(["site", "check", str(out / "plas" / SITE_FILE)]) == 0
 
 
 # -- errors through the real CLI (Acceptance 5) ------------------------------------------------------
 
 
-def test_up_with_a_missing_site_folder_names_the_path(tmp_path: Path) -> None:
+def test_up_with_a_missing_site_folder_names_the_path(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     r = _telesurg("up", "--config-dir", str(DEPLOY / "pls"), "--seconds", "1", cwd=tmp_path)
     assert r.returncode != 0
     assert f"{DEPLOY / 'pls' / SITE_FILE} not found" in r.stderr, r.stderr
-    r = _telesurg("demo", "--headless", "--seconds", "1", "--config-dir", "deploy/pls", cwd=tmp_path)
-    assert r.returncode != 0 and "deploy/pls/site.toml not found" in r.stderr, r.stderr
+    code, err = _cli(capsys, "demo", "--headless", "--seconds", "1", "--config-dir", "deploy/pls")
+    assert code == 2 and "deploy/pls/site.toml not found" in err, err
 
 
-def test_unknown_key_names_file_table_and_the_nearest_key(tmp_path: Path) -> None:
+def test_unknown_key_names_file_table_and_the_nearest_key(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     d = _site(tmp_path, '[site]\nrobot = "mh3f"\n\n[mapping]\nscael = 0.3\n')
     for args in (
         ("up", "--config-dir", str(d), "--seconds", "1"),
@@ -182,24 +194,24 @@ def test_unknown_key_names_file_table_and_the_nearest_key(tmp_path: Path) -> Non
         r = _telesurg(*args, cwd=tmp_path)
         assert r.returncode == 2, (args, r.stderr)
         assert f"{d / SITE_FILE}: [mapping] unknown key 'scael' (did you mean 'scale'?)" in r.stderr, r.stderr
-    r = _telesurg("up", "--config-dir", str(DEPLOY / "local"), "--set", "mapping.scael=0.3", cwd=tmp_path)
-    assert r.returncode == 2 and "unknown key 'scael' (did you mean 'scale'?)" in r.stderr, r.stderr
+    code, err = _cli(capsys, "up", "--config-dir", str(DEPLOY / "local"), "--set", "mapping.scael=0.3")
+    assert code == 2 and "unknown key 'scael' (did you mean 'scale'?)" in err, err
     d = _site(tmp_path, '[site]\nrobo = "mh3f"\n')
-    r = _telesurg("up", "--config-dir", str(d), cwd=tmp_path)
-    assert r.returncode == 2 and "[site] unknown key 'robo' (did you mean 'robot'?)" in r.stderr, r.stderr
+    code, err = _cli(capsys, "up", "--config-dir", str(d))
+    assert code == 2 and "[site] unknown key 'robo' (did you mean 'robot'?)" in err, err
     d = _site(tmp_path, "[site]\n[mappnig]\nscale = 0.3\n")
-    r = _telesurg("up", "--config-dir", str(d), cwd=tmp_path)
-    assert r.returncode == 2 and "unknown table [mappnig] (did you mean 'mapping'?)" in r.stderr, r.stderr
+    code, err = _cli(capsys, "up", "--config-dir", str(d))
+    assert code == 2 and "unknown table [mappnig] (did you mean 'mapping'?)" in err, err
 
 
-def test_wrong_type_names_file_table_and_key(tmp_path: Path) -> None:
+def test_wrong_type_names_file_table_and_key(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     d = _site(tmp_path, '[site]\nrobot = "mh3f"\n\n[master_capture.scripted]\nradius = "big"\n')
     r = _telesurg("up", "--config-dir", str(d), cwd=tmp_path)
     assert r.returncode == 2
     assert f"{d / SITE_FILE}: [master_capture] scripted.radius must be a number, got 'big'" in r.stderr
     d = _site(tmp_path, "[site]\npairs = 3\n")
-    r = _telesurg("watchdog", "--config", str(d / SITE_FILE), cwd=tmp_path)
-    assert r.returncode == 2 and f"{d / SITE_FILE}: [site] pairs must be" in r.stderr, r.stderr
+    code, err = _cli(capsys, "watchdog", "--config", str(d / SITE_FILE))
+    assert code == 2 and f"{d / SITE_FILE}: [site] pairs must be" in err, err
 
 
 # -- --help: every key with type, default, unit and meaning ------------------------------------------
@@ -231,24 +243,26 @@ def test_service_help_lists_every_key(service: str, capsys: pytest.CaptureFixtur
         assert d.help.split()[0] in out
 
 
-def test_mapping_help_through_the_cli(tmp_path: Path) -> None:
-    r = _telesurg("mapping", "--help", cwd=tmp_path)
-    assert r.returncode == 0
-    assert (
-        "  master_timeout_ms : float = 100.0 [ms]\n      master stream older than this disengages" in r.stdout
-    )
-    assert "  scale : float = 0.5\n" in r.stdout and "(site file: [site] robot)" in r.stdout
+def test_mapping_help_shows_units_and_the_site_facts(capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit) as exit_:
+        cli_main(["mapping", "--help"])
+    assert exit_.value.code == 0
+    out = capsys.readouterr().out
+    assert "  master_timeout_ms : float = 100.0 [ms]\n      master stream older than this disengages" in out
+    assert "  scale : float = 0.5\n" in out and "(site file: [site] robot)" in out
 
 
-def test_site_plugins_load_relative_to_the_site_file_before_the_config(tmp_path: Path) -> None:
+def test_site_plugins_load_relative_to_the_site_file_before_the_config(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     """``[site] plugins`` (contract 1): each service and the launcher load them first."""
     d = _site(tmp_path, '[site]\nplugins = ["robots/mine.py"]\n[mapping]\nscael = 0.3\n')
     (d / "robots").mkdir()
     (d / "robots" / "mine.py").write_text("import sys\nprint('plugin mine loaded', file=sys.stderr)\n")
-    for args in (("mapping", "--config", str(d / SITE_FILE)), ("up", "--config-dir", str(d))):
-        r = _telesurg(*args, cwd=tmp_path)  # from another folder: the path is the site file's
-        assert r.returncode == 2, r.stderr
-        assert r.stderr.index("plugin mine loaded") < r.stderr.index("unknown key 'scael'"), r.stderr
-    (d / "robots" / "mine.py").write_text("raise RuntimeError('broken robot')\n")
-    r = _telesurg("up", "--config-dir", str(d), cwd=tmp_path)
-    assert r.returncode == 2 and "mine.py" in r.stderr and "broken robot" in r.stderr, r.stderr
+    r = _telesurg("mapping", "--config", str(d / SITE_FILE), cwd=tmp_path)  # from another folder
+    assert r.returncode == 2, r.stderr
+    assert r.stderr.index("plugin mine loaded") < r.stderr.index("unknown key 'scael'"), r.stderr
+    (d / SITE_FILE).write_text('[site]\nplugins = ["robots/broken.py"]\n')
+    (d / "robots" / "broken.py").write_text("raise RuntimeError('broken robot')\n")
+    code, err = _cli(capsys, "up", "--config-dir", str(d))
+    assert code == 2 and "broken.py" in err and "broken robot" in err, err
