@@ -54,7 +54,6 @@ SERVICE_TABLES = (
     "watchdog",
     "mirror",
     "console",
-    "record",
 )
 #: ``[site]`` fact → the service config fields it fills (in every config that has one).
 SHARED_FACTS: dict[str, tuple[str, ...]] = {

@@ -209,6 +209,10 @@ def test_wrong_type_names_file_table_and_key(tmp_path: Path, capsys: pytest.Capt
     r = _telesurg("up", "--config-dir", str(d), cwd=tmp_path)
     assert r.returncode == 2
     assert f"{d / SITE_FILE}: [master_capture] scripted.radius must be a number, got 'big'" in r.stderr
+    # a table of a service this run does not start is checked too (the mirror runs later)
+    d = _site(tmp_path, '[site]\n[mirror]\ndraw_hz = "fast"\n')
+    code, err = _cli(capsys, "up", "--config-dir", str(d), "--no-mirror")
+    assert code == 2 and f"{d / SITE_FILE}: [mirror] draw_hz must be a number, got 'fast'" in err, err
     d = _site(tmp_path, "[site]\npairs = 3\n")
     code, err = _cli(capsys, "watchdog", "--config", str(d / SITE_FILE))
     assert code == 2 and f"{d / SITE_FILE}: [site] pairs must be" in err, err

@@ -107,12 +107,13 @@ def config_class(name: str) -> type[Any]:
 
 
 def check_site(site_file: Path | None, services: Sequence[str], overrides: dict[str, list[str]]) -> None:
-    """Build every service's config from the site file and its overrides (ConfigError naming the
-    file, table and key); the services validate the values themselves when they start."""
-    if site_file is not None:
-        read_site(site_file)
-    for name in services:
-        load_config(config_class(name), site_file, overrides.get(name, []), table=name)
+    """Build the config of each of ``services``, of each service with a table in the site file and
+    of each with an override (ConfigError naming the file, table and key); the services validate
+    the values themselves when they start."""
+    tables = read_site(site_file).tables if site_file is not None else {}
+    for name in CONFIG_CLASSES:
+        if name in services or name in tables or name in overrides:
+            load_config(config_class(name), site_file, overrides.get(name, []), table=name)
 
 
 def free_port(host: str = "127.0.0.1") -> int:
@@ -370,7 +371,7 @@ def spec_from_args(args: argparse.Namespace, services: Sequence[str]) -> SiteSpe
     # [site] plugins themselves, from the site file they are given)
     for plugin in [*plugins, *site_plugins(config_dir / SITE_FILE)]:
         robots.load_plugin(str(plugin))
-    check_site(config_dir / SITE_FILE, [*services, *(n for n in overrides if n not in services)], overrides)
+    check_site(config_dir / SITE_FILE, services, overrides)
     port = args.port or free_port(args.host)
     return SiteSpec(
         args.site,
