@@ -177,7 +177,7 @@ def service_argv(spec: SiteSpec, name: str) -> list[str]:
         argv += ["--connect", spec.connect.get(name, spec.endpoint)]
         for plugin in spec.plugins:
             argv += ["--plugin", plugin]
-    if spec.site_file is not None and name != "router":
+    if spec.site_file is not None:
         argv += ["--config", str(spec.site_file), "--table", name]
     for item in spec.overrides.get(name, []):
         argv += ["--set", item]
