@@ -149,6 +149,9 @@ def test_installed_demo_runs_on_the_packaged_site_file(fresh_venv: Path, tmp_pat
     for name, s in report["streams"].items():
         assert s["received"] > 0 and s["gaps"] == 0, (name, s)
     assert set(report["exit_codes"].values()) == {0}
+    # --help reads the config keys' help from the installed sources
+    r = subprocess.run([telesurg, "mapping", "--help"], cwd=tmp_path, env=env, capture_output=True, text=True)
+    assert r.returncode == 0 and "  master_timeout_ms : float = 100.0 [ms]\n" in r.stdout, r.stdout[-2000:]
     # the site files come out of the package to edit
     r = subprocess.run(
         [telesurg, "site", "init", "sites"], cwd=tmp_path, env=env, capture_output=True, text=True
