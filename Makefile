@@ -34,7 +34,7 @@ typecheck: $(STAMP)
 pytest: $(STAMP)
 	$(BIN)/pytest
 
-## test-fast: the unit tests only, no service processes (pytest -m "not process"; ~1 min)
+## test-fast: the unit tests only, no service processes (pytest -m "not process"; under 90 s)
 test-fast: $(STAMP)
 	$(BIN)/pytest -q -m "not process"
 
