@@ -1,10 +1,10 @@
-# telesurg — the two commands a newcomer needs: `make demo` and `make test`.
+# telesurg — the two commands a newcomer needs: `make demo` and `make test` (`make test-fast`: unit tests).
 PYTHON ?= python3
 VENV   ?= .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 
-.PHONY: demo test lint typecheck pytest clean
+.PHONY: demo test test-fast lint typecheck pytest clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -33,6 +33,10 @@ typecheck: $(STAMP)
 
 pytest: $(STAMP)
 	$(BIN)/pytest
+
+## test-fast: the unit tests only, no service processes (pytest -m "not process"; under 90 s)
+test-fast: $(STAMP)
+	$(BIN)/pytest -q -m "not process"
 
 clean:
 	rm -rf $(VENV) build *.egg-info .pytest_cache .mypy_cache .ruff_cache

@@ -2,8 +2,17 @@
 # Console site: master_capture (and the operator console, if installed) on this machine,
 # connected to a slave site over mutual TLS. Ctrl-C, SIGTERM or quitting the console stops all.
 set -euo pipefail
-here="$(cd "$(dirname "$0")/.." && pwd)"
-py="$here/.venv/bin/python"
+here="$(cd "$(dirname "$0")" && pwd)"   # this script's folder, beside the site folders
+# a checkout's venv; else the Python beside telesurg on the PATH (an installed package)
+py="$here/../.venv/bin/python"
+if [[ ! -x "$py" ]]; then
+    ts="$(command -v telesurg || true)"
+    if [[ -z "$ts" ]]; then
+        echo "console.sh: telesurg not found (no ../.venv beside $here, none on the PATH): activate the venv it is installed in" >&2
+        exit 2
+    fi
+    py="$([[ -x "$(dirname "$ts")/python" ]] && echo "$(dirname "$ts")/python" || echo python3)"
+fi
 
 usage() {
     cat <<USAGE
@@ -11,7 +20,8 @@ usage: deploy/console.sh SLAVE_HOST [options]
 
 Connects to the slave site's router at tls/SLAVE_HOST:7447 (deploy/slave-site.sh there) with
 this machine's certificate, starts master_capture and, in the foreground, the operator console
-(telesurg console) when it is installed; configs from deploy/console/. Guide: docs/deploy.md.
+(telesurg console) when it is installed; configs from console/site.toml beside this script.
+Guide: docs/deploy.md.
 
 options:
   --port N             the slave site's TLS port (default: 7447)
@@ -19,7 +29,8 @@ options:
   --site ID            site id, as on the slave site (default: lab)
   --certs DIR          ca.pem and IDENTITY.pem/.key (default: certs; telesurg certs)
   --identity NAME      certificate common name (default: console; console-mapping with --mapping)
-  --config-dir DIR     <service>.toml files (default: deploy/console)
+  --config-dir DIR     site folder: DIR/site.toml, a table per service (default: console/
+                       beside this script)
   --mapping            also run the mapping here (the slave site runs with --no-mapping)
   --no-console         no terminal UI: run master_capture until Ctrl-C / SIGTERM
   --log-dir DIR        service logs (default: stderr; out/console-logs under the console UI)
@@ -36,7 +47,7 @@ protocol=tls
 site=lab
 certs=certs
 identity=""
-config_dir="$here/deploy/console"
+config_dir="$here/console"
 mapping=0
 ui=1
 log_dir=""
@@ -82,7 +93,7 @@ bus=(--site "$site" --connect "$protocol/$host:$port" --tls-ca "$certs/ca.pem" -
 has_console=0
 if [[ $ui == 1 ]] && "$py" -c 'import importlib.util as u, sys; sys.exit(u.find_spec("telesurg.services.console") is None)' 2>/dev/null; then
     has_console=1
-    [[ -z "$log_dir" ]] && log_dir="$here/out/console-logs"
+    [[ -z "$log_dir" ]] && log_dir="$PWD/out/console-logs"
 fi
 [[ -n "$log_dir" ]] && mkdir -p "$log_dir"
 
@@ -96,9 +107,13 @@ stop_all() {
 trap 'stop_all; exit 0' INT TERM
 trap stop_all EXIT
 
-start() {  # start SERVICE (cli name) in the background with its config and overrides
-    local name="$1" cli="$2" args=()
-    [[ -f "$config_dir/$name.toml" ]] && args+=(--config "$config_dir/$name.toml")
+if [[ ! -f "$config_dir/site.toml" ]]; then
+    echo "deploy/console.sh: site file $config_dir/site.toml not found (--config-dir)" >&2
+    exit 2
+fi
+
+start() {  # start SERVICE (cli name) in the background with its table of the site file, overrides
+    local name="$1" cli="$2" args=(--config "$config_dir/site.toml" --table "$1")
     while IFS= read -r item; do [[ -n "$item" ]] && args+=(--set "$item"); done <<< "${sets[$name]}"
     if [[ -n "$log_dir" ]]; then
         "$py" -m telesurg.services.cli "$cli" "${bus[@]}" ${args[@]+"${args[@]}"} >>"$log_dir/$name.log" 2>&1 &
@@ -113,8 +128,7 @@ start master_capture master-capture
 [[ $mapping == 1 ]] && start mapping mapping
 
 if [[ $has_console == 1 ]]; then
-    args=()
-    [[ -f "$config_dir/console.toml" ]] && args+=(--config "$config_dir/console.toml")
+    args=(--config "$config_dir/site.toml")
     while IFS= read -r item; do [[ -n "$item" ]] && args+=(--set "$item"); done <<< "${sets[console]}"
     "$py" -m telesurg.services.cli console \
         "${bus[@]}" --log-file "$log_dir/console.log" ${args[@]+"${args[@]}"} || true

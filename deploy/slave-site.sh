@@ -2,7 +2,17 @@
 # Slave site: a zenoh router on a TLS endpoint (mutual TLS + access control) and the slave-side
 # services, all on this machine. Ctrl-C or SIGTERM stops everything cleanly (telesurg up).
 set -euo pipefail
-here="$(cd "$(dirname "$0")/.." && pwd)"
+here="$(cd "$(dirname "$0")" && pwd)"   # this script's folder, beside the site folders
+# a checkout's venv; else the Python beside telesurg on the PATH (an installed package)
+py="$here/../.venv/bin/python"
+if [[ ! -x "$py" ]]; then
+    ts="$(command -v telesurg || true)"
+    if [[ -z "$ts" ]]; then
+        echo "slave-site.sh: telesurg not found (no ../.venv beside $here, none on the PATH): activate the venv it is installed in" >&2
+        exit 2
+    fi
+    py="$([[ -x "$(dirname "$ts")/python" ]] && echo "$(dirname "$ts")/python" || echo python3)"
+fi
 
 usage() {
     cat <<USAGE
@@ -10,7 +20,8 @@ usage: deploy/slave-site.sh [options] [-- telesurg up options]
 
 Starts the router (listening on --listen with mutual TLS and the access-control rules, plus a
 plain-TCP listener on 127.0.0.1:--local-port for this machine's services), then watchdog,
-slave_control and mapping (and the mirror with --mirror), configs from deploy/slave-site/.
+slave_control and mapping (and the mirror with --mirror), configs from slave-site/site.toml
+beside this script.
 Consoles connect with deploy/console.sh SLAVE_HOST. Guide: docs/deploy.md.
 
 options:
@@ -18,8 +29,9 @@ options:
   --listen ENDPOINT    TLS endpoint for consoles, repeatable (default: tls/0.0.0.0:7447)
   --local-port N       loopback plain-TCP port of the site's services (default: 7448)
   --certs DIR          ca.pem, slave-site.pem, slave-site.key (default: certs; telesurg certs)
-  --acl FILE           access-control rules (default: deploy/slave-site/acl.json5)
-  --config-dir DIR     <service>.toml files (default: deploy/slave-site)
+  --acl FILE           access-control rules (default: slave-site/acl.json5 beside this script)
+  --config-dir DIR     site folder: DIR/site.toml, a table per service (default: slave-site/
+                       beside this script)
   --no-mapping         the mapping runs on the console machine (identity console-mapping)
   --mirror             also start the mirror (rerun viewer); with --serve or --save FILE.rrd
   --serve | --save F   mirror options (imply --mirror)
@@ -39,8 +51,8 @@ site=lab
 listen=()
 local_port=7448
 certs=certs
-acl="$here/deploy/slave-site/acl.json5"
-config_dir="$here/deploy/slave-site"
+acl="$here/slave-site/acl.json5"
+config_dir="$here/slave-site"
 services=watchdog,slave_control,mapping
 mirror=0
 save=""
@@ -83,4 +95,4 @@ for ep in "${listen[@]}"; do args+=(--listen "$ep"); done
 args+=(--tls-ca "$certs/ca.pem" --tls-cert "$certs/slave-site.pem" --tls-key "$certs/slave-site.key")
 args+=(--mtls --acl "$acl")
 # exec: telesurg up gets the signals and stops the services in order
-exec "$here/.venv/bin/python" -m telesurg.services.cli "${args[@]}" ${extra[@]+"${extra[@]}"}
+exec "$py" -m telesurg.services.cli "${args[@]}" ${extra[@]+"${extra[@]}"}

@@ -5,6 +5,8 @@ Examples::
     telesurg demo                       # whole simulated session + rerun web viewer
     telesurg demo --headless --seconds 20 --save out.rrd --report out.json
     telesurg up                         # router + every service, Ctrl-C stops them
+    telesurg up --config-dir deploy/plas   # another site: deploy/plas/site.toml
+    telesurg site init mysites          # the packaged site files and deploy scripts, to edit
     telesurg slave-control --help       # one service on its own
 """
 
@@ -24,6 +26,7 @@ COMMANDS = {
     "mirror": ("telesurg.services.mirror", "stream everything to rerun (web viewer or .rrd)"),
     "up": ("telesurg.services.launcher", "start router + all services locally; Ctrl-C stops all"),
     "demo": ("telesurg.services.launcher.demo", "the whole simulated teleop session (scripted circle)"),
+    "site": ("telesurg.services.launcher.site", "write the packaged site files to DIR (init), check one"),
     "estop": ("telesurg.services.estop", "e-stop (or --reset) one arm or every arm of a site"),
     "cmd": ("telesurg.services.command", "send an operator command (trocar mode, jog, …) to a slave arm"),
     "bench": ("telesurg.services.bench", "fault-injection and fuzz benchmarks (tables + JSON)"),

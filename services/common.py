@@ -2,8 +2,11 @@
 
 Each service provides a config dataclass (with ``site``, ``service`` and ``bus`` fields) and a
 ``run(cfg, stop)`` function that returns when ``stop`` is set. :func:`service_main` parses
-``--config FILE``, ``--set key=value`` and the zenoh flags, installs SIGINT/SIGTERM handlers and
-calls ``run``. Exit code 0 on a requested stop, 2 on a config error.
+``--config FILE`` (a site file, of which it reads the service's table — ``--table NAME``,
+default the service's name — and the ``[site]`` facts; or the service's own TOML file),
+``--set key=value`` and the zenoh flags, installs SIGINT/SIGTERM handlers and calls ``run``.
+``--help`` lists every config key with its type, default, unit and meaning (from the config
+dataclass). Exit code 0 on a requested stop, 2 on a config error.
 """
 
 from __future__ import annotations
@@ -19,7 +22,7 @@ from collections.abc import Callable, Sequence
 from typing import Any, Protocol, TypeVar
 
 from telesurg.shared.bus import BusConfig, add_bus_args, bus_from_args
-from telesurg.shared.config import load_config
+from telesurg.shared.config import config_help, load_config, service_table, site_plugins
 from telesurg.shared.errors import TelesurgError
 
 log = logging.getLogger("telesurg")
@@ -79,8 +82,20 @@ def service_main(
     """Parse flags into ``config_cls``, then ``run`` until SIGINT/SIGTERM."""
     from telesurg.shared import robots
 
-    parser = argparse.ArgumentParser(prog=f"telesurg {name}", description=description)
-    parser.add_argument("--config", metavar="FILE", help="TOML config file")
+    table = service_table(config_cls)
+    parser = argparse.ArgumentParser(
+        prog=f"telesurg {name}",
+        description=description,
+        epilog=config_help(config_cls, table),
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    parser.add_argument(
+        "--config",
+        metavar="FILE",
+        help="site file (deploy/<site>/site.toml: its [site] facts and one table) or a TOML file of "
+        "this service's keys alone",
+    )
+    parser.add_argument("--table", metavar="NAME", help=f"the site file's table to read (default: {table})")
     parser.add_argument(
         "--set", action="append", default=[], metavar="KEY=VALUE", help="override a config key"
     )
@@ -97,9 +112,11 @@ def service_main(
     add_bus_args(parser)
     args = parser.parse_args(argv)
     try:
-        for plugin in args.plugin:  # before the config: it may name a plugin's robot
-            robots.load_plugin(plugin)
-        cfg = load_config(config_cls, args.config, args.set)
+        # the robot plugins (--plugin and the site file's [site] plugins) before the config: it may
+        # name a plugin's robot
+        for plugin in [*args.plugin, *site_plugins(args.config)]:
+            robots.load_plugin(str(plugin))
+        cfg = load_config(config_cls, args.config, args.set, table=args.table)
         if args.site:
             cfg.site = args.site
         cfg.bus = bus_from_args(args, cfg.bus)

@@ -35,7 +35,7 @@ from telesurg.shared.messages import CartesianPose, JointSetpoint, JointState, O
 
 pytestmark = pytest.mark.process
 
-SCALE = 0.5  # deploy/local/mapping.toml
+SCALE = 0.5  # the mapping default (deploy/local/site.toml keeps it)
 
 
 @dataclass

@@ -234,7 +234,7 @@ def recording(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Path]:
     tmp = tmp_path_factory.mktemp("record")
     out = tmp / "run.mcap"
     argv = [sys.executable, "-m", "telesurg.services.record", "--out", str(out), "--seconds", "10"]
-    argv += ["--attach", str(ROOT / "deploy/local/mapping.toml")]
+    argv += ["--attach", str(ROOT / "deploy/local/site.toml")]
     with Pipeline(tmp / "logs", mirror=False, impair=False, master=False, probe=False) as p:
         rec = subprocess.Popen(
             [*argv, "--connect", p.spec.endpoint],
@@ -277,7 +277,7 @@ def test_record_a_running_pipeline(recording: Path) -> None:
         r = summary[key]
         assert (r["gaps"], r["lost"], r["reordered"], r["duplicates"], r["undecodable"]) == (0, 0, 0, 0, 0)
     assert summary["slave/arm1/measured_js"]["messages"] > 500
-    assert names == [str(ROOT / "deploy/local/mapping.toml")]
+    assert names == [str(ROOT / "deploy/local/site.toml")]
 
 
 def _recorded(path: Path, key: str) -> list[Any]:

@@ -66,6 +66,7 @@ def test_device_emulator_offers_the_plugin_robots(capsys: pytest.CaptureFixture[
 def test_launcher_passes_the_plugins_to_every_service_but_the_router(tmp_path: Path) -> None:
     parser = argparse.ArgumentParser()
     add_site_args(parser)
+    (tmp_path / "site.toml").write_text('[site]\nrobot = "mh3f"\n')
     args = parser.parse_args(["--plugin", TRI3, "--port", "7999", "--config-dir", str(tmp_path)])
     spec = spec_from_args(args, ["watchdog", "mapping"])
     assert spec.plugins == (TRI3,)

@@ -52,8 +52,8 @@ SLAVE_ADDR, CONSOLE_ADDR = "198.18.0.1", "198.18.0.2"  # RFC 2544 benchmark rang
 TLS_PORT, LOCAL_PORT = 7447, 7448  # inside the slave namespace
 ROUTER_TLS = f"tls/127.0.0.1:{TLS_PORT}"  # the router's TLS listener, behind the impairer
 PUBLIC = f"tls/{SLAVE_ADDR}:{TLS_PORT}"  # what the console dials: the impairer
-LEASE_S = 0.25  # deploy/slave-site/watchdog.toml lease_valid_ms
-DEGRADED_SCALE = 0.5  # deploy/slave-site/watchdog.toml degraded_scale
+LEASE_S = 0.25  # the watchdog lease_valid_ms default (deploy/slave-site/site.toml keeps it)
+DEGRADED_SCALE = 0.5  # the watchdog degraded_scale default (likewise)
 
 
 # ============================================================================ helpers (namespaces)

@@ -18,7 +18,7 @@
   position and RCM error of each.
 * ``sim`` — MuJoCo steps/s unpaced per robot model, and the real-time factor.
 
-``latency`` and ``soak`` run the services with the deploy configs (``deploy/local``), whose
+``latency`` and ``soak`` run the services with the deploy configs (``deploy/local/site.toml``), whose
 master, mapping and slave loop threads run under SCHED_FIFO (``rt_priority = 20``, where the host
 allows it); ``--rt-priority N`` sets another priority for the three, 0 the normal scheduler.
 

@@ -43,7 +43,7 @@ from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 from telesurg.shared.bus import BusConfig, Node, add_bus_args, bus_from_args, only
-from telesurg.shared.config import load_config
+from telesurg.shared.config import config_help, load_config
 from telesurg.shared.errors import ConfigError, MessageError, TelesurgError
 from telesurg.shared.keys import Keys, check_id
 from telesurg.shared.messages import (
@@ -448,9 +448,12 @@ class ConsoleModel:
 def parse_args(argv: Sequence[str] | None) -> tuple[ConsoleConfig, str]:
     """Config from ``--config FILE``, ``--set``, ``--site``, ``--arm`` and the zenoh flags."""
     ap = argparse.ArgumentParser(
-        prog="telesurg console", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+        prog="telesurg console",
+        description=__doc__,
+        epilog=config_help(ConsoleConfig),
+        formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    ap.add_argument("--config", metavar="FILE", help="TOML config file (ConsoleConfig fields)")
+    ap.add_argument("--config", metavar="FILE", help="site file (its [console] table) or a TOML file")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override a config key")
     ap.add_argument("--site", help="site id (default: local)")
     ap.add_argument(

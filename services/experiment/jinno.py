@@ -375,7 +375,7 @@ def _tracking_error(tips: np.ndarray, master: Master, window: tuple[float, float
     sel = tips[(tips[:, 0] >= t0) & (tips[:, 0] <= t1)]
     if len(ml) < 10 or len(sel) < 10:
         return (math.nan, math.nan)
-    scale = 0.5  # mapping scale (deploy/local/mapping.toml)
+    scale = 0.5  # mapping scale (the default; deploy/local/site.toml keeps it)
     anchor = sel[0, 1:]
     want = np.stack([np.interp(sel[:, 0], ml[:, 0], ml[:, i]) for i in (1, 2, 3)], axis=1)
     d = np.linalg.norm(sel[:, 1:] - (anchor + scale * (want - want[0])), axis=1) * 1e3

@@ -1,8 +1,11 @@
 """``telesurg up``: start a site router and every service on this machine, stop them cleanly.
 
 Each service runs as its own OS process, a zenoh client of the site router on an explicit
-loopback endpoint. Ctrl-C (SIGINT) or SIGTERM stops the services in a safe order — master first,
-slave and router last — waits for them, and exits 0 if every process stopped cleanly. Children
+loopback endpoint, with its table of the site file ``--config-dir``/site.toml (default: the
+packaged ``deploy/local``; docs/deploy.md#site-files). The launcher builds every service's config
+first: a missing site file, an unknown key or a wrong type stops it before anything starts.
+Ctrl-C (SIGINT) or SIGTERM stops the services in a safe order — master first, slave and router
+last — waits for them, and exits 0 if every process stopped cleanly. Children
 also stop by themselves if the launcher dies (they watch their parent PID).
 
 A secured site (``deploy/slave-site.sh``) gives the router more listeners and its TLS / access
@@ -12,6 +15,7 @@ the services still connect to the plain loopback endpoint ``--host``:``--port``.
 Examples::
 
     telesurg up --port 7447 --log-dir out/logs --set mapping.scale=0.3
+    telesurg up --config-dir deploy/plas
     telesurg up --site lab --port 7448 --services watchdog,slave_control,mapping \
         --listen tls/0.0.0.0:7447 --tls-ca certs/ca.pem --tls-cert certs/slave-site.pem \
         --tls-key certs/slave-site.key --mtls --acl deploy/slave-site/acl.json5
@@ -20,6 +24,8 @@ Examples::
 from __future__ import annotations
 
 import argparse
+import importlib
+import importlib.resources
 import json
 import logging
 import os
@@ -33,10 +39,11 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from types import TracebackType
-from typing import IO
+from typing import IO, Any
 
 from telesurg.services.common import install_stop_handlers, setup_logging
 from telesurg.shared.bus import BusConfig, add_bus_args, bus_from_args
+from telesurg.shared.config import SITE_FILE, load_config, read_site, site_plugins
 from telesurg.shared.errors import ConfigError
 
 log = logging.getLogger("telesurg.launcher")
@@ -66,9 +73,47 @@ CLI_NAME = {
 }
 
 
+#: service → its config class (module, name): the launcher checks each site-file table before it
+#: starts anything, so a typo is one error naming the file and key, not a service that dies.
+CONFIG_CLASSES = {
+    "router": ("telesurg.services.router", "RouterConfig"),
+    "watchdog": ("telesurg.services.watchdog", "WatchdogConfig"),
+    "slave_control": ("telesurg.services.slave_control", "SlaveControlConfig"),
+    "mapping": ("telesurg.services.mapping", "MappingConfig"),
+    "master_capture": ("telesurg.services.master_capture", "MasterCaptureConfig"),
+    "mirror": ("telesurg.services.mirror", "MirrorConfig"),
+    "console": ("telesurg.services.console", "ConsoleConfig"),
+}
+
+
+def deploy_dir() -> Path:
+    """The site folders shipped with the package (``telesurg.deploy``: the checkout's deploy/)."""
+    root = importlib.resources.files("telesurg.deploy")
+    if not isinstance(root, Path):  # a zipped install: no files to hand to the services
+        raise ConfigError(f"the packaged site files are not on the file system ({root})")
+    return root
+
+
 def default_config_dir() -> Path:
-    """``deploy/local`` of this checkout."""
-    return Path(__file__).resolve().parents[2] / "deploy" / "local"
+    """The packaged ``deploy/local`` site folder."""
+    return deploy_dir() / "local"
+
+
+def config_class(name: str) -> type[Any]:
+    """The config dataclass of service ``name`` (imported on demand)."""
+    module, cls = CONFIG_CLASSES[name]
+    out: type[Any] = getattr(importlib.import_module(module), cls)
+    return out
+
+
+def check_site(site_file: Path | None, services: Sequence[str], overrides: dict[str, list[str]]) -> None:
+    """Build the config of each of ``services``, of each service with a table in the site file and
+    of each with an override (ConfigError naming the file, table and key); the services validate
+    the values themselves when they start."""
+    tables = read_site(site_file).tables if site_file is not None else {}
+    for name in CONFIG_CLASSES:
+        if name in services or name in tables or name in overrides:
+            load_config(config_class(name), site_file, overrides.get(name, []), table=name)
 
 
 def free_port(host: str = "127.0.0.1") -> int:
@@ -98,7 +143,7 @@ class SiteSpec:
     site: str = "local"  # key prefix telesurg/<site>
     host: str = "127.0.0.1"  # router listen address (loopback for a local site)
     port: int = 7447  # router TCP port
-    config_dir: Path | None = None  # directory with <service>.toml files (None: defaults only)
+    config_dir: Path | None = None  # site folder holding site.toml (None: every service's defaults)
     services: tuple[str, ...] = SERVICES  # which services to start
     overrides: dict[str, list[str]] = field(default_factory=dict)  # service → ["key=value"]
     log_dir: Path | None = None  # per-service log files (None: inherit the terminal)
@@ -108,6 +153,11 @@ class SiteSpec:
     listen: tuple[str, ...] = ()  # more router endpoints, e.g. tls/0.0.0.0:7447 for remote consoles
     router_flags: tuple[str, ...] = ()  # router-only flags: --tls-ca/--tls-cert/--tls-key/--mtls/--acl
     plugins: tuple[str, ...] = ()  # robot plugin files, passed to every service as --plugin FILE
+
+    @property
+    def site_file(self) -> Path | None:
+        """``config_dir/site.toml``, the file every service reads its table of."""
+        return self.config_dir / SITE_FILE if self.config_dir else None
 
     @property
     def endpoint(self) -> str:
@@ -127,9 +177,8 @@ def service_argv(spec: SiteSpec, name: str) -> list[str]:
         argv += ["--connect", spec.connect.get(name, spec.endpoint)]
         for plugin in spec.plugins:
             argv += ["--plugin", plugin]
-    cfg = spec.config_dir / f"{name}.toml" if spec.config_dir else None
-    if cfg is not None and cfg.exists():
-        argv += ["--config", str(cfg)]
+    if spec.site_file is not None:
+        argv += ["--config", str(spec.site_file), "--table", name]
     for item in spec.overrides.get(name, []):
         argv += ["--set", item]
     return argv
@@ -272,8 +321,9 @@ def add_site_args(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--config-dir",
         type=Path,
-        default=default_config_dir(),
-        help="directory of <service>.toml files (default: deploy/local)",
+        metavar="DIR",
+        help=f"site folder: DIR/{SITE_FILE} holds a table per service (default: the packaged "
+        "deploy/local; others: deploy/plas, deploy/vip, ... or telesurg site init DIR)",
     )
     parser.add_argument("--log-dir", type=Path, help="write each service's log to DIR/<service>.log")
     parser.add_argument("--log-level", default="INFO", help="service log level (default: INFO)")
@@ -307,13 +357,22 @@ def spec_from_args(args: argparse.Namespace, services: Sequence[str]) -> SiteSpe
         if not dot or service not in CLI_NAME:
             raise ConfigError(f"--set {item!r} must start with a service name: {', '.join(CLI_NAME)}")
         overrides.setdefault(service, []).append(rest)
+    config_dir = args.config_dir if args.config_dir is not None else default_config_dir()
+    if not (config_dir / SITE_FILE).is_file():
+        raise ConfigError(
+            f"site file {config_dir / SITE_FILE} not found (--config-dir {config_dir}"
+            + ("" if config_dir.is_dir() else ": no such folder")
+            + "; site folders: deploy/<site>/ or telesurg site init DIR)"
+        )
     from telesurg.shared import robots
 
     plugins = tuple(str(Path(p).resolve()) for p in args.plugin)
-    for plugin in plugins:  # here too: a bad plugin fails before any service starts
-        robots.load_plugin(plugin)
+    # here too: a bad plugin fails before any service starts (the services load the site file's
+    # [site] plugins themselves, from the site file they are given)
+    for plugin in [*plugins, *site_plugins(config_dir / SITE_FILE)]:
+        robots.load_plugin(str(plugin))
+    check_site(config_dir / SITE_FILE, services, overrides)
     port = args.port or free_port(args.host)
-    config_dir = args.config_dir if args.config_dir and args.config_dir.is_dir() else None
     return SiteSpec(
         args.site,
         args.host,

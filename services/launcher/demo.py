@@ -58,12 +58,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         services.append("mirror")
     try:
         spec = spec_from_args(args, services)
-        mapping_file = spec.config_dir / "mapping.toml" if spec.config_dir else None
-        mapping = load_config(
-            MappingConfig,
-            mapping_file if mapping_file and mapping_file.exists() else None,
-            spec.overrides.get("mapping", []),
-        )
+        overrides = spec.overrides.get("mapping", [])
+        mapping = load_config(MappingConfig, spec.site_file, overrides, table="mapping")
     except TelesurgError as exc:
         print(f"telesurg demo: {exc}", file=sys.stderr)
         return 2
@@ -72,6 +68,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         mirror.append(f"save={json.dumps(str(Path(args.save).resolve()))}")
     if not args.headless:
         mirror += ["serve=true", f"web_port={args.web_port}", f"grpc_port={args.grpc_port}"]
+    log.info("site file %s", spec.site_file)
     stop = threading.Event()
     install_stop_handlers(stop)
     master_arm, slave_arm = parse_pair(mapping.pairs[0])
@@ -97,6 +94,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     report["exit_codes"] = codes
     report["seconds"] = args.seconds
     report["scale"] = mapping.scale
+    report["site_file"] = str(spec.site_file)  # the site file every service read its table of
     err = report["tip_tracking_error_mm"]
     log.info(
         "tip tracking error: mean %.3f mm, max %.3f mm over %d samples; holds: %d",

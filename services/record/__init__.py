@@ -22,7 +22,7 @@ conversion to rerun: :mod:`telesurg.services.record.replay`. Layout and examples
 Examples::
 
     telesurg record --out run.mcap --connect tcp/127.0.0.1:7447                 # until Ctrl-C
-    telesurg record --out run.mcap --seconds 30 --attach deploy/local/mapping.toml \\
+    telesurg record --out run.mcap --seconds 30 --attach deploy/local/site.toml \\
         --connect tcp/127.0.0.1:7447
 """
 
