@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 
 import numpy as np
 import pytest
@@ -16,12 +16,14 @@ from telesurg.shared.errors import ConfigError
 from telesurg.shared.kinematics import MH3F, fk
 from telesurg.shared.messages import (
     CartesianPose,
+    Command,
     Header,
     JointSetpoint,
     JointState,
     MasterButtons,
     OperatingState,
     SafetyEvent,
+    TeleopState,
 )
 
 Q0 = (0.0, 0.2, 0.3, 0.0, -0.6, 0.0)
@@ -29,25 +31,29 @@ H = Header("test", 0, 0)
 
 
 @pytest.fixture
-def rig() -> Iterator[tuple[ArmMapping, list[JointSetpoint], list[SafetyEvent]]]:
+def endpoint() -> Iterator[str]:
+    """A zenoh router on loopback; its endpoint."""
     ep = f"tcp/127.0.0.1:{free_port()}"
     router = open_session(BusConfig(mode="router", listen=[ep]))
-    bus = BusConfig(connect=[ep])
-    setpoints: list[JointSetpoint] = []
-    events: list[SafetyEvent] = []
     try:
-        with Node(bus, "t", "mapping") as node, Node(bus, "t", "probe") as probe:
-            probe.subscribe(
-                probe.keys.slave("arm1", "servo_jp"), JointSetpoint, lambda m, k: setpoints.append(m)
-            )
-            probe.subscribe(probe.keys.events(), SafetyEvent, lambda m, k: events.append(m))
-            time.sleep(0.3)
-            arm = ArmMapping(MappingConfig(scale=0.5), node, "m1", "arm1", threading.Event())
-            arm.on_slave_js(JointState(H, MH3F.joint_names, Q0), "")
-            arm.on_slave_state(OperatingState(H, "PAUSED", "non_trocar", False, True, "", 0), "")
-            yield arm, setpoints, events
+        yield ep
     finally:
         router.close()  # type: ignore[no-untyped-call]
+
+
+@pytest.fixture
+def rig(endpoint: str) -> Iterator[tuple[ArmMapping, list[JointSetpoint], list[SafetyEvent]]]:
+    bus = BusConfig(connect=[endpoint])
+    setpoints: list[JointSetpoint] = []
+    events: list[SafetyEvent] = []
+    with Node(bus, "t", "mapping") as node, Node(bus, "t", "probe") as probe:
+        probe.subscribe(probe.keys.slave("arm1", "servo_jp"), JointSetpoint, lambda m, k: setpoints.append(m))
+        probe.subscribe(probe.keys.events(), SafetyEvent, lambda m, k: events.append(m))
+        time.sleep(0.3)
+        arm = ArmMapping(MappingConfig(scale=0.5), node, "m1", "arm1", threading.Event())
+        arm.on_slave_js(JointState(H, MH3F.joint_names, Q0), "")
+        arm.on_slave_state(OperatingState(H, "PAUSED", "non_trocar", False, True, "", 0), "")
+        yield arm, setpoints, events
 
 
 def feed(arm: ArmMapping, p: tuple[float, float, float], clutch: bool) -> None:
@@ -201,11 +207,97 @@ def test_virtual_trocar_master_maps_the_dummy_tip_with_the_fulcrum_effect() -> N
 def test_operator_scale_commands_step_and_refuse_clearly(
     rig: tuple[ArmMapping, list[JointSetpoint], list[SafetyEvent]],
 ) -> None:
-    from telesurg.shared.messages import Command
-
     arm, _, _ = rig
     assert arm.on_command(Command(H, "arm1", "scale_up", ())).reason == "scale 0.5 → 0.7"
     assert arm.on_command(Command(H, "arm1", "scale_down", ())).reason == "scale 0.7 → 0.5"
     bad = arm.on_command(Command(H, "arm1", "set_scale", ("value=5",)))
     assert not bad.accepted and "(0, 2]" in bad.reason and arm.scale == 0.5
     assert not arm.on_command(Command(H, "arm2", "scale_up", ())).accepted
+
+
+def states_seen(probe: Node, arm: str) -> tuple[list[TeleopState], Callable[[], list[str]]]:
+    got: list[TeleopState] = []
+    probe.subscribe(probe.keys.mapping(arm, "teleop_state"), TeleopState, lambda m, k: got.append(m))
+
+    def states() -> list[str]:
+        return [m.state for i, m in enumerate(got) if i == 0 or m.state != got[i - 1].state]
+
+    return got, states
+
+
+def wait_for(pred: Callable[[], bool], timeout: float = 3.0) -> bool:
+    deadline = time.monotonic() + timeout
+    while not pred() and time.monotonic() < deadline:
+        time.sleep(0.01)
+    return pred()
+
+
+def test_the_teleop_state_machine_is_published_on_every_change(
+    rig: tuple[ArmMapping, list[JointSetpoint], list[SafetyEvent]], endpoint: str
+) -> None:
+    arm, _, _ = rig
+    with Node(BusConfig(connect=[endpoint]), "t", "probe2") as probe:
+        got, states = states_seen(probe, "arm1")
+        time.sleep(0.3)
+
+        def press(clutch: bool) -> None:
+            arm.on_slave_js(JointState(H, MH3F.joint_names, Q0), "")  # fresh slave joints
+            feed(arm, (0.0, 0.0, 0.0), clutch)
+
+        press(True)  # pedal down at start
+        assert arm.state == "HOLDING" and "at start" in arm.reason
+        press(False)
+        assert arm.state == "IDLE"
+        arm.on_buttons(MasterButtons(H, True, True), "")
+        assert arm.state == "ENGAGING"  # the engage is tried at the next master sample
+        arm.on_master_pose(CartesianPose(H, "master", (0.0, 0.0, 0.0)), "")
+        arm.process()
+        assert arm.state == "ENABLED" and arm.following
+        # a watchdog hold: the slave loses its lease → HOLDING, a new press needed
+        arm.on_slave_state(OperatingState(H, "PAUSED", "non_trocar", False, False, "lease expired", 1), "")
+        assert (arm.state, arm.previous) == ("HOLDING", "ENABLED") and "lease expired" in arm.reason
+        arm.on_slave_state(OperatingState(H, "PAUSED", "non_trocar", False, True, "", 1), "")
+        press(True)
+        assert arm.state == "HOLDING"  # lease back, pedal still down: still holding
+        press(False)
+        assert arm.state == "IDLE"
+        press(True)
+        assert arm.state == "ENABLED"
+        press(False)  # the operator's release
+        assert (arm.state, arm.reason) == ("IDLE", "clutch released")
+        # not allowed to move while released: DISABLED with the reason; a press is refused
+        arm.on_slave_state(OperatingState(H, "PAUSED", "non_trocar", False, False, "estop", 2), "")
+        arm.check_timeouts()
+        assert arm.state == "DISABLED" and "estop" in arm.reason
+        press(True)
+        assert arm.state == "HOLDING" and arm.reason.startswith("engage refused")
+        want = ["HOLDING", "IDLE", "ENGAGING", "ENABLED", "HOLDING", "IDLE", "ENGAGING", "ENABLED", "IDLE"]
+        want += ["DISABLED", "ENGAGING", "HOLDING"]
+        assert wait_for(lambda: states()[-len(want) :] == want), states()
+        last = got[-1]
+        assert (last.master, last.slave, last.previous, last.mode) == ("m1", "arm1", "ENGAGING", "cartesian")
+        assert last.scale == 0.5 and last.safety_scale == 1.0 and last.since_ns > 0
+
+
+def test_a_late_joiner_gets_the_current_teleop_state_at_once(
+    rig: tuple[ArmMapping, list[JointSetpoint], list[SafetyEvent]], endpoint: str
+) -> None:
+    # nobody calls publish_state here: only the mapping's answer to the joiner's query can come
+    arm, _, _ = rig
+    feed(arm, (0.0, 0.0, 0.0), clutch=False)
+    feed(arm, (0.0, 0.0, 0.0), clutch=True)
+    assert arm.state == "ENABLED"
+    arm.on_command(Command(H, "arm1", "set_scale", ("value=0.3",)))
+    with Node(BusConfig(connect=[endpoint]), "t", "late") as late:
+        got: list[TeleopState] = []
+        t0 = time.monotonic()
+        late.subscribe(
+            late.keys.mapping("arm1", "teleop_state"),
+            TeleopState,
+            lambda m, k: got.append(m),
+            sources=["mapping"],
+            latest=True,
+        )
+        assert wait_for(lambda: bool(got), 0.5), "no teleop state within 0.5 s"
+        assert time.monotonic() - t0 < 0.5
+        assert got[0].state == "ENABLED" and got[0].scale == 0.3

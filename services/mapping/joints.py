@@ -69,6 +69,7 @@ class _JointBase(EngageGate):
             if msg.scale != self.safety_scale:
                 self.safety_scale = msg.scale
                 self._rescaled()
+                self._publish_state()
 
     def _rescaled(self) -> None:
         """The safety scale changed while following (lock held)."""
@@ -83,8 +84,7 @@ class _JointBase(EngageGate):
         assert self.q_meas is not None
         self.q_cmd = self.q_meas.copy()
         self._engaged()
-        self.following = True
-        self.node.event("engage", f"engaged {self.master} → {self.slave} ({self.cfg.mode})", arm=self.slave)
+        self._engaged_now(f"engaged {self.master} → {self.slave} ({self.cfg.mode})")
 
     def _report_clamp(self, joints: tuple[str, ...]) -> None:
         """Count clamped samples; one event when an episode starts and one when it has been over
@@ -238,7 +238,7 @@ class VipMapping(_JointBase):
                 if self.ref is None:
                     self.ref = (pm, self.vip.fk(self.q_cmd, self.geom).wrist)
                 pm0, w0 = self.ref
-                w = w0 + self.cfg.scale * self.safety_scale * (self.r_ms @ (pm - pm0))
+                w = w0 + self.scale * self.safety_scale * (self.r_ms @ (pm - pm0))
                 try:
                     q = self.vip.vip_ik(w, self.V, self.geom, q4_ref=float(self.q_cmd[3]))
                     # at most half the joint speed limits per sample: after a new VIP the elbow
