@@ -1,6 +1,7 @@
-"""The session report judges the slave from what the mapping published, against a running local
-pipeline (router, watchdog, slave_control with MuJoCo, mapping at scale 0.5, a scripted master
-drawing a circle whose pedal is pressed 0.5–3.5 s of every 4 s).
+"""The session report judges the slave from what the mapping published: the tracking maths on
+synthetic paths, then against a running local pipeline (router, watchdog, slave_control with
+MuJoCo, mapping at scale 0.5, a scripted master drawing a circle whose pedal is pressed 0.5–3.5 s
+of every 4 s).
 
 Issue #16, build 6: an operator's ``set_scale`` mid-session (sent through the bus as the console
 sends it) leaves the report's tracking error small, where a report that re-read the mapping's
@@ -21,13 +22,12 @@ from telesurg.services.console import ConsoleConfig, ConsoleModel
 from telesurg.services.launcher.report import (
     RELEASE_TRIM_S,
     SessionRecorder,
+    TrackingError,
     engaged_segments,
     tracking_error,
 )
 from telesurg.shared.bus import BusConfig, Node
 from telesurg.shared.messages import CartesianPose
-
-pytestmark = pytest.mark.process
 
 CONFIG_SCALE = 0.5  # deploy/local/mapping.toml
 OPERATOR_SCALE = 0.3
@@ -45,6 +45,38 @@ def wait(pred, timeout: float) -> bool:  # type: ignore[no-untyped-def]
     return bool(pred())
 
 
+def test_tracking_against_a_decimated_target_interpolates_and_skips_gaps() -> None:
+    # the mapping's target at 100 Hz on a 20 mm circle at 15.7 mm/s; the slave (250 Hz) is exactly
+    # on the 1 kHz target path, 3 mm off (a frame offset): the error is the interpolation's only
+    t = np.arange(0, 4e9, 1e6)  # 1 kHz, ns
+    path = np.column_stack([t, 0.02 * np.cos(t / 1.27e9), 0.02 * np.sin(t / 1.27e9), np.zeros_like(t)])
+    target = path[::10]  # what setpoint_cp carries
+    slave = path[::4].copy()
+    slave[:, 1] += 0.003
+    seg = [(0, int(4e9))]
+    err = tracking_error(target, slave, seg, 1.0, np.eye(3), interpolate=True)
+    assert err.samples > 800 and err.max_mm < 0.01, err
+    assert abs(err.offset_mm - 3.0) < 0.01, err
+    stale = tracking_error(target, slave, seg, 1.0, np.eye(3))  # the last target at or before
+    assert stale.max_mm > 0.1, stale  # 10 ms of motion: why the target is interpolated
+    # no target for 0.2 s (e.g. an IK failure holding it): those slave samples are not judged
+    gap = target[(target[:, 0] < 2e9) | (target[:, 0] > 2.2e9)]
+    assert tracking_error(gap, slave, seg, 1.0, np.eye(3), interpolate=True).samples < err.samples - 40
+
+
+def test_a_report_without_data_is_strict_json() -> None:
+    empty = tracking_error(np.zeros((0, 4)), np.zeros((0, 4)), [], 1.0, np.eye(3), interpolate=True)
+    assert empty.as_dict() == {
+        "mean_mm": None,
+        "max_mm": None,
+        "offset_mm": None,
+        "samples": 0,
+        "segments": 0,
+    }
+    json.dumps(TrackingError(float("nan"), float("inf"), 0, 0).as_dict(), allow_nan=False)
+
+
+@pytest.mark.process
 def test_the_report_judges_tracking_by_the_scale_the_mapping_used(tmp_path: Path) -> None:
     with Pipeline(tmp_path / "logs", mirror=False, impair=False, probe=False) as pipe:
         master: list[tuple[int, float, float, float]] = []
