@@ -242,7 +242,9 @@ class ArmMapping(EngageGate):
             if cmd.arm != self.slave:
                 ok, reason = False, f"{cmd.name} refused: this mapping drives {self.slave}, not {cmd.arm}"
             elif cmd.name == "state":
-                reason = f"scale {self.scale:.3g} (× safety {self.safety_scale:.3g})"
+                reason = (
+                    f"scale {self.scale:.3g} (× safety {self.safety_scale:.3g}); {self.state}: {self.reason}"
+                )
             elif cmd.name in ("scale_up", "scale_down", "set_scale"):
                 if cmd.name == "set_scale":
                     try:
