@@ -4,7 +4,8 @@ of every 4 s).
 
 Issue #16, acceptance 6: a console started after an engage shows the mapping engaged within
 0.5 s of its session opening. Then the state follows a watchdog hold (an e-stop: HOLDING), the
-reset and the pedal's release (IDLE) and the re-press (ENABLED), in the console's panel.
+reset and the pedal's release (IDLE) and the re-press (ENABLED), in the console's panel, and a
+stalled master (HOLDING until a release and a new press).
 """
 
 from __future__ import annotations
@@ -139,6 +140,30 @@ def test_a_console_started_after_the_engage_shows_it_and_follows_holds(tmp_path:
             assert a.teleop is not None and a.teleop.previous == "ENABLED", a.teleop
             assert a.teleop.reason == "clutch released" and "mapping disengaged" in text, text
             assert truth.changes_since(t_on)[:2] == ["ENABLED", "IDLE"], truth.changes_since(t_on)
+
+            # A stall of the master (SIGSTOP 0.4 s) while engaged: the watchdog holds the slave
+            # (stale master) or the mapping sees its input stale first; either way HOLDING, and
+            # only a release and a new press engage again.
+            assert wait(lambda: shown(model)[0].engaged, ENGAGE_S), shown(model)[1]
+            t_freeze = time.monotonic()
+            pipe.freeze("master_capture")
+            time.sleep(0.4)
+            pipe.thaw("master_capture")
+            assert wait(lambda: "HOLDING" in truth.changes_since(t_freeze), SHOWN_S), truth.changes_since(
+                t_freeze
+            )
+            with truth.lock:
+                held = next(m for ts, m in truth.states if ts >= t_freeze and m.state == "HOLDING")
+            assert held.reason.startswith(("master stream stale", "slave holding")), held
+            assert wait(lambda: "ENABLED" in truth.changes_since(t_freeze)[1:], ENGAGE_S), (
+                truth.changes_since(t_freeze)
+            )
+            seen = truth.changes_since(t_freeze)
+            again = seen.index("ENABLED", 1)
+            assert "HOLDING" in seen[:again] and {"IDLE", "DISABLED"} & set(
+                seen[seen.index("HOLDING") : again]
+            ), seen
+            assert wait(lambda: shown(model)[0].engaged, SHOWN_S), shown(model)[1]
         finally:
             model.close()
             node.close()
