@@ -301,3 +301,43 @@ def test_a_late_joiner_gets_the_current_teleop_state_at_once(
         assert wait_for(lambda: bool(got), 0.5), "no teleop state within 0.5 s"
         assert time.monotonic() - t0 < 0.5
         assert got[0].state == "ENABLED" and got[0].scale == 0.3
+
+
+def test_a_joint_space_mapping_publishes_the_controlled_point_of_its_setpoint(
+    rig: tuple[ArmMapping, list[JointSetpoint], list[SafetyEvent]], endpoint: str
+) -> None:
+    # setpoint_cp of the PLAS all-joints mapping: the profile's tip of what servo_jp commands, in
+    # the frame of the slave's measured_cp (the demo report's tracking reference)
+    arm0, setpoints, _ = rig
+    cfg = MappingConfig(mode="all_joints", model="plas")
+    with Node(BusConfig(connect=[endpoint]), "t", "probe2") as probe:
+        targets: list[CartesianPose] = []
+        probe.subscribe(
+            probe.keys.slave("arm1", "setpoint_cp"), CartesianPose, lambda m, k: targets.append(m)
+        )
+        time.sleep(0.3)
+        arm = AllJointsMapping(cfg, arm0.node, "m1", "arm1", threading.Event())
+        names = arm.profile.joint_names
+        q0 = (0.0, 0.1, 0.2, 0.3, 0.0, 0.0)
+        arm.on_slave_js(JointState(H, names, q0), "")
+        arm.on_slave_state(OperatingState(H, "PAUSED", "joint", False, True, "", 0), "")
+
+        def sample(clutch: bool, qm: float) -> None:
+            arm.on_buttons(MasterButtons(H, clutch, True), "")
+            arm.on_master_js(
+                JointState(H, tuple(f"m{i}" for i in range(6)), (0.0, qm, 0.0, 0.0, 0.0, 0.0)), ""
+            )
+            arm.process()
+
+        sample(False, 0.0)
+        sample(True, 0.0)
+        assert arm.following
+        time.sleep(0.02)  # one target period (target_hz = 100)
+        sample(True, 0.05)
+        assert wait_for(lambda: len(targets) >= 2), targets
+        assert wait_for(lambda: any(s.follow and s.position != q0 for s in setpoints)), setpoints
+        last = [s for s in setpoints if s.follow][-1]
+        tip = arm.profile.tip(np.array(last.position))
+        assert targets[-1].frame == "world"
+        np.testing.assert_allclose(targets[-1].position, tip, atol=1e-12)
+        assert np.linalg.norm(np.subtract(targets[-1].position, targets[0].position)) > 1e-4  # it moved
