@@ -39,8 +39,9 @@ _ID = re.compile(r"^[A-Za-z0-9_-]{1,64}$")
 MASTER_STREAMS = ("measured_cp", "measured_js", "buttons")
 SLAVE_STREAMS = ("servo_jp", "setpoint_cp", "measured_js", "measured_cp", "measured_cf", "operating_state")
 SAFETY_STREAMS = ("lease", "state")
-#: The mapping's streams, per *slave* arm: a slave is driven by one pair, so the slave arm names the
-#: pair (as for ``mapping/<arm>/command``).
+#: The mapping's streams, per *slave* arm: a slave is driven by one pair (one master may drive
+#: several slaves, e.g. ``m1:arm1`` and ``m1:arm2``), so the slave arm names the pair (as for
+#: ``mapping/<arm>/command``).
 MAPPING_STREAMS = ("teleop_state",)
 
 
