@@ -15,6 +15,10 @@
   ``CongestionControl.BLOCK``: nothing is dropped on a congested link (receivers check sequence
   continuity and the watchdog sees a blocked stream as stale). Other streams use
   ``Priority.DATA_HIGH`` and zenoh's default congestion control.
+* State streams (``outlet(..., latest=True)``, ``subscribe(..., latest=True)``): the publisher
+  answers a query on its key with its last message and a subscriber asks once when it
+  subscribes, so a late joiner (a console started mid-session) has the current value at once,
+  not at the next publication.
 
 Example::
 
