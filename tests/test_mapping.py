@@ -8,10 +8,10 @@ from collections.abc import Callable, Iterator
 
 import numpy as np
 import pytest
-from telesurg.services.launcher import free_port
+from conftest import wait_until
 from telesurg.services.mapping import ArmMapping, MappingConfig, master_point
 from telesurg.services.mapping.joints import AllJointsMapping
-from telesurg.shared.bus import BusConfig, Node, open_session
+from telesurg.shared.bus import BusConfig, Node
 from telesurg.shared.errors import ConfigError
 from telesurg.shared.kinematics import MH3F, fk
 from telesurg.shared.messages import (
@@ -28,17 +28,6 @@ from telesurg.shared.messages import (
 
 Q0 = (0.0, 0.2, 0.3, 0.0, -0.6, 0.0)
 H = Header("test", 0, 0)
-
-
-@pytest.fixture
-def endpoint() -> Iterator[str]:
-    """A zenoh router on loopback; its endpoint."""
-    ep = f"tcp/127.0.0.1:{free_port()}"
-    router = open_session(BusConfig(mode="router", listen=[ep]))
-    try:
-        yield ep
-    finally:
-        router.close()  # type: ignore[no-untyped-call]
 
 
 @pytest.fixture
@@ -225,13 +214,6 @@ def states_seen(probe: Node, arm: str) -> tuple[list[TeleopState], Callable[[], 
     return got, states
 
 
-def wait_for(pred: Callable[[], bool], timeout: float = 3.0) -> bool:
-    deadline = time.monotonic() + timeout
-    while not pred() and time.monotonic() < deadline:
-        time.sleep(0.01)
-    return pred()
-
-
 def test_the_teleop_state_machine_is_published_on_every_change(
     rig: tuple[ArmMapping, list[JointSetpoint], list[SafetyEvent]], endpoint: str
 ) -> None:
@@ -273,7 +255,7 @@ def test_the_teleop_state_machine_is_published_on_every_change(
         assert arm.state == "HOLDING" and arm.reason.startswith("engage refused")
         want = ["HOLDING", "IDLE", "ENGAGING", "ENABLED", "HOLDING", "IDLE", "ENGAGING", "ENABLED", "IDLE"]
         want += ["DISABLED", "ENGAGING", "HOLDING"]
-        assert wait_for(lambda: states()[-len(want) :] == want), states()
+        assert wait_until(lambda: states()[-len(want) :] == want), states()
         last = got[-1]
         assert (last.master, last.slave, last.previous, last.mode) == ("m1", "arm1", "ENGAGING", "cartesian")
         assert last.scale == 0.5 and last.safety_scale == 1.0 and last.since_ns > 0
@@ -298,7 +280,7 @@ def test_a_late_joiner_gets_the_current_teleop_state_at_once(
             sources=["mapping"],
             latest=True,
         )
-        assert wait_for(lambda: bool(got), 0.5), "no teleop state within 0.5 s"
+        assert wait_until(lambda: bool(got), 0.5), "no teleop state within 0.5 s"
         assert time.monotonic() - t0 < 0.5
         assert got[0].state == "ENABLED" and got[0].scale == 0.3
 
@@ -334,8 +316,8 @@ def test_a_joint_space_mapping_publishes_the_controlled_point_of_its_setpoint(
         assert arm.following
         time.sleep(0.02)  # one target period (target_hz = 100)
         sample(True, 0.05)
-        assert wait_for(lambda: len(targets) >= 2), targets
-        assert wait_for(lambda: any(s.follow and s.position != q0 for s in setpoints)), setpoints
+        assert wait_until(lambda: len(targets) >= 2), targets
+        assert wait_until(lambda: any(s.follow and s.position != q0 for s in setpoints)), setpoints
         last = [s for s in setpoints if s.follow][-1]
         tip = arm.profile.tip(np.array(last.position))
         assert targets[-1].frame == "world"
