@@ -826,9 +826,10 @@ class TeleopState(Message):
             seen: the engage is tried at the next master sample), ``ENABLED`` (the slave follows
             the master), ``HOLDING`` (clutch pressed but not following: a disengage the operator
             did not make, a refused engage, or the pedal was down at start; release and press).
-        previous: the state before the last change (equal to ``state`` before the first one).
-        reason: why the pair entered ``state`` (e.g. ``slave holding: lease expired``).
-        since_ns: wall-clock time of the last change, ns since the Unix epoch.
+        previous: the state before ``state`` (equal to ``state`` before the first change).
+        reason: why the pair is in ``state`` (e.g. ``slave holding: lease expired``); it may
+            change within a state (a DISABLED pair's hold reason), ``since_ns`` then stays.
+        since_ns: wall-clock time ``state`` was entered, ns since the Unix epoch.
         scale: the operator's motion scale in use (changed by ``set_scale`` / ``scale_up`` /
             ``scale_down``), in (0, 2].
         safety_scale: the watchdog's motion-scale factor applied on top of it, in [0, 1].

@@ -213,12 +213,16 @@ class EngageGate:
             self._enter(IDLE, reason)
 
     def _enter(self, state: str, reason: str) -> None:
+        """Change to ``state`` (published at once). A new reason within the same state (e.g. the
+        slave's hold reason changed while DISABLED) is published too, but keeps ``previous`` and
+        ``since_ns``: they say when and from where the state was entered."""
         if state == self.state and reason == self.reason:
             return
         if state != self.state:
             log.info("[%s] teleop %s → %s: %s", self.slave, self.state, state, reason)
-        self.previous, self.state, self.reason = self.state, state, reason
-        self.since_ns = now_ns()
+            self.previous, self.state = self.state, state
+            self.since_ns = now_ns()
+        self.reason = reason
         self._publish_state()
 
     def _publish_state(self) -> None:
