@@ -251,6 +251,12 @@ def test_the_teleop_state_machine_is_published_on_every_change(
         arm.on_slave_state(OperatingState(H, "PAUSED", "non_trocar", False, False, "estop", 2), "")
         arm.check_timeouts()
         assert arm.state == "DISABLED" and "estop" in arm.reason
+        since = arm.since_ns  # a new reason within the state: published, entered at the same time
+        arm.on_slave_state(OperatingState(H, "PAUSED", "non_trocar", False, False, "lease expired", 2), "")
+        arm.check_timeouts()
+        assert (arm.state, arm.previous, arm.since_ns) == ("DISABLED", "IDLE", since), arm.reason
+        assert "lease expired" in arm.reason
+        assert wait_until(lambda: "lease expired" in got[-1].reason and got[-1].since_ns == since)
         press(True)
         assert arm.state == "HOLDING" and arm.reason.startswith("engage refused")
         want = ["HOLDING", "IDLE", "ENGAGING", "ENABLED", "HOLDING", "IDLE", "ENGAGING", "ENABLED", "IDLE"]
