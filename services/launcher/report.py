@@ -21,15 +21,14 @@ are not judged.
 
 :func:`tracking_error` also judges against the scaled master motion (``p_slave(t) −
 scale·R_ms·p_master(t)`` constant while following) for a caller that knows the scale and the
-rotation it set (e.g. a test that configured the site); :func:`split_by_scale` cuts its segments
-where the watchdog's factor changes (the mapping re-anchors there).
+rotation it set (e.g. a test that configured the site, cutting its segments where the watchdog's
+factor changes: the mapping re-anchors there).
 
 The report is strict JSON: a figure that could not be computed is ``null``, never NaN.
 """
 
 from __future__ import annotations
 
-import itertools
 import math
 import threading
 from dataclasses import dataclass, field
@@ -96,40 +95,6 @@ def engaged_segments(follow: list[tuple[int, bool]], trim_end_s: float = 0.0) ->
     return [(a, b - trim) for a, b in out if b - trim > a]
 
 
-def split_by_scale(
-    segments: list[tuple[int, int]], factors: list[tuple[int, float]], scale: float
-) -> list[tuple[int, int, float, bool]]:
-    """Cut engaged segments where the safety scale factor changes.
-
-    Returns (t0, t1, effective scale, starts an engagement) per part; ``factors`` are time-sorted
-    (ns, factor) samples of the watchdog's state.
-    """
-    out = []
-    for t0, t1 in segments:
-        cuts = [t for t, _ in _changes(factors) if t0 < t < t1]
-        bounds = [t0, *cuts, t1]
-        for i, (a, b) in enumerate(itertools.pairwise(bounds)):
-            out.append((a, b, scale * _factor_at(factors, a), i == 0))
-    return out
-
-
-def _changes(factors: list[tuple[int, float]]) -> list[tuple[int, float]]:
-    out: list[tuple[int, float]] = []
-    for t, f in factors:
-        if not out or out[-1][1] != f:
-            out.append((t, f))
-    return out
-
-
-def _factor_at(factors: list[tuple[int, float]], t: int) -> float:
-    f = 1.0
-    for tf, v in factors:
-        if tf > t:
-            break
-        f = v
-    return f
-
-
 def tracking_error(
     master: np.ndarray,
     slave: np.ndarray,
@@ -147,8 +112,9 @@ def tracking_error(
         master: (N, 4) rows of (t_ns, x, y, z) of the reference: the master tip (master frame)
             or the mapping's setpoint_cp (base frame), m.
         slave: (M, 4) rows of (t_ns, x, y, z) slave tip, base frame, m.
-        segments: engaged intervals (ns), or (t0, t1, scale, is_engage_start) parts from
-            :func:`split_by_scale` (the settle time applies only at an engagement's start).
+        segments: engaged intervals (ns), or (t0, t1, scale, is_engage_start) parts (e.g. an
+            engagement cut where the scale changed; the settle time applies only at an
+            engagement's start).
         scale: mapping motion scale (for plain intervals).
         r_ms: (3, 3) rotation of the reference frame in the slave base frame.
         settle_s: s skipped at the start of each segment.
