@@ -220,7 +220,8 @@ def test_the_teleop_state_machine_is_published_on_every_change(
     arm, _, _ = rig
     with Node(BusConfig(connect=[endpoint]), "t", "probe2") as probe:
         got, states = states_seen(probe, "arm1")
-        time.sleep(0.3)
+        # the probe's subscription is in place once a periodic state reaches it
+        assert wait_until(lambda: arm.publish_state() is None and bool(got)), "no teleop state"
 
         def press(clutch: bool) -> None:
             arm.on_slave_js(JointState(H, MH3F.joint_names, Q0), "")  # fresh slave joints
@@ -256,7 +257,7 @@ def test_the_teleop_state_machine_is_published_on_every_change(
         arm.check_timeouts()
         assert (arm.state, arm.previous, arm.since_ns) == ("DISABLED", "IDLE", since), arm.reason
         assert "lease expired" in arm.reason
-        assert wait_until(lambda: "lease expired" in got[-1].reason and got[-1].since_ns == since)
+        assert wait_until(lambda: "lease expired" in got[-1].reason and got[-1].since_ns == since), got[-1]
         press(True)
         assert arm.state == "HOLDING" and arm.reason.startswith("engage refused")
         want = ["HOLDING", "IDLE", "ENGAGING", "ENABLED", "HOLDING", "IDLE", "ENGAGING", "ENABLED", "IDLE"]
@@ -270,15 +271,17 @@ def test_the_teleop_state_machine_is_published_on_every_change(
 def test_a_late_joiner_gets_the_current_teleop_state_at_once(
     rig: tuple[ArmMapping, list[JointSetpoint], list[SafetyEvent]], endpoint: str
 ) -> None:
-    # nobody calls publish_state here: only the mapping's answer to the joiner's query can come
+    # nobody calls publish_state here (the 10 Hz re-send): the last publication is before the
+    # joiner subscribes, so only the mapping's answer to the joiner's query can bring the state
+    # (the 0.5 s figure is checked against real processes in tests/test_teleop_state.py)
     arm, _, _ = rig
+    arm.on_slave_js(JointState(H, MH3F.joint_names, Q0), "")  # fresh slave joints
     feed(arm, (0.0, 0.0, 0.0), clutch=False)
     feed(arm, (0.0, 0.0, 0.0), clutch=True)
     assert arm.state == "ENABLED"
     arm.on_command(Command(H, "arm1", "set_scale", ("value=0.3",)))
     with Node(BusConfig(connect=[endpoint]), "t", "late") as late:
         got: list[TeleopState] = []
-        t0 = time.monotonic()
         late.subscribe(
             late.keys.mapping("arm1", "teleop_state"),
             TeleopState,
@@ -286,8 +289,7 @@ def test_a_late_joiner_gets_the_current_teleop_state_at_once(
             sources=["mapping"],
             latest=True,
         )
-        assert wait_until(lambda: bool(got), 0.5), "no teleop state within 0.5 s"
-        assert time.monotonic() - t0 < 0.5
+        assert wait_until(lambda: bool(got)), "no teleop state: the query was not answered"
         assert got[0].state == "ENABLED" and got[0].scale == 0.3
 
 
@@ -303,7 +305,8 @@ def test_a_joint_space_mapping_publishes_the_controlled_point_of_its_setpoint(
         probe.subscribe(
             probe.keys.slave("arm1", "setpoint_cp"), CartesianPose, lambda m, k: targets.append(m)
         )
-        time.sleep(0.3)
+        got, _ = states_seen(probe, "arm1")  # declared after setpoint_cp: in place once one arrives
+        assert wait_until(lambda: arm0.publish_state() is None and bool(got)), "probe not subscribed"
         arm = AllJointsMapping(cfg, arm0.node, "m1", "arm1", threading.Event())
         names = arm.profile.joint_names
         q0 = (0.0, 0.1, 0.2, 0.3, 0.0, 0.0)
@@ -311,6 +314,7 @@ def test_a_joint_space_mapping_publishes_the_controlled_point_of_its_setpoint(
         arm.on_slave_state(OperatingState(H, "PAUSED", "joint", False, True, "", 0), "")
 
         def sample(clutch: bool, qm: float) -> None:
+            arm.on_slave_js(JointState(H, names, q0), "")  # fresh slave joints
             arm.on_buttons(MasterButtons(H, clutch, True), "")
             arm.on_master_js(
                 JointState(H, tuple(f"m{i}" for i in range(6)), (0.0, qm, 0.0, 0.0, 0.0, 0.0)), ""
