@@ -15,6 +15,10 @@
   ``CongestionControl.BLOCK``: nothing is dropped on a congested link (receivers check sequence
   continuity and the watchdog sees a blocked stream as stale). Other streams use
   ``Priority.DATA_HIGH`` and zenoh's default congestion control.
+* State streams (``outlet(..., latest=True)``, ``subscribe(..., latest=True)``): the publisher
+  answers a query on its key with its last message and a subscriber asks once when it
+  subscribes, so a late joiner (a console started mid-session) has the current value at once,
+  not at the next publication.
 
 Example::
 
@@ -261,11 +265,14 @@ def only(service: str) -> list[str] | None:
 
 
 class Outlet:
-    """A publisher plus the sequencer of its stream."""
+    """A publisher plus the sequencer of its stream (and, for a ``latest`` outlet, its last
+    message, which :class:`Node` serves to late joiners)."""
 
     def __init__(self, publisher: Any, source: str) -> None:
         self._pub = publisher
         self._seq = Sequencer(source)
+        self.last: bytes | None = None  # the last payload put (kept by a ``latest`` outlet only)
+        self._keep = False
 
     def header(self) -> Header:
         """Header for the next message on this stream."""
@@ -273,7 +280,10 @@ class Outlet:
 
     def put(self, msg: Message) -> None:
         """Encode and publish."""
-        self._pub.put(msg.encode())
+        payload = msg.encode()
+        if self._keep:
+            self.last = payload
+        self._pub.put(payload)
 
     @property
     def sent(self) -> int:
@@ -312,8 +322,12 @@ class Node:
         self._hb_thread.start()
 
     # -- outputs --------------------------------------------------------------------------
-    def outlet(self, key: str, *, control: bool = True) -> Outlet:
-        """Declare a publisher; control streams get express + real-time priority + block."""
+    def outlet(self, key: str, *, control: bool = True, latest: bool = False) -> Outlet:
+        """Declare a publisher; control streams get express + real-time priority + block.
+
+        ``latest``: also answer queries on ``key`` with the last message put, so a subscriber
+        that joins later (``subscribe(..., latest=True)``) gets the current value at once instead
+        of at the next publication (a state stream, e.g. the teleop state)."""
         import zenoh
 
         if control:
@@ -326,7 +340,18 @@ class Node:
         else:
             pub = self.session.declare_publisher(key, priority=zenoh.Priority.DATA_HIGH)
         self._handles.append(pub)
-        return Outlet(pub, self.service)
+        out = Outlet(pub, self.service)
+        if latest:
+            out._keep = True
+
+            def on_query(query: Any) -> None:
+                last = out.last
+                with contextlib.suppress(Exception):  # the querier may be gone
+                    if last is not None:
+                        query.reply(key, last)
+
+            self._handles.append(self.session.declare_queryable(key, on_query))
+        return out
 
     def event(self, kind: str, text: str, *, arm: str = "", severity: str = "info") -> None:
         """Publish an event and log it."""
@@ -344,6 +369,7 @@ class Node:
         *,
         sources: Collection[str] | Callable[[str, str], bool] | None = None,
         polled: bool = False,
+        latest: bool = False,
     ) -> None:
         """Subscribe with strict decoding; ``callback(msg, key)`` runs on a zenoh thread.
 
@@ -356,7 +382,15 @@ class Node:
         checks and calls ``callback`` on the polling thread. For a service that looks at a stream
         at its own tick (staleness, counts): no thread wake-up and GIL hand-over per message,
         which costs more CPU here than the message's own handling.
+
+        ``latest``: also query ``key`` once, right after subscribing, and deliver the replies of
+        ``latest`` outlets (``outlet(..., latest=True)``) through the same checks: a state stream's
+        current value arrives at once, not at its next publication. A reply that is not newer than
+        what the subscription already delivered is dropped without being counted. Not with
+        ``polled``.
         """
+        if latest and polled:
+            raise ValueError("subscribe: latest and polled do not go together")
         # Per-key bookkeeping lives in ``self.streams``; a second subscription to the same key
         # expression gets its own table (else it would see every message as a duplicate).
         table = self.streams if key not in self._subscribed else StreamTable()
@@ -369,7 +403,7 @@ class Node:
             def trusted(key: str, source: str) -> bool:
                 return source in allowed
 
-        def on_sample(sample: Any, rx_ns: int = 0) -> None:
+        def on_sample(sample: Any, rx_ns: int = 0, queried: bool = False) -> None:
             k = str(sample.key_expr)
             stats = table.get(k)
             try:
@@ -393,6 +427,8 @@ class Node:
                     )
                 return
             with self._lock:
+                if queried and stats.source == msg.header.source and msg.header.seq <= stats.last_seq:
+                    return  # a queried current value the subscription has delivered already
                 fresh = stats.accept(msg.header.source, msg.header.seq, rx_ns)
             if not fresh:
                 return
@@ -409,6 +445,13 @@ class Node:
             self._inputs.append(sub)
         else:
             self._inputs.append(self.session.declare_subscriber(key, on_sample))
+        if latest:
+
+            def on_reply(reply: Any) -> None:
+                if reply.ok is not None and not self._closed:
+                    on_sample(reply.ok, queried=True)
+
+            self.session.get(key, on_reply, timeout=2.0)  # (returns at once: replies come to on_reply)
 
     def received(self, key: str) -> float:
         """When the message being handled on ``key`` arrived (monotonic s); for a polled stream

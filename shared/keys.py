@@ -17,6 +17,8 @@ service instance id)::
     estop                        EStop           e-stop / reset, from the console or any service
     slave/<arm>/command          (queryable)     Command → CommandReply (operator commands)
     mapping/<arm>/command        (queryable)     Command → CommandReply (scale; VIP set/reallocate)
+    mapping/<arm>/teleop_state   TeleopState     teleop state of the pair driving slave <arm> (10 Hz,
+                                                 on change; also a queryable: the current state)
     console/<m>/clutch           MasterButtons   the console's keyboard clutch for master <m>
     echo/<service>               (queryable)     replies at once: round-trip time across hosts
     events/<service>             SafetyEvent     events (transitions, IK failures, ...)
@@ -37,6 +39,10 @@ _ID = re.compile(r"^[A-Za-z0-9_-]{1,64}$")
 MASTER_STREAMS = ("measured_cp", "measured_js", "buttons")
 SLAVE_STREAMS = ("servo_jp", "setpoint_cp", "measured_js", "measured_cp", "measured_cf", "operating_state")
 SAFETY_STREAMS = ("lease", "state")
+#: The mapping's streams, per *slave* arm: a slave is driven by one pair (one master may drive
+#: several slaves, e.g. ``m1:arm1`` and ``m1:arm2``), so the slave arm names the pair (as for
+#: ``mapping/<arm>/command``).
+MAPPING_STREAMS = ("teleop_state",)
 
 
 def check_id(kind: str, value: str) -> str:
@@ -76,6 +82,15 @@ class Keys:
     def safety(self, arm: str, stream: str) -> str:
         """``telesurg/<site>/safety/<arm>/<stream>``; stream in :data:`SAFETY_STREAMS`."""
         return self._arm_key("safety", arm, stream, SAFETY_STREAMS)
+
+    def mapping(self, arm: str, stream: str) -> str:
+        """``telesurg/<site>/mapping/<arm>/<stream>`` (``arm``: the pair's slave arm, or ``*``);
+        stream in :data:`MAPPING_STREAMS`."""
+        if arm == "*":
+            if stream not in MAPPING_STREAMS:
+                raise ConfigError(f"unknown mapping stream {stream!r}; valid: {', '.join(MAPPING_STREAMS)}")
+            return f"{self.prefix}/mapping/*/{stream}"
+        return self._arm_key("mapping", arm, stream, MAPPING_STREAMS)
 
     @property
     def estop(self) -> str:

@@ -808,6 +808,84 @@ class CommandReply(Message):
         return cls(header, _str(d, "arm"), _str(d, "name"), _bool(d, "accepted"), _str(d, "reason"))
 
 
+#: The teleop states of one master → slave pair (:class:`TeleopState`, services/mapping/engage.py).
+TELEOP_STATES = frozenset({"DISABLED", "IDLE", "ENGAGING", "ENABLED", "HOLDING"})
+
+
+@_register
+@dataclass(frozen=True, slots=True)
+class TeleopState(Message):
+    """The mapping's teleop state of one pair (``mapping/<slave arm>/teleop_state``), at 10 Hz
+    and on every change; the mapping also answers a query on the key with the current state.
+
+    Attributes:
+        master: master arm id of the pair.
+        slave: slave arm id of the pair.
+        state: ``DISABLED`` (a press would be refused: operator absent, slave not allowed to move,
+            no fresh slave joints), ``IDLE`` (clutch released, ready), ``ENGAGING`` (a new press
+            seen: the engage is tried at the next master sample), ``ENABLED`` (the slave follows
+            the master), ``HOLDING`` (clutch pressed but not following: a disengage the operator
+            did not make, a refused engage, or the pedal was down at start; release and press).
+        previous: the state before ``state`` (equal to ``state`` before the first change).
+        reason: why the pair is in ``state`` (e.g. ``slave holding: lease expired``); it may
+            change within a state (a DISABLED pair's hold reason), ``since_ns`` then stays.
+        since_ns: wall-clock time ``state`` was entered, ns since the Unix epoch.
+        scale: the operator's motion scale in use (changed by ``set_scale`` / ``scale_up`` /
+            ``scale_down``), in (0, 2].
+        safety_scale: the watchdog's motion-scale factor applied on top of it, in [0, 1].
+        mode: the mapping mode, e.g. ``cartesian``, ``all_joints``, ``vip``.
+    """
+
+    TYPE: ClassVar[str] = "teleop_state"
+    BODY: ClassVar[frozenset[str]] = frozenset(
+        {"master", "slave", "state", "previous", "reason", "since_ns", "scale", "safety_scale", "mode"}
+    )
+
+    master: str = ""
+    slave: str = ""
+    state: str = "DISABLED"
+    previous: str = "DISABLED"
+    reason: str = ""
+    since_ns: int = 0
+    scale: float = 1.0
+    safety_scale: float = 1.0
+    mode: str = "cartesian"
+
+    def body(self) -> dict[str, Any]:
+        return {
+            "master": self.master,
+            "slave": self.slave,
+            "state": self.state,
+            "previous": self.previous,
+            "reason": self.reason,
+            "since_ns": self.since_ns,
+            "scale": self.scale,
+            "safety_scale": self.safety_scale,
+            "mode": self.mode,
+        }
+
+    @classmethod
+    def from_body(cls, header: Header, d: dict[str, Any]) -> TeleopState:
+        scale = _float(d, "scale")
+        if not 0.0 < scale <= 2.0:
+            raise MessageError(f"field 'scale'={scale} outside (0, 2]")
+        safety = _float(d, "safety_scale")
+        if not 0.0 <= safety <= 1.0:
+            raise MessageError(f"field 'safety_scale'={safety} outside [0, 1]")
+        return cls(
+            header,
+            _str(d, "master", allow_empty=False),
+            _str(d, "slave", allow_empty=False),
+            _choice(d, "state", TELEOP_STATES),
+            _choice(d, "previous", TELEOP_STATES),
+            _str(d, "reason"),
+            _int(d, "since_ns", hi=_I64_MAX),
+            scale,
+            safety,
+            _str(d, "mode", allow_empty=False),
+        )
+
+
 #: Every message class by its type tag.
 MESSAGE_TYPES: dict[str, type[Message]] = dict(_REGISTRY)
 
@@ -824,6 +902,7 @@ AnyMessage = (
     | Command
     | CommandReply
     | Heartbeat
+    | TeleopState
 )
 
 

@@ -169,3 +169,35 @@ def test_command_queryable_answers_refuses_and_survives(endpoint: str) -> None:
             console.request(
                 console.keys.command("arm9"), Command(out.header(), "arm9", "x"), CommandReply, 0.3
             )
+
+
+def test_a_latest_outlet_gives_a_late_subscriber_the_current_value_once(endpoint: str) -> None:
+    from telesurg.shared.messages import TeleopState
+
+    bus = BusConfig(connect=[endpoint])
+    with Node(bus, "t", "mapping") as pub:
+        key = pub.keys.mapping("arm1", "teleop_state")
+        out = pub.outlet(key, control=False, latest=True)
+        plain = pub.outlet(pub.keys.mapping("arm2", "teleop_state"), control=False)
+        for state in ("IDLE", "ENABLED"):
+            out.put(TeleopState(out.header(), "m1", "arm1", state, "IDLE", "", 1, 0.5, 1.0, "cartesian"))
+        plain.put(TeleopState(plain.header(), "m1", "arm2", "ENABLED", "IDLE", "", 1, 0.5, 1.0, "cartesian"))
+        with Node(bus, "t", "console") as sub:
+            got: list[tuple[str, int]] = []
+            sub.subscribe(
+                sub.keys.mapping("*", "teleop_state"),
+                TeleopState,
+                lambda m, k: got.append((m.slave, m.header.seq)),
+                sources=["mapping"],
+                latest=True,
+            )
+            # the current value at once (only from the latest outlet: nothing was published since)
+            assert wait_until(lambda: got == [("arm1", 1)], 2.0), got
+            out.put(
+                TeleopState(out.header(), "m1", "arm1", "HOLDING", "ENABLED", "", 2, 0.5, 1.0, "cartesian")
+            )
+            assert wait_until(lambda: got == [("arm1", 1), ("arm1", 2)]), got
+            stats = sub.streams.get(key)
+            assert (stats.received, stats.gaps, stats.reordered, stats.rejected) == (2, 0, 0, 0)
+        with pytest.raises(ValueError, match="latest and polled"):
+            pub.subscribe(key, TeleopState, lambda m, k: None, latest=True, polled=True)

@@ -115,10 +115,12 @@ async def drive(app: ConsoleApp, tap: Tap) -> None:
         def panel_text() -> str:
             return seen(panel)
 
-        # Engage: the scripted pedal presses; the panel shows the lease and the slave following.
+        # Engage: the scripted pedal presses; the panel shows the lease, the slave following and
+        # the mapping's teleop state.
         def engaged() -> bool:
             text = panel_text()
-            return all(s in text for s in ("ENABLED", "FOLLOWING", "lease ok", "mapping engaged"))
+            want = ("ENABLED", "FOLLOWING", "lease ok", "mapping engaged", "teleop   ENABLED")
+            return all(s in text for s in want)
 
         assert await until(pilot, engaged, ENGAGE_S + 10.0), panel_text()  # + start-up
         shown = re.compile(r"safety +(OK|DEGRADED) · scale ×[01]\.\d\d · latency p50 \d+\.\d ms  p99 ")

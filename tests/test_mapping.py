@@ -4,25 +4,27 @@ from __future__ import annotations
 
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 
 import numpy as np
 import pytest
-from telesurg.services.launcher import free_port
+from conftest import wait_until
 from telesurg.services.mapping import ArmMapping, MappingConfig
 from telesurg.services.mapping.joints import AllJointsMapping
 from telesurg.services.mapping.master import master_point
-from telesurg.shared.bus import BusConfig, Node, open_session
+from telesurg.shared.bus import BusConfig, Node
 from telesurg.shared.errors import ConfigError
 from telesurg.shared.kinematics.mh3f import MH3F, fk
 from telesurg.shared.messages import (
     CartesianPose,
+    Command,
     Header,
     JointSetpoint,
     JointState,
     MasterButtons,
     OperatingState,
     SafetyEvent,
+    TeleopState,
 )
 
 Q0 = (0.0, 0.2, 0.3, 0.0, -0.6, 0.0)
@@ -30,25 +32,18 @@ H = Header("test", 0, 0)
 
 
 @pytest.fixture
-def rig() -> Iterator[tuple[ArmMapping, list[JointSetpoint], list[SafetyEvent]]]:
-    ep = f"tcp/127.0.0.1:{free_port()}"
-    router = open_session(BusConfig(mode="router", listen=[ep]))
-    bus = BusConfig(connect=[ep])
+def rig(endpoint: str) -> Iterator[tuple[ArmMapping, list[JointSetpoint], list[SafetyEvent]]]:
+    bus = BusConfig(connect=[endpoint])
     setpoints: list[JointSetpoint] = []
     events: list[SafetyEvent] = []
-    try:
-        with Node(bus, "t", "mapping") as node, Node(bus, "t", "probe") as probe:
-            probe.subscribe(
-                probe.keys.slave("arm1", "servo_jp"), JointSetpoint, lambda m, k: setpoints.append(m)
-            )
-            probe.subscribe(probe.keys.events(), SafetyEvent, lambda m, k: events.append(m))
-            time.sleep(0.3)
-            arm = ArmMapping(MappingConfig(scale=0.5), node, "m1", "arm1", threading.Event())
-            arm.on_slave_js(JointState(H, MH3F.joint_names, Q0), "")
-            arm.on_slave_state(OperatingState(H, "PAUSED", "non_trocar", False, True, "", 0), "")
-            yield arm, setpoints, events
-    finally:
-        router.close()  # type: ignore[no-untyped-call]
+    with Node(bus, "t", "mapping") as node, Node(bus, "t", "probe") as probe:
+        probe.subscribe(probe.keys.slave("arm1", "servo_jp"), JointSetpoint, lambda m, k: setpoints.append(m))
+        probe.subscribe(probe.keys.events(), SafetyEvent, lambda m, k: events.append(m))
+        time.sleep(0.3)
+        arm = ArmMapping(MappingConfig(scale=0.5), node, "m1", "arm1", threading.Event())
+        arm.on_slave_js(JointState(H, MH3F.joint_names, Q0), "")
+        arm.on_slave_state(OperatingState(H, "PAUSED", "non_trocar", False, True, "", 0), "")
+        yield arm, setpoints, events
 
 
 def feed(arm: ArmMapping, p: tuple[float, float, float], clutch: bool) -> None:
@@ -202,11 +197,140 @@ def test_virtual_trocar_master_maps_the_dummy_tip_with_the_fulcrum_effect() -> N
 def test_operator_scale_commands_step_and_refuse_clearly(
     rig: tuple[ArmMapping, list[JointSetpoint], list[SafetyEvent]],
 ) -> None:
-    from telesurg.shared.messages import Command
-
     arm, _, _ = rig
     assert arm.on_command(Command(H, "arm1", "scale_up", ())).reason == "scale 0.5 → 0.7"
     assert arm.on_command(Command(H, "arm1", "scale_down", ())).reason == "scale 0.7 → 0.5"
     bad = arm.on_command(Command(H, "arm1", "set_scale", ("value=5",)))
     assert not bad.accepted and "(0, 2]" in bad.reason and arm.scale == 0.5
     assert not arm.on_command(Command(H, "arm2", "scale_up", ())).accepted
+
+
+def states_seen(probe: Node, arm: str) -> tuple[list[TeleopState], Callable[[], list[str]]]:
+    got: list[TeleopState] = []
+    probe.subscribe(probe.keys.mapping(arm, "teleop_state"), TeleopState, lambda m, k: got.append(m))
+
+    def states() -> list[str]:
+        return [m.state for i, m in enumerate(got) if i == 0 or m.state != got[i - 1].state]
+
+    return got, states
+
+
+def test_the_teleop_state_machine_is_published_on_every_change(
+    rig: tuple[ArmMapping, list[JointSetpoint], list[SafetyEvent]], endpoint: str
+) -> None:
+    arm, _, _ = rig
+    with Node(BusConfig(connect=[endpoint]), "t", "probe2") as probe:
+        got, states = states_seen(probe, "arm1")
+        # the probe's subscription is in place once a periodic state reaches it
+        assert wait_until(lambda: arm.publish_state() is None and bool(got)), "no teleop state"
+
+        def press(clutch: bool) -> None:
+            arm.on_slave_js(JointState(H, MH3F.joint_names, Q0), "")  # fresh slave joints
+            feed(arm, (0.0, 0.0, 0.0), clutch)
+
+        press(True)  # pedal down at start
+        assert arm.state == "HOLDING" and "at start" in arm.reason
+        press(False)
+        assert arm.state == "IDLE"
+        arm.on_buttons(MasterButtons(H, True, True), "")
+        assert arm.state == "ENGAGING"  # the engage is tried at the next master sample
+        arm.on_master_pose(CartesianPose(H, "master", (0.0, 0.0, 0.0)), "")
+        arm.process()
+        assert arm.state == "ENABLED" and arm.following
+        # a watchdog hold: the slave loses its lease → HOLDING, a new press needed
+        arm.on_slave_state(OperatingState(H, "PAUSED", "non_trocar", False, False, "lease expired", 1), "")
+        assert (arm.state, arm.previous) == ("HOLDING", "ENABLED") and "lease expired" in arm.reason
+        arm.on_slave_state(OperatingState(H, "PAUSED", "non_trocar", False, True, "", 1), "")
+        press(True)
+        assert arm.state == "HOLDING"  # lease back, pedal still down: still holding
+        press(False)
+        assert arm.state == "IDLE"
+        press(True)
+        assert arm.state == "ENABLED"
+        press(False)  # the operator's release
+        assert (arm.state, arm.reason) == ("IDLE", "clutch released")
+        # not allowed to move while released: DISABLED with the reason; a press is refused
+        arm.on_slave_state(OperatingState(H, "PAUSED", "non_trocar", False, False, "estop", 2), "")
+        arm.check_timeouts()
+        assert arm.state == "DISABLED" and "estop" in arm.reason
+        since = arm.since_ns  # a new reason within the state: published, entered at the same time
+        arm.on_slave_state(OperatingState(H, "PAUSED", "non_trocar", False, False, "lease expired", 2), "")
+        arm.check_timeouts()
+        assert (arm.state, arm.previous, arm.since_ns) == ("DISABLED", "IDLE", since), arm.reason
+        assert "lease expired" in arm.reason
+        assert wait_until(lambda: "lease expired" in got[-1].reason and got[-1].since_ns == since), got[-1]
+        press(True)
+        assert arm.state == "HOLDING" and arm.reason.startswith("engage refused")
+        want = ["HOLDING", "IDLE", "ENGAGING", "ENABLED", "HOLDING", "IDLE", "ENGAGING", "ENABLED", "IDLE"]
+        want += ["DISABLED", "ENGAGING", "HOLDING"]
+        assert wait_until(lambda: states()[-len(want) :] == want), states()
+        last = got[-1]
+        assert (last.master, last.slave, last.previous, last.mode) == ("m1", "arm1", "ENGAGING", "cartesian")
+        assert last.scale == 0.5 and last.safety_scale == 1.0 and last.since_ns > 0
+
+
+def test_a_late_joiner_gets_the_current_teleop_state_at_once(
+    rig: tuple[ArmMapping, list[JointSetpoint], list[SafetyEvent]], endpoint: str
+) -> None:
+    # nobody calls publish_state here (the 10 Hz re-send): the last publication is before the
+    # joiner subscribes, so only the mapping's answer to the joiner's query can bring the state
+    # (the 0.5 s figure is checked against real processes in tests/test_teleop_state.py)
+    arm, _, _ = rig
+    arm.on_slave_js(JointState(H, MH3F.joint_names, Q0), "")  # fresh slave joints
+    feed(arm, (0.0, 0.0, 0.0), clutch=False)
+    feed(arm, (0.0, 0.0, 0.0), clutch=True)
+    assert arm.state == "ENABLED"
+    arm.on_command(Command(H, "arm1", "set_scale", ("value=0.3",)))
+    with Node(BusConfig(connect=[endpoint]), "t", "late") as late:
+        got: list[TeleopState] = []
+        late.subscribe(
+            late.keys.mapping("arm1", "teleop_state"),
+            TeleopState,
+            lambda m, k: got.append(m),
+            sources=["mapping"],
+            latest=True,
+        )
+        assert wait_until(lambda: bool(got)), "no teleop state: the query was not answered"
+        assert got[0].state == "ENABLED" and got[0].scale == 0.3
+
+
+def test_a_joint_space_mapping_publishes_the_controlled_point_of_its_setpoint(
+    rig: tuple[ArmMapping, list[JointSetpoint], list[SafetyEvent]], endpoint: str
+) -> None:
+    # setpoint_cp of the PLAS all-joints mapping: the profile's tip of what servo_jp commands, in
+    # the frame of the slave's measured_cp (the demo report's tracking reference)
+    arm0, setpoints, _ = rig
+    cfg = MappingConfig(mode="all_joints", model="plas")
+    with Node(BusConfig(connect=[endpoint]), "t", "probe2") as probe:
+        targets: list[CartesianPose] = []
+        probe.subscribe(
+            probe.keys.slave("arm1", "setpoint_cp"), CartesianPose, lambda m, k: targets.append(m)
+        )
+        got, _ = states_seen(probe, "arm1")  # declared after setpoint_cp: in place once one arrives
+        assert wait_until(lambda: arm0.publish_state() is None and bool(got)), "probe not subscribed"
+        arm = AllJointsMapping(cfg, arm0.node, "m1", "arm1", threading.Event())
+        names = arm.profile.joint_names
+        q0 = (0.0, 0.1, 0.2, 0.3, 0.0, 0.0)
+        arm.on_slave_js(JointState(H, names, q0), "")
+        arm.on_slave_state(OperatingState(H, "PAUSED", "joint", False, True, "", 0), "")
+
+        def sample(clutch: bool, qm: float) -> None:
+            arm.on_slave_js(JointState(H, names, q0), "")  # fresh slave joints
+            arm.on_buttons(MasterButtons(H, clutch, True), "")
+            arm.on_master_js(
+                JointState(H, tuple(f"m{i}" for i in range(6)), (0.0, qm, 0.0, 0.0, 0.0, 0.0)), ""
+            )
+            arm.process()
+
+        sample(False, 0.0)
+        sample(True, 0.0)
+        assert arm.following
+        time.sleep(0.02)  # one target period (target_hz = 100)
+        sample(True, 0.05)
+        assert wait_until(lambda: len(targets) >= 2), targets
+        assert wait_until(lambda: any(s.follow and s.position != q0 for s in setpoints)), setpoints
+        last = [s for s in setpoints if s.follow][-1]
+        tip = arm.profile.tip(np.array(last.position))
+        assert targets[-1].frame == "world"
+        np.testing.assert_allclose(targets[-1].position, tip, atol=1e-12)
+        assert np.linalg.norm(np.subtract(targets[-1].position, targets[0].position)) > 1e-4  # it moved

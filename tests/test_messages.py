@@ -28,6 +28,7 @@ from telesurg.shared.messages import (
     SafetyEvent,
     SafetyLease,
     SafetyState,
+    TeleopState,
     decode,
     decode_as,
 )
@@ -50,6 +51,9 @@ EXAMPLES = [
     Command(H, "arm1", "jog", ("frame=forceps", "axis=x", "direction=1")),
     CommandReply(H, "arm1", "insert", False, "insert refused: forceps axis 7.3° off trocar direction"),
     CartesianWrench(H, "base", (0.0, 1.5, -2.0), (0.0, 0.0, 0.1)),
+    TeleopState(
+        H, "m1", "arm1", "HOLDING", "ENABLED", "slave holding: lease expired", 7, 0.5, 0.5, "cartesian"
+    ),
 ]
 
 

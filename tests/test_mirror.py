@@ -119,3 +119,33 @@ def test_mirror_records_bus_traffic_to_rrd(tmp_path: Path) -> None:
             proc.kill()
             proc.wait(timeout=5)
         router.close()  # type: ignore[no-untyped-call]
+
+
+def test_mirror_shows_the_teleop_state_of_each_pair(tmp_path: Path) -> None:
+    from telesurg.services.mirror import Mirror
+    from telesurg.services.mirror.view import RerunView
+    from telesurg.shared.messages import Header, TeleopState
+
+    out = tmp_path / "teleop.rrd"
+    view = RerunView("test", save=str(out))
+    mirror = Mirror(view, "telesurg/local", trail_s=1.0, trail_hz=10.0)
+    key = "telesurg/local/mapping/arm1/teleop_state"
+    t0 = 1_700_000_000_000_000_000
+    states = [("DISABLED", "DISABLED", "no master buttons yet"), ("IDLE", "DISABLED", "ready to engage")]
+    states += [("ENABLED", "IDLE", "engaged m1 → arm1 at scale 0.5")] * 3  # re-sent at 10 Hz: one line
+    states += [("HOLDING", "ENABLED", "slave holding: lease expired")]
+    items = [
+        (
+            key,
+            t0 + i,
+            TeleopState(Header("mapping", i, t0 + i), "m1", "arm1", s, p, r, t0, 0.5, 1.0, "cartesian"),
+        )
+        for i, (s, p, r) in enumerate(states)
+    ]
+    mirror.feed(items)  # type: ignore[arg-type]
+    view.close()
+    lines = [(lvl, t) for p, lvl, t in text_logs(out) if p == "/mapping/arm1/teleop"]
+    assert [t.split(" (")[0] for _, t in lines] == ["DISABLED", "IDLE", "ENABLED", "HOLDING"], lines
+    assert lines[-1][0] == "WARN" and "slave holding: lease expired" in lines[-1][1], lines
+    assert "was ENABLED" in lines[-1][1] and "scale 0.5 × safety 1" in lines[-1][1], lines
+    assert scalar_counts(out).get("/mapping/arm1/engaged") == len(states)

@@ -8,6 +8,7 @@ the launcher stops everything with exit code 0 and leaves no process behind.
 
 from __future__ import annotations
 
+import itertools
 import json
 import os
 import signal
@@ -27,7 +28,6 @@ from telesurg.services.launcher.report import (
     RELEASE_TRIM_S,
     TrackingError,
     engaged_segments,
-    split_by_scale,
     tracking_error,
 )
 from telesurg.shared.bus import BusConfig, Node
@@ -36,6 +36,40 @@ from telesurg.shared.messages import CartesianPose, JointSetpoint, JointState, O
 pytestmark = pytest.mark.process
 
 SCALE = 0.5  # the mapping default (deploy/local/site.toml keeps it)
+
+
+def split_by_scale(
+    segments: list[tuple[int, int]], factors: list[tuple[int, float]], scale: float
+) -> list[tuple[int, int, float, bool]]:
+    """Cut engaged segments where the safety scale factor changes.
+
+    Returns (t0, t1, effective scale, starts an engagement) per part; ``factors`` are time-sorted
+    (ns, factor) samples of the watchdog's state.
+    """
+    out = []
+    for t0, t1 in segments:
+        cuts = [t for t, _ in _changes(factors) if t0 < t < t1]
+        bounds = [t0, *cuts, t1]
+        for i, (a, b) in enumerate(itertools.pairwise(bounds)):
+            out.append((a, b, scale * _factor_at(factors, a), i == 0))
+    return out
+
+
+def _changes(factors: list[tuple[int, float]]) -> list[tuple[int, float]]:
+    out: list[tuple[int, float]] = []
+    for t, f in factors:
+        if not out or out[-1][1] != f:
+            out.append((t, f))
+    return out
+
+
+def _factor_at(factors: list[tuple[int, float]], t: int) -> float:
+    f = 1.0
+    for tf, v in factors:
+        if tf > t:
+            break
+        f = v
+    return f
 
 
 @dataclass

@@ -43,6 +43,7 @@ from telesurg.shared.messages import (
     OperatingState,
     SafetyLease,
     SafetyState,
+    TeleopState,
     decode,
     decode_as,
 )
@@ -57,6 +58,7 @@ TARGETS: dict[str, tuple[type[Message], dict[str, str]]] = {
     "slave/arm1/operating_state": (OperatingState, {"mapping": "slave_control", "watchdog": "slave_control"}),
     "safety/arm1/lease": (SafetyLease, {"slave_control": "watchdog"}),
     "safety/arm1/state": (SafetyState, {"mapping": "watchdog"}),
+    "mapping/arm1/teleop_state": (TeleopState, {}),  # drawn by the mirror (and shown by consoles)
     # the e-stop key gets only payloads that can never decode (a valid e-stop would stop the arm)
     "estop": (EStop, {"slave_control": "", "watchdog": ""}),
 }
@@ -83,7 +85,7 @@ def expected_rejections(key: str, payload: bytes) -> dict[str, int]:
         anymsg = decode(payload)
         role = key.split("/")[0]
         out["mirror"] = int(
-            anymsg.header.source not in MIRROR_TRUSTED and role in ("master", "slave", "safety")
+            anymsg.header.source not in MIRROR_TRUSTED and role in ("master", "slave", "safety", "mapping")
         )
     except MessageError:
         out["mirror"] = 1  # the mirror decodes any message type on the keys it draws

@@ -1,9 +1,10 @@
 """``telesurg console``: the operator console, a terminal UI (textual) for a local or remote site.
 
 Per arm it shows what the slave, the watchdog and the mapping report — operating state, control
-mode, follow / hold reason, lease, the clutch pedal, the motion-scale factor, latency p50/p99
-over the watchdog's window (1 s), the safety state with its causes and the arm's last events —
-and lets the operator act:
+mode, follow / hold reason, lease, the clutch pedal, the mapping's teleop state (DISABLED / IDLE /
+ENGAGING / ENABLED / HOLDING with its reason, since when, the operator's scale), the
+motion-scale factor, latency p50/p99 over the watchdog's window (1 s), the safety state with its
+causes and the arm's last events — and lets the operator act:
 
 * **clutch / engage / disengage**: the console is a clutch pedal for the arm's master. It
   publishes its clutch on ``telesurg/<site>/console/<master>/clutch`` (a ``MasterButtons`` from
@@ -17,7 +18,10 @@ and lets the operator act:
   confirms.
 
 Bus work (subscriptions, the clutch publisher, command requests in a small thread pool) lives in
-:class:`ConsoleModel`; zenoh callbacks only store the latest message. The UI
+:class:`ConsoleModel`; zenoh callbacks only store the latest message. The teleop state is asked
+of the mapping when the console starts (``mapping/<arm>/teleop_state`` answers a query with the
+current state) and then follows its 10 Hz stream, so a console started after an engage shows the
+mapping engaged at once. The UI
 (:mod:`telesurg.services.console.app`) redraws from a snapshot at 10 Hz.
 
 Examples::
@@ -55,6 +59,7 @@ from telesurg.shared.messages import (
     SafetyEvent,
     SafetyState,
     Sequencer,
+    TeleopState,
 )
 
 log = logging.getLogger(__name__)
@@ -81,6 +86,7 @@ class ConsoleConfig:
     slave_source: str = "slave_control"
     watchdog_source: str = "watchdog"
     master_source: str = "master_capture"
+    mapping_source: str = "mapping"
     bus: BusConfig = field(default_factory=BusConfig)  # zenoh session
 
     def validate(self) -> None:
@@ -141,12 +147,22 @@ class ArmState:
     safety_rx: float = 0.0
     pedal: MasterButtons | None = None  # the master's buttons as master_capture publishes them
     pedal_rx: float = 0.0
-    engaged: bool = False  # from the mapping's engage / disengage events
+    teleop: TeleopState | None = None  # the mapping's teleop state of the pair driving this arm
+    teleop_rx: float = 0.0
+    engaged_by_events: bool = False  # from the mapping's engage / disengage events
     engage_note: str = ""  # the last of those events' text
     events: deque[tuple[float, str, str, str]] = field(default_factory=lambda: deque(maxlen=50))
     jog_frame: str = "base"
     jog_axis: str = "x"
     last_reply: str = ""  # the last command reply for this arm, as shown
+
+    @property
+    def engaged(self) -> bool:
+        """The mapping says the slave follows: its teleop state is ENABLED (before any teleop
+        state arrived, e.g. from an older mapping: its last engage / disengage event)."""
+        if self.teleop is not None:
+            return self.teleop.state == "ENABLED"
+        return self.engaged_by_events
 
 
 class ConsoleModel:
@@ -185,6 +201,14 @@ class ConsoleModel:
         for a in self.arms.values():
             node.subscribe(k.slave(a.arm, "operating_state"), OperatingState, self._on_op, sources=s_src)
             node.subscribe(k.safety(a.arm, "state"), SafetyState, self._on_safety, sources=w_src)
+            # (latest: the mapping answers at once with the current state, then the stream follows)
+            node.subscribe(
+                k.mapping(a.arm, "teleop_state"),
+                TeleopState,
+                self._on_teleop,
+                sources=only(cfg.mapping_source),
+                latest=True,
+            )
         for m in self.masters:
             node.subscribe(
                 k.master(m, "buttons"), MasterButtons, self._on_pedal, sources=only(cfg.master_source)
@@ -207,6 +231,12 @@ class ConsoleModel:
             if a is not None:
                 a.safety, a.safety_rx = m, time.monotonic()
 
+    def _on_teleop(self, m: TeleopState, key: str) -> None:
+        with self.lock:
+            a = self.arms.get(m.slave)
+            if a is not None and key.rsplit("/", 2)[-2] == m.slave:
+                a.teleop, a.teleop_rx = m, time.monotonic()
+
     def _on_pedal(self, m: MasterButtons, key: str) -> None:
         master = key.rsplit("/", 2)[-2]
         now = time.monotonic()
@@ -224,9 +254,9 @@ class ConsoleModel:
             if a is not None:
                 a.events.append((stamp, m.header.source, m.kind, m.text))
                 if m.kind == "engage":
-                    a.engaged, a.engage_note = True, m.text
+                    a.engaged_by_events, a.engage_note = True, m.text
                 elif m.kind in ("disengage", "engage_refused"):
-                    a.engaged = a.engaged and m.kind == "engage_refused"
+                    a.engaged_by_events = a.engaged_by_events and m.kind == "engage_refused"
                     a.engage_note = m.text
             where = f"[{m.arm}] " if m.arm else ""
             self._notices.append(

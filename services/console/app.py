@@ -1,6 +1,7 @@
 """The console's terminal UI (textual) over a :class:`~telesurg.services.console.ConsoleModel`.
 
-Layout: a status line (site, live services), one panel per arm, the log (events, command replies,
+Layout: a status line (site, live services), one panel per arm (slave, clutch, the mapping's
+teleop state, safety, jog, last reply, events), the log (events, command replies,
 refusals), the command line and the key footer. The panels redraw from a model snapshot at
 10 Hz; nothing here touches zenoh directly.
 
@@ -46,6 +47,13 @@ SAFETY_STYLE = {
     "DEGRADED": "bold yellow",
     "HOLD": "bold yellow",
     "ESTOP": "bold white on red",
+}
+TELEOP_STYLE = {
+    "ENABLED": "bold green",
+    "ENGAGING": "cyan",
+    "IDLE": "",
+    "HOLDING": "yellow",
+    "DISABLED": "dim",
 }
 OP_STYLE = {"ENABLED": "bold green", "PAUSED": "yellow", "DISABLED": "dim", "FAULT": "bold white on red"}
 SEVERITY: dict[str, SeverityLevel] = {"info": "information", "warning": "warning", "error": "error"}
@@ -93,7 +101,25 @@ def arm_text(a: ArmState, console_clutch: bool, cfg: ConsoleConfig, now: float) 
     t.append(" · console clutch ")
     t.append("PRESSED" if console_clutch else "released", style="bold cyan" if console_clutch else "")
     t.append(" · mapping ")
-    t.append("engaged" if a.engaged else "disengaged", style="green" if a.engaged else "")
+    tp = a.teleop
+    if tp is not None and now - a.teleop_rx > cfg.stale_s:
+        t.append("unknown (teleop state stale)", style="bold red")
+    else:
+        t.append("engaged" if a.engaged else "disengaged", style="green" if a.engaged else "")
+    row("teleop")
+    if tp is None:
+        t.append("no teleop state from the mapping yet", style="dim")
+    else:
+        t.append(tp.state, style=TELEOP_STYLE.get(tp.state, ""))
+        since = tp.since_ns / 1e9
+        t.append(f" since {_clock(since)} ({max(time.time() - since, 0.0):.1f} s)")
+        if tp.previous != tp.state:
+            t.append(f" · was {tp.previous}", style="dim")
+        t.append(f" · scale {tp.scale:.2f} × safety {tp.safety_scale:.2f} · {tp.mode}")
+        if tp.reason:
+            t.append(f"\n         {tp.reason}", style=TELEOP_STYLE.get(tp.state, ""))
+        if now - a.teleop_rx > cfg.stale_s:
+            t.append(f" · STALE {now - a.teleop_rx:.1f} s", style="bold red")
     row("safety")
     s = a.safety
     if s is None:

@@ -6,8 +6,10 @@ Headless, it runs for ``--seconds`` and writes a report::
 
     telesurg demo --headless --seconds 20 --save out.rrd --report out.json
 
-The report holds per-stream message counts and sequence gaps, the tip tracking error against the
-scaled master motion (mean/max mm, after settling) and the number of holds.
+The report (strict JSON) holds per-stream message counts and sequence gaps, the tip tracking
+error against the mapping's published target ``setpoint_cp`` (mean/max mm, after settling), the
+motion scales and teleop states the mapping published (an operator's ``set_scale`` mid-session
+included) and the number of holds; see :mod:`telesurg.services.launcher.report`.
 """
 
 from __future__ import annotations
@@ -22,13 +24,11 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from telesurg.services.common import install_stop_handlers, setup_logging
-from telesurg.services.launcher import Site, add_site_args, spec_from_args
+from telesurg.services.launcher import Site, add_site_args, config_class, spec_from_args
 from telesurg.services.launcher.report import SessionRecorder
-from telesurg.services.mapping import MappingConfig
 from telesurg.shared.bus import BusConfig, Node
 from telesurg.shared.config import load_config
 from telesurg.shared.errors import TelesurgError
-from telesurg.shared.kinematics.transforms import rpy_matrix
 from telesurg.shared.pairs import parse_pair
 from telesurg.shared.viewer import viewer_url
 
@@ -59,7 +59,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         spec = spec_from_args(args, services)
         overrides = spec.overrides.get("mapping", [])
-        mapping = load_config(MappingConfig, spec.site_file, overrides, table="mapping")
+        # the mapping config as the mapping will build it (the launcher checks each service's table
+        # through its config class, by module name): only its pairs are used here
+        mapping = load_config(config_class("mapping"), spec.site_file, overrides, table="mapping")
     except TelesurgError as exc:
         print(f"telesurg demo: {exc}", file=sys.stderr)
         return 2
@@ -86,24 +88,24 @@ def main(argv: Sequence[str] | None = None) -> int:
                     for name, rc in site.dead().items():
                         log.error("%s exited with code %d", name, rc)
                         stop.set()
-                report = rec.report(mapping.scale, rpy_matrix(mapping.master_to_slave_rpy_deg))
+                report = rec.report()
             codes = site.stop()
     except (TelesurgError, ConnectionError) as exc:
         print(f"telesurg demo: {exc}", file=sys.stderr)
         return 1
     report["exit_codes"] = codes
     report["seconds"] = args.seconds
-    report["scale"] = mapping.scale
     report["site_file"] = str(spec.site_file)  # the site file every service read its table of
     err = report["tip_tracking_error_mm"]
     log.info(
-        "tip tracking error: mean %.3f mm, max %.3f mm over %d samples; holds: %d",
+        "tip tracking error (vs setpoint_cp): mean %s mm, max %s mm over %d samples; scale %s; holds: %d",
         err["mean_mm"],
         err["max_mm"],
         err["samples"],
+        report["mapping"]["scale"],
         report["holds"],
     )
     if args.report:
-        Path(args.report).write_text(json.dumps(report, indent=2))
+        Path(args.report).write_text(json.dumps(report, indent=2, allow_nan=False))
         log.info("report written to %s", args.report)
     return 0 if all(c == 0 for c in codes.values()) else 1

@@ -1,24 +1,35 @@
 """Session recorder for ``telesurg demo --report``: stream counts, gaps, tracking error, holds.
 
-The tracking error compares the slave forceps tip with the *scaled master motion*: while the
-slave follows, ``p_slave(t) − scale·R_ms·p_master(t)`` must stay constant (it is the offset the
-mapping fixes at engage). The error of a sample is its distance from the median offset of its
-engaged segment, after a settling time at the start of the segment. The master position used for
-a slave sample is the last master sample published at or before the slave sample's source time
-(all processes share the host's wall clock): the slave cannot follow motion the master never
-published, e.g. while the master process was descheduled.
+The report judges the slave from what the mapping *published*, never from the mapping's config
+(an operator's ``set_scale`` mid-session, or the watchdog's motion-scale factor, change what the
+mapping does; its config file does not know):
+
+* The tip tracking error compares the slave forceps tip (``slave/<arm>/measured_cp``) with the
+  mapping's Cartesian target (``slave/<arm>/setpoint_cp``, published at the mapping's
+  ``target_hz`` while following: a decimated copy of the ``servo_jp`` stream the slave follows).
+  The target at a slave sample's source time is interpolated between the two setpoints around it
+  (all processes share the host's wall clock); a slave sample between two setpoints further than
+  :data:`MAX_REF_GAP_S` apart is not judged. The error of a sample is its distance from the
+  median offset of its engaged segment (a constant offset, e.g. a frame convention, is reported
+  apart as ``offset_mm``), after a settling time at the start of the segment.
+* The motion scales in use are the mapping's :class:`~telesurg.shared.messages.TeleopState`
+  (the operator's scale and the watchdog's factor), recorded as the mapping changed them.
 
 A segment ends when the slave's ``follow`` flag drops, which is up to the slave's setpoint
-timeout (100 ms) after the master's clutch release; the master moves on meanwhile, so the last
-``RELEASE_TRIM_S`` of each segment are not judged.
+timeout (100 ms) after the master's clutch release; the last ``RELEASE_TRIM_S`` of each segment
+are not judged.
 
-When the watchdog changes the motion-scale factor (DEGRADED, e.g. over the latency budget), the
-mapping re-anchors; the segment is split there and each part uses the scale then in effect.
+:func:`tracking_error` also judges against the scaled master motion (``p_slave(t) −
+scale·R_ms·p_master(t)`` constant while following) for a caller that knows the scale and the
+rotation it set (e.g. a test that configured the site, cutting its segments where the watchdog's
+factor changes: the mapping re-anchors there).
+
+The report is strict JSON: a figure that could not be computed is ``null``, never NaN.
 """
 
 from __future__ import annotations
 
-import itertools
+import math
 import threading
 from dataclasses import dataclass, field
 from typing import Any
@@ -32,7 +43,7 @@ from telesurg.shared.messages import (
     Message,
     OperatingState,
     SafetyEvent,
-    SafetyState,
+    TeleopState,
 )
 
 
@@ -44,18 +55,27 @@ class TrackingError:
     max_mm: float
     samples: int
     segments: int
+    offset_mm: float = float("nan")  # mean length of the segments' median offsets
 
     def as_dict(self) -> dict[str, Any]:
-        """For JSON."""
+        """For strict JSON (None for a figure that could not be computed)."""
         return {
-            "mean_mm": round(self.mean_mm, 4),
-            "max_mm": round(self.max_mm, 4),
+            "mean_mm": _finite(self.mean_mm),
+            "max_mm": _finite(self.max_mm),
+            "offset_mm": _finite(self.offset_mm),
             "samples": self.samples,
             "segments": self.segments,
         }
 
 
+def _finite(v: float, digits: int = 4) -> float | None:
+    return round(v, digits) if math.isfinite(v) else None
+
+
 RELEASE_TRIM_S = 0.15  # s: not judged at the end of an engagement (setpoint timeout + margin)
+#: s: two setpoint_cp samples further apart than this are not interpolated between (at 100 Hz:
+#: five missed setpoints, e.g. an IK failure holding the target)
+MAX_REF_GAP_S = 0.05
 
 
 def engaged_segments(follow: list[tuple[int, bool]], trim_end_s: float = 0.0) -> list[tuple[int, int]]:
@@ -75,40 +95,6 @@ def engaged_segments(follow: list[tuple[int, bool]], trim_end_s: float = 0.0) ->
     return [(a, b - trim) for a, b in out if b - trim > a]
 
 
-def split_by_scale(
-    segments: list[tuple[int, int]], factors: list[tuple[int, float]], scale: float
-) -> list[tuple[int, int, float, bool]]:
-    """Cut engaged segments where the safety scale factor changes.
-
-    Returns (t0, t1, effective scale, starts an engagement) per part; ``factors`` are time-sorted
-    (ns, factor) samples of the watchdog's state.
-    """
-    out = []
-    for t0, t1 in segments:
-        cuts = [t for t, _ in _changes(factors) if t0 < t < t1]
-        bounds = [t0, *cuts, t1]
-        for i, (a, b) in enumerate(itertools.pairwise(bounds)):
-            out.append((a, b, scale * _factor_at(factors, a), i == 0))
-    return out
-
-
-def _changes(factors: list[tuple[int, float]]) -> list[tuple[int, float]]:
-    out: list[tuple[int, float]] = []
-    for t, f in factors:
-        if not out or out[-1][1] != f:
-            out.append((t, f))
-    return out
-
-
-def _factor_at(factors: list[tuple[int, float]], t: int) -> float:
-    f = 1.0
-    for tf, v in factors:
-        if tf > t:
-            break
-        f = v
-    return f
-
-
 def tracking_error(
     master: np.ndarray,
     slave: np.ndarray,
@@ -116,19 +102,29 @@ def tracking_error(
     scale: float,
     r_ms: np.ndarray,
     settle_s: float = 0.5,
+    *,
+    interpolate: bool = False,
 ) -> TrackingError:
-    """Tracking error of the slave tip against the scaled master motion.
+    """Tracking error of the slave tip against a reference motion: the scaled master motion, or
+    (``scale`` 1, ``r_ms`` identity, ``interpolate``) the mapping's published target.
 
     Args:
-        master: (N, 4) rows of (t_ns, x, y, z) master tip, master frame, m.
+        master: (N, 4) rows of (t_ns, x, y, z) of the reference: the master tip (master frame)
+            or the mapping's setpoint_cp (base frame), m.
         slave: (M, 4) rows of (t_ns, x, y, z) slave tip, base frame, m.
-        segments: engaged intervals (ns), or (t0, t1, scale, is_engage_start) parts from
-            :func:`split_by_scale` (the settle time applies only at an engagement's start).
+        segments: engaged intervals (ns), or (t0, t1, scale, is_engage_start) parts (e.g. an
+            engagement cut where the scale changed; the settle time applies only at an
+            engagement's start).
         scale: mapping motion scale (for plain intervals).
-        r_ms: (3, 3) rotation of the master frame in the slave base frame.
+        r_ms: (3, 3) rotation of the reference frame in the slave base frame.
         settle_s: s skipped at the start of each segment.
+        interpolate: the reference at a slave sample's time is interpolated between the reference
+            samples around it (a decimated copy of a faster stream the slave follows, such as
+            setpoint_cp of servo_jp), not the last one at or before it; slave samples between two
+            reference samples more than :data:`MAX_REF_GAP_S` apart are skipped.
     """
     errors: list[np.ndarray] = []
+    offsets: list[float] = []
     used = 0
     if len(master) < 2 or len(slave) == 0:
         return TrackingError(float("nan"), float("nan"), 0, 0)
@@ -139,15 +135,25 @@ def tracking_error(
         sel &= (slave[:, 0] >= master[0, 0]) & (slave[:, 0] <= master[-1, 0])
         if sel.sum() < 10:
             continue
-        ts = slave[sel, 0]
-        pm = master[np.searchsorted(master[:, 0], ts, side="right") - 1, 1:]
-        offset = slave[sel, 1:] - k * pm @ r_ms.T
-        errors.append(np.linalg.norm(offset - np.median(offset, axis=0), axis=1))
+        ts, ps = slave[sel, 0], slave[sel, 1:]
+        if interpolate:
+            i = np.clip(np.searchsorted(master[:, 0], ts, side="left"), 1, len(master) - 1)
+            near = master[i, 0] - master[i - 1, 0] <= MAX_REF_GAP_S * 1e9
+            ts, ps, i = ts[near], ps[near], i[near]
+            if len(ts) < 10:
+                continue
+            pm = np.column_stack([np.interp(ts, master[:, 0], master[:, c]) for c in (1, 2, 3)])
+        else:
+            pm = master[np.searchsorted(master[:, 0], ts, side="right") - 1, 1:]
+        offset = ps - k * pm @ r_ms.T
+        median = np.median(offset, axis=0)
+        errors.append(np.linalg.norm(offset - median, axis=1))
+        offsets.append(float(np.linalg.norm(median)))
         used += 1
     if not errors:
         return TrackingError(float("nan"), float("nan"), 0, 0)
     e = np.concatenate(errors) * 1e3
-    return TrackingError(float(e.mean()), float(e.max()), int(e.size), used)
+    return TrackingError(float(e.mean()), float(e.max()), int(e.size), used, 1e3 * float(np.mean(offsets)))
 
 
 @dataclass
@@ -157,11 +163,12 @@ class SessionRecorder:
     node: Node
     master_arm: str = "m1"
     slave_arm: str = "arm1"
+    mapping_source: str = "mapping"  # the mapping's service id: only its target and state count
     lock: threading.Lock = field(default_factory=threading.Lock)
-    master: list[tuple[int, float, float, float]] = field(default_factory=list)
     slave: list[tuple[int, float, float, float]] = field(default_factory=list)
+    target: list[tuple[int, float, float, float]] = field(default_factory=list)  # setpoint_cp
     follow: list[tuple[int, bool]] = field(default_factory=list)
-    factors: list[tuple[int, float]] = field(default_factory=list)  # watchdog scale factor
+    teleop: list[TeleopState] = field(default_factory=list)  # the mapping's, every one received
     holds: int = 0
     events: list[str] = field(default_factory=list)
 
@@ -170,57 +177,83 @@ class SessionRecorder:
         self.keys = {
             "master_cp": k.master(self.master_arm, "measured_cp"),
             "servo_jp": k.slave(self.slave_arm, "servo_jp"),
+            "setpoint_cp": k.slave(self.slave_arm, "setpoint_cp"),
             "measured_js": k.slave(self.slave_arm, "measured_js"),
             "measured_cp": k.slave(self.slave_arm, "measured_cp"),
             "operating_state": k.slave(self.slave_arm, "operating_state"),
+            "teleop_state": k.mapping(self.slave_arm, "teleop_state"),
         }
-        self.node.subscribe(self.keys["master_cp"], CartesianPose, self._on_master)
+        mapping = [self.mapping_source] if self.mapping_source else None
+        self.node.subscribe(self.keys["master_cp"], CartesianPose, self._ignore)
         self.node.subscribe(self.keys["measured_cp"], CartesianPose, self._on_slave)
+        self.node.subscribe(self.keys["setpoint_cp"], CartesianPose, self._on_target, sources=mapping)
         self.node.subscribe(self.keys["servo_jp"], JointSetpoint, self._ignore)
         self.node.subscribe(self.keys["measured_js"], JointState, self._ignore)
         self.node.subscribe(self.keys["operating_state"], OperatingState, self._on_state)
+        self.node.subscribe(
+            self.keys["teleop_state"], TeleopState, self._on_teleop, sources=mapping, latest=True
+        )
         self.node.subscribe(k.events(), SafetyEvent, self._on_event)
-        self.node.subscribe(k.safety(self.slave_arm, "state"), SafetyState, self._on_safety)
 
     def _ignore(self, msg: Message, key: str) -> None:
         pass  # counted by node.streams
 
-    def _on_master(self, msg: CartesianPose, key: str) -> None:
-        with self.lock:
-            self.master.append((msg.header.stamp_ns, *msg.position))
-
     def _on_slave(self, msg: CartesianPose, key: str) -> None:
         with self.lock:
             self.slave.append((msg.header.stamp_ns, *msg.position))
+
+    def _on_target(self, msg: CartesianPose, key: str) -> None:
+        with self.lock:
+            self.target.append((msg.header.stamp_ns, *msg.position))
 
     def _on_state(self, msg: OperatingState, key: str) -> None:
         with self.lock:
             self.follow.append((msg.header.stamp_ns, msg.follow))
             self.holds = max(self.holds, msg.holds)
 
-    def _on_safety(self, msg: SafetyState, key: str) -> None:
+    def _on_teleop(self, msg: TeleopState, key: str) -> None:
         with self.lock:
-            self.factors.append((msg.header.stamp_ns, msg.scale))
+            self.teleop.append(msg)
 
     def _on_event(self, msg: SafetyEvent, key: str) -> None:
         with self.lock:
             self.events.append(f"{msg.header.source} [{msg.arm}] {msg.kind}: {msg.text}")
 
-    def report(self, scale: float, r_ms: np.ndarray) -> dict[str, Any]:
-        """Counts, gaps, tracking error, holds, events."""
+    def report(self) -> dict[str, Any]:
+        """Counts, gaps, tracking error, the mapping's teleop states and scales, holds, events
+        (strict JSON: ``json.dumps(..., allow_nan=False)`` holds)."""
         with self.lock:
-            master = np.array(self.master, dtype=float).reshape(-1, 4)
             slave = np.array(self.slave, dtype=float).reshape(-1, 4)
+            target = np.array(sorted(self.target), dtype=float).reshape(-1, 4)
             follow = sorted(self.follow)
-            factors = sorted(self.factors)
+            teleop = sorted(self.teleop, key=lambda m: m.header.seq)
             events = list(self.events)
             holds = self.holds
-        parts = split_by_scale(engaged_segments(follow, RELEASE_TRIM_S), factors, scale)
-        err = tracking_error(master, slave, parts, scale, r_ms)
+        err = tracking_error(
+            target, slave, engaged_segments(follow, RELEASE_TRIM_S), 1.0, np.eye(3), interpolate=True
+        )
         streams = {name: self.node.streams.get(key).as_dict() for name, key in self.keys.items()}
+        scales: list[dict[str, Any]] = []  # each change of the scales the mapping used
+        states: dict[str, int] = {}  # times each teleop state was entered
+        for i, m in enumerate(teleop):
+            if not scales or (scales[-1]["scale"], scales[-1]["safety_scale"]) != (m.scale, m.safety_scale):
+                scales.append(
+                    {"since_ns": m.header.stamp_ns, "scale": m.scale, "safety_scale": m.safety_scale}
+                )
+            if i == 0 or m.since_ns != teleop[i - 1].since_ns:
+                states[m.state] = states.get(m.state, 0) + 1
+        last = teleop[-1] if teleop else None
         return {
             "streams": streams,
             "tip_tracking_error_mm": err.as_dict(),
+            "tracking_reference": "setpoint_cp",
+            "mapping": {
+                "mode": last.mode if last else None,
+                "scale": last.scale if last else None,  # the operator's scale at the end
+                "scales": scales,
+                "teleop_state": last.state if last else None,
+                "teleop_states_entered": states,
+            },
             "holds": holds,
             "engagements": sum(1 for e in events if " engage:" in e),
             "events": events[-100:],

@@ -15,8 +15,10 @@ the latency budget); the mapping multiplies its scale by it, re-anchoring so the
 jump.
 
 The service publishes ``slave/<arm>/servo_jp`` for every master sample (``follow`` tells the
-slave whether to track it) and ``slave/<arm>/setpoint_cp`` (the Cartesian target, at ``target_hz``
-for display) while following.
+slave whether to track it), ``slave/<arm>/setpoint_cp`` (the Cartesian target, at ``target_hz``
+for display) while following, and each pair's teleop state (DISABLED / IDLE / ENGAGING /
+ENABLED / HOLDING, its reason and the scales in use) on ``mapping/<arm>/teleop_state`` at 10 Hz
+and on every change (:mod:`telesurg.services.mapping.engage`).
 
 Master modes (``master_mode``): ``pen`` maps the master position as the tip; ``virtual_trocar``
 (Jinno 2014, Fig. 7) treats it as the handle of a dummy forceps pivoting in a virtual trocar on the
@@ -166,7 +168,6 @@ class ArmMapping(EngageGate):
         # rotation is r_ms R(q) B) and the slave rotation rs0 (see _set_ref)
         self.ref: tuple[list[float], list[float], np.ndarray, np.ndarray] | None = None
         self.ik_streak = 0
-        self.scale = cfg.scale  # operator's motion scale (mapping/<arm>/command changes it)
         self.reply_seq = Sequencer(cfg.service)
         self.last_pose: CartesianPose | None = None  # last master sample mapped while following
         self.last_target: np.ndarray | None = None  # its slave target (4×4)
@@ -186,6 +187,7 @@ class ArmMapping(EngageGate):
                 return
             old, self.safety_scale = self.safety_scale, msg.scale
             self._reanchor()
+            self._publish_state()
         self.node.event(
             "scale",
             f"motion scale {self.scale * old:.3g} → {self.scale * msg.scale:.3g} "
@@ -213,7 +215,9 @@ class ArmMapping(EngageGate):
             if cmd.arm != self.slave:
                 ok, reason = False, f"{cmd.name} refused: this mapping drives {self.slave}, not {cmd.arm}"
             elif cmd.name == "state":
-                reason = f"scale {self.scale:.3g} (× safety {self.safety_scale:.3g})"
+                reason = (
+                    f"scale {self.scale:.3g} (× safety {self.safety_scale:.3g}); {self.state}: {self.reason}"
+                )
             elif cmd.name in SCALE_COMMANDS:
                 new, reason = new_scale(cmd.name, cmd.arg_map(), self.scale)
                 if new is None:
@@ -221,6 +225,7 @@ class ArmMapping(EngageGate):
                 else:
                     self.scale = new
                     self._reanchor()
+                    self._publish_state()
                     reason = f"scale {old:.3g} → {new:.3g}"
             else:
                 valid = "state, scale_up, scale_down, set_scale"
@@ -263,13 +268,9 @@ class ArmMapping(EngageGate):
         )
         self.q_last = self.q_meas.copy()
         self.last_pose = self.last_target = None
-        self.following = True
         self.ik_streak = 0
-        self.node.event(
-            "engage",
-            f"engaged {self.master} → {self.slave} at scale {self.scale * self.safety_scale:.3g}",
-            arm=self.slave,
-        )
+        k = self.scale * self.safety_scale
+        self._engaged_now(f"engaged {self.master} → {self.slave} at scale {k:.3g}")
 
     def _set_ref(self, pm0: np.ndarray, rm0: np.ndarray, ps0: np.ndarray, rs0: np.ndarray) -> None:
         """Anchor at (master point, master rotation, slave tip, slave rotation), kept in the form
@@ -437,6 +438,7 @@ def run(cfg: MappingConfig, stop: threading.Event) -> None:
             node.poll()
             for a in arms:
                 a.process()
+                a.publish_state()
             now = time.monotonic()
             stalled = now - last_iter > 2 * check_period  # we were descheduled: let queued
             last_iter = now  # samples arrive before judging anything stale

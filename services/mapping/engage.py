@@ -1,4 +1,4 @@
-"""Clutch, engage and disengage rules of one master → slave pair, shared by every mapping.
+"""The teleop state machine of one master → slave pair, shared by every mapping.
 
 Safety first, the same for the Cartesian and the joint-space mappings:
 
@@ -8,6 +8,30 @@ Safety first, the same for the Cartesian and the joint-space mappings:
 * It is refused, with its reason as an ``engage_refused`` event, unless the operator is present,
   the slave's measured joints are fresh and the slave's lease allows it to move.
 * Releasing the pedal disengages at once (an operator's disengage: the next press engages).
+
+These rules are a named state machine (the dVRK teleop pattern), one per pair::
+
+    DISABLED  clutch released (or no buttons yet); a press now would be refused: operator
+              absent, no fresh slave joints, slave not allowed to move
+    IDLE      clutch released, nothing in the way: the next press engages
+    ENGAGING  a new press seen; the engage is tried at the next master sample (the references
+              are taken from it) → ENABLED, or HOLDING if it is refused
+    ENABLED   the slave follows the mapped master
+    HOLDING   clutch pressed but not following: a disengage the operator did not make, a
+              refused engage, or the pedal was already down at start; release, then press
+
+    DISABLED ⇄ IDLE          the checks of an engage fail / pass (re-judged every 10 ms)
+    IDLE/DISABLED → ENGAGING  a press (after a release)
+    ENGAGING → ENABLED        the checks pass at the next master sample
+    ENGAGING → HOLDING        the checks fail (``engage_refused``)
+    ENABLED → IDLE/DISABLED   the clutch is released (``disengage``, the operator's)
+    ENABLED → HOLDING         operator absent, slave holding, slave mode change, master stale
+    HOLDING/ENGAGING → IDLE/DISABLED  the clutch is released
+
+The state, the state before it, the reason and the time of the last change and the scales in
+use are published as a :class:`~telesurg.shared.messages.TeleopState` on
+``mapping/<slave arm>/teleop_state`` at :data:`STATE_HZ` and on every change, and served to a
+late joiner's query at once (a console that starts after the engage shows the truth).
 """
 
 from __future__ import annotations
@@ -18,23 +42,30 @@ import time
 from typing import TYPE_CHECKING
 
 import numpy as np
-from telesurg.shared.messages import JointState, MasterButtons, OperatingState
+from telesurg.shared.messages import JointState, MasterButtons, OperatingState, TeleopState, now_ns
 
 if TYPE_CHECKING:
     from telesurg.services.mapping import MappingConfig
-    from telesurg.shared.bus import Node
+    from telesurg.shared.bus import Node, Outlet
 
 log = logging.getLogger(__name__)
 
+DISABLED, IDLE, ENGAGING, ENABLED, HOLDING = "DISABLED", "IDLE", "ENGAGING", "ENABLED", "HOLDING"
+#: Hz: the teleop state is re-sent this often (and on every change).
+STATE_HZ = 10.0
+
 
 class EngageGate:
-    """The engage state of one pair and the inputs it is judged on. Thread-safe through
+    """The teleop state of one pair and the inputs it is judged on. Thread-safe through
     :attr:`lock`: the ``on_*`` callbacks take it, the underscored methods expect it held.
 
     Attributes:
-        following: engaged (the slave follows the mapped master).
-        need_release: the pedal must be released before a press engages.
-        want_engage: a press arrived that may engage (the service loop tries it).
+        state: one of ``DISABLED``, ``IDLE``, ``ENGAGING``, ``ENABLED``, ``HOLDING`` (module doc).
+        previous: the state before the last change.
+        reason: why the pair entered :attr:`state`.
+        since_ns: wall-clock ns of the last change.
+        scale: the operator's motion scale.
+        safety_scale: the watchdog's factor on it.
     """
 
     def __init__(
@@ -54,28 +85,50 @@ class EngageGate:
         self.q_meas_rx = 0.0
         self.slave_state: OperatingState | None = None
         self.master_rx = 0.0
-        self.following = False
-        self.need_release = True
-        self.want_engage = False
+        self.state = self.previous = DISABLED
+        self.reason = "no master buttons yet"
+        self.since_ns = now_ns()
+        self.scale = cfg.scale  # operator's motion scale (mapping/<arm>/command changes it)
         self.safety_scale = 1.0  # factor from the watchdog's safety state
         self.ik_failures = 0  # samples whose target could not be solved (held)
         self.conflated = 0  # master samples skipped because a newer one had come
         self.clamped = 0  # samples whose target was clamped (workspace or joint limits)
         self._names_warned = False
+        self.state_out: Outlet = node.outlet(
+            node.keys.mapping(slave, "teleop_state"), control=False, latest=True
+        )
+        self._state_period = 1.0 / STATE_HZ
+        self._state_next = 0.0
+        with self.lock:
+            self._publish_state()
+
+    @property
+    def following(self) -> bool:
+        """Engaged: the slave follows the mapped master (state ``ENABLED``)."""
+        return self.state == ENABLED
+
+    @property
+    def want_engage(self) -> bool:
+        """A new press arrived that may engage (state ``ENGAGING``; the service loop tries it)."""
+        return self.state == ENGAGING
 
     # -- inputs -----------------------------------------------------------------------
     def on_buttons(self, msg: MasterButtons, key: str) -> None:
         with self.lock:
-            self.buttons = msg
+            first, self.buttons = self.buttons is None, msg
             if not msg.clutch:
-                self.need_release = False
-                self.want_engage = False  # a press and its release in one poll: no engage
-                if self.following:
+                if self.state == ENABLED:
                     self._disengage("clutch released", operator=True)
-            elif not msg.operator_present and self.following:
-                self._disengage("operator not present")
-            elif not self.following and not self.need_release:
-                self.want_engage = True
+                elif self.state in (HOLDING, ENGAGING) or first:
+                    # (a press and its release in one poll: no engage)
+                    self._released("clutch released")
+            elif self.state == ENABLED:
+                if not msg.operator_present:
+                    self._disengage("operator not present")
+            elif first:
+                self._enter(HOLDING, "clutch pressed at start: release it, then press")
+            elif self.state in (IDLE, DISABLED):
+                self._enter(ENGAGING, "clutch pressed")
 
     def on_slave_js(self, msg: JointState, key: str) -> None:
         if msg.names != self.joint_names:
@@ -98,34 +151,94 @@ class EngageGate:
                 self._disengage(f"slave control mode {old.control_mode} → {msg.control_mode}")
 
     def check_timeouts(self) -> None:
-        """Disengage on a stale master stream (called at a low rate from the service loop)."""
+        """Disengage on a stale master stream; re-judge IDLE / DISABLED (called every 10 ms from
+        the service loop, not right after a stall)."""
         with self.lock:
-            age_ms = (time.monotonic() - self.master_rx) * 1e3
+            now = time.monotonic()
+            age_ms = (now - self.master_rx) * 1e3
             if self.following and age_ms > self.cfg.master_timeout_ms:
                 self._disengage(f"master stream stale ({age_ms:.0f} ms)")
+            elif self.state in (IDLE, DISABLED) and self.buttons is not None:
+                self._released("ready to engage" if self.state == DISABLED else self.reason)
+
+    def publish_state(self) -> None:
+        """Re-send the teleop state if :data:`STATE_HZ` says it is due (the service loop)."""
+        with self.lock:
+            if time.monotonic() >= self._state_next:
+                self._publish_state()
 
     # -- rules (lock held) ----------------------------------------------------------------
-    def _may_engage(self) -> bool:
-        """Use up the press; True if the engage may go ahead, else an ``engage_refused`` event."""
-        self.want_engage = False
-        self.need_release = True  # whatever happens, the next try needs a new press
+    def _problem(self) -> str:
+        """Why an engage would be refused now ("" if it would go ahead)."""
         b, now = self.buttons, time.monotonic()
-        problem = ""
         if b is None or not b.operator_present:
-            problem = "operator not present"
-        elif self.q_meas is None or (now - self.q_meas_rx) * 1e3 > self.cfg.slave_timeout_ms:
-            problem = "no fresh slave joint state"
-        elif self.slave_state is None or not self.slave_state.lease_ok:
+            return "operator not present"
+        if self.q_meas is None or (now - self.q_meas_rx) * 1e3 > self.cfg.slave_timeout_ms:
+            return "no fresh slave joint state"
+        if self.slave_state is None or not self.slave_state.lease_ok:
             why = self.slave_state.reason if self.slave_state else "no slave state"
-            problem = f"slave not allowed to move ({why})"
+            return f"slave not allowed to move ({why})"
+        return ""
+
+    def _may_engage(self) -> bool:
+        """Use up the press; True if the engage may go ahead (the caller takes its references and
+        calls :meth:`_engaged_now`), else HOLDING and an ``engage_refused`` event."""
+        problem = self._problem()
         if problem:
             self.node.event(
                 "engage_refused", f"engage refused: {problem}", arm=self.slave, severity="warning"
             )
+            self._enter(HOLDING, f"engage refused: {problem}")
         return not problem
 
+    def _engaged_now(self, text: str) -> None:
+        """The engage went ahead: ENABLED, and an ``engage`` event with ``text``."""
+        self._enter(ENABLED, text)
+        self.node.event("engage", text, arm=self.slave)
+
     def _disengage(self, reason: str, *, operator: bool = False) -> None:
-        self.following = False
-        self.need_release = not operator
         sev = "info" if operator else "warning"
         self.node.event("disengage", f"disengaged: {reason}", arm=self.slave, severity=sev)
+        if operator:
+            self._released(reason)
+        else:
+            self._enter(HOLDING, reason)
+
+    def _released(self, reason: str) -> None:
+        """Clutch released: IDLE with ``reason``, or DISABLED with what would refuse a press."""
+        problem = self._problem()
+        if problem:
+            self._enter(DISABLED, problem)
+        else:
+            self._enter(IDLE, reason)
+
+    def _enter(self, state: str, reason: str) -> None:
+        """Change to ``state`` (published at once). A new reason within the same state (e.g. the
+        slave's hold reason changed while DISABLED) is published too, but keeps ``previous`` and
+        ``since_ns``: they say when and from where the state was entered."""
+        if state == self.state and reason == self.reason:
+            return
+        if state != self.state:
+            log.info("[%s] teleop %s → %s: %s", self.slave, self.state, state, reason)
+            self.previous, self.state = self.state, state
+            self.since_ns = now_ns()
+        self.reason = reason
+        self._publish_state()
+
+    def _publish_state(self) -> None:
+        out = self.state_out
+        out.put(
+            TeleopState(
+                out.header(),
+                self.master,
+                self.slave,
+                self.state,
+                self.previous,
+                self.reason[:200],
+                self.since_ns,
+                self.scale,
+                self.safety_scale,
+                self.cfg.mode,
+            )
+        )
+        self._state_next = time.monotonic() + self._state_period

@@ -4,7 +4,10 @@ Both keep the Cartesian mapping's rules: engage on a *new* clutch press with the
 a fresh slave joint state and a slave lease; the first setpoint is where the slave is (no jump);
 disengage on clutch release, operator absence, a stale master stream or a holding slave; every
 sample produces a ``servo_jp`` (``follow`` says whether to track it) with ``origin_ns`` = the
-master sample's stamp; the watchdog's safety scale multiplies the motion.
+master sample's stamp; the watchdog's safety scale multiplies the motion. While following, the
+controlled point of the commanded joints (the robot profile's ``tip``: PLAS tip, VIP wrist, model
+world frame, the point and frame of the slave's ``measured_cp``) goes out on
+``slave/<arm>/setpoint_cp`` at ``target_hz``, as the Cartesian mapping's target does.
 
 * :class:`AllJointsMapping` (``mode = "all_joints"``): master ``measured_js`` increments become
   slave joint increments, integrated per sample (:func:`telesurg.shared.kinematics.plas.map_step`, Table-6
@@ -61,6 +64,9 @@ class _JointBase(EngageGate):
         self.profile = profile
         self.lower, self.upper = np.array(profile.lower), np.array(profile.upper)
         self.servo_out: Outlet = node.outlet(node.keys.slave(slave, "servo_jp"))
+        self.target_out: Outlet = node.outlet(node.keys.slave(slave, "setpoint_cp"), control=False)
+        self.target_period = 1.0 / cfg.target_hz
+        self.target_next = 0.0
         self.q_cmd: np.ndarray | None = None
         self._clamping = False
         self._unclamped = 0  # samples without clamping since the last clamped one
@@ -71,6 +77,7 @@ class _JointBase(EngageGate):
             if msg.scale != self.safety_scale:
                 self.safety_scale = msg.scale
                 self._rescaled()
+                self._publish_state()
 
     def _rescaled(self) -> None:
         """The safety scale changed while following (lock held)."""
@@ -85,8 +92,7 @@ class _JointBase(EngageGate):
         assert self.q_meas is not None
         self.q_cmd = self.q_meas.copy()
         self._engaged()
-        self.following = True
-        self.node.event("engage", f"engaged {self.master} → {self.slave} ({self.cfg.mode})", arm=self.slave)
+        self._engaged_now(f"engaged {self.master} → {self.slave} ({self.cfg.mode})")
 
     def _report_clamp(self, joints: tuple[str, ...]) -> None:
         """Count clamped samples; one event when an episode starts and one when it has been over
@@ -118,6 +124,12 @@ class _JointBase(EngageGate):
                 origin_ns=origin_ns,
             )
         )
+        now = time.monotonic()
+        if self.following and now >= self.target_next:
+            self.target_next = max(self.target_next + self.target_period, now)
+            p = self.profile.tip(q)
+            out = self.target_out
+            out.put(CartesianPose(out.header(), "world", (float(p[0]), float(p[1]), float(p[2]))))
 
 
 class AllJointsMapping(_JointBase):
@@ -239,7 +251,7 @@ class VipMapping(_JointBase):
                 if self.ref is None:
                     self.ref = (pm, self.vip.fk(self.q_cmd, self.geom).wrist)
                 pm0, w0 = self.ref
-                w = w0 + self.cfg.scale * self.safety_scale * (self.r_ms @ (pm - pm0))
+                w = w0 + self.scale * self.safety_scale * (self.r_ms @ (pm - pm0))
                 try:
                     q = self.vip.vip_ik(w, self.V, self.geom, q4_ref=float(self.q_cmd[3]))
                     # at most half the joint speed limits per sample: after a new VIP the elbow

@@ -4,7 +4,8 @@ Subscribes to the streams it draws under ``telesurg/<site>/`` (slave joints, set
 and operating state; master poses and buttons; the watchdog's state; events), decodes every
 sample with the strict decoder (malformed payloads are counted and dropped, never drawn) and
 draws: joint series (measured vs setpoint), the tip tracking and RCM errors, latency, tip and
-target trails, each slave arm from its kinematic model (the robot is recognised by the joint names
+target trails, the mapping's teleop state of each pair (a text line per change, an engaged
+series), each slave arm from its kinematic model (the robot is recognised by the joint names
 of ``measured_js`` among the registered robots and drawn by its registry entry's ``sketch``, see
 :mod:`telesurg.shared.robots`; ``--plugin FILE`` adds robots), the trocar / RCM / VIP points,
 the master tip, mode changes and events. Entity paths and the layout are described in
@@ -47,6 +48,7 @@ from telesurg.services.mirror.view import (
     TROCAR_COLOR,
     VIP_COLOR,
     RerunView,
+    mapping_path,
     master_path,
     safety_path,
     slave_path,
@@ -64,6 +66,7 @@ from telesurg.shared.messages import (
     OperatingState,
     SafetyEvent,
     SafetyState,
+    TeleopState,
 )
 from telesurg.shared.robots import ArmProfile, RobotSpec, Sketch
 from telesurg.shared.timing import CycleTimer, settle_gc
@@ -85,8 +88,11 @@ SUBSCRIBED = (
     "master/*/measured_cp",
     "master/*/buttons",
     "safety/*/state",
+    "mapping/*/teleop_state",
     "events/*",
 )
+#: Of those, the state streams whose current value a starting mirror asks for at once.
+LATEST = ("mapping/*/teleop_state",)
 
 
 @dataclass
@@ -330,6 +336,7 @@ class Mirror:
         self._arms: dict[str, _Arm] = {}
         self._op_state: dict[str, tuple[str, str, bool, str]] = {}
         self._safety: dict[str, tuple[str, tuple[str, ...]]] = {}
+        self._teleop: dict[str, tuple[str, str, float, float]] = {}
         self._streams: set[tuple[str, str]] = set()
         self._now_rx = 0  # latest receive time fed: the clock of the series blocks and the layout
         self._series_sent_rx = 0
@@ -391,6 +398,8 @@ class Mirror:
                 return False
         elif role == "safety" and stream == "state" and isinstance(msg, SafetyState):
             self._safety_state(arm, src, rx, msg)
+        elif role == "mapping" and stream == "teleop_state" and isinstance(msg, TeleopState):
+            self._teleop_state(arm, src, rx, msg)
         else:
             return False
         return True
@@ -486,6 +495,17 @@ class Mirror:
         text = m.state + (f": {'; '.join(m.causes)}" if m.causes else "")
         sev = {"OK": "info", "ESTOP": "error"}.get(m.state, "warning")
         self.view.text(safety_path(arm), src, rx, text, sev)
+
+    def _teleop_state(self, arm: str, src: int, rx: int, m: TeleopState) -> None:
+        self._scalar(mapping_path(arm, "engaged"), src, rx, 1.0 if m.state == "ENABLED" else 0.0)
+        now = (m.state, m.reason, m.scale, m.safety_scale)
+        if self._teleop.get(arm) == now:
+            return
+        self._teleop[arm] = now
+        text = f"{m.state} (was {m.previous}) {m.master} → {m.slave}: {m.reason or '-'}"
+        text += f" · scale {m.scale:.3g} × safety {m.safety_scale:.3g} · {m.mode}"
+        sev = {"HOLDING": "warning", "DISABLED": "warning"}.get(m.state, "info")
+        self.view.text(mapping_path(arm, "teleop"), src, rx, text, sev)
 
     def _event(self, src: int, rx: int, m: SafetyEvent) -> None:
         text = f"{f'[{m.arm}] ' if m.arm else ''}{m.kind}: {m.text}"
@@ -639,10 +659,16 @@ def run(cfg: MirrorConfig, stop: threading.Event) -> None:
 
             def trust(key: str, source: str) -> bool:
                 role = key.split("/", 3)[2] if key.count("/") >= 3 else ""
-                return source in trusted or role not in ("master", "slave", "safety")
+                return source in trusted or role not in ("master", "slave", "safety", "mapping")
 
             for rel in SUBSCRIBED:
-                node.subscribe(f"{node.keys.prefix}/{rel}", Message, inbox.on_message, sources=trust)
+                node.subscribe(
+                    f"{node.keys.prefix}/{rel}",
+                    Message,
+                    inbox.on_message,
+                    sources=trust,
+                    latest=rel in LATEST,
+                )
             draw_errors = 0
             settle_gc()
             while not stop.is_set():

@@ -24,6 +24,10 @@ Entity paths (``<arm>`` an arm id, ``<joint>`` a joint name, both escaped for re
     /safety/<arm>/scale                    Scalars       motion-scale factor from the watchdog
     /master/<arm>/tip                      LineStrips3D + Points3D  master measured_cp, master frame
     /master/<arm>/clutch                   Scalars       1 while the clutch pedal is pressed
+    /mapping/<arm>/teleop                  TextLog       the mapping's teleop state of the pair driving
+                                                         slave <arm>: every change (state, was, reason,
+                                                         scales), mapping/<arm>/teleop_state
+    /mapping/<arm>/engaged                 Scalars       1 while that state is ENABLED (the slave follows)
     /events                                TextLog       every SafetyEvent
 
 The slave side is drawn in the slave's world frame (mh3f: the base frame; plas and vip: the port
@@ -124,6 +128,12 @@ def safety_path(arm: str, leaf: str = "state") -> str:
     return f"/safety/{_part(arm)}/{leaf}"
 
 
+@functools.lru_cache(maxsize=4096)
+def mapping_path(arm: str, leaf: str) -> str:
+    """``/mapping/<arm>/<leaf>`` (``teleop``, ``engaged``) of the pair driving slave ``arm``."""
+    return f"/mapping/{_part(arm)}/{leaf}"
+
+
 EVENTS_PATH = "/events"
 
 
@@ -185,6 +195,9 @@ def blueprint(slave_arms: Mapping[str, Sequence[str]] | None = None, plot_window
             color = JOINT_COLORS[(3 * i + k) % len(JOINT_COLORS)]
             latency[safety_path(arm, f"latency/{q}_ms")] = _lines(f"{arm} {q}", color, 1.5)
         scale[safety_path(arm, "scale")] = _lines(f"{arm} scale", JOINT_COLORS[i % len(JOINT_COLORS)], 1.5)
+        scale[mapping_path(arm, "engaged")] = _lines(
+            f"{arm} engaged", JOINT_COLORS[(i + 3) % len(JOINT_COLORS)], 1.5
+        )
     # the trails alone: the camera fits them, not the whole arm (a 2 cm circle on a 1 m arm)
     tips = [slave_path(a, leaf) for a in arms for leaf in ("tip", "target", "vip")] or ["/slave/**"]
     right = rrb.Vertical(
@@ -204,12 +217,14 @@ def blueprint(slave_arms: Mapping[str, Sequence[str]] | None = None, plot_window
             ),
             rrb.TimeSeriesView(
                 name="motion scale, clutch",
-                contents=[*scale, "/master/**"],
+                contents=[*scale, "/master/**", "/mapping/**"],
                 time_ranges=window,
                 overrides=scale,
             ),
         ),
-        rrb.TextLogView(name="modes & safety events", contents=["/slave/**", "/safety/**", EVENTS_PATH]),
+        rrb.TextLogView(
+            name="modes & safety events", contents=["/slave/**", "/mapping/**", "/safety/**", EVENTS_PATH]
+        ),
         row_shares=[3, 2, 2, 2],
     )
     return rrb.Blueprint(
