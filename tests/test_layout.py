@@ -44,13 +44,7 @@ TEST_NAMES = frozenset({"tests"} | {p.stem for p in (ROOT / "tests").glob("*.py"
 # Violations that remain, each named with what removes it (delete the entry when that is merged;
 # the tests below fail on an entry that no longer occurs): (importer, imported) for a rule, the
 # sorted modules of a cycle.
-ALLOWED_RULE_VIOLATIONS: frozenset[tuple[str, str]] = frozenset(
-    {
-        # d-teleop: the demo report judges from what the mapping published, not its config
-        # (scale, rotation); c-site: the pairs come from the site file's shared facts
-        ("telesurg.services.launcher.demo", "telesurg.services.mapping"),
-    }
-)
+ALLOWED_RULE_VIOLATIONS: frozenset[tuple[str, str]] = frozenset()
 ALLOWED_CYCLES: frozenset[tuple[str, ...]] = frozenset(
     {
         # b-armcore: backends.py ↔ serial_backend.py (one arm core)
