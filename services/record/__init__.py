@@ -54,6 +54,7 @@ from telesurg.shared.bus import BusConfig, Node, add_bus_args, bus_from_args
 from telesurg.shared.errors import ConfigError, MessageError, TelesurgError
 from telesurg.shared.keys import Keys, check_id
 from telesurg.shared.messages import MESSAGE_TYPES, SCHEMA_VERSION, Header, Message, decode
+from telesurg.shared.streams import SeqTracker
 from telesurg.shared.timing import settle_gc
 
 if TYPE_CHECKING:
@@ -67,9 +68,6 @@ SCHEMA_PREFIX = "telesurg."
 SUMMARY_METADATA = "telesurg.summary"
 RECORDING_METADATA = "telesurg.recording"
 COMPRESSIONS = ("zstd", "lz4", "none")
-#: Most missing sequence numbers remembered per stream (to tell a late message from a duplicate);
-#: a gap larger than this is counted but its numbers are not remembered.
-MAX_HOLES = 100_000
 
 
 @dataclass
@@ -188,62 +186,12 @@ def json_schema(cls: type[Message]) -> dict[str, Any]:
 # --------------------------------------------------------------------------- bookkeeping
 
 
-@dataclass
-class SeqCheck:
-    """Sequence bookkeeping of one (key, source) stream of a recording; nothing is dropped.
-
-    A forward jump is a gap (its numbers count as lost until they arrive late, then they count as
-    reordered); a number seen before is a duplicate; ``seq`` 0 after a higher one is a restart of
-    the publisher (counting starts over).
-    """
-
-    messages: int = 0
-    first: int = -1
-    top: int = -1  # highest seq seen
-    gaps: int = 0
-    lost: int = 0  # numbers skipped and not (yet) seen
-    reordered: int = 0
-    duplicates: int = 0
-    restarts: int = 0
-    holes: set[int] = field(default_factory=set)
-
-    def add(self, seq: int) -> None:
-        """Account one message."""
-        self.messages += 1
-        if self.top < 0 or (seq == 0 and self.top > 0):
-            if self.top >= 0:
-                self.restarts += 1
-                self.holes.clear()
-            self.first = self.top = seq
-            return
-        if seq == self.top + 1:
-            self.top = seq
-        elif seq > self.top:
-            self.gaps += 1
-            missing = seq - self.top - 1
-            self.lost += missing
-            if len(self.holes) + missing <= MAX_HOLES:
-                self.holes.update(range(self.top + 1, seq))
-            self.top = seq
-        elif seq in self.holes:
-            self.holes.discard(seq)
-            self.lost -= 1
-            self.reordered += 1
-        elif seq < self.first:  # older than anything seen: arrived after its successors
-            self.reordered += 1
-        else:
-            self.duplicates += 1
-
-    def counts(self) -> dict[str, int]:
-        """Counters for reports."""
-        return {
-            "messages": self.messages,
-            "gaps": self.gaps,
-            "lost": self.lost,
-            "reordered": self.reordered,
-            "duplicates": self.duplicates,
-            "restarts": self.restarts,
-        }
+#: Sequence bookkeeping of one (key, source) stream of a recording: the project's one
+#: :class:`~telesurg.shared.streams.SeqTracker` (nothing is dropped: a late message fills its gap,
+#: so it counts as reordered and no longer as lost; a number seen before is a duplicate; ``seq`` 0
+#: after a higher one is a restart of the publisher). Up to ``MAX_HOLES`` missing numbers per
+#: stream are remembered (``streams.MAX_HOLES``); a gap larger than that is counted but its numbers are not.
+SeqCheck = SeqTracker
 
 
 @dataclass
