@@ -323,8 +323,10 @@ class FieldSpec:
             return f"{self.kind} ≥ 0"
         return self.kind
 
-    def rules_text(self) -> str:
-        """The decoder's rules for this field in words (what docs/messages.md lists)."""
+    def rules_text(self, wire_of: dict[str, str] | None = None) -> str:
+        """The decoder's rules for this field in words (what docs/messages.md lists).
+
+        ``wire_of``: wire key by attribute name of the message's fields (for ``same_len``)."""
         k = self.kind
         if k == "str":
             if self.choices is not None:
@@ -359,7 +361,8 @@ class FieldSpec:
         else:
             out = [f"≤ {self.max_len} finite numbers"]
         if self.same_len:
-            out.append(("empty or " if self.empty_ok else "") + f"as many as `{self.same_len}`")
+            ref = (wire_of or {}).get(self.same_len, self.same_len)
+            out.append(("empty or " if self.empty_ok else "") + f"as many as `{ref}`")
         if self.unit_quat:
             out.append("unit quaternion `[x, y, z, w]`, |‖q‖ − 1| ≤ 1e-3 (kept as sent)")
         if self.check_doc:
@@ -835,7 +838,7 @@ class CartesianWrench(Message):
 @message("buttons")
 @dataclass(frozen=True, slots=True)
 class MasterButtons(Message):
-    """Master device buttons (``master/<arm>/buttons``), published with every pose sample."""
+    """Master device buttons (``master/<arm>/buttons``), on change and at a steady rate."""
 
     clutch: bool = fld(
         False, "clutch pedal pressed; the slave follows only while pressed (engage needs a new press)"
@@ -984,7 +987,7 @@ EVENT_SEVERITIES = frozenset({"info", "warning", "error"})
 @message("event")
 @dataclass(frozen=True, slots=True)
 class SafetyEvent(Message):
-    """A discrete event worth a line in the log (``safety/events``, ``<role>/<arm>/events``)."""
+    """A discrete event worth a line in the log (``events/<service>``)."""
 
     SEVERITIES: ClassVar[frozenset[str]] = EVENT_SEVERITIES
 
