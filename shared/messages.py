@@ -50,6 +50,7 @@ import dataclasses
 import math
 import re
 import time
+import types
 import typing
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -225,15 +226,15 @@ def _map_len(payload: bytes | bytearray | memoryview) -> int:
     A map that decodes to fewer keys than it declares had duplicate keys (the decoder keeps the
     last one). Messages have no nested maps (no field takes one), so the top level is all there
     is to check."""
-    b = bytes(payload[:5])
-    if not b:
+    if not payload:
         return -1
-    if 0x80 <= b[0] <= 0x8F:
-        return b[0] & 0x0F
-    if b[0] == 0xDE and len(b) >= 3:
-        return int.from_bytes(b[1:3], "big")
-    if b[0] == 0xDF and len(b) >= 5:
-        return int.from_bytes(b[1:5], "big")
+    b0 = payload[0]
+    if 0x80 <= b0 <= 0x8F:
+        return b0 & 0x0F
+    if b0 == 0xDE and len(payload) >= 3:
+        return int.from_bytes(payload[1:3], "big")
+    if b0 == 0xDF and len(payload) >= 5:
+        return int.from_bytes(payload[1:5], "big")
     return -1
 
 
@@ -643,7 +644,18 @@ def _compile(cls: type[Message], specs: tuple[FieldSpec, ...]) -> None:
         "_I64": _I64_MAX,
         "_cls": cls,
         "_ALLOWED": _HEADER_KEYS | cls.BODY,
+        "_new": object.__new__,
     }
+    # The decoder fills the frozen, slotted instances through their slot descriptors: the checks
+    # above are all the validation there is (no __post_init__), and this halves the cost of
+    # building a message and its header (frozen __init__ goes through object.__setattr__).
+    names = ["header", *(s.name for s in specs)]
+    for owner, attrs in ((cls, names), (Header, ["source", "seq", "stamp_ns"])):
+        for a in attrs:
+            slot = next((k.__dict__[a] for k in owner.__mro__ if a in k.__dict__), None)
+            if not isinstance(slot, types.MemberDescriptorType):
+                raise TypeError(f"{owner.__name__}.{a}: message classes must be slots dataclasses")
+            env[f"S_{owner.__name__}_{a}"] = slot.__set__
     tag = cls.TYPE
     body = _body_lines(cls.__name__, specs, env)
     args = ", ".join(f"x_{s.name}" for s in specs)
@@ -668,14 +680,22 @@ def _compile(cls: type[Message], specs: tuple[FieldSpec, ...]) -> None:
         "        seq = _int(d, 'seq', hi=_I64)",
         "    if type(ts) is not int or not 0 <= ts <= _I64:",
         "        ts = _int(d, 'ts', hi=_I64)",
-        "    header = _Header(src, seq, ts)",
+        "    header = _new(_Header)",
+        "    S_Header_source(header, src)",
+        "    S_Header_seq(header, seq)",
+        "    S_Header_stamp_ns(header, ts)",
+    ]
+    build = [
+        "    msg = _new(_cls)",
+        *(f"    S_{cls.__name__}_{n}(msg, {'header' if n == 'header' else 'x_' + n})" for n in names),
+        "    return msg",
     ]
     src = "\n".join(
         [
             "def from_wire(d):",
             *header,
             *body,
-            f"    return _cls(header, {args})",
+            *build,
             "",
             "def from_body(cls, header, d):",
             *body,
@@ -1090,7 +1110,8 @@ def decode(payload: bytes | bytearray | memoryview) -> AnyMessage:
         raise MessageError(f"not a valid MessagePack payload: {type(exc).__name__}: {exc}") from None
     if type(d) is not dict:
         raise MessageError(f"payload must be a map, got {type(d).__name__}")
-    if len(d) != _map_len(payload):
+    n = payload[0] - 0x80  # a fixmap (up to 15 keys: every message but the longest)
+    if len(d) != (n if 0 <= n <= 15 else _map_len(payload)):
         raise MessageError("duplicate keys in a map")
     version = d.get("v")
     if type(version) is not int or version != SCHEMA_VERSION:
