@@ -313,63 +313,6 @@ class FieldSpec:
     check: Callable[[Any], None] | None = None
     check_doc: str = ""
 
-    def type_text(self) -> str:
-        """The field's type as docs/messages.md shows it, e.g. ``float[3]``, ``int ≥ 0``."""
-        if self.kind in ("floats", "strs", "names"):
-            base = "float" if self.kind == "floats" else "str"
-            return f"{base}[{self.length}]" if self.length else f"{base}[]"
-        if self.choices is not None:
-            return "str enum"
-        if self.kind in ("int", "float") and self.lo == 0 and not self.lo_open and self.hi is None:
-            return f"{self.kind} ≥ 0"
-        return self.kind
-
-    def rules_text(self, wire_of: dict[str, str] | None = None) -> str:
-        """The decoder's rules for this field in words (what docs/messages.md lists).
-
-        ``wire_of``: wire key by attribute name of the message's fields (for ``same_len``)."""
-        k = self.kind
-        if k == "str":
-            if self.choices is not None:
-                return "one of " + ", ".join(f"`{c}`" for c in sorted(self.choices))
-            out = [f"≤ {MAX_STR} chars"]
-            if self.nonempty:
-                out.insert(0, "non-empty")
-            if self.pattern:
-                out.insert(0, f"matches `{self.pattern}`")
-            return ", ".join(out)
-        if k == "bool":
-            return "`true` / `false`"
-        if k in ("int", "float"):
-            lo, hi = self.lo, self.hi
-            if k == "int":
-                lo = 0 if lo is None else lo
-                hi = _U64_MAX if hi is None else hi
-                return f"integer in [{lo:g}, 2⁶⁴−1]" if hi == _U64_MAX else f"integer in [{lo:g}, {hi:g}]"
-            if lo is not None and hi is not None:
-                return f"finite, in {_interval(self)}"
-            if lo is not None:
-                return f"finite, {'>' if self.lo_open else '≥'} {lo:g}"
-            if hi is not None:
-                return f"finite, {'<' if self.hi_open else '≤'} {hi:g}"
-            return "finite"
-        if k == "names":
-            return f"1–{self.max_len} distinct, non-empty names, each ≤ {MAX_STR} chars"
-        if k == "strs":
-            out = [f"≤ {self.max_len} entries, each ≤ {MAX_STR} chars"]
-        elif self.length:
-            out = [f"exactly {self.length} finite numbers"]
-        else:
-            out = [f"≤ {self.max_len} finite numbers"]
-        if self.same_len:
-            ref = (wire_of or {}).get(self.same_len, self.same_len)
-            out.append(("empty or " if self.empty_ok else "") + f"as many as `{ref}`")
-        if self.unit_quat:
-            out.append("unit quaternion `[x, y, z, w]`, |‖q‖ − 1| ≤ 1e-3 (kept as sent)")
-        if self.check_doc:
-            out.append(self.check_doc)
-        return ", ".join(out)
-
 
 def _interval(s: FieldSpec) -> str:
     return f"{'(' if s.lo_open else '['}{s.lo:g}, {s.hi:g}{')' if s.hi_open else ']'}"
@@ -421,31 +364,33 @@ def fld(
     """
     if (ge is not None and gt is not None) or (le is not None and lt is not None):
         raise TypeError("fld: give one lower and one upper bound at most")
-    opts: dict[str, Any] = {
-        "doc": doc,
-        "unit": unit,
-        "wire": wire,
-        "nonempty": nonempty,
-        "choices": choices,
-        "pattern": pattern,
-        "lo": ge if gt is None else gt,
-        "lo_open": gt is not None,
-        "hi": le if lt is None else lt,
-        "hi_open": lt is not None,
-        "max_len": max_len,
-        "same_len": same_len,
-        "empty_ok": empty_ok,
-        "unit_quat": unit_quat,
-        "joint_names": joint_names,
-        "check": check,
-        "check_doc": check_doc,
-    }
-    out: T = field(default=default, metadata={_SPEC_KEY: opts})
+    spec = FieldSpec(
+        name="",  # name, kind, length and the array default of max_len: from the class (_spec)
+        wire=wire or "",
+        kind="",
+        doc=doc,
+        unit=unit,
+        max_len=max_len or 0,
+        nonempty=nonempty,
+        choices=choices,
+        pattern=pattern,
+        lo=ge if gt is None else gt,
+        lo_open=gt is not None,
+        hi=le if lt is None else lt,
+        hi_open=lt is not None,
+        same_len=same_len,
+        empty_ok=empty_ok,
+        unit_quat=unit_quat,
+        check=check,
+        check_doc=check_doc,
+    )
+    out: T = field(default=default, metadata={_SPEC_KEY: (spec, joint_names)})
     return out
 
 
-def _spec(name: str, tp: Any, opts: dict[str, Any]) -> FieldSpec:
-    """Resolve a field's kind from its annotation and its :func:`fld` options."""
+def _spec(name: str, tp: Any, declared: tuple[FieldSpec, bool]) -> FieldSpec:
+    """Complete a field's :func:`fld` declaration with its name and the kind its annotation gives."""
+    spec, joint_names = declared
     args = typing.get_args(tp)
     kind, length = "", None
     if tp in (str, bool, int, float):
@@ -454,67 +399,21 @@ def _spec(name: str, tp: Any, opts: dict[str, Any]) -> FieldSpec:
         kind = "floats"
         length = None if args[-1] is Ellipsis else len(args)
     elif typing.get_origin(tp) is tuple and args == (str, Ellipsis):
-        kind = "names" if opts["joint_names"] else "strs"
+        kind = "names" if joint_names else "strs"
     if not kind:
         raise TypeError(f"field {name!r}: the codec has no rule for {tp!r}")
-    if opts["unit_quat"] and length != 4:
+    if spec.unit_quat and length != 4:
         raise TypeError(f"field {name!r}: a unit quaternion is a tuple[float, float, float, float]")
-    max_len = opts["max_len"]
-    if max_len is None:
-        max_len = length or (MAX_JOINTS if kind in ("floats", "names") else MAX_LIST)
-    lo = opts["lo"]
-    if kind == "int" and lo is None:
-        lo = 0
-    return FieldSpec(
+    return dataclasses.replace(
+        spec,
         name=name,
-        wire=opts["wire"] or name,
+        wire=spec.wire or name,
         kind=kind,
-        doc=opts["doc"],
-        unit=opts["unit"],
         length=length,
-        max_len=max_len,
-        nonempty=opts["nonempty"],
-        choices=opts["choices"],
-        pattern=opts["pattern"],
-        lo=lo,
-        lo_open=opts["lo_open"],
-        hi=opts["hi"],
-        hi_open=opts["hi_open"],
-        same_len=opts["same_len"],
-        empty_ok=opts["empty_ok"],
-        unit_quat=opts["unit_quat"],
-        check=opts["check"],
-        check_doc=opts["check_doc"],
+        max_len=spec.max_len or length or (MAX_JOINTS if kind in ("floats", "names") else MAX_LIST),
+        lo=0 if kind == "int" and spec.lo is None else spec.lo,
     )
 
-
-#: The header fields, for the docs (:func:`decode` checks them itself).
-HEADER_FIELDS = (
-    FieldSpec("SCHEMA_VERSION", "v", "int", "schema version (set by `encode()`)", lo=SCHEMA_VERSION),
-    FieldSpec("TYPE", "type", "str", "type tag (class attribute), one of `MESSAGE_TYPES`", nonempty=True),
-    FieldSpec(
-        "header.source", "src", "str", "publishing service instance id (`Node.service`)", nonempty=True
-    ),
-    FieldSpec(
-        "header.seq",
-        "seq",
-        "int",
-        "per-stream sequence number: 0, 1, 2, … per publisher (one `Sequencer` per `Outlet`, i.e. per "
-        "service and key); int64, so numpy, rerun and MCAP can hold it",
-        lo=0,
-        hi=_I64_MAX,
-    ),
-    FieldSpec(
-        "header.stamp_ns",
-        "ts",
-        "int",
-        "source timestamp: wall clock (`time.time_ns()`, via `now_ns()`) since the Unix epoch, taken "
-        "when the header is built; int64",
-        unit="ns",
-        lo=0,
-        hi=_I64_MAX,
-    ),
-)
 
 # --------------------------------------------------------------------------- generated codec
 

@@ -5,8 +5,8 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
-from telesurg.services.docs import DEFAULT_OUT, TEMPLATE, main, message_page
-from telesurg.shared.messages import HEADER_FIELDS, MESSAGE_TYPES, SCHEMA_VERSION
+from telesurg.services.docs import DEFAULT_OUT, HEADER_FIELDS, TEMPLATE, main, message_page, type_text
+from telesurg.shared.messages import MESSAGE_TYPES, SCHEMA_VERSION
 
 
 def test_committed_messages_md_is_the_generated_page() -> None:
@@ -34,7 +34,7 @@ def test_every_message_field_and_the_version_are_on_the_page() -> None:
         assert f"### `{tag}` — `{cls.__name__}`" in page
         for s in cls.FIELDS:
             unit = s.unit or "—"
-            assert f"| `{s.wire}` | `{s.name}` | {s.type_text()} | {unit} |" in page, (tag, s.name)
+            assert f"| `{s.wire}` | `{s.name}` | {type_text(s)} | {unit} |" in page, (tag, s.name)
 
 
 def test_an_example_that_no_longer_decodes_fails_the_generation() -> None:

@@ -28,6 +28,7 @@ import msgpack
 from telesurg.shared import keys as keys_module
 from telesurg.shared import messages as m
 from telesurg.shared.errors import MessageError
+from telesurg.shared.messages import FieldSpec
 
 TEMPLATE = Path(__file__).with_name("messages.template.md")
 #: Where the page goes in a checkout (docs/ beside shared/ and services/).
@@ -89,6 +90,102 @@ def key_layout() -> dict[str, list[str]]:
     return out
 
 
+U64_MAX = 2**64 - 1
+I64_MAX = 2**63 - 1
+
+
+def _interval(s: FieldSpec) -> str:
+    return f"{'(' if s.lo_open else '['}{s.lo:g}, {s.hi:g}{')' if s.hi_open else ']'}"
+
+
+#: The header fields as the page shows them (:func:`~telesurg.shared.messages.decode` checks them itself).
+HEADER_FIELDS = (
+    FieldSpec("SCHEMA_VERSION", "v", "int", "schema version (set by `encode()`)", lo=m.SCHEMA_VERSION),
+    FieldSpec("TYPE", "type", "str", "type tag (class attribute), one of `MESSAGE_TYPES`", nonempty=True),
+    FieldSpec(
+        "header.source", "src", "str", "publishing service instance id (`Node.service`)", nonempty=True
+    ),
+    FieldSpec(
+        "header.seq",
+        "seq",
+        "int",
+        "per-stream sequence number: 0, 1, 2, … per publisher (one `Sequencer` per `Outlet`, i.e. per "
+        "service and key); int64, so numpy, rerun and MCAP can hold it",
+        lo=0,
+        hi=I64_MAX,
+    ),
+    FieldSpec(
+        "header.stamp_ns",
+        "ts",
+        "int",
+        "source timestamp: wall clock (`time.time_ns()`, via `now_ns()`) since the Unix epoch, taken "
+        "when the header is built; int64",
+        unit="ns",
+        lo=0,
+        hi=I64_MAX,
+    ),
+)
+
+
+def type_text(s: FieldSpec) -> str:
+    """The field's type as docs/messages.md shows it, e.g. ``float[3]``, ``int ≥ 0``."""
+    if s.kind in ("floats", "strs", "names"):
+        base = "float" if s.kind == "floats" else "str"
+        return f"{base}[{s.length}]" if s.length else f"{base}[]"
+    if s.choices is not None:
+        return "str enum"
+    if s.kind in ("int", "float") and s.lo == 0 and not s.lo_open and s.hi is None:
+        return f"{s.kind} ≥ 0"
+    return s.kind
+
+
+def rules_text(s: FieldSpec, wire_of: dict[str, str] | None = None) -> str:
+    """The decoder's rules for this field in words (what docs/messages.md lists).
+
+    ``wire_of``: wire key by attribute name of the message's fields (for ``same_len``)."""
+    k = s.kind
+    if k == "str":
+        if s.choices is not None:
+            return "one of " + ", ".join(f"`{c}`" for c in sorted(s.choices))
+        out = [f"≤ {m.MAX_STR} chars"]
+        if s.nonempty:
+            out.insert(0, "non-empty")
+        if s.pattern:
+            out.insert(0, f"matches `{s.pattern}`")
+        return ", ".join(out)
+    if k == "bool":
+        return "`true` / `false`"
+    if k in ("int", "float"):
+        lo, hi = s.lo, s.hi
+        if k == "int":
+            lo = 0 if lo is None else lo
+            hi = U64_MAX if hi is None else hi
+            return f"integer in [{lo:g}, 2⁶⁴−1]" if hi == U64_MAX else f"integer in [{lo:g}, {hi:g}]"
+        if lo is not None and hi is not None:
+            return f"finite, in {_interval(s)}"
+        if lo is not None:
+            return f"finite, {'>' if s.lo_open else '≥'} {lo:g}"
+        if hi is not None:
+            return f"finite, {'<' if s.hi_open else '≤'} {hi:g}"
+        return "finite"
+    if k == "names":
+        return f"1–{s.max_len} distinct, non-empty names, each ≤ {m.MAX_STR} chars"
+    if k == "strs":
+        out = [f"≤ {s.max_len} entries, each ≤ {m.MAX_STR} chars"]
+    elif s.length:
+        out = [f"exactly {s.length} finite numbers"]
+    else:
+        out = [f"≤ {s.max_len} finite numbers"]
+    if s.same_len:
+        ref = (wire_of or {}).get(s.same_len, s.same_len)
+        out.append(("empty or " if s.empty_ok else "") + f"as many as `{ref}`")
+    if s.unit_quat:
+        out.append("unit quaternion `[x, y, z, w]`, |‖q‖ − 1| ≤ 1e-3 (kept as sent)")
+    if s.check_doc:
+        out.append(s.check_doc)
+    return ", ".join(out)
+
+
 def _row(cells: Sequence[str]) -> str:
     return "| " + " | ".join(cells) + " |"
 
@@ -99,7 +196,7 @@ _HEAD = ["wire", "Python", "type", "unit", "meaning", "decoder rule"]
 def header_table() -> str:
     """The header fields."""
     rows = [_row(_HEAD), _row(["---"] * len(_HEAD))]
-    for s in m.HEADER_FIELDS:
+    for s in HEADER_FIELDS:
         if s.wire == "v":
             rule = f"the integer `{m.SCHEMA_VERSION}` (`{m.SCHEMA_VERSION}.0` and `true` are rejected)"
         elif s.wire == "type":
@@ -107,7 +204,7 @@ def header_table() -> str:
         elif s.kind == "int":
             rule = "integer in [0, 2⁶³−1]"
         else:
-            rule = s.rules_text()
+            rule = rules_text(s)
         rows.append(_row([f"`{s.wire}`", f"`{s.name}`", s.kind, s.unit or "—", _md(s.doc), rule]))
     return "\n".join(rows)
 
@@ -130,10 +227,10 @@ def message_section(cls: type[m.Message]) -> str:
     out += [_row(_HEAD), _row(["---"] * len(_HEAD))]
     wire_of = {s.name: s.wire for s in cls.FIELDS}
     for s in cls.FIELDS:
-        rule = s.rules_text(wire_of)
+        rule = rules_text(s, wire_of)
         if s.choices is not None:
             rule = rule.replace("one of ", "one of (exact case) ")
-        out.append(_row([f"`{s.wire}`", f"`{s.name}`", s.type_text(), s.unit or "—", _md(s.doc), _md(rule)]))
+        out.append(_row([f"`{s.wire}`", f"`{s.name}`", type_text(s), s.unit or "—", _md(s.doc), _md(rule)]))
     return "\n".join(out)
 
 
