@@ -48,3 +48,10 @@ def test_a_message_without_a_section_gets_one_and_an_unknown_placeholder_is_an_e
     assert "### `heartbeat` — `Heartbeat`" in message_page(text)
     with pytest.raises(ValueError, match="placeholder"):
         message_page(text + "\n<!-- generated: message nope -->\n")
+
+
+def test_a_key_without_a_row_in_the_keys_table_fails_the_generation() -> None:
+    text = TEMPLATE.read_text(encoding="utf-8")
+    row = next(line for line in text.splitlines() if line.startswith("| `console/<m>/clutch` |"))
+    with pytest.raises(ValueError, match="console/<m>/clutch"):
+        message_page(text.replace(row + "\n", ""))

@@ -5,7 +5,8 @@
 (:mod:`telesurg.shared.messages`: every field's wire key, type, unit, meaning and decoder rule;
 the header; the schema version and limits) and from the key layout of :mod:`telesurg.shared.keys`.
 Every ``json`` example of the page is decoded by the strict decoder, so an example that no longer
-matches its message fails the generation. tests/test_docs.py fails when the committed page differs
+matches its message fails the generation, and so does a key of the layout in ``shared/keys.py``
+without a row in the page's table of keys. tests/test_docs.py fails when the committed page differs
 from what this writes.
 
 Example::
@@ -244,6 +245,20 @@ def check_examples(page: str) -> None:
             raise ValueError(f"json example {i} of the page does not decode: {exc}\n{block}") from None
 
 
+def _norm_key(key: str) -> str:
+    return re.sub(r"<[^>]*>", "<>", key)
+
+
+def check_keys(page: str) -> None:
+    """Every key of the layout in :mod:`telesurg.shared.keys` must have a row in §2 of the page."""
+    section = page.split("\n## 2. Keys", 1)[-1].split("\n## 3.", 1)[0]
+    rows = {_norm_key(k) for k in re.findall(r"^\| `([^`]+)` \|", section, re.M)}
+    layout = re.findall(r"^ {4}(\S+)\s{2,}\S", keys_module.__doc__ or "", re.M)
+    missing = [k for k in layout if _norm_key(k) not in rows]
+    if missing:
+        raise ValueError(f"template: keys of shared/keys.py without a row in the table of §2: {missing}")
+
+
 def message_page(template: str | None = None) -> str:
     """docs/messages.md as generated from ``template`` (default: messages.template.md)."""
     text = TEMPLATE.read_text(encoding="utf-8") if template is None else template
@@ -286,6 +301,7 @@ def message_page(template: str | None = None) -> str:
     first, _, body = page.partition("\n")
     page = f"{first}\n\n{_NOTICE}\n{body}"
     check_examples(page)
+    check_keys(page)
     return page
 
 
