@@ -53,7 +53,15 @@ from telesurg.services.common import install_stop_handlers, setup_logging
 from telesurg.shared.bus import BusConfig, Node, add_bus_args, bus_from_args
 from telesurg.shared.errors import ConfigError, MessageError, TelesurgError
 from telesurg.shared.keys import Keys, check_id
-from telesurg.shared.messages import MESSAGE_TYPES, SCHEMA_VERSION, Header, Message, decode
+from telesurg.shared.messages import (
+    MAX_STR,
+    MESSAGE_TYPES,
+    SCHEMA_VERSION,
+    FieldSpec,
+    Header,
+    Message,
+    decode,
+)
 from telesurg.shared.streams import SeqTracker
 from telesurg.shared.timing import settle_gc
 
@@ -118,6 +126,29 @@ def _json_type(tp: Any) -> dict[str, Any]:
     raise TypeError(f"no JSON schema for field type {tp!r}")
 
 
+def _json_rules(s: FieldSpec) -> dict[str, Any]:
+    """The decoder's rules of one declared field as JSON-schema keywords."""
+    out: dict[str, Any] = {}
+    if s.kind == "str":
+        if s.choices is not None:
+            out["enum"] = sorted(s.choices)
+        out["maxLength"] = MAX_STR
+        if s.nonempty:
+            out["minLength"] = 1
+        if s.pattern:
+            out["pattern"] = f"^(?:{s.pattern})$"
+    elif s.kind in ("int", "float"):
+        if s.lo is not None:
+            out["exclusiveMinimum" if s.lo_open else "minimum"] = s.lo
+        if s.hi is not None:
+            out["exclusiveMaximum" if s.hi_open else "maximum"] = s.hi
+    elif s.kind in ("floats", "strs", "names"):
+        out["maxItems"] = s.max_len
+        if s.kind == "names":
+            out.update(minItems=1, uniqueItems=True)
+    return out
+
+
 def _docstring_parts(cls: type) -> tuple[str, dict[str, str]]:
     """(first paragraph, {attribute: text}) of a class docstring in Google style."""
     doc = inspect.cleandoc(cls.__doc__ or "")
@@ -168,8 +199,11 @@ def json_schema(cls: type[Message]) -> dict[str, Any]:
         "seq": {"type": "integer", "minimum": 0, "description": "per-stream sequence number"},
         "ts": {"type": "integer", "minimum": 0, "description": "source timestamp, ns since the Unix epoch"},
     }
+    specs = {s.name: s for s in cls.FIELDS}  # declared with fld(): the decoder's rules too
     for wire, name, tp in wire_fields(cls):
         props[wire] = _json_type(tp)
+        if name in specs:
+            props[wire].update(_json_rules(specs[name]))
         if name in attrs:
             props[wire]["description"] = attrs[name]
     return {
