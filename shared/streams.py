@@ -84,6 +84,9 @@ class SeqTracker:
         """Account one number; returns FIRST, NEXT, GAP, LATE, DUPLICATE or RESTART."""
         self.messages += 1
         top = self.top
+        if seq == top + 1 and top >= 0:  # in order: the common case, first
+            self.top = seq
+            return NEXT
         if top < 0:
             self.top = self.first = seq
             return FIRST
@@ -192,13 +195,14 @@ class StreamStats:
 
         ``rx_ns``: when it arrived (monotonic ns; 0 = now), for a message read from a buffer."""
         t = self.seq
-        if source == self.source and t.top >= 0 and seq > t.top + MAX_SEQ_JUMP:
+        if seq > t.top + MAX_SEQ_JUMP and t.top >= 0 and source == self.source:
             if seq != self._jump_to + 1:
                 self._jump_to = seq
                 self.rejected += 1
                 return False
             self.jumps += 1
-        self._jump_to = -1
+        if self._jump_to >= 0:
+            self._jump_to = -1
         if source != self.source:
             if self.source:
                 t.restart()
