@@ -45,6 +45,7 @@ COMMANDS = {
         "telesurg.services.record.replay",
         "replay a recording's master streams into a live site, compare",
     ),
+    "docs": ("telesurg.services.docs", "regenerate (or --check) the docs pages built from the code"),
     "experiment": ("telesurg.services.experiment", "reproduce a paper's evaluation (figures + metrics.json)"),
 }
 

@@ -67,6 +67,7 @@ import serial
 from cobs import cobs  # type: ignore[import-untyped]
 from fastcrc import crc16
 from telesurg.shared.errors import DeviceConnectionError, MessageError
+from telesurg.shared.streams import SeqTracker, seq_distance
 
 #: Version byte of every frame this module writes; frames of other versions are rejected.
 FRAME_VERSION = 1
@@ -124,10 +125,20 @@ def seq_delta(a: int, b: int) -> int:
     """Signed distance from sequence number ``a`` to ``b`` modulo 2**16, in [-32768, 32767].
 
     With ``a`` the last accepted seq and ``b`` a new one: 1 is in order, ``d > 1`` means ``d - 1``
-    frames were lost, ``d <= 0`` means a duplicate or a late (reordered) frame. Wraps correctly:
-    ``seq_delta(65535, 0) == 1``.
+    frames were lost, ``d <= 0`` goes back. Wraps correctly: ``seq_delta(65535, 0) == 1``. The
+    receivers count with :func:`frame_seq_tracker`, which uses the same distance.
     """
-    return ((b - a + 0x8000) & 0xFFFF) - 0x8000
+    return seq_distance(a, b, SEQ_MODULUS)
+
+
+def frame_seq_tracker() -> SeqTracker:
+    """Sequence bookkeeping of one receiving end of a link (the project's one :class:`SeqTracker`).
+
+    16-bit numbers that wrap; a byte stream delivers in order, so a number going back (or
+    repeating) is the sender restarting, and a forward jump is a gap of lost frames. Call
+    ``reset()`` when the port is opened again or a new peer says HELLO: its counter may start
+    anywhere; the counts carry on."""
+    return SeqTracker(modulus=SEQ_MODULUS, reorders=False)
 
 
 def _no_duplicate_keys(pairs: list[tuple[Any, Any]]) -> dict[Any, Any]:

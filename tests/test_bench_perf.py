@@ -40,6 +40,13 @@ def test_bench_sim_and_ik(tmp_path: Path) -> None:
     assert ik["trocar_ik"]["batch_solves_per_s"] > 0 and ik["ik_6axis"]["batch_solves_per_s"] > 0
 
 
+def test_bench_decode(tmp_path: Path) -> None:
+    dec = bench(tmp_path, "decode", "--n", "200", "--repeat", "2")
+    rows = dec["messages"]
+    assert {r["type"] for r in rows.values()} >= {"servo_jp", "pose", "lease", "joint_state"}
+    assert all(r["decode_us"] > 0 and r["encode_us"] > 0 and r["bytes"] > 0 for r in rows.values())
+
+
 @pytest.mark.process
 def test_bench_latency_and_soak(tmp_path: Path) -> None:
     lat = bench(tmp_path, "latency", "--rate", "250", "--seconds", "2", "--blocks", "1")

@@ -447,3 +447,13 @@ def test_undecodable_means_what_the_strict_decoder_rejects(tmp_path: Path) -> No
         summary = rec.close()
     row = summary["master/m1/measured_cp"]
     assert (row["messages"], row["undecodable"], row["sources"]["master_capture"]["messages"]) == (2, 1, 1)
+
+
+def test_schema_carries_the_declared_rules() -> None:
+    lease = json_schema(MESSAGE_TYPES["lease"])["properties"]
+    assert lease["valid_for_ms"]["exclusiveMinimum"] == 0 and lease["valid_for_ms"]["maximum"] == 10_000
+    assert lease["arm"]["minLength"] == 1 and "ms" in lease["valid_for_ms"]["description"]
+    state = json_schema(MESSAGE_TYPES["safety_state"])["properties"]["state"]
+    assert state["enum"] == ["DEGRADED", "ESTOP", "HOLD", "OK"]
+    names = json_schema(MESSAGE_TYPES["servo_jp"])["properties"]["name"]
+    assert (names["minItems"], names["maxItems"], names["uniqueItems"]) == (1, 32, True)

@@ -8,6 +8,7 @@ Subcommands::
     telesurg bench soak --rate 1000 --seconds 60 [--json FILE]
     telesurg bench ik [--n 1000] [--json FILE]
     telesurg bench sim [--seconds 5] [--json FILE]
+    telesurg bench decode [--n 20000] [--json FILE]
 """
 
 from __future__ import annotations
@@ -23,6 +24,7 @@ BENCHES = {
     "soak": ("telesurg.services.bench.perf", "long run: losses per stream, deadline misses, CPU and RSS"),
     "ik": ("telesurg.services.bench.perf", "analytic IK / mapping vs a generic numerical IK"),
     "sim": ("telesurg.services.bench.perf", "MuJoCo steps/s unpaced per robot model"),
+    "decode": ("telesurg.services.bench.decode", "µs per strict decode / encode of the hot messages"),
     "transport": (
         "telesurg.services.bench.transport",
         "zenoh links for a 1 kHz stream under packet loss (root)",

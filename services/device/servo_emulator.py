@@ -34,7 +34,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from telesurg.shared import robots
 from telesurg.shared.errors import MessageError
-from telesurg.shared.serial_link import SEQ_MODULUS, seq_delta
+from telesurg.shared.serial_link import SEQ_MODULUS, frame_seq_tracker
 from telesurg.shared.servo_protocol import (
     FAULT_ESTOP,
     FAULT_FOLLOWING,
@@ -177,7 +177,7 @@ class ServoEmulator:
         self._stalled = False
         self._fault_injected = False
         self._silent_logged = False
-        self._host_seq: int | None = None
+        self._host_seq = frame_seq_tracker()  # the host's frame numbers
         self._rng = random.Random(self.opts.seed)
 
     # ----------------------------------------------------------------- loop
@@ -301,9 +301,8 @@ class ServoEmulator:
         frames = self.port.read_frames()
         self.stats.corrupt += self.port.reader.error_count - before
         for frame in frames:
-            if self._host_seq is not None and seq_delta(self._host_seq, frame.seq) > 1:
-                self.stats.gaps += 1
-            self._host_seq = frame.seq
+            self._host_seq.add(frame.seq)
+            self.stats.gaps = self._host_seq.gaps
             try:
                 msg = decode_message(frame)
             except MessageError as exc:
@@ -315,7 +314,7 @@ class ServoEmulator:
     def _handle(self, msg: ServoMessage, now: float) -> None:
         if isinstance(msg, HelloRequest):
             self.stats.requests += 1
-            self._host_seq = None  # a (new) host: its frame counter may start anywhere
+            self._host_seq.reset()  # a (new) host: its frame counter may start anywhere
             self.send(self.hello)
             self.stats.hellos += 1
         elif isinstance(msg, Enable):

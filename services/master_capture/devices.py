@@ -35,6 +35,7 @@ from telesurg.shared.encoder_protocol import (
     send_message,
 )
 from telesurg.shared.errors import ConfigError, DeviceConnectionError, MessageError
+from telesurg.shared.streams import NEXT
 
 if TYPE_CHECKING:
     from telesurg.shared.serial_link import Frame, SerialLink
@@ -293,7 +294,7 @@ class SerialMasterDevice:
     """
 
     def __init__(self, cfg: SerialMasterConfig) -> None:
-        from telesurg.shared.serial_link import SerialLink, seq_delta
+        from telesurg.shared.serial_link import SerialLink, frame_seq_tracker
 
         cfg.validate()
         self.cfg = cfg
@@ -301,7 +302,6 @@ class SerialMasterDevice:
         self._cal = cfg.calibration
         self._stale_s = cfg.stale_ms / 1000.0
         self._link_cls = SerialLink
-        self._seq_delta = seq_delta
         self._lock = threading.Lock()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
@@ -314,7 +314,7 @@ class SerialMasterDevice:
         self._down: str = "not opened yet"
         self._stats = SerialMasterStats()
         # thread-only state
-        self._last_seq: int | None = None
+        self._rx_seq = frame_seq_tracker()  # the board's frame numbers
         self._closed_frames = 0
         self._closed_corrupt = 0
         self._ever_opened = False
@@ -437,7 +437,7 @@ class SerialMasterDevice:
             link.close()
             self._open_failed(exc)
             return
-        self._last_seq = None
+        self._rx_seq.reset()
         self._logged_hello = None
         self._logged_open_error = None
         with self._lock:
@@ -473,16 +473,10 @@ class SerialMasterDevice:
         self._logged_open_error = None
 
     def _handle(self, frame: Frame) -> None:
-        if self._last_seq is not None:
-            d = self._seq_delta(self._last_seq, frame.seq)
-            if d != 1:
-                with self._lock:
-                    if d > 1:
-                        self._stats.gaps += 1
-                        self._stats.lost += d - 1
-                    else:
-                        self._stats.restarts += 1
-        self._last_seq = frame.seq
+        t = self._rx_seq
+        if t.add(frame.seq) is not NEXT:
+            with self._lock:
+                self._stats.gaps, self._stats.lost, self._stats.restarts = t.gaps, t.lost, t.restarts
         try:
             msg = decode_message(frame)
         except MessageError as exc:

@@ -53,7 +53,16 @@ from telesurg.services.common import install_stop_handlers, setup_logging
 from telesurg.shared.bus import BusConfig, Node, add_bus_args, bus_from_args
 from telesurg.shared.errors import ConfigError, MessageError, TelesurgError
 from telesurg.shared.keys import Keys, check_id
-from telesurg.shared.messages import MESSAGE_TYPES, SCHEMA_VERSION, Header, Message, decode
+from telesurg.shared.messages import (
+    MAX_STR,
+    MESSAGE_TYPES,
+    SCHEMA_VERSION,
+    FieldSpec,
+    Header,
+    Message,
+    decode,
+)
+from telesurg.shared.streams import SeqTracker
 from telesurg.shared.timing import settle_gc
 
 if TYPE_CHECKING:
@@ -67,9 +76,6 @@ SCHEMA_PREFIX = "telesurg."
 SUMMARY_METADATA = "telesurg.summary"
 RECORDING_METADATA = "telesurg.recording"
 COMPRESSIONS = ("zstd", "lz4", "none")
-#: Most missing sequence numbers remembered per stream (to tell a late message from a duplicate);
-#: a gap larger than this is counted but its numbers are not remembered.
-MAX_HOLES = 100_000
 
 
 @dataclass
@@ -118,6 +124,29 @@ def _json_type(tp: Any) -> dict[str, Any]:
             n = len(args)
             return {"type": "array", "items": _json_type(args[0]), "minItems": n, "maxItems": n}
     raise TypeError(f"no JSON schema for field type {tp!r}")
+
+
+def _json_rules(s: FieldSpec) -> dict[str, Any]:
+    """The decoder's rules of one declared field as JSON-schema keywords."""
+    out: dict[str, Any] = {}
+    if s.kind == "str":
+        if s.choices is not None:
+            out["enum"] = sorted(s.choices)
+        out["maxLength"] = MAX_STR
+        if s.nonempty:
+            out["minLength"] = 1
+        if s.pattern:
+            out["pattern"] = f"^(?:{s.pattern})$"
+    elif s.kind in ("int", "float"):
+        if s.lo is not None:
+            out["exclusiveMinimum" if s.lo_open else "minimum"] = s.lo
+        if s.hi is not None:
+            out["exclusiveMaximum" if s.hi_open else "maximum"] = s.hi
+    elif s.kind in ("floats", "strs", "names"):
+        out["maxItems"] = s.max_len
+        if s.kind == "names":
+            out.update(minItems=1, uniqueItems=True)
+    return out
 
 
 def _docstring_parts(cls: type) -> tuple[str, dict[str, str]]:
@@ -170,8 +199,11 @@ def json_schema(cls: type[Message]) -> dict[str, Any]:
         "seq": {"type": "integer", "minimum": 0, "description": "per-stream sequence number"},
         "ts": {"type": "integer", "minimum": 0, "description": "source timestamp, ns since the Unix epoch"},
     }
+    specs = {s.name: s for s in cls.FIELDS}  # declared with fld(): the decoder's rules too
     for wire, name, tp in wire_fields(cls):
         props[wire] = _json_type(tp)
+        if name in specs:
+            props[wire].update(_json_rules(specs[name]))
         if name in attrs:
             props[wire]["description"] = attrs[name]
     return {
@@ -188,62 +220,12 @@ def json_schema(cls: type[Message]) -> dict[str, Any]:
 # --------------------------------------------------------------------------- bookkeeping
 
 
-@dataclass
-class SeqCheck:
-    """Sequence bookkeeping of one (key, source) stream of a recording; nothing is dropped.
-
-    A forward jump is a gap (its numbers count as lost until they arrive late, then they count as
-    reordered); a number seen before is a duplicate; ``seq`` 0 after a higher one is a restart of
-    the publisher (counting starts over).
-    """
-
-    messages: int = 0
-    first: int = -1
-    top: int = -1  # highest seq seen
-    gaps: int = 0
-    lost: int = 0  # numbers skipped and not (yet) seen
-    reordered: int = 0
-    duplicates: int = 0
-    restarts: int = 0
-    holes: set[int] = field(default_factory=set)
-
-    def add(self, seq: int) -> None:
-        """Account one message."""
-        self.messages += 1
-        if self.top < 0 or (seq == 0 and self.top > 0):
-            if self.top >= 0:
-                self.restarts += 1
-                self.holes.clear()
-            self.first = self.top = seq
-            return
-        if seq == self.top + 1:
-            self.top = seq
-        elif seq > self.top:
-            self.gaps += 1
-            missing = seq - self.top - 1
-            self.lost += missing
-            if len(self.holes) + missing <= MAX_HOLES:
-                self.holes.update(range(self.top + 1, seq))
-            self.top = seq
-        elif seq in self.holes:
-            self.holes.discard(seq)
-            self.lost -= 1
-            self.reordered += 1
-        elif seq < self.first:  # older than anything seen: arrived after its successors
-            self.reordered += 1
-        else:
-            self.duplicates += 1
-
-    def counts(self) -> dict[str, int]:
-        """Counters for reports."""
-        return {
-            "messages": self.messages,
-            "gaps": self.gaps,
-            "lost": self.lost,
-            "reordered": self.reordered,
-            "duplicates": self.duplicates,
-            "restarts": self.restarts,
-        }
+#: Sequence bookkeeping of one (key, source) stream of a recording: the project's one
+#: :class:`~telesurg.shared.streams.SeqTracker` (nothing is dropped: a late message fills its gap,
+#: so it counts as reordered and no longer as lost; a number seen before is a duplicate; ``seq`` 0
+#: after a higher one is a restart of the publisher). Up to ``MAX_HOLES`` missing numbers per
+#: stream are remembered (``streams.MAX_HOLES``); a gap larger than that is counted but its numbers are not.
+SeqCheck = SeqTracker
 
 
 @dataclass

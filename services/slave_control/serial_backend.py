@@ -69,6 +69,7 @@ from telesurg.shared.servo_protocol import (
     send_message,
     seq_delta32,
 )
+from telesurg.shared.streams import NEXT
 
 if TYPE_CHECKING:
     from telesurg.services.slave_control import SlaveControlConfig
@@ -218,7 +219,9 @@ class SerialBackend:
         self._deadline = 0.0  # end of the handshake / sync / enabling phase, monotonic s
         self._next_request = 0.0
         self._retry_at = 0.0  # tripped: when to ENABLE again
-        self._last_rx_seq: int | None = None
+        from telesurg.shared.serial_link import frame_seq_tracker
+
+        self._rx_seq = frame_seq_tracker()  # the controller's frame numbers
         self._state: State | None = None
         self._state_at = 0.0  # monotonic s of the last accepted STATE
         self._t_us_last: int | None = None
@@ -459,7 +462,7 @@ class SerialBackend:
             self._set_fault(f"controller port: {exc}; retrying every {self.cfg.reconnect_s:g} s")
             return
         self._link = link
-        self._last_rx_seq = None
+        self._rx_seq.reset()
         self._t_us_last = None
         if self._ever_opened:
             self.stats.reconnects += 1
@@ -542,16 +545,9 @@ class SerialBackend:
                 self._lose(f"serial link to the controller on {self.cfg.port} lost: {exc}", now)
 
     def _handle(self, frame: Frame, now: float) -> None:
-        from telesurg.shared.serial_link import seq_delta
-
-        if self._last_rx_seq is not None:
-            d = seq_delta(self._last_rx_seq, frame.seq)
-            if d > 1:
-                self.stats.gaps += 1
-                self.stats.lost += d - 1
-            elif d <= 0:
-                self.stats.restarts += 1
-        self._last_rx_seq = frame.seq
+        t, s = self._rx_seq, self.stats
+        if t.add(frame.seq) is not NEXT:
+            s.gaps, s.lost, s.restarts = t.gaps, t.lost, t.restarts
         try:
             msg = decode_message(frame)
         except MessageError as exc:
