@@ -52,10 +52,6 @@ ALLOWED_CYCLES: frozenset[tuple[str, ...]] = frozenset(
             "telesurg.services.slave_control.backends",
             "telesurg.services.slave_control.serial_backend",
         ),
-        # not assigned in issue #16 (console is d-teleop's area): the console package runs its
-        # textual app (console/app.py, a lazy import in run()), and the app imports the model,
-        # config and constants from console/__init__.py; a console/model.py both import ends it
-        ("telesurg.services.console", "telesurg.services.console.app"),
     }
 )
 

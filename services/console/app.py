@@ -33,7 +33,14 @@ import time
 from typing import ClassVar
 
 from rich.text import Text
-from telesurg.services.console import JOG_AXES, JOG_FRAMES, ArmState, ConsoleConfig, ConsoleModel, Notice
+from telesurg.services.console.model import (
+    JOG_AXES,
+    JOG_FRAMES,
+    ArmState,
+    ConsoleConfig,
+    ConsoleModel,
+    Notice,
+)
 from textual import on
 from textual.app import App, ComposeResult
 from textual.binding import Binding, BindingType
