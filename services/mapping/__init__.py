@@ -47,7 +47,6 @@ from telesurg.services.mapping.engage import EngageGate
 from telesurg.services.mapping.joints import AllJointsMapping, VipMapping
 from telesurg.services.mapping.master import master_point
 from telesurg.services.mapping.position import PositionMapping
-from telesurg.services.mapping.scale import SCALE_COMMANDS, new_scale
 from telesurg.shared import robots
 from telesurg.shared.bus import BusConfig, Node, Outlet, only
 from telesurg.shared.errors import ConfigError, IKError
@@ -64,7 +63,6 @@ from telesurg.shared.messages import (
     MasterButtons,
     OperatingState,
     SafetyState,
-    Sequencer,
 )
 from telesurg.shared.pairs import parse_pair
 from telesurg.shared.timing import check_rt_priority, start_loop
@@ -168,7 +166,6 @@ class ArmMapping(EngageGate):
         # rotation is r_ms R(q) B) and the slave rotation rs0 (see _set_ref)
         self.ref: tuple[list[float], list[float], np.ndarray, np.ndarray] | None = None
         self.ik_streak = 0
-        self.reply_seq = Sequencer(cfg.service)
         self.last_pose: CartesianPose | None = None  # last master sample mapped while following
         self.last_target: np.ndarray | None = None  # its slave target (4×4)
         # workspace box, m, as floats (the per-sample clamp in _target)
@@ -186,7 +183,7 @@ class ArmMapping(EngageGate):
             if msg.scale == self.safety_scale:
                 return
             old, self.safety_scale = self.safety_scale, msg.scale
-            self._reanchor()
+            self._rescaled()
             self._publish_state()
         self.node.event(
             "scale",
@@ -196,7 +193,7 @@ class ArmMapping(EngageGate):
             severity="warning" if msg.scale < 1.0 else "info",
         )
 
-    def _reanchor(self) -> None:
+    def _rescaled(self) -> None:
         """Re-anchor at the current target: a new scale applies to motion from here on (lock held)."""
         if self.following and self.last_pose is not None and self.last_target is not None:
             lp, lt = self.last_pose, self.last_target
@@ -209,31 +206,7 @@ class ArmMapping(EngageGate):
 
     def on_command(self, cmd: Command) -> CommandReply:
         """``state``, ``scale_up``, ``scale_down``, ``set_scale value=`` (the operator's motion scale)."""
-        with self.lock:
-            old = self.scale
-            ok, reason = True, ""
-            if cmd.arm != self.slave:
-                ok, reason = False, f"{cmd.name} refused: this mapping drives {self.slave}, not {cmd.arm}"
-            elif cmd.name == "state":
-                reason = (
-                    f"scale {self.scale:.3g} (× safety {self.safety_scale:.3g}); {self.state}: {self.reason}"
-                )
-            elif cmd.name in SCALE_COMMANDS:
-                new, reason = new_scale(cmd.name, cmd.arg_map(), self.scale)
-                if new is None:
-                    ok = False
-                else:
-                    self.scale = new
-                    self._reanchor()
-                    self._publish_state()
-                    reason = f"scale {old:.3g} → {new:.3g}"
-            else:
-                valid = "state, scale_up, scale_down, set_scale"
-                ok, reason = False, f"unknown command {cmd.name!r}; valid: {valid}"
-            seq = self.reply_seq.next()
-        if ok and self.scale != old:
-            self.node.event("scale", f"motion scale {reason} (operator)", arm=self.slave)
-        return CommandReply(seq, self.slave, cmd.name, ok, reason)
+        return self.scale_command(cmd, "")
 
     def on_master_pose(self, msg: CartesianPose, key: str) -> None:
         with self.lock:

@@ -42,7 +42,17 @@ import time
 from typing import TYPE_CHECKING
 
 import numpy as np
-from telesurg.shared.messages import JointState, MasterButtons, OperatingState, TeleopState, now_ns
+from telesurg.services.mapping.scale import SCALE_COMMANDS, new_scale
+from telesurg.shared.messages import (
+    Command,
+    CommandReply,
+    JointState,
+    MasterButtons,
+    OperatingState,
+    Sequencer,
+    TeleopState,
+    now_ns,
+)
 
 if TYPE_CHECKING:
     from telesurg.services.mapping import MappingConfig
@@ -90,6 +100,7 @@ class EngageGate:
         self.since_ns = now_ns()
         self.scale = cfg.scale  # operator's motion scale (mapping/<arm>/command changes it)
         self.safety_scale = 1.0  # factor from the watchdog's safety state
+        self.reply_seq = Sequencer(cfg.service)  # replies on mapping/<arm>/command
         self.ik_failures = 0  # samples whose target could not be solved (held)
         self.conflated = 0  # master samples skipped because a newer one had come
         self.clamped = 0  # samples whose target was clamped (workspace or joint limits)
@@ -224,6 +235,39 @@ class EngageGate:
             self.since_ns = now_ns()
         self.reason = reason
         self._publish_state()
+
+    def scale_command(self, cmd: Command, describe: str) -> CommandReply:
+        """Answer ``state``, ``scale_up``, ``scale_down``, ``set_scale value=`` (the operator's motion
+        scale, :mod:`~telesurg.services.mapping.scale`) for every mapping mode: a new scale takes
+        effect through :meth:`_rescaled` (the mode re-anchors, so it makes no jump) and is
+        published in the teleop state at once. ``describe`` leads the ``state`` reply."""
+        with self.lock:
+            old, ok, reason = self.scale, True, ""
+            if cmd.arm != self.slave:
+                ok, reason = False, f"{cmd.name} refused: this mapping drives {self.slave}, not {cmd.arm}"
+            elif cmd.name == "state":
+                reason = (
+                    f"{describe}scale {self.scale:.3g} (× safety {self.safety_scale:.3g}); "
+                    f"{self.state}: {self.reason}"
+                )
+            elif cmd.name in SCALE_COMMANDS:
+                new, reason = new_scale(cmd.name, cmd.arg_map(), self.scale)
+                if new is None:
+                    ok = False
+                else:
+                    self.scale = new
+                    self._rescaled()
+                    self._publish_state()
+                    reason = f"scale {old:.3g} → {new:.3g}"
+            else:
+                ok, reason = False, f"unknown command {cmd.name!r}; valid: state, {', '.join(SCALE_COMMANDS)}"
+            seq = self.reply_seq.next()
+        if ok and self.scale != old:
+            self.node.event("scale", f"motion scale {reason} (operator)", arm=self.slave)
+        return CommandReply(seq, self.slave, cmd.name, ok, reason)
+
+    def _rescaled(self) -> None:
+        """The operator's scale changed (lock held): re-anchor so the new scale makes no jump."""
 
     def _publish_state(self) -> None:
         out = self.state_out

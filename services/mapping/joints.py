@@ -41,7 +41,6 @@ from telesurg.shared.messages import (
     JointSetpoint,
     JointState,
     SafetyState,
-    Sequencer,
 )
 from telesurg.shared.robots import arm_profile
 
@@ -211,7 +210,6 @@ class VipMapping(_JointBase):
         self.V: np.ndarray | None = None  # the virtual incision port, m, world frame
         self.ref: tuple[np.ndarray, np.ndarray] | None = None  # (master point, wrist) at engage
         self.last: tuple[np.ndarray, np.ndarray] | None = None  # last (master point, wrist target)
-        self.reply_seq = Sequencer(cfg.service)
         self.vmax = np.array(self.profile.max_velocity)
         self.t_prev = 0
 

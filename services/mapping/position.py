@@ -29,12 +29,11 @@ from typing import TYPE_CHECKING
 import numpy as np
 from telesurg.services.mapping.joints import _JointBase
 from telesurg.services.mapping.master import master_point
-from telesurg.services.mapping.scale import SCALE_COMMANDS, new_scale
 from telesurg.shared.bus import Node, Outlet
 from telesurg.shared.errors import KinematicsError
 from telesurg.shared.kinematics import quat_from_matrix, solve_position
 from telesurg.shared.kinematics.transforms import rpy_matrix
-from telesurg.shared.messages import CartesianPose, Command, CommandReply, Sequencer
+from telesurg.shared.messages import CartesianPose, Command, CommandReply
 
 if TYPE_CHECKING:
     from telesurg.services.mapping import MappingConfig
@@ -60,7 +59,6 @@ class PositionMapping(_JointBase):
         self.last: tuple[np.ndarray, np.ndarray] | None = None  # last (master point, slave target)
         self.ik_streak = 0
         self.scale = cfg.scale  # operator's motion scale (mapping/<arm>/command changes it)
-        self.reply_seq = Sequencer(cfg.service)
 
     def on_master_pose(self, msg: CartesianPose, key: str) -> None:
         with self.lock:
@@ -71,32 +69,8 @@ class PositionMapping(_JointBase):
         self.work.set()
 
     def on_command(self, cmd: Command) -> CommandReply:
-        """``state``, ``scale_up``, ``scale_down``, ``set_scale value=`` (the operator's motion
-        scale, as the Cartesian mapping's: the steps of ``scale.SCALE_STEPS``, values in (0, 2])."""
-        with self.lock:
-            old, ok, reason = self.scale, True, ""
-            if cmd.arm != self.slave:
-                ok, reason = False, f"{cmd.name} refused: this mapping drives {self.slave}, not {cmd.arm}"
-            elif cmd.name == "state":
-                reason = (
-                    f"position mapping, scale {self.scale:.3g} (× safety {self.safety_scale:.3g}); "
-                    f"{'following' if self.following else 'not following'}"
-                )
-            elif cmd.name in SCALE_COMMANDS:
-                new, reason = new_scale(cmd.name, cmd.arg_map(), self.scale)
-                if new is None:
-                    ok = False
-                else:
-                    self.scale = new
-                    self._rescaled()
-                    reason = f"scale {old:.3g} → {new:.3g}"
-            else:
-                valid = "state, scale_up, scale_down, set_scale"
-                ok, reason = False, f"unknown command {cmd.name!r}; valid: {valid}"
-            seq = self.reply_seq.next()
-        if ok and self.scale != old:
-            self.node.event("scale", f"motion scale {reason} (operator)", arm=self.slave)
-        return CommandReply(seq, self.slave, cmd.name, ok, reason)
+        """``state``, ``scale_up``, ``scale_down``, ``set_scale value=`` (the operator's motion scale)."""
+        return self.scale_command(cmd, "position mapping, ")
 
     # -- logic (lock held)
     def _engaged(self) -> None:
