@@ -122,7 +122,7 @@ def test_setpoint_rules(kind: str) -> None:
 
 
 def _period(core: ArmCore, now: float, q: np.ndarray) -> np.ndarray:
-    r = ArmReading(q, np.zeros_like(q), np.zeros_like(q), core.profile.pose(q))
+    r = ArmReading(q, np.zeros_like(q), np.zeros_like(q), core.profile)
     out = core.control(now, r)
     core.after_period(core.cycle + 1, r)
     return out
@@ -136,7 +136,7 @@ def test_lease_estop_and_engage_rules(kind: str) -> None:
     p = core.profile
     j = _move_joint(p)
     q = np.array(p.home)
-    core.start(ArmReading(q, q * 0, q * 0, p.pose(q)))
+    core.start(ArmReading(q, q * 0, q * 0, p))
     t = 100.0
 
     def lease(allow: bool, valid_ms: float = LEASE_MS, reason: str = "") -> None:
@@ -219,7 +219,7 @@ def test_lease_estop_and_engage_rules(kind: str) -> None:
     run(0.01)
     assert core.ctl.following
     # a backend fault holds like a revoked lease; a new engage after it clears
-    r = ArmReading(q, q * 0, q * 0, p.pose(q), fault="serial link lost")
+    r = ArmReading(q, q * 0, q * 0, p, fault="serial link lost")
     core.control(t, r)
     assert not core.ctl.following and core.ctl.reason == "serial link lost" and core.held.active
     run(0.01)

@@ -151,7 +151,9 @@ def make_arms(cfg: SlaveControlConfig, backend: SlaveBackend) -> list[ArmCore]:
         motion: MotionSource | None = None
         if family == "trocar":
             motion = TrocarMotions(cfg, p, getattr(backend, "push", None))
-        index = np.array([names.index(j) for j in p.model_joints])
+        idx = [names.index(j) for j in p.model_joints]
+        contiguous = idx == list(range(idx[0], idx[0] + len(idx)))
+        index = slice(idx[0], idx[0] + len(idx)) if contiguous else np.array(idx)
         cores.append(ArmCore(p, index, cfg, backend.dt, motion=motion, interpolate=family == "joint"))
     return cores
 

@@ -29,7 +29,6 @@ from telesurg.services.slave_control.teach import (
     playback_problem,
 )
 from telesurg.shared.errors import IKError, KinematicsError
-from telesurg.shared.kinematics import matrix_from_quat
 from telesurg.shared.kinematics.trocar import axis_angle_to_trocar, pose_to_trocar, posture_adjust
 from telesurg.shared.messages import Command
 
@@ -425,7 +424,7 @@ class TrocarMotions:
         RCM error and depth come from the measured tip pose (MuJoCo's tip site); the axis angle
         from the measured joints. The RCM error is kept for ``operating_state``.
         """
-        axis = matrix_from_quat(reading.tip_quat)[:, 0]
+        axis = reading.tip_pose[:3, 0]  # the forceps axis
         rcm, depth = pose_to_trocar(reading.tip_position, axis, self.trocar)
         self.rcm_error_m = rcm
         try:
