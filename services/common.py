@@ -77,6 +77,8 @@ def service_main(
     description: str = "",
 ) -> int:
     """Parse flags into ``config_cls``, then ``run`` until SIGINT/SIGTERM."""
+    from telesurg.shared import robots
+
     parser = argparse.ArgumentParser(prog=f"telesurg {name}", description=description)
     parser.add_argument("--config", metavar="FILE", help="TOML config file")
     parser.add_argument(
@@ -85,9 +87,18 @@ def service_main(
     parser.add_argument("--site", help="site id (key prefix telesurg/<site>)")
     parser.add_argument("--log-level", default="INFO", help="DEBUG, INFO, WARNING, ERROR")
     parser.add_argument("--parent-pid", type=int, help=argparse.SUPPRESS)
+    parser.add_argument(
+        "--plugin",
+        action="append",
+        default=[],
+        metavar="FILE",
+        help="robot plugin: a Python file that registers robots (telesurg.shared.robots); repeatable",
+    )
     add_bus_args(parser)
     args = parser.parse_args(argv)
     try:
+        for plugin in args.plugin:  # before the config: it may name a plugin's robot
+            robots.load_plugin(plugin)
         cfg = load_config(config_cls, args.config, args.set)
         if args.site:
             cfg.site = args.site

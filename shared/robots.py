@@ -1,16 +1,27 @@
-"""Robot profiles: which arms a slave model has and what the services need to know about each.
+"""The robot registry: every slave robot the services can drive, described once and found by name.
 
-One profile per MuJoCo model in ``services/slave_control/models``. slave_control uses it to split
-the model's joints into arms (``slave/<arm>/…`` streams carry the arm's own joint names), the
-watchdog to check setpoints (joint limits, speed limits, workspace by forward kinematics), the
-mapping to pick its IK. Pure and cheap: the kinematics modules are imported on first use.
+A robot is one :class:`RobotSpec` registered under its name (:func:`register`, :func:`get`,
+:func:`names`): its arms (an :class:`ArmProfile` each: joint names, limits, speeds, home, the
+MuJoCo tip site, FK as :meth:`ArmProfile.pose`, the Jacobian, an optional IK), its MuJoCo scene,
+the mapping modes that fit it, its slave motion family and what the mirror draws of it
+(:meth:`RobotSpec.sketch`). Services take the robot from here and never compare robot names:
+slave_control splits the model's joints into arms (``slave/<arm>/…`` streams carry the arm's own
+joint names) and picks its loop by :attr:`RobotSpec.slave_family`; the watchdog checks setpoints
+(limits, speeds, workspace by FK); the mapping checks that its mode fits; the mirror recognises an
+arm by its joint names and draws its sketch; ``device emulate --model`` offers :func:`names`.
+Pure and cheap: the kinematics modules are imported on first use.
+
+Built in (the per-robot maths stays in :mod:`telesurg.shared.kinematics`):
 
 * ``mh3f`` — one MOTOMAN-MH3F class 6-axis arm with straight forceps (Jinno 2014); the arm id is
-  configurable (default ``arm1``), the tip is the forceps tip.
+  configurable (default ``arm1``), the tip is the forceps tip. Slave family ``trocar``.
 * ``plas`` — the two-arm Y-type PLAS slave (Shim 2015), arms ``arm1``/``arm2`` with joints
   ``d1 theta2 theta3 theta4 d5 theta6``; the tip is the arm's tip in the port frame.
 * ``vip`` — two conical-RCM arms with an elbow (Jang 2014), arms ``arm1``/``arm2`` with joints
   ``q1 … q5``; the "tip" is the wrist W (the controlled point), port frame.
+
+More robots come from plugins: :func:`load_plugin` imports a Python file (every service's
+``--plugin FILE``) whose import calls :func:`register`. docs/architecture.md, "Adding a robot".
 
 Frame convention (one for every robot): :meth:`ArmProfile.pose` is the pose ``(4, 4)`` of the
 arm's controlled point in the **world frame of the robot's MuJoCo scene**, equal to the pose of
@@ -24,15 +35,29 @@ frame (the model puts the base at the world origin); for ``plas`` and ``vip`` it
 
 from __future__ import annotations
 
+import importlib.util
+import math
+import pathlib
+import re
+import sys
+import threading
 from collections.abc import Callable
 from dataclasses import dataclass
 from functools import cache
+from typing import NamedTuple
 
 import numpy as np
 import numpy.typing as npt
-from telesurg.shared.errors import ConfigError
+from telesurg.shared.errors import ConfigError, IKError, KinematicsError
 
 FloatArray = npt.NDArray[np.float64]
+
+#: Slave motion families: ``trocar`` — a 6-axis arm with the slave-side motions (trocar modes,
+#: PTP, jog, teach/playback; one arm per process); ``joint`` — joint-space arms (N per process,
+#: setpoints interpolated to the control rate).
+SLAVE_FAMILIES = ("trocar", "joint")
+
+_NAME = re.compile(r"[a-z][a-z0-9_]{0,31}")
 
 
 @dataclass(frozen=True)
@@ -49,6 +74,12 @@ class ArmProfile:
         tip_site: MuJoCo site of the controlled point.
         pose_of: joints ``(n,)`` → pose ``(4, 4)`` of the controlled point (module docstring).
         jacobian_of: joints ``(n,)`` → geometric Jacobian ``(6, n)`` (module docstring).
+        ik_of: optional analytic IK, (target pose ``(4, 4)``, joints to stay near ``(n,)``) →
+            joints ``(n,)``, raising :class:`~telesurg.shared.errors.IKError`; None: no IK.
+
+    Raises:
+        ConfigError: the tuples differ in length, a limit is not finite or ``lower > upper``,
+            a speed is not positive, or ``home`` is outside the limits.
     """
 
     arm: str
@@ -59,8 +90,28 @@ class ArmProfile:
     max_velocity: tuple[float, ...]
     home: tuple[float, ...]
     tip_site: str
-    pose_of: Callable[[np.ndarray], np.ndarray]
-    jacobian_of: Callable[[np.ndarray], np.ndarray]
+    pose_of: Callable[[FloatArray], FloatArray]
+    jacobian_of: Callable[[FloatArray], FloatArray]
+    ik_of: Callable[[FloatArray, FloatArray], FloatArray] | None = None
+
+    def __post_init__(self) -> None:
+        n = len(self.joint_names)
+        what = f"arm {self.arm!r}"
+        if n == 0:
+            raise ConfigError(f"{what} has no joints")
+        fields = ("model_joints", "lower", "upper", "max_velocity", "home")
+        for name in fields:
+            if len(getattr(self, name)) != n:
+                raise ConfigError(f"{what}: {name} has {len(getattr(self, name))} values, not {n}")
+        for j, lo, hi, v, h in zip(
+            self.joint_names, self.lower, self.upper, self.max_velocity, self.home, strict=True
+        ):
+            if not (math.isfinite(lo) and math.isfinite(hi) and lo <= hi):
+                raise ConfigError(f"{what}: joint {j} limits [{lo}, {hi}] must be finite, lower <= upper")
+            if not (math.isfinite(v) and v > 0.0):
+                raise ConfigError(f"{what}: joint {j} max_velocity {v} must be > 0")
+            if not lo <= h <= hi:
+                raise ConfigError(f"{what}: joint {j} home {h} outside [{lo}, {hi}]")
 
     def pose(self, q: npt.ArrayLike) -> FloatArray:
         """Pose ``(4, 4)`` of the controlled point (world frame of the scene, = the tip site)."""
@@ -75,20 +126,217 @@ class ArmProfile:
         out: FloatArray = self.pose(q)[:3, 3].copy()
         return out
 
+    def ik(self, target: npt.ArrayLike, q_near: npt.ArrayLike) -> FloatArray:
+        """Joints placing the controlled point at pose ``target``, nearest ``q_near``.
+
+        Raises:
+            IKError: the arm has no analytic IK, or the target has no valid solution.
+        """
+        if self.ik_of is None:
+            raise IKError(f"arm {self.arm!r} has no analytic IK")
+        T = np.asarray(target, dtype=np.float64)
+        return np.asarray(self.ik_of(T, np.asarray(q_near, dtype=np.float64)), dtype=np.float64)
+
+
+class Sketch(NamedTuple):
+    """What the mirror draws of one slave arm, in the scene's world frame [m].
+
+    ``links`` (N, 3): the kinematic chain; ``forceps`` (M, 3) or None: the instrument (tool
+    segment); ``rcm`` (3,) or None: the mechanism's own remote centre of motion (vip R).
+    """
+
+    links: FloatArray
+    forceps: FloatArray | None
+    rcm: FloatArray | None
+
+
+@dataclass(frozen=True)
+class RobotSpec:
+    """One robot, as the services see it.
+
+    Attributes:
+        name: registry name (the services' ``model`` config key): lowercase letters, digits, ``_``.
+        arms: arm id → the robot's arms. A single-arm robot names its one arm by the id it is
+            given (the slave_control ``arm`` key); a multi-arm robot ignores it.
+        scene: the MuJoCo ``scene.xml`` the ``mujoco`` backend loads (joint names = the arms'
+            ``model_joints``, one position actuator per joint).
+        mapping_modes: the mapping modes (``mapping.mode``) that fit this robot.
+        slave_family: one of :data:`SLAVE_FAMILIES`.
+        sketch: (arm id, joints) → :class:`Sketch`, what the mirror draws.
+        description: one line for listings.
+    """
+
+    name: str
+    arms: Callable[[str], tuple[ArmProfile, ...]]
+    scene: pathlib.Path
+    mapping_modes: tuple[str, ...]
+    slave_family: str
+    sketch: Callable[[str, FloatArray], Sketch]
+    description: str = ""
+
+    def __post_init__(self) -> None:
+        if not _NAME.fullmatch(self.name):
+            raise ConfigError(f"robot name {self.name!r} must match {_NAME.pattern}")
+        if self.slave_family not in SLAVE_FAMILIES:
+            raise ConfigError(
+                f"robot {self.name!r}: slave_family {self.slave_family!r} invalid; "
+                f"valid: {', '.join(SLAVE_FAMILIES)}"
+            )
+        if not self.mapping_modes:
+            raise ConfigError(f"robot {self.name!r} names no mapping mode")
+        if not pathlib.Path(self.scene).is_file():
+            raise ConfigError(f"robot {self.name!r}: scene {self.scene} is not a file")
+
+    def arm(self, arm: str) -> ArmProfile:
+        """The profile of ``arm`` (a single-arm robot takes any arm id).
+
+        Raises:
+            ConfigError: the robot has no arm of that id (the message lists its arms).
+        """
+        with _LOCK:
+            registered = _REGISTRY.get(self.name) is self
+        arms = arms_of(self.name, arm) if registered else self.arms(arm)  # (cached when registered)
+        for a in arms:
+            if a.arm == arm:
+                return a
+        raise ConfigError(
+            f"robot model {self.name!r} has no arm {arm!r}; arms: {', '.join(a.arm for a in arms)}"
+        )
+
+
+_REGISTRY: dict[str, RobotSpec] = {}
+_PLUGINS: dict[pathlib.Path, str] = {}  # resolved plugin path → its module name
+_LOCK = threading.Lock()
+
+
+def register(spec: RobotSpec) -> None:
+    """Add ``spec`` to the registry.
+
+    Raises:
+        ConfigError: another robot of that name is registered already.
+    """
+    with _LOCK:
+        old = _REGISTRY.get(spec.name)
+        if old is not None and old != spec:
+            raise ConfigError(f"robot {spec.name!r} is registered already")
+        _REGISTRY[spec.name] = spec
+        arms_of.cache_clear()
+
+
+def names() -> tuple[str, ...]:
+    """The registered robot names, sorted."""
+    with _LOCK:
+        return tuple(sorted(_REGISTRY))
+
+
+def get(name: str) -> RobotSpec:
+    """The robot registered as ``name``.
+
+    Raises:
+        ConfigError: no such robot; the message lists the valid names.
+    """
+    with _LOCK:
+        spec = _REGISTRY.get(name)
+    if spec is None:
+        raise ConfigError(f"robot model {name!r} unknown; valid: {', '.join(names())}")
+    return spec
+
+
+def load_plugin(path: str) -> None:
+    """Import the Python file ``path``, whose import registers robots (:func:`register`).
+
+    Loading the same file again does nothing.
+
+    Raises:
+        ConfigError: the file does not exist, or importing it failed (the cause is chained).
+    """
+    file = pathlib.Path(path).expanduser().resolve()
+    with _LOCK:
+        if file in _PLUGINS:
+            return
+    if not file.is_file():
+        raise ConfigError(f"robot plugin {path!r}: no such file")
+    module = f"telesurg_plugin_{len(_PLUGINS)}_{re.sub(r'[^0-9A-Za-z_]', '_', file.stem)}"
+    spec = importlib.util.spec_from_file_location(module, file)
+    if spec is None or spec.loader is None:
+        raise ConfigError(f"robot plugin {path!r}: not a Python file")
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules[module] = mod
+    try:
+        spec.loader.exec_module(mod)
+    except Exception as exc:
+        del sys.modules[module]
+        raise ConfigError(f"robot plugin {path!r} failed to load: {type(exc).__name__}: {exc}") from exc
+    with _LOCK:
+        _PLUGINS[file] = module
+
+
+@cache
+def arms_of(model: str, arm: str = "arm1") -> tuple[ArmProfile, ...]:
+    """The arms of ``model`` (``arm``: the id of a single-arm model's arm).
+
+    Raises:
+        ConfigError: unknown model (the message lists the valid ones).
+    """
+    arms = get(model).arms(arm)
+    if not arms:
+        raise ConfigError(f"robot model {model!r} has no arms")
+    return arms
+
+
+def arm_profile(model: str, arm: str) -> ArmProfile:
+    """The profile of ``arm`` in ``model`` (single-arm models take any arm id)."""
+    return get(model).arm(arm)
+
+
+def recognise(arm: str, joint_names: tuple[str, ...]) -> tuple[RobotSpec, ArmProfile] | None:
+    """(robot, profile) of the registered robot whose arm ``arm`` has exactly these joint names.
+
+    The first match in name order, or None.
+    """
+    for name in names():
+        try:
+            profile = get(name).arm(arm)
+        except ConfigError:  # the robot has no arm of that id (plas / vip: arm1, arm2)
+            continue
+        if profile.joint_names == joint_names:
+            return get(name), profile
+    return None
+
+
+# --------------------------------------------------------------------------- built-in robots
+
+#: The built-in models' folder (``services/slave_control/models``, a sibling package of shared in
+#: the checkout and in the installed ``telesurg`` package alike).
+BUILTIN_MODELS = pathlib.Path(__file__).resolve().parent.parent / "services" / "slave_control" / "models"
+
 
 def _mh3f(arm: str) -> tuple[ArmProfile, ...]:
     from telesurg.shared.kinematics import mh3f
 
-    def pose(q: np.ndarray) -> np.ndarray:
-        return mh3f.fk(q, mh3f.MH3F)
+    g = mh3f.MH3F
 
-    def jacobian(q: np.ndarray) -> np.ndarray:
-        return mh3f.jacobian(q, mh3f.MH3F)
+    def pose(q: FloatArray) -> FloatArray:
+        return mh3f.fk(q, g)
+
+    def jacobian(q: FloatArray) -> FloatArray:
+        return mh3f.jacobian(q, g)
+
+    def ik(T: FloatArray, q_near: FloatArray) -> FloatArray:
+        return mh3f.ik(T, q_near, g)
 
     home = (0.0, 0.2, 0.3, 0.0, -0.6, 0.0)
-    g = mh3f.MH3F
     names = g.joint_names
-    return (ArmProfile(arm, names, names, g.lower, g.upper, g.max_velocity, home, "tip", pose, jacobian),)
+    return (ArmProfile(arm, names, names, g.lower, g.upper, g.max_velocity, home, "tip", pose, jacobian, ik),)
+
+
+def _mh3f_sketch(arm: str, q: FloatArray) -> Sketch:
+    """:func:`~telesurg.shared.kinematics.mh3f.fk_frames`: base, J2, J3, J4, wrist centre,
+    flange; the forceps from the flange to its tip (TCP)."""
+    from telesurg.shared.kinematics.mh3f import fk_frames
+
+    frames = fk_frames(q)
+    return Sketch(frames[:6], frames[5:7], None)
 
 
 #: PLAS joint speeds (the thesis gives none): 50 mm/s for the slides, 2 rad/s for the joints.
@@ -97,14 +345,14 @@ PLAS_MAX_VELOCITY = (0.05, 2.0, 2.0, 2.0, 0.05, 2.0)
 VIP_MAX_VELOCITY = (2.0, 2.0, 0.1, 2.0, 2.0)
 
 
-def _plas(arm: str) -> ArmProfile:
+def _plas_arm(arm: str) -> ArmProfile:
     from telesurg.shared.kinematics.plas import PLAS_SLAVE
     from telesurg.shared.kinematics.plas_layout import arm_jacobian, arm_tip_pose
 
-    def pose(q: np.ndarray) -> np.ndarray:
+    def pose(q: FloatArray) -> FloatArray:
         return arm_tip_pose(arm, q)
 
-    def jacobian(q: np.ndarray) -> np.ndarray:
+    def jacobian(q: FloatArray) -> FloatArray:
         return arm_jacobian(arm, q)
 
     names = PLAS_SLAVE.joint_names
@@ -122,15 +370,37 @@ def _plas(arm: str) -> ArmProfile:
     )
 
 
-def _vip(arm: str) -> ArmProfile:
+def _plas_sketch(arm: str, q: FloatArray) -> Sketch:
+    """The DH chain of :class:`~telesurg.shared.kinematics.plas.PlasSlaveGeometry` placed by
+    :func:`~telesurg.shared.kinematics.plas_layout.arm_base`: the shaft channel from the skin down
+    to the arm base, the chain up to the pitch axis; the forceps (pillar) from the pitch axis to
+    the tip (= :func:`~telesurg.shared.kinematics.plas_layout.arm_tip`)."""
+    from telesurg.shared.kinematics.plas import PLAS_SLAVE
+    from telesurg.shared.kinematics.plas_layout import arm_base
+
+    if len(q) != 6:
+        raise KinematicsError(f"plas arm needs 6 joints, got {len(q)}")
+    T = arm_base(arm)
+    skin = T[:3, 3].copy()
+    skin[2] = 0.0  # the channel enters the port at the skin, straight above the arm base
+    points = [skin, T[:3, 3].copy()]
+    for row, qi in zip(PLAS_SLAVE.dh, q, strict=True):
+        T = T @ row.transform(float(qi))
+        if np.linalg.norm(T[:3, 3] - points[-1]) > 1e-9:
+            points.append(T[:3, 3].copy())
+    pts = np.asarray(points)
+    return Sketch(pts[:-1], pts[-2:], None)
+
+
+def _vip_arm(arm: str) -> ArmProfile:
     from telesurg.shared.kinematics import vip
 
     geom = vip.VIP_ARM1 if arm == "arm1" else vip.VIP_ARM2
 
-    def pose(q: np.ndarray) -> np.ndarray:
+    def pose(q: FloatArray) -> FloatArray:
         return vip.fk(q, geom).wrist_frame
 
-    def jacobian(q: np.ndarray) -> np.ndarray:
+    def jacobian(q: FloatArray) -> FloatArray:
         return vip.wrist_jacobian(q, geom)
 
     names = geom.joint_names
@@ -148,25 +418,54 @@ def _vip(arm: str) -> ArmProfile:
     )
 
 
+def _vip_sketch(arm: str, q: FloatArray) -> Sketch:
+    """:func:`telesurg.shared.kinematics.vip.fk`: R–E–W; the RCM is R."""
+    from telesurg.shared.kinematics import vip
+
+    pose = vip.fk(q, vip.VIP_ARM1 if arm == "arm1" else vip.VIP_ARM2)
+    return Sketch(np.stack([pose.rcm, pose.elbow, pose.wrist]), None, pose.rcm)
+
+
+def _two(make: Callable[[str], ArmProfile]) -> Callable[[str], tuple[ArmProfile, ...]]:
+    def arms(arm: str) -> tuple[ArmProfile, ...]:
+        return (make("arm1"), make("arm2"))
+
+    return arms
+
+
+register(
+    RobotSpec(
+        "mh3f",
+        _mh3f,
+        BUILTIN_MODELS / "mh3f" / "scene.xml",
+        ("cartesian", "position"),
+        "trocar",
+        _mh3f_sketch,
+        "MOTOMAN-MH3F class 6-axis arm with straight forceps (Jinno 2014)",
+    )
+)
+register(
+    RobotSpec(
+        "plas",
+        _two(_plas_arm),
+        BUILTIN_MODELS / "plas" / "scene.xml",
+        ("all_joints", "position"),
+        "joint",
+        _plas_sketch,
+        "two-arm Y-type PLAS slave (Shim 2015)",
+    )
+)
+register(
+    RobotSpec(
+        "vip",
+        _two(_vip_arm),
+        BUILTIN_MODELS / "vip" / "scene.xml",
+        ("vip", "position"),
+        "joint",
+        _vip_sketch,
+        "two conical-RCM arms with an elbow, VIP control (Jang 2014)",
+    )
+)
+
+#: The built-in robots (plugins add to :func:`names`).
 MODELS = ("mh3f", "plas", "vip")
-
-
-@cache
-def arms_of(model: str, arm: str = "arm1") -> tuple[ArmProfile, ...]:
-    """The arms of ``model`` (``arm``: the id of a single-arm model's arm)."""
-    if model == "mh3f":
-        return _mh3f(arm)
-    if model == "plas":
-        return (_plas("arm1"), _plas("arm2"))
-    if model == "vip":
-        return (_vip("arm1"), _vip("arm2"))
-    raise ConfigError(f"robot model {model!r} unknown; valid: {', '.join(MODELS)}")
-
-
-def arm_profile(model: str, arm: str) -> ArmProfile:
-    """The profile of ``arm`` in ``model`` (single-arm models take any arm id)."""
-    arms = arms_of(model, arm)
-    for a in arms:
-        if a.arm == arm:
-            return a
-    raise ConfigError(f"robot model {model!r} has no arm {arm!r}; arms: {', '.join(a.arm for a in arms)}")

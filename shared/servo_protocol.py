@@ -498,7 +498,7 @@ class ServoRobot:
     """The robot a host expects behind its servo port: every joint of a model's arms, in order.
 
     Attributes:
-        model: robot model (:data:`telesurg.shared.robots.MODELS`).
+        model: robot model (a name of :func:`telesurg.shared.robots.names`).
         joint_names: the model's joint names (MuJoCo names: ``j1`` … for mh3f, ``arm1_d1`` … for
             the two-arm models), the controller's joint order.
         lower, upper: joint limits, rad / m.

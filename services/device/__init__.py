@@ -4,10 +4,11 @@
 * ``emulate --pty`` — an emulated encoder board on a new pseudo-terminal: prints the device path
   (e.g. ``/dev/pts/7``) as the first line on stdout, then serves HELLO and SAMPLE frames of a
   scripted motion (:mod:`telesurg.services.device.emulator`) until SIGINT/SIGTERM or ``--seconds``.
-* ``emulate-slave --pty --model mh3f|plas|vip`` — an emulated joint-servo controller of a slave
-  arm on a new pseudo-terminal (:mod:`telesurg.services.device.servo_emulator`): prints the device path as
-  the first line on stdout, then serves the servo protocol (HELLO, STATE; follows SETPOINTs with
-  a lag and the speed limits; its own watchdog) with optional injected faults.
+* ``emulate-slave --pty --model mh3f|plas|vip`` (or a robot of a ``--plugin FILE``) — an emulated
+  joint-servo controller of a slave arm on a new pseudo-terminal
+  (:mod:`telesurg.services.device.servo_emulator`): prints the device path as the first line on
+  stdout, then serves the servo protocol (HELLO, STATE; follows SETPOINTs with a lag and the speed
+  limits; its own watchdog) with optional injected faults.
 * ``monitor`` — opens the port of a master_capture config (``serial.*`` keys) and prints the
   board's HELLO, raw readings, calibrated joints and frame counters: for wiring checks and
   calibration.
@@ -107,7 +108,7 @@ def _parser() -> argparse.ArgumentParser:
 
 
 def _slave_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
-    from telesurg.shared.robots import MODELS
+    from telesurg.shared import robots
 
     em = sub.add_parser(
         "emulate-slave",
@@ -117,7 +118,14 @@ def _slave_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> N
     em.add_argument(
         "--pty", action="store_true", help="serve on a new pseudo-terminal pair (the only transport)"
     )
-    em.add_argument("--model", choices=MODELS, default="mh3f", help="robot model (mh3f)")
+    em.add_argument(
+        "--plugin",
+        action="append",
+        default=[],
+        metavar="FILE",
+        help="robot plugin file (registers more robots for --model; repeatable)",
+    )
+    em.add_argument("--model", choices=robots.names(), default="mh3f", help="robot model (mh3f)")
     em.add_argument("--rate", type=float, default=200.0, metavar="HZ", help="STATE rate, Hz (200)")
     em.add_argument("--lag-ms", type=float, default=20.0, metavar="MS", help="servo lag time constant (20)")
     em.add_argument("--seconds", type=float, default=0.0, metavar="S", help="stop after S s (0: never)")
@@ -199,6 +207,16 @@ def _emulate_slave(parser: argparse.ArgumentParser, args: argparse.Namespace, st
 
 def main(argv: Sequence[str] | None = None) -> int:
     """``telesurg device``; exit 0 on a requested stop, 1 on a device error, 2 on bad options."""
+    from telesurg.shared import robots
+
+    pre = argparse.ArgumentParser(add_help=False)  # the plugins first: they add --model choices
+    pre.add_argument("--plugin", action="append", default=[])
+    for path in pre.parse_known_args(argv)[0].plugin:
+        try:
+            robots.load_plugin(path)
+        except TelesurgError as exc:
+            print(f"telesurg device: {exc}", file=sys.stderr)
+            return 2
     parser = _parser()
     args = parser.parse_args(argv)
     setup_logging(args.log_level, "device")

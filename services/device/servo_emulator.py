@@ -32,8 +32,8 @@ import time
 from dataclasses import dataclass, field
 
 import numpy as np
+from telesurg.shared import robots
 from telesurg.shared.errors import MessageError
-from telesurg.shared.robots import MODELS
 from telesurg.shared.serial_link import SEQ_MODULUS, seq_delta
 from telesurg.shared.servo_protocol import (
     FAULT_ESTOP,
@@ -78,7 +78,7 @@ CURRENT_MAX_A = 3.0
 class ServoEmulatorOptions:
     """What the emulated controller drives and which faults it injects (times: s after the first ENABLE)."""
 
-    model: str = "mh3f"  # robot model (shared/robots.py): mh3f, plas, vip
+    model: str = "mh3f"  # robot model, a name in the robot registry (shared/robots.py): mh3f, plas, vip
     rate_hz: float = 200.0  # Hz: STATE rate (and dynamics step)
     lag_ms: float = 20.0  # ms: first-order servo lag time constant
     fault_at: float | None = None  # s: raise `fault` (None: never)
@@ -94,8 +94,7 @@ class ServoEmulatorOptions:
     home: tuple[float, ...] = field(default_factory=tuple)  # start pose (empty: the profiles' home)
 
     def validate(self) -> None:
-        if self.model not in MODELS:
-            raise ValueError(f"model {self.model!r} unknown; valid: {', '.join(MODELS)}")
+        robots.get(self.model)  # ConfigError (a ValueError) naming the registered robots
         if not 1.0 <= self.rate_hz <= 5000.0:
             raise ValueError(f"rate {self.rate_hz} Hz outside [1, 5000]")
         if not 0.0 <= self.lag_ms <= 10_000.0:

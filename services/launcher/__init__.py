@@ -107,6 +107,7 @@ class SiteSpec:
     connect: dict[str, str] = field(default_factory=dict)
     listen: tuple[str, ...] = ()  # more router endpoints, e.g. tls/0.0.0.0:7447 for remote consoles
     router_flags: tuple[str, ...] = ()  # router-only flags: --tls-ca/--tls-cert/--tls-key/--mtls/--acl
+    plugins: tuple[str, ...] = ()  # robot plugin files, passed to every service as --plugin FILE
 
     @property
     def endpoint(self) -> str:
@@ -124,6 +125,8 @@ def service_argv(spec: SiteSpec, name: str) -> list[str]:
         argv += spec.router_flags
     else:
         argv += ["--connect", spec.connect.get(name, spec.endpoint)]
+        for plugin in spec.plugins:
+            argv += ["--plugin", plugin]
     cfg = spec.config_dir / f"{name}.toml" if spec.config_dir else None
     if cfg is not None and cfg.exists():
         argv += ["--config", str(cfg)]
@@ -287,16 +290,28 @@ def add_site_args(parser: argparse.ArgumentParser) -> None:
         default=0.0,
         help="stop after this many seconds (default: run until Ctrl-C)",
     )
+    parser.add_argument(
+        "--plugin",
+        action="append",
+        default=[],
+        metavar="FILE",
+        help="robot plugin file, passed to every service (repeatable)",
+    )
 
 
 def spec_from_args(args: argparse.Namespace, services: Sequence[str]) -> SiteSpec:
-    """SiteSpec from the shared flags."""
+    """SiteSpec from the shared flags (loads the ``--plugin`` files, so a bad one fails here)."""
     overrides: dict[str, list[str]] = {}
     for item in args.set:
         service, dot, rest = item.partition(".")
         if not dot or service not in CLI_NAME:
             raise ConfigError(f"--set {item!r} must start with a service name: {', '.join(CLI_NAME)}")
         overrides.setdefault(service, []).append(rest)
+    from telesurg.shared import robots
+
+    plugins = tuple(str(Path(p).resolve()) for p in args.plugin)
+    for plugin in plugins:  # here too: a bad plugin fails before any service starts
+        robots.load_plugin(plugin)
     port = args.port or free_port(args.host)
     config_dir = args.config_dir if args.config_dir and args.config_dir.is_dir() else None
     return SiteSpec(
@@ -308,6 +323,7 @@ def spec_from_args(args: argparse.Namespace, services: Sequence[str]) -> SiteSpe
         overrides,
         args.log_dir,
         args.log_level,
+        plugins=plugins,
     )
 
 

@@ -43,6 +43,8 @@ import numpy as np
 from telesurg.services.common import service_main
 from telesurg.services.mapping.engage import EngageGate
 from telesurg.services.mapping.joints import AllJointsMapping, VipMapping
+from telesurg.services.mapping.position import PositionMapping
+from telesurg.shared import robots
 from telesurg.shared.bus import BusConfig, Node, Outlet, only
 from telesurg.shared.errors import ConfigError, IKError
 from telesurg.shared.keys import check_id
@@ -65,7 +67,7 @@ from telesurg.shared.timing import check_rt_priority, start_loop
 log = logging.getLogger(__name__)
 ORIENTATION_MODES = ("follow", "fixed")
 MASTER_MODES = ("pen", "virtual_trocar")
-MAPPING_MODES = ("cartesian", "all_joints", "vip")
+MAPPING_MODES = ("cartesian", "all_joints", "vip", "position")
 #: Motion scales the operator steps through with scale_up / scale_down.
 SCALE_STEPS = (0.1, 0.2, 0.3, 0.5, 0.7, 1.0, 1.5, 2.0)
 
@@ -78,9 +80,11 @@ class MappingConfig:
     service: str = "mapping"  # instance id (liveliness alive/<service>, header src)
     pairs: list[str] = field(default_factory=lambda: ["m1:arm1"])  # "master_arm:slave_arm"
     # cartesian: master pose → slave tip (6-axis IK / trocar IK; model mh3f); all_joints: master
-    # joints → slave joints (PLAS, model plas); vip: master pose → wrist, elbow by VIP (model vip)
+    # joints → slave joints (PLAS, model plas); vip: master pose → wrist, elbow by VIP (model vip);
+    # position: master tip increments → slave tip position by damped least squares (any robot);
+    # the robot's registry entry says which modes fit it
     mode: str = "cartesian"
-    model: str = "mh3f"  # slave robot model (shared/robots.py)
+    model: str = "mh3f"  # slave robot model, a name in the robot registry (shared/robots.py)
     all_joints_mode: str = "factor"  # all_joints: factor (Table 6) or tip_exact (DLS Jacobian)
     d1_speed_mm_s: float = 10.0  # all_joints: slave d1 speed while the master's joint-1 switch is on
     vip_ev_mm: float = 50.0  # vip: |EV| of the VIP chosen from the joints (20–50 mm)
@@ -122,9 +126,12 @@ class MappingConfig:
             )
         if self.mode not in MAPPING_MODES:
             raise ConfigError(f"mode {self.mode!r} invalid; valid: {', '.join(MAPPING_MODES)}")
-        want = {"cartesian": "mh3f", "all_joints": "plas", "vip": "vip"}[self.mode]
-        if self.model != want:
-            raise ConfigError(f"mapping mode {self.mode!r} drives model {want!r}, not {self.model!r}")
+        robot = robots.get(self.model)
+        if self.mode not in robot.mapping_modes:
+            raise ConfigError(
+                f"mapping mode {self.mode!r} does not fit robot model {self.model!r}; "
+                f"modes that fit it: {', '.join(robot.mapping_modes)}"
+            )
         if self.all_joints_mode not in ("factor", "tip_exact"):
             raise ConfigError(f"all_joints_mode {self.all_joints_mode!r} invalid; valid: factor, tip_exact")
         if not 20.0 <= self.vip_ev_mm <= 50.0:
@@ -136,7 +143,7 @@ class MappingConfig:
         if any(a >= b for a, b in zip(self.workspace_min_mm, self.workspace_max_mm, strict=True)):
             raise ConfigError("workspace_min_mm must be below workspace_max_mm on every axis")
         for p in self.pairs:
-            parse_pair(p)
+            robot.arm(parse_pair(p)[1])
 
 
 def parse_pair(pair: str) -> tuple[str, str]:
@@ -426,8 +433,14 @@ def run(cfg: MappingConfig, stop: threading.Event) -> None:
                 only(cfg.slave_source),
                 only(cfg.watchdog_source),
             )
-            a: ArmMapping | AllJointsMapping | VipMapping
-            if cfg.mode == "all_joints":
+            a: ArmMapping | AllJointsMapping | VipMapping | PositionMapping
+            if cfg.mode == "position":
+                a = PositionMapping(cfg, node, master, slave, work)
+                node.subscribe(
+                    k.master(master, "measured_cp"), CartesianPose, a.on_master_pose, sources=m_src
+                )
+                node.serve(k.mapping_command(slave), Command, a.on_command)
+            elif cfg.mode == "all_joints":
                 a = AllJointsMapping(cfg, node, master, slave, work)
                 node.subscribe(k.master(master, "measured_js"), JointState, a.on_master_js, sources=m_src)
             elif cfg.mode == "vip":

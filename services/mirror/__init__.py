@@ -5,7 +5,8 @@ and operating state; master poses and buttons; the watchdog's state; events), de
 sample with the strict decoder (malformed payloads are counted and dropped, never drawn) and
 draws: joint series (measured vs setpoint), the tip tracking and RCM errors, latency, tip and
 target trails, each slave arm from its kinematic model (the robot is recognised by the joint names
-of ``measured_js``: mh3f, plas or vip, see :mod:`telesurg.shared.robots`), the trocar / RCM / VIP points,
+of ``measured_js`` among the registered robots and drawn by its registry entry's ``sketch``, see
+:mod:`telesurg.shared.robots`; ``--plugin FILE`` adds robots), the trocar / RCM / VIP points,
 the master tip, mode changes and events. Entity paths and the layout are described in
 :mod:`telesurg.services.mirror.view`; the layout is sent once, when the slave arms are known.
 
@@ -32,7 +33,7 @@ import time
 from collections import deque
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import NamedTuple, cast
+from typing import cast
 
 import numpy as np
 import numpy.typing as npt
@@ -50,6 +51,7 @@ from telesurg.services.mirror.view import (
     safety_path,
     slave_path,
 )
+from telesurg.shared import robots
 from telesurg.shared.bus import BusConfig, Node
 from telesurg.shared.errors import ConfigError, KinematicsError
 from telesurg.shared.messages import (
@@ -63,7 +65,7 @@ from telesurg.shared.messages import (
     SafetyEvent,
     SafetyState,
 )
-from telesurg.shared.robots import MODELS, ArmProfile, arm_profile
+from telesurg.shared.robots import ArmProfile, RobotSpec, Sketch
 from telesurg.shared.timing import CycleTimer, settle_gc
 
 log = logging.getLogger(__name__)
@@ -176,71 +178,18 @@ class Inbox:
 # --------------------------------------------------------------------------- arm sketches
 
 
-class Sketch(NamedTuple):
-    """What is drawn of one slave arm, in the slave's world frame [m].
-
-    ``links`` (N, 3): the kinematic chain; ``forceps`` (M, 3) or None: the instrument;
-    ``rcm`` (3,) or None: the mechanism's own remote centre of motion (vip R).
-    """
-
-    links: npt.NDArray[np.float64]
-    forceps: npt.NDArray[np.float64] | None
-    rcm: npt.NDArray[np.float64] | None
+def recognise(arm: str, names: tuple[str, ...]) -> tuple[RobotSpec, ArmProfile] | None:
+    """(robot, profile) of the registered robot whose arm ``arm`` has exactly these joint names, or None."""
+    return robots.recognise(arm, names)
 
 
-def recognise(arm: str, names: tuple[str, ...]) -> tuple[str, ArmProfile] | None:
-    """(model, profile) of the robot whose arm ``arm`` has exactly these joint names, or None."""
-    for model in MODELS:
-        try:
-            profile = arm_profile(model, arm)
-        except ConfigError:  # the model has no arm of that id (plas / vip: arm1, arm2)
-            continue
-        if profile.joint_names == names:
-            return model, profile
-    return None
-
-
-def sketch(model: str, arm: str, q: npt.NDArray[np.float64]) -> Sketch:
-    """Link points of ``arm`` of ``model`` at joints ``q`` (world frame, m).
-
-    * mh3f (:func:`telesurg.shared.kinematics.fk_frames`): base, J2, J3, J4, wrist centre, flange; the
-      forceps from the flange to its tip (TCP).
-    * vip (:func:`telesurg.shared.kinematics.vip.fk`): R–E–W; the RCM is R.
-    * plas (the DH chain of :class:`~telesurg.shared.kinematics.plas.PlasSlaveGeometry` placed by
-      :func:`~telesurg.shared.kinematics.plas_layout.arm_base`): the shaft channel from the skin down to
-      the arm base, the chain up to the pitch axis; the forceps (pillar) from the pitch axis to
-      the tip (= :func:`~telesurg.shared.kinematics.plas_layout.arm_tip`).
+def sketch(robot: RobotSpec, arm: str, q: npt.NDArray[np.float64]) -> Sketch:
+    """What the robot's registry entry draws of ``arm`` at joints ``q`` (world frame, m).
 
     Raises:
-        KinematicsError / ValueError: ``q`` does not fit the model.
+        KinematicsError / ValueError: ``q`` does not fit the robot.
     """
-    if model == "mh3f":
-        from telesurg.shared.kinematics import fk_frames
-
-        frames = fk_frames(q)
-        return Sketch(frames[:6], frames[5:7], None)
-    if model == "vip":
-        from telesurg.shared.kinematics import vip
-
-        pose = vip.fk(q, vip.VIP_ARM1 if arm == "arm1" else vip.VIP_ARM2)
-        return Sketch(np.stack([pose.rcm, pose.elbow, pose.wrist]), None, pose.rcm)
-    if model == "plas":
-        from telesurg.shared.kinematics.plas import PLAS_SLAVE
-        from telesurg.shared.kinematics.plas_layout import arm_base
-
-        if len(q) != 6:
-            raise KinematicsError(f"plas arm needs 6 joints, got {len(q)}")
-        T = arm_base(arm)
-        skin = T[:3, 3].copy()
-        skin[2] = 0.0  # the channel enters the port at the skin, straight above the arm base
-        points = [skin, T[:3, 3].copy()]
-        for row, qi in zip(PLAS_SLAVE.dh, q, strict=True):
-            T = T @ row.transform(float(qi))
-            if np.linalg.norm(T[:3, 3] - points[-1]) > 1e-9:
-                points.append(T[:3, 3].copy())
-        pts = np.asarray(points)
-        return Sketch(pts[:-1], pts[-2:], None)
-    raise KinematicsError(f"no sketch for robot model {model!r}")
+    return robot.sketch(arm, q)
 
 
 def nearest_on_line(
@@ -329,9 +278,9 @@ class _Trail:
 class _Arm:
     """What the mirror tracks of one slave arm."""
 
-    def __init__(self, names: tuple[str, ...], robot: tuple[str, ArmProfile] | None) -> None:
+    def __init__(self, names: tuple[str, ...], robot: tuple[RobotSpec, ArmProfile] | None) -> None:
         self.names = names
-        self.model = robot[0] if robot else ""
+        self.robot: RobotSpec | None = robot[0] if robot else None
         self.profile: ArmProfile | None = robot[1] if robot else None
         self.q: tuple[int, int, tuple[float, ...]] | None = None  # latest measured (src, rx, q)
         self.q_drawn = -1
@@ -581,12 +530,12 @@ class Mirror:
         )
 
     def _draw_arm(self, arm: str, a: _Arm) -> None:
-        if a.q is None or a.profile is None or a.q_drawn == a.q[0]:
+        if a.q is None or a.profile is None or a.robot is None or a.q_drawn == a.q[0]:
             return
         src, rx, q = a.q
         a.q_drawn = src
         try:
-            s = sketch(a.model, arm, np.asarray(q, np.float64))
+            s = sketch(a.robot, arm, np.asarray(q, np.float64))
         except (KinematicsError, ValueError) as exc:
             self._warn_once(f"fk{arm}", f"{arm}: forward kinematics failed: {exc}")
             return

@@ -47,6 +47,7 @@ from telesurg.services.slave_control.backends import SlaveBackend, SlaveReading
 from telesurg.services.slave_control.factory import make_backend
 from telesurg.services.slave_control.teach import TeachConfig
 from telesurg.services.slave_control.trocar_arm import TrocarMotions
+from telesurg.shared import robots
 from telesurg.shared.bus import BusConfig, Node
 from telesurg.shared.errors import ConfigError
 from telesurg.shared.robots import arms_of
@@ -133,10 +134,11 @@ class SlaveControlConfig:
 
 
 def motion_family(model: str) -> str:
-    """The slave motion family of robot ``model``: ``"trocar"`` (a 6-axis forceps arm with the
-    trocar control modes, PTP, jog, teach/playback: :mod:`.trocar_arm`) or ``"joint"`` (arms that
-    only follow servo_jp, interpolated)."""
-    return "trocar" if len(arms_of(model)) == 1 else "joint"
+    """The slave motion family of robot ``model``, from the robot registry
+    (:attr:`~telesurg.shared.robots.RobotSpec.slave_family`): ``"trocar"`` (a 6-axis forceps arm
+    with the trocar control modes, PTP, jog, teach/playback: :mod:`.trocar_arm`) or ``"joint"``
+    (arms that follow servo_jp only, interpolated to the control rate)."""
+    return robots.get(model).slave_family
 
 
 def make_arms(cfg: SlaveControlConfig, backend: SlaveBackend) -> list[ArmCore]:

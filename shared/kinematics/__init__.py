@@ -1,9 +1,13 @@
-"""Pure-numpy kinematics: SE(3)/SO(3) helpers and the MOTOMAN-MH3F class 6-axis arm.
+"""Pure-numpy kinematics: SE(3)/SO(3) helpers, the arm interface and each robot's own maths.
 
-Units are metres and radians; quaternions are [x, y, z, w]. See :mod:`.mh3f` for the frames
-and the IK derivation and :mod:`.transforms` for the conventions.
+Units are metres and radians; quaternions are [x, y, z, w]. :mod:`.interface` is the one
+interface of every arm (:class:`ArmKinematics`: ``pose``, ``jacobian``, optional ``ik``; the robot
+registry :mod:`telesurg.shared.robots` adapts each robot to it) and a generic position solver;
+the robots' own modules are :mod:`.mh3f` (frames and the IK derivation), :mod:`.trocar`,
+:mod:`.plas` / :mod:`.plas_layout` and :mod:`.vip`; :mod:`.transforms` holds the conventions.
 """
 
+from telesurg.shared.kinematics.interface import ArmKinematics, PositionSolution, solve_position
 from telesurg.shared.kinematics.mh3f import (
     LIMIT_TOL,
     MH3F,
@@ -41,7 +45,9 @@ __all__ = [
     "SHOULDER_SINGULAR_TOL",
     "WRIST_SINGULAR_TOL",
     "ArmGeometry",
+    "ArmKinematics",
     "FloatArray",
+    "PositionSolution",
     "fk",
     "fk_frames",
     "ik",
@@ -58,6 +64,7 @@ __all__ = [
     "rotation_angle_between",
     "rotvec_from_matrix",
     "skew",
+    "solve_position",
     "within_limits",
     "wrist_center",
 ]

@@ -1,23 +1,27 @@
-"""MuJoCo models of the slave arm (MJCF scenes shipped as package data)."""
+"""MuJoCo models of the slave arms (MJCF scenes shipped as package data).
+
+A robot's scene comes from the robot registry (:attr:`telesurg.shared.robots.RobotSpec.scene`:
+the built-in ``mh3f``, ``plas``, ``vip`` in this folder, a plugin's wherever it keeps it); the
+folder also holds models that are not slave robots (``plas_master``, the PLAS master device).
+"""
 
 from __future__ import annotations
 
 import pathlib
 
+from telesurg.shared import robots
+
 _MODELS_DIR = pathlib.Path(__file__).resolve().parent
 
-#: Model names and their scene file, relative to this package.
-_SCENES: dict[str, str] = {
-    "mh3f": "mh3f/scene.xml",
-    "plas": "plas/scene.xml",
+#: Models here that are not registered robots, and their scene file, relative to this package.
+_OTHER_SCENES: dict[str, str] = {
     "plas_master": "plas_master/scene.xml",
-    "vip": "vip/scene.xml",
 }
 
 
 def model_names() -> tuple[str, ...]:
-    """The valid names for :func:`model_path`, sorted."""
-    return tuple(sorted(_SCENES))
+    """The valid names for :func:`model_path` (the registered robots and the other models), sorted."""
+    return tuple(sorted({*robots.names(), *_OTHER_SCENES}))
 
 
 def model_path(name: str) -> pathlib.Path:
@@ -26,8 +30,10 @@ def model_path(name: str) -> pathlib.Path:
     Raises:
         ValueError: ``name`` is not a known model; the message lists the valid names.
     """
+    if name in robots.names():
+        return pathlib.Path(robots.get(name).scene)
     try:
-        relative = _SCENES[name]
+        relative = _OTHER_SCENES[name]
     except KeyError:
         valid = ", ".join(repr(n) for n in model_names())
         raise ValueError(f"unknown model {name!r}; valid names: {valid}") from None

@@ -1,0 +1,144 @@
+"""Position mapping (``mode = "position"``): master tip increments → slave tip position, any robot.
+
+For robots without an analytic IK (and any other robot whose registry entry lists ``position``):
+the master point (``measured_cp``, :func:`~telesurg.services.mapping.master_point`) moves the
+slave's controlled point incrementally,
+``p_slave = p_slave0 + scale · safety · R_ms · (p_master − p_master0)``, anchored at the first
+master sample after an engage (no jump) and re-anchored when the watchdog's safety scale changes.
+The target is solved by damped least squares on the registry's ``pose`` / ``jacobian``
+(:func:`telesurg.shared.kinematics.solve_position`), joint-limit clamped; the orientation is not
+controlled. The clutch rules are the other mappings' (:class:`~telesurg.services.mapping.engage.
+EngageGate`); a joint step larger than ``max_joint_step_rad`` between two samples holds the last
+setpoint (an ``ik_failure`` event, as the Cartesian mapping's branch-flip check); a joint riding
+its limit or a target out of reach is a clamping episode (``clamped`` events, counted).
+
+The target is published as ``slave/<arm>/setpoint_cp`` (frame ``world``: the scene's world frame
+of :mod:`telesurg.shared.robots`) at ``target_hz``, the joints as ``servo_jp`` for every sample.
+The workspace box of the Cartesian mapping (``workspace_*_mm``, the MH3F base frame) does not
+apply; the watchdog's workspace does.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from typing import TYPE_CHECKING
+
+import numpy as np
+from telesurg.services.mapping.joints import _JointBase
+from telesurg.shared.bus import Node, Outlet
+from telesurg.shared.errors import KinematicsError
+from telesurg.shared.kinematics import quat_from_matrix, solve_position
+from telesurg.shared.messages import CartesianPose, Command, CommandReply, Sequencer
+
+if TYPE_CHECKING:
+    from telesurg.services.mapping import MappingConfig
+
+#: [m] a target further than this from what the solver reached counts as out of reach (clamped).
+REACH_TOL = 1e-3
+
+
+class PositionMapping(_JointBase):
+    """Master tip → slave tip position by damped least squares (see the module docstring)."""
+
+    def __init__(
+        self, cfg: MappingConfig, node: Node, master: str, slave: str, work: threading.Event
+    ) -> None:
+        from telesurg.services.mapping import master_point, rpy_matrix
+
+        super().__init__(cfg, node, master, slave, work)
+        self.r_ms = rpy_matrix(cfg.master_to_slave_rpy_deg)
+        self.master_point = master_point
+        self.target_out: Outlet = node.outlet(node.keys.slave(slave, "setpoint_cp"), control=False)
+        self.target_period = 1.0 / cfg.target_hz
+        self.target_next = 0.0
+        self.pending: CartesianPose | None = None
+        self.ref: tuple[np.ndarray, np.ndarray] | None = None  # (master point, slave tip) anchor
+        self.last: tuple[np.ndarray, np.ndarray] | None = None  # last (master point, slave target)
+        self.ik_streak = 0
+        self.reply_seq = Sequencer(cfg.service)
+
+    def on_master_pose(self, msg: CartesianPose, key: str) -> None:
+        with self.lock:
+            if self.pending is not None:
+                self.conflated += 1
+            self.pending = msg
+            self.master_rx = time.monotonic()
+        self.work.set()
+
+    def on_command(self, cmd: Command) -> CommandReply:
+        """``state``: the mode, the motion scale and whether the arm follows."""
+        with self.lock:
+            if cmd.arm != self.slave:
+                ok, reason = False, f"{cmd.name} refused: this mapping drives {self.slave}, not {cmd.arm}"
+            elif cmd.name == "state":
+                ok = True
+                reason = (
+                    f"position mapping, scale {self.cfg.scale:.3g} (× safety {self.safety_scale:.3g}); "
+                    f"{'following' if self.following else 'not following'}"
+                )
+            else:
+                ok, reason = False, f"unknown command {cmd.name!r}; valid: state"
+            seq = self.reply_seq.next()
+        return CommandReply(seq, self.slave, cmd.name, ok, reason)
+
+    # -- logic (lock held)
+    def _engaged(self) -> None:
+        self.ref = self.last = None  # anchored at the next master sample
+        self.ik_streak = 0
+
+    def _rescaled(self) -> None:
+        if self.following and self.last is not None:
+            self.ref = self.last  # the new scale applies from here on (no jump)
+
+    def process(self) -> None:
+        with self.lock:
+            msg, self.pending = self.pending, None
+            if self.want_engage and not self.following:
+                self._try_engage()
+            if msg is None:
+                return
+            if self.following and self.q_cmd is not None:
+                self._follow(msg)
+            self._put(msg.header.stamp_ns)
+
+    def _follow(self, msg: CartesianPose) -> None:
+        assert self.q_cmd is not None
+        pm = self.master_point(self.cfg, msg.position)
+        try:
+            if self.ref is None:
+                self.ref = (pm, self.profile.tip(self.q_cmd))
+            pm0, p0 = self.ref
+            target = p0 + self.cfg.scale * self.safety_scale * (self.r_ms @ (pm - pm0))
+            sol = solve_position(self.profile, self.q_cmd, target, self.lower, self.upper)
+        except (KinematicsError, ValueError, np.linalg.LinAlgError) as exc:
+            self._hold(f"holding last valid setpoint: {exc}")
+            return
+        step = float(np.max(np.abs(sol.q - self.q_cmd)))
+        if step > self.cfg.max_joint_step_rad:
+            self._hold(f"holding last valid setpoint: joint step {step:.3f} > {self.cfg.max_joint_step_rad}")
+            return
+        if self.ik_streak:
+            self.node.event(
+                "ik_recovered", f"target valid again after {self.ik_streak} samples", arm=self.slave
+            )
+            self.ik_streak = 0
+        self.q_cmd = sol.q
+        self.last = (pm, target)
+        why = tuple(self.profile.joint_names[i] for i in sol.clamped)
+        if sol.error > REACH_TOL:
+            why += (f"target out of reach by {sol.error * 1e3:.1f} mm",)
+        self._report_clamp(why)
+        now = time.monotonic()
+        if now >= self.target_next:
+            self.target_next = max(self.target_next + self.target_period, now)
+            rot = quat_from_matrix(self.profile.pose(sol.q)[:3, :3])
+            pos = (float(target[0]), float(target[1]), float(target[2]))
+            quat = (float(rot[0]), float(rot[1]), float(rot[2]), float(rot[3]))
+            self.target_out.put(CartesianPose(self.target_out.header(), "world", pos, quat))
+
+    def _hold(self, text: str) -> None:
+        self.ik_failures += 1
+        self.ik_streak += 1
+        if self.ik_streak == 1:
+            self.node.event("ik_failure", text, arm=self.slave, severity="warning")

@@ -1,0 +1,105 @@
+"""The one kinematics interface of every arm, and a position solver for arms without analytic IK.
+
+Every robot's arm (:class:`telesurg.shared.robots.ArmProfile`) is an :class:`ArmKinematics`:
+``pose(q)`` — the controlled point's pose ``(4, 4)`` in the scene's world frame (the MuJoCo tip
+site), ``jacobian(q)`` — its geometric Jacobian ``(6, n)`` (rows ``v`` then ``ω``, world
+coordinates), and ``ik(target, q_near)`` where the robot has an analytic one (else it raises
+:class:`~telesurg.shared.errors.IKError`). The per-robot maths stays in its own module
+(:mod:`.mh3f`, :mod:`.plas` / :mod:`.plas_layout`, :mod:`.vip`, a plugin's own); the registry
+adapts it to this interface.
+
+:func:`solve_position` moves the controlled point to a target position by damped least squares on
+``pose`` and ``jacobian`` alone, so any registered arm can be driven in Cartesian position (the
+mapping's ``position`` mode).
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple, Protocol
+
+import numpy as np
+import numpy.typing as npt
+from telesurg.shared.errors import KinematicsError
+from telesurg.shared.kinematics.transforms import FloatArray
+
+__all__ = ["DEFAULT_DAMPING", "ArmKinematics", "PositionSolution", "solve_position"]
+
+DEFAULT_DAMPING = 1e-3
+"""[m] damping λ of :func:`solve_position`: ``dq = Jᵀ (J Jᵀ + λ² I)⁻¹ e``."""
+
+
+class ArmKinematics(Protocol):
+    """Forward kinematics, Jacobian and (optional) IK of one arm, one frame convention."""
+
+    def pose(self, q: npt.ArrayLike) -> FloatArray:
+        """Pose ``(4, 4)`` of the controlled point in the scene's world frame."""
+        ...
+
+    def jacobian(self, q: npt.ArrayLike) -> FloatArray:
+        """Geometric Jacobian ``(6, n)`` of :meth:`pose` (rows v then ω, world frame)."""
+        ...
+
+    def ik(self, target: npt.ArrayLike, q_near: npt.ArrayLike) -> FloatArray:
+        """Joints placing the controlled point at ``target`` ``(4, 4)``, nearest ``q_near``;
+        :class:`~telesurg.shared.errors.IKError` if none (or no analytic IK)."""
+        ...
+
+
+class PositionSolution(NamedTuple):
+    """Result of :func:`solve_position`.
+
+    Attributes:
+        q: joints ``(n,)``, inside ``[lower, upper]``.
+        error: [m] distance left between the controlled point at ``q`` and the target.
+        clamped: indices of the joints held at a limit.
+    """
+
+    q: FloatArray
+    error: float
+    clamped: tuple[int, ...]
+
+
+def solve_position(
+    arm: ArmKinematics,
+    q0: npt.ArrayLike,
+    target: npt.ArrayLike,
+    lower: npt.ArrayLike,
+    upper: npt.ArrayLike,
+    *,
+    damping: float = DEFAULT_DAMPING,
+    iterations: int = 5,
+    tol: float = 1e-6,
+) -> PositionSolution:
+    """Joints near ``q0`` that bring the controlled point to ``target`` ``(3,)`` [m, world].
+
+    Damped least squares on the positional rows of the Jacobian, a few Newton steps from ``q0``;
+    each step is clamped into ``[lower, upper]`` and a joint at its limit that the step pushes
+    further out is dropped from the next solve (the others take over its share). An unreachable
+    target gives the nearest joints the steps find (``error`` says how far off).
+
+    Raises:
+        KinematicsError: shapes that do not fit, or values that are not finite.
+    """
+    q = np.array(q0, dtype=np.float64)
+    p = np.asarray(target, dtype=np.float64)
+    lo, hi = np.asarray(lower, dtype=np.float64), np.asarray(upper, dtype=np.float64)
+    if q.ndim != 1 or lo.shape != q.shape or hi.shape != q.shape or p.shape != (3,):
+        raise KinematicsError(
+            f"solve_position: q {q.shape}, lower/upper {lo.shape}/{hi.shape}, target {p.shape}"
+        )
+    if not (np.all(np.isfinite(q)) and np.all(np.isfinite(p)) and damping > 0.0):
+        raise KinematicsError("solve_position: q0 and target must be finite, damping > 0")
+    q = np.clip(q, lo, hi)
+    free = np.ones(q.shape, dtype=bool)
+    e = p - arm.pose(q)[:3, 3]
+    for _ in range(iterations):
+        if float(np.linalg.norm(e)) <= tol:
+            break
+        J = arm.jacobian(q)[:3] * free
+        dq = J.T @ np.linalg.solve(J @ J.T + damping**2 * np.eye(3), e)
+        q_new = np.clip(q + dq, lo, hi)
+        free &= ~(((q_new <= lo) & (dq < 0.0)) | ((q_new >= hi) & (dq > 0.0)))
+        q = q_new
+        e = p - arm.pose(q)[:3, 3]
+    at_limit = np.flatnonzero(((q <= lo) | (q >= hi)) & ~free)
+    return PositionSolution(q, float(np.linalg.norm(e)), tuple(int(i) for i in at_limit))

@@ -1,0 +1,233 @@
+"""A fourth robot from the test tree only (issue #16, acceptance 2).
+
+``tests/robots/tri3`` holds a small 3-DoF arm: its own MJCF scene and a plugin file that registers
+it (FK, Jacobian, no IK; slave family ``joint``, mapping mode ``position``). Every service gets
+``--plugin tests/robots/tri3/tri3.py`` from the launcher (``SiteSpec.plugins`` → ``--plugin``);
+nothing in services/ names the robot. Router, watchdog, slave_control (MuJoCo), mapping
+(``mode = "position"``), mirror (``--save`` .rrd) and master_capture (its scripted 40 mm circle,
+one engage) run as real processes:
+
+* the slave follows: the mapping's setpoints put the tip at the scaled master increments, and the
+  MuJoCo tip follows that commanded path within a few mm;
+* it holds on a watchdog veto: the watchdog's workspace box (checked with the plugin's FK) cuts
+  the circle; past the edge the watchdog holds, the slave stops while the master moves on;
+* the mirror draws it: the .rrd has the arm's links from the plugin's sketch.
+"""
+
+from __future__ import annotations
+
+import json
+import threading
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import pytest
+from telesurg.services.launcher import SERVICES, Site, SiteSpec, free_port
+from telesurg.shared import robots
+from telesurg.shared.bus import BusConfig, Node
+from telesurg.shared.messages import (
+    CartesianPose,
+    JointSetpoint,
+    JointState,
+    SafetyEvent,
+    SafetyState,
+)
+
+pytestmark = pytest.mark.process
+
+TRI3 = Path(__file__).resolve().parent / "robots" / "tri3" / "tri3.py"
+SCALE = 0.5
+#: Workspace box of the watchdog [mm, world]. The tip starts at the home pose (290, 0, 99) mm; the
+#: master engages at 1 s of its 8 s circle (phase π/4), so the slave's 20 mm circle runs from there
+#: down to y = -34 mm: it crosses y = -25 mm about 3.7 s after the engage.
+WS_MIN = (150.0, -25.0, 0.0)
+WS_MAX = (450.0, 100.0, 250.0)
+
+
+@dataclass
+class Log:
+    lock: threading.Lock = field(default_factory=threading.Lock)
+    master: dict[int, np.ndarray] = field(default_factory=dict)  # master stamp ns → position
+    master_t: list[tuple[float, np.ndarray]] = field(default_factory=list)
+    setpoints: list[tuple[float, np.ndarray, bool, int]] = field(default_factory=list)  # t, q, follow, origin
+    tip: list[tuple[float, np.ndarray]] = field(default_factory=list)  # measured_cp
+    js: list[tuple[float, np.ndarray]] = field(default_factory=list)
+    safety: list[tuple[float, str, tuple[str, ...]]] = field(default_factory=list)
+    events: list[tuple[float, str, str, str]] = field(default_factory=list)  # t, source, kind, text
+
+
+def _toml(v: object) -> str:
+    return json.dumps(v)
+
+
+@pytest.fixture(scope="module")
+def run(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[Log, Path, dict[str, int], float]]:
+    robots.load_plugin(str(TRI3))  # for the test's own FK (the services load it from --plugin)
+    out = tmp_path_factory.mktemp("tri3")
+    rrd = out / "tri3.rrd"
+    common = [f"model={_toml('tri3')}", f"pairs={_toml(['m1:arm1'])}"]
+    overrides = {
+        "watchdog": [*common, f"workspace_min_mm={_toml(WS_MIN)}", f"workspace_max_mm={_toml(WS_MAX)}"],
+        "slave_control": [f"model={_toml('tri3')}"],
+        "mapping": [*common, f"mode={_toml('position')}", f"scale={SCALE}"],
+        "master_capture": [
+            "rate_hz=100.0",
+            "scripted.clutch=[[1.0, 15.0]]",  # one engage at 1 s (again at 17 s if that one was refused)
+            "scripted.clutch_repeat_s=16.0",
+        ],
+        "mirror": [f"save={_toml(str(rrd))}"],
+    }
+    spec = SiteSpec(
+        port=free_port(),
+        config_dir=None,  # built-in defaults + the overrides above
+        services=SERVICES,
+        overrides=overrides,
+        log_dir=out / "logs",
+        plugins=(str(TRI3),),
+    )
+    log = Log()
+    t_hold = float("nan")
+    try:
+        with Site(spec) as site, Node(BusConfig(connect=[spec.endpoint]), "local", "tri3_probe") as node:
+            k = node.keys
+
+            def on_master(m: CartesianPose, key: str) -> None:
+                with log.lock:
+                    p = np.array(m.position)
+                    log.master[m.header.stamp_ns] = p
+                    log.master_t.append((time.monotonic(), p))
+
+            def on_sp(m: JointSetpoint, key: str) -> None:
+                with log.lock:
+                    log.setpoints.append((time.monotonic(), np.array(m.position), m.follow, m.origin_ns))
+
+            def on_tip(m: CartesianPose, key: str) -> None:
+                with log.lock:
+                    log.tip.append((time.monotonic(), np.array(m.position)))
+
+            def on_js(m: JointState, key: str) -> None:
+                with log.lock:
+                    log.js.append((time.monotonic(), np.array(m.position)))
+
+            def on_safety(m: SafetyState, key: str) -> None:
+                with log.lock:
+                    log.safety.append((time.monotonic(), m.state, m.causes))
+
+            def on_event(m: SafetyEvent, key: str) -> None:
+                with log.lock:
+                    log.events.append((time.monotonic(), m.header.source, m.kind, m.text))
+
+            node.subscribe(k.master("m1", "measured_cp"), CartesianPose, on_master)
+            node.subscribe(k.slave("arm1", "servo_jp"), JointSetpoint, on_sp)
+            node.subscribe(k.slave("arm1", "measured_cp"), CartesianPose, on_tip)
+            node.subscribe(k.slave("arm1", "measured_js"), JointState, on_js)
+            node.subscribe(k.safety("arm1", "state"), SafetyState, on_safety)
+            node.subscribe(k.events(), SafetyEvent, on_event)
+
+            def first(pred: object, timeout: float) -> float | None:
+                deadline = time.monotonic() + timeout
+                while time.monotonic() < deadline:
+                    with log.lock:
+                        t = pred()  # type: ignore[operator]
+                    if t is not None:
+                        return float(t)
+                    if site.dead():
+                        raise AssertionError(f"a service died: {site.dead()}")
+                    time.sleep(0.05)
+                return None
+
+            t_engage = first(lambda: next((t for t, _, f, _ in log.setpoints if f), None), 45.0)
+            assert t_engage is not None, "the mapping never engaged"
+            t_hold_or_none = first(
+                lambda: next(
+                    (
+                        t
+                        for t, s, c in log.safety
+                        if t > t_engage and s == "HOLD" and "workspace" in " ".join(c)
+                    ),
+                    None,
+                ),
+                15.0,
+            )
+            assert t_hold_or_none is not None, "the watchdog never held on the workspace"
+            t_hold = t_hold_or_none
+            time.sleep(2.5)  # the master moves on; the slave must not
+            codes = site.stop()
+    finally:
+        for f in sorted((out / "logs").glob("*.log")):
+            print(f"--- {f.name}\n{f.read_text()[-3000:]}")
+    yield log, rrd, codes, t_hold
+
+
+def test_slave_follows_the_scaled_master_motion(run: tuple[Log, Path, dict[str, int], float]) -> None:
+    log, _, codes, t_hold = run
+    arm = robots.get("tri3").arm("arm1")
+    follow = [(t, q, o) for t, q, f, o in log.setpoints if f and t < t_hold]
+    assert len(follow) > 100, f"only {len(follow)} followed setpoints"
+    # the mapping: every followed setpoint puts the tip at the scaled master increment since the
+    # engage (paired by the master sample's stamp, origin_ns)
+    _, q0, o0 = follow[0]
+    pm0, tip0 = log.master[o0], arm.tip(q0)
+    err = [
+        np.linalg.norm(arm.tip(q) - tip0 - SCALE * (log.master[o] - pm0))
+        for _, q, o in follow
+        if o in log.master
+    ]
+    assert len(err) > 0.9 * len(follow)
+    print(f"setpoint tip vs scaled master: max {max(err) * 1e3:.3f} mm over {len(err)} samples")
+    assert max(err) < 0.5e-3
+    # the MuJoCo tip follows the commanded path
+    path = np.array([arm.tip(q) for _, q, _ in follow])
+    t0, t1 = follow[0][0] + 0.3, t_hold
+    meas = np.array([p for t, p in log.tip if t0 <= t <= t1])
+    assert len(meas) > 50
+    d = np.min(np.linalg.norm(meas[:, None, :] - path[None, :, :], axis=2), axis=1) * 1e3
+    travel = float(np.ptp(meas, axis=0).max()) * 1e3
+    print(f"measured tip: travel {travel:.1f} mm, distance from the commanded path max {d.max():.2f} mm")
+    assert travel > 15.0
+    assert d.max() < 3.0
+    assert all(c == 0 for c in codes.values()), codes
+
+
+def test_slave_holds_on_the_watchdog_workspace_veto(run: tuple[Log, Path, dict[str, int], float]) -> None:
+    log, _, _, t_hold = run
+    after = np.array([p for t, p in log.tip if t >= t_hold + 0.3])
+    master_after = np.array([p for t, p in log.master_t if t >= t_hold + 0.3])
+    assert len(after) > 50 and len(master_after) > 50
+    slave_motion = float(np.linalg.norm(after - after[0], axis=1).max()) * 1e3
+    master_motion = float(np.linalg.norm(master_after - master_after[0], axis=1).max()) * 1e3
+    print(f"after the veto: master moved {master_motion:.1f} mm, slave {slave_motion:.3f} mm")
+    assert master_motion > 10.0
+    assert slave_motion < 0.5
+    y_min = min(p[1] for _, p in log.tip) * 1e3
+    assert y_min > WS_MIN[1] - 2.0, f"the tip went {WS_MIN[1] - y_min:.1f} mm past the workspace edge"
+    kinds = [(s, k) for t, s, k, _ in log.events if t >= t_hold - 0.5]
+    assert ("mapping", "disengage") in kinds, kinds  # the slave holding ended the engagement
+    assert not any(f for t, _, f, _ in log.setpoints if t > t_hold + 0.5)  # and no follow since
+
+
+def test_mirror_draws_the_arm_from_its_registry_sketch(run: tuple[Log, Path, dict[str, int], float]) -> None:
+    from rerun.chunk import RrdReader
+
+    log, rrd, _, _ = run
+    assert rrd.is_file()
+    rows: list[np.ndarray] = []
+    for c in RrdReader(str(rrd)).stream():
+        if c.entity_path != "/slave/arm1/links":
+            continue
+        batch = c.to_record_batch()
+        if "Points3D:positions" in batch.schema.names:
+            rows += [np.array(r, dtype=float) for r in batch.column("Points3D:positions").to_pylist() if r]
+    assert len(rows) > 20, f"{len(rows)} drawings of the arm"
+    tips = np.array([p for _, p in log.tip])
+    for pts in rows:
+        assert pts.shape == (4, 3)  # base, shoulder, elbow, tip: the plugin's sketch
+        np.testing.assert_allclose(pts[0], (0.0, 0.0, 0.0), atol=1e-9)
+        np.testing.assert_allclose(pts[1], (0.0, 0.0, 0.1), atol=1e-9)
+    # the drawn tip is where the slave's tip was
+    drawn = np.array([pts[3] for pts in rows])
+    d = np.min(np.linalg.norm(drawn[:, None, :] - tips[None, :, :], axis=2), axis=1) * 1e3
+    assert d.max() < 1.0, d.max()

@@ -1,0 +1,147 @@
+"""The generic position mapping (mode "position"): any registered arm, driven by damped least squares
+on its registry pose/Jacobian, with the mapping's clutch rules, joint-limit clamping and step check."""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Iterator
+
+import numpy as np
+import pytest
+from telesurg.services.launcher import free_port
+from telesurg.services.mapping import MappingConfig
+from telesurg.services.mapping.position import PositionMapping
+from telesurg.shared.bus import BusConfig, Node, open_session
+from telesurg.shared.errors import ConfigError
+from telesurg.shared.kinematics import solve_position
+from telesurg.shared.messages import (
+    CartesianPose,
+    Header,
+    JointSetpoint,
+    JointState,
+    MasterButtons,
+    OperatingState,
+    SafetyEvent,
+)
+from telesurg.shared.robots import MODELS, arm_profile, arms_of
+
+H = Header("test", 0, 0)
+
+
+def test_mapping_mode_must_fit_the_robot() -> None:
+    with pytest.raises(ConfigError, match="mode 'cartesian' does not fit robot model 'plas'; modes that fit"):
+        MappingConfig(mode="cartesian", model="plas").validate()
+    with pytest.raises(ConfigError, match="mode 'all_joints' does not fit robot model 'vip'"):
+        MappingConfig(mode="all_joints", model="vip", pairs=["m1:arm1"]).validate()
+    with pytest.raises(ConfigError, match="robot model 'ur5' unknown; valid: mh3f, plas"):
+        MappingConfig(model="ur5").validate()
+    with pytest.raises(ConfigError, match="no arm 'arm3'"):
+        MappingConfig(mode="position", model="plas", pairs=["m1:arm3"]).validate()
+    for model in MODELS:
+        MappingConfig(mode="position", model=model).validate()
+
+
+@pytest.mark.parametrize("model", MODELS)
+def test_solve_position_reaches_nearby_targets(model: str) -> None:
+    rng = np.random.default_rng(3)
+    for p in arms_of(model):
+        lo, hi = np.array(p.lower), np.array(p.upper)
+        mid, half = (lo + hi) / 2, (hi - lo) / 2
+        for _ in range(10):
+            q0 = mid + 0.6 * half * rng.uniform(-1, 1, len(lo))
+            q_goal = np.clip(q0 + 0.05 * half * rng.uniform(-1, 1, len(lo)), lo, hi)
+            target = p.tip(q_goal)
+            sol = solve_position(p, q0, target, lo, hi, iterations=20)
+            assert sol.error < 1e-6, (p.arm, sol)
+            assert np.all(sol.q >= lo) and np.all(sol.q <= hi)
+
+
+def test_solve_position_clamps_at_the_joint_limits() -> None:
+    p = arm_profile("vip", "arm1")
+    lo, hi = np.array(p.lower), np.array(p.upper)
+    q0 = np.array(p.home)
+    far = p.tip(q0) + np.array([0.0, 0.0, 1.0])  # 1 m up the port axis: q3 runs into its limit
+    sol = solve_position(p, q0, far, lo, hi, iterations=50)
+    assert np.all(sol.q >= lo) and np.all(sol.q <= hi)
+    assert 2 in sol.clamped  # q3, the insertion slide
+    assert sol.error > 0.5
+
+
+@pytest.fixture
+def rig() -> Iterator[tuple[PositionMapping, list[JointSetpoint], list[SafetyEvent]]]:
+    ep = f"tcp/127.0.0.1:{free_port()}"
+    router = open_session(BusConfig(mode="router", listen=[ep]))
+    bus = BusConfig(connect=[ep])
+    setpoints: list[JointSetpoint] = []
+    events: list[SafetyEvent] = []
+    try:
+        with Node(bus, "t", "mapping") as node, Node(bus, "t", "probe") as probe:
+            probe.subscribe(
+                probe.keys.slave("arm1", "servo_jp"), JointSetpoint, lambda m, k: setpoints.append(m)
+            )
+            probe.subscribe(probe.keys.events(), SafetyEvent, lambda m, k: events.append(m))
+            time.sleep(0.3)
+            cfg = MappingConfig(mode="position", model="vip", scale=0.5, max_joint_step_rad=0.2)
+            cfg.validate()
+            arm = PositionMapping(cfg, node, "m1", "arm1", threading.Event())
+            names = arm.profile.joint_names
+            arm.on_slave_js(JointState(H, names, arm.profile.home), "")
+            arm.on_slave_state(OperatingState(H, "PAUSED", "joint", False, True, "", 0), "")
+            yield arm, setpoints, events
+    finally:
+        router.close()  # type: ignore[no-untyped-call]
+
+
+def feed(arm: PositionMapping, p: tuple[float, float, float], clutch: bool) -> None:
+    arm.on_buttons(MasterButtons(H, clutch, True), "")
+    arm.on_master_pose(CartesianPose(H, "master", p), "")
+    arm.process()
+
+
+def settle(n: int, store: list[object]) -> None:
+    deadline = time.monotonic() + 3
+    while len(store) < n and time.monotonic() < deadline:
+        time.sleep(0.01)
+
+
+def test_position_mapping_engages_on_a_press_and_moves_the_tip_by_the_scaled_increment(
+    rig: tuple[PositionMapping, list[JointSetpoint], list[SafetyEvent]],
+) -> None:
+    arm, setpoints, events = rig
+    home = np.array(arm.profile.home)
+    feed(arm, (0.1, 0.0, 0.0), clutch=True)  # pedal already down at start: not an engage
+    assert not arm.following
+    feed(arm, (0.1, 0.0, 0.0), clutch=False)
+    feed(arm, (0.1, 0.0, 0.0), clutch=True)  # press edge → engage, anchored here
+    assert arm.following
+    tip0 = arm.profile.tip(home)
+    for i in range(1, 11):  # master +1 mm in x and -0.5 mm in z per sample
+        feed(arm, (0.1 + 0.001 * i, 0.0, -0.0005 * i), clutch=True)
+    settle(13, setpoints)
+    assert [s.follow for s in setpoints[:3]] == [False, False, True]
+    np.testing.assert_allclose(setpoints[2].position, home, atol=1e-12)  # no jump at engage
+    q = np.array(setpoints[12].position)
+    np.testing.assert_allclose(arm.profile.tip(q) - tip0, (0.005, 0.0, -0.0025), atol=1e-5)
+    feed(arm, (0.2, 0.0, 0.0), clutch=False)  # release: the slave holds where it is
+    assert not arm.following
+    settle(2, events)
+    assert [e.kind for e in events][:2] == ["engage", "disengage"]
+
+
+def test_position_mapping_holds_on_a_large_joint_step(
+    rig: tuple[PositionMapping, list[JointSetpoint], list[SafetyEvent]],
+) -> None:
+    arm, _, events = rig
+    feed(arm, (0.0, 0.0, 0.0), clutch=False)
+    feed(arm, (0.0, 0.0, 0.0), clutch=True)
+    assert arm.following
+    q_before = arm.q_cmd.copy() if arm.q_cmd is not None else None
+    feed(arm, (0.2, 0.0, 0.0), clutch=True)  # 100 mm of slave motion in one sample
+    assert arm.ik_failures == 1
+    assert arm.q_cmd is not None and q_before is not None
+    np.testing.assert_allclose(arm.q_cmd, q_before)  # held the last valid setpoint
+    deadline = time.monotonic() + 3
+    while not any(e.kind == "ik_failure" for e in events) and time.monotonic() < deadline:
+        time.sleep(0.01)
+    assert any(e.kind == "ik_failure" and "joint step" in e.text for e in events)
