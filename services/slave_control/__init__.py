@@ -42,7 +42,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from telesurg.services.common import service_main
-from telesurg.services.slave_control.arm import ArmCore, MotionSource
+from telesurg.services.slave_control.arm import REPLAY_MAX_PERIODS, ArmCore, MotionSource
 from telesurg.services.slave_control.backends import SlaveBackend, SlaveReading
 from telesurg.services.slave_control.factory import make_backend
 from telesurg.services.slave_control.teach import TeachConfig
@@ -214,12 +214,15 @@ def run(cfg: SlaveControlConfig, stop: threading.Event) -> None:
                 # is stepped by the periods it missed, so it stays in real time too
                 backend.step(1 + missed)
             else:
-                # a simulation: replay every missed period, each with its own command computed
-                # at its own time (the catch-up rule, arm.py): the physics stays in real time and
-                # the arm on its commanded path, never a jump
-                backend.step(1)
+                # a simulation: replay the missed periods, each with its own command computed at
+                # its own time (the catch-up rule, arm.py): the physics stays in real time and the
+                # arm on its commanded path, never a jump. Only the last REPLAY_MAX_PERIODS are
+                # replayed (bounded work before the next publication); the arm held its command
+                # through the earlier ones, as a real arm would have.
+                held = max(0, missed - REPLAY_MAX_PERIODS)
+                backend.step(1 + held)
                 t_wake = time.monotonic()
-                for late in range(missed, 0, -1):
+                for late in range(missed - held, 0, -1):
                     command(t_wake - late * dt, backend.read())
                     backend.step(1)
             reading = backend.read()

@@ -31,11 +31,13 @@ Rules (one of each, for every arm):
   the joint speed limits per period (scaled as a whole, :func:`~.control.limit_step`).
 * **Catch-up after a stall.** The physics stays in real time and the command never moves more
   than one period's speed-limited step per period of physics. A simulated backend (its physics
-  advances only when stepped) replays every period the loop slept through, one physics step
+  advances only when stepped) replays the periods the loop slept through, one physics step
   each, with the command of that period computed at that period's time (so the arm stays on its
-  commanded path, and the lease and setpoint ages are judged at that time). A real arm lived
-  through the stall by itself holding its last command, so its loop simply goes on from the
-  measured state (its MuJoCo shadow is stepped by the missed periods with that held command).
+  commanded path, and the lease and setpoint ages are judged at that time) — the last
+  :data:`REPLAY_MAX_PERIODS` of them; through the earlier ones of a longer stall it held its
+  command, as a real arm does (this bounds the work between waking and publishing). A real arm
+  lived through the stall by itself holding its last command, so its loop simply goes on from
+  the measured state (its MuJoCo shadow is stepped by the missed periods with that held command).
 * **measured_cp.** The arm's controlled point (the profile's tip: the MH3F forceps tip, the PLAS
   arm tip, the VIP wrist W) as a full pose with a real orientation, from the forward kinematics
   of the measured joints, in the robot's ``base`` frame (the MuJoCo model's world frame, in which
@@ -90,6 +92,9 @@ log = logging.getLogger(__name__)
 
 #: The frame of measured_cp / measured_cf for every arm (see the module doc).
 FRAME = "base"
+#: Missed periods a simulation replays after a stall (the catch-up rule): 20 ms at 1 kHz, at most
+#: ~2 ms of work (a jog's IK included) before the loop publishes again.
+REPLAY_MAX_PERIODS = 20
 
 
 class MotionError(Exception):
