@@ -64,8 +64,6 @@ WRENCH = {"mh3f", "plas", "vip"}
 LEASE_MS, LONG_LEASE_MS = 100.0, 3000.0
 #: s: "at once" on this shared 2-core host (a period is 1-10 ms; scheduling stalls reach 250 ms)
 AT_ONCE_S = 0.6
-#: s: samples this far apart (and a slack) when judging a step against the speed limit
-WINDOW_S, SLACK_S = 0.02, 0.005
 
 
 def _move_joint(p: ArmProfile) -> int:
@@ -259,6 +257,7 @@ class Rig:
         # (t, (its stamp s, q, q̇))
         self.js_stamped: list[tuple[float, tuple[float, np.ndarray, np.ndarray]]] = []
         self.pid = 0  # the slave_control process
+        self.ramp_sent: list[tuple[float, float]] = []  # (t, the moved joint's setpoint) of ramp()
         self.js2: list[tuple[float, np.ndarray]] = []  # the other arm of a two-arm robot
         self.cp: list[tuple[float, CartesianPose]] = []
         self.cf: list[tuple[float, CartesianWrench]] = []
@@ -387,10 +386,12 @@ class Rig:
         assert self.sp is not None
         q0 = self.sp[0].copy()
         n = max(1, round(seconds / 0.01))
+        self.ramp_sent = []
         for i in range(1, n + 1):
             q = q0.copy()
             q[j] += delta * i / n
             self.sp = (q, True)
+            self.ramp_sent.append((time.monotonic(), float(q[j])))
             time.sleep(0.01)
         return q
 
@@ -607,7 +608,8 @@ def test_refuses_a_setpoint_out_of_limits_and_a_jump(rig: Rig) -> None:
     rig.sp = (jump, True)  # a stream of them: each refused, the stream goes stale → hold, no motion
     assert wait(lambda: not rig.following(), 5)
     time.sleep(0.2)
-    assert np.abs(rig.q() - q).max() < 0.005 and rig.rejected() > before + 10
+    # (refused while following; once held, the engage tolerance refuses the engage instead)
+    assert np.abs(rig.q() - q).max() < 0.005 and rig.rejected() >= before + 5
 
 
 @pytest.mark.process
@@ -634,8 +636,7 @@ def test_a_stall_of_the_slave_never_makes_it_jump(rig: Rig) -> None:
     """SIGSTOP of slave_control for 150 ms while it follows a moving setpoint (shorter than the
     serial controller's 250 ms watchdog, longer than the 100 ms lease and setpoint timeouts, which
     a descheduled slave must not hold on): it goes on following, the moved joint's measured speed
-    never exceeds its limit, and between any two measured samples it moved no faster than its
-    speed limit allows (no jump after the stall)."""
+    never exceeds its limit and it never goes past its setpoints (no jump after the stall)."""
     rig.release()
     rig.lease = (True, LEASE_MS, "")
     assert rig.engage()
@@ -660,25 +661,27 @@ def test_a_stall_of_the_slave_never_makes_it_jump(rig: Rig) -> None:
     assert wait(lambda: abs(rig.q()[j] - target[j]) < 0.01, 10), (rig.q(), target)
     assert rig.following(), rig.last_state()
     with rig.lock:
-        samples = [sq for t, sq in rig.js_stamped if t >= t0]
+        received = [(t, sq) for t, sq in rig.js_stamped if t >= t0]
+    samples = [sq for _, sq in received]
+    sent = rig.ramp_sent
     # the moved joint (the others are commanded to stay; the physics of a coupled arm moves them a
     # little, which is not what a jump would be)
     vmax = p.max_velocity[j]
-    # the stamps are publish times, and a stall can hit anywhere in a loop iteration: the sample
-    # published right after it may still show the state before it, the next (a few ms later) the
-    # caught-up one. So the motion is judged between samples at least WINDOW_S apart (plus
-    # SLACK_S): a jump of the 0.06 rad the stall left behind would still exceed it.
-    worst, at = 0.0, 0.0
-    for i, (ta, qa, _) in enumerate(samples):
-        for tb, qb, _ in samples[i + 1 :]:
-            if tb - ta >= WINDOW_S:
-                ratio = abs(qb[j] - qa[j]) / (vmax * (tb - ta + SLACK_S))
-                if ratio > worst:
-                    worst, at = ratio, tb - samples[0][0]
-                break
+    # what the arm did, in its own (physics) time: the measured speed of the moved joint (the
+    # publish stamps cannot judge it: a stall can hit anywhere in a loop iteration, so the sample
+    # published right after it may still show the state from before it) and its path, which must
+    # never go far past the setpoints (a catch-up jump of the 0.06 rad the stall left behind would
+    # overshoot with the position servo)
     speed = max(abs(v[j]) for _, _, v in samples) / vmax
+    beyond = -1.0
+    for t, (_, q, _) in received:  # vs the newest setpoint sent before the sample arrived
+        before = [v for ts, v in sent if ts <= t]
+        if before:
+            beyond = max(beyond, (q[j] - before[-1]) * direction)
     print(
-        f"{rig.kind}: {len(samples)} samples, fastest step {worst:.2f} × its speed limit at {at:.3f} s, "
-        f"measured speed up to {speed:.2f} × the limit"
+        f"{rig.kind}: {len(samples)} samples, measured speed up to {speed:.2f} × the limit, "
+        f"at most {beyond * 1e3:.2f} mrad beyond the setpoints sent"
     )
-    assert len(samples) > 50 and worst < 1.0 and speed < 1.2
+    # the servo may overshoot a little when the catch-up at the speed limit ends (seen: 12 mrad on
+    # the MH3F's wrist); never more than the engage tolerance
+    assert len(samples) > 50 and speed < 1.2 and beyond < 0.02
