@@ -12,7 +12,9 @@ tests, with the same expected results, run against each kind:
 The unit layer drives an :class:`ArmCore` directly (no bus, no process). The process layer
 starts the real ``slave-control`` process on a loopback router; the test plays the watchdog
 (leases, as service ``watchdog``), the mapping (``servo_jp``, as ``mapping``) and the e-stop
-button, and judges what a user sees: ``operating_state`` and the measured joints.
+button, and judges what a user sees: ``operating_state``, the events and the measured streams.
+The one difference between the kinds is a capability, not a rule: ``measured_cf`` comes from
+backends that estimate external joint torques (MuJoCo), not from the serial controller.
 """
 
 from __future__ import annotations
@@ -31,7 +33,7 @@ import numpy as np
 import pytest
 from telesurg.services.launcher import free_port
 from telesurg.services.slave_control import SlaveControlConfig
-from telesurg.services.slave_control.arm import ArmCore, ArmReading, FaultHold
+from telesurg.services.slave_control.arm import ArmCore, ArmReading
 from telesurg.services.slave_control.control import Lease
 from telesurg.shared.bus import BusConfig, Node, Outlet, open_session
 from telesurg.shared.messages import (
@@ -132,7 +134,7 @@ def _period(core: ArmCore, now: float, q: np.ndarray) -> np.ndarray:
 def test_lease_estop_and_engage_rules(kind: str) -> None:
     """The core's decisions on a fake clock: the same for every arm."""
     core = _core(kind)
-    core.interpolate = False  # judged on the raw setpoints here (the process layer interpolates)
+    core.servo.interpolate = False  # judged on the raw setpoints here (the process layer interpolates)
     p = core.profile
     j = _move_joint(p)
     q = np.array(p.home)
@@ -229,10 +231,6 @@ def test_lease_estop_and_engage_rules(kind: str) -> None:
     send(q, True)
     run(0.01)
     assert core.ctl.following
-
-
-def test_fault_hold_is_the_cores() -> None:
-    assert isinstance(_core("mh3f").held, FaultHold)
 
 
 # --------------------------------------------------------------------------- process layer

@@ -47,8 +47,9 @@ Rules (one of each, for every arm):
 
 Motions plug in as :class:`MotionSource`: each period the core asks the arm's slave-side source
 (trocar modes, PTP, jog, teach/playback) whether it is active and, if so, for the commanded
-joints; otherwise the arm follows the master (``servo_jp``, through the
-:class:`~.control.SetpointInterpolator` for arms fed sparse setpoints).
+joints; otherwise the arm follows the master through its default source, :class:`ServoFollow`
+(``servo_jp``, through the :class:`~.control.SetpointInterpolator` for arms fed sparse
+setpoints: the VIP/PLAS consoles at 25 Hz).
 """
 
 from __future__ import annotations
@@ -214,6 +215,32 @@ class MotionSource(Protocol):
 
 
 @dataclass
+class ServoFollow:
+    """Master–slave following, the arm's default motion source: the reference is the newest
+    accepted ``servo_jp`` — or, for an arm fed sparse setpoints (``interpolate``: the joint-space
+    family, a console at 25 Hz), the :class:`~.control.SetpointInterpolator`'s smooth 1 kHz
+    replay of them. The core's follow/engage rule (:class:`~.control.FollowController`) decides
+    whether the arm follows it."""
+
+    interpolate: bool
+    interp: SetpointInterpolator
+    _last_follow: bool = False
+
+    def reference(self, sp: Setpoint | None, fresh: bool, now: float) -> Setpoint | None:
+        """The setpoint to follow at time ``now`` (``fresh``: ``sp`` arrived since the last call)."""
+        if not self.interpolate or sp is None:
+            return sp
+        if fresh:
+            if sp.follow and not self._last_follow:
+                self.interp.reset()  # a new engage starts a new timeline (no jump)
+            self.interp.push(sp.position, sp.source_time, sp.received)
+            self._last_follow = sp.follow
+        if sp.follow and (ref := self.interp.sample(now)) is not None:
+            return Setpoint(ref, True, sp.received, sp.cycle)
+        return sp
+
+
+@dataclass
 class FaultHold:
     """What an arm does while its backend reports a fault (``SlaveReading.fault``).
 
@@ -312,11 +339,10 @@ class ArmCore:
     following: bool = False  # mirrors the controller (set by the control loop)
     held: FaultHold = field(default_factory=FaultHold)
     ctl: FollowController = field(init=False)
-    interp: SetpointInterpolator = field(init=False)
+    servo: ServoFollow = field(init=False)
     outlets: dict[str, Outlet] = field(default_factory=dict)
     reading: ArmReading | None = None  # last reading (set by the loop)
     q_cmd: np.ndarray = field(init=False)  # last command (set by the loop)
-    _last_follow: bool = False
     _last_state: tuple[object, ...] | None = None
     _reply_seq: Sequencer = field(init=False)
     _applied: np.ndarray | None = None
@@ -330,7 +356,7 @@ class ArmCore:
             setpoint_timeout=cfg.setpoint_timeout_ms / 1e3,
             engage_tolerance=cfg.engage_tolerance_rad,
         )
-        self.interp = SetpointInterpolator(max_period=cfg.interpolation_max_ms / 1e3)
+        self.servo = ServoFollow(self.interpolate, SetpointInterpolator(cfg.interpolation_max_ms / 1e3))
         self.q_cmd = np.array(p.home, dtype=float)
         self._lower, self._upper = tuple(p.lower), tuple(p.upper)
         self._vmax = np.array(p.max_velocity)
@@ -493,21 +519,10 @@ class ArmCore:
             if blocked:
                 ctl.pause(q_meas, blocked)
                 sp = None
-            if self.interpolate and sp is not None:
-                sp = self._interpolated(sp, fresh, now)
+            sp = self.servo.reference(sp, fresh, now)
             out = ctl.update(now, q_meas, q_cmd, lease, sp, self.dt, self.cycle)
         self.q_cmd = out
         return out
-
-    def _interpolated(self, sp: Setpoint, fresh: bool, now: float) -> Setpoint:
-        if fresh:
-            if sp.follow and not self._last_follow:
-                self.interp.reset()  # a new engage starts a new timeline (no jump)
-            self.interp.push(sp.position, sp.source_time, sp.received)
-            self._last_follow = sp.follow
-        if sp.follow and (ref := self.interp.sample(now)) is not None:
-            return Setpoint(ref, True, sp.received, sp.cycle)
-        return sp
 
     def _internal(self, motion: MotionSource, lease: Lease, now: float, reading: ArmReading) -> np.ndarray:
         """One period of a slave-side motion, only under a valid lease."""
