@@ -8,15 +8,7 @@ import numpy as np
 import pytest
 from telesurg.shared.errors import IKError, KinematicsError
 from telesurg.shared.kinematics import (
-    MH3F,
-    MH3F_NO_TOOL,
-    ArmGeometry,
     FloatArray,
-    fk,
-    fk_frames,
-    ik,
-    ik_all,
-    jacobian,
     make_transform,
     matrix_from_quat,
     matrix_from_rotvec,
@@ -27,6 +19,16 @@ from telesurg.shared.kinematics import (
     rot_z,
     rotation_angle_between,
     rotvec_from_matrix,
+)
+from telesurg.shared.kinematics.mh3f import (
+    MH3F,
+    MH3F_NO_TOOL,
+    ArmGeometry,
+    fk,
+    fk_frames,
+    ik,
+    ik_all,
+    jacobian,
     within_limits,
     wrist_center,
 )

@@ -13,7 +13,7 @@ from telesurg.services.mapping import ArmMapping, MappingConfig, master_point
 from telesurg.services.mapping.joints import AllJointsMapping
 from telesurg.shared.bus import BusConfig, Node, open_session
 from telesurg.shared.errors import ConfigError
-from telesurg.shared.kinematics import MH3F, fk
+from telesurg.shared.kinematics.mh3f import MH3F, fk
 from telesurg.shared.messages import (
     CartesianPose,
     Header,

@@ -17,6 +17,7 @@ from telesurg.shared.errors import ConfigError
 from telesurg.shared.kinematics import solve_position
 from telesurg.shared.messages import (
     CartesianPose,
+    Command,
     Header,
     JointSetpoint,
     JointState,
@@ -145,3 +146,23 @@ def test_position_mapping_holds_on_a_large_joint_step(
     while not any(e.kind == "ik_failure" for e in events) and time.monotonic() < deadline:
         time.sleep(0.01)
     assert any(e.kind == "ik_failure" and "joint step" in e.text for e in events)
+
+
+def test_operator_scale_commands_rescale_the_motion_without_a_jump(
+    rig: tuple[PositionMapping, list[JointSetpoint], list[SafetyEvent]],
+) -> None:
+    arm, _, _ = rig
+    feed(arm, (0.0, 0.0, 0.0), clutch=False)
+    feed(arm, (0.0, 0.0, 0.0), clutch=True)
+    feed(arm, (0.004, 0.0, 0.0), clutch=True)  # anchor at 0, then +4 mm → +2 mm at scale 0.5
+    assert arm.q_cmd is not None
+    tip_a = arm.profile.tip(arm.q_cmd)
+    r = arm.on_command(Command(H, "arm1", "scale_up", ()))
+    assert r.accepted and r.reason == "scale 0.5 → 0.7"
+    feed(arm, (0.004, 0.0, 0.0), clutch=True)  # the same master point: no jump at the new scale
+    np.testing.assert_allclose(arm.profile.tip(arm.q_cmd), tip_a, atol=1e-6)
+    feed(arm, (0.008, 0.0, 0.0), clutch=True)  # +4 mm more → +2.8 mm at 0.7
+    np.testing.assert_allclose(arm.profile.tip(arm.q_cmd) - tip_a, (0.0028, 0.0, 0.0), atol=1e-6)
+    assert not arm.on_command(Command(H, "arm1", "set_scale", ("value=5",))).accepted
+    assert not arm.on_command(Command(H, "arm2", "state", ())).accepted
+    assert "scale 0.7" in arm.on_command(Command(H, "arm1", "state", ())).reason

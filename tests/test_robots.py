@@ -83,3 +83,13 @@ def test_only_mh3f_has_an_analytic_pose_ik() -> None:
     np.testing.assert_allclose(p.ik(p.pose(q), q + 0.01), q, atol=1e-9)
     with pytest.raises(IKError, match="no analytic IK"):
         arm_profile("plas", "arm1").ik(np.eye(4), np.zeros(6))
+
+
+def test_recognise_an_arm_by_its_joint_names() -> None:
+    vip = arm_profile("vip", "arm2")
+    found = robots.recognise("arm2", vip.joint_names)
+    assert found is not None and found[0].name == "vip" and found[1] == vip
+    assert robots.recognise("arm3", vip.joint_names) is None  # vip has no arm3
+    found = robots.recognise("left", arm_profile("mh3f", "arm1").joint_names)
+    assert found is not None and found[0].name == "mh3f" and found[1].arm == "left"
+    assert robots.recognise("arm1", ("a", "b")) is None

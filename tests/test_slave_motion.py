@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from telesurg.services.slave_control.motion import PtpMotion, jog_step, ptp_duration
 from telesurg.shared.errors import IKError
-from telesurg.shared.kinematics import MH3F, fk
+from telesurg.shared.kinematics.mh3f import MH3F, fk
 from telesurg.shared.kinematics.trocar import forceps_roll, posture_adjust, rcm_error, trocar_ik
 
 TROCAR = np.array([0.5, 0.0, 0.2])

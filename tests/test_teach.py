@@ -18,7 +18,7 @@ from telesurg.services.slave_control.teach import (
     playback_problem,
 )
 from telesurg.shared.errors import ConfigError, IKError
-from telesurg.shared.kinematics import MH3F, fk
+from telesurg.shared.kinematics.mh3f import MH3F, fk
 from telesurg.shared.kinematics.trocar import insertion_depth, posture_adjust, rcm_error, trocar_ik
 
 TROCAR = np.array([0.5, 0.0, 0.2])

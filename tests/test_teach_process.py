@@ -17,7 +17,7 @@ import pytest
 from telesurg.services.bench.harness import Pipeline
 from telesurg.services.experiment.client import ArmClient
 from telesurg.shared.bus import BusConfig, Node
-from telesurg.shared.kinematics import MH3F, jacobian, wrist_center
+from telesurg.shared.kinematics.mh3f import MH3F, jacobian, wrist_center
 from telesurg.shared.kinematics.trocar import posture_adjust
 
 pytestmark = pytest.mark.process

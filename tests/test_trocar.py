@@ -8,18 +8,8 @@ import time
 import numpy as np
 import pytest
 from telesurg.shared.errors import IKError, KinematicsError
-from telesurg.shared.kinematics import (
-    MH3F,
-    FloatArray,
-    fk,
-    ik,
-    ik_all,
-    rot_x,
-    rot_y,
-    rot_z,
-    within_limits,
-    wrist_center,
-)
+from telesurg.shared.kinematics import FloatArray, rot_x, rot_y, rot_z
+from telesurg.shared.kinematics.mh3f import MH3F, fk, ik, ik_all, within_limits, wrist_center
 from telesurg.shared.kinematics.trocar import (
     STRAIGHT_FORCEPS,
     TROCAR_MODE_DEPTH,

@@ -325,9 +325,10 @@ def _time_batch(fn: Callable[[], Any], min_s: float = 0.3) -> float:
 
 def ik(a: argparse.Namespace) -> dict[str, Any]:
     from telesurg.shared.errors import IKError
-    from telesurg.shared.kinematics import MH3F, fk, plas, vip
-    from telesurg.shared.kinematics import ik as ik6
+    from telesurg.shared.kinematics import plas, vip
     from telesurg.shared.kinematics.batch import ik_batch, trocar_ik_batch
+    from telesurg.shared.kinematics.mh3f import MH3F, fk
+    from telesurg.shared.kinematics.mh3f import ik as ik6
     from telesurg.shared.kinematics.trocar import posture_adjust, rcm_error, trocar_ik
 
     rng = np.random.default_rng(0)
@@ -429,7 +430,7 @@ def _mink_baseline(tips: list[np.ndarray], trocar: np.ndarray, q0: np.ndarray, n
             "note": "generic IK skipped: pip install -e '.[bench]' for mink",
         }
     from telesurg.services.slave_control.models import model_path
-    from telesurg.shared.kinematics import MH3F, fk
+    from telesurg.shared.kinematics.mh3f import MH3F, fk
     from telesurg.shared.kinematics.trocar import rcm_error
 
     model = mujoco.MjModel.from_xml_path(str(model_path("mh3f")))

@@ -33,7 +33,7 @@ from typing import Any
 import numpy as np
 from telesurg.services.experiment.client import ArmClient
 from telesurg.shared.bus import BusConfig, Node
-from telesurg.shared.kinematics import MH3F, fk, jacobian
+from telesurg.shared.kinematics.mh3f import MH3F, fk, jacobian
 from telesurg.shared.kinematics.trocar import posture_adjust
 from telesurg.shared.messages import CartesianPose, MasterButtons
 

@@ -48,7 +48,8 @@ from telesurg.shared import robots
 from telesurg.shared.bus import BusConfig, Node, Outlet, only
 from telesurg.shared.errors import ConfigError, IKError
 from telesurg.shared.keys import check_id
-from telesurg.shared.kinematics import MH3F, fk, ik, matrix_from_quat, quat_from_matrix
+from telesurg.shared.kinematics import matrix_from_quat, quat_from_matrix
+from telesurg.shared.kinematics.mh3f import MH3F, fk, ik
 from telesurg.shared.kinematics.transforms import rot_x, rot_y, rot_z
 from telesurg.shared.kinematics.trocar import trocar_ik
 from telesurg.shared.messages import (

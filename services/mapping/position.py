@@ -4,7 +4,9 @@ For robots without an analytic IK (and any other robot whose registry entry list
 the master point (``measured_cp``, :func:`~telesurg.services.mapping.master_point`) moves the
 slave's controlled point incrementally,
 ``p_slave = p_slave0 + scale · safety · R_ms · (p_master − p_master0)``, anchored at the first
-master sample after an engage (no jump) and re-anchored when the watchdog's safety scale changes.
+master sample after an engage (no jump) and re-anchored when the watchdog's safety scale or the
+operator's scale (``scale_up`` / ``scale_down`` / ``set_scale`` on ``mapping/<arm>/command``)
+changes.
 The target is solved by damped least squares on the registry's ``pose`` / ``jacobian``
 (:func:`telesurg.shared.kinematics.solve_position`), joint-limit clamped; the orientation is not
 controlled. The clutch rules are the other mappings' (:class:`~telesurg.services.mapping.engage.
@@ -56,6 +58,7 @@ class PositionMapping(_JointBase):
         self.ref: tuple[np.ndarray, np.ndarray] | None = None  # (master point, slave tip) anchor
         self.last: tuple[np.ndarray, np.ndarray] | None = None  # last (master point, slave target)
         self.ik_streak = 0
+        self.scale = cfg.scale  # operator's motion scale (mapping/<arm>/command changes it)
         self.reply_seq = Sequencer(cfg.service)
 
     def on_master_pose(self, msg: CartesianPose, key: str) -> None:
@@ -67,19 +70,41 @@ class PositionMapping(_JointBase):
         self.work.set()
 
     def on_command(self, cmd: Command) -> CommandReply:
-        """``state``: the mode, the motion scale and whether the arm follows."""
+        """``state``, ``scale_up``, ``scale_down``, ``set_scale value=`` (the operator's motion
+        scale, as the Cartesian mapping's: the steps of ``SCALE_STEPS``, values in (0, 2])."""
+        from telesurg.services.mapping import SCALE_STEPS
+
         with self.lock:
+            old, ok, reason = self.scale, True, ""
             if cmd.arm != self.slave:
                 ok, reason = False, f"{cmd.name} refused: this mapping drives {self.slave}, not {cmd.arm}"
             elif cmd.name == "state":
-                ok = True
                 reason = (
-                    f"position mapping, scale {self.cfg.scale:.3g} (× safety {self.safety_scale:.3g}); "
+                    f"position mapping, scale {self.scale:.3g} (× safety {self.safety_scale:.3g}); "
                     f"{'following' if self.following else 'not following'}"
                 )
+            elif cmd.name in ("scale_up", "scale_down", "set_scale"):
+                if cmd.name == "set_scale":
+                    try:
+                        new = float(cmd.arg_map().get("value", "nan"))
+                    except ValueError:
+                        new = float("nan")
+                else:
+                    i = min(range(len(SCALE_STEPS)), key=lambda j: abs(SCALE_STEPS[j] - self.scale))
+                    i = min(i + 1, len(SCALE_STEPS) - 1) if cmd.name == "scale_up" else max(i - 1, 0)
+                    new = SCALE_STEPS[i]
+                if not 0.0 < new <= 2.0:
+                    ok, reason = False, f"{cmd.name} refused: scale must be in (0, 2], got {new}"
+                else:
+                    self.scale = new
+                    self._rescaled()
+                    reason = f"scale {old:.3g} → {new:.3g}"
             else:
-                ok, reason = False, f"unknown command {cmd.name!r}; valid: state"
+                valid = "state, scale_up, scale_down, set_scale"
+                ok, reason = False, f"unknown command {cmd.name!r}; valid: {valid}"
             seq = self.reply_seq.next()
+        if ok and self.scale != old:
+            self.node.event("scale", f"motion scale {reason} (operator)", arm=self.slave)
         return CommandReply(seq, self.slave, cmd.name, ok, reason)
 
     # -- logic (lock held)
@@ -88,8 +113,9 @@ class PositionMapping(_JointBase):
         self.ik_streak = 0
 
     def _rescaled(self) -> None:
+        """The safety or the operator's scale changed (lock held): re-anchor, no jump."""
         if self.following and self.last is not None:
-            self.ref = self.last  # the new scale applies from here on (no jump)
+            self.ref = self.last  # the new scale applies from here on
 
     def process(self) -> None:
         with self.lock:
@@ -109,7 +135,7 @@ class PositionMapping(_JointBase):
             if self.ref is None:
                 self.ref = (pm, self.profile.tip(self.q_cmd))
             pm0, p0 = self.ref
-            target = p0 + self.cfg.scale * self.safety_scale * (self.r_ms @ (pm - pm0))
+            target = p0 + self.scale * self.safety_scale * (self.r_ms @ (pm - pm0))
             sol = solve_position(self.profile, self.q_cmd, target, self.lower, self.upper)
         except (KinematicsError, ValueError, np.linalg.LinAlgError) as exc:
             self._hold(f"holding last valid setpoint: {exc}")

@@ -20,7 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from telesurg.shared.errors import IKError
-from telesurg.shared.kinematics import MH3F, fk, ik
+from telesurg.shared.kinematics.mh3f import MH3F, fk, ik
 from telesurg.shared.kinematics.transforms import matrix_from_rotvec
 from telesurg.shared.kinematics.trocar import forceps_roll, trocar_ik
 

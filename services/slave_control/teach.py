@@ -39,7 +39,7 @@ from pathlib import Path
 
 import numpy as np
 from telesurg.shared.errors import ConfigError, IKError
-from telesurg.shared.kinematics import MH3F, fk
+from telesurg.shared.kinematics.mh3f import MH3F, fk
 from telesurg.shared.kinematics.trocar import (
     MIN_TIP_DEPTH,
     insertion_depth,

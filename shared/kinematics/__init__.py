@@ -5,24 +5,13 @@ interface of every arm (:class:`ArmKinematics`: ``pose``, ``jacobian``, optional
 registry :mod:`telesurg.shared.robots` adapts each robot to it) and a generic position solver;
 the robots' own modules are :mod:`.mh3f` (frames and the IK derivation), :mod:`.trocar`,
 :mod:`.plas` / :mod:`.plas_layout` and :mod:`.vip`; :mod:`.transforms` holds the conventions.
+A robot's FK / IK / Jacobian are imported from its own module (``from
+telesurg.shared.kinematics.mh3f import fk, ik``), or used through the registry's arm profiles;
+this package exports only the robot-neutral helpers, the interface and the MH3F geometries.
 """
 
 from telesurg.shared.kinematics.interface import ArmKinematics, PositionSolution, solve_position
-from telesurg.shared.kinematics.mh3f import (
-    LIMIT_TOL,
-    MH3F,
-    MH3F_NO_TOOL,
-    SHOULDER_SINGULAR_TOL,
-    WRIST_SINGULAR_TOL,
-    ArmGeometry,
-    fk,
-    fk_frames,
-    ik,
-    ik_all,
-    jacobian,
-    within_limits,
-    wrist_center,
-)
+from telesurg.shared.kinematics.mh3f import MH3F, MH3F_NO_TOOL
 from telesurg.shared.kinematics.transforms import (
     FloatArray,
     make_transform,
@@ -39,20 +28,11 @@ from telesurg.shared.kinematics.transforms import (
 )
 
 __all__ = [
-    "LIMIT_TOL",
     "MH3F",
     "MH3F_NO_TOOL",
-    "SHOULDER_SINGULAR_TOL",
-    "WRIST_SINGULAR_TOL",
-    "ArmGeometry",
     "ArmKinematics",
     "FloatArray",
     "PositionSolution",
-    "fk",
-    "fk_frames",
-    "ik",
-    "ik_all",
-    "jacobian",
     "make_transform",
     "matrix_from_quat",
     "matrix_from_rotvec",
@@ -65,8 +45,6 @@ __all__ = [
     "rotvec_from_matrix",
     "skew",
     "solve_position",
-    "within_limits",
-    "wrist_center",
 ]
 
 # Trocar mode (RCM kinematics, J4/J5 posture adjustment); see :mod:`.trocar`.
