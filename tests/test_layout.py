@@ -41,19 +41,10 @@ TOOLS = (
 #: top-level names the test tree can be imported as (``tests``, or a file of it on ``sys.path``)
 TEST_NAMES = frozenset({"tests"} | {p.stem for p in (ROOT / "tests").glob("*.py")})
 
-# Violations that remain, each named with what removes it (delete the entry when that is merged;
-# the tests below fail on an entry that no longer occurs): (importer, imported) for a rule, the
-# sorted modules of a cycle.
+# Violations that remain, each named with what removes it (none today; the tests below fail on an
+# entry that no longer occurs): (importer, imported) for a rule, the sorted modules of a cycle.
 ALLOWED_RULE_VIOLATIONS: frozenset[tuple[str, str]] = frozenset()
-ALLOWED_CYCLES: frozenset[tuple[str, ...]] = frozenset(
-    {
-        # b-armcore: backends.py ↔ serial_backend.py (one arm core)
-        (
-            "telesurg.services.slave_control.backends",
-            "telesurg.services.slave_control.serial_backend",
-        ),
-    }
-)
+ALLOWED_CYCLES: frozenset[tuple[str, ...]] = frozenset()
 
 
 @dataclass(frozen=True)

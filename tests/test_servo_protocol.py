@@ -31,8 +31,10 @@ from telesurg.services.device import main as device_main
 from telesurg.services.device.emulator import BoardEmulator
 from telesurg.services.device.servo_emulator import ServoEmulator, ServoEmulatorOptions
 from telesurg.services.slave_control import SlaveControlConfig
-from telesurg.services.slave_control.backends import FaultHold, MujocoBackend, make_backend
+from telesurg.services.slave_control.arm import FaultHold
+from telesurg.services.slave_control.backends import MujocoBackend
 from telesurg.services.slave_control.control import FollowController, Lease, Setpoint
+from telesurg.services.slave_control.factory import make_backend
 from telesurg.services.slave_control.serial_backend import (
     SerialBackend,
     SerialBackendConfig,

@@ -474,7 +474,7 @@ def test_pose_to_trocar_matches_the_kinematic_measures() -> None:
 
 def test_mujoco_arm_through_the_trocar_has_sub_mm_rcm_error() -> None:
     """Measured from MuJoCo's tip site (not from the command): a trocar-IK pose 60 mm deep."""
-    from telesurg.services.slave_control.backends import make_backend
+    from telesurg.services.slave_control.factory import make_backend
     from telesurg.shared.kinematics import matrix_from_quat
     from telesurg.shared.kinematics.trocar import pose_to_trocar
 

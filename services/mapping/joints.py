@@ -128,7 +128,7 @@ class _JointBase(EngageGate):
             self.target_next = max(self.target_next + self.target_period, now)
             p = self.profile.tip(q)
             out = self.target_out
-            out.put(CartesianPose(out.header(), "world", (float(p[0]), float(p[1]), float(p[2]))))
+            out.put(CartesianPose(out.header(), "base", (float(p[0]), float(p[1]), float(p[2]))))
 
 
 class AllJointsMapping(_JointBase):

@@ -14,8 +14,9 @@ EngageGate`); a joint step larger than ``max_joint_step_rad`` between two sample
 setpoint (an ``ik_failure`` event, as the Cartesian mapping's branch-flip check); a joint riding
 its limit or a target out of reach is a clamping episode (``clamped`` events, counted).
 
-The target is published as ``slave/<arm>/setpoint_cp`` (frame ``world``: the scene's world frame
-of :mod:`telesurg.shared.robots`) at ``target_hz``, the joints as ``servo_jp`` for every sample.
+The target is published as ``slave/<arm>/setpoint_cp`` (frame ``base``: the world frame of the
+robot's scene, :mod:`telesurg.shared.robots`, as the slave's ``measured_cp``) at ``target_hz``,
+the joints as ``servo_jp`` for every sample.
 The workspace box of the Cartesian mapping (``workspace_*_mm``, the MH3F base frame) does not
 apply; the watchdog's workspace does.
 """
@@ -126,7 +127,7 @@ class PositionMapping(_JointBase):
             rot = quat_from_matrix(self.profile.pose(sol.q)[:3, :3])
             pos = (float(target[0]), float(target[1]), float(target[2]))
             quat = (float(rot[0]), float(rot[1]), float(rot[2]), float(rot[3]))
-            self.target_out.put(CartesianPose(self.target_out.header(), "world", pos, quat))
+            self.target_out.put(CartesianPose(self.target_out.header(), "base", pos, quat))
 
     def _hold(self, text: str) -> None:
         self.ik_failures += 1

@@ -3,23 +3,21 @@
 A backend is a context manager that owns the robot: ``command(q)`` sets joint position targets,
 ``step(n)`` advances it by ``n`` control periods, and ``read()`` returns the measured state.
 A backend that can fail at run time (the ``serial`` one: link loss, controller fault, controller
-timeout, shadow divergence) says so in ``SlaveReading.fault``; the control loops then hold
-(:class:`FaultHold`). mujoco is imported lazily inside the MuJoCo backend, pyserial inside the
-serial one (:mod:`telesurg.services.slave_control.serial_backend`).
+timeout, shadow divergence) says so in ``SlaveReading.fault``; the arm cores then hold
+(:class:`~telesurg.services.slave_control.arm.FaultHold`). mujoco is imported lazily inside the
+MuJoCo backend. The serial backend (:mod:`telesurg.services.slave_control.serial_backend`) builds on
+this module; :mod:`telesurg.services.slave_control.factory` picks one by its registered name (so
+neither backend module imports the other's chooser: no import loop).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 from types import TracebackType
-from typing import TYPE_CHECKING, Any, Protocol
+from typing import Any, Protocol
 
 import numpy as np
 from telesurg.shared.errors import ConfigError
-
-if TYPE_CHECKING:
-    from telesurg.services.slave_control import SlaveControlConfig
-    from telesurg.services.slave_control.control import FollowController
 
 
 @dataclass(frozen=True)
@@ -72,53 +70,9 @@ class SlaveReading:
     external_torque: np.ndarray | None = None
     site_positions: np.ndarray | None = None  # (k, 3) m: the backend's extra sites, in order
     # why the backend cannot be trusted to move now ("" = fine): link lost, controller fault,
-    # controller watchdog, shadow divergence. Non-empty → the control loop holds (FaultHold).
+    # controller watchdog, shadow divergence. Non-empty → the arm cores hold (arm.FaultHold).
     fault: str = ""
     divergence: ShadowDivergence | None = None  # vs the MuJoCo shadow, if one runs
-
-
-@dataclass
-class FaultHold:
-    """What a control loop does while its backend reports a fault (``SlaveReading.fault``).
-
-    Like a revoked lease, with the fault as the reason: the follow controller stops following and
-    is disarmed (after the fault a new engage — clutch released, then pressed — is needed), the
-    command freezes at the joints measured when the fault began, and when the fault clears the
-    command restarts from the joints measured then (the arm may have stopped or been moved
-    meanwhile: the old command must not pull it back). Events go to ``ctl.events``: ``hold`` with
-    the cause at the onset and whenever the cause changes, ``fault_cleared`` at the end.
-
-    Attributes:
-        cause: the fault being held ("" = none).
-    """
-
-    cause: str = ""
-    _q: np.ndarray | None = None
-
-    @property
-    def active(self) -> bool:
-        return bool(self.cause)
-
-    def update(self, ctl: FollowController, fault: str, q_meas: np.ndarray) -> np.ndarray:
-        """The joint command of this period, given the backend's ``fault`` ("" = none)."""
-        if not fault:
-            ctl.events.append(("fault_cleared", f"{self.cause}: cleared; waiting for a new engage"))
-            self.cause, self._q = "", None
-            q = q_meas.copy()
-            ctl.track(q)
-            return q
-        if self._q is None:
-            self._q = q_meas.copy()
-            if ctl.following:
-                ctl.holds += 1
-        if fault != self.cause:
-            ctl.events.append(("hold", fault))
-        self.cause = fault
-        ctl.following = False
-        ctl.armed = False
-        ctl.reason = fault
-        ctl.track(self._q)
-        return self._q.copy()
 
 
 #: Where the simulated hand can push the arm.
@@ -130,6 +84,9 @@ class SlaveBackend(Protocol):
 
     joint_names: tuple[str, ...]
     dt: float  # s: control period of one step
+    # True for a real arm (its physics runs by itself: a stall is not replayed, see arm.py);
+    # False for a simulation (advanced only by step(): every missed period is replayed)
+    realtime: bool
 
     def command(self, q: np.ndarray) -> None:
         """Set joint position targets (rad), already limited by the caller."""
@@ -162,14 +119,22 @@ class MujocoBackend:
     forceps tip or the wrist (for direct teach); the estimate then equals ``Jᵀ F`` of that push.
     """
 
-    def __init__(self, model: str, q_home: tuple[float, ...], sites: tuple[str, ...] = ()) -> None:
+    def __init__(
+        self,
+        model: str,
+        q_home: tuple[float, ...],
+        sites: tuple[str, ...] = (),
+        home: tuple[float, ...] = (),
+    ) -> None:
         from telesurg.services.slave_control.models import model_path
 
         self.scene = model_path(model)
         self.sites = sites  # extra sites reported in read().site_positions (e.g. one tip per arm)
         self.q_home = np.array(q_home, dtype=float)
+        self.home = home  # start pose if q_home is empty and the model has no "home" keyframe
         self.joint_names: tuple[str, ...] = ()
         self.dt = 0.001
+        self.realtime = False
         self._m: Any = None
         self._d: Any = None
         self._push_force = np.zeros(3)
@@ -182,9 +147,11 @@ class MujocoBackend:
         m = mujoco.MjModel.from_xml_path(str(self.scene))
         d = mujoco.MjData(m)
         self.joint_names = tuple(m.joint(i).name for i in range(m.njnt))
-        if len(self.q_home) == 0:  # the model's own start pose: keyframe "home", else zeros
+        if len(self.q_home) == 0:  # the model's own start pose: keyframe "home", else `home`
             if "home" in {m.key(i).name for i in range(m.nkey)}:
                 mujoco.mj_resetDataKeyframe(m, d, m.key("home").id)
+            elif len(self.home) == m.nq:
+                d.qpos[:] = self.home
             self.q_home = d.qpos.copy()
         if len(self.q_home) != m.nq:
             raise ConfigError(f"q_home has {len(self.q_home)} values, model has {m.nq} joints")
@@ -270,28 +237,3 @@ def _names(m: Any, kind: str) -> set[str]:
     count = {"site": m.nsite, "body": m.nbody}[kind]
     getter = m.site if kind == "site" else m.body
     return {getter(i).name for i in range(count)}
-
-
-BACKENDS = ("mujoco", "serial")
-
-
-def make_backend(
-    kind: str,
-    model: str,
-    q_home: tuple[float, ...],
-    sites: tuple[str, ...] = (),
-    cfg: SlaveControlConfig | None = None,
-) -> SlaveBackend:
-    """The backend registered as ``kind``; ``serial`` takes its ``serial_*`` and ``shadow*`` keys
-    from ``cfg`` (the slave_control config)."""
-    if cfg is not None and cfg.shadow and kind != "serial":
-        raise ConfigError(f'shadow = true needs backend = "serial" (backend is {kind!r})')
-    if kind == "mujoco":
-        return MujocoBackend(model, q_home, sites)
-    if kind == "serial":
-        if cfg is None:
-            raise ConfigError("the serial backend needs the slave_control config (serial_port, ...)")
-        from telesurg.services.slave_control.serial_backend import make_serial_backend
-
-        return make_serial_backend(cfg)
-    raise ConfigError(f"slave backend {kind!r} unknown; valid: {', '.join(BACKENDS)}")

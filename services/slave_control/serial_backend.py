@@ -19,7 +19,7 @@ Safety rules:
   (:attr:`SerialBackendStats.clipped_limit`, ``clipped_rate``; :attr:`SerialBackend.last_sent`).
 * Link loss (no valid STATE for ``serial_stale_ms``, a read/write error), a controller fault bit,
   the controller's watchdog and an unexpected disable make ``read().fault`` non-empty with the
-  cause: slave_control holds (:class:`~telesurg.services.slave_control.backends.FaultHold`) and no SETPOINT
+  cause: slave_control holds (:class:`~telesurg.services.slave_control.arm.FaultHold`) and no SETPOINT
   is written. A lost link is re-opened every ``serial_reconnect_s`` with a new handshake; a
   watchdog trip is answered by a new ENABLE after ``serial_reconnect_s``; a controller fault
   stays until the link is re-opened or the controller restarts. Either way the slave moves again
@@ -205,6 +205,7 @@ class SerialBackend:
         self.cfg, self.robot, self.arms = cfg, robot, arms
         self.joint_names: tuple[str, ...] = robot.joint_names
         self.dt = 1.0 / cfg.rate_hz
+        self.realtime = True  # a real arm: its physics does not wait for the loop
         self.stats = SerialBackendStats()
         self.hello: Hello | None = None
         self._lower = np.array(robot.lower)
@@ -384,16 +385,13 @@ class SerialBackend:
     # ----------------------------------------------------------------- internals
 
     def _tips(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
-        from telesurg.shared.robots import get as robot
+        """The first arm's controlled point (position, quaternion) and every arm's position, from
+        the forward kinematics of the measured joints (``ArmProfile.pose``)."""
+        from telesurg.shared.kinematics import quat_from_matrix
 
-        if robot(self.robot.model).slave_family == "trocar":
-            from telesurg.shared.kinematics import quat_from_matrix
-            from telesurg.shared.kinematics.mh3f import MH3F, fk
-
-            t = fk(q, MH3F)
-            return t[:3, 3].copy(), quat_from_matrix(t[:3, :3]), None
-        sites = np.array([a.tip(q[s]) for a, s in zip(self.arms, self.arm_slices, strict=True)])
-        return sites[0].copy(), np.array([0.0, 0.0, 0.0, 1.0]), sites
+        poses = [a.pose(q[s]) for a, s in zip(self.arms, self.arm_slices, strict=True)]
+        sites = np.array([t[:3, 3] for t in poses])
+        return sites[0].copy(), quat_from_matrix(poses[0][:3, :3]), sites
 
     def _checked(self, target: np.ndarray, n: int) -> np.ndarray | None:
         """``target`` clamped into the joint limits, then its step from the last setpoint scaled
@@ -722,6 +720,7 @@ class ShadowedBackend:
         self.real, self.sim, self.cfg = real, sim, cfg
         self.joint_names = real.joint_names
         self.dt = real.dt
+        self.realtime = True
         self.divergence: ShadowDivergence | None = None
         self.max_divergence = 0.0  # largest joint divergence seen while compared, rad / m
         self._idx = np.zeros(0, dtype=int)
@@ -828,7 +827,6 @@ def make_serial_backend(cfg: SlaveControlConfig) -> SerialBackend | ShadowedBack
     if not cfg.shadow:
         return real
     shadow = ShadowConfig(cfg.shadow_limit_rad, cfg.shadow_grace_ms)
-    from telesurg.shared.robots import get as robot
-
-    sites = () if robot(cfg.model).slave_family == "trocar" else tuple(a.tip_site for a in arms)
-    return ShadowedBackend(real, MujocoBackend(cfg.model, (), sites), shadow)
+    sites = tuple(a.tip_site for a in arms)
+    home = tuple(v for a in arms for v in a.home)
+    return ShadowedBackend(real, MujocoBackend(cfg.model, (), sites, home), shadow)

@@ -1,0 +1,651 @@
+"""The arm core: one per slave arm, the same for every robot and every backend.
+
+An :class:`ArmCore` owns everything that decides whether and where one arm moves: its watchdog
+lease, its setpoints (validated), the e-stop latch, the backend-fault hold
+(:class:`FaultHold`), the follow/engage rule (:class:`~.control.FollowController`) and the
+publication of what it measures (``measured_js``, ``measured_cp``, ``measured_cf``,
+``operating_state``) and of the latency log. Every slave — the MH3F forceps arm, each PLAS and
+VIP arm, on MuJoCo or on a real arm's serial controller (with or without its MuJoCo shadow) —
+runs through it; :func:`telesurg.services.slave_control.run` only steps the backend.
+
+Rules (one of each, for every arm):
+
+* **Lease age.** Leases and setpoints are read by the control loop (polled subscriptions, one
+  :meth:`~telesurg.shared.bus.Node.poll` per period). A lease is aged from the *previous* poll —
+  the earliest moment it can have arrived (:meth:`~telesurg.shared.bus.Node.received`) — so a
+  lease never outlasts its grant by the polling interval. It allows motion while it says
+  ``allow`` and is younger than its ``valid_for_ms``; as for every input age (``control.py``) it
+  has expired only when both the wall clock and the control cycles executed since it came say
+  so. The watchdog's liveliness token dying revokes it at once.
+* **Setpoints.** A ``servo_jp`` is refused (counted in ``operating_state.rejected``, an event,
+  nothing else changes) when its joint names are not the arm's, a joint is outside its limits,
+  its header stamp is more than ``setpoint_max_age_ms`` away from this host's wall clock (stale
+  or from a clock that disagrees: any doubt → hold), or, while following, it is more than
+  ``max_setpoint_step_rad`` from the previous followed setpoint (a jump). An accepted setpoint is
+  followed only while younger than ``setpoint_timeout_ms`` (by arrival; see ``control.py``).
+* **E-stop.** An ``EStop`` for the arm (or ``*``) latches until an explicit reset: the arm
+  holds at once and every slave-side motion stops; commands other than ``state``/``stop``/
+  ``abort`` are refused.
+* **Follow/engage.** After any hold the arm follows only after a new engage whose first setpoint
+  is within ``engage_tolerance_rad`` of the measured joints; the commanded joints move at most
+  the joint speed limits per period (scaled as a whole, :func:`~.control.limit_step`).
+* **Catch-up after a stall.** The physics stays in real time and the command never moves more
+  than one period's speed-limited step per period of physics. A simulated backend (its physics
+  advances only when stepped) replays the periods the loop slept through, one physics step
+  each, with the command of that period computed at that period's time (so the arm stays on its
+  commanded path, and the lease and setpoint ages are judged at that time) — the last
+  :data:`REPLAY_MAX_PERIODS` of them; through the earlier ones of a longer stall it held its
+  command, as a real arm does (this bounds the work between waking and publishing). A real arm
+  lived through the stall by itself holding its last command, so its loop simply goes on from
+  the measured state (its MuJoCo shadow is stepped by the missed periods with that held command).
+* **measured_cp.** The arm's controlled point (the profile's tip: the MH3F forceps tip, the PLAS
+  arm tip, the VIP wrist W) as a full pose with a real orientation, from the forward kinematics
+  of the measured joints, in the robot's ``base`` frame (the MuJoCo model's world frame, in which
+  every arm of the robot is mounted). ``measured_cf`` is the external wrench at that point in the
+  same frame, from the backend's external joint torques (``τ = Jᵀ [F; M]``); it is published
+  for every arm whose backend estimates them (MuJoCo; a serial controller reports none).
+
+Motions plug in as :class:`MotionSource`: each period the core asks the arm's slave-side source
+(trocar modes, PTP, jog, teach/playback) whether it is active and, if so, for the commanded
+joints; otherwise the arm follows the master through its default source, :class:`ServoFollow`
+(``servo_jp``, through the :class:`~.control.SetpointInterpolator` for arms fed sparse
+setpoints: the VIP/PLAS consoles at 25 Hz).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import threading
+import time
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Protocol
+
+import numpy as np
+from telesurg.services.slave_control.control import (
+    WARN,
+    FollowController,
+    Lease,
+    Setpoint,
+    SetpointInterpolator,
+)
+from telesurg.shared.limits import limit_step
+from telesurg.shared.messages import (
+    CartesianPose,
+    CartesianWrench,
+    Command,
+    CommandReply,
+    EStop,
+    JointSetpoint,
+    JointState,
+    OperatingState,
+    SafetyLease,
+    Sequencer,
+)
+
+if TYPE_CHECKING:
+    from telesurg.services.slave_control import SlaveControlConfig
+    from telesurg.services.slave_control.backends import SlaveReading
+    from telesurg.shared.bus import Node, Outlet
+    from telesurg.shared.robots import ArmProfile
+
+log = logging.getLogger(__name__)
+
+#: The frame of measured_cp / measured_cf for every arm (see the module doc).
+FRAME = "base"
+#: Missed periods a simulation replays after a stall (the catch-up rule): 20 ms at 1 kHz, at most
+#: ~2 ms of work (a jog's IK included) before the loop publishes again.
+REPLAY_MAX_PERIODS = 20
+
+
+class MotionError(Exception):
+    """A slave-side motion cannot go on (a joint limit, an unreachable pose): it is stopped."""
+
+
+@dataclass
+class ArmReading:
+    """One arm's share of a backend reading, and its measured controlled point.
+
+    Attributes:
+        position, velocity, effort: the arm's joints (rad or m, rad/s or m/s, N·m or A).
+        profile: the arm (its forward kinematics gives :attr:`tip_pose`).
+        external_torque: estimated external joint torques, N·m, or None.
+        fault: the backend's fault ("" = none).
+    """
+
+    position: np.ndarray
+    velocity: np.ndarray
+    effort: np.ndarray
+    profile: ArmProfile
+    external_torque: np.ndarray | None = None
+    fault: str = ""
+    _pose: np.ndarray | None = None
+
+    @property
+    def tip_pose(self) -> np.ndarray:
+        """(4, 4) the controlled point's pose from the FK of ``position``, m, base frame
+        (computed when first asked: the control period itself does not need it)."""
+        if self._pose is None:
+            self._pose = arm_pose(self.profile, self.position)
+        return self._pose
+
+    @property
+    def tip_position(self) -> np.ndarray:
+        """m, base frame, (3,)."""
+        out: np.ndarray = self.tip_pose[:3, 3]
+        return out
+
+    @property
+    def tip_quat(self) -> tuple[float, float, float, float]:
+        """Orientation of the controlled point, unit quaternion (x, y, z, w)."""
+        return quat_xyzw(self.tip_pose)
+
+
+def quat_xyzw(t: np.ndarray) -> tuple[float, float, float, float]:
+    """Unit quaternion (x, y, z, w, w ≥ 0) of the rotation in ``t[:3, :3]`` (Shepperd's method on
+    plain floats: ~20× cheaper than numpy on 3×3, and it runs at publish_hz per arm)."""
+    (m00, m01, m02), (m10, m11, m12), (m20, m21, m22) = t[:3, :3].tolist()
+    tr = m00 + m11 + m22
+    if tr > 0.0:
+        s = 2.0 * math.sqrt(tr + 1.0)
+        x, y, z, w = (m21 - m12) / s, (m02 - m20) / s, (m10 - m01) / s, 0.25 * s
+    elif m00 > m11 and m00 > m22:
+        s = 2.0 * math.sqrt(1.0 + m00 - m11 - m22)
+        x, y, z, w = 0.25 * s, (m01 + m10) / s, (m02 + m20) / s, (m21 - m12) / s
+    elif m11 > m22:
+        s = 2.0 * math.sqrt(1.0 + m11 - m00 - m22)
+        x, y, z, w = (m01 + m10) / s, 0.25 * s, (m12 + m21) / s, (m02 - m20) / s
+    else:
+        s = 2.0 * math.sqrt(1.0 + m22 - m00 - m11)
+        x, y, z, w = (m02 + m20) / s, (m12 + m21) / s, 0.25 * s, (m10 - m01) / s
+    n = math.sqrt(x * x + y * y + z * z + w * w)
+    if w < 0.0:
+        n = -n
+    return x / n, y / n, z / n, w / n
+
+
+class MotionSource(Protocol):
+    """A slave-side motion of one arm (trocar modes with PTP, jog, teach/playback, ...).
+
+    The core calls every method with its lock held except :meth:`next`, :meth:`measure` and
+    :meth:`command` (which take :attr:`ArmCore.lock` themselves where they need it).
+    """
+
+    def attach(self, core: ArmCore) -> None:
+        """The core this source drives (its lock, e-stop and node)."""
+        ...
+
+    def active(self) -> bool:
+        """A slave-side motion is commanded now (it, not servo_jp, drives the arm)."""
+        ...
+
+    def blocks_following(self) -> str:
+        """Why master-slave following is not allowed now ("" = allowed)."""
+        ...
+
+    def next(self, q_cmd: np.ndarray, reading: ArmReading, dt: float) -> np.ndarray:
+        """The joint target of this period (the core rate-limits it); raise :class:`MotionError`
+        to stop the motion, return ``q_cmd`` to stay."""
+        ...
+
+    def reached(self, q_out: np.ndarray, reading: ArmReading) -> None:
+        """After the rate limit: the command sent this period (completion events)."""
+        ...
+
+    def stop(self, reason: str) -> None:
+        """Cancel the motion (lease lost, e-stop, fault); the operator must command it again."""
+        ...
+
+    def measure(self, reading: ArmReading, q_cmd: np.ndarray) -> None:
+        """Sub-rate (100 Hz) update from the measurements (mode machine, events)."""
+        ...
+
+    def command(self, cmd: Command) -> tuple[bool, str]:
+        """Answer an operator command for this arm."""
+        ...
+
+    @property
+    def control_mode(self) -> str:
+        """``operating_state.control_mode``."""
+        ...
+
+    def state_fields(self) -> tuple[float, tuple[float, float, float]]:
+        """(RCM error, mm; trocar, m base frame) for ``operating_state``."""
+        ...
+
+
+@dataclass
+class ServoFollow:
+    """Master–slave following, the arm's default motion source: the reference is the newest
+    accepted ``servo_jp`` — or, for an arm fed sparse setpoints (``interpolate``: the joint-space
+    family, a console at 25 Hz), the :class:`~.control.SetpointInterpolator`'s smooth 1 kHz
+    replay of them. The core's follow/engage rule (:class:`~.control.FollowController`) decides
+    whether the arm follows it."""
+
+    interpolate: bool
+    interp: SetpointInterpolator
+    _last_follow: bool = False
+
+    def reference(self, sp: Setpoint | None, fresh: bool, now: float) -> Setpoint | None:
+        """The setpoint to follow at time ``now`` (``fresh``: ``sp`` arrived since the last call)."""
+        if not self.interpolate or sp is None:
+            return sp
+        if fresh:
+            if sp.follow and not self._last_follow:
+                self.interp.reset()  # a new engage starts a new timeline (no jump)
+            self.interp.push(sp.position, sp.source_time, sp.received)
+            self._last_follow = sp.follow
+        if sp.follow and (ref := self.interp.sample(now)) is not None:
+            return Setpoint(ref, True, sp.received, sp.cycle)
+        return sp
+
+
+@dataclass
+class FaultHold:
+    """What an arm does while its backend reports a fault (``SlaveReading.fault``).
+
+    Like a revoked lease, with the fault as the reason: the follow controller stops following and
+    is disarmed (after the fault a new engage — clutch released, then pressed — is needed), the
+    command freezes at the joints measured when the fault began, and when the fault clears the
+    command restarts from the joints measured then (the arm may have stopped or been moved
+    meanwhile: the old command must not pull it back). Events go to ``ctl.events``: ``hold`` with
+    the cause at the onset and whenever the cause changes, ``fault_cleared`` at the end.
+
+    Attributes:
+        cause: the fault being held ("" = none).
+    """
+
+    cause: str = ""
+    _q: np.ndarray | None = None
+
+    @property
+    def active(self) -> bool:
+        return bool(self.cause)
+
+    def update(self, ctl: FollowController, fault: str, q_meas: np.ndarray) -> np.ndarray:
+        """The joint command of this period, given the backend's ``fault`` ("" = none)."""
+        if not fault:
+            ctl.events.append(("fault_cleared", f"{self.cause}: cleared; waiting for a new engage"))
+            self.cause, self._q = "", None
+            q = q_meas.copy()
+            ctl.track(q)
+            return q
+        if self._q is None:
+            self._q = q_meas.copy()
+            if ctl.following:
+                ctl.holds += 1
+        if fault != self.cause:
+            ctl.events.append(("hold", fault))
+        self.cause = fault
+        ctl.following = False
+        ctl.armed = False
+        ctl.reason = fault
+        ctl.track(self._q)
+        return self._q.copy()
+
+
+def arm_pose(profile: ArmProfile, q: np.ndarray) -> np.ndarray:
+    """(4, 4) pose of the arm's controlled point at joints ``q``, base frame (``ArmProfile.pose``)."""
+    out: np.ndarray = profile.pose(q)
+    return out
+
+
+def arm_jacobian(profile: ArmProfile, q: np.ndarray) -> np.ndarray:
+    """(6, n) geometric Jacobian of the controlled point, base frame, rows v then ω."""
+    out: np.ndarray = profile.jacobian(q)
+    return out
+
+
+def tip_wrench(
+    jac: np.ndarray, tau_ext: np.ndarray
+) -> tuple[tuple[float, float, float], tuple[float, float, float]]:
+    """External force (N) and torque (N·m) at the controlled point from the external joint
+    torques: ``τ = Jᵀ [F; M]`` solved by least squares (the minimum-norm answer near a
+    singularity, and for arms with fewer than 6 joints)."""
+    w = np.linalg.lstsq(jac.T, tau_ext, rcond=1e-6)[0]
+    return (float(w[0]), float(w[1]), float(w[2])), (float(w[3]), float(w[4]), float(w[5]))
+
+
+@dataclass
+class ArmCore:
+    """Inputs (zenoh threads), control decisions and outputs of one slave arm.
+
+    Args:
+        profile: the arm (joint names, limits, speeds, FK).
+        index: positions of the arm's joints in the backend's joint vector (a slice when they
+            are contiguous: no copy per period).
+        cfg: slave_control's config (setpoint, engage and rate keys).
+        dt: control period, s.
+        node: the bus (None in unit tests: no events, no outputs).
+        motion: the arm's slave-side motion source (None: the arm only follows servo_jp).
+        interpolate: interpolate sparse setpoints to the control rate (joint-space arms fed by a
+            console at 25 Hz; the MH3F gets one setpoint per master sample).
+    """
+
+    profile: ArmProfile
+    index: np.ndarray | slice
+    cfg: SlaveControlConfig
+    dt: float = 0.001
+    node: Node | None = None
+    motion: MotionSource | None = None
+    interpolate: bool = False
+    lock: threading.Lock = field(default_factory=threading.Lock)
+    lease: Lease = field(default_factory=Lease)
+    setpoint: Setpoint | None = None
+    fresh_setpoint: bool = False  # a new setpoint arrived since the loop last looked
+    estop: str = ""  # latched e-stop cause ("" = none); only an explicit reset clears it
+    rejected: int = 0  # setpoints refused by the rules above
+    cycle: int = 0  # control cycles executed; stamped on inputs (see control.py)
+    following: bool = False  # mirrors the controller (set by the control loop)
+    held: FaultHold = field(default_factory=FaultHold)
+    ctl: FollowController = field(init=False)
+    servo: ServoFollow = field(init=False)
+    outlets: dict[str, Outlet] = field(default_factory=dict)
+    reading: ArmReading | None = None  # last reading (set by the loop)
+    q_cmd: np.ndarray = field(init=False)  # last command (set by the loop)
+    _last_state: tuple[object, ...] | None = None
+    _reply_seq: Sequencer = field(init=False)
+    _applied: np.ndarray | None = None
+    _n_applied: int = 0
+    _last_sp: Setpoint | None = None
+
+    def __post_init__(self) -> None:
+        p, cfg = self.profile, self.cfg
+        self.ctl = FollowController(
+            np.array(p.max_velocity),
+            setpoint_timeout=cfg.setpoint_timeout_ms / 1e3,
+            engage_tolerance=cfg.engage_tolerance_rad,
+        )
+        self.servo = ServoFollow(self.interpolate, SetpointInterpolator(cfg.interpolation_max_ms / 1e3))
+        self.q_cmd = np.array(p.home, dtype=float)
+        self._lower, self._upper = tuple(p.lower), tuple(p.upper)
+        self._vmax = np.array(p.max_velocity)
+        self._reply_seq = Sequencer(cfg.service)
+        if cfg.latency_log:
+            self._applied = np.zeros((300_000, 3), dtype=np.int64)
+        if self.motion is not None:
+            self.motion.attach(self)
+
+    @property
+    def arm(self) -> str:
+        return self.profile.arm
+
+    def event(self, kind: str, text: str, severity: str = "info") -> None:
+        if self.node is not None:
+            self.node.event(kind, text, arm=self.arm, severity=severity)
+
+    # -- wiring ---------------------------------------------------------------------------------
+    def connect(self, node: Node) -> None:
+        """Subscribe the arm's inputs and declare its outputs on ``node``."""
+        k, cfg, arm = node.keys, self.cfg, self.arm
+        self.node = node
+        for stream in ("measured_js", "measured_cp", "measured_cf", "operating_state"):
+            self.outlets[stream] = node.outlet(k.slave(arm, stream))
+        # polled: read by the control loop at each tick (see the lease-age rule)
+        node.subscribe(
+            k.safety(arm, "lease"), SafetyLease, self.on_lease, sources=[cfg.watchdog_service], polled=True
+        )
+        node.subscribe(
+            k.slave(arm, "servo_jp"),
+            JointSetpoint,
+            self.on_setpoint,
+            sources=[cfg.setpoint_source],
+            polled=True,
+        )
+        node.subscribe(k.estop, EStop, self.on_estop)
+        node.watch_liveliness(k.alive(cfg.watchdog_service), self.on_watchdog_alive)
+        node.serve(k.command(arm), Command, self.on_command, sources=cfg.command_sources or None)
+
+    # -- inputs (zenoh threads / the loop's poll) ----------------------------------------------
+    def on_lease(self, msg: SafetyLease, key: str) -> None:
+        now = self.node.received(key) if self.node is not None else time.monotonic()
+        with self.lock:
+            valid_cycles = round(msg.valid_for_ms / 1e3 / self.dt)
+            self.lease = Lease(msg.allow, now + msg.valid_for_ms / 1e3, msg.reason, self.cycle, valid_cycles)
+
+    def on_watchdog_alive(self, service: str, alive: bool) -> None:
+        if service == self.cfg.watchdog_service and not alive:
+            with self.lock:
+                self.lease = Lease(False, 0.0, f"{service} not alive")
+
+    def on_estop(self, msg: EStop, key: str) -> None:
+        if not msg.applies_to(self.arm):
+            return
+        with self.lock:
+            was = self.estop
+            if msg.action == "estop":
+                self.estop = f"e-stop from {msg.header.source}" + (f": {msg.reason}" if msg.reason else "")
+            else:
+                self.estop = ""
+        if msg.action == "estop" and not was:
+            self.event("estop", self.estop, "error")
+        elif msg.action == "reset" and was:
+            self.event("estop_reset", f"e-stop reset by {msg.header.source}")
+
+    def setpoint_problem(self, msg: JointSetpoint) -> str:
+        """Why ``msg`` is refused ("" = accepted); see the module doc."""
+        # plain float arithmetic on the message's tuples: numpy on 6 values costs ~10× more, and
+        # this runs for every setpoint (1 kHz)
+        p, pos = self.profile, msg.position
+        if msg.names != p.joint_names:
+            return f"joint names {list(msg.names)} != {list(p.joint_names)}"
+        if not all(lo <= v <= hi for v, lo, hi in zip(pos, self._lower, self._upper, strict=True)):
+            bad = [
+                f"{n}={v:.4f}"
+                for n, v, lo, hi in zip(p.joint_names, pos, self._lower, self._upper, strict=True)
+                if not lo <= v <= hi
+            ]
+            return f"outside joint limits: {', '.join(bad)}"
+        age_ms = (time.time_ns() - msg.header.stamp_ns) / 1e6
+        if abs(age_ms) > self.cfg.setpoint_max_age_ms:
+            when = f"{age_ms:.0f} ms ago" if age_ms > 0 else f"{-age_ms:.0f} ms in the future"
+            return f"stale: stamped {when} (limit {self.cfg.setpoint_max_age_ms:g} ms)"
+        prev = self.setpoint
+        if self.following and msg.follow and prev is not None and prev.follow:
+            jump = max(abs(v - w) for v, w in zip(pos, prev.position.tolist(), strict=True))
+            if jump > self.cfg.max_setpoint_step_rad:
+                return f"jump of {jump:.3f} rad from the previous setpoint"
+        return ""
+
+    def on_setpoint(self, msg: JointSetpoint, key: str) -> None:
+        if reason := self.setpoint_problem(msg):
+            self.rejected += 1
+            if self.rejected <= 5 or self.rejected % 1000 == 0:
+                self.event("setpoint_rejected", reason, "warning")
+            return
+        received = self.node.received(key) if self.node is not None else time.monotonic()
+        with self.lock:
+            self.setpoint = Setpoint(
+                np.array(msg.position),
+                msg.follow,
+                received,
+                self.cycle,
+                (msg.origin_ns or msg.header.stamp_ns) / 1e9,
+                origin_ns=msg.origin_ns,
+                stamp_ns=msg.header.stamp_ns,
+            )
+            self.fresh_setpoint = True
+
+    def on_command(self, cmd: Command) -> CommandReply:
+        """Answer one operator command (zenoh thread)."""
+        if cmd.arm != self.arm:
+            ok, reason = False, f"{cmd.name} refused: this is arm {self.arm}, not {cmd.arm}"
+        elif self.motion is not None:
+            ok, reason = self.motion.command(cmd)
+            if ok:
+                self.event("command", f"{cmd.name} {' '.join(cmd.args)}: {reason}".strip())
+        elif cmd.name == "state":
+            with self.lock:
+                ok, reason = True, f"joint slave, {'following' if self.ctl.following else self.ctl.reason}"
+        else:
+            ok, reason = False, f"unknown command {cmd.name!r} for a joint slave; valid: state"
+        return CommandReply(self._reply_seq.next(), self.arm, cmd.name, ok, reason)
+
+    # -- control (the loop's thread) -----------------------------------------------------------
+    def arm_reading(self, r: SlaveReading) -> ArmReading:
+        """This arm's share of the backend reading ``r``."""
+        i = self.index
+        q = r.position[i]
+        tau = None if r.external_torque is None else r.external_torque[i]
+        return ArmReading(q, r.velocity[i], r.effort[i], self.profile, tau, r.fault)
+
+    def start(self, reading: ArmReading) -> None:
+        """Before the first period: start from the measured joints (MuJoCo: the home pose; a real
+        arm: wherever it stands)."""
+        self.reading = reading
+        self.q_cmd = reading.position.copy()
+        if self.motion is not None:
+            self.motion.measure(reading, self.q_cmd)
+
+    def control(self, now: float, reading: ArmReading) -> np.ndarray:
+        """The arm's joint command for the period at time ``now`` (s, monotonic)."""
+        q_meas, q_cmd, ctl, motion = reading.position, self.q_cmd, self.ctl, self.motion
+        with self.lock:
+            lease, sp, fresh = self.lease, self.setpoint, self.fresh_setpoint
+            self.fresh_setpoint = False
+            if self.estop:
+                lease = Lease(False, 0.0, self.estop)
+            internal = motion is not None and motion.active()
+            blocked = motion.blocks_following() if motion is not None else ""
+        self._log_applied(sp)
+        if reading.fault or self.held.active:
+            if reading.fault and internal and motion is not None:
+                motion.stop(f"fault: {reading.fault}")
+            ctl.lease_valid = ctl.lease_ok(lease, now, self.cycle)
+            out = self.held.update(ctl, reading.fault, q_meas)
+        elif internal and motion is not None:
+            out = self._internal(motion, lease, now, reading)
+        else:
+            if blocked:
+                ctl.pause(q_meas, blocked)
+                sp = None
+            sp = self.servo.reference(sp, fresh, now)
+            out = ctl.update(now, q_meas, q_cmd, lease, sp, self.dt, self.cycle)
+        self.q_cmd = out
+        return out
+
+    def _internal(self, motion: MotionSource, lease: Lease, now: float, reading: ArmReading) -> np.ndarray:
+        """One period of a slave-side motion, only under a valid lease."""
+        ctl, q_cmd = self.ctl, self.q_cmd
+        ctl.pause(reading.position, "slave-side motion (PTP / jog / playback / direct teach)")
+        ok = ctl.lease_valid = ctl.lease_ok(lease, now, self.cycle)
+        if not ok:  # any doubt: stop the motion; the operator must command it again
+            why = lease.reason or "lease expired"
+            with self.lock:
+                motion.stop(f"lease: {why}")
+            ctl.holds += 1
+            self.event("hold", f"slave-side motion stopped: {why}", "warning")
+            ctl.track(q_cmd)
+            return q_cmd
+        try:
+            target = motion.next(q_cmd, reading, self.dt)
+            p = self.profile
+            if not all(lo <= v <= hi for v, lo, hi in zip(target.tolist(), p.lower, p.upper, strict=True)):
+                raise MotionError("a joint limit is reached")
+        except MotionError as exc:
+            with self.lock:
+                motion.stop(str(exc))
+            self.event("motion_stopped", f"slave-side motion stopped: {exc}", "warning")
+            ctl.track(q_cmd)
+            return q_cmd
+        out: np.ndarray = q_cmd + limit_step(target - q_cmd, self._vmax * self.dt)
+        motion.reached(out, reading)
+        ctl.track(out)
+        return out
+
+    def _log_applied(self, sp: Setpoint | None) -> None:
+        a = self._applied
+        if a is not None and sp is not None and sp is not self._last_sp and self._n_applied < len(a):
+            a[self._n_applied] = (sp.origin_ns, sp.stamp_ns, time.time_ns())
+            self._n_applied += 1
+        self._last_sp = sp
+
+    def after_period(self, cycle: int, reading: ArmReading) -> None:
+        """After the backend stepped: remember the reading, drain the controller's events."""
+        self.cycle = cycle
+        self.following = self.ctl.following
+        self.reading = reading
+        for kind, text in self.ctl.events:
+            self.event(kind, text, "warning" if kind in WARN else "info")
+        self.ctl.events.clear()
+
+    def measure(self, reading: ArmReading) -> None:
+        """Sub-rate update of the motion source from the measurements (100 Hz)."""
+        if self.motion is not None:
+            self.motion.measure(reading, self.q_cmd)
+
+    # -- outputs -------------------------------------------------------------------------------
+    def publish_measured(self, r: ArmReading) -> None:
+        """measured_js and measured_cp."""
+        js, cp = self.outlets["measured_js"], self.outlets["measured_cp"]
+        js.put(
+            JointState(
+                js.header(),
+                self.profile.joint_names,
+                tuple(r.position.tolist()),
+                tuple(r.velocity.tolist()),
+                tuple(r.effort.tolist()),
+            )
+        )
+        t = r.tip_pose
+        cp.put(
+            CartesianPose(cp.header(), FRAME, (float(t[0, 3]), float(t[1, 3]), float(t[2, 3])), r.tip_quat)
+        )
+
+    def publish_wrench(self, r: ArmReading) -> None:
+        """measured_cf, when the backend estimates external torques."""
+        if r.external_torque is None:
+            return
+        f, m = tip_wrench(arm_jacobian(self.profile, r.position), r.external_torque)
+        out = self.outlets["measured_cf"]
+        out.put(CartesianWrench(out.header(), FRAME, f, m))
+
+    def publish_state(self, force: bool, servo_rejected: int) -> None:
+        """operating_state on change, or when ``force`` (its sub-rate)."""
+        ctl, motion = self.ctl, self.motion
+        with self.lock:
+            internal = motion is not None and motion.active()
+            mode = motion.control_mode if motion is not None else "joint"
+            rcm_mm, trocar = motion.state_fields() if motion is not None else (0.0, (0.0, 0.0, 0.0))
+            estop = self.estop
+        state = (ctl.following, ctl.lease_valid, ctl.reason, mode, internal, self.held.cause, bool(estop))
+        if state == self._last_state and not force:
+            return
+        self._last_state = state
+        if self.held.active:
+            op = "FAULT"
+        elif ctl.following or internal:
+            op = "ENABLED"
+        else:
+            op = "FAULT" if estop else "PAUSED"
+        out = self.outlets["operating_state"]
+        out.put(
+            OperatingState(
+                out.header(),
+                op,
+                mode,
+                ctl.following,
+                ctl.lease_valid,
+                ctl.reason,
+                ctl.holds,
+                rcm_mm,
+                ctl.clipped,
+                self.rejected + servo_rejected,
+                trocar,
+            )
+        )
+
+    def close(self) -> None:
+        """At exit: write the latency log, log the counters."""
+        if self._applied is not None:
+            path = self.cfg.latency_log
+            if self.cfg.latency_log.endswith(".npy") and self.arm != self.cfg.arm:
+                path = f"{path[:-4]}.{self.arm}.npy"  # one file per arm; cfg.arm's keeps the name
+            np.save(path, self._applied[: self._n_applied])
+        log.info(
+            "%s: %d holds, %d setpoints rejected, %d cycles speed-clipped",
+            self.arm,
+            self.ctl.holds,
+            self.rejected,
+            self.ctl.clipped,
+        )

@@ -1,0 +1,473 @@
+"""The trocar motion family: the slave-side motions of a 6-axis forceps arm (Jinno 2014).
+
+:class:`TrocarMotions` is the :class:`~telesurg.services.slave_control.arm.MotionSource` of an
+arm whose robot has the trocar motion family (the MH3F): the control modes (non-trocar /
+transitional / trocar, :mod:`~telesurg.services.slave_control.modes`), the motion modes with their
+slave-side motions — PTP posture adjustment and jog (:mod:`~telesurg.services.slave_control.motion`),
+direct teach and playback (:mod:`~telesurg.services.slave_control.teach`) — and the operator
+commands on ``slave/<arm>/command`` that drive them. Lease, e-stop, faults, following the master
+and the speed limit are the arm core's (:mod:`~telesurg.services.slave_control.arm`): the core
+asks this source each period whether it drives the arm and for its joint target.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+import numpy as np
+from telesurg.services.slave_control.arm import ArmCore, ArmReading, MotionError
+from telesurg.services.slave_control.backends import PUSH_POINTS
+from telesurg.services.slave_control.modes import ControlMode, ControlModes, Jog, MotionMode, Phase
+from telesurg.services.slave_control.motion import SUPPORTED_JOG_AXES, PtpMotion, jog_step, ptp_duration
+from telesurg.services.slave_control.teach import (
+    NAME_RE,
+    Playback,
+    TaughtPoint,
+    TeachStore,
+    direct_teach_step,
+    playback_problem,
+)
+from telesurg.shared.errors import IKError, KinematicsError
+from telesurg.shared.kinematics.trocar import axis_angle_to_trocar, pose_to_trocar, posture_adjust
+from telesurg.shared.messages import Command
+
+if TYPE_CHECKING:
+    from collections.abc import Callable
+
+    from telesurg.services.slave_control import SlaveControlConfig
+    from telesurg.shared.robots import ArmProfile
+
+
+class TrocarMotions:
+    """The trocar motion family of one arm (a :class:`~telesurg.services.slave_control.arm.MotionSource`).
+
+    Args:
+        cfg: slave_control's config (trocar, jog, PTP, playback, teach keys).
+        profile: the arm.
+        push: the backend's simulated hand (``MujocoBackend.push``), None if it has none.
+    """
+
+    def __init__(
+        self,
+        cfg: SlaveControlConfig,
+        profile: ArmProfile,
+        push: Callable[[np.ndarray, float, str], None] | None = None,
+    ) -> None:
+        self.cfg, self.profile = cfg, profile
+        self.core: ArmCore | None = None  # set by attach()
+        # control modes of Jinno 2014 and the slave-side motion sources (PTP, jog)
+        self.modes = ControlModes()
+        self.trocar = np.array(cfg.trocar_mm) / 1e3
+        self.trocar_taught = cfg.trocar_taught
+        self.ptp: PtpMotion | None = None
+        self.playback: Playback | None = None
+        self.playback_name = ""
+        self.posture_target: np.ndarray | None = None  # joints after the posture adjustment
+        self.store = TeachStore(cfg.state_file or None, profile.arm)
+        if self.store.current_trocar:
+            self.trocar = np.array(self.store.trocars[self.store.current_trocar])
+            self.trocar_taught = True
+        self.backend_push = push
+        self.rcm_error_m = 0.0  # last measured RCM error (set by update_modes)
+        self._vmax = np.array(profile.max_velocity)
+
+    # -- MotionSource ---------------------------------------------------------------------------
+    def attach(self, core: ArmCore) -> None:
+        self.core = core
+
+    @property
+    def _core(self) -> ArmCore:
+        assert self.core is not None, "attach() first"
+        return self.core
+
+    @property
+    def q_cmd(self) -> np.ndarray:
+        """The arm's last command (the core's)."""
+        return self._core.q_cmd
+
+    @property
+    def reading(self) -> ArmReading | None:
+        """The arm's last reading (the core's)."""
+        return self._core.reading
+
+    @property
+    def control_mode(self) -> str:
+        return self.modes.control_mode
+
+    def state_fields(self) -> tuple[float, tuple[float, float, float]]:
+        t = self.trocar
+        return round(self.rcm_error_m * 1e3, 4), (float(t[0]), float(t[1]), float(t[2]))
+
+    def blocks_following(self) -> str:
+        mode, motion = self.modes.control_mode, self.modes.motion
+        if (mode == "non_trocar" and motion is None) or (
+            mode in ("non_trocar", "trocar") and motion is MotionMode.MASTER_SLAVE
+        ):
+            return ""
+        return f"master-slave not active in {mode} mode"
+
+    def measure(self, reading: ArmReading, q_cmd: np.ndarray) -> None:
+        core = self._core
+        with core.lock:
+            self.update_modes(reading)
+            mode_events, self.modes.events = self.modes.events, []
+        for kind, text in mode_events:
+            core.event(kind, text)
+
+    def command(self, cmd: Command) -> tuple[bool, str]:
+        """Answer one operator command (zenoh thread)."""
+        with self._core.lock:
+            return self._command(cmd)
+
+    def next(self, q_cmd: np.ndarray, reading: ArmReading, dt: float) -> np.ndarray:
+        """The joint target of this period's slave-side motion (PTP, jog, playback, direct teach)."""
+        cfg = self.cfg
+        with self._core.lock:
+            motion = self.modes.motion
+            job = Internal(
+                self.modes.jog_command,
+                self.ptp,
+                self.playback,
+                motion is MotionMode.DIRECT_TEACH,
+                self.modes.control_mode,
+                self.modes.phase,
+            )
+        try:
+            if job.ptp is not None:
+                target = job.ptp.next(dt)
+            elif job.playback is not None:
+                target = job.playback.next(q_cmd, dt)
+            elif job.jog is not None:
+                jog = job.jog
+                target = jog_step(
+                    q_cmd,
+                    jog.frame.value,
+                    jog.axis,
+                    jog.direction,
+                    dt,
+                    speed_m_s=cfg.jog_speed_mm_s / 1e3,
+                    joint_speed_rad_s=np.radians(cfg.jog_joint_speed_deg_s),
+                    trocar=self.trocar if job.mode == "trocar" else None,
+                )
+                pt = self.posture_target
+                if job.phase is Phase.POSTURE and pt is not None and jog.axis in ("j4", "j5"):
+                    j = int(jog.axis[1]) - 1  # a posture jog stops exactly at its target, never past it
+                    if (target[j] - pt[j]) * jog.direction > 0:
+                        target[j] = pt[j]
+            else:
+                tau = reading.external_torque
+                if tau is None:
+                    raise IKError("direct teach needs an external torque estimate from the backend")
+                target = direct_teach_step(
+                    q_cmd,
+                    tau,
+                    dt,
+                    "posture" if job.phase is Phase.POSTURE else job.mode,
+                    cfg.teach,
+                    trocar=self.trocar,
+                    posture_target=self.posture_target,
+                )
+            p = self.profile
+            if not all(lo <= v <= hi for v, lo, hi in zip(target.tolist(), p.lower, p.upper, strict=True)):
+                raise IKError("a joint limit is reached")
+        except (IKError, KinematicsError) as exc:
+            if job.teach:  # direct teach: do not follow this push, stay in the mode
+                return q_cmd
+            raise MotionError(str(exc)) from exc
+        out: np.ndarray = target
+        return out
+
+    def reached(self, q_out: np.ndarray, reading: ArmReading) -> None:
+        core = self._core
+        ptp = self.ptp
+        if ptp is not None and ptp.done and np.allclose(q_out, ptp.q_to, atol=1e-9):
+            with core.lock:
+                self.ptp = None
+            core.event("ptp_done", "posture adjustment PTP reached its target")
+        pb = self.playback
+        if pb is not None:
+            for i in pb.reached:
+                err = float(np.linalg.norm(reading.tip_position - np.array(pb.points[i].tip))) * 1e3
+                core.event(
+                    "point_reached",
+                    f"{self.playback_name} point {i + 1}/{len(pb.points)}: "
+                    f"tip {err:.3f} mm from the taught point",
+                )
+            pb.reached.clear()
+            if pb.done:
+                with core.lock:
+                    if self.playback is pb:
+                        self.playback = None
+                core.event("playback_done", f"playback of {self.playback_name} finished")
+
+    def _command(self, cmd: Command) -> tuple[bool, str]:
+        m, a = self.modes, cmd.arg_map()
+        estop = self._core.estop
+        if estop and cmd.name not in ("state", "stop", "abort"):
+            return False, f"{cmd.name} refused: {estop} (reset first)"
+        if cmd.name == "state":
+            allowed = "; ".join(f"{k}: {', '.join(v)}" for k, v in m.allowed().items() if v)
+            return True, f"{m.label}, motion {m.motion or 'none'}; allowed: {allowed}"[:500]
+        if cmd.name == "teach_trocar":
+            name = a.get("name", "default")
+            if not NAME_RE.match(name):
+                return False, f"teach_trocar refused: invalid name {name!r}"
+            r = m.teach_trocar()
+            if r.accepted:
+                tip = self.reading.tip_position.copy() if self.reading is not None else self.trocar
+                self.trocar = tip.copy()
+                self.trocar_taught = True
+                self.store.trocars[name] = (float(tip[0]), float(tip[1]), float(tip[2]))
+                self.store.current_trocar = name
+                self.store.save()
+                mm = ", ".join(f"{v * 1e3:.1f}" for v in self.trocar)
+                return True, f"trocar {name!r} taught at ({mm}) mm"
+            return r.accepted, r.reason
+        if cmd.name == "begin_posture_adjust":
+            return self._begin_posture(a.get("method", "ptp"), a.get("program", ""))
+        if cmd.name in ("finish_posture_adjust", "insert", "remove"):
+            if self.ptp is not None:
+                return False, f"{cmd.name} refused: the PTP posture motion is still running"
+            if self.playback is not None:
+                return False, f"{cmd.name} refused: playback of {self.playback_name!r} is still running"
+            r = getattr(m, cmd.name)()
+            if r.accepted and cmd.name == "finish_posture_adjust":
+                self.posture_target = None
+            return r.accepted, r.reason
+        if cmd.name == "stop":
+            if self.playback is not None:
+                self.playback = None
+                return True, f"playback of {self.playback_name!r} stopped"
+            r = m.stop()
+            return r.accepted, r.reason
+        if cmd.name == "abort":
+            self.ptp = self.playback = None
+            r = m.abort(a.get("reason", "operator abort"))
+            if m.phase is None:
+                self.posture_target = None
+            return r.accepted, r.reason
+        if cmd.name == "set_motion_mode":
+            before = m.motion
+            r = m.set_motion_mode(a.get("mode", ""))
+            if r.accepted and m.motion is not before:
+                self.playback = None  # a new motion mode ends a running playback
+            return r.accepted, r.reason
+        if cmd.name in ("teach_point", "clear_program", "play"):
+            return self._program_command(cmd.name, a.get("program", ""))
+        if cmd.name == "programs":
+            names = ", ".join(f"{k} ({len(v)} points)" for k, v in sorted(self.store.programs.items()))
+            trocars = ", ".join(sorted(self.store.trocars))
+            return True, f"programs: {names or 'none'}; trocars: {trocars or 'none'}"[:500]
+        if cmd.name == "load_trocar":
+            return self._load_trocar(a.get("name", ""))
+        if cmd.name == "push":
+            return self._push(a)
+        if cmd.name == "jog":
+            axis = a.get("axis", "")
+            if axis not in SUPPORTED_JOG_AXES:
+                return (
+                    False,
+                    f"jog refused: axis {axis!r} not supported; valid: {', '.join(SUPPORTED_JOG_AXES)}",
+                )
+            try:
+                direction = int(a.get("direction", "1"))
+            except ValueError:
+                return False, f"jog refused: direction {a.get('direction')!r} must be 1 or -1"
+            r = m.jog(a.get("frame", "base"), axis, direction)
+            return r.accepted, r.reason
+        return False, f"unknown command {cmd.name!r}; valid: {', '.join(COMMANDS)}"
+
+    def _begin_posture(self, method: str, program: str) -> tuple[bool, str]:
+        """begin_posture_adjust: target J4/J5 (ptp, jog, direct_teach) or an aligned program."""
+        m = self.modes
+        angle: float | None = None
+        if method == "playback":
+            pts = self.store.programs.get(program)
+            if pts is None:
+                return False, f"begin_posture_adjust refused: no program {program!r} (teach_point first)"
+            if problem := playback_problem(pts, "non_trocar", self.trocar if self.trocar_taught else None):
+                return False, f"begin_posture_adjust refused: program {program!r}: {problem}"
+            angle = axis_angle_to_trocar(np.array(pts[-1].q), self.trocar)
+            target = np.array(pts[-1].q)
+        else:
+            try:
+                target = posture_adjust(self.q_cmd, self.trocar)
+            except (IKError, KinematicsError) as exc:
+                return False, f"begin_posture_adjust refused: {exc}"
+        r = m.begin_posture_adjust(method, program_axis_angle_rad=angle)
+        if not r.accepted:
+            return r.accepted, r.reason
+        self.posture_target = target
+        if self.reading is not None:  # the machine knows the J4/J5 distance at once (posture jog)
+            self.update_modes(self.reading)
+        j45 = np.degrees(target[3:5] - self.q_cmd[3:5])
+        to_go = f"J4 {j45[0]:+.1f}°, J5 {j45[1]:+.1f}° to go"
+        if method == "ptp":
+            duration = ptp_duration(self.q_cmd, target, self.cfg.ptp_speed_fraction)
+            self.ptp = PtpMotion(self.q_cmd.copy(), target, duration)
+            return True, f"{r.reason}; PTP of J4/J5 over {duration:.1f} s"
+        if method == "playback":
+            self._start_playback(program, "non_trocar")
+            return True, f"{r.reason}; playing {program!r} ({len(self.store.programs[program])} points)"
+        if method == "jog":
+            return True, f"{r.reason}; jog J4/J5 toward the target ({to_go})"
+        return True, f"{r.reason}; push the forceps: J4/J5 follow toward the target ({to_go})"
+
+    def _start_playback(self, program: str, mode: str) -> None:
+        self.playback_name = program
+        self.playback = Playback(
+            list(self.store.programs[program]),
+            mode,
+            self.trocar.copy() if mode == "trocar" else None,
+            self._vmax * self.cfg.ptp_speed_fraction,
+            self.cfg.playback_speed_mm_s / 1e3,
+            self.cfg.playback_dwell_s,
+        )
+
+    def _program_command(self, name: str, program: str) -> tuple[bool, str]:
+        """teach_point, clear_program, play (lock held)."""
+        m = self.modes
+        if not NAME_RE.match(program):
+            return False, f"{name} refused: program={program!r} is not a valid name"
+        if self.playback is not None:
+            return False, f"{name} refused: playback of {self.playback_name!r} is running (stop it first)"
+        if name == "clear_program":
+            if self.store.programs.pop(program, None) is None:
+                return False, f"clear_program refused: no program {program!r}"
+            self.store.save()
+            return True, f"program {program!r} cleared"
+        if name == "teach_point":
+            if self.reading is None:
+                return False, "teach_point refused: no measurement yet"
+            if self.active() and m.motion is not MotionMode.DIRECT_TEACH:
+                return False, "teach_point refused: the arm is moving (stop first)"
+            r = self.reading
+            tip = (float(r.tip_position[0]), float(r.tip_position[1]), float(r.tip_position[2]))
+            point = TaughtPoint(tuple(float(v) for v in r.position), tip, m.control_mode)
+            if problem := self.store.add_point(program, point):
+                return False, f"teach_point refused: {problem}"
+            self.store.save()
+            n = len(self.store.programs[program])
+            mm = ", ".join(f"{v * 1e3:.1f}" for v in tip)
+            return True, f"point {n} of {program!r} taught at ({mm}) mm in {m.control_mode} mode"
+        # play
+        if m.motion is not MotionMode.PLAYBACK or m.phase is not None:
+            return False, (
+                f"play refused in {m.label}: select the playback motion mode in non_trocar or trocar "
+                "mode (posture adjustment by playback starts its program itself)"
+            )
+        pts = self.store.programs.get(program)
+        if pts is None:
+            return False, f"play refused: no program {program!r}"
+        trocar = self.trocar if self.trocar_taught else None
+        if problem := playback_problem(pts, m.control_mode, trocar):
+            return False, f"play refused: program {program!r}: {problem}"
+        self._start_playback(program, m.control_mode)
+        return True, f"playing {program!r} ({len(pts)} points) in {m.control_mode} mode"
+
+    def _load_trocar(self, name: str) -> tuple[bool, str]:
+        if name not in self.store.trocars:
+            known = ", ".join(sorted(self.store.trocars)) or "none"
+            return False, f"load_trocar refused: no trocar {name!r} (taught: {known})"
+        if self.modes.control is not ControlMode.NON_TROCAR:
+            where = self.modes.label
+            return False, f"load_trocar refused in {where}: the trocar changes in non_trocar mode only"
+        self.trocar = np.array(self.store.trocars[name])
+        self.trocar_taught = True
+        self.store.current_trocar = name
+        self.store.save()
+        mm = ", ".join(f"{v * 1e3:.1f}" for v in self.trocar)
+        return True, f"trocar {name!r} loaded: ({mm}) mm"
+
+    def _push(self, a: dict[str, str]) -> tuple[bool, str]:
+        """Simulated hand: push the forceps tip (MuJoCo only)."""
+        if self.backend_push is None:
+            return False, f"push refused: the {self.cfg.backend} backend has no simulated hand"
+        try:
+            f = np.array([float(a.get(k, "0")) for k in ("fx", "fy", "fz")])
+            seconds = float(a.get("seconds", "1"))
+        except ValueError:
+            return False, "push refused: fx, fy, fz (N) and seconds must be numbers"
+        if not (np.all(np.isfinite(f)) and np.linalg.norm(f) <= 100.0 and 0.0 < seconds <= 10.0):
+            return False, "push refused: |force| must be ≤ 100 N and 0 < seconds ≤ 10"
+        at = a.get("at", "tip")
+        if at not in PUSH_POINTS:
+            return False, f"push refused: at={at!r}; valid: {', '.join(PUSH_POINTS)}"
+        self.backend_push(f, seconds, at)
+        return True, f"pushing the {at} with ({f[0]:.1f}, {f[1]:.1f}, {f[2]:.1f}) N for {seconds:.2f} s"
+
+    def stop(self, reason: str = "stopped") -> None:
+        """Cancel the slave-side motion (PTP, jog, playback, direct teach); the operator must
+        command it again (the core's lock held)."""
+        self.ptp = self.playback = None
+        if self.modes.jog_command is not None:
+            self.modes.stop()
+        if self.modes.motion is MotionMode.DIRECT_TEACH:
+            self.modes.abort(reason)
+            if self.modes.phase is None:
+                self.posture_target = None
+
+    def active(self) -> bool:
+        """A slave-side motion is commanded (lock held by the caller): PTP, jog, playback, or
+        direct teach (the arm moves when pushed)."""
+        return (
+            self.ptp is not None
+            or self.modes.jog_command is not None
+            or self.playback is not None
+            or self.modes.motion is MotionMode.DIRECT_TEACH
+        )
+
+    def update_modes(self, reading: ArmReading) -> None:
+        """Measure the forceps against the trocar and feed the control-mode machine (lock held).
+
+        RCM error and depth come from the measured tip pose (MuJoCo's tip site); the axis angle
+        from the measured joints. The RCM error is kept for ``operating_state``.
+        """
+        axis = reading.tip_pose[:3, 0]  # the forceps axis
+        rcm, depth = pose_to_trocar(reading.tip_position, axis, self.trocar)
+        self.rcm_error_m = rcm
+        try:
+            angle: float | None = axis_angle_to_trocar(reading.position, self.trocar)
+        except KinematicsError:  # the trocar at the wrist centre: no direction to it
+            angle = None
+        j45 = None
+        if self.posture_target is not None:
+            d = self.posture_target[3:5] - reading.position[3:5]
+            j45 = (float(d[0]), float(d[1]))
+        self.modes.update(depth, angle, self.trocar_taught, j45_to_target_rad=j45)
+        if self.modes.phase is None:
+            self.posture_target = None
+
+
+#: Operator commands served on ``slave/<arm>/command`` (args as ``key=value``).
+COMMANDS = (
+    "state",
+    "teach_trocar",
+    "begin_posture_adjust",
+    "finish_posture_adjust",
+    "insert",
+    "remove",
+    "stop",
+    "abort",
+    "set_motion_mode",
+    "jog",
+    "teach_point",
+    "clear_program",
+    "programs",
+    "play",
+    "load_trocar",
+    "push",
+)
+
+
+@dataclass
+class Internal:
+    """The slave-side motion of one control period (a snapshot taken under the lock)."""
+
+    jog: Jog | None
+    ptp: PtpMotion | None
+    playback: Playback | None
+    teach: bool  # direct teach: the arm follows a push
+    mode: str  # control mode
+    phase: Phase | None
