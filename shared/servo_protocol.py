@@ -114,9 +114,9 @@ What the host does (slave_control ``backend = "serial"``)
 2. Waits for a STATE (the arm's position), sends ENABLE, waits for a STATE that applied it
    (``last_seq_applied`` = the ENABLE's ``seq``) and reports ``enabled``.
 3. Every control period: one SETPOINT, limit- and rate-checked (clamped and counted) first.
-4. Holds, with the cause, on: no valid STATE for ``serial_stale_ms`` (the link is closed and
+4. Holds, with the cause, on: no valid STATE for ``serial.stale_ms`` (the link is closed and
    re-opened, with a new handshake), a fault bit (DISABLE; latched until the controller restarts
-   or the link is re-opened), a watchdog trip (ENABLE again after ``serial_reconnect_s``), a
+   or the link is re-opened), a watchdog trip (ENABLE again after ``serial.reconnect_s``), a
    restart (a HELLO, then a STATE disabled with ``last_seq_applied`` 0: ENABLE again), any other
    disable (latched like a fault). After any hold the slave moves again only after a new engage.
 

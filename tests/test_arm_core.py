@@ -442,7 +442,7 @@ def rig(request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFactory
         pty = emu.stdout.readline().strip()
         assert pty.startswith("/dev/"), pty
         # generous link timeouts: this shared host stalls processes for 100+ ms under load
-        sets += [f"serial_port={pty}", "serial_timeout_ms=250", "serial_stale_ms=250", "shadow=true"]
+        sets += [f"serial.port={pty}", "serial.timeout_ms=250", "serial.stale_ms=250", "shadow=true"]
         sets += ["shadow_limit_rad=0.1"]
     argv = [sys.executable, "-m", "telesurg.services.cli", "slave-control", "--connect", ep]
     for s in sets:

@@ -143,10 +143,10 @@ def site(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[Pipeline, C
     overrides = {
         "slave_control": [
             'backend="serial"',
-            f'serial_port="{ctl.link}"',
-            f"serial_timeout_ms={TIMEOUT_MS}",
-            f"serial_stale_ms={TIMEOUT_MS}",
-            "serial_reconnect_s=0.3",
+            f'serial.port="{ctl.link}"',
+            f"serial.timeout_ms={TIMEOUT_MS}",
+            f"serial.stale_ms={TIMEOUT_MS}",
+            "serial.reconnect_s=0.3",
             "shadow=true",
             f"shadow_limit_rad={SHADOW_LIMIT}",
             "shadow_grace_ms=200",
@@ -322,7 +322,7 @@ def test_emulator_silence_holds_and_its_watchdog_stops_the_joints(
     assert wait(lambda: "watchdog tripped" in ctl.log(), 5)
     print(
         f"\nsilence ({t_silent + offset - (ctl.started + offset):.1f} s after the plug-in) → HOLD after "
-        f"{(fault[0] - t_silent) * 1e3:.0f} ms (serial_stale_ms {TIMEOUT_MS}): {fault[3]}"
+        f"{(fault[0] - t_silent) * 1e3:.0f} ms (serial.stale_ms {TIMEOUT_MS}): {fault[3]}"
     )
     assert fault[0] - t_silent < 2.0
     assert t_swap < t_silent

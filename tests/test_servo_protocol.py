@@ -512,7 +512,7 @@ def test_serial_enable_false_never_enables(pty_pair: tuple[int, str]) -> None:
     emu = ServoEmulator(controller, ServoEmulatorOptions(rate_hz=200))
     with serving(emu), backend_on(path, enable=False) as b:
         run_steps(b, 0.3, lambda t: HOME + 0.1)
-        assert b.phase == "disabled" and "serial_enable = false" in b.read().fault
+        assert b.phase == "disabled" and "serial.enable = false" in b.read().fault
         assert emu.stats.enables == 0 and emu.stats.setpoints == 0 and not emu.enabled
 
 
@@ -579,15 +579,25 @@ def test_serial_config_keys_and_errors() -> None:
     cfg = load_config(
         SlaveControlConfig,
         None,
-        ["backend=serial", "serial_port=/dev/ttyACM0", "serial_speed_fraction=0.1", "shadow=true"],
+        ["backend=serial", "serial.port=/dev/ttyACM0", "serial.speed_fraction=0.1", "shadow=true"],
     )
-    assert cfg.serial_baud == 500_000 and cfg.serial_speed_fraction == 0.1 and cfg.shadow
-    with pytest.raises(ConfigError, match="needs serial_port"):
+    assert cfg.serial.baud == 500_000 and cfg.serial.speed_fraction == 0.1 and cfg.shadow
+    with pytest.raises(ConfigError, match=r"needs serial\.port"):
         make_backend("serial", "mh3f", (), cfg=load_config(SlaveControlConfig, None, ["backend=serial"]))
-    with pytest.raises(ConfigError, match=r"serial_speed_fraction=0.0 outside \(0, 1\]"):
-        make_backend("serial", "mh3f", (), cfg=dataclasses.replace(cfg, serial_speed_fraction=0.0))
-    with pytest.raises(ConfigError, match=r"serial_timeout_ms=5.0 outside \[20, 10000\]"):
-        make_backend("serial", "mh3f", (), cfg=dataclasses.replace(cfg, serial_timeout_ms=5.0))
+    with pytest.raises(ConfigError, match=r"serial.speed_fraction=0.0 outside \(0, 1\]"):
+        make_backend(
+            "serial",
+            "mh3f",
+            (),
+            cfg=dataclasses.replace(cfg, serial=dataclasses.replace(cfg.serial, speed_fraction=0.0)),
+        )
+    with pytest.raises(ConfigError, match=r"serial.timeout_ms=5.0 outside \[20, 10000\]"):
+        make_backend(
+            "serial",
+            "mh3f",
+            (),
+            cfg=dataclasses.replace(cfg, serial=dataclasses.replace(cfg.serial, timeout_ms=5.0)),
+        )
     with pytest.raises(ConfigError, match='shadow = true needs backend = "serial"'):
         make_backend("mujoco", "mh3f", (), cfg=cfg)
     with pytest.raises(ConfigError, match="valid: mujoco, serial"):

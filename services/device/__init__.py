@@ -20,7 +20,7 @@ Examples::
     telesurg device monitor --set serial.port=/dev/ttyACM0 --seconds 10
     python -m telesurg.services.device emulate --pty --garbage-every 50 --drop-every 100
     telesurg device emulate-slave --pty --model mh3f --stall-joint 1 --stall-at 10   # prints /dev/pts/N
-    telesurg slave-control --set backend=serial --set serial_port=/dev/pts/N --set shadow=true
+    telesurg slave-control --set backend=serial --set serial.port=/dev/pts/N --set shadow=true
 """
 
 from __future__ import annotations

@@ -17,7 +17,7 @@ source (:mod:`telesurg.services.slave_control.trocar_arm`); the others follow se
 interpolated to the control rate.
 
 The control loop runs at the backend period (1 ms for MuJoCo, in real time: missed periods are
-replayed, and counted; ``serial_rate_hz`` for a serial arm). Setpoints arrive on
+replayed, and counted; ``serial.rate_hz`` for a serial arm). Setpoints arrive on
 ``slave/<arm>/servo_jp``. Each arm publishes ``measured_js`` and its controlled point's
 ``measured_cp`` (full pose, ``base`` frame) at ``publish_hz``, the estimated external wrench at
 that point ``measured_cf`` (for masters with force feedback; backends that estimate external
@@ -29,7 +29,7 @@ Example::
     telesurg slave-control --connect tcp/127.0.0.1:7447 --set arm=arm1
     telesurg slave-control --connect tcp/127.0.0.1:7447 --set model=vip
     telesurg slave-control --connect tcp/127.0.0.1:7447 --set backend=serial \
-        --set serial_port=/dev/ttyACM0 --set shadow=true
+        --set serial.port=/dev/ttyACM0 --set shadow=true
 """
 
 from __future__ import annotations
@@ -45,6 +45,7 @@ from telesurg.services.common import service_main
 from telesurg.services.slave_control.arm import REPLAY_MAX_PERIODS, ArmCore, MotionSource
 from telesurg.services.slave_control.backends import SlaveBackend, SlaveReading
 from telesurg.services.slave_control.factory import make_backend
+from telesurg.services.slave_control.serial_backend import SerialBackendConfig
 from telesurg.services.slave_control.teach import TeachConfig
 from telesurg.services.slave_control.trocar_arm import TrocarMotions
 from telesurg.shared import robots
@@ -104,23 +105,9 @@ class SlaveControlConfig:
     # The watchdog's liveliness token is watched too: its death revokes the lease at once
     # (in ms), instead of after the lease lifetime.
     watchdog_service: str = "watchdog"
-    # -- backend = "serial": the joint-servo controller (shared/servo_protocol.py) --
-    # serial port or pyserial URL: /dev/ttyACM0, /dev/serial/by-id/... (survives re-plugging),
-    # /dev/pts/N (telesurg device emulate-slave), socket://host:port
-    serial_port: str = ""
-    serial_baud: int = 500_000  # bit/s: the firmware's BAUD (pseudo-terminals ignore it)
-    serial_rate_hz: float = 100.0  # Hz: control rate = one SETPOINT per period (the loop's rate)
-    # ms: sent in every SETPOINT: the controller stops the joints if no newer one comes in time
-    serial_timeout_ms: float = 100.0
-    serial_stale_ms: float = 100.0  # ms: no valid STATE for this long → link lost: HOLD, re-open
-    # ms: wait this long for the HELLO (an Arduino resets when the port opens: ~1.5 s boot)
-    serial_handshake_ms: float = 3000.0
-    serial_reconnect_s: float = 0.5  # s: re-open a lost port / re-enable after a watchdog trip this often
-    # (0, 1]: setpoints are rate-limited to this fraction of the joint speed limits (bring-up: 0.1)
-    serial_speed_fraction: float = 1.0
-    # false: handshake and read the arm but never ENABLE it (bring-up step 1: the slave holds
-    # with that cause, measured_js shows the joints as you move the arm by hand)
-    serial_enable: bool = True
+    # backend = "serial": the joint-servo controller (shared/servo_protocol.py), the [slave_control.serial]
+    # table: port, baud, rate, timeouts, bring-up switches (telesurg slave-control --help lists them)
+    serial: SerialBackendConfig = field(default_factory=SerialBackendConfig)
     # MuJoCo shadow (backend = "serial" only): the model runs beside the real arm, fed the same
     # setpoints; a divergence above shadow_limit_rad on any joint for shadow_grace_ms → HOLD
     shadow: bool = False

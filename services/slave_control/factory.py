@@ -37,7 +37,7 @@ def make_backend(
         return MujocoBackend(model, q_home, sites, home)
     if kind == "serial":
         if cfg is None:
-            raise ConfigError("the serial backend needs the slave_control config (serial_port, ...)")
+            raise ConfigError("the serial backend needs the slave_control config (serial.port, ...)")
         from telesurg.services.slave_control.serial_backend import make_serial_backend
 
         return make_serial_backend(cfg)

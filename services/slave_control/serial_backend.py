@@ -4,7 +4,7 @@
 :mod:`~telesurg.shared.serial_link`)
 behind the same :class:`~telesurg.services.slave_control.backends.SlaveBackend` interface as MuJoCo, so
 slave_control's lease and hold logic is the same for both. One control period
-(``serial_rate_hz``) is one :meth:`~SerialBackend.step`: read every frame that has arrived, then
+(``serial.rate_hz``) is one :meth:`~SerialBackend.step`: read every frame that has arrived, then
 write one SETPOINT. No thread: the control loop owns the link.
 
 Safety rules:
@@ -14,14 +14,14 @@ Safety rules:
   robot, a silent port or a port that cannot be opened is refused with an error naming what is
   wrong (:class:`~telesurg.shared.errors.DeviceConnectionError`: slave_control exits 1).
 * Setpoints are limit-checked (clamped into the joint limits) and rate-checked (scaled down
-  as a whole to ``serial_speed_fraction`` × the joint speed limits, measured from the previous
+  as a whole to ``serial.speed_fraction`` × the joint speed limits, measured from the previous
   setpoint) before they are written; both clamps are counted and logged
   (:attr:`SerialBackendStats.clipped_limit`, ``clipped_rate``; :attr:`SerialBackend.last_sent`).
-* Link loss (no valid STATE for ``serial_stale_ms``, a read/write error), a controller fault bit,
+* Link loss (no valid STATE for ``serial.stale_ms``, a read/write error), a controller fault bit,
   the controller's watchdog and an unexpected disable make ``read().fault`` non-empty with the
   cause: slave_control holds (:class:`~telesurg.services.slave_control.arm.FaultHold`) and no SETPOINT
-  is written. A lost link is re-opened every ``serial_reconnect_s`` with a new handshake; a
-  watchdog trip is answered by a new ENABLE after ``serial_reconnect_s``; a controller fault
+  is written. A lost link is re-opened every ``serial.reconnect_s`` with a new handshake; a
+  watchdog trip is answered by a new ENABLE after ``serial.reconnect_s``; a controller fault
   stays until the link is re-opened or the controller restarts. Either way the slave moves again
   only after a new engage.
 
@@ -31,7 +31,7 @@ actually sent, and holds when predicted and measured joints diverge.
 Example (the emulator on a pseudo-terminal)::
 
     telesurg device emulate-slave --pty --model mh3f               # prints /dev/pts/N
-    telesurg slave-control --set backend=serial --set serial_port=/dev/pts/N --set shadow=true
+    telesurg slave-control --set backend=serial --set serial.port=/dev/pts/N --set shadow=true
 """
 
 from __future__ import annotations
@@ -88,57 +88,55 @@ PHASES = ("down", "handshake", "sync", "enabling", "running", "tripped", "faulte
 
 @dataclass
 class SerialBackendConfig:
-    """The ``serial_*`` keys of slave_control (:class:`SlaveControlConfig`)."""
+    """slave_control's ``[slave_control.serial]`` table: the joint-servo controller on a serial port."""
 
-    port: str
-    baud: int = 500_000  # bit/s
-    rate_hz: float = 100.0  # Hz: SETPOINTs per second (the control loop's rate)
-    timeout_ms: float = 100.0  # ms: controller-side watchdog, sent in every SETPOINT
-    stale_ms: float = 100.0  # ms: no valid STATE for this long → link lost
-    handshake_ms: float = 3000.0  # ms: wait for HELLO / first STATE / ENABLE applied
-    reconnect_s: float = 0.5  # s: re-open / re-enable period
-    speed_fraction: float = 1.0  # (0, 1]: share of the joint speed limits a setpoint may use
-    enable: bool = True  # False: never ENABLE (bring-up with the arm disabled)
+    # serial port or pyserial URL: /dev/ttyACM0, /dev/serial/by-id/... (survives re-plugging),
+    # /dev/pts/N (telesurg device emulate-slave), socket://host:port
+    port: str = ""
+    baud: int = 500_000  # bit/s: the firmware's BAUD (pseudo-terminals ignore it)
+    rate_hz: float = 100.0  # Hz: control rate = one SETPOINT per period (the loop's rate)
+    # ms: sent in every SETPOINT: the controller stops the joints if no newer one comes in time
+    timeout_ms: float = 100.0
+    stale_ms: float = 100.0  # ms: no valid STATE for this long → link lost: HOLD, re-open
+    # ms: wait this long for the HELLO (an Arduino resets when the port opens: ~1.5 s boot)
+    handshake_ms: float = 3000.0
+    reconnect_s: float = 0.5  # s: re-open a lost port / re-enable after a watchdog trip this often
+    # (0, 1]: setpoints are rate-limited to this fraction of the joint speed limits (bring-up: 0.1)
+    speed_fraction: float = 1.0
+    # false: handshake and read the arm but never ENABLE it (bring-up step 1: the slave holds
+    # with that cause, measured_js shows the joints as you move the arm by hand)
+    enable: bool = True
 
     @classmethod
     def from_slave_config(cls, cfg: SlaveControlConfig) -> SerialBackendConfig:
-        return cls(
-            cfg.serial_port,
-            cfg.serial_baud,
-            cfg.serial_rate_hz,
-            cfg.serial_timeout_ms,
-            cfg.serial_stale_ms,
-            cfg.serial_handshake_ms,
-            cfg.serial_reconnect_s,
-            cfg.serial_speed_fraction,
-            cfg.serial_enable,
-        )
+        """The ``serial`` table of a slave_control config."""
+        return cfg.serial
 
     def validate(self) -> None:
         """Raise ConfigError naming the key and its valid range."""
         if not self.port:
             raise ConfigError(
-                'backend = "serial" needs serial_port, e.g. /dev/ttyACM0, /dev/serial/by-id/..., '
+                'backend = "serial" needs serial.port, e.g. /dev/ttyACM0, /dev/serial/by-id/..., '
                 "/dev/pts/N (telesurg device emulate-slave)"
             )
         if self.baud <= 0:
-            raise ConfigError(f"serial_baud={self.baud} must be > 0 (the firmware's BAUD, e.g. 500000)")
+            raise ConfigError(f"serial.baud={self.baud} must be > 0 (the firmware's BAUD, e.g. 500000)")
         if not 1.0 <= self.rate_hz <= 1000.0:
-            raise ConfigError(f"serial_rate_hz={self.rate_hz} outside [1, 1000] Hz")
+            raise ConfigError(f"serial.rate_hz={self.rate_hz} outside [1, 1000] Hz")
         period_ms = 1e3 / self.rate_hz
         if not 2 * period_ms <= self.timeout_ms <= MAX_TIMEOUT_MS:
             raise ConfigError(
-                f"serial_timeout_ms={self.timeout_ms} outside [{2 * period_ms:g}, {MAX_TIMEOUT_MS}] ms "
+                f"serial.timeout_ms={self.timeout_ms} outside [{2 * period_ms:g}, {MAX_TIMEOUT_MS}] ms "
                 "(at least two control periods)"
             )
         if not 2 * period_ms <= self.stale_ms <= 10_000.0:
-            raise ConfigError(f"serial_stale_ms={self.stale_ms} outside [{2 * period_ms:g}, 10000] ms")
+            raise ConfigError(f"serial.stale_ms={self.stale_ms} outside [{2 * period_ms:g}, 10000] ms")
         if not 10.0 <= self.handshake_ms <= 60_000.0:
-            raise ConfigError(f"serial_handshake_ms={self.handshake_ms} outside [10, 60000] ms")
+            raise ConfigError(f"serial.handshake_ms={self.handshake_ms} outside [10, 60000] ms")
         if not 0.01 <= self.reconnect_s <= 60.0:
-            raise ConfigError(f"serial_reconnect_s={self.reconnect_s} outside [0.01, 60] s")
+            raise ConfigError(f"serial.reconnect_s={self.reconnect_s} outside [0.01, 60] s")
         if not 0.0 < self.speed_fraction <= 1.0:
-            raise ConfigError(f"serial_speed_fraction={self.speed_fraction} outside (0, 1]")
+            raise ConfigError(f"serial.speed_fraction={self.speed_fraction} outside (0, 1]")
 
 
 @dataclass
@@ -251,7 +249,7 @@ class SerialBackend:
         Raises:
             DeviceConnectionError: the port cannot be opened, the controller is refused (a
                 different robot: the message names what differs), or it did not answer within
-                ``serial_handshake_ms`` (twice that for the whole start).
+                ``serial.handshake_ms`` (twice that for the whole start).
         """
         now = time.monotonic()
         self._open(now, raise_errors=True)
@@ -621,7 +619,7 @@ class SerialBackend:
         if phase == "sync":
             if not self.cfg.enable:
                 self._phase = "disabled"
-                self._set_fault("controller kept disabled: serial_enable = false (bring-up)")
+                self._set_fault("controller kept disabled: serial.enable = false (bring-up)")
             else:
                 self._send_enable(now)
         elif phase == "enabling":
