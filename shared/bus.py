@@ -158,11 +158,21 @@ def load_acl(path: str) -> str:
     return text
 
 
+#: The endpoint a client connects to when no ``--connect`` (nor ``--zenoh-config``) is given: the
+#: router of the local site (``telesurg up`` / ``demo`` listen there by default).
+LOCAL_ROUTER = "tcp/127.0.0.1:7447"
+
+
 def add_bus_args(parser: argparse.ArgumentParser) -> None:
     """Add the common zenoh flags (``--mode --connect --listen --zenoh-config --lease-ms``, TLS, ACL)."""
     g = parser.add_argument_group("zenoh")
     g.add_argument("--mode", choices=MODES, help="zenoh mode (default: client)")
-    g.add_argument("--connect", action="append", metavar="ENDPOINT", help="e.g. tcp/127.0.0.1:7447")
+    g.add_argument(
+        "--connect",
+        action="append",
+        metavar="ENDPOINT",
+        help=f"router to connect to, repeatable (a client without one: {LOCAL_ROUTER}, the local site)",
+    )
     g.add_argument("--listen", action="append", metavar="ENDPOINT", help="e.g. tcp/127.0.0.1:7447")
     g.add_argument("--zenoh-config", metavar="FILE", help="zenoh JSON5 config file")
     g.add_argument("--lease-ms", type=int, help="transport lease, ms (default 1000)")
@@ -207,6 +217,8 @@ def bus_from_args(args: argparse.Namespace, base: BusConfig | None = None) -> Bu
         cfg.allow_insecure_listen = True
     if zlog := getattr(args, "zenoh_log", None):
         cfg.zenoh_log = zlog
+    if cfg.mode == "client" and not cfg.connect and not cfg.config_file:
+        cfg.connect = [LOCAL_ROUTER]  # every command line: the local site's router by default
     return cfg
 
 

@@ -44,8 +44,6 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         check_id("arm", a.arm)
         bus = bus_from_args(a)
-        if not bus.connect:
-            bus.connect = ["tcp/127.0.0.1:7447"]
         with Node(bus, a.site, f"console_cli_{os.getpid()}") as node:
             key = node.keys.command(a.arm)
             out = node.outlet(key, control=False)

@@ -28,7 +28,8 @@ Examples::
 
     telesurg console --connect tcp/127.0.0.1:7447                      # local site, arm1 ← m1
     telesurg console --site lab --arm m1:arm1 --arm m2:arm2 --connect tls/slave-host:7447 \\
-        --zenoh-config deploy/console-zenoh.json5
+        --tls-ca certs/ca.pem --tls-cert certs/console.pem --tls-key certs/console.key --mtls
+    deploy/console.sh slave-host                                        # the same, with master_capture
 """
 
 from __future__ import annotations
@@ -97,8 +98,6 @@ def parse_args(argv: Sequence[str] | None) -> tuple[ConsoleConfig, str]:
     if a.arm:
         cfg.arms = list(a.arm)
     cfg.bus = bus_from_args(a, cfg.bus)
-    if not cfg.bus.connect and cfg.bus.mode == "client":
-        cfg.bus.connect = ["tcp/127.0.0.1:7447"]
     cfg.bus.validate()
     cfg.validate()
     level = getattr(logging, a.log_level.upper(), logging.INFO)

@@ -41,8 +41,6 @@ def main(argv: Sequence[str] | None = None) -> int:
         if args.arm != "*":
             check_id("arm", args.arm)
         bus = bus_from_args(args)
-        if not bus.connect:
-            bus.connect = ["tcp/127.0.0.1:7447"]
         action = "reset" if args.reset else "estop"
         with Node(bus, args.site, f"estop_cli_{os.getpid()}") as node:
             done = threading.Event()
