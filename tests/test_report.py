@@ -23,11 +23,12 @@ from telesurg.services.launcher.report import (
     RELEASE_TRIM_S,
     SessionRecorder,
     TrackingError,
+    WatchdogTransitions,
     engaged_segments,
     tracking_error,
 )
 from telesurg.shared.bus import BusConfig, Node
-from telesurg.shared.messages import CartesianPose
+from telesurg.shared.messages import CartesianPose, Header, SafetyState
 
 CONFIG_SCALE = 0.5  # deploy/local/mapping.toml
 OPERATOR_SCALE = 0.3
@@ -74,6 +75,41 @@ def test_a_report_without_data_is_strict_json() -> None:
         "segments": 0,
     }
     json.dumps(TrackingError(float("nan"), float("inf"), 0, 0).as_dict(), allow_nan=False)
+
+
+def test_watchdog_entries_into_hold_and_degraded_are_counted_with_their_causes() -> None:
+    # what the operator saw: HOLD (at start, not counted), OK, HOLD (stale master), its clearing
+    # (still HOLD: no new entry), OK, DEGRADED (latency), OK, HOLD again with a longer stall
+    seq = [
+        ("HOLD", ("mapping not alive",)),
+        ("OK", ()),
+        ("HOLD", ("master/m1/measured_cp stale (95 ms > 80 ms)",)),
+        ("HOLD", ("clearing: master/m1/measured_cp stale (95 ms > 80 ms)",)),
+        ("OK", ()),
+        ("DEGRADED", ("latency p90 105.8 ms > budget 100 ms",)),
+        ("OK", ()),
+        ("HOLD", ("master/m1/measured_cp stale (212 ms > 80 ms)", "latency p90 130.0 ms > budget 100 ms")),
+    ]
+    w = WatchdogTransitions()
+    for i, (state, causes) in enumerate(seq):
+        w.add(SafetyState(Header("watchdog", i, 1_000 + i), "arm1", state, causes))
+    d = w.as_dict()
+    json.dumps(d, allow_nan=False)
+    assert d["initial"] == "HOLD" and d["state"] == "HOLD"
+    assert d["entered"] == {"HOLD": 2, "DEGRADED": 1, "ESTOP": 0}, d
+    assert d["causes"]["HOLD"] == {"master/m1/measured_cp stale": 2, "latency p90 # ms > budget # ms": 1}, d
+    assert d["causes"]["DEGRADED"] == {"latency p90 # ms > budget # ms": 1}, d
+    assert [(t["from"], t["to"]) for t in d["transitions"]] == [
+        ("HOLD", "OK"),
+        ("OK", "HOLD"),
+        ("HOLD", "OK"),
+        ("OK", "DEGRADED"),
+        ("DEGRADED", "OK"),
+        ("OK", "HOLD"),
+    ]
+    line = w.summary()
+    assert line.startswith("2 HOLD, 1 DEGRADED, 0 ESTOP (causes: HOLD: master/m1/measured_cp stale ×2"), line
+    assert "DEGRADED: latency p90 # ms > budget # ms ×1" in line, line
 
 
 @pytest.mark.process
