@@ -57,3 +57,31 @@ def test_config_errors() -> None:
         ScriptedDevice(ScriptedConfig(clutch=[[2.0, 1.0]]))
     with pytest.raises(ConfigError, match="valid: scripted"):
         make_device("phantom", ScriptedConfig())
+
+
+def test_a_refused_engage_is_answered_by_a_release_and_a_new_press_within_the_retry_time() -> None:
+    # the schedule keeps the pedal down from 1 s on; the mapping refuses the engage at 1.0 s
+    with ScriptedDevice(ScriptedConfig(clutch=[[1.0, 1e9]], retry_refused_engage_s=0.5)) as dev:
+        retry = dev.engage_retry
+        assert retry is not None
+        assert dev.read(1.0).clutch
+        assert retry.refused(since_ns=111)
+        assert not retry.refused(since_ns=111)  # the same refusal re-sent at 10 Hz: not a new one
+        released = [dev.read(t).clutch for t in (1.01, 1.2, 1.5)]
+        assert released == [False, False, False]  # released at once, for the mapping to see
+        assert dev.read(1.51).clutch  # pressed again 0.5 s after: a new press
+        # refused again (the slave still not allowed): released again, pressed again
+        assert retry.refused(since_ns=222)
+        assert not dev.read(1.6).clutch and dev.read(2.11).clutch
+        assert retry.retries == 2
+    # a refusal while the schedule has the pedal up is dropped: no release later on
+    with ScriptedDevice(ScriptedConfig(clutch=[[1.0, 2.0]], clutch_repeat_s=3.0)) as dev:
+        assert dev.engage_retry is not None and dev.engage_retry.retry_s == 1.0  # on by default
+        dev.read(2.5)
+        dev.engage_retry.refused(since_ns=1)
+        assert not dev.read(2.6).clutch and dev.read(4.0).clutch and dev.engage_retry.retries == 0
+    # off: the pedal stays down however often the mapping refuses
+    with ScriptedDevice(ScriptedConfig(clutch=[[1.0, 1e9]], retry_refused_engage_s=0.0)) as dev:
+        assert dev.engage_retry is None and all(dev.read(t).clutch for t in (1.0, 1.5, 2.0))
+    with pytest.raises(ConfigError, match=r"retry_refused_engage_s=0.01 outside \[0.1, 60\] s \(0: off\)"):
+        ScriptedDevice(ScriptedConfig(retry_refused_engage_s=0.01))
