@@ -173,3 +173,51 @@ def test_the_report_judges_tracking_by_the_scale_the_mapping_used(tmp_path: Path
         wrong = tracking_error(m, slave, after, CONFIG_SCALE, np.eye(3), settle_s=0.5)
         print(f"judged with the config's scale {CONFIG_SCALE}: {wrong}")
         assert wrong.samples > 500 and wrong.max_mm > 2.0, wrong
+
+
+@pytest.mark.process
+def test_the_report_counts_the_watchdogs_hold_and_estop_with_their_causes(tmp_path: Path) -> None:
+    """What the operator experiences: master_capture frozen (SIGSTOP) for 0.5 s, longer than the
+    watchdog's 80 ms master deadline, is a watchdog HOLD with the stale master stream as its cause;
+    an e-stop and its reset through the bus is one ESTOP. Both are in the report beside the
+    slave's own hold count, and in its one-line summary."""
+    with Pipeline(tmp_path / "logs", mirror=False, impair=False, probe=False) as pipe:
+        bus = BusConfig(connect=[pipe.spec.endpoint])
+        with Node(bus, pipe.spec.site, "demo_report") as node:
+            rec = SessionRecorder(node, "m1", "arm1")
+
+            def state() -> str | None:
+                with rec.lock:
+                    w = rec.watchdog.get("arm1")
+                    return w.state if w else None
+
+            def following() -> bool:
+                with rec.lock:
+                    return bool(rec.follow) and rec.follow[-1][1]
+
+            assert wait(following, ENGAGE_S + 30.0), "the slave never followed"  # + start-up
+            t_freeze = pipe.freeze("master_capture")
+            time.sleep(0.5)
+            t_thaw = pipe.thaw("master_capture")
+            assert wait(lambda: state() == "OK", 10.0), state()
+            t_estop = pipe.estop("estop", "arm1")
+            assert wait(lambda: state() == "ESTOP", 10.0), state()
+            pipe.estop("reset", "arm1")
+            assert wait(lambda: state() in ("OK", "DEGRADED"), 10.0), state()
+            r = rec.report()
+    json.dumps(r, allow_nan=False)  # strict JSON
+    w = r["watchdog"]["arm1"]
+    print(r["summary"])
+    # the freeze: an entry into HOLD between the freeze and shortly after the thaw, for the stale master
+    ours = [
+        t for t in w["transitions"] if t["to"] == "HOLD" and t_freeze <= t["t_ns"] <= t_thaw + 1_000_000_000
+    ]
+    assert ours and any("master/m1/measured_cp" in c for c in ours[0]["causes"]), w["transitions"]
+    assert w["entered"]["HOLD"] >= 1 and w["causes"]["HOLD"].get("master/m1/measured_cp stale", 0) >= 1, w
+    # the e-stop: exactly one ESTOP, caused by this test's e-stop from the bus
+    assert w["entered"]["ESTOP"] == 1, w
+    (estop,) = [t for t in w["transitions"] if t["to"] == "ESTOP"]
+    assert estop["t_ns"] >= t_estop and any("e-stop from" in c for c in estop["causes"]), estop
+    assert r["summary"].startswith(f"watchdog [arm1]: {w['entered']['HOLD']} HOLD, "), r["summary"]
+    assert "ESTOP (causes: " in r["summary"] and r["summary"].endswith(f"; slave holds: {r['holds']}")
+    assert "master/m1/measured_cp stale ×" in r["summary"], r["summary"]
