@@ -217,7 +217,7 @@ class WatchdogTransitions:
         }
 
     def summary(self) -> str:
-        """One line: ``"2 HOLD, 1 DEGRADED, 0 ESTOP (HOLD: master/m1/measured_cp stale ×2; …)"``."""
+        """One line: ``"2 HOLD, 1 DEGRADED, 0 ESTOP (causes: HOLD: master/m1/measured_cp stale ×2; …)"``."""
         counts = ", ".join(f"{self.entered[s]} {s}" for s in WATCHDOG_COUNTED)
         why = "; ".join(
             f"{s}: " + ", ".join(f"{k} ×{n}" for k, n in sorted(c.items(), key=lambda kv: -kv[1]))
