@@ -196,11 +196,15 @@ def test_the_report_counts_the_watchdogs_hold_and_estop_with_their_causes(tmp_pa
                     return bool(rec.follow) and rec.follow[-1][1]
 
             assert wait(following, ENGAGE_S + 30.0), "the slave never followed"  # + start-up
-            t_freeze = pipe.freeze("master_capture")
+            assert wait(lambda: state() == "OK", 10.0), state()  # the starting point seen
+            t_freeze = time.time_ns()  # wall clock, as the headers' stamp_ns
+            pipe.freeze("master_capture")
             time.sleep(0.5)
-            t_thaw = pipe.thaw("master_capture")
+            pipe.thaw("master_capture")
+            t_thaw = time.time_ns()
             assert wait(lambda: state() == "OK", 10.0), state()
-            t_estop = pipe.estop("estop", "arm1")
+            t_estop = time.time_ns()
+            pipe.estop("estop", "arm1")
             assert wait(lambda: state() == "ESTOP", 10.0), state()
             pipe.estop("reset", "arm1")
             assert wait(lambda: state() in ("OK", "DEGRADED"), 10.0), state()
