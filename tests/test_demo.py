@@ -44,6 +44,12 @@ def test_demo_headless_report(tmp_path: Path) -> None:
     # stream arriving late: stale or over the latency budget), never for anything else.
     holds = [e for e in r["events"] if "] hold:" in e]
     assert (r["holds"] == 0 or holds) and all("stale" in e or "latency" in e for e in holds), holds
+    # the closing line names the watchdog's transitions (what the operator saw) beside the slave's
+    # holds; nobody e-stops the demo
+    w = r["watchdog"]["arm1"]
+    assert w["state"] in ("OK", "DEGRADED", "HOLD") and w["entered"]["ESTOP"] == 0, w
+    assert r["summary"].startswith(f"watchdog [arm1]: {w['entered']['HOLD']} HOLD, "), r["summary"]
+    assert r["summary"].endswith(f"slave holds: {r['holds']}") and r["summary"] in proc.stderr
     assert scalar_counts(rrd).get("/slave/arm1/joints/j6/measured", 0) > 500
 
 

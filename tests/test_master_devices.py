@@ -1,14 +1,19 @@
-"""The scripted master device: paths, clutch schedule, CSV playback and its errors."""
+"""The scripted master device: paths, clutch schedule, CSV playback and its errors; a refused
+engage pressed again (unit, and against the running services)."""
 
 from __future__ import annotations
 
 import math
+import threading
+import time
 from pathlib import Path
 
 import numpy as np
 import pytest
+from telesurg.services.bench.harness import Pipeline
 from telesurg.services.master_capture.devices import ScriptedConfig, ScriptedDevice, make_device
 from telesurg.shared.errors import ConfigError
+from telesurg.shared.messages import SafetyState, TeleopState
 
 
 def test_circle_radius_period_and_clutch_schedule() -> None:
@@ -57,3 +62,87 @@ def test_config_errors() -> None:
         ScriptedDevice(ScriptedConfig(clutch=[[2.0, 1.0]]))
     with pytest.raises(ConfigError, match="valid: scripted"):
         make_device("phantom", ScriptedConfig())
+
+
+def test_a_refused_engage_is_answered_by_a_release_and_a_new_press_within_the_retry_time() -> None:
+    # the schedule keeps the pedal down from 1 s on; the mapping refuses the engage at 1.0 s
+    with ScriptedDevice(ScriptedConfig(clutch=[[1.0, 1e9]], retry_refused_engage_s=0.5)) as dev:
+        retry = dev.engage_retry
+        assert retry is not None
+        assert dev.read(1.0).clutch
+        assert retry.refused(since_ns=111)
+        assert not retry.refused(since_ns=111)  # the same refusal re-sent at 10 Hz: not a new one
+        released = [dev.read(t).clutch for t in (1.01, 1.2, 1.5)]
+        assert released == [False, False, False]  # released at once, for the mapping to see
+        assert dev.read(1.51).clutch  # pressed again 0.5 s after: a new press
+        # refused again (the slave still not allowed): released again, pressed again
+        assert retry.refused(since_ns=222)
+        assert not dev.read(1.6).clutch and dev.read(2.11).clutch
+        assert retry.retries == 2
+    # a refusal while the schedule has the pedal up is dropped: no release later on
+    with ScriptedDevice(ScriptedConfig(clutch=[[1.0, 2.0]], clutch_repeat_s=3.0)) as dev:
+        assert dev.engage_retry is not None and dev.engage_retry.retry_s == 1.0  # on by default
+        dev.read(2.5)
+        dev.engage_retry.refused(since_ns=1)
+        assert not dev.read(2.6).clutch and dev.read(4.0).clutch and dev.engage_retry.retries == 0
+    # off: the pedal stays down however often the mapping refuses
+    with ScriptedDevice(ScriptedConfig(clutch=[[1.0, 1e9]], retry_refused_engage_s=0.0)) as dev:
+        assert dev.engage_retry is None and all(dev.read(t).clutch for t in (1.0, 1.5, 2.0))
+    with pytest.raises(ConfigError, match=r"retry_refused_engage_s=0.01 outside \[0.1, 60\] s \(0: off\)"):
+        ScriptedDevice(ScriptedConfig(retry_refused_engage_s=0.01))
+
+
+@pytest.mark.process
+def test_the_scripted_pedal_presses_again_after_a_refused_engage(tmp_path: Path) -> None:
+    """The pedal is held down from 0.5 s on and never released by its schedule. The arm is
+    e-stopped before master_capture starts, so its first engage is refused for sure; the pedal
+    then presses again every second while the refusals go on, and once the e-stop is reset the
+    next press engages: within seconds, where a pedal held down would never engage again."""
+    held = ["scripted.clutch=[[0.5, 1e9]]", "scripted.clutch_repeat_s=0.0"]
+    held.append("scripted.retry_refused_engage_s=1.0")
+    ov = {"master_capture": held}
+    logs = tmp_path / "logs"
+    with Pipeline(logs, mirror=False, impair=False, master=False, probe=False, overrides=ov) as pipe:
+        lock = threading.Lock()
+        teleop: list[tuple[float, TeleopState]] = []
+        safety: list[str] = []
+
+        def on_teleop(m: TeleopState, key: str) -> None:
+            with lock:
+                teleop.append((time.monotonic(), m))
+
+        def on_safety(m: SafetyState, key: str) -> None:
+            with lock:
+                safety.append(m.state)
+
+        k = pipe.node.keys
+        pipe.node.subscribe(k.mapping("arm1", "teleop_state"), TeleopState, on_teleop, sources=["mapping"])
+        pipe.node.subscribe(k.safety("arm1", "state"), SafetyState, on_safety, sources=["watchdog"])
+        pipe.estop("estop", "arm1")
+        assert pipe.wait(lambda: "ESTOP" in safety, 10.0), safety
+
+        def refusals() -> list[tuple[float, int]]:  # (time received, since_ns) of each refusal
+            with lock:
+                out = {m.since_ns: t for t, m in teleop if (m.previous, m.state) == ("ENGAGING", "HOLDING")}
+            return sorted((t, s) for s, t in out.items())
+
+        def engaged() -> float | None:
+            with lock:
+                return next((t for t, m in teleop if m.state == "ENABLED"), None)
+
+        pipe.site.restart("master_capture")
+        assert pipe.wait(lambda: len(refusals()) >= 1, 30.0), "no engage was refused"  # + start-up
+        time.sleep(3.5)
+        got = refusals()
+        gaps = np.diff([t for t, _ in got])
+        print(f"{len(got)} refusals in {got[-1][0] - got[0][0]:.2f} s, gaps {np.round(gaps, 2)} s")
+        assert engaged() is None, "engaged while e-stopped"
+        # the schedule alone presses once: every further refusal is a press again (about 1 s apart)
+        assert len(got) >= 3 and gaps.max() < 2.5, got
+        t_reset = time.monotonic()
+        pipe.estop("reset", "arm1")
+        assert pipe.wait(lambda: engaged() is not None, 10.0), teleop[-1]
+        t_engaged = engaged()
+        assert t_engaged is not None
+        print(f"engaged {t_engaged - t_reset:.2f} s after the e-stop reset (the schedule never released)")
+        assert t_engaged - t_reset < 5.0

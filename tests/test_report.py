@@ -23,11 +23,12 @@ from telesurg.services.launcher.report import (
     RELEASE_TRIM_S,
     SessionRecorder,
     TrackingError,
+    WatchdogTransitions,
     engaged_segments,
     tracking_error,
 )
 from telesurg.shared.bus import BusConfig, Node
-from telesurg.shared.messages import CartesianPose
+from telesurg.shared.messages import CartesianPose, Header, SafetyState
 
 CONFIG_SCALE = 0.5  # deploy/local/mapping.toml
 OPERATOR_SCALE = 0.3
@@ -74,6 +75,41 @@ def test_a_report_without_data_is_strict_json() -> None:
         "segments": 0,
     }
     json.dumps(TrackingError(float("nan"), float("inf"), 0, 0).as_dict(), allow_nan=False)
+
+
+def test_watchdog_entries_into_hold_and_degraded_are_counted_with_their_causes() -> None:
+    # what the operator saw: HOLD (at start, not counted), OK, HOLD (stale master), its clearing
+    # (still HOLD: no new entry), OK, DEGRADED (latency), OK, HOLD again with a longer stall
+    seq = [
+        ("HOLD", ("mapping not alive",)),
+        ("OK", ()),
+        ("HOLD", ("master/m1/measured_cp stale (95 ms > 80 ms)",)),
+        ("HOLD", ("clearing: master/m1/measured_cp stale (95 ms > 80 ms)",)),
+        ("OK", ()),
+        ("DEGRADED", ("latency p90 105.8 ms > budget 100 ms",)),
+        ("OK", ()),
+        ("HOLD", ("master/m1/measured_cp stale (212 ms > 80 ms)", "latency p90 130.0 ms > budget 100 ms")),
+    ]
+    w = WatchdogTransitions()
+    for i, (state, causes) in enumerate(seq):
+        w.add(SafetyState(Header("watchdog", i, 1_000 + i), "arm1", state, causes))
+    d = w.as_dict()
+    json.dumps(d, allow_nan=False)
+    assert d["initial"] == "HOLD" and d["state"] == "HOLD"
+    assert d["entered"] == {"HOLD": 2, "DEGRADED": 1, "ESTOP": 0}, d
+    assert d["causes"]["HOLD"] == {"master/m1/measured_cp stale": 2, "latency p90 # ms > budget # ms": 1}, d
+    assert d["causes"]["DEGRADED"] == {"latency p90 # ms > budget # ms": 1}, d
+    assert [(t["from"], t["to"]) for t in d["transitions"]] == [
+        ("HOLD", "OK"),
+        ("OK", "HOLD"),
+        ("HOLD", "OK"),
+        ("OK", "DEGRADED"),
+        ("DEGRADED", "OK"),
+        ("OK", "HOLD"),
+    ]
+    line = w.summary()
+    assert line.startswith("2 HOLD, 1 DEGRADED, 0 ESTOP (causes: HOLD: master/m1/measured_cp stale ×2"), line
+    assert "DEGRADED: latency p90 # ms > budget # ms ×1" in line, line
 
 
 @pytest.mark.process
@@ -137,3 +173,55 @@ def test_the_report_judges_tracking_by_the_scale_the_mapping_used(tmp_path: Path
         wrong = tracking_error(m, slave, after, CONFIG_SCALE, np.eye(3), settle_s=0.5)
         print(f"judged with the config's scale {CONFIG_SCALE}: {wrong}")
         assert wrong.samples > 500 and wrong.max_mm > 2.0, wrong
+
+
+@pytest.mark.process
+def test_the_report_counts_the_watchdogs_hold_and_estop_with_their_causes(tmp_path: Path) -> None:
+    """What the operator experiences: master_capture frozen (SIGSTOP) for 0.5 s, longer than the
+    watchdog's 80 ms master deadline, is a watchdog HOLD with the stale master stream as its cause;
+    an e-stop and its reset through the bus is one ESTOP. Both are in the report beside the
+    slave's own hold count, and in its one-line summary."""
+    with Pipeline(tmp_path / "logs", mirror=False, impair=False, probe=False) as pipe:
+        bus = BusConfig(connect=[pipe.spec.endpoint])
+        with Node(bus, pipe.spec.site, "demo_report") as node:
+            rec = SessionRecorder(node, "m1", "arm1")
+
+            def state() -> str | None:
+                with rec.lock:
+                    w = rec.watchdog.get("arm1")
+                    return w.state if w else None
+
+            def following() -> bool:
+                with rec.lock:
+                    return bool(rec.follow) and rec.follow[-1][1]
+
+            assert wait(following, ENGAGE_S + 30.0), "the slave never followed"  # + start-up
+            assert wait(lambda: state() == "OK", 10.0), state()  # the starting point seen
+            t_freeze = time.time_ns()  # wall clock, as the headers' stamp_ns
+            pipe.freeze("master_capture")
+            time.sleep(0.5)
+            pipe.thaw("master_capture")
+            t_thaw = time.time_ns()
+            assert wait(lambda: state() == "OK", 10.0), state()
+            t_estop = time.time_ns()
+            pipe.estop("estop", "arm1")
+            assert wait(lambda: state() == "ESTOP", 10.0), state()
+            pipe.estop("reset", "arm1")
+            assert wait(lambda: state() in ("OK", "DEGRADED"), 10.0), state()
+            r = rec.report()
+    json.dumps(r, allow_nan=False)  # strict JSON
+    w = r["watchdog"]["arm1"]
+    print(r["summary"])
+    # the freeze: an entry into HOLD between the freeze and shortly after the thaw, for the stale master
+    ours = [
+        t for t in w["transitions"] if t["to"] == "HOLD" and t_freeze <= t["t_ns"] <= t_thaw + 1_000_000_000
+    ]
+    assert ours and any("master/m1/measured_cp" in c for c in ours[0]["causes"]), w["transitions"]
+    assert w["entered"]["HOLD"] >= 1 and w["causes"]["HOLD"].get("master/m1/measured_cp stale", 0) >= 1, w
+    # the e-stop: exactly one ESTOP, caused by this test's e-stop from the bus
+    assert w["entered"]["ESTOP"] == 1, w
+    (estop,) = [t for t in w["transitions"] if t["to"] == "ESTOP"]
+    assert estop["t_ns"] >= t_estop and any("e-stop from" in c for c in estop["causes"]), estop
+    assert r["summary"].startswith(f"watchdog [arm1]: {w['entered']['HOLD']} HOLD, "), r["summary"]
+    assert "ESTOP (causes: " in r["summary"] and r["summary"].endswith(f"; slave holds: {r['holds']}")
+    assert "master/m1/measured_cp stale ×" in r["summary"], r["summary"]

@@ -9,7 +9,11 @@ Headless, it runs for ``--seconds`` and writes a report::
 The report (strict JSON) holds per-stream message counts and sequence gaps, the tip tracking
 error against the mapping's published target ``setpoint_cp`` (mean/max mm, after settling), the
 motion scales and teleop states the mapping published (an operator's ``set_scale`` mid-session
-included) and the number of holds; see :mod:`telesurg.services.launcher.report`.
+included), the watchdog's transitions into HOLD / DEGRADED / ESTOP with their causes (what the
+operator experienced) beside the slave's own fault holds; see
+:mod:`telesurg.services.launcher.report`. The closing log line names both, e.g.
+``watchdog [arm1]: 2 HOLD, 1 DEGRADED, 0 ESTOP (causes: HOLD: master/m1/measured_cp stale ×2;
+DEGRADED: latency p90 # ms > budget # ms ×1); slave holds: 1``.
 """
 
 from __future__ import annotations
@@ -98,12 +102,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     report["site_file"] = str(spec.site_file)  # the site file every service read its table of
     err = report["tip_tracking_error_mm"]
     log.info(
-        "tip tracking error (vs setpoint_cp): mean %s mm, max %s mm over %d samples; scale %s; holds: %d",
+        "tip tracking error (vs setpoint_cp): mean %s mm, max %s mm over %d samples; scale %s; "
+        "engagements: %d; %s",
         err["mean_mm"],
         err["max_mm"],
         err["samples"],
         report["mapping"]["scale"],
-        report["holds"],
+        report["engagements"],
+        report["summary"],
     )
     if args.report:
         Path(args.report).write_text(json.dumps(report, indent=2, allow_nan=False))

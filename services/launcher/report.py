@@ -14,6 +14,12 @@ mapping does; its config file does not know):
   apart as ``offset_mm``), after a settling time at the start of the segment.
 * The motion scales in use are the mapping's :class:`~telesurg.shared.messages.TeleopState`
   (the operator's scale and the watchdog's factor), recorded as the mapping changed them.
+* What the operator experienced of the watchdog: its :class:`~telesurg.shared.messages.SafetyState`
+  (``safety/<arm>/state``, sent on every change) is followed, and every change *into* HOLD,
+  DEGRADED or ESTOP is counted with the causes it carried (:class:`WatchdogTransitions`), beside
+  the slave's own fault holds (``OperatingState.holds``). A watchdog HOLD revokes the lease and
+  the slave holds too; a DEGRADED arm keeps moving at a reduced scale, so the slave's count does
+  not see it. The state received first is the starting point, not a transition.
 
 A segment ends when the slave's ``follow`` flag drops, which is up to the slave's setpoint
 timeout (100 ms) after the master's clutch release; the last ``RELEASE_TRIM_S`` of each segment
@@ -30,6 +36,7 @@ The report is strict JSON: a figure that could not be computed is ``null``, neve
 from __future__ import annotations
 
 import math
+import re
 import threading
 from dataclasses import dataclass, field
 from typing import Any
@@ -43,6 +50,7 @@ from telesurg.shared.messages import (
     Message,
     OperatingState,
     SafetyEvent,
+    SafetyState,
     TeleopState,
 )
 
@@ -156,6 +164,68 @@ def tracking_error(
     return TrackingError(float(e.mean()), float(e.max()), int(e.size), used, 1e3 * float(np.mean(offsets)))
 
 
+#: The watchdog states whose entries are counted: the ones the operator notices (OK is the way back).
+WATCHDOG_COUNTED = ("HOLD", "DEGRADED", "ESTOP")
+#: Transitions kept in full per arm (the counts cover them all).
+MAX_TRANSITIONS = 50
+_FIGURES = re.compile(r"\s*\([^)]*\)|\b\d+(?:\.\d+)?\b")
+
+
+def cause_kind(cause: str) -> str:
+    """A watchdog cause without its figures, so the same cause counts once however late the stream
+    was: ``"master/m1/measured_cp stale (95 ms > 80 ms)"`` → ``"master/m1/measured_cp stale"``,
+    ``"latency p90 105.8 ms > budget 100 ms"`` → ``"latency p90 # ms > budget # ms"``."""
+    return _FIGURES.sub(lambda m: "" if m.group(0).lstrip().startswith("(") else "#", cause).strip()
+
+
+@dataclass
+class WatchdogTransitions:
+    """The watchdog's state changes of one arm, as its SafetyState stream showed them."""
+
+    state: str | None = None  # the last state received (None before the first)
+    initial: str | None = None  # the first state received: the starting point
+    entered: dict[str, int] = field(default_factory=lambda: dict.fromkeys(WATCHDOG_COUNTED, 0))
+    causes: dict[str, dict[str, int]] = field(default_factory=dict)  # state → cause kind → times
+    transitions: list[dict[str, Any]] = field(default_factory=list)  # the last MAX_TRANSITIONS
+
+    def add(self, msg: SafetyState) -> None:
+        """Take the next SafetyState of the arm (in the order published)."""
+        old, self.state = self.state, msg.state
+        if old is None:
+            self.initial = msg.state
+            return
+        if msg.state == old:
+            return
+        if msg.state in self.entered:
+            self.entered[msg.state] += 1
+            kinds = self.causes.setdefault(msg.state, {})
+            for kind in dict.fromkeys(cause_kind(c) for c in msg.causes) or ("(no cause given)",):
+                kinds[kind] = kinds.get(kind, 0) + 1
+        self.transitions.append(
+            {"t_ns": msg.header.stamp_ns, "from": old, "to": msg.state, "causes": list(msg.causes)}
+        )
+        del self.transitions[:-MAX_TRANSITIONS]
+
+    def as_dict(self) -> dict[str, Any]:
+        """For strict JSON."""
+        return {
+            "state": self.state,
+            "initial": self.initial,
+            "entered": dict(self.entered),
+            "causes": {s: dict(c) for s, c in self.causes.items()},
+            "transitions": [dict(t) for t in self.transitions],
+        }
+
+    def summary(self) -> str:
+        """One line: ``"2 HOLD, 1 DEGRADED, 0 ESTOP (causes: HOLD: master/m1/measured_cp stale ×2; …)"``."""
+        counts = ", ".join(f"{self.entered[s]} {s}" for s in WATCHDOG_COUNTED)
+        why = "; ".join(
+            f"{s}: " + ", ".join(f"{k} ×{n}" for k, n in sorted(c.items(), key=lambda kv: -kv[1]))
+            for s, c in self.causes.items()
+        )
+        return f"{counts} (causes: {why})" if why else counts
+
+
 @dataclass
 class SessionRecorder:
     """Subscribes to one master→slave pair and keeps what a report needs."""
@@ -164,12 +234,14 @@ class SessionRecorder:
     master_arm: str = "m1"
     slave_arm: str = "arm1"
     mapping_source: str = "mapping"  # the mapping's service id: only its target and state count
+    watchdog_source: str = "watchdog"  # the watchdog's service id: only its safety state counts
     lock: threading.Lock = field(default_factory=threading.Lock)
     slave: list[tuple[int, float, float, float]] = field(default_factory=list)
     target: list[tuple[int, float, float, float]] = field(default_factory=list)  # setpoint_cp
     follow: list[tuple[int, bool]] = field(default_factory=list)
     teleop: list[TeleopState] = field(default_factory=list)  # the mapping's, every one received
-    holds: int = 0
+    holds: int = 0  # the slave's fault holds (OperatingState.holds)
+    watchdog: dict[str, WatchdogTransitions] = field(default_factory=dict)  # per slave arm
     events: list[str] = field(default_factory=list)
 
     def __post_init__(self) -> None:
@@ -182,8 +254,10 @@ class SessionRecorder:
             "measured_cp": k.slave(self.slave_arm, "measured_cp"),
             "operating_state": k.slave(self.slave_arm, "operating_state"),
             "teleop_state": k.mapping(self.slave_arm, "teleop_state"),
+            "safety_state": k.safety(self.slave_arm, "state"),
         }
         mapping = [self.mapping_source] if self.mapping_source else None
+        watchdog = [self.watchdog_source] if self.watchdog_source else None
         self.node.subscribe(self.keys["master_cp"], CartesianPose, self._ignore)
         self.node.subscribe(self.keys["measured_cp"], CartesianPose, self._on_slave)
         self.node.subscribe(self.keys["setpoint_cp"], CartesianPose, self._on_target, sources=mapping)
@@ -193,6 +267,7 @@ class SessionRecorder:
         self.node.subscribe(
             self.keys["teleop_state"], TeleopState, self._on_teleop, sources=mapping, latest=True
         )
+        self.node.subscribe(self.keys["safety_state"], SafetyState, self._on_safety, sources=watchdog)
         self.node.subscribe(k.events(), SafetyEvent, self._on_event)
 
     def _ignore(self, msg: Message, key: str) -> None:
@@ -215,13 +290,18 @@ class SessionRecorder:
         with self.lock:
             self.teleop.append(msg)
 
+    def _on_safety(self, msg: SafetyState, key: str) -> None:
+        with self.lock:
+            self.watchdog.setdefault(msg.arm, WatchdogTransitions()).add(msg)
+
     def _on_event(self, msg: SafetyEvent, key: str) -> None:
         with self.lock:
             self.events.append(f"{msg.header.source} [{msg.arm}] {msg.kind}: {msg.text}")
 
     def report(self) -> dict[str, Any]:
-        """Counts, gaps, tracking error, the mapping's teleop states and scales, holds, events
-        (strict JSON: ``json.dumps(..., allow_nan=False)`` holds)."""
+        """Counts, gaps, tracking error, the mapping's teleop states and scales, the watchdog's
+        transitions and the slave's holds, events (strict JSON: ``json.dumps(..., allow_nan=False)``
+        holds)."""
         with self.lock:
             slave = np.array(self.slave, dtype=float).reshape(-1, 4)
             target = np.array(sorted(self.target), dtype=float).reshape(-1, 4)
@@ -229,6 +309,8 @@ class SessionRecorder:
             teleop = sorted(self.teleop, key=lambda m: m.header.seq)
             events = list(self.events)
             holds = self.holds
+            watchdog = {arm: w.as_dict() for arm, w in sorted(self.watchdog.items())}
+            summary = "; ".join(f"watchdog [{a}]: {w.summary()}" for a, w in sorted(self.watchdog.items()))
         err = tracking_error(
             target, slave, engaged_segments(follow, RELEASE_TRIM_S), 1.0, np.eye(3), interpolate=True
         )
@@ -254,7 +336,10 @@ class SessionRecorder:
                 "teleop_state": last.state if last else None,
                 "teleop_states_entered": states,
             },
-            "holds": holds,
+            "holds": holds,  # the slave's fault holds
+            # per arm: the watchdog's entries into HOLD / DEGRADED / ESTOP and their causes
+            "watchdog": watchdog,
+            "summary": f"{summary or 'watchdog: no safety state received'}; slave holds: {holds}",
             "engagements": sum(1 for e in events if " engage:" in e),
             "events": events[-100:],
         }

@@ -9,6 +9,12 @@ unplugged, silent for ``serial.stale_ms`` or refused), nothing is published — 
 buttons — so the watchdog's freshness check holds the slave; publishing resumes with the first fresh
 reading. Each such outage is logged once.
 
+The scripted device answers a refused engage as an operator would (``scripted.retry_refused_engage_s``,
+1 s by default): master_capture follows the mapping's teleop states of every pair this master
+drives (``mapping/*/teleop_state``, those whose ``master`` is ``arm``), and when one goes
+ENGAGING → HOLDING (the engage was refused: e.g. the slave was not yet allowed to move) while the
+schedule has the pedal pressed, the pedal is released at once and pressed again that long after.
+
 Examples::
 
     telesurg master-capture --connect tcp/127.0.0.1:7447 --set arm=m1 --set scripted.radius=0.03
@@ -24,10 +30,15 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 from telesurg.services.common import service_main
-from telesurg.services.master_capture.devices import ScriptedConfig, SerialMasterConfig, make_device
+from telesurg.services.master_capture.devices import (
+    ScriptedConfig,
+    ScriptedDevice,
+    SerialMasterConfig,
+    make_device,
+)
 from telesurg.shared.bus import BusConfig, Node
 from telesurg.shared.errors import ConfigError
-from telesurg.shared.messages import CartesianPose, JointState, MasterButtons
+from telesurg.shared.messages import CartesianPose, JointState, MasterButtons, TeleopState
 from telesurg.shared.timing import CycleTimer, check_rt_priority, start_loop
 
 log = logging.getLogger(__name__)
@@ -49,6 +60,9 @@ class MasterCaptureConfig:
     # pedal while it is fresh; "" turns it off. A console that dies or is cut off counts as released.
     console_source: str = "console"
     console_clutch_timeout_ms: float = 250.0
+    # service id of the mapping: only its teleop states (a refused engage) make the scripted pedal
+    # press again (scripted.retry_refused_engage_s)
+    mapping_source: str = "mapping"
     # SCHED_FIFO priority of the sampling loop's thread, 1-99 (0: the normal scheduler): a FIFO
     # loop is not preempted by the other processes' threads; needs root or CAP_SYS_NICE (docs/deploy.md)
     rt_priority: int = 0
@@ -79,6 +93,18 @@ def run(cfg: MasterCaptureConfig, stop: threading.Event) -> None:
         if cfg.console_source:
             node.subscribe(k.console_clutch(cfg.arm), MasterButtons, on_console, sources=[cfg.console_source])
         console_timeout = cfg.console_clutch_timeout_ms / 1e3
+        retry = device.engage_retry if isinstance(device, ScriptedDevice) else None
+        if retry is not None:
+            engage_retry = retry
+
+            def on_teleop(m: TeleopState, key: str) -> None:
+                # ENGAGING → HOLDING is the refused engage (docs/architecture.md, the teleop state machine)
+                refused = m.master == cfg.arm and m.state == "HOLDING" and m.previous == "ENGAGING"
+                if refused and engage_retry.refused(m.since_ns):
+                    log.info("[%s] %s", m.slave, m.reason)
+
+            mapping = [cfg.mapping_source]
+            node.subscribe(k.mapping("*", "teleop_state"), TeleopState, on_teleop, sources=mapping)
         invalid_since: float | None = None  # time.monotonic() when the reading became invalid
         log.info("publishing master %s at %.0f Hz (%s)", cfg.arm, cfg.rate_hz, cfg.device)
         start_loop(cfg.rt_priority)
@@ -112,7 +138,11 @@ def run(cfg: MasterCaptureConfig, stop: threading.Event) -> None:
                 js_out.put(JointState(js_out.header(), device.joint_names, s.joints))
             timer.wait()
         log.info(
-            "sent %d samples, %d loop overruns, %d device outages", pose_out.sent, timer.overruns, outages
+            "sent %d samples, %d loop overruns, %d device outages%s",
+            pose_out.sent,
+            timer.overruns,
+            outages,
+            f", {retry.retries} presses again after a refused engage" if retry is not None else "",
         )
 
 

@@ -105,6 +105,11 @@ class ScriptedConfig:
     clutch: list[list[float]] = field(default_factory=lambda: [[1.0, 1e9]])
     clutch_repeat_s: float = 0.0  # s: if > 0, the clutch schedule repeats with this period
     operator_present: bool = True  # the operator-present sensor reads this constant
+    # s: when the mapping refuses an engage of this master (its teleop state goes ENGAGING →
+    # HOLDING) while the schedule says pressed, the pedal is released at once and pressed again
+    # this long after, as an operator would (the press-again rule); 0 = off: the next press is the
+    # schedule's (clutch_repeat_s later). In [0.1, 60] s when on.
+    retry_refused_engage_s: float = 1.0
 
     def validate(self) -> None:
         """Raise ConfigError naming the valid options."""
@@ -121,18 +126,64 @@ class ScriptedConfig:
         for iv in self.clutch:
             if len(iv) != 2 or iv[0] > iv[1]:
                 raise ConfigError(f"clutch interval {iv} must be [t_on, t_off] with t_on <= t_off")
+        if self.retry_refused_engage_s != 0 and not 0.1 <= self.retry_refused_engage_s <= 60.0:
+            raise ConfigError(
+                f"scripted retry_refused_engage_s={self.retry_refused_engage_s} outside [0.1, 60] s (0: off)"
+            )
         if self.trajectory == "csv" and not self.csv_path:
             raise ConfigError("scripted trajectory 'csv' needs csv_path")
 
 
+class EngageRetry:
+    """The scripted pedal's answer to a refused engage: release, then press again ``retry_s`` later.
+
+    :meth:`refused` is told of each refusal (from a bus thread; one refusal is one teleop-state
+    entry, named by its ``since_ns``, however often the state is re-sent); :meth:`clutch` (the
+    sampling loop) turns the schedule's pedal into the pedal sent. A refusal while the schedule has
+    the pedal released is dropped: the schedule's own next press is a new one.
+    """
+
+    def __init__(self, retry_s: float) -> None:
+        self.retry_s = retry_s
+        self.retries = 0  # refusals answered by a release and a new press
+        self._lock = threading.Lock()
+        self._pending = False
+        self._last_since: int | None = None
+        self._release_until = -math.inf  # device time (s) the pedal is held released until
+
+    def refused(self, since_ns: int) -> bool:
+        """An engage was refused (its HOLDING entered at wall-clock ``since_ns``); True if new."""
+        with self._lock:
+            if since_ns == self._last_since:
+                return False
+            self._last_since, self._pending = since_ns, True
+            return True
+
+    def clutch(self, pressed: bool, t: float) -> bool:
+        """The pedal at device time ``t`` s, given the schedule's ``pressed``."""
+        with self._lock:
+            pending, self._pending = self._pending, False
+        if pending and pressed and t >= self._release_until:
+            self._release_until = t + self.retry_s
+            self.retries += 1
+            log.info("scripted pedal released after a refused engage; pressing again in %.2f s", self.retry_s)
+        return pressed and t >= self._release_until
+
+
 class ScriptedDevice:
-    """A master that plays a path; see :class:`ScriptedConfig`."""
+    """A master that plays a path; see :class:`ScriptedConfig`.
+
+    With ``retry_refused_engage_s`` > 0 it has an :attr:`engage_retry`: master_capture tells it
+    of the mapping's refusals (:meth:`EngageRetry.refused`) and the pedal presses again.
+    """
 
     joint_names: tuple[str, ...] = ()
 
     def __init__(self, cfg: ScriptedConfig) -> None:
         cfg.validate()
         self.cfg = cfg
+        r = cfg.retry_refused_engage_s
+        self.engage_retry: EngageRetry | None = EngageRetry(r) if r > 0 else None
         self._csv: np.ndarray | None = None
         axes = {"xy": (0, 1), "xz": (0, 2), "yz": (1, 2)}[cfg.plane]
         self._u, self._v = axes
@@ -172,6 +223,8 @@ class ScriptedDevice:
                 du, dv = c.radius * math.sin(w), c.radius * math.sin(w) * math.cos(w)
             p[self._u] += du
             p[self._v] += dv
+        if self.engage_retry is not None:
+            clutch = self.engage_retry.clutch(clutch, t)
         return DeviceSample(
             (float(p[0]), float(p[1]), float(p[2])),
             (0.0, 0.0, 0.0, 1.0),
