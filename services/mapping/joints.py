@@ -193,7 +193,37 @@ class AllJointsMapping(_JointBase):
             self._put(msg.header.stamp_ns)
 
 
-class VipMapping(_JointBase):
+class PoseJointBase(_JointBase):
+    """A joint-space mapping driven by the master's tip (``measured_cp``): the VIP and position
+    mappings. The slave point follows the master point's increments from an anchor
+    ``ref = (master point, slave point)``; ``last`` is the latest such pair while following, the
+    re-anchor when a scale changes."""
+
+    def __init__(
+        self, cfg: MappingConfig, node: Node, master: str, slave: str, work: threading.Event
+    ) -> None:
+        super().__init__(cfg, node, master, slave, work)
+        self.r_ms = rpy_matrix(cfg.master_to_slave_rpy_deg)
+        self.master_point = master_point
+        self.pending: CartesianPose | None = None
+        self.ref: tuple[np.ndarray, np.ndarray] | None = None  # (master point, slave point) anchor
+        self.last: tuple[np.ndarray, np.ndarray] | None = None  # last (master point, slave target)
+
+    def on_master_pose(self, msg: CartesianPose, key: str) -> None:
+        with self.lock:
+            if self.pending is not None:
+                self.conflated += 1
+            self.pending = msg
+            self.master_rx = time.monotonic()
+        self.work.set()
+
+    def _rescaled(self) -> None:
+        """The safety or the operator's scale changed (lock held): re-anchor, no jump."""
+        if self.following and self.last is not None:
+            self.ref = self.last  # the new scale applies from here on
+
+
+class VipMapping(PoseJointBase):
     """Master tip → wrist reference → VIP elbow → joints (see the module docstring)."""
 
     def __init__(
@@ -204,22 +234,9 @@ class VipMapping(_JointBase):
         super().__init__(cfg, node, master, slave, work)
         self.vip = vip
         self.geom = vip.VIP_ARM1 if slave == "arm1" else vip.VIP_ARM2
-        self.r_ms = rpy_matrix(cfg.master_to_slave_rpy_deg)
-        self.master_point = master_point
-        self.pending: CartesianPose | None = None
         self.V: np.ndarray | None = None  # the virtual incision port, m, world frame
-        self.ref: tuple[np.ndarray, np.ndarray] | None = None  # (master point, wrist) at engage
-        self.last: tuple[np.ndarray, np.ndarray] | None = None  # last (master point, wrist target)
         self.vmax = np.array(self.profile.max_velocity)
         self.t_prev = 0
-
-    def on_master_pose(self, msg: CartesianPose, key: str) -> None:
-        with self.lock:
-            if self.pending is not None:
-                self.conflated += 1
-            self.pending = msg
-            self.master_rx = time.monotonic()
-        self.work.set()
 
     def _engaged(self) -> None:
         assert self.q_meas is not None and self.buttons is not None
@@ -227,10 +244,6 @@ class VipMapping(_JointBase):
             self.V = self.vip.select_vip(self.q_meas, self.cfg.vip_ev_mm / 1e3, self.geom)
             self._vip_event("VIP chosen at the first engage from the current joints")
         self.ref = None  # taken from the next master sample
-
-    def _rescaled(self) -> None:
-        if self.following and self.last is not None:
-            self.ref = self.last  # re-anchor: the new scale applies from here on (no jump)
 
     def _vip_event(self, why: str) -> None:
         assert self.V is not None

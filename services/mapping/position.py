@@ -14,9 +14,10 @@ EngageGate`); a joint step larger than ``max_joint_step_rad`` between two sample
 setpoint (an ``ik_failure`` event, as the Cartesian mapping's branch-flip check); a joint riding
 its limit or a target out of reach is a clamping episode (``clamped`` events, counted).
 
-The target is published as ``slave/<arm>/setpoint_cp`` (frame ``base``: the world frame of the
-robot's scene, :mod:`telesurg.shared.robots`, as the slave's ``measured_cp``) at ``target_hz``,
-the joints as ``servo_jp`` for every sample.
+The joints go out as ``servo_jp`` for every sample and, as for every joint-space mapping, the
+controlled point of the commanded joints as ``slave/<arm>/setpoint_cp`` at ``target_hz`` (frame
+``base``: the world frame of the robot's scene, :mod:`telesurg.shared.robots`, as the slave's
+``measured_cp``).
 The workspace box of the Cartesian mapping (``workspace_*_mm``, the MH3F base frame) does not
 apply; the watchdog's workspace does.
 """
@@ -24,16 +25,13 @@ apply; the watchdog's workspace does.
 from __future__ import annotations
 
 import threading
-import time
 from typing import TYPE_CHECKING
 
 import numpy as np
-from telesurg.services.mapping.joints import _JointBase
-from telesurg.services.mapping.master import master_point
-from telesurg.shared.bus import Node, Outlet
+from telesurg.services.mapping.joints import PoseJointBase
+from telesurg.shared.bus import Node
 from telesurg.shared.errors import KinematicsError
-from telesurg.shared.kinematics import quat_from_matrix, solve_position
-from telesurg.shared.kinematics.transforms import rpy_matrix
+from telesurg.shared.kinematics import solve_position
 from telesurg.shared.messages import CartesianPose, Command, CommandReply
 
 if TYPE_CHECKING:
@@ -43,31 +41,14 @@ if TYPE_CHECKING:
 REACH_TOL = 1e-3
 
 
-class PositionMapping(_JointBase):
+class PositionMapping(PoseJointBase):
     """Master tip → slave tip position by damped least squares (see the module docstring)."""
 
     def __init__(
         self, cfg: MappingConfig, node: Node, master: str, slave: str, work: threading.Event
     ) -> None:
         super().__init__(cfg, node, master, slave, work)
-        self.r_ms = rpy_matrix(cfg.master_to_slave_rpy_deg)
-        self.master_point = master_point
-        self.target_out: Outlet = node.outlet(node.keys.slave(slave, "setpoint_cp"), control=False)
-        self.target_period = 1.0 / cfg.target_hz
-        self.target_next = 0.0
-        self.pending: CartesianPose | None = None
-        self.ref: tuple[np.ndarray, np.ndarray] | None = None  # (master point, slave tip) anchor
-        self.last: tuple[np.ndarray, np.ndarray] | None = None  # last (master point, slave target)
         self.ik_streak = 0
-        self.scale = cfg.scale  # operator's motion scale (mapping/<arm>/command changes it)
-
-    def on_master_pose(self, msg: CartesianPose, key: str) -> None:
-        with self.lock:
-            if self.pending is not None:
-                self.conflated += 1
-            self.pending = msg
-            self.master_rx = time.monotonic()
-        self.work.set()
 
     def on_command(self, cmd: Command) -> CommandReply:
         """``state``, ``scale_up``, ``scale_down``, ``set_scale value=`` (the operator's motion scale)."""
@@ -77,11 +58,6 @@ class PositionMapping(_JointBase):
     def _engaged(self) -> None:
         self.ref = self.last = None  # anchored at the next master sample
         self.ik_streak = 0
-
-    def _rescaled(self) -> None:
-        """The safety or the operator's scale changed (lock held): re-anchor, no jump."""
-        if self.following and self.last is not None:
-            self.ref = self.last  # the new scale applies from here on
 
     def process(self) -> None:
         with self.lock:
@@ -121,13 +97,6 @@ class PositionMapping(_JointBase):
         if sol.error > REACH_TOL:
             why += (f"target out of reach by {sol.error * 1e3:.1f} mm",)
         self._report_clamp(why)
-        now = time.monotonic()
-        if now >= self.target_next:
-            self.target_next = max(self.target_next + self.target_period, now)
-            rot = quat_from_matrix(self.profile.pose(sol.q)[:3, :3])
-            pos = (float(target[0]), float(target[1]), float(target[2]))
-            quat = (float(rot[0]), float(rot[1]), float(rot[2]), float(rot[3]))
-            self.target_out.put(CartesianPose(self.target_out.header(), "base", pos, quat))
 
     def _hold(self, text: str) -> None:
         self.ik_failures += 1
