@@ -55,7 +55,6 @@ setpoints: the VIP/PLAS consoles at 25 Hz).
 from __future__ import annotations
 
 import logging
-import math
 import threading
 import time
 from dataclasses import dataclass, field
@@ -69,6 +68,7 @@ from telesurg.services.slave_control.control import (
     Setpoint,
     SetpointInterpolator,
 )
+from telesurg.shared.kinematics.transforms import quat_from_matrix
 from telesurg.shared.limits import limit_step
 from telesurg.shared.messages import (
     CartesianPose,
@@ -126,7 +126,7 @@ class ArmReading:
         """(4, 4) the controlled point's pose from the FK of ``position``, m, base frame
         (computed when first asked: the control period itself does not need it)."""
         if self._pose is None:
-            self._pose = arm_pose(self.profile, self.position)
+            self._pose = self.profile.pose(self.position)
         return self._pose
 
     @property
@@ -138,30 +138,8 @@ class ArmReading:
     @property
     def tip_quat(self) -> tuple[float, float, float, float]:
         """Orientation of the controlled point, unit quaternion (x, y, z, w)."""
-        return quat_xyzw(self.tip_pose)
-
-
-def quat_xyzw(t: np.ndarray) -> tuple[float, float, float, float]:
-    """Unit quaternion (x, y, z, w, w ≥ 0) of the rotation in ``t[:3, :3]`` (Shepperd's method on
-    plain floats: ~20× cheaper than numpy on 3×3, and it runs at publish_hz per arm)."""
-    (m00, m01, m02), (m10, m11, m12), (m20, m21, m22) = t[:3, :3].tolist()
-    tr = m00 + m11 + m22
-    if tr > 0.0:
-        s = 2.0 * math.sqrt(tr + 1.0)
-        x, y, z, w = (m21 - m12) / s, (m02 - m20) / s, (m10 - m01) / s, 0.25 * s
-    elif m00 > m11 and m00 > m22:
-        s = 2.0 * math.sqrt(1.0 + m00 - m11 - m22)
-        x, y, z, w = 0.25 * s, (m01 + m10) / s, (m02 + m20) / s, (m21 - m12) / s
-    elif m11 > m22:
-        s = 2.0 * math.sqrt(1.0 + m11 - m00 - m22)
-        x, y, z, w = (m01 + m10) / s, 0.25 * s, (m12 + m21) / s, (m02 - m20) / s
-    else:
-        s = 2.0 * math.sqrt(1.0 + m22 - m00 - m11)
-        x, y, z, w = (m02 + m20) / s, (m12 + m21) / s, 0.25 * s, (m10 - m01) / s
-    n = math.sqrt(x * x + y * y + z * z + w * w)
-    if w < 0.0:
-        n = -n
-    return x / n, y / n, z / n, w / n
+        x, y, z, w = quat_from_matrix(self.tip_pose[:3, :3]).tolist()
+        return (x, y, z, w)
 
 
 class MotionSource(Protocol):
@@ -282,18 +260,6 @@ class FaultHold:
         ctl.reason = fault
         ctl.track(self._q)
         return self._q.copy()
-
-
-def arm_pose(profile: ArmProfile, q: np.ndarray) -> np.ndarray:
-    """(4, 4) pose of the arm's controlled point at joints ``q``, base frame (``ArmProfile.pose``)."""
-    out: np.ndarray = profile.pose(q)
-    return out
-
-
-def arm_jacobian(profile: ArmProfile, q: np.ndarray) -> np.ndarray:
-    """(6, n) geometric Jacobian of the controlled point, base frame, rows v then ω."""
-    out: np.ndarray = profile.jacobian(q)
-    return out
 
 
 def tip_wrench(
@@ -596,7 +562,7 @@ class ArmCore:
         """measured_cf, when the backend estimates external torques."""
         if r.external_torque is None:
             return
-        f, m = tip_wrench(arm_jacobian(self.profile, r.position), r.external_torque)
+        f, m = tip_wrench(self.profile.jacobian(r.position), r.external_torque)
         out = self.outlets["measured_cf"]
         out.put(CartesianWrench(out.header(), FRAME, f, m))
 
