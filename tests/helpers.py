@@ -10,6 +10,10 @@ from pathlib import Path
 from typing import Any
 
 from telesurg.services.bench.harness import BENCH_CLUTCH
+from telesurg.shared.messages import CartesianPose, Header, MasterButtons
+
+#: header of the messages the tests hand to a mapping's callbacks
+TEST_HEADER = Header("test", 0, 0)
 
 
 def clutch_flags() -> list[str]:
@@ -56,3 +60,12 @@ def text_logs(path: str | Path) -> list[tuple[str, str, str]]:
                 level = lv[i] if lv and i < len(lv) else ""
                 out.append((c.entity_path, str(level or ""), str(line)))
     return out
+
+
+def feed_master(arm: Any, p: tuple[float, float, float], clutch: bool) -> None:
+    """One master sample into a mapping pair (``ArmMapping``, ``PositionMapping``, …) as its
+    zenoh callbacks would deliver it: the buttons, then the pose at ``p`` (m), then one
+    ``process()`` of the mapping loop."""
+    arm.on_buttons(MasterButtons(TEST_HEADER, clutch, True), "")
+    arm.on_master_pose(CartesianPose(TEST_HEADER, "master", p), "")
+    arm.process()

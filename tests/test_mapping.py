@@ -9,6 +9,7 @@ from collections.abc import Callable, Iterator
 import numpy as np
 import pytest
 from conftest import wait_until
+from helpers import feed_master
 from telesurg.services.mapping import ArmMapping, MappingConfig
 from telesurg.services.mapping.joints import AllJointsMapping
 from telesurg.services.mapping.master import master_point
@@ -46,29 +47,17 @@ def rig(endpoint: str) -> Iterator[tuple[ArmMapping, list[JointSetpoint], list[S
         yield arm, setpoints, events
 
 
-def feed(arm: ArmMapping, p: tuple[float, float, float], clutch: bool) -> None:
-    arm.on_buttons(MasterButtons(H, clutch, True), "")
-    arm.on_master_pose(CartesianPose(H, "master", p), "")
-    arm.process()
-
-
-def settle(n: int, store: list[JointSetpoint]) -> None:
-    deadline = time.monotonic() + 3
-    while len(store) < n and time.monotonic() < deadline:
-        time.sleep(0.01)
-
-
 def test_engage_needs_press_edge_then_scaled_motion_without_jump(
     rig: tuple[ArmMapping, list[JointSetpoint], list[SafetyEvent]],
 ) -> None:
     arm, setpoints, _ = rig
-    feed(arm, (0.3, 0.0, 0.0), clutch=True)  # pedal already down at start: not an engage
+    feed_master(arm, (0.3, 0.0, 0.0), clutch=True)  # pedal already down at start: not an engage
     assert not arm.following
-    feed(arm, (0.3, 0.0, 0.0), clutch=False)
-    feed(arm, (0.3, 0.0, 0.0), clutch=True)  # press edge → engage
+    feed_master(arm, (0.3, 0.0, 0.0), clutch=False)
+    feed_master(arm, (0.3, 0.0, 0.0), clutch=True)  # press edge → engage
     assert arm.following
-    feed(arm, (0.31, 0.0, 0.0), clutch=True)  # master +10 mm in x → slave +5 mm
-    settle(4, setpoints)
+    feed_master(arm, (0.31, 0.0, 0.0), clutch=True)  # master +10 mm in x → slave +5 mm
+    wait_until(lambda: len(setpoints) >= 4, 3.0)
     first, moved = np.array(setpoints[2].position), np.array(setpoints[3].position)
     tip0, tip1 = fk(np.array(Q0))[:3, 3], fk(moved)[:3, 3]
     assert np.allclose(first, Q0, atol=1e-9)  # engage: first setpoint is where the arm is
@@ -80,11 +69,11 @@ def test_ik_failure_holds_last_setpoint_and_reports(
     rig: tuple[ArmMapping, list[JointSetpoint], list[SafetyEvent]],
 ) -> None:
     arm, setpoints, events = rig
-    feed(arm, (0.0, 0.0, 0.0), clutch=False)
-    feed(arm, (0.0, 0.0, 0.0), clutch=True)
-    feed(arm, (2.0, 0.0, 0.0), clutch=True)  # slave target 1 m away: unreachable
-    feed(arm, (2.0, 0.0, 0.0), clutch=True)
-    settle(4, setpoints)
+    feed_master(arm, (0.0, 0.0, 0.0), clutch=False)
+    feed_master(arm, (0.0, 0.0, 0.0), clutch=True)
+    feed_master(arm, (2.0, 0.0, 0.0), clutch=True)  # slave target 1 m away: unreachable
+    feed_master(arm, (2.0, 0.0, 0.0), clutch=True)
+    wait_until(lambda: len(setpoints) >= 4, 3.0)
     assert all(np.allclose(s.position, Q0) for s in setpoints[1:])
     assert arm.ik_failures == 2
     deadline = time.monotonic() + 3
@@ -106,16 +95,16 @@ def test_a_slave_hold_or_mode_change_disengages_and_needs_a_new_press(
     rig: tuple[ArmMapping, list[JointSetpoint], list[SafetyEvent]], state: OperatingState, why: str
 ) -> None:
     arm, _, events = rig
-    feed(arm, (0.0, 0.0, 0.0), clutch=False)
-    feed(arm, (0.0, 0.0, 0.0), clutch=True)
+    feed_master(arm, (0.0, 0.0, 0.0), clutch=False)
+    feed_master(arm, (0.0, 0.0, 0.0), clutch=True)
     assert arm.following
     arm.on_slave_state(state, "")
     assert not arm.following
     arm.on_slave_state(OperatingState(H, "PAUSED", state.control_mode, False, True, "", 2), "")
-    feed(arm, (0.0, 0.0, 0.0), clutch=True)  # pedal still down: no re-engage
+    feed_master(arm, (0.0, 0.0, 0.0), clutch=True)  # pedal still down: no re-engage
     assert not arm.following
-    feed(arm, (0.0, 0.0, 0.0), clutch=False)
-    feed(arm, (0.0, 0.0, 0.0), clutch=True)
+    feed_master(arm, (0.0, 0.0, 0.0), clutch=False)
+    feed_master(arm, (0.0, 0.0, 0.0), clutch=True)
     assert arm.following
     deadline = time.monotonic() + 3
     while not any(why in e.text for e in events if e.kind == "disengage") and time.monotonic() < deadline:
@@ -128,15 +117,15 @@ def test_a_press_released_before_the_next_sample_does_not_engage(
 ) -> None:
     # polled buttons: a stalled loop may read a press and its release before mapping a sample
     arm, setpoints, _ = rig
-    feed(arm, (0.0, 0.0, 0.0), clutch=False)
+    feed_master(arm, (0.0, 0.0, 0.0), clutch=False)
     arm.on_buttons(MasterButtons(H, True, True), "")
     arm.on_buttons(MasterButtons(H, False, True), "")
     arm.on_master_pose(CartesianPose(H, "master", (0.0, 0.0, 0.0)), "")
     arm.process()
     assert not arm.following
-    settle(2, setpoints)
+    wait_until(lambda: len(setpoints) >= 2, 3.0)
     assert [s.follow for s in setpoints] == [False, False]
-    feed(arm, (0.0, 0.0, 0.0), clutch=True)  # the next press engages
+    feed_master(arm, (0.0, 0.0, 0.0), clutch=True)  # the next press engages
     assert arm.following
 
 
@@ -226,7 +215,7 @@ def test_the_teleop_state_machine_is_published_on_every_change(
 
         def press(clutch: bool) -> None:
             arm.on_slave_js(JointState(H, MH3F.joint_names, Q0), "")  # fresh slave joints
-            feed(arm, (0.0, 0.0, 0.0), clutch)
+            feed_master(arm, (0.0, 0.0, 0.0), clutch)
 
         press(True)  # pedal down at start
         assert arm.state == "HOLDING" and "at start" in arm.reason
@@ -277,8 +266,8 @@ def test_a_late_joiner_gets_the_current_teleop_state_at_once(
     # (the 0.5 s figure is checked against real processes in tests/test_teleop_state.py)
     arm, _, _ = rig
     arm.on_slave_js(JointState(H, MH3F.joint_names, Q0), "")  # fresh slave joints
-    feed(arm, (0.0, 0.0, 0.0), clutch=False)
-    feed(arm, (0.0, 0.0, 0.0), clutch=True)
+    feed_master(arm, (0.0, 0.0, 0.0), clutch=False)
+    feed_master(arm, (0.0, 0.0, 0.0), clutch=True)
     assert arm.state == "ENABLED"
     arm.on_command(Command(H, "arm1", "set_scale", ("value=0.3",)))
     with Node(BusConfig(connect=[endpoint]), "t", "late") as late:

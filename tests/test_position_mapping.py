@@ -9,6 +9,8 @@ from collections.abc import Iterator
 
 import numpy as np
 import pytest
+from conftest import wait_until
+from helpers import feed_master
 from telesurg.services.launcher import free_port
 from telesurg.services.mapping import MappingConfig
 from telesurg.services.mapping.position import PositionMapping
@@ -16,12 +18,10 @@ from telesurg.shared.bus import BusConfig, Node, open_session
 from telesurg.shared.errors import ConfigError
 from telesurg.shared.kinematics import solve_position
 from telesurg.shared.messages import (
-    CartesianPose,
     Command,
     Header,
     JointSetpoint,
     JointState,
-    MasterButtons,
     OperatingState,
     SafetyEvent,
 )
@@ -94,39 +94,27 @@ def rig() -> Iterator[tuple[PositionMapping, list[JointSetpoint], list[SafetyEve
         router.close()  # type: ignore[no-untyped-call]
 
 
-def feed(arm: PositionMapping, p: tuple[float, float, float], clutch: bool) -> None:
-    arm.on_buttons(MasterButtons(H, clutch, True), "")
-    arm.on_master_pose(CartesianPose(H, "master", p), "")
-    arm.process()
-
-
-def settle(n: int, store: list[object]) -> None:
-    deadline = time.monotonic() + 3
-    while len(store) < n and time.monotonic() < deadline:
-        time.sleep(0.01)
-
-
 def test_position_mapping_engages_on_a_press_and_moves_the_tip_by_the_scaled_increment(
     rig: tuple[PositionMapping, list[JointSetpoint], list[SafetyEvent]],
 ) -> None:
     arm, setpoints, events = rig
     home = np.array(arm.profile.home)
-    feed(arm, (0.1, 0.0, 0.0), clutch=True)  # pedal already down at start: not an engage
+    feed_master(arm, (0.1, 0.0, 0.0), clutch=True)  # pedal already down at start: not an engage
     assert not arm.following
-    feed(arm, (0.1, 0.0, 0.0), clutch=False)
-    feed(arm, (0.1, 0.0, 0.0), clutch=True)  # press edge → engage, anchored here
+    feed_master(arm, (0.1, 0.0, 0.0), clutch=False)
+    feed_master(arm, (0.1, 0.0, 0.0), clutch=True)  # press edge → engage, anchored here
     assert arm.following
     tip0 = arm.profile.tip(home)
     for i in range(1, 11):  # master +1 mm in x and -0.5 mm in z per sample
-        feed(arm, (0.1 + 0.001 * i, 0.0, -0.0005 * i), clutch=True)
-    settle(13, setpoints)
+        feed_master(arm, (0.1 + 0.001 * i, 0.0, -0.0005 * i), clutch=True)
+    wait_until(lambda: len(setpoints) >= 13, 3.0)
     assert [s.follow for s in setpoints[:3]] == [False, False, True]
     np.testing.assert_allclose(setpoints[2].position, home, atol=1e-12)  # no jump at engage
     q = np.array(setpoints[12].position)
     np.testing.assert_allclose(arm.profile.tip(q) - tip0, (0.005, 0.0, -0.0025), atol=1e-5)
-    feed(arm, (0.2, 0.0, 0.0), clutch=False)  # release: the slave holds where it is
+    feed_master(arm, (0.2, 0.0, 0.0), clutch=False)  # release: the slave holds where it is
     assert not arm.following
-    settle(2, events)
+    wait_until(lambda: len(events) >= 2, 3.0)
     assert [e.kind for e in events][:2] == ["engage", "disengage"]
 
 
@@ -134,11 +122,11 @@ def test_position_mapping_holds_on_a_large_joint_step(
     rig: tuple[PositionMapping, list[JointSetpoint], list[SafetyEvent]],
 ) -> None:
     arm, _, events = rig
-    feed(arm, (0.0, 0.0, 0.0), clutch=False)
-    feed(arm, (0.0, 0.0, 0.0), clutch=True)
+    feed_master(arm, (0.0, 0.0, 0.0), clutch=False)
+    feed_master(arm, (0.0, 0.0, 0.0), clutch=True)
     assert arm.following
     q_before = arm.q_cmd.copy() if arm.q_cmd is not None else None
-    feed(arm, (0.2, 0.0, 0.0), clutch=True)  # 100 mm of slave motion in one sample
+    feed_master(arm, (0.2, 0.0, 0.0), clutch=True)  # 100 mm of slave motion in one sample
     assert arm.ik_failures == 1
     assert arm.q_cmd is not None and q_before is not None
     np.testing.assert_allclose(arm.q_cmd, q_before)  # held the last valid setpoint
@@ -152,16 +140,16 @@ def test_operator_scale_commands_rescale_the_motion_without_a_jump(
     rig: tuple[PositionMapping, list[JointSetpoint], list[SafetyEvent]],
 ) -> None:
     arm, _, _ = rig
-    feed(arm, (0.0, 0.0, 0.0), clutch=False)
-    feed(arm, (0.0, 0.0, 0.0), clutch=True)
-    feed(arm, (0.004, 0.0, 0.0), clutch=True)  # anchor at 0, then +4 mm → +2 mm at scale 0.5
+    feed_master(arm, (0.0, 0.0, 0.0), clutch=False)
+    feed_master(arm, (0.0, 0.0, 0.0), clutch=True)
+    feed_master(arm, (0.004, 0.0, 0.0), clutch=True)  # anchor at 0, then +4 mm → +2 mm at scale 0.5
     assert arm.q_cmd is not None
     tip_a = arm.profile.tip(arm.q_cmd)
     r = arm.on_command(Command(H, "arm1", "scale_up", ()))
     assert r.accepted and r.reason == "scale 0.5 → 0.7"
-    feed(arm, (0.004, 0.0, 0.0), clutch=True)  # the same master point: no jump at the new scale
+    feed_master(arm, (0.004, 0.0, 0.0), clutch=True)  # the same master point: no jump at the new scale
     np.testing.assert_allclose(arm.profile.tip(arm.q_cmd), tip_a, atol=1e-6)
-    feed(arm, (0.008, 0.0, 0.0), clutch=True)  # +4 mm more → +2.8 mm at 0.7
+    feed_master(arm, (0.008, 0.0, 0.0), clutch=True)  # +4 mm more → +2.8 mm at 0.7
     np.testing.assert_allclose(arm.profile.tip(arm.q_cmd) - tip_a, (0.0028, 0.0, 0.0), atol=1e-6)
     assert not arm.on_command(Command(H, "arm1", "set_scale", ("value=5",))).accepted
     assert not arm.on_command(Command(H, "arm2", "state", ())).accepted
