@@ -33,7 +33,7 @@ from telesurg.services.record import (
     read_metadata,
     read_summary,
 )
-from telesurg.services.record.replay import Response, compare
+from telesurg.services.record.replay import EXIT_NEVER_ENGAGED, Response, compare, verdict
 from telesurg.shared.messages import (
     MESSAGE_TYPES,
     CartesianPose,
@@ -383,6 +383,7 @@ def test_replay_through_a_changed_limit_shows_the_difference(recording: Path, tm
         "--json",
         str(report_path),
     ]
+    argv += ["--max-rms", "0"]  # the difference is the point here: judged below, not by the exit code
     tight = {"mapping": ["workspace_max_mm=[1100.0, 5.0, 800.0]"]}
     with Pipeline(
         tmp_path / "logs", mirror=False, impair=False, master=False, probe=False, overrides=tight
@@ -457,3 +458,102 @@ def test_schema_carries_the_declared_rules() -> None:
     assert state["enum"] == ["DEGRADED", "ESTOP", "HOLD", "OK"]
     names = json_schema(MESSAGE_TYPES["servo_jp"])["properties"]["name"]
     assert (names["minItems"], names["maxItems"], names["uniqueItems"]) == (1, 32, True)
+
+
+# --------------------------------------------------------------------------- replay pre-flight
+
+
+def _replay(recording: Path, endpoint: str, *extra: str) -> subprocess.CompletedProcess[str]:
+    argv = [sys.executable, "-m", "telesurg.services.record.replay", str(recording), *extra]
+    r = subprocess.run([*argv, "--connect", endpoint], cwd=ROOT, capture_output=True, text=True, timeout=120)
+    print(r.stdout, r.stderr[-3000:])
+    return r
+
+
+def _trim(src: Path, dst: Path, from_log_ns: int) -> None:
+    """Copy the recording from ``from_log_ns`` on (schemas, channels, metadata and attachments as
+    they are): a recording that starts in the middle of a session."""
+    from mcap.writer import Writer
+
+    with open_mcap(src) as reader, dst.open("wb") as f:
+        summary = reader.get_summary()
+        assert summary is not None
+        w = Writer(f)
+        header = reader.get_header()
+        w.start(header.profile, header.library)
+        schemas = {0: 0} | {
+            sid: w.register_schema(sc.name, sc.encoding, sc.data) for sid, sc in summary.schemas.items()
+        }
+        ids = {
+            cid: w.register_channel(ch.topic, ch.message_encoding, schemas[ch.schema_id], ch.metadata)
+            for cid, ch in summary.channels.items()
+        }
+        for m in reader.iter_metadata():
+            w.add_metadata(m.name, m.metadata)
+        for _schema, ch, msg in reader.iter_messages(log_time_order=True):
+            if msg.log_time >= from_log_ns:
+                w.add_message(ids[ch.id], msg.log_time, msg.data, msg.publish_time, msg.sequence)
+        w.finish()
+
+
+def test_verdict_names_a_replay_that_never_engaged() -> None:
+    arm = {"recorded_follow_s": 1.0, "live_follow_s": None, "samples": 0, "rms_max_rad": None}
+    code, why = verdict({"arms": {"arm1": arm}}, 0.02)
+    assert code == EXIT_NEVER_ENGAGED and "never engaged (arm1)" in why
+    arm |= {"live_follow_s": 1.1, "samples": 300, "rms_max_rad": 0.03}
+    assert verdict({"arms": {"arm1": arm}}, 0.02)[0] == 3
+    assert verdict({"arms": {"arm1": arm}}, 0.05) == (0, "")
+    assert verdict({"arms": {"arm1": arm}}, 0.0) == (0, "")  # --max-rms 0: off
+
+
+@pytest.mark.process
+def test_replay_refuses_a_site_where_master_capture_runs(recording: Path, tmp_path: Path) -> None:
+    with Pipeline(tmp_path / "logs", mirror=False, impair=False, master=True, probe=True) as p:
+        assert p.wait(lambda: bool(p.p.tips().size), 30)
+        n_before = len(p.p.tips())
+        r = _replay(recording, p.spec.endpoint)
+        assert r.returncode == 2
+        assert "master_capture is alive on site 'local'" in r.stderr
+        assert "replaying" not in r.stderr  # refused before anything was published
+        time.sleep(0.3)
+        assert len(p.p.tips()) > n_before  # the site goes on as it was
+
+
+@pytest.mark.process
+def test_replay_of_a_recording_that_starts_with_the_pedal_held_engages(
+    recording: Path, tmp_path: Path
+) -> None:
+    with open_mcap(recording) as reader:
+        press = next(
+            lt
+            for _t, lt, _pt, _d, m in iter_decoded(reader, lambda t: t.endswith("master/m1/buttons"))
+            if isinstance(m, MasterButtons) and m.clutch
+        )
+    held = tmp_path / "held.mcap"
+    _trim(recording, held, press + 200_000_000)  # 0.2 s into the first press
+    with open_mcap(held) as reader:
+        first = next(m for *_, m in iter_decoded(reader, lambda t: t.endswith("/buttons")))
+    assert isinstance(first, MasterButtons) and first.clutch  # the file starts held
+    report_path = tmp_path / "diff.json"
+    with Pipeline(tmp_path / "logs", mirror=False, impair=False, master=False, probe=False) as p:
+        r = _replay(held, p.spec.endpoint, "--json", str(report_path), "--max-rms", "0")
+    assert r.returncode == 0
+    assert "starts with the clutch pedal held" in r.stderr
+    report = json.loads(report_path.read_text())
+    assert report["synthesized_release"] == ["master/m1/buttons"]
+    assert report["arms"]["arm1"]["live_follow_s"] is not None  # it engaged
+
+
+@pytest.mark.process
+def test_replay_that_never_engages_exits_non_zero(recording: Path, tmp_path: Path) -> None:
+    report_path = tmp_path / "diff.json"
+    with Pipeline(tmp_path / "logs", mirror=False, impair=False, master=False, probe=True) as p:
+        assert p.wait(lambda: p.p.safety_state() != "", 30)
+        p.estop("estop")  # latched: every engage the replay tries is refused
+        assert p.wait(lambda: p.p.safety_state() == "ESTOP", 5)
+        r = _replay(recording, p.spec.endpoint, "--json", str(report_path))
+    assert r.returncode == EXIT_NEVER_ENGAGED
+    assert "never engaged" in r.stderr
+    report = json.loads(report_path.read_text())
+    assert report["arms"]["arm1"]["live_follow_s"] is None
+    assert report["verdict"]["exit"] == EXIT_NEVER_ENGAGED

@@ -14,6 +14,18 @@ The comparison is meaningful when the recording starts before the first engage (
 home, as in a fresh pipeline): the mapping is incremental, so a slave that was elsewhere when the
 recording began follows the same motion from another pose.
 
+Pre-flight and verdict (a replay that means nothing says so and exits non-zero):
+
+* before anything is published, the replay looks at who is alive on the site: a live
+  ``master_capture`` (or whatever service ``--as`` names) would fight the replayed streams, so
+  the replay refuses, naming it (exit 2);
+* a recording whose first ``buttons`` message has the clutch pedal already held would never
+  engage (the mapping engages on a press, not on a held pedal): the replay first sends a
+  release (``clutch = false``) for ``--release-s`` (0.3 s) and says so, so that the recorded
+  held pedal arrives as a press;
+* an arm that followed in the recording but never follows in the replay exits 4; a joint RMS
+  difference over ``--max-rms`` (default 0.02 rad) exits 3 (``--max-rms 0`` turns it off).
+
 ``--to-rerun OUT.rrd`` converts a recording to a rerun file instead, without any network: the
 mirror's entity paths (``/slave/<arm>/...``, ``/master/<arm>/...``, ``/safety/...``, ``/events``)
 and its two timelines, ``source_time`` (header stamp) and ``receive_time`` (log time).
@@ -46,10 +58,10 @@ import numpy as np
 from mcap.exceptions import McapError
 from telesurg.services.common import install_stop_handlers, setup_logging
 from telesurg.services.record import Recorder, iter_decoded, open_mcap, recording_site
-from telesurg.shared.bus import BusConfig, Node, Outlet, add_bus_args, bus_from_args
+from telesurg.shared.bus import BusConfig, Node, Outlet, add_bus_args, bus_from_args, open_session
 from telesurg.shared.errors import ConfigError, TelesurgError
 from telesurg.shared.keys import Keys, check_id
-from telesurg.shared.messages import JointState, Message, OperatingState, SafetyState
+from telesurg.shared.messages import JointState, MasterButtons, Message, OperatingState, SafetyState
 
 log = logging.getLogger(__name__)
 
@@ -75,6 +87,8 @@ class ReplayConfig:
     slave_source: str = "slave_control"  # only this service's slave response is compared
     watchdog_source: str = "watchdog"  # only this service's safety state counts
     record: str = ""  # also record the whole live bus during the replay to this .mcap ("" = no)
+    release_s: float = 0.3  # s: a synthesized pedal release before a recording that starts held
+    preflight: bool = True  # refuse a site where the replay's own service (--as) is already alive
     bus: BusConfig = field(default_factory=BusConfig)  # zenoh session
 
     def validate(self) -> None:
@@ -90,6 +104,8 @@ class ReplayConfig:
             raise ConfigError("--keys needs at least one glob")
         if not 0.0 <= self.lead_in_s <= 60.0 or not 0.0 <= self.settle_s <= 60.0:
             raise ConfigError("--lead-in and --settle must be within [0, 60] s")
+        if not 0.0 <= self.release_s <= 10.0:
+            raise ConfigError(f"--release-s {self.release_s} outside [0, 10]")
         self.bus.validate()
 
 
@@ -298,6 +314,59 @@ class LiveResponse:
             }
 
 
+# --------------------------------------------------------------------------- pre-flight
+
+#: Exit codes of ``telesurg replay`` beyond 0 (done), 1 (failure) and 2 (bad flags / refused site).
+EXIT_DIVERGED = 3
+EXIT_NEVER_ENGAGED = 4
+
+
+class SiteBusy(ConfigError):
+    """The site already runs a publisher of the streams the replay would send."""
+
+
+def alive_services(bus: BusConfig, site: str, timeout: float = 1.0) -> list[str]:
+    """Service ids holding a liveliness token on ``site``, asked from a short session of its own
+    (before the replay's node, which is itself on the bus as ``--as``, declares its token)."""
+    keys = Keys(site)
+    session = open_session(bus)
+    try:
+        replies = session.liveliness().get(keys.alive("*"), timeout=timeout)
+        return sorted({keys.service_of_alive(str(r.ok.key_expr)) for r in replies if r.ok is not None})
+    finally:
+        session.close()  # type: ignore[no-untyped-call]
+
+
+def check_site_free(bus: BusConfig, site: str, service: str) -> None:
+    """Raise :class:`SiteBusy` naming the live publisher(s) the replay would fight.
+
+    ``master_capture`` publishes the master streams; ``service`` is the id the replay takes
+    (``--as``): two publishers under one id and key make both streams look lost or reordered."""
+    busy = sorted({"master_capture", service} & set(alive_services(bus, site)))
+    if busy:
+        raise SiteBusy(
+            f"{', '.join(busy)} is alive on site {site!r}: it publishes the master streams the replay "
+            "would send (two publishers would fight). Stop it first, e.g. start the site with "
+            "`telesurg up --services watchdog,slave_control,mapping,mirror`"
+        )
+
+
+def first_buttons(path: str, prefix: str, globs: Sequence[str]) -> dict[str, MasterButtons]:
+    """The first ``buttons`` message of each replayed buttons key (relative key → message)."""
+    out: dict[str, MasterButtons] = {}
+
+    def want(topic: str) -> bool:
+        rel = topic[len(prefix) :] if topic.startswith(prefix) else ""
+        return rel.endswith("/buttons") and rel not in out and any(fnmatch.fnmatchcase(rel, g) for g in globs)
+
+    with open_mcap(path) as reader:
+        for topic, _lt, _pt, _data, msg in iter_decoded(reader, want):
+            rel = topic[len(prefix) :]
+            if isinstance(msg, MasterButtons) and rel not in out:
+                out[rel] = msg
+    return out
+
+
 # --------------------------------------------------------------------------- replay
 
 
@@ -346,6 +415,8 @@ def replay(cfg: ReplayConfig, stop: threading.Event) -> dict[str, Any]:
         }
     )
     site = cfg.site or rec_site
+    if cfg.preflight:
+        check_site_free(cfg.bus, site, cfg.service)
     # ~2 s of master data ahead: filled during the lead-in, then decoded at the playback rate
     # (a larger read-ahead is a CPU burst that delays the first replayed messages)
     items: queue.Queue[Any] = queue.Queue(maxsize=1_000)
@@ -354,6 +425,7 @@ def replay(cfg: ReplayConfig, stop: threading.Event) -> dict[str, Any]:
         target=_reader_thread, args=(cfg.file, rec_prefix, cfg.keys, items, reader_stop), daemon=True
     )
     th.start()
+    held = {rel: m for rel, m in first_buttons(cfg.file, rec_prefix, cfg.keys).items() if m.clutch}
     sent: dict[str, int] = {}
     undecodable = 0
     late_ms: list[float] = []
@@ -376,6 +448,17 @@ def replay(cfg: ReplayConfig, stop: threading.Event) -> dict[str, Any]:
                 cfg.service,
             )
             stop.wait(cfg.lead_in_s)
+            for rel, first in held.items():  # the recording starts with the pedal held: release it
+                log.warning(
+                    "%s: the recording starts with the clutch pedal held; sending a release for %.2f s "
+                    "first, so that the recorded pedal engages as a press",
+                    rel,
+                    cfg.release_s,
+                )
+                out = outlets[rel] = node.outlet(f"{node.keys.prefix}/{rel}")
+                out.put(dataclasses.replace(first, header=out.header(), clutch=False))
+            if held:
+                stop.wait(cfg.release_s)
             start = 0.0
             while not stop.is_set():
                 try:
@@ -424,6 +507,7 @@ def replay(cfg: ReplayConfig, stop: threading.Event) -> dict[str, Any]:
         "sent": sent,
         "undecodable": undecodable,
         "played_s": round(_played_s(played), 3),
+        "synthesized_release": sorted(held),
         "timing_late_ms": {
             "p50": round(float(np.percentile(lat, 50)), 3),
             "p99": round(float(np.percentile(lat, 99)), 3),
@@ -565,7 +649,23 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--json", metavar="FILE", help="write the report as JSON")
     p.add_argument("--record", metavar="OUT.mcap", help="also record the live bus during the replay")
     p.add_argument(
-        "--max-rms", type=float, metavar="RAD", help="exit 3 if any joint's RMS difference exceeds RAD"
+        "--max-rms",
+        type=float,
+        default=0.02,
+        metavar="RAD",
+        help="exit 3 if any joint's RMS difference (until the runs diverge) exceeds RAD (0.02; 0 = off)",
+    )
+    p.add_argument(
+        "--release-s",
+        type=float,
+        default=0.3,
+        metavar="S",
+        help="a recording that starts with the pedal held: send a release for S s first (0.3)",
+    )
+    p.add_argument(
+        "--no-preflight",
+        action="store_true",
+        help="do not refuse a site where master_capture (or --as) is already alive",
     )
     p.add_argument("--to-rerun", metavar="OUT.rrd", help="convert to a rerun file (no network) and exit")
     p.add_argument("--log-level", default="INFO", help="DEBUG, INFO, WARNING, ERROR")
@@ -573,8 +673,30 @@ def parser() -> argparse.ArgumentParser:
     return p
 
 
+def verdict(report: dict[str, Any], max_rms: float) -> tuple[int, str]:
+    """(exit code, why) of a replay report: 0 when it means something and matches.
+
+    :data:`EXIT_NEVER_ENGAGED` when no arm ever followed in the replay (or an arm that followed in
+    the recording never did live), :data:`EXIT_DIVERGED` when a joint's RMS difference over the
+    compared window exceeds ``max_rms`` (> 0) or nothing could be compared."""
+    arms = report["arms"]
+    never = [a for a, r in arms.items() if r["live_follow_s"] is None and r["recorded_follow_s"] is not None]
+    if never or not any(r["live_follow_s"] is not None for r in arms.values()):
+        who = ", ".join(never or sorted(arms)) or "no arm"
+        return EXIT_NEVER_ENGAGED, f"the replay never engaged ({who}): it shows nothing of the recording"
+    if max_rms > 0:
+        compared = [r for r in arms.values() if r["samples"]]
+        worst = max((r["rms_max_rad"] for r in compared), default=0.0)
+        if not compared:
+            return EXIT_DIVERGED, "no overlap between the recorded and the live response: nothing compared"
+        if worst > max_rms:
+            return EXIT_DIVERGED, f"RMS difference {worst:.5f} rad exceeds --max-rms {max_rms:g}"
+    return 0, ""
+
+
 def main(argv: Sequence[str] | None = None) -> int:
-    """``telesurg replay``: 0 done, 1 failure, 2 bad flags, 3 over ``--max-rms``."""
+    """``telesurg replay``: 0 done, 1 failure, 2 bad flags or a busy site, 3 over ``--max-rms``, 4
+    never engaged."""
     args = parser().parse_args(argv)
     setup_logging(args.log_level, "replay")
     if args.to_rerun:
@@ -598,6 +720,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         lead_in_s=args.lead_in,
         settle_s=args.settle,
         record=args.record or "",
+        release_s=args.release_s,
+        preflight=not args.no_preflight,
     )
     try:
         cfg.bus = bus_from_args(args, cfg.bus)
@@ -609,19 +733,20 @@ def main(argv: Sequence[str] | None = None) -> int:
     install_stop_handlers(stop)
     try:
         report = replay(cfg, stop)
+    except SiteBusy as exc:
+        print(f"telesurg replay: {exc}", file=sys.stderr)
+        return 2
     except (TelesurgError, ConnectionError, OSError, McapError) as exc:
         log.error("%s", exc)
         return 1
     print_report(report)
+    code, why = verdict(report, args.max_rms)
+    report["verdict"] = {"exit": code, "why": why}
     if args.json:
-        Path(args.json).write_text(json.dumps(report, indent=2) + "\n")
-    worst = max((r["rms_max_rad"] for r in report["arms"].values() if r["samples"]), default=0.0)
-    if args.max_rms is not None and (
-        worst > args.max_rms or not any(r["samples"] for r in report["arms"].values())
-    ):
-        log.error("RMS difference %.5f rad exceeds --max-rms %g (or nothing to compare)", worst, args.max_rms)
-        return 3
-    return 0
+        Path(args.json).write_text(json.dumps(report, indent=2, allow_nan=False) + "\n")
+    if code:
+        log.error("%s", why)
+    return code
 
 
 if __name__ == "__main__":
