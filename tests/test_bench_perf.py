@@ -47,11 +47,42 @@ def test_bench_decode(tmp_path: Path) -> None:
     assert all(r["decode_us"] > 0 and r["encode_us"] > 0 and r["bytes"] > 0 for r in rows.values())
 
 
+def _hogs_left() -> list[int]:
+    import psutil
+
+    return [
+        p.pid
+        for p in psutil.process_iter(["cmdline"])
+        if p.info["cmdline"] and p.info["cmdline"][-2:] == ["-c", "while True: pass"]
+    ]
+
+
+def test_load_specs() -> None:
+    from telesurg.services.bench.load import Load
+
+    assert Load.parse("cpu:2") == Load("cpu", 2) and Load.parse("record").name == "record"
+    bad_specs = (("gpu", "valid: cpu:N, record, viewer"), ("cpu:0", "1..16"), ("record:3", "no argument"))
+    for bad, why in bad_specs:
+        with pytest.raises(ValueError, match=why):
+            Load.parse(bad)
+    r = subprocess.run(
+        [sys.executable, "-m", "telesurg.services.cli", "bench", "latency", "--load", "gpu"],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert r.returncode == 2 and "unknown kind" in r.stderr
+
+
 @pytest.mark.process
 def test_bench_latency_and_soak(tmp_path: Path) -> None:
-    lat = bench(tmp_path, "latency", "--rate", "250", "--seconds", "2", "--blocks", "1")
+    lat = bench(tmp_path, "latency", "--rate", "250", "--seconds", "2", "--blocks", "1", "--load", "cpu:1")
     assert lat["relay"]["end_to_end"]["n"] > 300 and lat["pipeline"]["end_to_end"]["n"] > 200
     assert lat["ratio_p50"] > 0
+    # the same run under one busy process: its own figures beside the idle ones, and the hog gone
+    loaded = lat["loaded"]["cpu:1"]
+    assert loaded["pipeline"]["end_to_end"]["n"] > 200 and loaded["pipeline_p99_vs_idle"] > 0
+    assert not _hogs_left()
     soak = bench(tmp_path, "soak", "--rate", "250", "--seconds", "3")
     assert soak["streams"]["master/m1/measured_cp"]["messages"] > 500
     assert set(soak["cpu_pct"]) >= {"slave_control", "mapping", "watchdog", "master_capture"}

@@ -29,6 +29,7 @@ Nothing here asserts a time: the figures are printed and written, the goals are 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import re
@@ -41,6 +42,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from telesurg.services.bench.load import Load
 
 PCTS = (50, 90, 99)
 # --rate 0 (unpaced): the relay's source publishes back to back; master_capture runs at its top
@@ -123,7 +125,7 @@ def fifo_threads(pid: int) -> int:
 
 
 def _pipeline_block(
-    rate: float, seconds: float, tmp: Path, k: int, rt_priority: int | None = None
+    rate: float, seconds: float, tmp: Path, k: int, rt_priority: int | None = None, load: Load | None = None
 ) -> tuple[np.ndarray, dict[str, Any]]:
     from telesurg.services.bench.harness import Pipeline
 
@@ -134,12 +136,41 @@ def _pipeline_block(
         slave_control=[f"latency_log={json.dumps(str(npy))}"],
     )
     with Pipeline(tmp / f"logs{k}", mirror=False, impair=False, probe=False, overrides=overrides) as p:
-        time.sleep(seconds + 1.0)
-        fifo = {n: fifo_threads(pr.pid) for n, pr in p.site.procs.items() if n in RT_SERVICES}
+        with _loaded(load, p.spec.endpoint, tmp):
+            time.sleep(seconds + 1.0)
+            fifo = {n: fifo_threads(pr.pid) for n, pr in p.site.procs.items() if n in RT_SERVICES}
         p.close()
     rows: np.ndarray = np.load(npy)
     logs = {f.stem: f.read_text() for f in (tmp / f"logs{k}").glob("*.log")}
     return rows, {"holds": logs.get("watchdog", "").count("→ HOLD"), "fifo_threads": fifo}
+
+
+def _loaded(load: Load | None, endpoint: str, tmp: Path) -> contextlib.AbstractContextManager[Any]:
+    return load.running(endpoint, tmp) if load is not None else contextlib.nullcontext()
+
+
+def _latency_figures(relay_rows: list[np.ndarray], pipe_rows: list[np.ndarray]) -> dict[str, Any]:
+    """Per-hop and end-to-end percentiles of the relay and the pipeline, and their ratios."""
+    r = np.concatenate(relay_rows)
+    pl = np.concatenate(pipe_rows)
+    pl = pl[(pl[:, 0] > 0) & (pl[:, 1] > 0)]
+    pl = pl[len(pl) // 20 :]  # drop the start-up transient
+    res: dict[str, Any] = {
+        "relay": {
+            "hop1": _stats_ms(r[:, 1] - r[:, 0]),
+            "hop2": _stats_ms(r[:, 2] - r[:, 1]),
+            "end_to_end": _stats_ms(r[:, 2] - r[:, 0]),
+        },
+        "pipeline": {
+            "master_to_mapping_out": _stats_ms(pl[:, 1] - pl[:, 0]),
+            "mapping_out_to_slave_applied": _stats_ms(pl[:, 2] - pl[:, 1]),
+            "end_to_end": _stats_ms(pl[:, 2] - pl[:, 0]),
+        },
+    }
+    e_r, e_p = res["relay"]["end_to_end"], res["pipeline"]["end_to_end"]
+    res["ratio_p50"] = round(e_p["p50"] / e_r["p50"], 3)
+    res["ratio_p99"] = round(e_p["p99"] / e_r["p99"], 3)
+    return res
 
 
 def latency(a: argparse.Namespace) -> dict[str, Any]:
@@ -153,51 +184,60 @@ def latency(a: argparse.Namespace) -> dict[str, Any]:
         "seconds_per_block": a.seconds,
         "blocks": a.blocks,
     }
-    relay_rows, pipe_rows, holds = [], [], 0
+    # idle first, then each --load; the conditions alternate block by block, so a slow drift of
+    # the host shows in all of them alike
+    conditions: list[Load | None] = [None, *a.load]
+    rows: dict[str, tuple[list[np.ndarray], list[np.ndarray]]] = {_cname(c): ([], []) for c in conditions}
+    holds = dict.fromkeys(rows, 0)
+    blk = 0
     with tempfile.TemporaryDirectory() as d:
         tmp = Path(d)
-        for k in range(a.blocks):
-            ep = f"tcp/127.0.0.1:{free_port()}"
-            router = open_session(BusConfig(mode="router", listen=[ep]))
-            try:
-                relay_rows.append(_relay_block(ep, rate, a.seconds, tmp, k))
-            finally:
-                router.close()  # type: ignore[no-untyped-call]
-            rows, info = _pipeline_block(rate, a.seconds, tmp, k, a.rt_priority)
-            pipe_rows.append(rows)
-            holds += info["holds"]
-            res["pipeline_fifo_threads"] = info["fifo_threads"]
-    r = np.concatenate(relay_rows)
-    pl = np.concatenate(pipe_rows)
-    pl = pl[(pl[:, 0] > 0) & (pl[:, 1] > 0)]
-    pl = pl[len(pl) // 20 :]  # drop the start-up transient
-    res["relay"] = {
-        "hop1": _stats_ms(r[:, 1] - r[:, 0]),
-        "hop2": _stats_ms(r[:, 2] - r[:, 1]),
-        "end_to_end": _stats_ms(r[:, 2] - r[:, 0]),
-    }
-    res["pipeline"] = {
-        "master_to_mapping_out": _stats_ms(pl[:, 1] - pl[:, 0]),
-        "mapping_out_to_slave_applied": _stats_ms(pl[:, 2] - pl[:, 1]),
-        "end_to_end": _stats_ms(pl[:, 2] - pl[:, 0]),
-    }
-    e_r, e_p = res["relay"]["end_to_end"], res["pipeline"]["end_to_end"]
-    res["ratio_p50"] = round(e_p["p50"] / e_r["p50"], 3)
-    res["ratio_p99"] = round(e_p["p99"] / e_r["p99"], 3)
-    res["pipeline_watchdog_holds"] = holds
-    _table(
-        f"one-way latency at {f'{rate:g} Hz' if rate > 0 else 'unpaced'} "
-        f"({a.blocks} × {a.seconds:g} s each, alternating)",
-        [
-            ("relay: source → relay", res["relay"]["hop1"]),
-            ("relay: relay → sink", res["relay"]["hop2"]),
-            ("relay: end to end", e_r),
-            ("pipeline: master → mapping out", res["pipeline"]["master_to_mapping_out"]),
-            ("pipeline: mapping out → slave applied", res["pipeline"]["mapping_out_to_slave_applied"]),
-            ("pipeline: end to end", e_p),
-        ],
-    )
-    print(f"pipeline / relay: p50 × {res['ratio_p50']}, p99 × {res['ratio_p99']}; watchdog holds {holds}")
+        for _ in range(a.blocks):
+            for c in conditions:
+                blk += 1
+                name = _cname(c)
+                ep = f"tcp/127.0.0.1:{free_port()}"
+                router = open_session(BusConfig(mode="router", listen=[ep]))
+                try:
+                    with _loaded(c, ep, tmp):
+                        rows[name][0].append(_relay_block(ep, rate, a.seconds, tmp, blk))
+                finally:
+                    router.close()  # type: ignore[no-untyped-call]
+                prow, info = _pipeline_block(rate, a.seconds, tmp, blk, a.rt_priority, c)
+                rows[name][1].append(prow)
+                holds[name] += info["holds"]
+                if c is None:
+                    res["pipeline_fifo_threads"] = info["fifo_threads"]
+    for name, (relay_rows, pipe_rows) in rows.items():
+        figs = _latency_figures(relay_rows, pipe_rows)
+        figs["pipeline_watchdog_holds"] = holds[name]
+        if name == "idle":
+            res.update(figs)
+        else:
+            res.setdefault("loaded", {})[name] = figs
+    idle_p99 = res["pipeline"]["end_to_end"]["p99"]
+    for figs in res.get("loaded", {}).values():
+        figs["pipeline_p99_vs_idle"] = round(figs["pipeline"]["end_to_end"]["p99"] / idle_p99, 3)
+    for name in rows:
+        figs = res if name == "idle" else res["loaded"][name]
+        e_r, e_p = figs["relay"]["end_to_end"], figs["pipeline"]["end_to_end"]
+        _table(
+            f"one-way latency at {f'{rate:g} Hz' if rate > 0 else 'unpaced'}, {name} "
+            f"({a.blocks} × {a.seconds:g} s each, alternating)",
+            [
+                ("relay: source → relay", figs["relay"]["hop1"]),
+                ("relay: relay → sink", figs["relay"]["hop2"]),
+                ("relay: end to end", e_r),
+                ("pipeline: master → mapping out", figs["pipeline"]["master_to_mapping_out"]),
+                ("pipeline: mapping out → slave applied", figs["pipeline"]["mapping_out_to_slave_applied"]),
+                ("pipeline: end to end", e_p),
+            ],
+        )
+        vs_idle = f"; pipeline p99 × {figs['pipeline_p99_vs_idle']} of idle" if name != "idle" else ""
+        print(
+            f"{name}: pipeline / relay: p50 × {figs['ratio_p50']}, p99 × {figs['ratio_p99']}{vs_idle}; "
+            f"watchdog holds {figs['pipeline_watchdog_holds']}"
+        )
     print(f"SCHED_FIFO threads of the pipeline: {res['pipeline_fifo_threads']}")
     if a.plot:
         from telesurg.services.bench.plots import plot_latency
@@ -205,6 +245,10 @@ def latency(a: argparse.Namespace) -> dict[str, Any]:
         plot_latency([res], a.plot)
         print(f"figure: {a.plot}")
     return res
+
+
+def _cname(c: Load | None) -> str:
+    return "idle" if c is None else c.name
 
 
 # ---------------------------------------------------------------------------------- soak
@@ -215,7 +259,7 @@ _COUNTERS = {
 }
 
 
-def soak(a: argparse.Namespace) -> dict[str, Any]:
+def _soak_run(a: argparse.Namespace, load: Load | None) -> dict[str, Any]:
     import importlib
 
     psutil: Any = importlib.import_module("psutil")  # (no type stubs)
@@ -252,7 +296,8 @@ def soak(a: argparse.Namespace) -> dict[str, Any]:
             watched = dict(procs) if rec is None else {**procs, "recorder": psutil.Process(rec.pid)}
             for pr in watched.values():
                 pr.cpu_percent(None)
-            time.sleep(a.seconds)
+            with _loaded(load, p.spec.endpoint, tmp):
+                time.sleep(a.seconds)
             cpu_all = {n: round(pr.cpu_percent(None), 1) for n, pr in watched.items()}
             fifo = {n: fifo_threads(pr.pid) for n, pr in watched.items()}
             rss = {n: round(pr.memory_info().rss / 2**20, 1) for n, pr in watched.items()}
@@ -283,7 +328,9 @@ def soak(a: argparse.Namespace) -> dict[str, Any]:
     from rich.console import Console
     from rich.table import Table
 
-    t = Table(title=f"soak: {a.seconds:g} s at {a.rate:g} Hz" + ("" if a.record else ", no recorder"))
+    res["load"] = _cname(load)
+    title = f"soak: {a.seconds:g} s at {a.rate:g} Hz" + ("" if a.record else ", no recorder")
+    t = Table(title=f"{title}, {_cname(load)}")
     for c in ("service", "CPU %", "RSS MB", "FIFO threads", "cycles", "overruns", "miss %"):
         t.add_column(c, justify="right")
     for n in cpu_all:
@@ -300,6 +347,14 @@ def soak(a: argparse.Namespace) -> dict[str, Any]:
     Console().print(t)
     total, holds = res["cpu_total_pct"], res["watchdog_holds"]
     print(f"total CPU of the pipeline {total} % of one core (2 cores = 200 %); watchdog holds {holds}")
+    return res
+
+
+def soak(a: argparse.Namespace) -> dict[str, Any]:
+    """The soak idle, then under each ``--load`` in turn (``loaded`` in the result)."""
+    res = _soak_run(a, None)
+    for load in a.load:
+        res.setdefault("loaded", {})[load.name] = _soak_run(a, load)
     return res
 
 
@@ -515,6 +570,16 @@ BENCHES: dict[str, Callable[[argparse.Namespace], dict[str, Any]]] = {
 }
 
 
+def _load_arg(spec: str) -> Load:
+    try:
+        load = Load.parse(spec)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+    if why := load.available():
+        raise argparse.ArgumentTypeError(f"--load {spec}: {why}")
+    return load
+
+
 def main(argv: Sequence[str] | None = None, name: str = "latency") -> int:
     ap = argparse.ArgumentParser(prog=f"telesurg bench {name}", description=__doc__)
     ap.add_argument("--json", type=Path, help="write the figures here")
@@ -531,6 +596,17 @@ def main(argv: Sequence[str] | None = None, name: str = "latency") -> int:
             type=int,
             help="SCHED_FIFO priority of the master, mapping and slave loop threads, 0 = normal "
             "scheduling (default: the deploy configs', 20)",
+        )
+    if name in ("latency", "soak"):
+        ap.add_argument(
+            "--load",
+            action="append",
+            default=[],
+            metavar="SPEC",
+            type=_load_arg,
+            help="also measure under this background load, repeatable: cpu:N (N busy processes at "
+            "normal priority), record (the recorder on the bus), viewer (the rerun web viewer in "
+            "headless Chromium); the table shows idle and each load of the same run",
         )
     if name == "soak":
         ap.add_argument(
@@ -555,5 +631,5 @@ def main(argv: Sequence[str] | None = None, name: str = "latency") -> int:
     res["date"] = time.strftime("%Y-%m-%d %H:%M:%S")
     res["machine"] = {"cpus": os.cpu_count(), "python": sys.version.split()[0]}
     if a.json:
-        a.json.write_text(json.dumps(res, indent=2) + "\n")
+        a.json.write_text(json.dumps(res, indent=2, allow_nan=False) + "\n")
     return 0

@@ -455,8 +455,8 @@ def replay(cfg: ReplayConfig, stop: threading.Event) -> dict[str, Any]:
                     rel,
                     cfg.release_s,
                 )
-                out = outlets[rel] = node.outlet(f"{node.keys.prefix}/{rel}")
-                out.put(dataclasses.replace(first, header=out.header(), clutch=False))
+                release = outlets[rel] = node.outlet(f"{node.keys.prefix}/{rel}")
+                release.put(dataclasses.replace(first, header=release.header(), clutch=False))
             if held:
                 stop.wait(cfg.release_s)
             start = 0.0

@@ -1,0 +1,132 @@
+"""Background load for the benches (``telesurg bench latency | soak --load SPEC``).
+
+A spec names what else runs on the host while the control path is measured:
+
+* ``cpu:N`` — N busy-loop processes at normal priority (nice 0, SCHED_OTHER): other programs
+  on the same cores, e.g. a package install or a compiler;
+* ``record`` — the recorder (``telesurg record``) on the site's bus: every message of the site
+  decoded and written to an MCAP file;
+* ``viewer`` — the rerun mirror serving the web viewer, and Debian's headless Chromium showing it
+  (software WebGL), as a researcher watching the session on the console host.
+
+Each :class:`Load` is started after the pipeline it loads (it needs the router's endpoint) and
+stopped with it; every process it starts is its own and is ended by PID.
+
+Example::
+
+    with Load.parse("cpu:2").running(endpoint, tmp):
+        ...  # measure
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+#: The kinds a ``--load`` spec can name.
+KINDS = ("cpu", "record", "viewer")
+CHROMIUM = ("chromium", "chromium-browser", "google-chrome")
+
+
+@dataclass(frozen=True)
+class Load:
+    """One kind of background load (see the module)."""
+
+    kind: str
+    n: int = 1  # cpu: how many busy processes
+
+    @classmethod
+    def parse(cls, spec: str) -> Load:
+        """``cpu:2`` / ``record`` / ``viewer``; ValueError naming the valid forms."""
+        kind, _, arg = spec.partition(":")
+        if kind not in KINDS:
+            raise ValueError(f"--load {spec!r}: unknown kind; valid: cpu:N, record, viewer")
+        if kind == "cpu":
+            if not arg.isdigit() or not 1 <= int(arg) <= 16:
+                raise ValueError(f"--load {spec!r}: cpu:N needs N in 1..16")
+            return cls(kind, int(arg))
+        if arg:
+            raise ValueError(f"--load {spec!r}: {kind} takes no argument")
+        return cls(kind)
+
+    @property
+    def name(self) -> str:
+        """The spec as given (``cpu:2``)."""
+        return f"cpu:{self.n}" if self.kind == "cpu" else self.kind
+
+    def available(self) -> str:
+        """ "" if this load can run here, else why not."""
+        if self.kind == "viewer" and not any(shutil.which(c) for c in CHROMIUM):
+            return "no Chromium on this host (Debian: apt-get install chromium)"
+        return ""
+
+    @contextlib.contextmanager
+    def running(self, endpoint: str, tmp: Path) -> Iterator[list[int]]:
+        """Start the load against the router at ``endpoint``; yields the PIDs; stops them on exit."""
+        procs: list[subprocess.Popen[bytes]] = []
+        try:
+            if self.kind == "cpu":
+                for _ in range(self.n):
+                    procs.append(_spawn([sys.executable, "-c", "while True: pass"]))
+            elif self.kind == "record":
+                out = tmp / f"load-record-{time.monotonic_ns()}.mcap"
+                argv = [sys.executable, "-m", "telesurg.services.record", "--out", str(out)]
+                procs.append(_spawn([*argv, "--connect", endpoint]))
+            elif self.kind == "viewer":
+                procs += _viewer(endpoint, tmp)
+            yield [p.pid for p in procs]
+        finally:
+            for p in procs:
+                if p.poll() is None:
+                    with contextlib.suppress(ProcessLookupError):
+                        p.send_signal(signal.SIGINT if self.kind != "cpu" else signal.SIGKILL)
+            for p in procs:
+                try:
+                    p.wait(10)
+                except subprocess.TimeoutExpired:
+                    p.kill()
+                    p.wait(5)
+
+
+def _spawn(argv: list[str]) -> subprocess.Popen[bytes]:
+    return subprocess.Popen(argv, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+
+
+def _viewer(endpoint: str, tmp: Path) -> list[subprocess.Popen[bytes]]:
+    """The mirror serving the web viewer + headless Chromium on it (software WebGL)."""
+    from telesurg.services.launcher import free_port
+    from telesurg.shared.viewer import viewer_url
+
+    web, grpc = free_port(), free_port()
+    argv = [sys.executable, "-m", "telesurg.services.mirror", "--connect", endpoint, "--serve"]
+    argv += ["--set", f"web_port={web}", "--set", f"grpc_port={grpc}"]
+    mirror = _spawn(argv)
+    time.sleep(3.0)  # the viewer's files are served once the mirror is up
+    browser = next(c for c in CHROMIUM if shutil.which(c))
+    url = viewer_url(f"rerun+http://127.0.0.1:{grpc}/proxy", web)
+    profile = tmp / f"chromium-{os.getpid()}-{time.monotonic_ns()}"
+    flags = [
+        "--headless",
+        "--no-sandbox",
+        "--disable-gpu",
+        "--enable-unsafe-swiftshader",  # software WebGL, as on a console without a GPU
+        "--no-first-run",
+        "--disable-background-networking",
+        # a headless page may count as hidden: keep drawing as a visible viewer does
+        "--disable-renderer-backgrounding",
+        "--disable-background-timer-throttling",
+        "--disable-backgrounding-occluded-windows",
+        "--window-size=1600,900",
+        f"--user-data-dir={profile}",
+        "--remote-debugging-port=0",  # keeps the headless browser (and the page) alive
+    ]
+    chrome = _spawn([browser, *flags, url])
+    return [chrome, mirror]
