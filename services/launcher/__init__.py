@@ -153,6 +153,9 @@ class SiteSpec:
     listen: tuple[str, ...] = ()  # more router endpoints, e.g. tls/0.0.0.0:7447 for remote consoles
     router_flags: tuple[str, ...] = ()  # router-only flags: --tls-ca/--tls-cert/--tls-key/--mtls/--acl
     plugins: tuple[str, ...] = ()  # robot plugin files, passed to every service as --plugin FILE
+    # local PKI directory (services/launcher/lockdown.py): the router's local listener is mutual
+    # TLS with it and each service connects with its own certificate (None: plain TCP, open)
+    local_pki: Path | None = None
 
     @property
     def site_file(self) -> Path | None:
@@ -161,8 +164,20 @@ class SiteSpec:
 
     @property
     def endpoint(self) -> str:
-        """Router endpoint, e.g. ``tcp/127.0.0.1:7447``."""
-        return f"tcp/{self.host}:{self.port}"
+        """Router endpoint, e.g. ``tcp/127.0.0.1:7447`` (``tls/...`` on a locked-down site)."""
+        return f"{'tls' if self.local_pki else 'tcp'}/{self.host}:{self.port}"
+
+    def client_bus(self, name: str = "operator") -> BusConfig:
+        """Bus config of a client of this site's router: on a locked-down site with the local
+        certificate of ``name`` (a service, ``launcher`` or ``operator``)."""
+        from telesurg.services.launcher.lockdown import LocalPki
+
+        cfg = BusConfig(connect=[self.endpoint])
+        if self.local_pki:
+            pki = LocalPki(self.local_pki)
+            cfg.tls_root_ca, cfg.tls_cert, cfg.tls_key = str(pki.ca), str(pki.cert(name)), str(pki.key(name))
+            cfg.mtls = True
+        return cfg
 
 
 def service_argv(spec: SiteSpec, name: str) -> list[str]:
@@ -170,11 +185,20 @@ def service_argv(spec: SiteSpec, name: str) -> list[str]:
     argv = [sys.executable, "-m", "telesurg.services.cli", CLI_NAME[name], "--site", spec.site]
     argv += ["--log-level", spec.log_level, "--parent-pid", str(os.getpid())]
     if name == "router":
-        for ep in (spec.endpoint, *spec.listen):
+        local = spec.endpoint
+        if spec.local_pki:
+            from telesurg.services.launcher.lockdown import LocalPki
+
+            local = LocalPki(spec.local_pki).listen_endpoint(spec.host, spec.port)
+        for ep in (local, *spec.listen):
             argv += ["--listen", ep]
         argv += spec.router_flags
     else:
         argv += ["--connect", spec.connect.get(name, spec.endpoint)]
+        if spec.local_pki:
+            from telesurg.services.launcher.lockdown import LocalPki
+
+            argv += LocalPki(spec.local_pki).client_flags(name)
         for plugin in spec.plugins:
             argv += ["--plugin", plugin]
     if spec.site_file is not None:
@@ -207,11 +231,11 @@ class Site:
                 raise ConnectionError(f"router exited with code {router.returncode} (see its log)")
             if time.monotonic() > deadline:
                 raise ConnectionError(f"router did not open {self.spec.endpoint} within 15 s")
-        from telesurg.shared.bus import BusConfig, open_session
+        from telesurg.shared.bus import open_session
         from telesurg.shared.keys import Keys
 
         keys = Keys(self.spec.site)
-        session = open_session(BusConfig(connect=[self.spec.endpoint]))
+        session = open_session(self.spec.client_bus("launcher"))
         try:
             for name in SERVICES:
                 if name not in self.spec.services:
@@ -397,14 +421,40 @@ def router_security_flags(args: argparse.Namespace) -> list[str]:
             flags.append(f"--{name.replace('_', '-')}")
     if args.zenoh_log:
         flags += ["--zenoh-log", args.zenoh_log]
+    if getattr(args, "acl_log", None):
+        flags += ["--set", f"acl_log={json.dumps(args.acl_log)}"]
     return flags
+
+
+def lock_down(spec: SiteSpec, args: argparse.Namespace) -> None:
+    """A secured router (``--acl``): make the local PKI (services/launcher/lockdown.py) in
+    ``--credentials-dir`` and use it for the router's local listener and every service. Without
+    ``--tls-cert`` (no consoles' TLS) the router's own TLS settings are the local ones."""
+    from telesurg.services.launcher.lockdown import default_dir, make_local_pki
+
+    if not args.acl:
+        return
+    root = Path(args.credentials_dir) if args.credentials_dir else default_dir(spec.site, spec.port)
+    pki = make_local_pki(root.resolve(), spec.services)
+    spec.local_pki = pki.root
+    if not args.tls_cert:
+        spec.router_flags += (
+            "--tls-ca",
+            str(pki.ca),
+            "--tls-cert",
+            str(pki.cert("router")),
+            "--tls-key",
+            str(pki.key("router")),
+            "--mtls",
+        )
+    log.info("local credentials (mutual TLS on %s): %s", spec.endpoint, pki.root)
 
 
 def router_bus(spec: SiteSpec) -> BusConfig:
     """The router's bus config as its command line will build it (to validate it up front)."""
     parser = argparse.ArgumentParser(add_help=False)
     add_bus_args(parser)
-    args = parser.parse_args(list(spec.router_flags))
+    args, _ = parser.parse_known_args(list(spec.router_flags))  # the router's own flags: --acl-log
     return bus_from_args(args, BusConfig(mode="router", listen=[spec.endpoint, *spec.listen]))
 
 
@@ -462,6 +512,17 @@ def main(argv: Sequence[str] | None = None) -> int:
         metavar="FILTER",
         help="the router's zenoh log, e.g. zenoh::net::routing::interceptor::access_control=trace",
     )
+    g.add_argument(
+        "--acl-log",
+        choices=("off", "denied", "all"),
+        help="the router logs access-control denials only (denied) or every decision (all)",
+    )
+    g.add_argument(
+        "--credentials-dir",
+        metavar="DIR",
+        help="with --acl: where the local services' certificates are made at every start "
+        "(default: $XDG_STATE_HOME/telesurg/<site>-<port> or ~/.local/state/telesurg/<site>-<port>)",
+    )
     args = parser.parse_args(argv)
     setup_logging("INFO", "launcher")
     if args.services:
@@ -480,6 +541,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         spec = spec_from_args(args, services)
         spec.listen, spec.router_flags = tuple(args.listen), tuple(router_security_flags(args))
+        lock_down(spec, args)
         router_bus(spec).validate()
     except ConfigError as exc:
         print(f"telesurg up: {exc}", file=sys.stderr)

@@ -50,6 +50,7 @@ from types import TracebackType
 from typing import IO, TYPE_CHECKING, Any
 
 from telesurg.services.common import install_stop_handlers, setup_logging
+from telesurg.shared import jsonio
 from telesurg.shared.bus import BusConfig, Node, add_bus_args, bus_from_args
 from telesurg.shared.errors import ConfigError, MessageError, TelesurgError
 from telesurg.shared.keys import Keys, check_id
@@ -443,8 +444,8 @@ class Recorder:
         summary = self.summary()
         try:
             if self.error is None:
-                meta = {k: json.dumps(v, separators=(",", ":")) for k, v in summary.items()}
-                meta["_recording"] = json.dumps(
+                meta = {k: jsonio.dumps(v, separators=(",", ":")) for k, v in summary.items()}
+                meta["_recording"] = jsonio.dumps(
                     {
                         "started_ns": self._started_ns,
                         "stopped_ns": time.time_ns(),
@@ -631,5 +632,5 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 1
     print_summary(summary, f"{cfg.out}: {sum(r['messages'] for r in summary.values())} messages")
     if args.json:
-        Path(args.json).write_text(json.dumps(summary, indent=2) + "\n")
+        Path(args.json).write_text(jsonio.dumps(summary, indent=2) + "\n")
     return 0

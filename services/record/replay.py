@@ -31,7 +31,6 @@ import argparse
 import contextlib
 import dataclasses
 import fnmatch
-import json
 import logging
 import queue
 import sys
@@ -46,6 +45,7 @@ import numpy as np
 from mcap.exceptions import McapError
 from telesurg.services.common import install_stop_handlers, setup_logging
 from telesurg.services.record import Recorder, iter_decoded, open_mcap, recording_site
+from telesurg.shared import jsonio
 from telesurg.shared.bus import BusConfig, Node, Outlet, add_bus_args, bus_from_args
 from telesurg.shared.errors import ConfigError, TelesurgError
 from telesurg.shared.keys import Keys, check_id
@@ -614,7 +614,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 1
     print_report(report)
     if args.json:
-        Path(args.json).write_text(json.dumps(report, indent=2) + "\n")
+        Path(args.json).write_text(jsonio.dumps(report, indent=2) + "\n")
     worst = max((r["rms_max_rad"] for r in report["arms"].values() if r["samples"]), default=0.0)
     if args.max_rms is not None and (
         worst > args.max_rms or not any(r["samples"] for r in report["arms"].values())
