@@ -226,7 +226,7 @@ class Site:
         self._spawn("router")
         router = self.procs["router"]
         deadline = time.monotonic() + 15.0
-        while not wait_port(self.spec.host, self.spec.port, 0.2):
+        while not self._router_ready():
             if router.poll() is not None:
                 raise ConnectionError(f"router exited with code {router.returncode} (see its log)")
             if time.monotonic() > deadline:
@@ -252,6 +252,21 @@ class Site:
         if self.spec.log_dir:
             pids = {n: p.pid for n, p in self.procs.items()}
             (self.spec.log_dir / "pids.json").write_text(json.dumps(pids, indent=2))
+
+    def _router_ready(self) -> bool:
+        """The router accepts connections (on a locked-down site: a full TLS handshake with the
+        launcher's certificate, so the router logs no failed handshake for the probe)."""
+        if not self.spec.local_pki:
+            return wait_port(self.spec.host, self.spec.port, 0.2)
+        from telesurg.services.launcher.lockdown import LocalPki
+        from telesurg.shared.tlsdiag import TlsFiles, handshake
+
+        pki = LocalPki(self.spec.local_pki)
+        files = TlsFiles(str(pki.ca), str(pki.cert("launcher")), str(pki.key("launcher")))
+        if handshake(self.spec.host, self.spec.port, files) == "":
+            return True
+        time.sleep(0.2)
+        return False
 
     def _wait_alive(self, session: object, key: str, timeout: float) -> bool:
         """Poll the liveliness token ``key`` until present (True) or timeout / exit (False)."""
@@ -426,18 +441,17 @@ def router_security_flags(args: argparse.Namespace) -> list[str]:
     return flags
 
 
-def lock_down(spec: SiteSpec, args: argparse.Namespace) -> None:
-    """A secured router (``--acl``): make the local PKI (services/launcher/lockdown.py) in
-    ``--credentials-dir`` and use it for the router's local listener and every service. Without
-    ``--tls-cert`` (no consoles' TLS) the router's own TLS settings are the local ones."""
+def lock_down(spec: SiteSpec, credentials_dir: str | Path | None = None, tls_cert: str = "") -> None:
+    """Make the local PKI (services/launcher/lockdown.py) in ``credentials_dir`` (default: the
+    per-user state directory) and use it for the router's local listener and every service of
+    ``spec`` (``telesurg up --acl`` does). Without ``tls_cert`` (the consoles' TLS) the router's
+    own TLS settings are the local ones."""
     from telesurg.services.launcher.lockdown import default_dir, make_local_pki
 
-    if not args.acl:
-        return
-    root = Path(args.credentials_dir) if args.credentials_dir else default_dir(spec.site, spec.port)
+    root = Path(credentials_dir) if credentials_dir else default_dir(spec.site, spec.port)
     pki = make_local_pki(root.resolve(), spec.services)
     spec.local_pki = pki.root
-    if not args.tls_cert:
+    if not tls_cert:
         spec.router_flags += (
             "--tls-ca",
             str(pki.ca),
@@ -541,7 +555,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         spec = spec_from_args(args, services)
         spec.listen, spec.router_flags = tuple(args.listen), tuple(router_security_flags(args))
-        lock_down(spec, args)
+        if args.acl:  # a secured router: the local services authenticate too
+            lock_down(spec, args.credentials_dir, args.tls_cert or "")
         router_bus(spec).validate()
     except ConfigError as exc:
         print(f"telesurg up: {exc}", file=sys.stderr)
