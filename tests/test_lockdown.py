@@ -297,7 +297,8 @@ def test_locked_down_site_follows_and_refuses_forgeries(tmp_path: Path) -> None:
         str(logs),
     ]
     argv += ["--services", "watchdog,slave_control,mapping,master_capture"]
-    launcher = subprocess.Popen(argv, stderr=(tmp_path / "launcher.log").open("wb"))
+    launcher_log = (tmp_path / "launcher.log").open("wb")
+    launcher = subprocess.Popen(argv, stderr=launcher_log)
     pki = LocalPki(creds)
     try:
         js: list[JointState] = []
@@ -345,5 +346,6 @@ def test_locked_down_site_follows_and_refuses_forgeries(tmp_path: Path) -> None:
         except subprocess.TimeoutExpired:
             launcher.kill()
             launcher.wait()
+        launcher_log.close()
         for f in sorted(logs.glob("*.log")):
             print(f"--- {f.name}\n{f.read_text()[-2000:]}")
