@@ -349,3 +349,30 @@ def test_locked_down_site_follows_and_refuses_forgeries(tmp_path: Path) -> None:
         launcher_log.close()
         for f in sorted(logs.glob("*.log")):
             print(f"--- {f.name}\n{f.read_text()[-2000:]}")
+
+
+# ============================================================================ bounded queues
+
+
+def test_recorder_backlog_is_bounded(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A writer that cannot keep up (disk, CPU, a flood): samples beyond the backlog bound are
+    dropped and counted, not queued without limit."""
+    import telesurg.services.record as record
+
+    monkeypatch.setattr(record, "MAX_BACKLOG_BYTES", 1000)
+    entered, release = threading.Event(), threading.Event()
+    with record.Recorder(tmp_path / "x.mcap", "t") as rec:
+        write = rec._write
+
+        def slow_write(payload: bytes, key: str, rx_ns: int) -> None:
+            entered.set()
+            release.wait(10)
+            write(payload, key, rx_ns)
+
+        monkeypatch.setattr(rec, "_write", slow_write)
+        rec.push(b"\x00" * 600, "telesurg/t/master/m1/buttons", 1)
+        assert entered.wait(5)  # the writer holds sample 1
+        for i in range(4):
+            rec.push(b"\x00" * 600, "telesurg/t/master/m1/buttons", 2 + i)
+        assert rec.dropped == 3 and rec.backlog == 1
+        release.set()
