@@ -376,3 +376,29 @@ def test_recorder_backlog_is_bounded(tmp_path: Path, monkeypatch: pytest.MonkeyP
             rec.push(b"\x00" * 600, "telesurg/t/master/m1/buttons", 2 + i)
         assert rec.dropped == 3 and rec.backlog == 1
         release.set()
+
+
+@pytest.mark.process
+@pytest.mark.timeout(300)
+def test_flood_of_large_messages_reaches_no_service(tmp_path: Path) -> None:
+    """``telesurg bench flood`` (short): 1 MiB messages on servo_jp and the master pose from the
+    master_capture identity (the ACL allows it the master key: only the size cap stops it). None
+    reaches a subscriber, and the slave follows the genuine master again afterwards."""
+    import argparse
+
+    from telesurg.services.bench.flood import run
+
+    args = argparse.Namespace(
+        site="locked",
+        flooder="master_capture",
+        no_caps=False,
+        seconds=3.0,
+        size=1 << 20,
+        after=5.0,
+        settle=2.0,
+        log_dir=str(tmp_path / "logs"),
+    )
+    res = run(args)
+    assert res["sent"] > 100
+    assert res["delivered_over_64k"] == 0
+    assert res["followed_after"], "the slave did not follow again after the flood"

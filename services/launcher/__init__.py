@@ -9,8 +9,10 @@ last — waits for them, and exits 0 if every process stopped cleanly. Children
 also stop by themselves if the launcher dies (they watch their parent PID).
 
 A secured site (``deploy/slave-site.sh``) gives the router more listeners and its TLS / access
-control flags (``--listen``, ``--tls-*``, ``--mtls``, ``--acl``), which go to the router only;
-the services still connect to the plain loopback endpoint ``--host``:``--port``.
+control flags (``--listen``, ``--tls-*``, ``--mtls``, ``--acl``), which go to the router only.
+With ``--acl`` the site is locked down (services/launcher/lockdown.py): the loopback endpoint
+``--host``:``--port`` is mutual TLS with a local CA made at every start, and each service
+connects with its own certificate (``--credentials-dir``); without it, plain TCP.
 
 Examples::
 
