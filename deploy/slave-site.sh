@@ -19,7 +19,8 @@ usage() {
 usage: deploy/slave-site.sh [options] [-- telesurg up options]
 
 Starts the router (listening on --listen with mutual TLS and the access-control rules, plus a
-plain-TCP listener on 127.0.0.1:--local-port for this machine's services), then watchdog,
+mutual-TLS listener on 127.0.0.1:--local-port for this machine's services, each with its own
+certificate made at every start), then watchdog,
 slave_control and mapping (and the mirror with --mirror), configs from slave-site/site.toml
 beside this script.
 Consoles connect with deploy/console.sh SLAVE_HOST. Guide: docs/deploy.md.
@@ -27,7 +28,7 @@ Consoles connect with deploy/console.sh SLAVE_HOST. Guide: docs/deploy.md.
 options:
   --site ID            site id, key prefix telesurg/ID/... (default: lab)
   --listen ENDPOINT    TLS endpoint for consoles, repeatable (default: tls/0.0.0.0:7447)
-  --local-port N       loopback plain-TCP port of the site's services (default: 7448)
+  --local-port N       loopback port of the site's services (default: 7448; mutual TLS)
   --certs DIR          ca.pem, slave-site.pem, slave-site.key (default: certs; telesurg certs)
   --acl FILE           access-control rules (default: slave-site/acl.json5 beside this script)
   --config-dir DIR     site folder: DIR/site.toml, a table per service (default: slave-site/
@@ -36,7 +37,9 @@ options:
   --mirror             also start the mirror (rerun viewer); with --serve or --save FILE.rrd
   --serve | --save F   mirror options (imply --mirror)
   --log-dir DIR        one log file per service
-  --acl-log            the router logs every access-control denial (its log: --log-dir)
+  --acl-log            the router logs access-control denials only (its log: --log-dir)
+  --credentials-dir D  where the local services' certificates are made at every start
+                       (default: ~/.local/state/telesurg/SITE-LOCAL_PORT; files 0600)
   --allow-insecure-listen
                        let --listen take a plain tcp/ endpoint beyond loopback (development
                        only: anyone who reaches it bypasses the certificates)
@@ -71,7 +74,8 @@ while [[ $# -gt 0 ]]; do
         --save) mirror=1; save="$2"; shift 2 ;;
         --log-dir) extra+=(--log-dir "$2"); shift 2 ;;
         --allow-insecure-listen) extra+=(--allow-insecure-listen); shift ;;
-        --acl-log) extra+=(--zenoh-log "zenoh::net::routing::interceptor::access_control=trace"); shift ;;
+        --acl-log) extra+=(--acl-log denied); shift ;;
+        --credentials-dir) extra+=(--credentials-dir "$2"); shift 2 ;;
         --set) extra+=(--set "$2"); shift 2 ;;
         --) shift; extra+=("$@"); break ;;
         *) echo "deploy/slave-site.sh: unknown option $1 (see --help)" >&2; exit 2 ;;

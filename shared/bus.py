@@ -268,7 +268,19 @@ def open_session(cfg: BusConfig) -> zenoh.Session:
     except zenoh.ZError as exc:
         raise ConnectionError(
             f"zenoh session failed ({cfg.mode}, connect={cfg.connect}, listen={cfg.listen}): {exc}"
+            + tls_diagnosis(cfg)
         ) from exc
+
+
+def tls_diagnosis(cfg: BusConfig) -> str:
+    """``"; TLS: <why>"`` for a client's failed ``tls/`` connect (shared/tlsdiag.py), else ``""``."""
+    from telesurg.shared.tlsdiag import TlsFiles, diagnose
+
+    if not cfg.tls_root_ca:
+        return ""
+    files = TlsFiles(cfg.tls_root_ca, cfg.tls_cert if cfg.mtls else "", cfg.tls_key if cfg.mtls else "")
+    found = [d for ep in cfg.connect if protocol_of(ep) == "tls" and (d := diagnose(ep, files))]
+    return f"; TLS: {' | '.join(found)}" if found else ""
 
 
 def only(service: str) -> list[str] | None:

@@ -82,8 +82,9 @@ def _emit(**rec: Any) -> None:
         sys.stdout.flush()
 
 
-def probe_main(endpoint: str) -> int:
-    """Print what the slave site shows, one JSON line per record, until SIGINT/SIGTERM."""
+def probe_main(endpoint: str, creds: str = "") -> int:
+    """Print what the slave site shows, one JSON line per record, until SIGINT/SIGTERM; ``creds``:
+    the locked-down site's local credentials (the operator identity on its local listener)."""
     from telesurg.shared.bus import Node
     from telesurg.shared.messages import (
         CartesianPose,
@@ -99,7 +100,18 @@ def probe_main(endpoint: str) -> int:
     last_tip = [0]
     last_master = [0]  # receive time of the newest master pose: when the link went silent
     clutch: list[bool] = []
-    with Node(_bus(endpoint, None, ""), SITE, "probe") as node:
+    bus = _bus(endpoint, None, "")
+    if creds:
+        from telesurg.services.launcher.lockdown import LocalPki
+
+        pki = LocalPki(Path(creds))
+        bus.tls_root_ca, bus.tls_cert, bus.tls_key = (
+            str(pki.ca),
+            str(pki.cert("operator")),
+            str(pki.key("operator")),
+        )
+        bus.mtls = True
+    with Node(bus, SITE, "probe") as node:
         k, sub = node.keys, node.subscribe
 
         def on_tip(m: CartesianPose, key: str) -> None:
@@ -457,6 +469,8 @@ def hosts(tmp_path_factory: pytest.TempPathFactory) -> Iterator[TwoHosts]:
                 str(LOCAL_PORT),
                 "--log-dir",
                 str(logs / "slave"),
+                "--credentials-dir",
+                str(tmp / "local-creds"),
             ]
             h.spawn("slave-site", ns_s, site)
             imp = [sys.executable, "-m", "telesurg.services.bench.impair", "--control"]
@@ -470,9 +484,14 @@ def hosts(tmp_path_factory: pytest.TempPathFactory) -> Iterator[TwoHosts]:
                 assert h.procs["slave-site"].poll() is None, f"slave site exited\n{_log_tail(logs)}"
                 assert time.monotonic() < deadline, f"slave site not up in 90 s\n{_log_tail(logs)}"
                 time.sleep(0.2)
-            probe = h.spawn(
-                "probe", ns_s, [sys.executable, __file__, "probe", f"tcp/127.0.0.1:{LOCAL_PORT}"], pipe=True
-            )
+            probe_argv = [
+                sys.executable,
+                __file__,
+                "probe",
+                f"tls/127.0.0.1:{LOCAL_PORT}",
+                str(tmp / "local-creds"),
+            ]
+            probe = h.spawn("probe", ns_s, probe_argv, pipe=True)
             assert probe.stdout is not None
             threading.Thread(target=h.probe.feed, args=(probe.stdout,), daemon=True).start()
             assert h.probe.wait("ready", lambda r: True, timeout=30.0), "probe did not start"
@@ -548,16 +567,26 @@ def test_secured_bus_config_is_checked(pki: tuple[Path, Path]) -> None:
         BusConfig(connect=["tcp/host:7447"], acl_file="/nonexistent/acl.json5").validate()
 
 
-def test_mtls_and_access_control_on_loopback(pki: tuple[Path, Path]) -> None:
-    """The site's ACL file, one host: who may connect, publish, query and receive."""
+def test_mtls_and_access_control_on_loopback(pki: tuple[Path, Path], tmp_path: Path) -> None:
+    """The site's ACL file, one host: who may connect, publish, query and receive (the site's
+    own services on the local mutual-TLS listener of services/launcher/lockdown.py)."""
     from telesurg.services.launcher import free_port
+    from telesurg.services.launcher.lockdown import make_local_pki
     from telesurg.shared.bus import BusConfig, open_session
 
     certs, other = pki
-    tls_ep, tcp_ep = f"tls/127.0.0.1:{free_port()}", f"tcp/127.0.0.1:{free_port()}"
+    local_pki = make_local_pki(tmp_path / "local", ("slave_control",))
+    local_port = free_port()
+    tls_ep, local_ep = f"tls/127.0.0.1:{free_port()}", f"tls/127.0.0.1:{local_port}"
     router_cfg = _bus(tls_ep, certs, "slave-site")
     router_cfg.mode, router_cfg.connect = "router", []
-    router_cfg.listen, router_cfg.acl_file = [tls_ep, tcp_ep], str(ACL)
+    router_cfg.listen = [tls_ep, local_pki.listen_endpoint("127.0.0.1", local_port)]
+    router_cfg.acl_file = str(ACL)
+    service = BusConfig(connect=[local_ep], tls_root_ca=str(local_pki.ca), mtls=True)
+    service.tls_cert, service.tls_key = (
+        str(local_pki.cert("slave_control")),
+        str(local_pki.key("slave_control")),
+    )
     got: list[tuple[str, bytes]] = []
     lock = threading.Lock()
 
@@ -568,7 +597,7 @@ def test_mtls_and_access_control_on_loopback(pki: tuple[Path, Path]) -> None:
     sessions: list[Any] = []
     try:
         sessions.append(open_session(router_cfg))
-        sessions.append(local := open_session(BusConfig(connect=[tcp_ep])))  # a site service
+        sessions.append(local := open_session(service))  # a site service: slave_control
         keep = [
             local.declare_subscriber("telesurg/lab/**", on_sample),
             local.declare_queryable("telesurg/lab/slave/arm1/command", lambda q: q.reply(q.key_expr, b"ok")),
@@ -608,6 +637,10 @@ def test_mtls_and_access_control_on_loopback(pki: tuple[Path, Path]) -> None:
         assert _try_open(_bus(tls_ep, certs, "")) == "refused"
         assert _try_open(_bus(tls_ep, other, "console")) == "refused"  # trusts another CA
         assert _try_open(BusConfig(connect=[tls_ep.replace("tls/", "tcp/")])) == "refused"
+        # the local listener: no plain TCP, and a console certificate (site CA) is refused there
+        assert _try_open(BusConfig(connect=[local_ep.replace("tls/", "tcp/")])) == "refused"
+        console_local = _bus(local_ep, certs, "console", ca=local_pki.ca)
+        assert _try_open(console_local) == "refused"
         assert keep
     finally:
         for sess in reversed(sessions):
@@ -784,7 +817,7 @@ def test_scripts_stop_cleanly(hosts: TwoHosts) -> None:
 
 if __name__ == "__main__":
     if sys.argv[1] == "probe":
-        sys.exit(probe_main(sys.argv[2]))
+        sys.exit(probe_main(*sys.argv[2:4]))
     if sys.argv[1] == "identities":
         sys.exit(identities_main(sys.argv[2], Path(sys.argv[3]), Path(sys.argv[4])))
     if sys.argv[1] == "udpecho":

@@ -9,6 +9,7 @@ Subcommands::
     telesurg bench ik [--n 1000] [--json FILE]
     telesurg bench sim [--seconds 5] [--json FILE]
     telesurg bench decode [--n 20000] [--json FILE]
+    telesurg bench flood [--site locked|open] [--no-caps] [--json FILE]
 """
 
 from __future__ import annotations
@@ -25,6 +26,7 @@ BENCHES = {
     "ik": ("telesurg.services.bench.perf", "analytic IK / mapping vs a generic numerical IK"),
     "sim": ("telesurg.services.bench.perf", "MuJoCo steps/s unpaced per robot model"),
     "decode": ("telesurg.services.bench.decode", "µs per strict decode / encode of the hot messages"),
+    "flood": ("telesurg.services.bench.flood", "1 MB messages on a control and a master key: RSS, HOLDs"),
     "transport": (
         "telesurg.services.bench.transport",
         "zenoh links for a 1 kHz stream under packet loss (root)",

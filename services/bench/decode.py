@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import argparse
 import functools
-import json
 import os
 import sys
 import time
@@ -25,6 +24,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+from telesurg.shared import jsonio
 from telesurg.shared import messages as m
 
 J6 = ("j1", "j2", "j3", "j4", "j5", "j6")
@@ -93,5 +93,5 @@ def main(argv: Sequence[str] | None = None) -> int:
         "machine": {"cpus": os.cpu_count(), "python": sys.version.split()[0]},
     }
     if a.json:
-        a.json.write_text(json.dumps(res, indent=2) + "\n")
+        a.json.write_text(jsonio.dumps(res, indent=2) + "\n")
     return 0

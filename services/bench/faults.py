@@ -14,7 +14,6 @@ Example::
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import os
 import sys
@@ -27,6 +26,7 @@ from typing import Any
 
 import numpy as np
 from telesurg.services.bench.harness import Pipeline, Probe, now_ns
+from telesurg.shared import jsonio
 
 log = logging.getLogger(__name__)
 
@@ -317,5 +317,5 @@ def main(argv: Sequence[str] | None = None) -> int:
     }
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps(result, indent=2))
+        args.json.write_text(jsonio.dumps(result, indent=2))
     return 0 if all(r.get("ok") for r in rows) else 1

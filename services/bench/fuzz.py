@@ -15,7 +15,6 @@ Example::
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import random
 import sys
@@ -31,6 +30,7 @@ import numpy as np
 from telesurg.services.bench.fuzzgen import FUZZ_KINDS, always_invalid, fuzz_cases, valid_template
 from telesurg.services.bench.harness import Pipeline
 from telesurg.services.mirror import SUBSCRIBED
+from telesurg.shared import jsonio
 from telesurg.shared.errors import MessageError
 from telesurg.shared.kinematics import MH3F
 from telesurg.shared.messages import (
@@ -113,7 +113,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     print_table(result)
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps(result, indent=2))
+        args.json.write_text(jsonio.dumps(result, indent=2))
     return 0 if result["ok"] else 1
 
 

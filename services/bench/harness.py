@@ -31,8 +31,8 @@ from types import TracebackType
 
 import numpy as np
 from telesurg.services.bench.impair import LinkImpairer
-from telesurg.services.launcher import Site, SiteSpec, default_config_dir, free_port
-from telesurg.shared.bus import BusConfig, Node, Outlet
+from telesurg.services.launcher import Site, SiteSpec, default_config_dir, free_port, lock_down
+from telesurg.shared.bus import Node, Outlet
 from telesurg.shared.messages import (
     CartesianPose,
     EStop,
@@ -195,6 +195,7 @@ class Pipeline:
         probe: bool = True,
         log_level: str = "INFO",
         config_dir: Path | None = None,
+        acl: Path | None = None,
     ) -> None:
         self.log_dir = log_dir
         port = free_port()
@@ -214,6 +215,9 @@ class Pipeline:
             log_dir=log_dir,
             log_level=log_level,
         )
+        if acl is not None:  # a locked-down site (telesurg up --acl): local mutual TLS, the ACL
+            self.spec.router_flags = ("--acl", str(acl), "--set", 'acl_log="denied"')
+            lock_down(self.spec, log_dir / "credentials")
         self.site = Site(self.spec)
         self._node: Node | None = None
         self.probe: Probe | None = None
@@ -227,7 +231,7 @@ class Pipeline:
                 self.spec.connect["master_capture"] = self.impairer.endpoint
             self.site.start()
             # (without master_capture the caller acts as the master, e.g. a test console)
-            self._node = Node(BusConfig(connect=[self.spec.endpoint]), self.spec.site, "bench_probe")
+            self._node = Node(self.spec.client_bus("operator"), self.spec.site, "bench_probe")
             if self._want_probe:  # (a test doing its own subscriptions can skip the probe's load)
                 self.probe = Probe(self._node)
         except BaseException:

@@ -43,6 +43,7 @@ from typing import Any
 
 import numpy as np
 from telesurg.services.bench.load import Load
+from telesurg.shared import jsonio
 
 PCTS = (50, 90, 99)
 # --rate 0 (unpaced): the relay's source publishes back to back; master_capture runs at its top
@@ -631,5 +632,5 @@ def main(argv: Sequence[str] | None = None, name: str = "latency") -> int:
     res["date"] = time.strftime("%Y-%m-%d %H:%M:%S")
     res["machine"] = {"cpus": os.cpu_count(), "python": sys.version.split()[0]}
     if a.json:
-        a.json.write_text(json.dumps(res, indent=2, allow_nan=False) + "\n")
+        a.json.write_text(jsonio.dumps(res, indent=2) + "\n")
     return 0

@@ -28,7 +28,6 @@ Example::
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import signal
 import struct
@@ -44,6 +43,7 @@ from typing import IO, Any
 
 import numpy as np
 from telesurg.services.bench.impair import NetNamespace, PacketLink, netns_available
+from telesurg.shared import jsonio
 from telesurg.shared.bus import BusConfig, open_session
 from telesurg.shared.timing import CycleTimer
 
@@ -388,7 +388,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             "stall_ms": args.stall_ms,
             "runs": [asdict(r) | {"delivered_pct": round(r.delivered_pct, 3)} for r in results],
         }
-        args.json.write_text(json.dumps(data, indent=2) + "\n")
+        args.json.write_text(jsonio.dumps(data, indent=2) + "\n")
     return 1 if any(r.error for r in results) else 0
 
 

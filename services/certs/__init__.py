@@ -63,6 +63,11 @@ class CertsConfig:
             raise ConfigError("no identities to issue; e.g. --identity console")
         for ident in self.identities:
             check_id("identity", ident)
+            if ident.startswith("site-"):  # services/launcher/lockdown.py: the local services' names
+                raise ConfigError(
+                    f"identity {ident!r}: site-* names belong to the slave site's local services "
+                    "(made by telesurg up at every start), not to the site CA"
+                )
         if not 1 <= self.days <= 3650:
             raise ConfigError(f"days={self.days} outside [1, 3650]")
         if not self.hosts and SERVER_IDENTITY in self.identities:

@@ -19,10 +19,11 @@ from __future__ import annotations
 
 import argparse
 import importlib
-import json
 import sys
 from collections.abc import Sequence
 from pathlib import Path
+
+from telesurg.shared import jsonio
 
 #: experiment name → module with ``run(out, progress) -> metrics``
 EXPERIMENTS = {
@@ -59,6 +60,6 @@ def main(argv: Sequence[str] | None = None) -> int:
             console.print(f"[red]telesurg experiment {a.name} failed:[/red] {exc}")
             return 1
     summary = {k: v for k, v in metrics.items() if not isinstance(v, list | dict)}
-    print(json.dumps(summary, indent=2))
+    print(jsonio.dumps(summary, indent=2))
     print(f"wrote {a.out / 'metrics.json'} and the figures in {a.out}", file=sys.stderr)
     return 0

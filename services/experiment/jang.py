@@ -41,7 +41,6 @@ Example::
 
 from __future__ import annotations
 
-import json
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -52,6 +51,7 @@ import numpy as np
 import numpy.typing as npt
 from telesurg.services.slave_control.control import SetpointInterpolator
 from telesurg.services.slave_control.models import model_path
+from telesurg.shared import jsonio
 from telesurg.shared.kinematics.transforms import FloatArray, rot_z
 from telesurg.shared.kinematics.vip import (
     EV_DEFAULT,
@@ -831,6 +831,6 @@ def run(out: Path, progress: Progress | None = None) -> dict[str, Any]:
     report("figures", 0.75)
     paths = _figures(out, kin, f9, f9m, sim)
     metrics["figures"] = [p.name for p in paths]
-    (out / "metrics.json").write_text(json.dumps(metrics, indent=2, sort_keys=True) + "\n")
+    (out / "metrics.json").write_text(jsonio.dumps(metrics, indent=2, sort_keys=True) + "\n")
     report("done", 1.0)
     return metrics

@@ -32,6 +32,7 @@ from typing import Any
 
 import numpy as np
 from telesurg.services.experiment.client import ArmClient
+from telesurg.shared import jsonio
 from telesurg.shared.bus import BusConfig, Node
 from telesurg.shared.kinematics.mh3f import MH3F, fk, jacobian
 from telesurg.shared.kinematics.trocar import posture_adjust
@@ -311,7 +312,7 @@ def run(out: Path, progress: Progress | None = None, *, keep_logs: bool = True) 
     metrics = _metrics(exp, master, time.monotonic() - t_begin)
     _figures(out, exp, master)
     _save_trace(out / "trace.npz", exp, master)
-    (out / "metrics.json").write_text(json.dumps(metrics, indent=2) + "\n")
+    (out / "metrics.json").write_text(jsonio.dumps(metrics, indent=2) + "\n")
     say("done", 1.0)
     return metrics
 

@@ -22,7 +22,6 @@ Example::
 
 from __future__ import annotations
 
-import json
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -30,6 +29,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
+from telesurg.shared import jsonio
 from telesurg.shared.kinematics.plas import (
     MappingConfig,
     MappingMode,
@@ -306,6 +306,6 @@ def run(out: Path, progress: Progress | None = None) -> dict[str, Any]:
     paths = _figures(out, joints, theta3, fig26, dt26)
     metrics["figures"] = [p.name for p in paths]
     metrics["thesis"] = dict(THESIS)
-    (out / "metrics.json").write_text(json.dumps(metrics, indent=2, sort_keys=True) + "\n")
+    (out / "metrics.json").write_text(jsonio.dumps(metrics, indent=2, sort_keys=True) + "\n")
     report("done", 1.0)
     return metrics

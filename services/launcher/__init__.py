@@ -9,8 +9,10 @@ last — waits for them, and exits 0 if every process stopped cleanly. Children
 also stop by themselves if the launcher dies (they watch their parent PID).
 
 A secured site (``deploy/slave-site.sh``) gives the router more listeners and its TLS / access
-control flags (``--listen``, ``--tls-*``, ``--mtls``, ``--acl``), which go to the router only;
-the services still connect to the plain loopback endpoint ``--host``:``--port``.
+control flags (``--listen``, ``--tls-*``, ``--mtls``, ``--acl``), which go to the router only.
+With ``--acl`` the site is locked down (services/launcher/lockdown.py): the loopback endpoint
+``--host``:``--port`` is mutual TLS with a local CA made at every start, and each service
+connects with its own certificate (``--credentials-dir``); without it, plain TCP.
 
 Examples::
 
@@ -153,6 +155,9 @@ class SiteSpec:
     listen: tuple[str, ...] = ()  # more router endpoints, e.g. tls/0.0.0.0:7447 for remote consoles
     router_flags: tuple[str, ...] = ()  # router-only flags: --tls-ca/--tls-cert/--tls-key/--mtls/--acl
     plugins: tuple[str, ...] = ()  # robot plugin files, passed to every service as --plugin FILE
+    # local PKI directory (services/launcher/lockdown.py): the router's local listener is mutual
+    # TLS with it and each service connects with its own certificate (None: plain TCP, open)
+    local_pki: Path | None = None
 
     @property
     def site_file(self) -> Path | None:
@@ -161,8 +166,20 @@ class SiteSpec:
 
     @property
     def endpoint(self) -> str:
-        """Router endpoint, e.g. ``tcp/127.0.0.1:7447``."""
-        return f"tcp/{self.host}:{self.port}"
+        """Router endpoint, e.g. ``tcp/127.0.0.1:7447`` (``tls/...`` on a locked-down site)."""
+        return f"{'tls' if self.local_pki else 'tcp'}/{self.host}:{self.port}"
+
+    def client_bus(self, name: str = "operator") -> BusConfig:
+        """Bus config of a client of this site's router: on a locked-down site with the local
+        certificate of ``name`` (a service, ``launcher`` or ``operator``)."""
+        from telesurg.services.launcher.lockdown import LocalPki
+
+        cfg = BusConfig(connect=[self.endpoint])
+        if self.local_pki:
+            pki = LocalPki(self.local_pki)
+            cfg.tls_root_ca, cfg.tls_cert, cfg.tls_key = str(pki.ca), str(pki.cert(name)), str(pki.key(name))
+            cfg.mtls = True
+        return cfg
 
 
 def service_argv(spec: SiteSpec, name: str) -> list[str]:
@@ -170,11 +187,20 @@ def service_argv(spec: SiteSpec, name: str) -> list[str]:
     argv = [sys.executable, "-m", "telesurg.services.cli", CLI_NAME[name], "--site", spec.site]
     argv += ["--log-level", spec.log_level, "--parent-pid", str(os.getpid())]
     if name == "router":
-        for ep in (spec.endpoint, *spec.listen):
+        local = spec.endpoint
+        if spec.local_pki:
+            from telesurg.services.launcher.lockdown import LocalPki
+
+            local = LocalPki(spec.local_pki).listen_endpoint(spec.host, spec.port)
+        for ep in (local, *spec.listen):
             argv += ["--listen", ep]
         argv += spec.router_flags
     else:
         argv += ["--connect", spec.connect.get(name, spec.endpoint)]
+        if spec.local_pki:
+            from telesurg.services.launcher.lockdown import LocalPki
+
+            argv += LocalPki(spec.local_pki).client_flags(name)
         for plugin in spec.plugins:
             argv += ["--plugin", plugin]
     if spec.site_file is not None:
@@ -202,16 +228,16 @@ class Site:
         self._spawn("router")
         router = self.procs["router"]
         deadline = time.monotonic() + 15.0
-        while not wait_port(self.spec.host, self.spec.port, 0.2):
+        while not self._router_ready():
             if router.poll() is not None:
                 raise ConnectionError(f"router exited with code {router.returncode} (see its log)")
             if time.monotonic() > deadline:
                 raise ConnectionError(f"router did not open {self.spec.endpoint} within 15 s")
-        from telesurg.shared.bus import BusConfig, open_session
+        from telesurg.shared.bus import open_session
         from telesurg.shared.keys import Keys
 
         keys = Keys(self.spec.site)
-        session = open_session(BusConfig(connect=[self.spec.endpoint]))
+        session = open_session(self.spec.client_bus("launcher"))
         try:
             for name in SERVICES:
                 if name not in self.spec.services:
@@ -228,6 +254,21 @@ class Site:
         if self.spec.log_dir:
             pids = {n: p.pid for n, p in self.procs.items()}
             (self.spec.log_dir / "pids.json").write_text(json.dumps(pids, indent=2))
+
+    def _router_ready(self) -> bool:
+        """The router accepts connections (on a locked-down site: a full TLS handshake with the
+        launcher's certificate, so the router logs no failed handshake for the probe)."""
+        if not self.spec.local_pki:
+            return wait_port(self.spec.host, self.spec.port, 0.2)
+        from telesurg.services.launcher.lockdown import LocalPki
+        from telesurg.shared.tlsdiag import TlsFiles, handshake
+
+        pki = LocalPki(self.spec.local_pki)
+        files = TlsFiles(str(pki.ca), str(pki.cert("launcher")), str(pki.key("launcher")))
+        if handshake(self.spec.host, self.spec.port, files) == "":
+            return True
+        time.sleep(0.2)
+        return False
 
     def _wait_alive(self, session: object, key: str, timeout: float) -> bool:
         """Poll the liveliness token ``key`` until present (True) or timeout / exit (False)."""
@@ -397,14 +438,39 @@ def router_security_flags(args: argparse.Namespace) -> list[str]:
             flags.append(f"--{name.replace('_', '-')}")
     if args.zenoh_log:
         flags += ["--zenoh-log", args.zenoh_log]
+    if getattr(args, "acl_log", None):
+        flags += ["--set", f"acl_log={json.dumps(args.acl_log)}"]
     return flags
+
+
+def lock_down(spec: SiteSpec, credentials_dir: str | Path | None = None, tls_cert: str = "") -> None:
+    """Make the local PKI (services/launcher/lockdown.py) in ``credentials_dir`` (default: the
+    per-user state directory) and use it for the router's local listener and every service of
+    ``spec`` (``telesurg up --acl`` does). Without ``tls_cert`` (the consoles' TLS) the router's
+    own TLS settings are the local ones."""
+    from telesurg.services.launcher.lockdown import default_dir, make_local_pki
+
+    root = Path(credentials_dir) if credentials_dir else default_dir(spec.site, spec.port)
+    pki = make_local_pki(root.resolve(), spec.services)
+    spec.local_pki = pki.root
+    if not tls_cert:
+        spec.router_flags += (
+            "--tls-ca",
+            str(pki.ca),
+            "--tls-cert",
+            str(pki.cert("router")),
+            "--tls-key",
+            str(pki.key("router")),
+            "--mtls",
+        )
+    log.info("local credentials (mutual TLS on %s): %s", spec.endpoint, pki.root)
 
 
 def router_bus(spec: SiteSpec) -> BusConfig:
     """The router's bus config as its command line will build it (to validate it up front)."""
     parser = argparse.ArgumentParser(add_help=False)
     add_bus_args(parser)
-    args = parser.parse_args(list(spec.router_flags))
+    args, _ = parser.parse_known_args(list(spec.router_flags))  # the router's own flags: --acl-log
     return bus_from_args(args, BusConfig(mode="router", listen=[spec.endpoint, *spec.listen]))
 
 
@@ -462,6 +528,17 @@ def main(argv: Sequence[str] | None = None) -> int:
         metavar="FILTER",
         help="the router's zenoh log, e.g. zenoh::net::routing::interceptor::access_control=trace",
     )
+    g.add_argument(
+        "--acl-log",
+        choices=("off", "denied", "all"),
+        help="the router logs access-control denials only (denied) or every decision (all)",
+    )
+    g.add_argument(
+        "--credentials-dir",
+        metavar="DIR",
+        help="with --acl: where the local services' certificates are made at every start "
+        "(default: $XDG_STATE_HOME/telesurg/<site>-<port> or ~/.local/state/telesurg/<site>-<port>)",
+    )
     args = parser.parse_args(argv)
     setup_logging("INFO", "launcher")
     if args.services:
@@ -480,6 +557,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         spec = spec_from_args(args, services)
         spec.listen, spec.router_flags = tuple(args.listen), tuple(router_security_flags(args))
+        if args.acl:  # a secured router: the local services authenticate too
+            lock_down(spec, args.credentials_dir, args.tls_cert or "")
         router_bus(spec).validate()
     except ConfigError as exc:
         print(f"telesurg up: {exc}", file=sys.stderr)

@@ -30,6 +30,7 @@ from pathlib import Path
 from telesurg.services.common import install_stop_handlers, setup_logging
 from telesurg.services.launcher import Site, add_site_args, config_class, spec_from_args
 from telesurg.services.launcher.report import SessionRecorder
+from telesurg.shared import jsonio
 from telesurg.shared.bus import BusConfig, Node
 from telesurg.shared.config import load_config
 from telesurg.shared.errors import TelesurgError
@@ -112,6 +113,6 @@ def main(argv: Sequence[str] | None = None) -> int:
         report["summary"],
     )
     if args.report:
-        Path(args.report).write_text(json.dumps(report, indent=2, allow_nan=False))
+        Path(args.report).write_text(jsonio.dumps(report, indent=2))
         log.info("report written to %s", args.report)
     return 0 if all(c == 0 for c in codes.values()) else 1

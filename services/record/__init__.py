@@ -50,6 +50,7 @@ from types import TracebackType
 from typing import IO, TYPE_CHECKING, Any
 
 from telesurg.services.common import install_stop_handlers, setup_logging
+from telesurg.shared import jsonio
 from telesurg.shared.bus import BusConfig, Node, add_bus_args, bus_from_args
 from telesurg.shared.errors import ConfigError, MessageError, TelesurgError
 from telesurg.shared.keys import Keys, check_id
@@ -228,6 +229,10 @@ def json_schema(cls: type[Message]) -> dict[str, Any]:
 SeqCheck = SeqTracker
 
 
+#: bytes of received samples waiting for the writer thread at most (then dropped and counted)
+MAX_BACKLOG_BYTES = 256 * 1024 * 1024
+
+
 @dataclass
 class KeyStats:
     """Everything counted for one key expression."""
@@ -310,6 +315,11 @@ class Recorder:
         self.stats: dict[str, KeyStats] = {}
         self.error: BaseException | None = None
         self._queue: queue.SimpleQueue[tuple[bytes, str, int] | None] = queue.SimpleQueue()
+        # bytes queued for the writer, bounded: beyond MAX_BACKLOG_BYTES (a flood, a disk too slow)
+        # a sample is dropped and counted (``dropped``) instead of growing memory without limit
+        self._backlog_bytes = 0
+        self._backlog_lock = threading.Lock()
+        self.dropped = 0  # samples not recorded because the writer's backlog was full
         self._channels: dict[str, int] = {}
         self._schemas: dict[str, int] = {}
         self._subscribers: list[Any] = []
@@ -351,7 +361,13 @@ class Recorder:
 
     # -- input (any thread) ---------------------------------------------------------------
     def push(self, payload: bytes, key: str, rx_ns: int) -> None:
-        """Queue one received sample (the only thing a zenoh callback does)."""
+        """Queue one received sample (the only thing a zenoh callback does); dropped and counted
+        while :data:`MAX_BACKLOG_BYTES` are waiting for the writer."""
+        with self._backlog_lock:
+            if self._backlog_bytes + len(payload) > MAX_BACKLOG_BYTES:
+                self.dropped += 1
+                return
+            self._backlog_bytes += len(payload)
         self._queue.put((payload, key, rx_ns))
 
     def subscribe(self, session: Any, key: str) -> None:
@@ -377,6 +393,8 @@ class Recorder:
     def _write_loop(self) -> None:
         try:
             while (item := self._queue.get()) is not None:
+                with self._backlog_lock:
+                    self._backlog_bytes -= len(item[0])
                 self._write(*item)
         except BaseException as exc:  # disk full, ...: reported by close() and `healthy`
             self.error = exc
@@ -443,13 +461,14 @@ class Recorder:
         summary = self.summary()
         try:
             if self.error is None:
-                meta = {k: json.dumps(v, separators=(",", ":")) for k, v in summary.items()}
-                meta["_recording"] = json.dumps(
+                meta = {k: jsonio.dumps(v, separators=(",", ":")) for k, v in summary.items()}
+                meta["_recording"] = jsonio.dumps(
                     {
                         "started_ns": self._started_ns,
                         "stopped_ns": time.time_ns(),
                         "messages": sum(s.messages for s in self.stats.values()),
                         "keys": len(self.stats),
+                        "dropped_backlog_full": self.dropped,
                     }
                 )
                 self._writer.add_metadata(SUMMARY_METADATA, meta)
@@ -580,6 +599,12 @@ def run(cfg: RecordConfig, stop: threading.Event) -> dict[str, dict[str, Any]]:
                 warned = True
                 log.warning("writer is %d samples behind (disk or CPU too slow)", rec.backlog)
         summary = rec.close()
+    if rec.dropped:
+        log.warning(
+            "%d samples not recorded: the writer's backlog was full (%d bytes)",
+            rec.dropped,
+            MAX_BACKLOG_BYTES,
+        )
     total = sum(r["messages"] for r in summary.values())
     log.info("wrote %d messages on %d keys to %s", total, len(summary), cfg.out)
     return summary
@@ -631,5 +656,5 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 1
     print_summary(summary, f"{cfg.out}: {sum(r['messages'] for r in summary.values())} messages")
     if args.json:
-        Path(args.json).write_text(json.dumps(summary, indent=2) + "\n")
+        Path(args.json).write_text(jsonio.dumps(summary, indent=2) + "\n")
     return 0

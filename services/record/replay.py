@@ -43,7 +43,6 @@ import argparse
 import contextlib
 import dataclasses
 import fnmatch
-import json
 import logging
 import queue
 import sys
@@ -58,6 +57,7 @@ import numpy as np
 from mcap.exceptions import McapError
 from telesurg.services.common import install_stop_handlers, setup_logging
 from telesurg.services.record import Recorder, iter_decoded, open_mcap, recording_site
+from telesurg.shared import jsonio
 from telesurg.shared.bus import BusConfig, Node, Outlet, add_bus_args, bus_from_args, open_session
 from telesurg.shared.errors import ConfigError, TelesurgError
 from telesurg.shared.keys import Keys, check_id
@@ -743,7 +743,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     code, why = verdict(report, args.max_rms)
     report["verdict"] = {"exit": code, "why": why}
     if args.json:
-        Path(args.json).write_text(json.dumps(report, indent=2, allow_nan=False) + "\n")
+        Path(args.json).write_text(jsonio.dumps(report, indent=2) + "\n")
     if code:
         log.error("%s", why)
     return code

@@ -38,6 +38,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
+from telesurg.shared import jsonio
 from telesurg.shared.errors import ConfigError, IKError
 from telesurg.shared.kinematics.mh3f import MH3F, fk
 from telesurg.shared.kinematics.trocar import (
@@ -293,7 +294,7 @@ class TeachStore:
         }
         self.path.parent.mkdir(parents=True, exist_ok=True)
         tmp = self.path.with_suffix(self.path.suffix + ".tmp")
-        tmp.write_text(json.dumps(data, indent=1))
+        tmp.write_text(jsonio.dumps(data, indent=1))
         os.replace(tmp, self.path)
 
     def add_point(self, program: str, point: TaughtPoint) -> str:

@@ -119,8 +119,12 @@ class ArmSafety:
     state: str = "HOLD"
     causes: tuple[str, ...] = ("starting",)
     _latched: dict[str, tuple[str, float]] = field(default_factory=dict)  # tag → (text, until)
-    _latency: deque[tuple[float, float]] = field(default_factory=deque)  # (mono s, ms)
-    _history: deque[tuple[int, tuple[float, ...]]] = field(default_factory=deque)  # (src ts ns, q)
+    # bounded (docs/security.md#bounded-queues): 10 s of samples at 1 kHz, far beyond the 1 s
+    # latency window and the velocity window, whatever rate or stamps a publisher sends
+    _latency: deque[tuple[float, float]] = field(default_factory=lambda: deque(maxlen=10_000))  # (mono s, ms)
+    _history: deque[tuple[int, tuple[float, ...]]] = field(
+        default_factory=lambda: deque(maxlen=10_000)
+    )  # (src ts ns, q)
     _hold_until: float = 0.0
     _hold_causes: tuple[str, ...] = ()
     counters: dict[str, int] = field(default_factory=dict)

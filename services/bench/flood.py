@@ -1,0 +1,197 @@
+"""``telesurg bench flood``: 1 MB messages on a control key and a master key; memory and holds.
+
+A running pipeline (watchdog, slave_control, mapping, master_capture, mirror; the scripted
+master re-clutches every 4 s) is flooded for ``--seconds`` (default 10) by a client sending
+``--size`` (default 1 MiB) messages as fast as it can, alternating between a control key
+(``slave/arm1/servo_jp``) and a master key (``master/m1/measured_cp``). Recorded:
+
+* RSS of router, watchdog, mapping, mirror and slave_control before the flood, at its peak and
+  ``--after`` s (default 30) after it (``/proc``, through psutil);
+* the watchdog's entries into HOLD during the flood (+1 s) and in a quiet window of the same
+  length before it, and whether the slave followed again afterwards;
+* messages sent by the flooder and how many reached a subscriber (the bench's probe).
+
+``--site locked`` (default) runs the locked-down site (``telesurg up --acl``: local mutual TLS,
+deploy/slave-site/acl.json5, size caps) and floods from an identity the ACL refuses on those keys
+(``site-mirror``); ``--flooder master_capture`` floods from an identity the ACL allows on the master
+key (only the size cap stops it). ``--site open`` runs the plain local site; with
+``--no-caps`` the router's size caps are off (the situation before them).
+
+Example::
+
+    telesurg bench flood --json docs/data/perf/flood.json
+    telesurg bench flood --site open --no-caps --json out/flood-open.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import logging
+import tempfile
+import threading
+import time
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+from telesurg.services.bench.harness import Pipeline, now_ns
+from telesurg.services.launcher import deploy_dir
+from telesurg.shared import jsonio
+from telesurg.shared.bus import BusConfig, open_session
+from telesurg.shared.errors import TelesurgError
+
+log = logging.getLogger("telesurg.bench.flood")
+
+WATCHED = ("router", "watchdog", "mapping", "mirror", "slave_control")
+KEYS = ("slave/arm1/servo_jp", "master/m1/measured_cp")
+
+
+def rss_mb(pipe: Pipeline) -> dict[str, float]:
+    """Resident set size of each watched process, MB."""
+    psutil: Any = importlib.import_module("psutil")  # (no type stubs)
+    out: dict[str, float] = {}
+    for name in WATCHED:
+        if name in pipe.site.procs and pipe.site.procs[name].poll() is None:
+            out[name] = round(psutil.Process(pipe.site.pid(name)).memory_info().rss / 1e6, 1)
+    return out
+
+
+def holds_between(pipe: Pipeline, t0: int, t1: int) -> int:
+    """The watchdog's entries into HOLD with a probe time in [t0, t1)."""
+    with pipe.p.lock:
+        states = [(t, s) for t, s, *_ in pipe.p.safety]
+    n, prev = 0, ""
+    for t, s in states:
+        if s == "HOLD" and prev != "HOLD" and t0 <= t < t1:
+            n += 1
+        prev = s
+    return n
+
+
+def flood(pipe: Pipeline, bus: BusConfig, seconds: float, size: int) -> dict[str, Any]:
+    """Flood from ``bus``'s identity; sent / delivered counts and peak RSS."""
+    site = pipe.spec.site
+    delivered = [0]
+    peak: dict[str, float] = {}
+    rx = pipe.node.session
+
+    def on_big(sample: Any) -> None:
+        if len(sample.payload) > 64 * 1024:
+            delivered[0] += 1
+
+    subs = [rx.declare_subscriber(f"telesurg/{site}/{k}", on_big) for k in KEYS]
+    stop = threading.Event()
+
+    def sample_rss() -> None:
+        while not stop.wait(0.5):
+            for name, mb in rss_mb(pipe).items():
+                peak[name] = max(peak.get(name, 0.0), mb)
+
+    sampler = threading.Thread(target=sample_rss, daemon=True)
+    sampler.start()
+    payload = b"\xa5" * size
+    sent = 0
+    tx = open_session(bus)
+    try:
+        pubs = [tx.declare_publisher(f"telesurg/{site}/{k}") for k in KEYS]
+        deadline = time.monotonic() + seconds
+        while time.monotonic() < deadline:
+            pubs[sent % 2].put(payload)
+            sent += 1
+    finally:
+        tx.close()  # type: ignore[no-untyped-call]
+        stop.set()
+        sampler.join()
+        for s in subs:
+            s.undeclare()  # type: ignore[no-untyped-call]
+    return {"sent": sent, "delivered_over_64k": delivered[0], "peak_rss_mb": peak}
+
+
+def run(args: argparse.Namespace) -> dict[str, Any]:
+    """One flood against a fresh pipeline; the JSON record."""
+    out = Path(args.log_dir or tempfile.mkdtemp(prefix="telesurg-flood-"))
+    overrides: dict[str, list[str]] = {}
+    if args.no_caps:
+        overrides["router"] = ["max_message_bytes=0", "max_bulk_bytes=0"]
+    acl = deploy_dir() / "slave-site" / "acl.json5" if args.site == "locked" else None
+    with Pipeline(out, overrides=overrides, impair=False, acl=acl) as pipe:
+        if not pipe.wait_following(120):
+            raise TelesurgError("the slave did not follow within 120 s")
+        time.sleep(args.settle)
+        bus = pipe.spec.client_bus(args.flooder) if acl else BusConfig(connect=[pipe.spec.endpoint])
+        quiet0 = now_ns()
+        time.sleep(args.seconds + 1.0)
+        base = rss_mb(pipe)
+        t0 = now_ns()
+        result = flood(pipe, bus, args.seconds, args.size)
+        t1 = now_ns()
+        time.sleep(1.0)
+        holds_flood = holds_between(pipe, t0, now_ns())
+        holds_quiet = holds_between(pipe, quiet0, t0)
+        time.sleep(max(0.0, args.after - 1.0))
+        after = rss_mb(pipe)
+        followed_after = pipe.wait_following(10)
+    return {
+        "site": args.site,
+        "size_caps": not args.no_caps,
+        "flooder": args.flooder if acl else "any local client (open site)",
+        "keys": list(KEYS),
+        "message_bytes": args.size,
+        "seconds": round((t1 - t0) / 1e9, 2),
+        "sent": result["sent"],
+        "delivered_over_64k": result["delivered_over_64k"],
+        "rss_mb": {
+            name: {
+                "before": base.get(name),
+                "peak": result["peak_rss_mb"].get(name),
+                "after": after.get(name),
+                "after_minus_before": round(after[name] - base[name], 1)
+                if name in after and name in base
+                else None,
+            }
+            for name in WATCHED
+        },
+        "after_s": args.after,
+        "holds_during_flood": holds_flood,
+        "holds_quiet_window_before": holds_quiet,
+        "followed_after": followed_after,
+        "logs": str(out),
+    }
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """``telesurg bench flood``."""
+    ap = argparse.ArgumentParser(
+        prog="telesurg bench flood", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    ap.add_argument("--site", choices=("locked", "open"), default="locked", help="default: locked")
+    ap.add_argument("--flooder", default="mirror", help="local identity that floods (locked site)")
+    ap.add_argument("--no-caps", action="store_true", help="the router's size caps off")
+    ap.add_argument("--seconds", type=float, default=10.0, help="flood duration (default 10)")
+    ap.add_argument("--size", type=int, default=1 << 20, help="message bytes (default 1 MiB)")
+    ap.add_argument("--after", type=float, default=30.0, help="RSS measured this long after (s)")
+    ap.add_argument("--settle", type=float, default=5.0, help="wait after following starts (s)")
+    ap.add_argument("--log-dir", help="service logs (default: a temporary folder)")
+    ap.add_argument("--json", type=Path, help="write the result here")
+    args = ap.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
+    try:
+        res = run(args)
+    except TelesurgError as exc:
+        print(f"telesurg bench flood: {exc}")
+        return 1
+    print(f"flood: {res['sent']} x {res['message_bytes']} B in {res['seconds']} s from {res['flooder']}")
+    print(f"  delivered (> 64 KiB) to the probe: {res['delivered_over_64k']}")
+    print(f"  {'process':<14} {'before':>8} {'peak':>8} {'after':>8}  MB (after = +{res['after_s']:g} s)")
+    for name, r in res["rss_mb"].items():
+        print(f"  {name:<14} {r['before']!s:>8} {r['peak']!s:>8} {r['after']!s:>8}")
+    print(
+        f"  HOLDs: {res['holds_during_flood']} during the flood (+1 s), "
+        f"{res['holds_quiet_window_before']} in a quiet window before; "
+        f"followed after: {res['followed_after']}"
+    )
+    if args.json:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        jsonio.write(args.json, res)
+    return 0
