@@ -1,0 +1,1 @@
+"""The camera service (the endoscope view): see services/camera/service.py."""
