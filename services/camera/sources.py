@@ -31,7 +31,6 @@ from typing import Any
 
 import numpy as np
 import numpy.typing as npt
-
 from telesurg.shared.errors import ConfigError
 
 FloatArray = npt.NDArray[np.float64]
@@ -103,7 +102,9 @@ def _gl_backend() -> str:
             os.environ["MUJOCO_GL"] = backend
             os.environ.setdefault("PYOPENGL_PLATFORM", backend)
             return backend
-    raise CameraError("no OpenGL for the MuJoCo renderer: install libegl1 + libgl1-mesa-dri (EGL) or libosmesa6")
+    raise CameraError(
+        "no OpenGL for the MuJoCo renderer: install libegl1 + libgl1-mesa-dri (EGL) or libosmesa6"
+    )
 
 
 class MujocoSource(CameraSource):
@@ -278,7 +279,9 @@ class VideoSource(CameraSource):
         except self._av.FFmpegError as exc:
             raise CameraError(f"{self.url!r}: {exc}") from None
         capture_ns = time.time_ns()
-        rgb = frame.to_ndarray(format="rgb24", width=self.width, height=self.height)
+        rgb: npt.NDArray[np.uint8] = np.asarray(
+            frame.to_ndarray(format="rgb24", width=self.width, height=self.height), dtype=np.uint8
+        )
         return Frame(rgb, capture_ns, self.intrinsics, None, (time.perf_counter() - t0) * 1e3)
 
     def close(self) -> None:

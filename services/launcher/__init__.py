@@ -50,9 +50,17 @@ log = logging.getLogger("telesurg.launcher")
 
 #: Start order; they stop in reverse, except the mirror, which stops after the others to record
 #: everything, and the router, which stops last.
-SERVICES = ("watchdog", "slave_control", "mapping", "mirror", "master_capture")
-STOP_ORDER = ("master_capture", "mapping", "watchdog", "slave_control", "mirror", "router")
-NICE = ("mirror",)  # started under SCHED_IDLE (or nice +19): it only gets CPU the control loop leaves
+SERVICES = ("camera", "watchdog", "slave_control", "mapping", "mirror", "master_capture")
+STOP_ORDER = ("master_capture", "mapping", "watchdog", "slave_control", "camera", "mirror", "router")
+# started under SCHED_IDLE (or nice +19): they only get the CPU the control loops leave
+NICE = ("mirror", "camera")
+#: Services a site runs without when they cannot start (the camera without OpenGL): the launcher
+#: says so and turns the video off for the others (:data:`OPTIONAL_OFF` overrides).
+OPTIONAL = ("camera",)
+#: What a :class:`SiteSpec` starts by default: every service but the camera (``telesurg up`` and
+#: ``demo`` add it; a test or bench names it when it wants video).
+CONTROL_SERVICES = tuple(s for s in SERVICES if s not in OPTIONAL)
+OPTIONAL_OFF = {"camera": {"watchdog": ['video_camera=""'], "mapping": ['camera=""']}}
 
 
 def _background() -> None:
@@ -70,6 +78,7 @@ CLI_NAME = {
     "mapping": "mapping",
     "master_capture": "master-capture",
     "mirror": "mirror",
+    "camera": "camera",
 }
 
 
@@ -82,6 +91,7 @@ CONFIG_CLASSES = {
     "mapping": ("telesurg.services.mapping", "MappingConfig"),
     "master_capture": ("telesurg.services.master_capture", "MasterCaptureConfig"),
     "mirror": ("telesurg.services.mirror", "MirrorConfig"),
+    "camera": ("telesurg.services.camera", "CameraConfig"),
     "console": ("telesurg.services.console", "ConsoleConfig"),
 }
 
@@ -144,7 +154,7 @@ class SiteSpec:
     host: str = "127.0.0.1"  # router listen address (loopback for a local site)
     port: int = 7447  # router TCP port
     config_dir: Path | None = None  # site folder holding site.toml (None: every service's defaults)
-    services: tuple[str, ...] = SERVICES  # which services to start
+    services: tuple[str, ...] = CONTROL_SERVICES  # which services to start (the CLIs add the camera)
     overrides: dict[str, list[str]] = field(default_factory=dict)  # service → ["key=value"]
     log_dir: Path | None = None  # per-service log files (None: inherit the terminal)
     log_level: str = "INFO"  # service log level
@@ -191,6 +201,7 @@ class Site:
         self.spec = spec
         self.procs: dict[str, subprocess.Popen[bytes]] = {}
         self._logs: list[IO[bytes]] = []
+        self.off: tuple[str, ...] = ()  # optional services that could not start (OPTIONAL)
 
     def start(self) -> None:
         """Start the router, wait for it, then every service, one at a time.
@@ -219,6 +230,9 @@ class Site:
                 self._spawn(name)
                 if not self._wait_alive(session, keys.alive(name), 30.0):
                     rc = self.procs[name].poll()
+                    if name in OPTIONAL:
+                        self._without(name, rc)
+                        continue
                     raise RuntimeError(
                         f"{name} did not come up within 30 s"
                         + (f" (exit code {rc})" if rc is not None else "")
@@ -228,6 +242,24 @@ class Site:
         if self.spec.log_dir:
             pids = {n: p.pid for n, p in self.procs.items()}
             (self.spec.log_dir / "pids.json").write_text(json.dumps(pids, indent=2))
+
+    def _without(self, name: str, rc: int | None) -> None:
+        """Go on without optional service ``name`` (it exited or never came up), saying why."""
+        p = self.procs.pop(name)
+        if p.poll() is None:
+            p.kill()
+            p.wait()
+        where = f"see {self.spec.log_dir / (name + '.log')}" if self.spec.log_dir else "see its log above"
+        log.warning(
+            "%s is OFF: it did not start (exit code %s; %s — e.g. no OpenGL: install libegl1 "
+            "libgl1-mesa-dri or libosmesa6); the site runs without video",
+            name,
+            rc,
+            where,
+        )
+        for svc, items in OPTIONAL_OFF.get(name, {}).items():
+            self.spec.overrides.setdefault(svc, []).extend(items)
+        self.off = (*self.off, name)
 
     def _wait_alive(self, session: object, key: str, timeout: float) -> bool:
         """Poll the liveliness token ``key`` until present (True) or timeout / exit (False)."""
