@@ -101,7 +101,9 @@ def test_camera_stop_and_kill_degrade_then_fresh_video_restores_ok(tmp_path: Pat
             t0 = time.time_ns()
             os.kill(site.pid("camera"), getattr(signal, how))
             try:
-                assert wait_until(lambda: w.first_after(t0, _video_cause) is not None, 5.0), w.safety[-1]
+                assert wait_until(lambda t0=t0: w.first_after(t0, _video_cause) is not None, 5.0), w.safety[
+                    -1
+                ]
                 time.sleep(1.0)
                 with w.lock:
                     verdict = w.video[-1]
