@@ -31,6 +31,7 @@ from typing import Any
 
 import numpy as np
 import numpy.typing as npt
+from telesurg.services.common import gl_backend
 from telesurg.shared.errors import ConfigError
 
 FloatArray = npt.NDArray[np.float64]
@@ -93,18 +94,15 @@ class CameraSource(abc.ABC):
 
 def _gl_backend() -> str:
     """Choose MuJoCo's GL backend before mujoco is imported: EGL, else OSMesa, as installed."""
-    if os.environ.get("MUJOCO_GL"):
-        return os.environ["MUJOCO_GL"]
-    import ctypes.util
-
-    for lib, backend in (("EGL", "egl"), ("OSMesa", "osmesa")):
-        if ctypes.util.find_library(lib):
-            os.environ["MUJOCO_GL"] = backend
-            os.environ.setdefault("PYOPENGL_PLATFORM", backend)
-            return backend
-    raise CameraError(
-        "no OpenGL for the MuJoCo renderer: install libegl1 + libgl1-mesa-dri (EGL) or libosmesa6"
-    )
+    backend = gl_backend()
+    if not backend:
+        raise CameraError(
+            "no OpenGL for the MuJoCo renderer: install libegl1 + libgl1-mesa-dri (EGL) or libosmesa6"
+        )
+    os.environ["MUJOCO_GL"] = backend
+    if backend in ("egl", "osmesa"):
+        os.environ.setdefault("PYOPENGL_PLATFORM", backend)
+    return backend
 
 
 class MujocoSource(CameraSource):

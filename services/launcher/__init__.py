@@ -50,7 +50,7 @@ log = logging.getLogger("telesurg.launcher")
 
 #: Start order; they stop in reverse, except the mirror, which stops after the others to record
 #: everything, and the router, which stops last.
-SERVICES = ("camera", "watchdog", "slave_control", "mapping", "mirror", "master_capture")
+SERVICES = ("watchdog", "slave_control", "mapping", "mirror", "master_capture", "camera")
 STOP_ORDER = ("master_capture", "mapping", "watchdog", "slave_control", "camera", "mirror", "router")
 # started under SCHED_IDLE (or nice +19): they only get the CPU the control loops leave
 NICE = ("mirror", "camera")
@@ -222,6 +222,8 @@ class Site:
         from telesurg.shared.keys import Keys
 
         keys = Keys(self.spec.site)
+        if "camera" in self.spec.services:
+            self._camera_first()
         session = open_session(BusConfig(connect=[self.spec.endpoint]))
         try:
             for name in SERVICES:
@@ -243,6 +245,42 @@ class Site:
             pids = {n: p.pid for n, p in self.procs.items()}
             (self.spec.log_dir / "pids.json").write_text(json.dumps(pids, indent=2))
 
+    def _camera_first(self) -> None:
+        """Before anything starts: a simulated camera needs OpenGL (a library lookup, no import);
+        without it the site runs without video, saying why. Otherwise the site watches the video
+        it will have (:meth:`_watch_video`); the camera itself starts last."""
+        from telesurg.services.common import gl_backend
+
+        spec = self.spec
+        cam = load_config(
+            config_class("camera"), spec.site_file, spec.overrides.get("camera", []), table="camera"
+        )
+        if cam.source == "sim" and not gl_backend():
+            log.warning(
+                "camera is OFF: no OpenGL for the MuJoCo renderer (neither libEGL nor libOSMesa "
+                "found; install libegl1 libgl1-mesa-dri, or libosmesa6); the site runs without video"
+            )
+            spec.services = tuple(s for s in spec.services if s != "camera")
+            for svc, items in OPTIONAL_OFF["camera"].items():
+                spec.overrides.setdefault(svc, []).extend(items)
+            self.off = (*self.off, "camera")
+            return
+        self._watch_video(cam.camera)
+
+    def _watch_video(self, camera: str) -> None:
+        """A site that runs a camera watches its video: the watchdog's ``video_camera`` and the
+        mapping's ``camera`` (the view frame) name it, unless the site file or ``--set`` says
+        otherwise."""
+        spec = self.spec
+        for svc, key in (("watchdog", "video_camera"), ("mapping", "camera")):
+            if svc not in spec.services:
+                continue
+            items = spec.overrides.get(svc, [])
+            cfg = load_config(config_class(svc), spec.site_file, items, table=svc)
+            if getattr(cfg, key) == "" and not any(i.startswith(f"{key}=") for i in items):
+                spec.overrides.setdefault(svc, []).append(f"{key}={json.dumps(camera)}")
+        log.info("camera %s is on: the watchdog watches its video, the mapping maps in its view", camera)
+
     def _without(self, name: str, rc: int | None) -> None:
         """Go on without optional service ``name`` (it exited or never came up), saying why."""
         p = self.procs.pop(name)
@@ -250,15 +288,13 @@ class Site:
             p.kill()
             p.wait()
         where = f"see {self.spec.log_dir / (name + '.log')}" if self.spec.log_dir else "see its log above"
-        log.warning(
-            "%s is OFF: it did not start (exit code %s; %s — e.g. no OpenGL: install libegl1 "
-            "libgl1-mesa-dri or libosmesa6); the site runs without video",
+        log.error(
+            "%s did not start (exit code %s; %s): the arms hold while the watchdog watches a video "
+            'that never comes (watchdog.video_camera="" runs the site without video)',
             name,
             rc,
             where,
         )
-        for svc, items in OPTIONAL_OFF.get(name, {}).items():
-            self.spec.overrides.setdefault(svc, []).extend(items)
         self.off = (*self.off, name)
 
     def _wait_alive(self, session: object, key: str, timeout: float) -> bool:
