@@ -1191,6 +1191,21 @@ def _decode(payload: bytes | bytearray | memoryview, max_payload: int, max_bin: 
     return from_wire(d)  # type: ignore[return-value]
 
 
+def decode_any(payload: bytes | bytearray | memoryview) -> AnyMessage:
+    """:func:`decode`, or else a ``camera_image`` with its own limits: for readers of every key
+    (the recorder, a replay), which do not know a key's type in advance."""
+    try:
+        return decode(payload)
+    except MessageError:
+        if len(payload) > MAX_IMAGE_PAYLOAD_BYTES:
+            raise
+        try:
+            return _decode(payload, MAX_IMAGE_PAYLOAD_BYTES, MAX_IMAGE_BYTES)
+        except MessageError:
+            pass
+        raise
+
+
 def decode_as(payload: bytes | bytearray | memoryview, cls: type[M]) -> M:
     """Decode a payload that must be of type ``cls`` (e.g. on a key that carries one type), with
     the size limits of ``cls`` (``cls.MAX_PAYLOAD``, ``cls.MAX_BIN``: a camera image's own)."""
