@@ -90,6 +90,8 @@ def _block(camera: bool, a: argparse.Namespace, tmp: Path, k: int) -> dict[str, 
         if camera:
             assert p._node is not None
             p._node.subscribe(p._node.keys.camera("endo", "image"), CameraImage, probe.on_frame)
+        started = camera and "camera" not in p.site.off
+        load0 = os.getloadavg()[0]
         procs = {n: psutil.Process(pr.pid) for n, pr in p.site.procs.items()}
         procs["bench (frame subscriber)"] = psutil.Process(os.getpid())
         time.sleep(1.0)  # engaged (pedal from 0.5 s), frames flowing
@@ -118,6 +120,8 @@ def _block(camera: bool, a: argparse.Namespace, tmp: Path, k: int) -> dict[str, 
             }
     out: dict[str, Any] = {
         "camera": camera,
+        "camera_started": started,  # False: it did not come up within 30 s (this block is left out)
+        "load_avg_1min": [round(load0, 2), round(os.getloadavg()[0], 2)],  # host load at start / end
         "control_end_to_end": _stats_ms(applied[:, 2] - applied[:, 0]),
         "deadline_misses": misses,
         "cpu_pct": cpu,
@@ -148,19 +152,20 @@ def _print(res: dict[str, Any]) -> None:
 
     con = Console()
     t = Table(title="control path, master → setpoint applied (ms)")
-    for c in ("block", "camera", "n", "p50", "p99", "slave miss %", "master miss %", "holds"):
+    for c in ("block", "camera", "n", "p50", "p99", "slave miss %", "master miss %", "holds", "load"):
         t.add_column(c, justify="right")
     for i, b in enumerate(res["blocks"]):
         e, mi = b["control_end_to_end"], b["deadline_misses"]
         t.add_row(
             str(i),
-            "on" if b["camera"] else "off",
+            ("on" if b["camera_started"] else "failed") if b["camera"] else "off",
             str(e.get("n", 0)),
             f"{e.get('p50', float('nan')):.3f}",
             f"{e.get('p99', float('nan')):.3f}",
             str(mi.get("slave_control", {}).get("miss_pct", "")),
             str(mi.get("master_capture", {}).get("miss_pct", "")),
             str(b["watchdog_holds"]),
+            f"{b['load_avg_1min'][0]:.1f}",
         )
     con.print(t)
     v = res.get("video")
@@ -202,7 +207,7 @@ def run(a: argparse.Namespace) -> dict[str, Any]:
             for camera in (False, True):
                 res["blocks"].append(_block(camera, a, tmp, k))
                 k += 1
-    on = [b for b in res["blocks"] if b["camera"]]
+    on = [b for b in res["blocks"] if b["camera"] and b["camera_started"]]
     off = [b for b in res["blocks"] if not b["camera"]]
 
     def mean(blocks: list[dict[str, Any]], q: str) -> float:
