@@ -90,6 +90,31 @@ class CameraConfig:
             raise ConfigError("camera: pose_hz must be > 0")
 
 
+def unavailable(cfg: CameraConfig) -> str:
+    """Why this camera cannot run here ("" if it can): a simulated camera needs OpenGL (EGL or
+    OSMesa, a library lookup) and a scene with its camera. For the launcher, before it starts
+    anything."""
+    from telesurg.services.common import gl_backend
+
+    if cfg.source != "sim":
+        return ""
+    if not gl_backend():
+        return (
+            "no OpenGL for the MuJoCo renderer (neither libEGL nor libOSMesa found; install "
+            "libegl1 libgl1-mesa-dri, or libosmesa6)"
+        )
+    import mujoco
+
+    try:
+        scene = robots.get(cfg.model).scene
+        model = mujoco.MjModel.from_xml_path(str(scene))
+    except (ConfigError, ValueError) as exc:
+        return f"robot {cfg.model!r}: {exc}"
+    if mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_CAMERA, cfg.scene_camera) < 0:
+        return f"the {cfg.model} scene ({scene}) has no camera {cfg.scene_camera!r}"
+    return ""
+
+
 def make_source(cfg: CameraConfig) -> Any:
     """The configured :class:`~telesurg.services.camera.sources.CameraSource`."""
     from telesurg.services.camera.sources import MujocoSource, VideoSource

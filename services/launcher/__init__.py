@@ -246,20 +246,17 @@ class Site:
             (self.spec.log_dir / "pids.json").write_text(json.dumps(pids, indent=2))
 
     def _camera_first(self) -> None:
-        """Before anything starts: a simulated camera needs OpenGL (a library lookup, no import);
-        without it the site runs without video, saying why. Otherwise the site watches the video
-        it will have (:meth:`_watch_video`); the camera itself starts last."""
-        from telesurg.services.common import gl_backend
-
+        """Before anything starts: can the camera run here (a simulated one needs OpenGL and a
+        scene with its camera)? If not, the site runs without video and the launcher says why.
+        Otherwise the site watches the video it will have (:meth:`_watch_video`); the camera
+        itself starts last."""
         spec = self.spec
         cam = load_config(
             config_class("camera"), spec.site_file, spec.overrides.get("camera", []), table="camera"
         )
-        if cam.source == "sim" and not gl_backend():
-            log.warning(
-                "camera is OFF: no OpenGL for the MuJoCo renderer (neither libEGL nor libOSMesa "
-                "found; install libegl1 libgl1-mesa-dri, or libosmesa6); the site runs without video"
-            )
+        why = importlib.import_module(CONFIG_CLASSES["camera"][0]).unavailable(cam)
+        if why:
+            log.warning("camera is OFF: %s; the site runs without video", why)
             spec.services = tuple(s for s in spec.services if s != "camera")
             for svc, items in OPTIONAL_OFF["camera"].items():
                 spec.overrides.setdefault(svc, []).extend(items)
