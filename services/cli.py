@@ -47,6 +47,11 @@ COMMANDS = {
     ),
     "docs": ("telesurg.services.docs", "regenerate (or --check) the docs pages built from the code"),
     "experiment": ("telesurg.services.experiment", "reproduce a paper's evaluation (figures + metrics.json)"),
+    "camera": (
+        "telesurg.services.camera",
+        "the endoscope view: MuJoCo render or a real camera → JPEG frames",
+    ),
+    "view": ("telesurg.services.camera.view", "show a site's live camera picture in a small web page"),
 }
 
 

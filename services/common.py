@@ -137,3 +137,18 @@ def service_main(
         return 1
     log.info("stopped")
     return 0
+
+
+def gl_backend() -> str:
+    """The OpenGL backend MuJoCo's offscreen renderer can use here: ``MUJOCO_GL`` if set, else
+    ``"egl"`` (libEGL) or ``"osmesa"`` (libOSMesa) as installed, ``""`` if neither is (the camera
+    is then off). A library lookup only: nothing is loaded."""
+    import ctypes.util
+
+    chosen = os.environ.get("MUJOCO_GL", "")
+    if chosen:
+        return chosen
+    for lib, backend in (("EGL", "egl"), ("OSMesa", "osmesa")):
+        if ctypes.util.find_library(lib):
+            return backend
+    return ""

@@ -54,6 +54,7 @@ SERVICE_TABLES = (
     "watchdog",
     "mirror",
     "console",
+    "camera",
 )
 #: ``[site]`` fact → the service config fields it fills (in every config that has one).
 SHARED_FACTS: dict[str, tuple[str, ...]] = {

@@ -14,6 +14,10 @@ service instance id)::
     slave/<arm>/operating_state  OperatingState  slave state, mode, follow, hold reason
     safety/<arm>/lease           SafetyLease     watchdog → slave permission to move
     safety/<arm>/state           SafetyState     watchdog's view of the arm
+    safety/<arm>/video           VideoState      watchdog's view of the arm's video (frame age)
+    camera/<cam>/image           CameraImage     encoded camera frames (<cam>: a camera id)
+    camera/<cam>/measured_cp     CartesianPose   camera optical frame pose (x right, y down, z view), base
+    camera/<cam>/servo_cp        CartesianPose   move the camera holder to this pose (same frame)
     estop                        EStop           e-stop / reset, from the console or any service
     slave/<arm>/command          (queryable)     Command → CommandReply (operator commands)
     mapping/<arm>/command        (queryable)     Command → CommandReply (scale; VIP set/reallocate)
@@ -38,7 +42,8 @@ _ID = re.compile(r"^[A-Za-z0-9_-]{1,64}$")
 
 MASTER_STREAMS = ("measured_cp", "measured_js", "buttons")
 SLAVE_STREAMS = ("servo_jp", "setpoint_cp", "measured_js", "measured_cp", "measured_cf", "operating_state")
-SAFETY_STREAMS = ("lease", "state")
+SAFETY_STREAMS = ("lease", "state", "video")
+CAMERA_STREAMS = ("image", "measured_cp", "servo_cp")
 #: The mapping's streams, per *slave* arm: a slave is driven by one pair (one master may drive
 #: several slaves, e.g. ``m1:arm1`` and ``m1:arm2``), so the slave arm names the pair (as for
 #: ``mapping/<arm>/command``).
@@ -91,6 +96,10 @@ class Keys:
                 raise ConfigError(f"unknown mapping stream {stream!r}; valid: {', '.join(MAPPING_STREAMS)}")
             return f"{self.prefix}/mapping/*/{stream}"
         return self._arm_key("mapping", arm, stream, MAPPING_STREAMS)
+
+    def camera(self, cam: str, stream: str) -> str:
+        """``telesurg/<site>/camera/<cam>/<stream>``; stream in :data:`CAMERA_STREAMS`."""
+        return self._arm_key("camera", cam, stream, CAMERA_STREAMS)
 
     @property
     def estop(self) -> str:

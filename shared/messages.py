@@ -68,6 +68,12 @@ MAX_JOINTS = 32
 MAX_STR = 512
 #: Most entries in a list-of-strings field (e.g. safety causes).
 MAX_LIST = 64
+#: Largest ``camera_image`` payload, bytes: images have their own limit, on their own key
+#: (``camera/<cam>/image``), and only ``decode_as(payload, CameraImage)`` accepts one
+#: (:data:`Message.MAX_PAYLOAD`); :func:`decode` keeps :data:`MAX_PAYLOAD_BYTES` and no bin values.
+MAX_IMAGE_PAYLOAD_BYTES = 2 * 1024 * 1024
+#: Largest encoded image (the ``data`` bin field of ``camera_image``), bytes.
+MAX_IMAGE_BYTES = MAX_IMAGE_PAYLOAD_BYTES - 4096
 #: Most entries in one MessagePack map / array, checked while unpacking (before any field check).
 MAX_MAP_LEN = 32
 MAX_ARRAY_LEN = MAX_JOINTS * 4
@@ -132,6 +138,17 @@ def _bool(d: dict[str, Any], key: str) -> bool:
     v = _get(d, key)
     if not isinstance(v, bool):
         raise MessageError(f"field {key!r} must be a boolean, got {type(v).__name__}")
+    return v
+
+
+def _bytes(d: dict[str, Any], key: str, max_len: int, *, allow_empty: bool = True) -> bytes:
+    v = _get(d, key)
+    if not isinstance(v, bytes):
+        raise MessageError(f"field {key!r} must be bytes (MessagePack bin), got {type(v).__name__}")
+    if len(v) > max_len:
+        raise MessageError(f"field {key!r} is {len(v)} bytes, limit {max_len}")
+    if not allow_empty and not v:
+        raise MessageError(f"field {key!r} must not be empty")
     return v
 
 
@@ -278,7 +295,9 @@ class FieldSpec:
         name: Python attribute.
         wire: key in the MessagePack map.
         kind: ``str``, ``bool``, ``int``, ``float``, ``floats`` (number array), ``strs`` (string
-            array) or ``names`` (joint names: 1 to MAX_JOINTS distinct non-empty strings).
+            array), ``names`` (joint names: 1 to MAX_JOINTS distinct non-empty strings) or
+            ``bytes`` (a MessagePack bin of at most ``max_len`` bytes; only in a type with its own
+            ``MAX_BIN``, e.g. ``camera_image``).
         doc: what the field means.
         unit: unit of a number or number array ("" for none).
         length: exact element count of a fixed-length array (None: variable).
@@ -400,6 +419,10 @@ def _spec(name: str, tp: Any, declared: tuple[FieldSpec, bool]) -> FieldSpec:
         length = None if args[-1] is Ellipsis else len(args)
     elif typing.get_origin(tp) is tuple and args == (str, Ellipsis):
         kind = "names" if joint_names else "strs"
+    elif tp is bytes:
+        kind = "bytes"
+        if not spec.max_len:
+            raise TypeError(f"field {name!r}: a bytes field needs max_len (bytes)")
     if not kind:
         raise TypeError(f"field {name!r}: the codec has no rule for {tp!r}")
     if spec.unit_quat and length != 4:
@@ -500,6 +523,12 @@ def _body_lines(cls_name: str, specs: Sequence[FieldSpec], env: dict[str, Any]) 
             out.append(f"    {x} = _joint_names(d, {w})")
         elif s.kind == "strs":
             out.append(f"    {x} = _strs(d, {w}, max_len={s.max_len})")
+        elif s.kind == "bytes":
+            lo = 1 if s.nonempty else 0
+            out += [
+                f"    if type({x}) is not bytes or not {lo} <= len({x}) <= {s.max_len}:",
+                f"        {x} = _bytes(d, {w}, {s.max_len}, allow_empty={not s.nonempty})",
+            ]
         if s.same_len:
             ref = next((r for r in specs if r.name == s.same_len), None)
             if ref is None or specs.index(ref) > specs.index(s):
@@ -535,6 +564,7 @@ def _compile(cls: type[Message], specs: tuple[FieldSpec, ...]) -> None:
         "_float": _float,
         "_floats": _floats,
         "_strs": _strs,
+        "_bytes": _bytes,
         "_joint_names": _joint_names,
         "_isfinite": math.isfinite,
         "_sqrt": math.sqrt,
@@ -690,6 +720,10 @@ class Message:
     BODY: ClassVar[frozenset[str]] = frozenset()
     #: The body fields, in wire order (set by :func:`message`; empty for a hand-written class).
     FIELDS: ClassVar[tuple[FieldSpec, ...]] = ()
+    #: Largest payload of this type :func:`decode_as` accepts, and the largest bin value in it
+    #: (0: none); only a bulk type on its own key (``camera_image``) raises them.
+    MAX_PAYLOAD: ClassVar[int] = MAX_PAYLOAD_BYTES
+    MAX_BIN: ClassVar[int] = 0
 
     header: Header
 
@@ -1017,6 +1051,90 @@ class TeleopState(Message):
     )
 
 
+#: Encodings of :class:`CameraImage` (``jpeg``: baseline JPEG, 8-bit RGB or grey).
+IMAGE_ENCODINGS = frozenset({"jpeg"})
+#: Image layouts: ``mono``, or ``stereo_sbs`` (left eye in the left half, right eye in the right).
+IMAGE_LAYOUTS = frozenset({"mono", "stereo_sbs"})
+
+
+@message("camera_image")
+@dataclass(frozen=True, slots=True)
+class CameraImage(Message):
+    """One encoded camera frame (``camera/<cam>/image``), at the camera's rate; newest wins.
+
+    A bulk type on its own key: accepted only by ``decode_as(payload, CameraImage)``, up to
+    ``MAX_IMAGE_PAYLOAD_BYTES`` (:func:`decode` refuses it: it allows no bin values). The
+    intrinsics are a pinhole model of one eye in pixels, in the OpenCV convention of the pose on
+    ``camera/<cam>/measured_cp`` (x right, y down, z along the view): a point ``(x, y, z)`` of
+    the camera frame lands at ``u = fx·x/z + cx``, ``v = fy·y/z + cy`` (right eye of a stereo
+    pair: the same, ``baseline_m`` along +x, in the right half of the image)."""
+
+    MAX_PAYLOAD: ClassVar[int] = MAX_IMAGE_PAYLOAD_BYTES
+    MAX_BIN: ClassVar[int] = MAX_IMAGE_BYTES
+
+    camera: str = fld("", "camera id (the `<cam>` of the key)", nonempty=True)
+    capture_ns: int = fld(
+        0,
+        "wall-clock time the picture was taken (render: the slave state it shows was received; a "
+        "real camera: the frame was read), since the Unix epoch; age = arrival − `capture_ns`",
+        unit="ns",
+        le=_I64_MAX,
+    )
+    width: int = fld(0, "image width (whole image: both eyes of a stereo pair)", unit="px", ge=1, le=8192)
+    height: int = fld(0, "image height", unit="px", ge=1, le=8192)
+    encoding: str = fld("jpeg", "encoding of `data`", choices=IMAGE_ENCODINGS)
+    layout: str = fld("mono", "`mono` or `stereo_sbs` (side by side, left eye left)", choices=IMAGE_LAYOUTS)
+    baseline_m: float = fld(0.0, "stereo baseline (0 for mono)", unit="m", ge=0.0, le=1.0)
+    fx: float = fld(1.0, "focal length along x, one eye", unit="px", gt=0.0, le=1e6)
+    fy: float = fld(1.0, "focal length along y", unit="px", gt=0.0, le=1e6)
+    cx: float = fld(0.0, "principal point x, one eye", unit="px", ge=-1e5, le=1e5)
+    cy: float = fld(0.0, "principal point y", unit="px", ge=-1e5, le=1e5)
+    render_ms: float = fld(
+        0.0,
+        "time to produce the picture (render, or read and decode a real camera's frame)",
+        unit="ms",
+        ge=0.0,
+    )
+    encode_ms: float = fld(0.0, "time to encode it", unit="ms", ge=0.0)
+    dropped: int = fld(0, "frames the camera dropped so far (not sent: the next was due, or stale)")
+    data: bytes = fld(
+        b"\xff\xd8\xff\xd9",
+        "the encoded image (default: an empty JPEG, start and end markers)",
+        nonempty=True,
+        max_len=MAX_IMAGE_BYTES,
+    )
+
+
+VIDEO_STATES = frozenset({"OK", "DEGRADED", "HOLD", "OFF"})
+
+
+@message("video_state")
+@dataclass(frozen=True, slots=True)
+class VideoState(Message):
+    """The watchdog's view of the video an arm is driven by (``safety/<arm>/video``), with each
+    ``safety_state``: the frame age from capture to arrival at the watchdog, and its verdict."""
+
+    arm: str = fld("", "slave arm id", nonempty=True)
+    camera: str = fld("", "camera id watched", nonempty=True)
+    state: str = fld(
+        "OFF",
+        "`OK` (fresh), `DEGRADED` (stale or over the age budget: scale reduced), `HOLD` (beyond "
+        "the hard limit), `OFF` (no video required for this arm)",
+        choices=VIDEO_STATES,
+    )
+    since_frame_ms: float = fld(
+        0.0, "time since the last frame arrived (0 before the first)", unit="ms", ge=0.0
+    )
+    age_ms: float = fld(
+        0.0, "age of the last frame at its arrival (arrival − `capture_ns`)", unit="ms", ge=0.0
+    )
+    age_p50_ms: float = fld(0.0, "median frame age over the last window (0 while unknown)", unit="ms", ge=0.0)
+    age_p99_ms: float = fld(0.0, "99th percentile of that age", unit="ms", ge=0.0)
+    fps: float = fld(0.0, "frames per second arrived over that window", unit="1/s", ge=0.0)
+    frames: int = fld(0, "frames received since start")
+    gaps: int = fld(0, "frames missing in the sequence since start (dropped by the camera or the link)")
+
+
 #: Every message class by its type tag.
 MESSAGE_TYPES: dict[str, type[Message]] = dict(_REGISTRY)
 
@@ -1034,20 +1152,29 @@ AnyMessage = (
     | CommandReply
     | Heartbeat
     | TeleopState
+    | CameraImage
+    | VideoState
 )
 
 
 def decode(payload: bytes | bytearray | memoryview) -> AnyMessage:
-    """Decode and validate one payload; raise :class:`MessageError` on anything malformed."""
-    if len(payload) > MAX_PAYLOAD_BYTES:
-        raise MessageError(f"payload is {len(payload)} bytes, limit {MAX_PAYLOAD_BYTES}")
+    """Decode and validate one payload; raise :class:`MessageError` on anything malformed.
+
+    At most :data:`MAX_PAYLOAD_BYTES` and no bin values: a ``camera_image`` is decoded only by
+    ``decode_as(payload, CameraImage)``, on its own key."""
+    return _decode(payload, MAX_PAYLOAD_BYTES, 0)
+
+
+def _decode(payload: bytes | bytearray | memoryview, max_payload: int, max_bin: int) -> AnyMessage:
+    if len(payload) > max_payload:
+        raise MessageError(f"payload is {len(payload)} bytes, limit {max_payload}")
     try:
         d = msgpack.unpackb(
             payload,
             raw=False,
             strict_map_key=True,
             max_str_len=MAX_STR * 4,
-            max_bin_len=0,
+            max_bin_len=max_bin,
             max_array_len=MAX_ARRAY_LEN,
             max_map_len=MAX_MAP_LEN,
             max_ext_len=0,
@@ -1069,9 +1196,23 @@ def decode(payload: bytes | bytearray | memoryview) -> AnyMessage:
     return from_wire(d)  # type: ignore[return-value]
 
 
+def decode_any(payload: bytes | bytearray | memoryview) -> AnyMessage:
+    """:func:`decode`, or else a ``camera_image`` with its own limits: for readers of every key
+    (the recorder, a replay, the fuzzer), which do not know a key's type in advance. A payload the
+    small limits refuse (too large, or holding a bin value) is decoded with the image limits, and
+    its error is then the image decoder's."""
+    try:
+        return decode(payload)
+    except MessageError as exc:
+        if len(payload) <= MAX_PAYLOAD_BYTES and "max_bin_len" not in str(exc):
+            raise
+    return _decode(payload, MAX_IMAGE_PAYLOAD_BYTES, MAX_IMAGE_BYTES)
+
+
 def decode_as(payload: bytes | bytearray | memoryview, cls: type[M]) -> M:
-    """Decode a payload that must be of type ``cls`` (e.g. on a key that carries one type)."""
-    msg = decode(payload)
+    """Decode a payload that must be of type ``cls`` (e.g. on a key that carries one type), with
+    the size limits of ``cls`` (``cls.MAX_PAYLOAD``, ``cls.MAX_BIN``: a camera image's own)."""
+    msg = _decode(payload, cls.MAX_PAYLOAD, cls.MAX_BIN)
     if not isinstance(msg, cls):
         raise MessageError(f"expected {cls.TYPE!r}, got {msg.TYPE!r}")
     return msg

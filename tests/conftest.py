@@ -2,12 +2,18 @@
 
 from __future__ import annotations
 
+import os
 import time
 from collections.abc import Callable, Iterator
 
 import pytest
+from telesurg.services.common import gl_backend
 from telesurg.services.launcher import free_port
 from telesurg.shared.bus import BusConfig, open_session
+
+# MuJoCo picks its OpenGL backend when it is first imported: the camera tests render offscreen in
+# this process, after other tests imported mujoco (the camera service sets it itself)
+os.environ.setdefault("MUJOCO_GL", gl_backend() or "egl")
 
 
 @pytest.fixture

@@ -89,7 +89,7 @@ def _digest(cases: Iterable[FuzzCase]) -> str:
 def test_valid_template_round_trips(cls: type[Message], n_joints: int) -> None:
     t = valid_template(cls, source="src1", seq=5, n_joints=n_joints)
     assert type(t) is cls
-    assert decode(t.encode()) == t
+    assert decode_as(t.encode(), cls) == t  # (a camera image only decodes as one, on its key)
     assert (t.header.source, t.header.seq) == ("src1", 5)
     for f in dataclasses.fields(t):
         value = getattr(t, f.name)

@@ -14,6 +14,7 @@ from telesurg.shared.messages import (
     MAX_PAYLOAD_BYTES,
     MESSAGE_TYPES,
     SCHEMA_VERSION,
+    CameraImage,
     CartesianPose,
     CartesianWrench,
     Command,
@@ -29,6 +30,7 @@ from telesurg.shared.messages import (
     SafetyLease,
     SafetyState,
     TeleopState,
+    VideoState,
     decode,
     decode_as,
 )
@@ -54,6 +56,10 @@ EXAMPLES = [
     TeleopState(
         H, "m1", "arm1", "HOLDING", "ENABLED", "slave holding: lease expired", 7, 0.5, 0.5, "cartesian"
     ),
+    CameraImage(
+        H, "endo", 5, 320, 240, "jpeg", "mono", 0.0, 290.0, 290.0, 160.0, 120.0, 14.0, 0.4, 0, b"\xff\xd8"
+    ),
+    VideoState(H, "arm1", "endo", "OK", 40.0, 23.0, 22.0, 31.0, 12.0, 240, 0),
 ]
 
 
@@ -78,7 +84,7 @@ def test_command_field_rules(body: dict[str, object], match: str) -> None:
 
 @pytest.mark.parametrize("msg", EXAMPLES, ids=lambda m: m.TYPE)
 def test_round_trip(msg: object) -> None:
-    assert decode(msg.encode()) == msg  # type: ignore[attr-defined]
+    assert decode_as(msg.encode(), type(msg)) == msg  # type: ignore[attr-defined]
 
 
 def _valid() -> dict[str, object]:

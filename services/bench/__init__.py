@@ -25,6 +25,10 @@ BENCHES = {
     "soak": ("telesurg.services.bench.perf", "long run: losses per stream, deadline misses, CPU and RSS"),
     "ik": ("telesurg.services.bench.perf", "analytic IK / mapping vs a generic numerical IK"),
     "sim": ("telesurg.services.bench.perf", "MuJoCo steps/s unpaced per robot model"),
+    "video": (
+        "telesurg.services.bench.video",
+        "endoscope video: fps, render/encode/transport/decode, age; control path camera on/off",
+    ),
     "decode": ("telesurg.services.bench.decode", "µs per strict decode / encode of the hot messages"),
     "flood": ("telesurg.services.bench.flood", "1 MB messages on a control and a master key: RSS, HOLDs"),
     "transport": (

@@ -88,7 +88,7 @@ from telesurg.shared.messages import (
     SCHEMA_VERSION,
     Header,
     Message,
-    decode,
+    decode_any,
 )
 
 __all__ = [
@@ -502,7 +502,7 @@ def _repair(cls: type[M], wire: Wire, default_wire: Wire) -> M:
     body_keys = cls.BODY
     for _ in range(4 * (len(wire) + 2)):
         try:
-            msg = decode(msgpack.packb(wire))
+            msg = decode_any(msgpack.packb(wire))
         except MessageError as exc:
             error = str(exc)
             key = _blamed_key(error, wire)
@@ -512,7 +512,7 @@ def _repair(cls: type[M], wire: Wire, default_wire: Wire) -> M:
                 trial = dict(wire)
                 trial[key] = candidate
                 try:
-                    decode(msgpack.packb(trial))
+                    decode_any(msgpack.packb(trial))
                 except MessageError as exc2:
                     if _blamed_key(str(exc2), trial) == key:
                         continue
@@ -665,7 +665,7 @@ def _info_for(payload: bytes) -> _Info | None:
 def _analyse(payload: bytes) -> _Info | None:
     with contextlib.suppress(Exception):
         # A valid payload is re-encoded canonically (floats as floats) so field categories are exact.
-        payload = decode(payload).encode()
+        payload = decode_any(payload).encode()
     try:
         wire = msgpack.unpackb(payload, raw=False, strict_map_key=False)
     except Exception:

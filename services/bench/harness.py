@@ -196,6 +196,7 @@ class Pipeline:
         log_level: str = "INFO",
         config_dir: Path | None = None,
         acl: Path | None = None,
+        camera: bool = False,
     ) -> None:
         self.log_dir = log_dir
         port = free_port()
@@ -207,6 +208,7 @@ class Pipeline:
             ov.setdefault(name, []).extend(items)
         services: tuple[str, ...] = ("watchdog", "slave_control", "mapping")
         services += (("master_capture",) if master else ()) + (("mirror",) if mirror else ())
+        services += ("camera",) if camera else ()  # (its video then guards the arm: Site._camera_first)
         self.spec = SiteSpec(
             port=port,
             config_dir=config_dir or default_config_dir(),

@@ -61,6 +61,7 @@ def tokens() -> dict[str, str]:
         "SCHEMA_VERSION": str(m.SCHEMA_VERSION),
         "N_TYPES": str(len(m.MESSAGE_TYPES)),
         "MAX_PAYLOAD_BYTES": f"{m.MAX_PAYLOAD_BYTES:,}".replace(",", " "),
+        "MAX_IMAGE_PAYLOAD_BYTES": f"{m.MAX_IMAGE_PAYLOAD_BYTES:,}".replace(",", " "),
         "MAX_JOINTS": str(m.MAX_JOINTS),
         "MAX_STR": str(m.MAX_STR),
         "MAX_STR_BYTES": str(m.MAX_STR * 4),
@@ -133,6 +134,8 @@ def type_text(s: FieldSpec) -> str:
     if s.kind in ("floats", "strs", "names"):
         base = "float" if s.kind == "floats" else "str"
         return f"{base}[{s.length}]" if s.length else f"{base}[]"
+    if s.kind == "bytes":
+        return "bin"
     if s.choices is not None:
         return "str enum"
     if s.kind in ("int", "float") and s.lo == 0 and not s.lo_open and s.hi is None:
@@ -156,6 +159,10 @@ def rules_text(s: FieldSpec, wire_of: dict[str, str] | None = None) -> str:
         return ", ".join(out)
     if k == "bool":
         return "`true` / `false`"
+    if k == "bytes":
+        return ("non-empty, " if s.nonempty else "") + f"MessagePack bin of ≤ {s.max_len:,} bytes".replace(
+            ",", " "
+        )
     if k in ("int", "float"):
         lo, hi = s.lo, s.hi
         if k == "int":

@@ -52,9 +52,17 @@ log = logging.getLogger("telesurg.launcher")
 
 #: Start order; they stop in reverse, except the mirror, which stops after the others to record
 #: everything, and the router, which stops last.
-SERVICES = ("watchdog", "slave_control", "mapping", "mirror", "master_capture")
-STOP_ORDER = ("master_capture", "mapping", "watchdog", "slave_control", "mirror", "router")
-NICE = ("mirror",)  # started under SCHED_IDLE (or nice +19): it only gets CPU the control loop leaves
+SERVICES = ("watchdog", "slave_control", "mapping", "mirror", "master_capture", "camera")
+STOP_ORDER = ("master_capture", "mapping", "watchdog", "slave_control", "camera", "mirror", "router")
+# started under SCHED_IDLE (or nice +19): they only get the CPU the control loops leave
+NICE = ("mirror", "camera")
+#: Services a site runs without when they cannot start (the camera without OpenGL): the launcher
+#: says so and turns the video off for the others (:data:`OPTIONAL_OFF` overrides).
+OPTIONAL = ("camera",)
+#: What a :class:`SiteSpec` starts by default: every service but the camera (``telesurg up`` and
+#: ``demo`` add it; a test or bench names it when it wants video).
+CONTROL_SERVICES = tuple(s for s in SERVICES if s not in OPTIONAL)
+OPTIONAL_OFF = {"camera": {"watchdog": ['video_camera=""'], "mapping": ['camera=""']}}
 
 
 def _background() -> None:
@@ -72,6 +80,7 @@ CLI_NAME = {
     "mapping": "mapping",
     "master_capture": "master-capture",
     "mirror": "mirror",
+    "camera": "camera",
 }
 
 
@@ -84,6 +93,7 @@ CONFIG_CLASSES = {
     "mapping": ("telesurg.services.mapping", "MappingConfig"),
     "master_capture": ("telesurg.services.master_capture", "MasterCaptureConfig"),
     "mirror": ("telesurg.services.mirror", "MirrorConfig"),
+    "camera": ("telesurg.services.camera", "CameraConfig"),
     "console": ("telesurg.services.console", "ConsoleConfig"),
 }
 
@@ -146,7 +156,7 @@ class SiteSpec:
     host: str = "127.0.0.1"  # router listen address (loopback for a local site)
     port: int = 7447  # router TCP port
     config_dir: Path | None = None  # site folder holding site.toml (None: every service's defaults)
-    services: tuple[str, ...] = SERVICES  # which services to start
+    services: tuple[str, ...] = CONTROL_SERVICES  # which services to start (the CLIs add the camera)
     overrides: dict[str, list[str]] = field(default_factory=dict)  # service → ["key=value"]
     log_dir: Path | None = None  # per-service log files (None: inherit the terminal)
     log_level: str = "INFO"  # service log level
@@ -217,6 +227,7 @@ class Site:
         self.spec = spec
         self.procs: dict[str, subprocess.Popen[bytes]] = {}
         self._logs: list[IO[bytes]] = []
+        self.off: tuple[str, ...] = ()  # optional services that could not start (OPTIONAL)
 
     def start(self) -> None:
         """Start the router, wait for it, then every service, one at a time.
@@ -237,6 +248,8 @@ class Site:
         from telesurg.shared.keys import Keys
 
         keys = Keys(self.spec.site)
+        if "camera" in self.spec.services:
+            self._camera_first()
         session = open_session(self.spec.client_bus("launcher"))
         try:
             for name in SERVICES:
@@ -245,6 +258,9 @@ class Site:
                 self._spawn(name)
                 if not self._wait_alive(session, keys.alive(name), 30.0):
                     rc = self.procs[name].poll()
+                    if name in OPTIONAL:
+                        self._without(name, rc)
+                        continue
                     raise RuntimeError(
                         f"{name} did not come up within 30 s"
                         + (f" (exit code {rc})" if rc is not None else "")
@@ -269,6 +285,55 @@ class Site:
             return True
         time.sleep(0.2)
         return False
+
+    def _camera_first(self) -> None:
+        """Before anything starts: can the camera run here (a simulated one needs OpenGL and a
+        scene with its camera)? If not, the site runs without video and the launcher says why.
+        Otherwise the site watches the video it will have (:meth:`_watch_video`); the camera
+        itself starts last."""
+        spec = self.spec
+        cam = load_config(
+            config_class("camera"), spec.site_file, spec.overrides.get("camera", []), table="camera"
+        )
+        why = importlib.import_module(CONFIG_CLASSES["camera"][0]).unavailable(cam)
+        if why:
+            log.warning("camera is OFF: %s; the site runs without video", why)
+            spec.services = tuple(s for s in spec.services if s != "camera")
+            for svc, items in OPTIONAL_OFF["camera"].items():
+                spec.overrides.setdefault(svc, []).extend(items)
+            self.off = (*self.off, "camera")
+            return
+        self._watch_video(cam.camera)
+
+    def _watch_video(self, camera: str) -> None:
+        """A site that runs a camera watches its video: the watchdog's ``video_camera`` and the
+        mapping's ``camera`` (the view frame) name it, unless the site file or ``--set`` says
+        otherwise."""
+        spec = self.spec
+        for svc, key in (("watchdog", "video_camera"), ("mapping", "camera")):
+            if svc not in spec.services:
+                continue
+            items = spec.overrides.get(svc, [])
+            cfg = load_config(config_class(svc), spec.site_file, items, table=svc)
+            if getattr(cfg, key) == "" and not any(i.startswith(f"{key}=") for i in items):
+                spec.overrides.setdefault(svc, []).append(f"{key}={json.dumps(camera)}")
+        log.info("camera %s is on: the watchdog watches its video, the mapping maps in its view", camera)
+
+    def _without(self, name: str, rc: int | None) -> None:
+        """Go on without optional service ``name`` (it exited or never came up), saying why."""
+        p = self.procs.pop(name)
+        if p.poll() is None:
+            p.kill()
+            p.wait()
+        where = f"see {self.spec.log_dir / (name + '.log')}" if self.spec.log_dir else "see its log above"
+        log.error(
+            "%s did not start (exit code %s; %s): the arms hold while the watchdog watches a video "
+            'that never comes (watchdog.video_camera="" runs the site without video)',
+            name,
+            rc,
+            where,
+        )
+        self.off = (*self.off, name)
 
     def _wait_alive(self, session: object, key: str, timeout: float) -> bool:
         """Poll the liveliness token ``key`` until present (True) or timeout / exit (False)."""

@@ -53,12 +53,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--report", metavar="FILE.json", help="write the session report here")
     parser.add_argument("--web-port", type=int, default=9090, help="rerun web viewer port")
     parser.add_argument("--grpc-port", type=int, default=9876, help="rerun gRPC port")
+    parser.add_argument("--no-camera", action="store_true", help="run without the camera service (no video)")
     args = parser.parse_args(argv)
     setup_logging("INFO", "demo")
     if args.headless and args.seconds <= 0:
         print("telesurg demo: --headless needs --seconds N", file=sys.stderr)
         return 2
     services = ["watchdog", "slave_control", "mapping", "master_capture"]
+    if not args.no_camera:
+        services.insert(0, "camera")
     if not args.headless or args.save:
         services.append("mirror")
     try:

@@ -25,6 +25,14 @@ Master modes (``master_mode``): ``pen`` maps the master position as the tip; ``v
 console and maps the dummy tip beyond the fulcrum (:func:`master_point`), so the surgeon feels the
 same fulcrum effect as with the real forceps in the patient.
 
+Camera frame (``camera`` set, Cartesian mode): master motion is mapped in the endoscope's view
+frame, the dVRK convention — the master frame is the surgeon's view (x right, y up, z toward the
+surgeon), so moving the hand to the right moves the instrument to the right *in the picture*.
+``R_ms`` is then the camera's rotation (``camera/<cam>/measured_cp``, optical frame) times
+``diag(1, −1, −1)``; until the first camera pose arrives, and at a site without a camera, the
+fixed ``master_to_slave_rpy_deg`` applies. A camera move re-anchors at the current target, so it
+makes no jump (:meth:`ArmMapping.on_camera_pose`).
+
 Engage needs a *new* pedal press: after any disengage not made by the operator (master stream
 stale, slave holding, operator absent) the pedal must be released and pressed again.
 
@@ -43,6 +51,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from telesurg.services.common import service_main
+from telesurg.services.mapping.camera_frame import view_rotation
 from telesurg.services.mapping.engage import EngageGate
 from telesurg.services.mapping.joints import AllJointsMapping, VipMapping
 from telesurg.services.mapping.master import master_point
@@ -98,6 +107,10 @@ class MappingConfig:
     dummy_forceps_mm: float = 250.0  # handle → dummy tip, along the dummy forceps
     # Rotation of the master frame expressed in the slave base frame, roll/pitch/yaw in degrees.
     master_to_slave_rpy_deg: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    # camera id: map master motion in its view frame (camera/<cam>/measured_cp; Cartesian mode;
+    # "" = the fixed master_to_slave_rpy_deg, a site without a camera)
+    camera: str = ""
+    camera_source: str = "camera"  # the only publisher accepted on camera/<cam>/measured_cp
     master_timeout_ms: float = 100.0  # ms: master stream older than this disengages
     slave_timeout_ms: float = 100.0  # ms: slave measured_js older than this refuses engage
     # rad: a setpoint step larger than this between two samples is an IK branch flip → hold
@@ -157,6 +170,7 @@ class ArmMapping(EngageGate):
         self.geom = MH3F
         self.r_ms = rpy_matrix(cfg.master_to_slave_rpy_deg)
         self.r_ms_rows: list[list[float]] = self.r_ms.tolist()
+        self.camera_poses = 0  # camera view-frame changes applied (on_camera_pose)
         self.servo_out: Outlet = node.outlet(node.keys.slave(slave, "servo_jp"))
         self.target_out: Outlet = node.outlet(node.keys.slave(slave, "setpoint_cp"), control=False)
         self.target_period = 1.0 / cfg.target_hz
@@ -192,6 +206,25 @@ class ArmMapping(EngageGate):
             arm=self.slave,
             severity="warning" if msg.scale < 1.0 else "info",
         )
+
+    def on_camera_pose(self, msg: CartesianPose, key: str) -> None:
+        """The camera's pose: map in its view frame from now on, re-anchored (no jump)."""
+        r = view_rotation(msg)
+        with self.lock:
+            if np.allclose(r, self.r_ms, atol=1e-9):
+                return
+            first = self.camera_poses == 0
+            self.camera_poses += 1
+            self.r_ms = r
+            self.r_ms_rows = r.tolist()
+            self._rescaled()
+        if first or self.following:
+            self.node.event(
+                "camera_frame",
+                f"master motion mapped in camera {self.cfg.camera}'s view"
+                + (" (re-anchored while following)" if self.following else ""),
+                arm=self.slave,
+            )
 
     def _rescaled(self) -> None:
         """Re-anchor at the current target: a new scale applies to motion from here on (lock held)."""
@@ -387,6 +420,14 @@ def run(cfg: MappingConfig, stop: threading.Event) -> None:
                     k.master(master, "measured_cp"), CartesianPose, a.on_master_pose, sources=m_src
                 )
                 node.serve(k.mapping_command(slave), Command, a.on_command)
+                if cfg.camera:
+                    node.subscribe(
+                        k.camera(cfg.camera, "measured_cp"),
+                        CartesianPose,
+                        a.on_camera_pose,
+                        sources=only(cfg.camera_source),
+                        polled=True,
+                    )
             # The other inputs are read by the service loop (Node.poll) right before it maps a
             # sample: no callback thread per message contending for the GIL with the mapping.
             sub = node.subscribe

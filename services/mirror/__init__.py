@@ -58,6 +58,7 @@ from telesurg.shared.bus import BusConfig, Node
 from telesurg.shared.errors import ConfigError, KinematicsError
 from telesurg.shared.messages import (
     AnyMessage,
+    CameraImage,
     CartesianPose,
     JointSetpoint,
     JointState,
@@ -117,6 +118,8 @@ class MirrorConfig:
     # recorder keeps every sample); 0 = draw every sample
     plot_hz: float = 0.0
     plot_window_s: float = 20.0  # s: time series show this much history before the time cursor
+    # Hz: camera frames drawn per camera (the newest, as its JPEG; camera/*/image), 0 = none
+    image_hz: float = 2.0
     layout_wait_s: float = 0.5  # s after the first slave arm is seen before the layout is sent
     application_id: str = "telesurg"  # rerun application id (groups recordings in the viewer)
     recording_id: str = ""  # rerun recording id; "" = random; same id merges several processes
@@ -624,6 +627,33 @@ def _color(role: str, leaf: str) -> tuple[int, int, int]:
 # --------------------------------------------------------------------------- service
 
 
+class FrameTap:
+    """The newest frame of each camera, drawn at most ``hz`` times a second (decimated: the MCAP
+    recorder keeps every frame)."""
+
+    def __init__(self, hz: float) -> None:
+        self.period = 1.0 / hz if hz > 0 else float("inf")
+        self.lock = threading.Lock()
+        self.newest: dict[str, tuple[CameraImage, int]] = {}
+        self.next_t: dict[str, float] = {}
+        self.drawn = 0
+
+    def on_frame(self, msg: CameraImage, key: str) -> None:
+        with self.lock:
+            self.newest[msg.camera] = (msg, time.time_ns())
+
+    def draw(self, view: RerunView) -> None:
+        now = time.monotonic()
+        with self.lock:
+            due = [(cam, fr) for cam, fr in self.newest.items() if now >= self.next_t.get(cam, 0.0)]
+            for cam, _ in due:
+                del self.newest[cam]
+                self.next_t[cam] = now + self.period
+        for cam, (msg, rx) in due:
+            view.image(cam, msg.capture_ns, rx, msg.data)
+            self.drawn += 1
+
+
 def run(cfg: MirrorConfig, stop: threading.Event) -> None:
     """Mirror the bus into rerun until ``stop``; the .rrd is complete when this returns."""
     cfg.validate()
@@ -669,12 +699,18 @@ def run(cfg: MirrorConfig, stop: threading.Event) -> None:
                     sources=trust,
                     latest=rel in LATEST,
                 )
+            frames = FrameTap(cfg.image_hz)
+            if cfg.image_hz > 0:
+                node.subscribe(
+                    f"{node.keys.prefix}/camera/*/image", CameraImage, frames.on_frame, sources=["camera"]
+                )
             draw_errors = 0
             settle_gc()
             while not stop.is_set():
                 try:
                     mirror.feed(inbox.take())
                     mirror.draw()
+                    frames.draw(view)
                 except Exception:  # a drawing bug must not take the mirror down; say so
                     draw_errors += 1
                     if draw_errors <= 5 or draw_errors % 1000 == 0:

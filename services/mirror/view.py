@@ -462,6 +462,13 @@ class RerunView:
         self._at(source_ns, receive_ns)
         self._rec.log(path, self._rr.TextLog(text, level=_LEVELS.get(severity, "ERROR")))
 
+    def image(self, camera: str, source_ns: int, receive_ns: int, jpeg: bytes) -> None:
+        """One camera frame at ``/camera/<cam>/image``, as the encoded JPEG (rerun decodes it)."""
+        self._at(source_ns, receive_ns)
+        self._rec.log(
+            f"/camera/{_part(camera)}/image", self._rr.EncodedImage(contents=jpeg, media_type="image/jpeg")
+        )
+
     def add_flusher(self, flush: Callable[[], None]) -> None:
         """Have :meth:`close` call ``flush()`` first (a drawer's buffered samples reach the sinks)."""
         self._flushers.append(flush)

@@ -61,7 +61,7 @@ from telesurg.shared.messages import (
     FieldSpec,
     Header,
     Message,
-    decode,
+    decode_any,
 )
 from telesurg.shared.streams import SeqTracker
 from telesurg.shared.timing import settle_gc
@@ -111,12 +111,16 @@ class RecordConfig:
 
 
 _JSON_SCALARS: dict[Any, str] = {str: "string", bool: "boolean", int: "integer", float: "number"}
+#: A ``bytes`` field (the camera image's JPEG) is a MessagePack bin: no JSON type of its own.
+_JSON_BIN = {"description": "MessagePack bin (raw bytes)"}
 
 
 def _json_type(tp: Any) -> dict[str, Any]:
     """JSON-schema fragment of a message field's Python type."""
     if tp in _JSON_SCALARS:
         return {"type": _JSON_SCALARS[tp]}
+    if tp is bytes:
+        return dict(_JSON_BIN)
     args = typing.get_args(tp)
     if typing.get_origin(tp) is tuple and args:
         if len(args) == 2 and args[1] is Ellipsis:
@@ -405,7 +409,7 @@ class Recorder:
         if st is None:
             st = self.stats[key] = KeyStats(first_ns=rx_ns)
         try:
-            msg: Message | None = decode(payload)
+            msg: Message | None = decode_any(payload)
         except MessageError:
             msg = None
         channel = self._channels.get(key)
@@ -541,7 +545,7 @@ def iter_decoded(
         if topics is None and want is not None and not want(channel.topic):
             continue
         try:
-            msg: Message | None = decode(m.data)
+            msg: Message | None = decode_any(m.data)
         except MessageError:
             msg = None
         yield channel.topic, m.log_time, m.publish_time, m.data, msg

@@ -61,7 +61,14 @@ from telesurg.shared import jsonio
 from telesurg.shared.bus import BusConfig, Node, Outlet, add_bus_args, bus_from_args, open_session
 from telesurg.shared.errors import ConfigError, TelesurgError
 from telesurg.shared.keys import Keys, check_id
-from telesurg.shared.messages import JointState, MasterButtons, Message, OperatingState, SafetyState
+from telesurg.shared.messages import (
+    CameraImage,
+    JointState,
+    MasterButtons,
+    Message,
+    OperatingState,
+    SafetyState,
+)
 
 log = logging.getLogger(__name__)
 
@@ -600,10 +607,18 @@ def to_rerun(path: str | Path, out: str | Path) -> dict[str, int]:
             tick_ns = round(1e9 / mc.draw_hz)
             next_tick = 0
             batch: list[tuple[str, int, Any]] = []
+            image_ns = round(1e9 / mc.image_hz) if mc.image_hz > 0 else 0
+            next_image: dict[str, int] = {}
             for topic, lt, _pt, _data, msg in iter_decoded(reader):
                 counts["messages"] += 1
                 if msg is None:
                     counts["undecodable"] += 1
+                    continue
+                if isinstance(msg, CameraImage):  # decimated, as the live mirror draws them
+                    if image_ns and msg.header.source == "camera" and lt >= next_image.get(msg.camera, 0):
+                        next_image[msg.camera] = lt + image_ns
+                        view.image(msg.camera, msg.capture_ns, lt, msg.data)
+                        counts["images"] = counts.get("images", 0) + 1
                     continue
                 role = topic[len(prefix) :].split("/", 1)[0] if topic.startswith(prefix) else ""
                 if role in ("master", "slave", "safety") and msg.header.source not in trusted:

@@ -13,7 +13,12 @@ and ``docs/safety.md``):
 * joint position and speed of the setpoints, the workspace (the tip position the followed
   setpoint would give, by forward kinematics), the RCM error in trocar mode, the
   operator-presence switch of the master;
-* e-stop commands on ``estop`` (latched until an explicit reset).
+* e-stop commands on ``estop`` (latched until an explicit reset);
+* with ``video_camera`` set, the endoscope video (``camera/<cam>/image``): no frame for
+  ``video_stale_ms`` or a frame older than ``video_age_budget_ms`` → DEGRADED, beyond
+  ``video_hold_ms`` / ``video_age_limit_ms`` → HOLD, OK again only after ``video_fresh_frames``
+  fresh frames (:mod:`telesurg.services.watchdog.video`); the frame ages go out on
+  ``safety/<arm>/video`` with each safety state.
 
 Every ``1/lease_hz`` s, and at once on any liveliness loss or e-stop, the watchdog publishes
 ``safety/<arm>/lease`` (``allow``, ``valid_for_ms``, ``reason``). The slave holds the moment the
@@ -38,9 +43,11 @@ from dataclasses import dataclass, field
 import numpy as np
 from telesurg.services.common import service_main
 from telesurg.services.watchdog.logic import ArmSafety, Policy, Verdict
+from telesurg.services.watchdog.video import VideoPolicy, VideoWatch
 from telesurg.shared.bus import BusConfig, Node, Outlet, only
 from telesurg.shared.errors import ConfigError
 from telesurg.shared.messages import (
+    CameraImage,
     CartesianPose,
     EStop,
     JointSetpoint,
@@ -50,6 +57,7 @@ from telesurg.shared.messages import (
     OperatingState,
     SafetyLease,
     SafetyState,
+    VideoState,
 )
 from telesurg.shared.pairs import parse_pair
 from telesurg.shared.robots import arm_profile
@@ -102,10 +110,40 @@ class WatchdogConfig:
     master_source: str = "master_capture"
     mapping_source: str = "mapping"
     slave_source: str = "slave_control"
+    # The endoscope video (docs/video.md). camera id whose camera/<cam>/image every arm needs
+    # fresh ("" = no video watched; a site without a camera)
+    video_camera: str = ""
+    video_service: str = "camera"  # the camera's service id: its frames only, its liveliness token
+    video_stale_ms: float = 250.0  # ms: no frame for this long → DEGRADED (3 frames at 12 fps)
+    video_hold_ms: float = 1000.0  # ms: no frame (or camera not alive) for this long → HOLD
+    video_age_budget_ms: float = 150.0  # ms: a frame older than this at arrival → DEGRADED
+    video_age_limit_ms: float = 500.0  # ms: a frame older than this at arrival → HOLD
+    video_fresh_frames: int = 3  # fresh frames in a row needed before OK again
+    video_window_s: float = 2.0  # s: window of the frame-age percentiles and fps
     bus: BusConfig = field(default_factory=BusConfig)  # zenoh session
+
+    def video_policy(self) -> VideoPolicy:
+        """The video limits of this config."""
+        return VideoPolicy(
+            self.video_stale_ms,
+            self.video_hold_ms,
+            self.video_age_budget_ms,
+            self.video_age_limit_ms,
+            self.video_fresh_frames,
+            self.video_window_s,
+        )
 
     def validate(self) -> None:
         """Raise ConfigError on inconsistent settings."""
+        if self.video_camera and not (
+            0 < self.video_stale_ms < self.video_hold_ms
+            and 0 < self.video_age_budget_ms < self.video_age_limit_ms
+        ):
+            raise ConfigError(
+                "need 0 < video_stale_ms < video_hold_ms and 0 < video_age_budget_ms < video_age_limit_ms"
+            )
+        if self.video_fresh_frames < 1 or self.video_window_s <= 0:
+            raise ConfigError("video_fresh_frames must be >= 1 and video_window_s > 0")
         if self.lease_hz <= 0 or self.lease_valid_ms * self.lease_hz / 1e3 < 2.0:
             raise ConfigError("lease_valid_ms must cover at least 2 lease periods")
         if self.latency_source not in LATENCY_SOURCES:
@@ -173,6 +211,9 @@ class ArmWatch:
         self.loss: deque[tuple[float, int]] = deque()  # (mono s, lost + reordered so far)
         self.lease_out: Outlet = node.outlet(k.safety(arm, "lease"))
         self.state_out: Outlet = node.outlet(k.safety(arm, "state"), control=False)
+        self.video_out: Outlet | None = (
+            node.outlet(k.safety(arm, "video"), control=False) if cfg.video_camera else None
+        )
         self.verdict = Verdict("HOLD", ("starting",), 1.0, 0.0, 0.0, 0.0, 0)
 
 
@@ -201,6 +242,15 @@ class Watchdog:
             sub(k.slave(a.arm, "measured_js"), JointState, self._on_stream, sources=sl, polled=True)
             sub(k.slave(a.arm, "operating_state"), OperatingState, self._bind(a, self._on_slave), sources=sl)
         node.subscribe(k.estop, EStop, self._on_estop)
+        self.video: VideoWatch | None = None
+        if cfg.video_camera:
+            self.video = VideoWatch(cfg.video_policy(), time.monotonic())
+            node.subscribe(
+                k.camera(cfg.video_camera, "image"),
+                CameraImage,
+                self._on_frame,
+                sources=only(cfg.video_service),
+            )
         node.watch_liveliness(k.alive(), self._on_alive)
 
     @staticmethod
@@ -230,6 +280,18 @@ class Watchdog:
         with self.lock:
             a.safety.on_slave_state(msg, time.monotonic())
 
+    def _on_frame(self, msg: CameraImage, key: str) -> None:
+        now = time.monotonic()
+        if self.cfg.latency_source == "clock":  # one host, one clock: arrival − capture
+            age_ms = (time.time_ns() - msg.capture_ns) / 1e6
+        else:  # across hosts: the camera's own time + the command path's one-way estimate
+            with self.lock:
+                one_way = self.arms[0].verdict.latency_p50_ms if self.arms else 0.0
+            age_ms = msg.render_ms + msg.encode_ms + one_way
+        with self.lock:
+            assert self.video is not None
+            self.video.on_frame(msg.header.seq, age_ms, now)
+
     def _on_estop(self, msg: EStop, key: str) -> None:
         with self.lock:
             changed = [a.safety.on_estop(msg) for a in self.arms]
@@ -242,7 +304,12 @@ class Watchdog:
                 self.alive.add(service)
             else:
                 self.alive.discard(service)
-        if not alive and service in self.cfg.required_services:
+            if self.video is not None and service == self.cfg.video_service:
+                self.video.on_alive(alive, time.monotonic())
+        if not alive and (
+            service in self.cfg.required_services
+            or (self.video is not None and service == self.cfg.video_service)
+        ):
             self.tick(force_state=True)  # do not wait for the next period
 
     def add_echo_latency(self, rtt_s: float | None) -> None:
@@ -293,9 +360,17 @@ class Watchdog:
         self.ticks += 1
         self.node.poll()  # the polled streams, counted as seen at this tick
         now = time.monotonic()
+        video = ("OK", "")
+        if self.video is not None:
+            with self.lock:
+                video = self.video.evaluate(now)
         for a in self.arms:
             hold = self.hold_causes(a)
             degraded = self.degraded_causes(a, now)
+            if video[0] == "HOLD":
+                hold.append(video[1])
+            elif video[0] == "DEGRADED":
+                degraded.append(video[1])
             with self.lock:
                 v = a.safety.evaluate(now, hold, degraded)
             a.lease_out.put(
@@ -336,6 +411,26 @@ class Watchdog:
                 v.latency_samples,
             )
         )
+        if a.video_out is not None and self.video is not None:
+            now = time.monotonic()
+            with self.lock:
+                w = self.video
+                p50, p99, fps, _ = w.ages(now)
+                since = w.since_frame_ms(now) if w.last_rx is not None else 0.0
+                msg = VideoState(
+                    a.video_out.header(),
+                    a.arm,
+                    self.cfg.video_camera,
+                    w.state,
+                    round(since, 3),
+                    round(w.last_age_ms, 3),
+                    round(p50, 3),
+                    round(p99, 3),
+                    round(fps, 3),
+                    w.frames,
+                    w.gaps,
+                )
+            a.video_out.put(msg)
 
 
 def _echo_loop(wd: Watchdog, cfg: WatchdogConfig, stop: threading.Event) -> None:

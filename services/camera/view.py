@@ -1,0 +1,158 @@
+"""``telesurg view``: the live endoscope picture in a small web page (until the web console lands).
+
+Subscribes to ``camera/<cam>/image`` and serves, on localhost only, a page (``/``) with the
+picture as an MJPEG stream (``/stream.mjpg``: each frame's JPEG as it arrives, no re-encoding)
+and the frame's age, sequence and size (``/status.json``). Any browser shows it.
+
+Example::
+
+    telesurg view --connect tcp/127.0.0.1:7447 --port 8088    # then open http://127.0.0.1:8088/
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import threading
+import time
+from collections.abc import Sequence
+from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+from typing import Any
+
+from telesurg.services.common import install_stop_handlers, setup_logging
+from telesurg.shared.bus import Node, add_bus_args, bus_from_args
+from telesurg.shared.messages import CameraImage
+
+log = logging.getLogger("telesurg.view")
+
+PAGE = """<!doctype html><html><head><meta charset="utf-8"><title>telesurg endoscope</title>
+<style>body{background:#111;color:#ddd;font:14px sans-serif;margin:1em}img{width:min(96vw,960px);
+image-rendering:auto;border:1px solid #444}</style></head><body>
+<div id="s">waiting for frames…</div><img src="/stream.mjpg" alt="endoscope">
+<script>setInterval(async()=>{try{const s=await (await fetch('/status.json')).json();
+document.getElementById('s').textContent=`camera ${s.camera}  seq ${s.seq}  ${s.width}x${s.height}  `+
+`age at arrival ${s.age_ms.toFixed(1)} ms  ${s.fps.toFixed(1)} fps`;}catch(e){}},500);</script>
+</body></html>"""
+
+
+class Latest:
+    """The newest frame and its arrival, shared by the zenoh callback and the HTTP threads."""
+
+    def __init__(self) -> None:
+        self.cond = threading.Condition()
+        self.msg: CameraImage | None = None
+        self.age_ms = 0.0
+        self.arrivals: list[float] = []
+
+    def on_frame(self, msg: CameraImage, key: str) -> None:
+        now = time.monotonic()
+        with self.cond:
+            self.msg = msg
+            self.age_ms = (time.time_ns() - msg.capture_ns) / 1e6
+            self.arrivals = [t for t in self.arrivals if now - t < 2.0] + [now]
+            self.cond.notify_all()
+
+    def status(self) -> dict[str, Any]:
+        with self.cond:
+            m = self.msg
+            if m is None:
+                return {"camera": "", "seq": -1, "width": 0, "height": 0, "age_ms": 0.0, "fps": 0.0}
+            return {
+                "camera": m.camera,
+                "seq": m.header.seq,
+                "width": m.width,
+                "height": m.height,
+                "age_ms": self.age_ms,
+                "fps": len(self.arrivals) / 2.0,
+            }
+
+
+def make_server(latest: Latest, port: int, stop: threading.Event) -> ThreadingHTTPServer:
+    """The page, the MJPEG stream and the status on 127.0.0.1:``port``."""
+
+    class Handler(BaseHTTPRequestHandler):
+        def log_message(self, fmt: str, *args: Any) -> None:
+            log.debug(fmt, *args)
+
+        def do_GET(self) -> None:
+            if self.path == "/":
+                self._send(PAGE.encode(), "text/html; charset=utf-8")
+            elif self.path == "/status.json":
+                self._send(json.dumps(latest.status()).encode(), "application/json")
+            elif self.path == "/stream.mjpg":
+                self._stream()
+            else:
+                self.send_error(404)
+
+        def _send(self, body: bytes, ctype: str) -> None:
+            self.send_response(200)
+            self.send_header("Content-Type", ctype)
+            self.send_header("Content-Length", str(len(body)))
+            self.send_header("Cache-Control", "no-store")
+            self.end_headers()
+            self.wfile.write(body)
+
+        def _stream(self) -> None:
+            self.send_response(200)
+            self.send_header("Content-Type", "multipart/x-mixed-replace; boundary=frame")
+            self.send_header("Cache-Control", "no-store")
+            self.end_headers()
+            last = -1
+            while not stop.is_set():
+                with latest.cond:
+                    latest.cond.wait_for(
+                        lambda last=last: (
+                            stop.is_set()  # type: ignore[misc]
+                            or (latest.msg is not None and latest.msg.header.seq != last)
+                        ),
+                        timeout=1.0,
+                    )
+                    m = latest.msg
+                if m is None or m.header.seq == last:
+                    continue
+                last = m.header.seq
+                try:
+                    self.wfile.write(
+                        b"--frame\r\nContent-Type: image/jpeg\r\nContent-Length: "
+                        + str(len(m.data)).encode()
+                        + b"\r\n\r\n"
+                        + m.data
+                        + b"\r\n"
+                    )
+                except OSError:  # the browser went away
+                    return
+
+    server = ThreadingHTTPServer(("127.0.0.1", port), Handler)
+    server.daemon_threads = True
+    return server
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """``telesurg view``."""
+    ap = argparse.ArgumentParser(prog="telesurg view", description=__doc__)
+    ap.add_argument("--site", default="local", help="site id (default: local)")
+    ap.add_argument("--camera", default="endo", help="camera id (default: endo)")
+    ap.add_argument("--port", type=int, default=8088, help="HTTP port on 127.0.0.1 (default 8088)")
+    ap.add_argument("--seconds", type=float, default=0.0, help="stop after this long (0: Ctrl-C)")
+    add_bus_args(ap)
+    a = ap.parse_args(argv)
+    bus = bus_from_args(a)
+    if not bus.connect and bus.mode == "client":
+        bus.connect = ["tcp/127.0.0.1:7447"]
+    setup_logging("INFO", "view")
+    stop = threading.Event()
+    install_stop_handlers(stop)
+    latest = Latest()
+    with Node(bus, a.site, f"view_{a.port}") as node:
+        node.subscribe(node.keys.camera(a.camera, "image"), CameraImage, latest.on_frame, sources=["camera"])
+        server = make_server(latest, a.port, stop)
+        threading.Thread(target=server.serve_forever, daemon=True).start()
+        log.info("endoscope view: http://127.0.0.1:%d/", a.port)
+        stop.wait(a.seconds or None)
+        stop.set()
+        with latest.cond:
+            latest.cond.notify_all()
+        server.shutdown()
+        server.server_close()
+    return 0

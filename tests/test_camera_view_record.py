@@ -1,0 +1,95 @@
+"""The picture where the surgeon looks and in the record (issue #18): ``telesurg view`` serves the
+live frames, the MCAP recording keeps every frame (decoded with its schema), and a replay into
+rerun shows them as images."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import urllib.request
+from pathlib import Path
+
+import pytest
+from conftest import wait_until
+from helpers import entity_paths
+from telesurg.services.launcher import Site, SiteSpec, free_port
+from telesurg.services.record import iter_decoded, open_mcap
+from telesurg.services.record.replay import to_rerun
+from telesurg.shared.messages import CameraImage
+
+pytestmark = pytest.mark.process
+
+
+def test_view_page_recording_and_replay(tmp_path: Path) -> None:
+    spec = SiteSpec(
+        site="camv", port=free_port(), services=("camera", "slave_control"), log_dir=tmp_path / "logs"
+    )
+    out = tmp_path / "run.mcap"
+    port = free_port()
+    with Site(spec):
+        view = subprocess.Popen(
+            [
+                sys.executable,
+                "-m",
+                "telesurg.services.cli",
+                "view",
+                "--site",
+                "camv",
+                "--connect",
+                spec.endpoint,
+                "--port",
+                str(port),
+                "--seconds",
+                "60",
+            ],
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL,
+        )
+        try:
+            rec = subprocess.run(
+                [
+                    sys.executable,
+                    "-m",
+                    "telesurg.services.cli",
+                    "record",
+                    "--out",
+                    str(out),
+                    "--seconds",
+                    "3",
+                    "--site",
+                    "camv",
+                    "--connect",
+                    spec.endpoint,
+                ],
+                capture_output=True,
+                text=True,
+                timeout=60,
+            )
+            assert rec.returncode == 0, rec.stderr[-2000:]
+
+            def status() -> dict[str, object]:
+                try:
+                    with urllib.request.urlopen(f"http://127.0.0.1:{port}/status.json", timeout=2) as r:
+                        return dict(json.loads(r.read()))
+                except OSError:
+                    return {}
+
+            assert wait_until(lambda: int(status().get("seq", -1)) >= 0, 20.0), status()
+            s = status()
+            assert (s["camera"], s["width"], s["height"]) == ("endo", 320, 240)
+            with urllib.request.urlopen(f"http://127.0.0.1:{port}/stream.mjpg", timeout=5) as r:
+                head = r.read(4096)
+            assert head.startswith(b"--frame\r\nContent-Type: image/jpeg") and b"\xff\xd8" in head
+            with urllib.request.urlopen(f"http://127.0.0.1:{port}/", timeout=5) as r:
+                assert b"/stream.mjpg" in r.read()
+        finally:
+            view.terminate()
+            view.wait(10)
+    with open_mcap(out) as reader:
+        frames = [m for t, _, _, _, m in iter_decoded(reader) if t.endswith("/camera/endo/image")]
+    assert len(frames) >= 10 and all(isinstance(m, CameraImage) for m in frames), len(frames)
+    counts = to_rerun(out, tmp_path / "run.rrd")
+    print(f"{len(frames)} frames recorded; replay into rerun: {counts}")
+    assert counts.get("images", 0) >= 3
+    assert "/camera/endo/image" in entity_paths(tmp_path / "run.rrd")
