@@ -117,11 +117,12 @@ pedal.addEventListener("touchcancel", (ev) => setPedal(false, ev));
 
 // ------------------------------------------------------------------ phone / tablet
 let touch = null;
-view.addEventListener("touchstart", (ev) => { ev.preventDefault(); const t = ev.touches[0]; touch = { x: t.clientX, y: t.clientY }; }, { passive: false });
+// (targetTouches: the finger on the view, while another may hold the pedal)
+view.addEventListener("touchstart", (ev) => { ev.preventDefault(); const t = ev.targetTouches[0]; touch = { x: t.clientX, y: t.clientY }; }, { passive: false });
 view.addEventListener("touchmove", (ev) => {
   ev.preventDefault();
-  if (!touch) return;
-  const t = ev.touches[0];
+  if (!touch || !ev.targetTouches.length) return;
+  const t = ev.targetTouches[0];
   move((t.clientX - touch.x) * mmPerPx / 1000, -(t.clientY - touch.y) * mmPerPx / 1000, 0);
   touch = { x: t.clientX, y: t.clientY };
   master.device = "touch";
