@@ -172,11 +172,12 @@ def _high_fd(fd: int) -> int:
 
 @contextlib.contextmanager
 def chromium(
-    url: str, workdir: Path, window: tuple[int, int] = WINDOW, mobile: bool = False
+    url: str, workdir: Path, window: tuple[int, int] = WINDOW, mobile: bool = False, nice: int = 10
 ) -> Iterator[tuple[DevTools, str]]:
     """Headless chromium showing ``url``: (DevTools client, page session id); killed on exit.
 
-    ``window``/``mobile``: the emulated viewport (a phone: e.g. (390, 844), mobile, touch on)."""
+    ``window``/``mobile``: the emulated viewport (a phone: e.g. (390, 844), mobile, touch on);
+    ``nice``: chromium's niceness (10: it yields to the services; 0 where the page is a master)."""
     profile = workdir / "chromium-profile"
     profile.mkdir(parents=True, exist_ok=True)
     cmd_r, cmd_w = os.pipe()  # we write commands → chromium's fd 3
@@ -186,7 +187,7 @@ def chromium(
     argv = [
         "bash",
         "-c",
-        f'exec 3<&{cmd_r} 4>&{out_w} {cmd_r}<&- {out_w}>&-; exec nice -n 10 "$@"',
+        f'exec 3<&{cmd_r} 4>&{out_w} {cmd_r}<&- {out_w}>&-; exec nice -n {nice} "$@"',
         "chromium",
         str(CHROMIUM),
         *CHROMIUM_FLAGS,

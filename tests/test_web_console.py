@@ -16,6 +16,7 @@ mapped onto the host clock), e-stop click → watchdog ESTOP, tab closed → wat
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import os
@@ -51,7 +52,7 @@ class Probe:
 
     tips: list[tuple[float, np.ndarray, np.ndarray]] = field(default_factory=list)  # (mono s, p m, q)
     latency_ms: list[tuple[float, float]] = field(default_factory=list)  # (mono s, ms)
-    safety: list[tuple[float, str, tuple[str, ...]]] = field(default_factory=list)
+    safety: list[tuple[float, str, tuple[str, ...], float]] = field(default_factory=list)
     lock: threading.Lock = field(default_factory=threading.Lock)
 
     def on_tip(self, m: CartesianPose, key: str) -> None:
@@ -65,7 +66,7 @@ class Probe:
 
     def on_safety(self, m: SafetyState, key: str) -> None:
         with self.lock:
-            self.safety.append((time.monotonic(), m.state, m.causes))
+            self.safety.append((time.monotonic(), m.state, m.causes, m.scale))
 
     def tip(self) -> np.ndarray:
         with self.lock:
@@ -81,7 +82,20 @@ class Probe:
 
     def first_state(self, t: float, states: tuple[str, ...]) -> float | None:
         with self.lock:
-            return next((s for s, st, _ in self.safety if s >= t and st in states), None)
+            return next((s for s, st, _, _ in self.safety if s >= t and st in states), None)
+
+    def undisturbed(self, t0: float, t1: float) -> bool:
+        """No watchdog HOLD / ESTOP and one motion-scale factor from ``t0`` to ``t1`` (on this
+        loaded 2-core host a stale stream can hold the slave mid-trial: then the trial is redone,
+        as an operator would re-clutch)."""
+        with self.lock:
+            before = [x for x in self.safety if x[0] < t0][-1:]
+            during = before + [x for x in self.safety if t0 <= x[0] <= t1]
+        return (
+            bool(during)
+            and all(st in ("OK", "DEGRADED") for _, st, _, _ in during)
+            and (len({sc for _, _, _, sc in during}) == 1)
+        )
 
 
 @contextmanager
@@ -226,10 +240,26 @@ def settle(probe: Probe, quiet_mm: float = 0.05, timeout: float = 5.0) -> np.nda
     return probe.tip()
 
 
-def engage(cdp: DevTools, s: str) -> None:
-    """Press the clutch key and wait for the page to say ENABLED."""
-    space(cdp, s, True)
-    wait_page(cdp, s, "#arm-arm1 .v.teleop .state", lambda t: t == "ENABLED", 10.0)
+def engage(cdp: DevTools, s: str, press: Callable[[bool], None] | None = None) -> None:
+    """Press the clutch (the Space key, or ``press``) until the page says ENABLED.
+
+    A refused engage (HOLDING: e.g. the watchdog held for a moment on the loaded host) is
+    answered as an operator would: release, press again (at most three times)."""
+    press = press or (lambda down: space(cdp, s, down))
+    for _ in range(3):
+        press(True)
+        deadline = time.monotonic() + 10.0
+        while time.monotonic() < deadline:
+            state = teleop(cdp, s)
+            if state in ("ENABLED", "HOLDING"):
+                break
+            time.sleep(0.05)
+        if state == "ENABLED":
+            return
+        print("engage refused:", text(cdp, s, "#arm-arm1 .v.teleop"))
+        press(False)
+        time.sleep(0.3)
+    raise AssertionError(f"no engage: {text(cdp, s, '#arm-arm1 .v.teleop')}")
 
 
 def save_shot(png: bytes, name: str, tmp: Path) -> None:
@@ -263,20 +293,26 @@ def test_mouse_keyboard_master_drives_the_slave_and_estop(tmp_path: Path) -> Non
     """Acceptance 1 and 6: live state on the page, drag with the clutch key held moves the tip by
     scale × distance in the dragged direction, release holds, e-stop → ESTOP, reset confirmed."""
     needs_chromium()
-    with running_console(tmp_path) as (url, _, probe), chromium(url, tmp_path) as (cdp, s):
+    with running_console(tmp_path) as (url, _, probe), chromium(url, tmp_path, nice=0) as (cdp, s):
         # live state, read from the page: clutch released, nothing in the way, safety OK
         wait_page(cdp, s, "#arm-arm1 .v.safety .state", lambda t: t == "OK", 30.0)
         wait_page(cdp, s, "#arm-arm1 .v.teleop .state", lambda t: t == "IDLE", 10.0)
         assert "publishing" in text(cdp, s, "#master-status")
         gain = float(js(cdp, s, "window.consoleState.mouse_mm_per_px"))
-        engage(cdp, s)
-        op_scale = float(text(cdp, s, "#arm-arm1 .op-scale"))
-        wd_scale = float(text(cdp, s, "#arm-arm1 .wd-scale"))
-        p0 = settle(probe)
-        t_drag = time.monotonic()
-        dx_px, dy_px = 250.0, -150.0
-        drag(cdp, s, dx_px, dy_px)
-        p1 = settle(probe)
+        for attempt in range(6):
+            engage(cdp, s)
+            p0 = settle(probe)
+            op_scale = float(text(cdp, s, "#arm-arm1 .op-scale"))
+            wd_scale = float(text(cdp, s, "#arm-arm1 .wd-scale"))
+            t_drag = time.monotonic()
+            dx_px, dy_px = 250.0, -150.0
+            drag(cdp, s, dx_px, dy_px)
+            p1 = settle(probe)
+            if probe.undisturbed(t_drag, time.monotonic()) and teleop(cdp, s) == "ENABLED":
+                break
+            print(f"drag {attempt}: interrupted by a watchdog hold or scale change (load); again")
+            space(cdp, s, False)
+            time.sleep(0.5)
         lat = [ms for t, ms in probe.latency_ms if t >= t_drag]
         # master frame: x right, y up the screen; the local site's master → slave rotation is identity
         want = op_scale * wd_scale * np.array([dx_px * gain, -dy_px * gain, 0.0]) / 1e3
@@ -331,7 +367,7 @@ def test_quiet_browser_holds_and_reengages_without_a_jump(tmp_path: Path) -> Non
     """Acceptance 3: closing the tab while engaged holds the slave; a new page stays still until a
     fresh clutch press, and the re-engage makes no jump."""
     needs_chromium()
-    with running_console(tmp_path) as (url, _, probe), chromium(url, tmp_path) as (cdp, s):
+    with running_console(tmp_path) as (url, _, probe), chromium(url, tmp_path, nice=0) as (cdp, s):
         wait_page(cdp, s, "#arm-arm1 .v.safety .state", lambda t: t == "OK", 30.0)
         engage(cdp, s)
         drag(cdp, s, 100.0, 0.0, steps=10)
@@ -383,7 +419,7 @@ def test_phone_touch_and_orientation_drive_the_slave(tmp_path: Path) -> None:
     needs_chromium()
     with (
         running_console(tmp_path) as (url, _, probe),
-        chromium(url, tmp_path, window=(390, 844), mobile=True) as (cdp, s),
+        chromium(url, tmp_path, window=(390, 844), mobile=True, nice=0) as (cdp, s),
     ):
         cdp.call("DeviceOrientation.setDeviceOrientationOverride", {"alpha": 0, "beta": 0, "gamma": 0}, s)
         wait_page(cdp, s, "#arm-arm1 .v.safety .state", lambda t: t == "OK", 30.0)
@@ -395,25 +431,36 @@ def test_phone_touch_and_orientation_drive_the_slave(tmp_path: Path) -> None:
         def touch(kind: str, points: list[dict[str, float]]) -> None:
             cdp.call("Input.dispatchTouchEvent", {"type": kind, "touchPoints": points}, s)
 
-        touch("touchStart", [pedal])
-        wait_page(cdp, s, "#arm-arm1 .v.teleop .state", lambda t: t == "ENABLED", 10.0)
-        scale = float(text(cdp, s, "#arm-arm1 .op-scale")) * float(text(cdp, s, "#arm-arm1 .wd-scale"))
-        p0, q0 = settle(probe), probe.quat()
-        dy = -120.0
-        touch("touchStart", [pedal, {"x": vx, "y": vy, "id": 2}])
-        for i in range(1, 21):
-            touch("touchMove", [pedal, {"x": vx, "y": vy + dy * i / 20, "id": 2}])
-            time.sleep(0.02)
-        touch("touchEnd", [pedal])
-        for i in range(1, 11):  # turn the phone 20° about its z axis, 2° a step
-            cdp.call(
-                "DeviceOrientation.setDeviceOrientationOverride", {"alpha": 2 * i, "beta": 0, "gamma": 0}, s
-            )
-            time.sleep(0.05)
-        p1 = settle(probe)
-        q1 = probe.quat()
+        dy, turn = -120.0, 0.0
+        for attempt in range(6):
+            engage(cdp, s, lambda down: touch("touchStart", [pedal]) if down else touch("touchEnd", []))
+            scale = float(text(cdp, s, "#arm-arm1 .op-scale")) * float(text(cdp, s, "#arm-arm1 .wd-scale"))
+            p0, q0 = settle(probe), probe.quat()
+            t0 = time.monotonic()
+            touch("touchStart", [pedal, {"x": vx, "y": vy, "id": 2}])
+            for i in range(1, 21):
+                touch("touchMove", [pedal, {"x": vx, "y": vy + dy * i / 20, "id": 2}])
+                time.sleep(0.02)
+            touch("touchMove", [pedal])  # the view finger lifts, the pedal finger stays
+            for _ in range(10):  # turn the phone 20° about its z axis, 2° a step
+                turn += 2.0
+                cdp.call(
+                    "DeviceOrientation.setDeviceOrientationOverride",
+                    {"alpha": turn, "beta": 0, "gamma": 0},
+                    s,
+                )
+                time.sleep(0.05)
+            p1 = settle(probe)
+            q1 = probe.quat()
+            if probe.undisturbed(t0, time.monotonic()) and teleop(cdp, s) == "ENABLED":
+                break
+            print(f"phone trial {attempt}: interrupted by a watchdog hold or scale change (load); again")
+            with contextlib.suppress(RuntimeError):  # (no touch left to end)
+                touch("touchEnd", [])
+            time.sleep(0.5)
         save_shot(screenshot(cdp, s), "console-phone.png", tmp_path)
-        touch("touchEnd", [])
+        with contextlib.suppress(RuntimeError):
+            touch("touchEnd", [])
         want = scale * np.array([0.0, -dy * gain, 0.0]) / 1e3
         err_mm = float(np.linalg.norm((p1 - p0) - want) * 1e3)
         angle = math.degrees(2 * math.acos(min(1.0, abs(float(np.dot(q0, q1))))))

@@ -58,7 +58,7 @@ from telesurg.shared import robots
 from telesurg.shared.bus import Node, only
 from telesurg.shared.errors import ConfigError
 from telesurg.shared.messages import CartesianPose, JointState, MasterButtons
-from telesurg.shared.timing import CycleTimer
+from telesurg.shared.timing import CycleTimer, start_loop
 
 log = logging.getLogger(__name__)
 
@@ -175,6 +175,7 @@ class WebConsole:
                     bm.detach(conn)
 
     def _publish_loop(self) -> None:
+        start_loop(self.web.rt_priority)
         timer = CycleTimer(self.web.rate_hz)
         every = max(1, round(self.web.rate_hz / self.web.buttons_hz))
         last: dict[str, tuple[bool, bool] | None] = dict.fromkeys(self.masters)

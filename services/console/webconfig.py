@@ -6,6 +6,7 @@ from dataclasses import dataclass
 
 from telesurg.shared.errors import ConfigError
 from telesurg.shared.keys import check_id
+from telesurg.shared.timing import check_rt_priority
 
 
 @dataclass
@@ -28,10 +29,14 @@ class WebConfig:
     max_rejects: int = 50  # refused frames after which a connection is closed as abusive
     mouse_mm_per_px: float = 0.2  # mm of master motion per dragged pixel (the page's mouse master)
     record_dir: str = "out/recordings"  # where record start puts its .mcap files
+    # SCHED_FIFO priority of the thread publishing the browser masters, 1-99 (0: the normal
+    # scheduler), as master_capture's rt_priority; needs root or CAP_SYS_NICE
+    rt_priority: int = 0
 
     def validate(self) -> None:
         """Raise ConfigError naming the problem."""
         check_id("master_service", self.master_service)
+        check_rt_priority(self.rt_priority)
         if not 0 <= self.port <= 65535:
             raise ConfigError(f"web.port={self.port} outside [0, 65535]")
         if not 100.0 <= self.rate_hz <= 2000.0:
