@@ -21,9 +21,6 @@ import json
 import math
 import os
 import shutil
-import signal
-import subprocess
-import sys
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -100,55 +97,39 @@ class Probe:
 
 @contextmanager
 def running_console(tmp: Path) -> Iterator[tuple[str, str, Probe]]:
-    """A site without master_capture, the web console, and a probe: (page URL, endpoint, probe)."""
-    port, web_port = free_port(), free_port()
+    """``telesurg up --master web``'s processes (router, watchdog, slave_control, mapping and the
+    web console as the master; deploy/local) and a probe: (page URL, endpoint, probe)."""
+    web_port = free_port()
     spec = SiteSpec(
-        port=port,
+        port=free_port(),
         config_dir=default_config_dir(),
-        services=("watchdog", "slave_control", "mapping"),
+        services=("watchdog", "slave_control", "mapping", "console"),
+        # (web.rt_priority: the publisher under SCHED_FIFO, as master_capture in deploy/local)
+        overrides={"console": [f"web.port={web_port}", "web.rt_priority=20"]},
         log_dir=tmp / "logs",
     )
-    with Site(spec) as site:
-        ep = spec.endpoint
-        argv = [sys.executable, "-m", "telesurg.services.cli", "console", "--web", "--port", str(web_port)]
-        argv += [
-            "--connect",
-            ep,
-            "--config",
-            str(spec.site_file),
-            "--log-file",
-            str(tmp / "logs" / "web.log"),
-        ]
-        web = subprocess.Popen(argv, stdout=subprocess.DEVNULL, stderr=subprocess.STDOUT)
-        probe = Probe()
-        try:
-            with Node(BusConfig(connect=[ep]), "local", "webtest") as node:
-                k = node.keys
-                node.subscribe(k.slave("arm1", "measured_cp"), CartesianPose, probe.on_tip)
-                node.subscribe(k.slave("arm1", "servo_jp"), JointSetpoint, probe.on_servo)
-                node.subscribe(k.safety("arm1", "state"), SafetyState, probe.on_safety)
-                import urllib.request
+    probe = Probe()
+    with Site(spec) as site, Node(BusConfig(connect=[spec.endpoint]), "local", "webtest") as node:
+        k = node.keys
+        node.subscribe(k.slave("arm1", "measured_cp"), CartesianPose, probe.on_tip)
+        node.subscribe(k.slave("arm1", "servo_jp"), JointSetpoint, probe.on_servo)
+        node.subscribe(k.safety("arm1", "state"), SafetyState, probe.on_safety)
+        import urllib.request
 
-                url = f"http://127.0.0.1:{web_port}/"
+        url = f"http://127.0.0.1:{web_port}/"
 
-                def up() -> bool:
-                    try:
-                        with urllib.request.urlopen(url + "api/stats", timeout=1) as r:
-                            return bool(r.status == 200)
-                    except OSError:
-                        return False
-
-                assert wait_until(up, 30.0), "the web console did not serve its page within 30 s"
-                yield url, ep, probe
-                assert not site.dead(), f"services died: {site.dead()}"
-        finally:
-            web.send_signal(signal.SIGINT)
+        def up() -> bool:
             try:
-                code = web.wait(15)
-            except subprocess.TimeoutExpired:
-                web.kill()
-                code = web.wait()
-            assert code == 0, f"web console exit code {code} (log: {tmp / 'logs' / 'web.log'})"
+                with urllib.request.urlopen(url + "api/stats", timeout=1) as r:
+                    return bool(r.status == 200)
+            except OSError:
+                return False
+
+        assert wait_until(up, 30.0), "the web console did not serve its page within 30 s"
+        yield url, spec.endpoint, probe
+        assert not site.dead(), f"services died: {site.dead()}"
+        codes = site.stop()
+        assert codes.get("console") == 0, f"web console exit codes {codes}"
 
 
 def js(cdp: DevTools, s: str, expr: str) -> Any:
@@ -172,7 +153,7 @@ def wait_page(cdp: DevTools, s: str, selector: str, pred: Callable[[str], bool],
         if pred(last):
             return last
         time.sleep(0.1)
-    raise AssertionError(f"{selector}: {last!r} after {timeout} s")
+    raise AssertionError(f"{selector}: {last!r} after {timeout} s; page: {text(cdp, s, 'main')[:600]}")
 
 
 def centre(cdp: DevTools, s: str, selector: str) -> tuple[float, float]:

@@ -99,8 +99,14 @@ def parse_args(argv: Sequence[str] | None) -> tuple[ConsoleConfig, str]:
     ap.add_argument("--port", type=int, help="with --web: the page's TCP port (web.port, default 8470)")
     ap.add_argument("--table", default=None, help="site-file table to read (default: console)")
     ap.add_argument("--parent-pid", type=int, default=0, help="stop when this process is gone (launcher)")
+    ap.add_argument("--plugin", action="append", default=[], metavar="FILE", help="robot plugin file")
     add_bus_args(ap)
     a = ap.parse_args(argv)
+    if a.plugin:
+        from telesurg.shared import robots
+
+        for plugin in a.plugin:
+            robots.load_plugin(plugin)
     cfg = load_config(ConsoleConfig, a.config, a.set, table=a.table)
     if a.port is not None:
         cfg.web.port = a.port

@@ -125,7 +125,8 @@ def parse_sample(obj: dict[str, Any], masters: tuple[str, ...]) -> Sample:
     """A ``sample`` frame (from :func:`parse_frame`) checked field by field."""
     master = obj["master"]
     if master not in masters:
-        raise FrameError("invalid", f"master {master!r} is not one of this console's: {', '.join(masters)}")
+        mine = ", ".join(masters) or "none (web.master_service is off)"
+        raise FrameError("invalid", f"master {master!r} is not one of this console's: {mine}")
     t = _finite(obj["t"], "t")
     p = _vector(obj["p"], 3, "p")
     if max(abs(x) for x in p) > MAX_POSITION_M:

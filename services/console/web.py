@@ -45,7 +45,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from telesurg.services.common import watch_parent
+from telesurg.services.common import install_stop_handlers, watch_parent
 from telesurg.services.console.browser import (
     BrowserMaster,
     ClockMap,
@@ -112,15 +112,16 @@ class Counters:
 class WebConsole:
     """The bus side of the web console: the console model, the arm views and the browser masters."""
 
-    def __init__(self, cfg: ConsoleConfig, node: Node, master_node: Node) -> None:
+    def __init__(self, cfg: ConsoleConfig, node: Node, master_node: Node | None) -> None:
         self.cfg, self.web = cfg, cfg.web
         self.model = ConsoleModel(cfg, node)
         self.node, self.master_node = node, master_node
         self.views = {a: ArmView() for a in self.model.arms}
         self.lock = threading.Lock()  # views, masters
-        self.masters = {m: BrowserMaster(m, self.web.sample_timeout_ms / 1e3) for m in self.model.masters}
+        browser = self.model.masters if master_node is not None else []
+        self.masters = {m: BrowserMaster(m, self.web.sample_timeout_ms / 1e3) for m in browser}
         self.counters = Counters()
-        self.published = dict.fromkeys(self.model.masters, 0)
+        self.published = dict.fromkeys(self.masters, 0)
         k = node.keys
         s_src = only(cfg.slave_source)
         for arm in self.model.arms:
@@ -128,9 +129,10 @@ class WebConsole:
             node.subscribe(k.slave(arm, "measured_cp"), CartesianPose, self._on_cp, sources=s_src)
             m_src = only(cfg.mapping_source)
             node.subscribe(k.slave(arm, "setpoint_cp"), CartesianPose, self._on_setpoint, sources=m_src)
-        mk = master_node.keys
-        self._pose_out = {m: master_node.outlet(mk.master(m, "measured_cp")) for m in self.model.masters}
-        self._buttons_out = {m: master_node.outlet(mk.master(m, "buttons")) for m in self.model.masters}
+        mk = node.keys
+        out = master_node.outlet if master_node is not None else None
+        self._pose_out = {m: out(mk.master(m, "measured_cp")) for m in self.masters if out}
+        self._buttons_out = {m: out(mk.master(m, "buttons")) for m in self.masters if out}
         self._stop = threading.Event()
         self._wake = threading.Event()
         self._recorder: Any = None
@@ -156,7 +158,7 @@ class WebConsole:
     def feed(self, conn: object, obj: dict[str, Any], clock: ClockMap) -> str:
         """An admitted ``sample`` frame; "" when taken, else why it was not (FrameError if invalid)."""
         received = time.time_ns()
-        s = parse_sample(obj, tuple(self.model.masters))
+        s = parse_sample(obj, tuple(self.masters))
         stamp = clock.stamp_ns(s.t_ms, received)
         now = time.monotonic()
         with self.lock:
@@ -537,23 +539,22 @@ def run_web(cfg: ConsoleConfig, parent_pid: int = 0) -> None:
     """Open the console's node and the master node, serve until SIGINT / SIGTERM (or, with
     ``parent_pid``, until that launcher is gone)."""
     cfg.web.validate()
-    gone = threading.Event()
+    gone = threading.Event()  # SIGINT / SIGTERM (from now on: no KeyboardInterrupt mid-start-up)
+    install_stop_handlers(gone)
     if parent_pid:
         watch_parent(parent_pid, gone)
-    with (
-        Node(cfg.bus, cfg.site, cfg.service) as node,
-        Node(cfg.bus, cfg.site, cfg.web.master_service) as mnode,
-    ):
+    with contextlib.ExitStack() as stack:
+        node = stack.enter_context(Node(cfg.bus, cfg.site, cfg.service))
+        ms = cfg.web.master_service
+        mnode = stack.enter_context(Node(cfg.bus, cfg.site, ms)) if ms else None
         wc = WebConsole(cfg, node, mnode)
         try:
 
             async def main() -> None:
                 stop = asyncio.Event()
                 loop = asyncio.get_running_loop()
-                for sig in (signal.SIGINT, signal.SIGTERM):
-                    loop.add_signal_handler(sig, stop.set)
                 threading.Thread(
-                    target=lambda: gone.wait() or loop.call_soon_threadsafe(stop.set), daemon=True
+                    target=lambda: (gone.wait(), loop.call_soon_threadsafe(stop.set)), daemon=True
                 ).start()
                 await serve(wc, stop)
 

@@ -16,7 +16,8 @@ class WebConfig:
     host: str = "127.0.0.1"  # address the page is served on (0.0.0.0 for a phone on the LAN)
     port: int = 8470  # TCP port of the page and its websocket
     # service id of the node publishing the browser masters' streams: the mapping and the watchdog
-    # accept master/<m>/* from this id only (their master_source)
+    # accept master/<m>/* from this id only (their master_source); "" = no browser master (the
+    # page shows the state and sends commands; another master_capture drives the slave)
     master_service: str = "master_capture"
     rate_hz: float = 200.0  # Hz: the newest browser sample is published at least this often
     buttons_hz: float = 50.0  # Hz: buttons go out on every change and at least this often
@@ -35,7 +36,8 @@ class WebConfig:
 
     def validate(self) -> None:
         """Raise ConfigError naming the problem."""
-        check_id("master_service", self.master_service)
+        if self.master_service:
+            check_id("master_service", self.master_service)
         check_rt_priority(self.rt_priority)
         if not 0 <= self.port <= 65535:
             raise ConfigError(f"web.port={self.port} outside [0, 65535]")

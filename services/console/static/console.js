@@ -58,8 +58,9 @@ function connect() {
   };
 }
 function send(obj) { if (wsOpen) ws.send(JSON.stringify(obj)); }
+let masterOn = false; // this console publishes browser master MASTER (web.master_service set)
 function sendSample(tMs) {
-  if (!wsOpen || master.hidden) return;
+  if (!wsOpen || master.hidden || !masterOn) return;
   send({ type: "sample", master: MASTER, t: tMs, p: master.p, q: master.q, clutch: clutch(),
          present: true, device: master.device });
 }
@@ -237,7 +238,9 @@ function render(m) {
   $("#site").textContent = "site " + m.site;
   $("#alive").innerHTML = `<span class="dim">alive: ${esc(m.alive.join(" "))}</span>`;
   const ms = m.masters[MASTER];
+  masterOn = !!ms;
   const el = $("#master-status");
+  if (!ms) { el.textContent = "no browser master here (state and commands only)"; el.className = "dim"; }
   if (ms) {
     el.textContent = `master ${MASTER} (${ms.device || "—"}): ${ms.valid ? "publishing" : "not publishing"} · clutch ${ms.clutch ? "PRESSED" : ms.clutch_raw ? "held — release and press again" : "released"}`;
     el.className = ms.valid ? (ms.clutch ? "ok" : "") : "bad";
