@@ -38,6 +38,7 @@ from telesurg.shared.errors import ConfigError, DeviceConnectionError, MessageEr
 from telesurg.shared.streams import NEXT
 
 if TYPE_CHECKING:
+    from telesurg.services.master_capture.desk import DeskConfig
     from telesurg.shared.serial_link import Frame, SerialLink
 
 log = logging.getLogger(__name__)
@@ -598,15 +599,25 @@ class SerialMasterDevice:
             self._stats.samples += 1
 
 
-DEVICES = ("scripted", "serial")
+#: desk devices (services/master_capture/desk.py): SpaceMouse, Touch / Omni, omega.7, gamepad
+DESK_DEVICES = ("spacemouse", "touch", "omega7", "gamepad")
+DEVICES = ("scripted", "serial", *DESK_DEVICES)
 
 
 def make_device(
-    kind: str, scripted: ScriptedConfig | None = None, serial: SerialMasterConfig | None = None
+    kind: str,
+    scripted: ScriptedConfig | None = None,
+    serial: SerialMasterConfig | None = None,
+    desk: DeskConfig | None = None,
 ) -> MasterDevice:
     """The device registered as ``kind``, made from its config (the default config if None)."""
     if kind == "scripted":
         return ScriptedDevice(scripted or ScriptedConfig())
     if kind == "serial":
         return SerialMasterDevice(serial or SerialMasterConfig())
+    if kind in DESK_DEVICES:  # (their libraries are imported when the device is opened)
+        from telesurg.services.master_capture.desk import DeskConfig as _Desk
+        from telesurg.services.master_capture.desk import DeskDevice
+
+        return DeskDevice(kind, desk or _Desk())
     raise ConfigError(f"master device {kind!r} unknown; valid: {', '.join(DEVICES)}")
