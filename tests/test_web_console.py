@@ -153,7 +153,10 @@ def wait_page(cdp: DevTools, s: str, selector: str, pred: Callable[[str], bool],
         if pred(last):
             return last
         time.sleep(0.1)
-    raise AssertionError(f"{selector}: {last!r} after {timeout} s; page: {text(cdp, s, '#arms')[:700]} {text(cdp, s, '#master-status')}")
+    raise AssertionError(
+        f"{selector}: {last!r} after {timeout} s; page: {text(cdp, s, '#arms')[:700]} "
+        f"{text(cdp, s, '#master-status')}"
+    )
 
 
 def centre(cdp: DevTools, s: str, selector: str) -> tuple[float, float]:
