@@ -21,9 +21,9 @@ from telesurg.services.master_capture.desk import (
     RateIntegrator,
     Reading,
     deadband,
+    open_device,
     scaled_position,
 )
-from telesurg.services.master_capture.devices import make_device
 from telesurg.shared.errors import ConfigError, DeviceConnectionError
 
 
@@ -139,7 +139,7 @@ def test_binding_without_its_library_says_what_to_install(kind: str) -> None:
     )
     if importlib.util.find_spec(module) is not None:
         pytest.skip(f"{module} is installed: see test_binding_with_its_library")
-    dev = make_device(kind)
+    dev = open_device(kind)
     with pytest.raises(DeviceConnectionError, match=LIBRARIES[kind][0]), dev:  # type: ignore[attr-defined]
         pass
 
@@ -151,7 +151,7 @@ def test_binding_with_its_library(kind: str) -> None:
     )
     if importlib.util.find_spec(module) is None:
         pytest.skip(f"{LIBRARIES[kind][0]} not installed (needs {LIBRARIES[kind][1]}); binding not exercised")
-    dev = make_device(kind)
+    dev = open_device(kind)
     try:
         with dev:  # type: ignore[attr-defined]
             s = dev.read(0.0)

@@ -30,12 +30,11 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 from telesurg.services.common import service_main
-from telesurg.services.master_capture.desk import DeskConfig
+from telesurg.services.master_capture.desk import DeskConfig, open_device
 from telesurg.services.master_capture.devices import (
     ScriptedConfig,
     ScriptedDevice,
     SerialMasterConfig,
-    make_device,
 )
 from telesurg.shared.bus import BusConfig, Node
 from telesurg.shared.errors import ConfigError
@@ -78,7 +77,7 @@ def run(cfg: MasterCaptureConfig, stop: threading.Event) -> None:
     if not 1.0 <= cfg.rate_hz <= 5000.0:
         raise ConfigError(f"rate_hz={cfg.rate_hz} outside [1, 5000]")
     check_rt_priority(cfg.rt_priority)
-    device = make_device(cfg.device, cfg.scripted, cfg.serial, cfg.desk)
+    device = open_device(cfg.device, cfg.scripted, cfg.serial, cfg.desk)
     with device, Node(cfg.bus, cfg.site, cfg.service) as node:
         k = node.keys
         pose_out = node.outlet(k.master(cfg.arm, "measured_cp"))

@@ -32,7 +32,14 @@ from dataclasses import dataclass, field
 from types import TracebackType
 from typing import Protocol
 
-from telesurg.services.master_capture.devices import DESK_DEVICES, DeviceSample
+from telesurg.services.master_capture.devices import (
+    DESK_DEVICES,
+    DeviceSample,
+    MasterDevice,
+    ScriptedConfig,
+    SerialMasterConfig,
+    make_device,
+)
 from telesurg.shared.errors import ConfigError, DeviceConnectionError
 
 #: device type → (Python package to pip install, what else it needs)
@@ -443,3 +450,17 @@ class DeskDevice:
             return DeviceSample(pos, r.orientation or (0.0, 0.0, 0.0, 1.0), clutch, True)
         self.rate.step(r.t, r.trans, r.rot)
         return DeviceSample(self.rate.position, self.rate.orientation, clutch, True)
+
+
+def open_device(
+    kind: str,
+    scripted: ScriptedConfig | None = None,
+    serial: SerialMasterConfig | None = None,
+    desk: DeskConfig | None = None,
+) -> MasterDevice:
+    """Any master device type: a desk device here, the others from
+    :func:`~telesurg.services.master_capture.devices.make_device` (the library of a desk device is
+    imported when it is opened)."""
+    if kind in DESK_DEVICES:
+        return DeskDevice(kind, desk or DeskConfig())
+    return make_device(kind, scripted, serial)

@@ -38,7 +38,6 @@ from telesurg.shared.errors import ConfigError, DeviceConnectionError, MessageEr
 from telesurg.shared.streams import NEXT
 
 if TYPE_CHECKING:
-    from telesurg.services.master_capture.desk import DeskConfig
     from telesurg.shared.serial_link import Frame, SerialLink
 
 log = logging.getLogger(__name__)
@@ -605,19 +604,12 @@ DEVICES = ("scripted", "serial", *DESK_DEVICES)
 
 
 def make_device(
-    kind: str,
-    scripted: ScriptedConfig | None = None,
-    serial: SerialMasterConfig | None = None,
-    desk: DeskConfig | None = None,
+    kind: str, scripted: ScriptedConfig | None = None, serial: SerialMasterConfig | None = None
 ) -> MasterDevice:
-    """The device registered as ``kind``, made from its config (the default config if None)."""
+    """The device registered as ``kind``, made from its config (the default config if None).
+    The desk devices are made by :func:`telesurg.services.master_capture.desk.open_device`."""
     if kind == "scripted":
         return ScriptedDevice(scripted or ScriptedConfig())
     if kind == "serial":
         return SerialMasterDevice(serial or SerialMasterConfig())
-    if kind in DESK_DEVICES:  # (their libraries are imported when the device is opened)
-        from telesurg.services.master_capture.desk import DeskConfig as _Desk
-        from telesurg.services.master_capture.desk import DeskDevice
-
-        return DeskDevice(kind, desk or _Desk())
     raise ConfigError(f"master device {kind!r} unknown; valid: {', '.join(DEVICES)}")
