@@ -399,7 +399,7 @@ def test_quiet_browser_holds_and_reengages_without_a_jump(tmp_path: Path) -> Non
 @pytest.mark.timeout(600)
 def test_phone_touch_and_orientation_drive_the_slave(tmp_path: Path) -> None:
     """Acceptance 2: a mobile viewport; hold the big clutch button, drag a finger on the view,
-    tilt the phone (device-orientation override): the slave translates and rotates."""
+    turn the phone (device-orientation override): the slave translates and rotates."""
     needs_chromium()
     with (
         running_console(tmp_path) as (url, _, probe),
@@ -415,7 +415,7 @@ def test_phone_touch_and_orientation_drive_the_slave(tmp_path: Path) -> None:
         def touch(kind: str, points: list[dict[str, float]]) -> None:
             cdp.call("Input.dispatchTouchEvent", {"type": kind, "touchPoints": points}, s)
 
-        dy, turn = -120.0, 0.0
+        dy, turn = -120.0, 0.0  # px, deg
         for attempt in range(6):
             engage(cdp, s, lambda down: touch("touchStart", [pedal]) if down else touch("touchEnd", []))
             scale = float(text(cdp, s, "#arm-arm1 .op-scale")) * float(text(cdp, s, "#arm-arm1 .wd-scale"))
@@ -426,8 +426,11 @@ def test_phone_touch_and_orientation_drive_the_slave(tmp_path: Path) -> None:
                 touch("touchMove", [pedal, {"x": vx, "y": vy + dy * i / 20, "id": 2}])
                 time.sleep(0.02)
             touch("touchMove", [pedal])  # the view finger lifts, the pedal finger stays
-            for _ in range(10):  # turn the phone 20° about its z axis, 2° a step
-                turn += 2.0
+            # turn the phone 10° about its z axis in 0.5° steps: near this posture the MH3F's
+            # wrist turns ~0.08 rad per degree about base z, and the mapping holds on a joint step
+            # over 0.1 rad between two samples (an IK branch flip)
+            for _ in range(20):
+                turn += 0.5
                 cdp.call(
                     "DeviceOrientation.setDeviceOrientationOverride",
                     {"alpha": turn, "beta": 0, "gamma": 0},
@@ -450,8 +453,8 @@ def test_phone_touch_and_orientation_drive_the_slave(tmp_path: Path) -> None:
         angle = math.degrees(2 * math.acos(min(1.0, abs(float(np.dot(q0, q1))))))
         print(
             f"phone: tip moved {np.round((p1 - p0) * 1e3, 2)} mm, wanted {np.round(want * 1e3, 2)}; "
-            f"error {err_mm:.2f} mm; rotated {angle:.1f}° for a 20° turn"
+            f"error {err_mm:.2f} mm; rotated {angle:.1f}° for a 10° turn"
         )
         write_perf("phone", {"drag_error_mm": round(err_mm, 3), "rotation_deg": round(angle, 2)})
         assert err_mm < 2.0
-        assert abs(angle - 20.0) < 3.0
+        assert abs(angle - 10.0) < 2.0
