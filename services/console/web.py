@@ -118,6 +118,7 @@ class WebConsole:
         self.node, self.master_node = node, master_node
         self.views = {a: ArmView() for a in self.model.arms}
         self.lock = threading.Lock()  # views, masters
+        self._poll_lock = threading.Lock()
         browser = self.model.masters if master_node is not None else []
         self.masters = {m: BrowserMaster(m, self.web.sample_timeout_ms / 1e3) for m in browser}
         self.counters = Counters()
@@ -125,8 +126,12 @@ class WebConsole:
         k = node.keys
         s_src = only(cfg.slave_source)
         for arm in self.model.arms:
-            node.subscribe(k.slave(arm, "measured_js"), JointState, self._on_js, sources=s_src)
-            node.subscribe(k.slave(arm, "measured_cp"), CartesianPose, self._on_cp, sources=s_src)
+            # (polled: 250 Hz streams only drawn at state_hz; no thread wake-up per message in the
+            # process that also relays the browser's samples)
+            node.subscribe(k.slave(arm, "measured_js"), JointState, self._on_js, sources=s_src, polled=True)
+            node.subscribe(
+                k.slave(arm, "measured_cp"), CartesianPose, self._on_cp, sources=s_src, polled=True
+            )
             m_src = only(cfg.mapping_source)
             node.subscribe(k.slave(arm, "setpoint_cp"), CartesianPose, self._on_setpoint, sources=m_src)
         mk = node.keys
@@ -206,6 +211,8 @@ class WebConsole:
     # -- what the page shows -----------------------------------------------------------------
     def state(self) -> dict[str, Any]:
         """Everything the page draws, as JSON-ready data."""
+        with self._poll_lock:  # (the polled slave streams: one thread at a time)
+            self.node.poll()
         arms, clutch, alive = self.model.snapshot()
         now = time.monotonic()
         stale = self.cfg.stale_s
