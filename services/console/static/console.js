@@ -215,7 +215,7 @@ function armHtml(a) {
   rows.push(["latency", s && s.samples ? `p50 <b class="p50">${fmt(s.p50_ms)}</b> ms · p99 <b class="p99">${fmt(s.p99_ms)}</b> ms <span class="dim">(${s.samples})</span>` : '<span class="dim">—</span>']);
   rows.push(["scale", `operator <b class="op-scale">${tp ? fmt(tp.scale, 2) : "—"}</b> · watchdog factor <b class="wd-scale">${s ? fmt(s.scale, 2) : "—"}</b>`]);
   rows.push(["tip mm", a.tip_mm ? `<span class="tip">${a.tip_mm.map((v) => fmt(v)).join(", ")}</span>` : "—"]);
-  if (op && op.control_mode && op.control_mode !== "non-trocar" && op.rcm_error_mm !== null) rows.push(["RCM error", `${fmt(op.rcm_error_mm, 2)} mm`]);
+  if (op && op.control_mode && op.control_mode !== "non_trocar" && op.rcm_error_mm !== null) rows.push(["RCM error", `${fmt(op.rcm_error_mm, 2)} mm`]);
   if (a.reply) rows.push(["reply", esc(a.reply)]);
   let h = `<h2>${esc(a.arm)} <span class="dim">← ${esc(a.master)}</span></h2>`;
   h += rows.map(([k, v]) => `<div class="row"><span class="k">${k}</span><span class="v ${k.replace(/\W/g, "")}">${v}</span></div>`).join("");
