@@ -93,6 +93,13 @@ async def attack(url: str) -> dict[str, Any]:
             while msg.type == aiohttp.WSMsgType.TEXT:
                 msg = await ws.receive(timeout=10)
             out["flood_close"] = ws.close_code
+        async with http.ws_connect(ws_url) as ws:  # well-formed frames with bad values, repeated
+            for _ in range(60):
+                await ws.send_str(json.dumps({**GOOD, "p": [0, 0, 9.0]}))
+            msg = await ws.receive(timeout=10)
+            while msg.type == aiohttp.WSMsgType.TEXT:
+                msg = await ws.receive(timeout=10)
+            out["values_close"] = ws.close_code
         async with http.ws_connect(ws_url, max_msg_size=0) as ws:
             await ws.send_str("y" * (1 << 20))
             msg = await ws.receive(timeout=10)
@@ -123,13 +130,14 @@ def test_bad_socket_input_is_refused_counted_and_never_reaches_the_bus(endpoint:
     print("socket:", result, stats)
     r = stats["rejected"]
     assert r.get("malformed", 0) >= 2 and r.get("nonfinite", 0) >= 2
-    assert r.get("unknown", 0) >= 2 and r.get("invalid", 0) >= 3
+    assert r.get("unknown", 0) >= 2 and r.get("invalid", 0) >= 3 + 50
     assert r.get("oversized", 0) >= 1 and r.get("binary", 0) >= 1
     assert r.get("flood", 0) >= 1
     assert not result["first_closed"], "a few bad frames must not close the connection"
     assert result["flood_close"] == 1008, "the flooding connection is closed (policy violation)"
     assert result["huge_close"] == 1009, "a frame past the cap closes the connection (too big)"
-    assert stats["closed_abusive"] >= 1
+    assert result["values_close"] == 1008, "repeated out-of-range samples close the connection"
+    assert stats["closed_abusive"] >= 2
     with lock:
         assert seen == [], f"bad input reached the bus: {seen[:5]}"
 

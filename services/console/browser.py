@@ -55,6 +55,7 @@ class FrameError(TelesurgError):
     def __init__(self, kind: str, text: str) -> None:
         super().__init__(text)
         self.kind = kind
+        self.admitted = False  # raised after SocketGuard.admit passed the frame (a bad field)
 
 
 def _no_constant(name: str) -> Any:

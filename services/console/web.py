@@ -428,11 +428,10 @@ class Server:
                     break
                 text: str | bytes = msg.data if msg.type == WSMsgType.TEXT else bytes(msg.data)
                 try:
-                    obj = guard.admit(text)
-                    reply = self._handle(conn, obj, clock)
+                    reply = self._handle(conn, guard.admit(text), clock)  # admit counts its refusals
                 except FrameError as exc:
-                    if exc.kind not in guard.counts:
-                        guard.reject(exc.kind)  # refused after admission (a bad field)
+                    if exc.admitted:  # refused after admission (a bad field): count it here
+                        guard.reject(exc.kind)
                     self._count(exc.kind)
                     if guard.abusive:
                         with self.wc.counters.lock:
@@ -458,7 +457,14 @@ class Server:
             self.wc.counters.rejected[kind] = self.wc.counters.rejected.get(kind, 0) + 1
 
     def _handle(self, conn: object, obj: dict[str, Any], clock: ClockMap) -> str:
-        """One admitted frame; the text to tell the page, if any."""
+        """One admitted frame; the text to tell the page, if any (FrameError marked admitted)."""
+        try:
+            return self._handle_frame(conn, obj, clock)
+        except FrameError as exc:
+            exc.admitted = True
+            raise
+
+    def _handle_frame(self, conn: object, obj: dict[str, Any], clock: ClockMap) -> str:
         kind = obj["type"]
         model = self.wc.model
         if kind == "sample":
