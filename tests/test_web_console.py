@@ -228,9 +228,9 @@ def engage(cdp: DevTools, s: str, press: Callable[[bool], None] | None = None) -
     """Press the clutch (the Space key, or ``press``) until the page says ENABLED.
 
     A refused engage (HOLDING: e.g. the watchdog held for a moment on the loaded host) is
-    answered as an operator would: release, press again (at most three times)."""
+    answered as an operator would: release, press again (at most six times)."""
     press = press or (lambda down: space(cdp, s, down))
-    for _ in range(3):
+    for _ in range(6):
         press(True)
         deadline = time.monotonic() + 10.0
         while time.monotonic() < deadline:
