@@ -50,11 +50,20 @@ class Probe:
     tips: list[tuple[float, np.ndarray, np.ndarray]] = field(default_factory=list)  # (mono s, p m, q)
     latency_ms: list[tuple[float, float]] = field(default_factory=list)  # (mono s, ms)
     safety: list[tuple[float, str, tuple[str, ...], float]] = field(default_factory=list)
+    master_rx: list[float] = field(default_factory=list)  # monotonic s of each master pose received
     lock: threading.Lock = field(default_factory=threading.Lock)
 
     def on_tip(self, m: CartesianPose, key: str) -> None:
         with self.lock:
             self.tips.append((time.monotonic(), np.array(m.position), np.array(m.orientation)))
+
+    def on_master(self, m: CartesianPose, key: str) -> None:
+        with self.lock:
+            self.master_rx.append(time.monotonic())
+
+    def last_master_before(self, t: float) -> float | None:
+        with self.lock:
+            return next((x for x in reversed(self.master_rx) if x <= t), None)
 
     def on_servo(self, m: JointSetpoint, key: str) -> None:
         if m.follow and m.origin_ns:
@@ -113,6 +122,7 @@ def running_console(tmp: Path) -> Iterator[tuple[str, str, Probe]]:
         k = node.keys
         node.subscribe(k.slave("arm1", "measured_cp"), CartesianPose, probe.on_tip)
         node.subscribe(k.slave("arm1", "servo_jp"), JointSetpoint, probe.on_servo)
+        node.subscribe(k.master("m1", "measured_cp"), CartesianPose, probe.on_master)
         node.subscribe(k.safety("arm1", "state"), SafetyState, probe.on_safety)
         import urllib.request
 
@@ -364,6 +374,9 @@ def test_quiet_browser_holds_and_reengages_without_a_jump(tmp_path: Path) -> Non
         t_hold = probe.first_state(t_close, ("HOLD",))
         assert t_hold is not None
         hold_ms = (t_hold - t_close) * 1e3
+        last = probe.last_master_before(t_hold)
+        assert last is not None
+        quiet_ms = (t_hold - last) * 1e3  # the last master sample on the bus → the watchdog's HOLD
         p_hold = settle(probe)
         # a new tab: its clutch is released; a drag moves nothing
         target2 = cdp.call("Target.createTarget", {"url": url})["targetId"]
@@ -381,7 +394,8 @@ def test_quiet_browser_holds_and_reengages_without_a_jump(tmp_path: Path) -> Non
         pts = probe.tips_since(t_eng)
         jump_mm = float(np.linalg.norm(pts - p_after, axis=1).max() * 1e3)
         print(
-            f"tab closed → watchdog HOLD {hold_ms:.1f} ms; motion before re-press {moved_mm:.3f} mm; "
+            f"tab closed → watchdog HOLD {hold_ms:.1f} ms (last master sample → HOLD {quiet_ms:.1f} ms); "
+            f"motion before re-press {moved_mm:.3f} mm; "
             f"re-engage jump {jump_mm:.3f} mm"
         )
         write_perf(
