@@ -402,6 +402,7 @@ def test_quiet_browser_holds_and_reengages_without_a_jump(tmp_path: Path) -> Non
             "quiet",
             {
                 "close_to_hold_ms": round(hold_ms, 1),
+                "last_sample_to_hold_ms": round(quiet_ms, 1),
                 "moved_before_press_mm": round(moved_mm, 3),
                 "reengage_jump_mm": round(jump_mm, 3),
             },
