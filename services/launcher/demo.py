@@ -85,6 +85,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     if not args.headless:
         mirror += ["serve=true", f"web_port={args.web_port}", f"grpc_port={args.grpc_port}"]
     web_url = console_url(args, spec)
+    if web_url:
+        log.info("web surgeon console: %s", web_url)
     log.info("site file %s", spec.site_file)
     stop = threading.Event()
     install_stop_handlers(stop)
