@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
-# Console site: master_capture (and the operator console, if installed) on this machine,
-# connected to a slave site over mutual TLS. Ctrl-C, SIGTERM or quitting the console stops all.
+# Console site: the web surgeon console (its page is the master: mouse and keyboard, phone,
+# gamepad) or, with --master scripted / --tui, master_capture and the terminal console, on this
+# machine, connected to a slave site over mutual TLS. Ctrl-C, SIGTERM or quitting stops all.
 set -euo pipefail
 here="$(cd "$(dirname "$0")" && pwd)"   # this script's folder, beside the site folders
 # a checkout's venv; else the Python beside telesurg on the PATH (an installed package)
@@ -19,9 +20,11 @@ usage() {
 usage: deploy/console.sh SLAVE_HOST [options]
 
 Connects to the slave site's router at tls/SLAVE_HOST:7447 (deploy/slave-site.sh there) with
-this machine's certificate, starts master_capture and, in the foreground, the operator console
-(telesurg console) when it is installed; configs from console/site.toml beside this script.
-Guide: docs/deploy.md.
+this machine's certificate and starts, by default, the web surgeon console (telesurg console
+--web; open the URL it prints; the page is the master m1). With --master scripted: master_capture
+(the site file's scripted or serial device) and the terminal console (telesurg console) in the
+foreground. Configs from console/site.toml beside this script. Guide: docs/deploy.md,
+docs/console.md.
 
 options:
   --port N             the slave site's TLS port (default: 7447)
@@ -32,7 +35,12 @@ options:
   --config-dir DIR     site folder: DIR/site.toml, a table per service (default: console/
                        beside this script)
   --mapping            also run the mapping here (the slave site runs with --no-mapping)
-  --no-console         no terminal UI: run master_capture until Ctrl-C / SIGTERM
+  --master M           web (default: the web console's page is the master) or scripted
+                       (master_capture with the site file's device, and the terminal console)
+  --web-port N         the web console's port (default 8470; the page is served on 127.0.0.1
+                       unless --set console.web.host=0.0.0.0)
+  --no-console         --master scripted without the terminal UI: run master_capture until
+                       Ctrl-C / SIGTERM
   --log-dir DIR        service logs (default: stderr; out/console-logs under the console UI)
   --set SERVICE.KEY=VALUE
                        override a config key of master_capture, mapping or console,
@@ -50,6 +58,8 @@ identity=""
 config_dir="$here/console"
 mapping=0
 ui=1
+master=web
+web_port=8470
 log_dir=""
 declare -A sets=([master_capture]="" [mapping]="" [console]="")
 while [[ $# -gt 0 ]]; do
@@ -62,7 +72,9 @@ while [[ $# -gt 0 ]]; do
         --identity) identity="$2"; shift 2 ;;
         --config-dir) config_dir="$2"; shift 2 ;;
         --mapping) mapping=1; shift ;;
-        --no-console) ui=0; shift ;;
+        --no-console) ui=0; master=scripted; shift ;;
+        --master) master="$2"; shift 2 ;;
+        --web-port) web_port="$2"; shift 2 ;;
         --log-dir) log_dir="$2"; shift 2 ;;
         --set)
             svc="${2%%.*}"
@@ -79,6 +91,7 @@ while [[ $# -gt 0 ]]; do
 done
 if [[ -z "$host" ]]; then usage >&2; exit 2; fi
 case "$protocol" in tls|quic) ;; *) echo "deploy/console.sh: --protocol tls or quic" >&2; exit 2 ;; esac
+case "$master" in web|scripted) ;; *) echo "deploy/console.sh: --master web or scripted" >&2; exit 2 ;; esac
 [[ -z "$identity" ]] && identity=$([[ $mapping == 1 ]] && echo console-mapping || echo console)
 for f in ca.pem "$identity.pem" "$identity.key"; do
     if [[ ! -f "$certs/$f" ]]; then
@@ -124,6 +137,17 @@ start() {  # start SERVICE (cli name) in the background with its table of the si
     echo "console.sh: started $name (pid $!) -> $protocol/$host:$port as $identity" >&2
 }
 
+if [[ $master == web ]]; then
+    # the web console is the master (its node master_capture publishes master/m1/*) and the console
+    [[ $mapping == 1 ]] && start mapping mapping
+    args=(--config "$config_dir/site.toml" --port "$web_port")
+    while IFS= read -r item; do [[ -n "$item" ]] && args+=(--set "$item"); done <<< "${sets[console]}"
+    echo "console.sh: web surgeon console on http://127.0.0.1:$web_port/ -> $protocol/$host:$port as $identity" >&2
+    "$py" -m telesurg.services.cli console --web "${bus[@]}" ${args[@]+"${args[@]}"} &
+    pids+=($!)
+    wait "${pids[-1]}" || { rc=$?; echo "console.sh: the web console exited with code $rc" >&2; exit "$rc"; }
+    exit 0
+fi
 start master_capture master-capture
 [[ $mapping == 1 ]] && start mapping mapping
 

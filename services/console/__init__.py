@@ -90,9 +90,27 @@ def parse_args(argv: Sequence[str] | None) -> tuple[ConsoleConfig, str]:
     )
     ap.add_argument("--log-file", default="", help="write the console's log here (the terminal is the UI)")
     ap.add_argument("--log-level", default="INFO", help="DEBUG, INFO, WARNING, ERROR")
+    ap.add_argument(
+        "--web",
+        action="store_true",
+        help="the web surgeon console instead of the terminal UI: serves the page (and its browser "
+        "masters) on web.host:web.port (telesurg.services.console.web)",
+    )
+    ap.add_argument("--port", type=int, help="with --web: the page's TCP port (web.port, default 8470)")
+    ap.add_argument("--table", default=None, help="site-file table to read (default: console)")
+    ap.add_argument("--parent-pid", type=int, default=0, help="stop when this process is gone (launcher)")
+    ap.add_argument("--plugin", action="append", default=[], metavar="FILE", help="robot plugin file")
     add_bus_args(ap)
     a = ap.parse_args(argv)
-    cfg = load_config(ConsoleConfig, a.config, a.set)
+    if a.plugin:
+        from telesurg.shared import robots
+
+        for plugin in a.plugin:
+            robots.load_plugin(plugin)
+    cfg = load_config(ConsoleConfig, a.config, a.set, table=a.table)
+    if a.port is not None:
+        cfg.web.port = a.port
+    WEB_FLAGS.update(web=a.web, parent_pid=a.parent_pid)
     if a.site:
         cfg.site = a.site
     if a.arm:
@@ -101,7 +119,13 @@ def parse_args(argv: Sequence[str] | None) -> tuple[ConsoleConfig, str]:
     cfg.bus.validate()
     cfg.validate()
     level = getattr(logging, a.log_level.upper(), logging.INFO)
-    if a.log_file:
+    if a.web:  # the terminal is free: log there (or to --log-file)
+        logging.basicConfig(
+            level=level,
+            filename=a.log_file or None,
+            format=f"%(asctime)s {cfg.service} %(levelname)s %(name)s: %(message)s",
+        )
+    elif a.log_file:
         logging.basicConfig(
             level=level,
             filename=a.log_file,
@@ -110,6 +134,10 @@ def parse_args(argv: Sequence[str] | None) -> tuple[ConsoleConfig, str]:
     else:  # nothing may write to the terminal under the UI
         logging.basicConfig(level=logging.CRITICAL + 1, handlers=[logging.NullHandler()])
     return cfg, a.log_file
+
+
+#: flags of the last :func:`parse_args` that are not config: --web, --parent-pid
+WEB_FLAGS: dict[str, int] = {"web": False, "parent_pid": 0}
 
 
 def run(cfg: ConsoleConfig, ui: Callable[[ConsoleModel], None] | None = None) -> None:
@@ -134,7 +162,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"telesurg console: {exc}", file=sys.stderr)
         return 2
     try:
-        run(cfg)
+        if WEB_FLAGS["web"]:
+            from telesurg.services.console.web import run_web
+
+            run_web(cfg, parent_pid=WEB_FLAGS["parent_pid"])
+        else:
+            run(cfg)
     except ConnectionError as exc:
         print(f"telesurg console: {exc}", file=sys.stderr)
         return 1

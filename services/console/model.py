@@ -16,6 +16,7 @@ from collections.abc import Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 
+from telesurg.services.console.webconfig import WebConfig
 from telesurg.shared.bus import BusConfig, Node, only
 from telesurg.shared.errors import ConfigError, MessageError
 from telesurg.shared.keys import Keys, check_id
@@ -56,6 +57,7 @@ class ConsoleConfig:
     watchdog_source: str = "watchdog"
     master_source: str = "master_capture"
     mapping_source: str = "mapping"
+    web: WebConfig = field(default_factory=WebConfig)  # the web console (telesurg console --web)
     bus: BusConfig = field(default_factory=BusConfig)  # zenoh session
 
     def validate(self) -> None:
@@ -75,6 +77,7 @@ class ConsoleConfig:
         if self.jog_frame not in JOG_FRAMES:
             raise ConfigError(f"jog_frame {self.jog_frame!r} invalid; valid: {', '.join(JOG_FRAMES)}")
         check_id("program", self.program)
+        self.web.validate()
 
 
 JOG_FRAMES = ("base", "world", "work", "forceps", "joint")

@@ -9,6 +9,10 @@
   (:mod:`telesurg.services.device.servo_emulator`): prints the device path as the first line on
   stdout, then serves the servo protocol (HELLO, STATE; follows SETPOINTs with a lag and the speed
   limits; its own watchdog) with optional injected faults.
+* ``check TYPE`` — opens a master device of that type (``spacemouse``, ``touch``, ``omega7``,
+  ``gamepad``; also ``scripted``, ``serial``) with master_capture's config and prints its readings
+  (position, orientation, clutch, valid) for ``--seconds``: a lab verifies a device in a minute.
+  Without the device's library it says which package and vendor SDK it needs (exit 1).
 * ``monitor`` — opens the port of a master_capture config (``serial.*`` keys) and prints the
   board's HELLO, raw readings, calibrated joints and frame counters: for wiring checks and
   calibration.
@@ -18,6 +22,7 @@ Examples::
     telesurg device emulate --pty --rate 500 --motion sine          # prints /dev/pts/N
     telesurg master-capture --set device=serial --set serial.port=/dev/pts/N
     telesurg device monitor --set serial.port=/dev/ttyACM0 --seconds 10
+    telesurg device check spacemouse --set desk.deadband=0.15 --seconds 30
     python -m telesurg.services.device emulate --pty --garbage-every 50 --drop-every 100
     telesurg device emulate-slave --pty --model mh3f --stall-joint 1 --stall-at 10   # prints /dev/pts/N
     telesurg slave-control --set backend=serial --set serial.port=/dev/pts/N --set shadow=true
@@ -26,6 +31,7 @@ Examples::
 from __future__ import annotations
 
 import argparse
+import json
 import logging
 import math
 import sys
@@ -104,7 +110,61 @@ def _parser() -> argparse.ArgumentParser:
     mon.add_argument("--seconds", type=float, default=0.0, metavar="S", help="stop after S s (0: never)")
     mon.add_argument("--print-hz", type=float, default=5.0, metavar="HZ", help="reading lines per second (5)")
     mon.add_argument("--log-level", default="INFO", help="DEBUG, INFO, WARNING, ERROR")
+    chk = sub.add_parser(
+        "check",
+        help="open a master device of TYPE (spacemouse, touch, omega7, gamepad, …) and print its readings",
+    )
+    chk.add_argument("type", help="master_capture device type, e.g. spacemouse")
+    chk.add_argument("--config", metavar="FILE", help="master_capture TOML config (its [desk] table)")
+    chk.add_argument(
+        "--set", action="append", default=[], metavar="KEY=VALUE", help="override a master_capture key"
+    )
+    chk.add_argument("--seconds", type=float, default=10.0, metavar="S", help="read for S s (default 10)")
+    chk.add_argument("--print-hz", type=float, default=10.0, metavar="HZ", help="lines per second (10)")
+    chk.add_argument("--log-level", default="INFO", help="DEBUG, INFO, WARNING, ERROR")
     return parser
+
+
+def check(device: object, seconds: float, print_hz: float, out: TextIO, stop: threading.Event) -> int:
+    """Print a device's readings (position mm, orientation, clutch, valid) at ``print_hz`` for
+    ``seconds``; the number of valid readings."""
+    t0 = time.monotonic()
+    valid = 0
+    while not stop.is_set() and time.monotonic() - t0 < seconds:
+        s = device.read(time.monotonic() - t0)  # type: ignore[attr-defined]
+        valid += s.valid
+        p = " ".join(f"{v * 1e3:8.2f}" for v in s.position)
+        q = " ".join(f"{v:+.3f}" for v in s.orientation)
+        print(
+            f"{time.monotonic() - t0:6.2f} s  p [{p}] mm  q [{q}]  clutch {int(s.clutch)}  "
+            f"{'valid' if s.valid else 'INVALID (no fresh reading)'}",
+            file=out,
+            flush=True,
+        )
+        stop.wait(1.0 / print_hz)
+    return valid
+
+
+def _check_main(args: argparse.Namespace, stop: threading.Event) -> int:
+    from telesurg.services.master_capture import MasterCaptureConfig
+    from telesurg.services.master_capture.desk import open_device
+    from telesurg.shared.config import load_config
+
+    try:
+        cfg = load_config(MasterCaptureConfig, args.config, [*args.set, f"device={json.dumps(args.type)}"])
+        device = open_device(cfg.device, cfg.scripted, cfg.serial, cfg.desk)
+    except TelesurgError as exc:
+        print(f"telesurg device check: {exc}", file=sys.stderr)
+        return 2
+    install_stop_handlers(stop)
+    try:
+        with device:
+            n = check(device, args.seconds, args.print_hz, sys.stdout, stop)
+    except (TelesurgError, ConnectionError) as exc:
+        print(f"telesurg device check {args.type}: {exc}", file=sys.stderr)
+        return 1
+    print(f"{n} valid readings", file=sys.stdout)
+    return 0 if n else 1
 
 
 def _slave_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
@@ -252,6 +312,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             stats.overflow_bytes,
         )
         return 0
+    if args.command == "check":
+        return _check_main(args, stop)
     return _monitor_main(args, stop)
 
 

@@ -53,7 +53,19 @@ log = logging.getLogger("telesurg.launcher")
 #: Start order; they stop in reverse, except the mirror, which stops after the others to record
 #: everything, and the router, which stops last.
 SERVICES = ("watchdog", "slave_control", "mapping", "mirror", "master_capture", "camera")
-STOP_ORDER = ("master_capture", "mapping", "watchdog", "slave_control", "camera", "mirror", "router")
+STOP_ORDER = (
+    "console",
+    "master_capture",
+    "mapping",
+    "watchdog",
+    "slave_control",
+    "camera",
+    "mirror",
+    "router",
+)
+#: Started only when asked (``--master web`` / ``--console``), after the others: the web console
+#: (``telesurg console --web``), which with ``--master web`` is also the site's master.
+ON_REQUEST = ("console",)
 # started under SCHED_IDLE (or nice +19): they only get the CPU the control loops leave
 NICE = ("mirror", "camera")
 #: Services a site runs without when they cannot start (the camera without OpenGL): the launcher
@@ -81,6 +93,7 @@ CLI_NAME = {
     "master_capture": "master-capture",
     "mirror": "mirror",
     "camera": "camera",
+    "console": "console",
 }
 
 
@@ -213,6 +226,8 @@ def service_argv(spec: SiteSpec, name: str) -> list[str]:
             argv += LocalPki(spec.local_pki).client_flags(name)
         for plugin in spec.plugins:
             argv += ["--plugin", plugin]
+    if name == "console":
+        argv.append("--web")
     if spec.site_file is not None:
         argv += ["--config", str(spec.site_file), "--table", name]
     for item in spec.overrides.get(name, []):
@@ -252,7 +267,7 @@ class Site:
             self._camera_first()
         session = open_session(self.spec.client_bus("launcher"))
         try:
-            for name in SERVICES:
+            for name in (*SERVICES, *ON_REQUEST):
                 if name not in self.spec.services:
                     continue
                 self._spawn(name)
@@ -453,6 +468,42 @@ def add_site_args(parser: argparse.ArgumentParser) -> None:
         metavar="FILE",
         help="robot plugin file, passed to every service (repeatable)",
     )
+    parser.add_argument(
+        "--master",
+        choices=("scripted", "web"),
+        default="scripted",
+        help="scripted: master_capture plays the site file's path (default); web: no master_capture, "
+        "the web console's page is the master (a surgeon at a browser: mouse and keyboard, phone, "
+        "gamepad; implies --console)",
+    )
+    parser.add_argument(
+        "--console", action="store_true", help="also start the web surgeon console (telesurg console --web)"
+    )
+    parser.add_argument(
+        "--console-port", type=int, default=8470, help="the web console's port (default 8470; 0: a free one)"
+    )
+
+
+def with_console(args: argparse.Namespace, services: Sequence[str]) -> list[str]:
+    """``services`` with the web console added (``--console``, ``--demo``) and, for ``--master
+    web``, without master_capture (the console's page is the master)."""
+    out = [s for s in services if not (args.master == "web" and s == "master_capture")]
+    if args.master == "web" or getattr(args, "console", False):
+        out.append("console")
+    return out
+
+
+def console_url(args: argparse.Namespace, spec: SiteSpec) -> str:
+    """Set the web console's port (and, with a scripted master, turn its browser master off) in
+    ``spec``; its page URL ("" if it is not started)."""
+    if "console" not in spec.services:
+        return ""
+    port = args.console_port or free_port(args.host)
+    items = spec.overrides.setdefault("console", [])
+    items.insert(0, f"web.port={port}")
+    if args.master != "web":  # the page shows and commands; master_capture is the master
+        items.insert(0, 'web.master_service=""')
+    return f"http://{args.host}:{port}/"
 
 
 def spec_from_args(args: argparse.Namespace, services: Sequence[str]) -> SiteSpec:
@@ -619,6 +670,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         for s in SERVICES
         if s in wanted and not (s == "mirror" and (args.no_mirror or not (args.save or args.serve)))
     ]
+    services = with_console(args, services)
     try:
         spec = spec_from_args(args, services)
         spec.listen, spec.router_flags = tuple(args.listen), tuple(router_security_flags(args))
@@ -632,6 +684,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         spec.overrides.setdefault("mirror", []).append(f"save={json.dumps(str(args.save))}")
     if args.serve:
         spec.overrides.setdefault("mirror", []).append("serve=true")
+    if url := console_url(args, spec):
+        log.info("web surgeon console: %s", url)
     stop = threading.Event()
     install_stop_handlers(stop)
     return run_site(spec, args.seconds, stop)

@@ -28,7 +28,14 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from telesurg.services.common import install_stop_handlers, setup_logging
-from telesurg.services.launcher import Site, add_site_args, config_class, spec_from_args
+from telesurg.services.launcher import (
+    Site,
+    add_site_args,
+    config_class,
+    console_url,
+    spec_from_args,
+    with_console,
+)
 from telesurg.services.launcher.report import SessionRecorder
 from telesurg.shared import jsonio
 from telesurg.shared.bus import BusConfig, Node
@@ -64,6 +71,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         services.insert(0, "camera")
     if not args.headless or args.save:
         services.append("mirror")
+    if not args.headless:
+        args.console = True  # the web surgeon console beside the rerun viewer
+    services = with_console(args, services)
     try:
         spec = spec_from_args(args, services)
         overrides = spec.overrides.get("mapping", [])
@@ -78,6 +88,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         mirror.append(f"save={json.dumps(str(Path(args.save).resolve()))}")
     if not args.headless:
         mirror += ["serve=true", f"web_port={args.web_port}", f"grpc_port={args.grpc_port}"]
+    web_url = console_url(args, spec)
+    if web_url:
+        log.info("web surgeon console: %s", web_url)
     log.info("site file %s", spec.site_file)
     stop = threading.Event()
     install_stop_handlers(stop)
@@ -91,7 +104,10 @@ def main(argv: Sequence[str] | None = None) -> int:
                 deadline = time.monotonic() + args.seconds if args.seconds > 0 else float("inf")
                 if not args.headless:
                     url = viewer_url(f"rerun+http://127.0.0.1:{args.grpc_port}/proxy", args.web_port)
-                    print(f"\nrerun web viewer: {url}\nCtrl-C stops everything.\n", flush=True)
+                    print(f"\nrerun web viewer: {url}", flush=True)
+                    if web_url:
+                        print(f"web surgeon console: {web_url}", flush=True)
+                    print("Ctrl-C stops everything.\n", flush=True)
                 while not stop.wait(0.2) and time.monotonic() < deadline:
                     for name, rc in site.dead().items():
                         log.error("%s exited with code %d", name, rc)

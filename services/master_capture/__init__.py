@@ -30,11 +30,11 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 from telesurg.services.common import service_main
+from telesurg.services.master_capture.desk import DeskConfig, open_device
 from telesurg.services.master_capture.devices import (
     ScriptedConfig,
     ScriptedDevice,
     SerialMasterConfig,
-    make_device,
 )
 from telesurg.shared.bus import BusConfig, Node
 from telesurg.shared.errors import ConfigError
@@ -53,9 +53,12 @@ class MasterCaptureConfig:
     arm: str = "m1"  # master arm id in keys master/<arm>/...
     rate_hz: float = 500.0  # Hz: publish rate of the pose (and joints)
     buttons_hz: float = 50.0  # Hz: buttons are sent on every change and at least this often
-    device: str = "scripted"  # device type; valid: scripted, serial
+    # device type; valid: scripted, serial, spacemouse, touch, omega7, gamepad (desk devices:
+    # services/master_capture/desk.py, docs/console.md)
+    device: str = "scripted"
     scripted: ScriptedConfig = field(default_factory=ScriptedConfig)  # scripted device settings
     serial: SerialMasterConfig = field(default_factory=SerialMasterConfig)  # serial encoder-board settings
+    desk: DeskConfig = field(default_factory=DeskConfig)  # desk device settings (spacemouse … gamepad)
     # The operator console's keyboard clutch (console/<arm>/clutch) is ORed with the device's
     # pedal while it is fresh; "" turns it off. A console that dies or is cut off counts as released.
     console_source: str = "console"
@@ -74,7 +77,7 @@ def run(cfg: MasterCaptureConfig, stop: threading.Event) -> None:
     if not 1.0 <= cfg.rate_hz <= 5000.0:
         raise ConfigError(f"rate_hz={cfg.rate_hz} outside [1, 5000]")
     check_rt_priority(cfg.rt_priority)
-    device = make_device(cfg.device, cfg.scripted, cfg.serial)
+    device = open_device(cfg.device, cfg.scripted, cfg.serial, cfg.desk)
     with device, Node(cfg.bus, cfg.site, cfg.service) as node:
         k = node.keys
         pose_out = node.outlet(k.master(cfg.arm, "measured_cp"))

@@ -598,13 +598,16 @@ class SerialMasterDevice:
             self._stats.samples += 1
 
 
-DEVICES = ("scripted", "serial")
+#: desk devices (services/master_capture/desk.py): SpaceMouse, Touch / Omni, omega.7, gamepad
+DESK_DEVICES = ("spacemouse", "touch", "omega7", "gamepad")
+DEVICES = ("scripted", "serial", *DESK_DEVICES)
 
 
 def make_device(
     kind: str, scripted: ScriptedConfig | None = None, serial: SerialMasterConfig | None = None
 ) -> MasterDevice:
-    """The device registered as ``kind``, made from its config (the default config if None)."""
+    """The device registered as ``kind``, made from its config (the default config if None).
+    The desk devices are made by :func:`telesurg.services.master_capture.desk.open_device`."""
     if kind == "scripted":
         return ScriptedDevice(scripted or ScriptedConfig())
     if kind == "serial":

@@ -1,0 +1,298 @@
+// telesurg web surgeon console: state view, controls and the browser masters.
+// The page is a master device: its pose (position in m, orientation quaternion x y z w in the
+// master frame) and clutch go to the console process over /ws as "sample" frames, each stamped
+// with the browser's own clock (performance.timeOrigin + event time, ms since the epoch).
+"use strict";
+
+const $ = (s) => document.querySelector(s);
+const MASTER = new URLSearchParams(location.search).get("master") || "m1";
+const SEND_MS = 10; // a sample every 10 ms (100 Hz) and at once on every input event
+
+// ------------------------------------------------------------------ master state
+const master = {
+  p: [0, 0, 0], // m, master frame: x right, y up the screen, z out of the screen
+  q: [0, 0, 0, 1], // x y z w
+  key: false, // clutch key (Space) held
+  pedal: false, // on-screen pedal held
+  pad: false, // gamepad clutch trigger
+  device: "mouse",
+  hidden: false,
+};
+let mmPerPx = 0.2;
+function clutch() { return master.key || master.pedal || master.pad; }
+
+function qmul(a, b) {
+  const [ax, ay, az, aw] = a, [bx, by, bz, bw] = b;
+  return [aw * bx + ax * bw + ay * bz - az * by, aw * by - ax * bz + ay * bw + az * bx,
+          aw * bz + ax * by - ay * bx + az * bw, aw * bw - ax * bx - ay * by - az * bz];
+}
+function qaxis(axis, ang) {
+  const s = Math.sin(ang / 2);
+  return [axis[0] * s, axis[1] * s, axis[2] * s, Math.cos(ang / 2)];
+}
+function qnorm(q) { const n = Math.hypot(...q) || 1; return q.map((v) => v / n); }
+// W3C deviceorientation: R = Rz(alpha) · Rx(beta) · Ry(gamma), degrees
+function qEuler(alpha, beta, gamma) {
+  const d = Math.PI / 180;
+  return qnorm(qmul(qmul(qaxis([0, 0, 1], alpha * d), qaxis([1, 0, 0], beta * d)), qaxis([0, 1, 0], gamma * d)));
+}
+const clampP = (v) => Math.max(-0.9, Math.min(0.9, v));
+function move(dx, dy, dz) { // m
+  master.p = [clampP(master.p[0] + dx), clampP(master.p[1] + dy), clampP(master.p[2] + dz)];
+}
+
+// ------------------------------------------------------------------ socket
+let ws = null, wsOpen = false;
+window.consoleState = null; // the last state the server pushed (for tests and debugging)
+window.consoleNotices = [];
+function connect() {
+  ws = new WebSocket((location.protocol === "https:" ? "wss://" : "ws://") + location.host + "/ws");
+  ws.onopen = () => { wsOpen = true; master.key = master.pedal = master.pad = false; setLink(); };
+  ws.onclose = () => { wsOpen = false; setLink(); setTimeout(connect, 1000); };
+  ws.onerror = () => {};
+  ws.onmessage = (ev) => {
+    const m = JSON.parse(ev.data);
+    if (m.type === "state") render(m);
+    else if (m.type === "notice") logLine("info", m.text);
+    else if (m.type === "refused") logLine("error", "refused by the console: " + m.text);
+  };
+}
+function send(obj) { if (wsOpen) ws.send(JSON.stringify(obj)); }
+let masterOn = false; // this console publishes browser master MASTER (web.master_service set)
+function sendSample(tMs) {
+  if (!wsOpen || master.hidden || !masterOn) return;
+  send({ type: "sample", master: MASTER, t: tMs, p: master.p, q: master.q, clutch: clutch(),
+         present: true, device: master.device });
+}
+const now = () => performance.timeOrigin + performance.now();
+const evTime = (ev) => performance.timeOrigin + ev.timeStamp;
+function setLink() {
+  const l = $("#link");
+  l.textContent = wsOpen ? "console connected" : "console link lost — reconnecting";
+  l.className = wsOpen ? "ok" : "bad";
+}
+
+// ------------------------------------------------------------------ mouse and keyboard
+const view = $("#view");
+let drag = null;
+view.addEventListener("mousedown", (ev) => { drag = { x: ev.clientX, y: ev.clientY }; view.focus(); ev.preventDefault(); });
+window.addEventListener("mouseup", () => { drag = null; });
+window.addEventListener("mousemove", (ev) => {
+  if (!drag) return;
+  const dx = ev.clientX - drag.x, dy = ev.clientY - drag.y;
+  drag = { x: ev.clientX, y: ev.clientY };
+  master.device = "mouse";
+  if (ev.shiftKey) { // rotation: horizontal drag about the master's y axis, vertical about x
+    master.q = qnorm(qmul(qmul(qaxis([0, 1, 0], dx * 0.005), qaxis([1, 0, 0], dy * 0.005)), master.q));
+  } else {
+    move(dx * mmPerPx / 1000, -dy * mmPerPx / 1000, 0);
+  }
+  sendSample(evTime(ev));
+});
+view.addEventListener("wheel", (ev) => {
+  ev.preventDefault();
+  move(0, 0, -Math.sign(ev.deltaY) * 0.002);
+  sendSample(evTime(ev));
+}, { passive: false });
+const STEP = { ArrowLeft: [-1, 0, 0], ArrowRight: [1, 0, 0], ArrowUp: [0, 1, 0], ArrowDown: [0, -1, 0], PageUp: [0, 0, 1], PageDown: [0, 0, -1] };
+window.addEventListener("keydown", (ev) => {
+  if (ev.target && ev.target.tagName === "INPUT") return;
+  if (ev.code === "Space") { ev.preventDefault(); if (!ev.repeat) { master.key = true; master.device = "keyboard"; sendSample(evTime(ev)); } }
+  else if (STEP[ev.key]) { ev.preventDefault(); const s = STEP[ev.key]; move(s[0] / 1000, s[1] / 1000, s[2] / 1000); sendSample(evTime(ev)); }
+  else if (ev.key === "F1") { ev.preventDefault(); estop(); }
+});
+window.addEventListener("keyup", (ev) => {
+  if (ev.code === "Space") { master.key = false; sendSample(evTime(ev)); }
+});
+window.addEventListener("blur", () => { master.key = false; drag = null; });
+
+// ------------------------------------------------------------------ on-screen pedal (mouse or touch)
+const pedal = $("#pedal");
+function setPedal(on, ev) { master.pedal = on; pedal.classList.toggle("on", on); sendSample(ev ? evTime(ev) : now()); }
+pedal.addEventListener("mousedown", (ev) => setPedal(true, ev));
+pedal.addEventListener("mouseup", (ev) => setPedal(false, ev));
+pedal.addEventListener("mouseleave", (ev) => { if (master.pedal) setPedal(false, ev); });
+pedal.addEventListener("touchstart", (ev) => { ev.preventDefault(); master.device = "touch"; setPedal(true, ev); }, { passive: false });
+pedal.addEventListener("touchend", (ev) => { ev.preventDefault(); setPedal(false, ev); }, { passive: false });
+pedal.addEventListener("touchcancel", (ev) => setPedal(false, ev));
+
+// ------------------------------------------------------------------ phone / tablet
+let touch = null;
+// (targetTouches: the finger on the view, while another may hold the pedal)
+view.addEventListener("touchstart", (ev) => { ev.preventDefault(); const t = ev.targetTouches[0]; touch = { x: t.clientX, y: t.clientY }; }, { passive: false });
+view.addEventListener("touchmove", (ev) => {
+  ev.preventDefault();
+  if (!touch || !ev.targetTouches.length) return;
+  const t = ev.targetTouches[0];
+  move((t.clientX - touch.x) * mmPerPx / 1000, -(t.clientY - touch.y) * mmPerPx / 1000, 0);
+  touch = { x: t.clientX, y: t.clientY };
+  master.device = "touch";
+  sendSample(evTime(ev));
+}, { passive: false });
+view.addEventListener("touchend", () => { touch = null; });
+window.addEventListener("deviceorientation", (ev) => {
+  if (ev.alpha === null && ev.beta === null && ev.gamma === null) return;
+  master.q = qEuler(ev.alpha || 0, ev.beta || 0, ev.gamma || 0);
+  master.device = "touch";
+  sendSample(evTime(ev));
+});
+
+// ------------------------------------------------------------------ gamepad (rate control)
+let lastPad = 0;
+function pollPad(t) {
+  const pads = navigator.getGamepads ? [...navigator.getGamepads()].filter((p) => p && p.connected) : [];
+  if (!pads.length) { master.pad = false; lastPad = t; return; }
+  const g = pads[0], dt = Math.min(0.05, (t - (lastPad || t)) / 1000), v = 0.05; // m/s at full stick
+  lastPad = t;
+  const dz = (a) => (Math.abs(a) < 0.12 ? 0 : a);
+  const lt = g.buttons[6] ? g.buttons[6].value : 0;
+  move(dz(g.axes[0] || 0) * v * dt, -dz(g.axes[1] || 0) * v * dt, (-dz(g.axes[3] || 0) - lt) * v * dt);
+  const rt = g.buttons[7] ? g.buttons[7].value : 0;
+  master.pad = rt > 0.5;
+  if (rt > 0.5 || dz(g.axes[0] || 0) || dz(g.axes[1] || 0)) master.device = "gamepad";
+}
+
+// ------------------------------------------------------------------ the quiet browser
+document.addEventListener("visibilitychange", () => {
+  master.hidden = document.visibilityState === "hidden";
+  master.key = master.pedal = master.pad = false;
+  pedal.classList.remove("on");
+  if (master.hidden) send({ type: "hidden", master: MASTER });
+});
+window.addEventListener("pagehide", () => send({ type: "hidden", master: MASTER }));
+
+setInterval(() => { const t = now(); pollPad(t); sendSample(t); }, SEND_MS);
+
+// ------------------------------------------------------------------ controls
+function estop() { send({ type: "estop", arm: "*" }); logLine("warning", "E-STOP sent"); }
+$("#estop").addEventListener("click", estop);
+$("#estop").addEventListener("touchstart", (ev) => { ev.preventDefault(); estop(); }, { passive: false });
+$("#reset").addEventListener("click", () => { $("#confirm").hidden = false; });
+$("#confirm-no").addEventListener("click", () => { $("#confirm").hidden = true; });
+$("#confirm-yes").addEventListener("click", () => { $("#confirm").hidden = true; send({ type: "reset", arm: "*", confirm: true }); });
+let selArm = null;
+function arm() { return selArm || (window.consoleState && window.consoleState.arms[0] && window.consoleState.arms[0].arm); }
+function command(name, args, target) { if (arm()) send({ type: "command", arm: arm(), name, args, target: target || "slave" }); }
+document.querySelectorAll("[data-cmd]").forEach((b) => b.addEventListener("click", () => command(b.dataset.cmd, b.dataset.args ? b.dataset.args.split(" ") : [])));
+document.querySelectorAll("[data-mcmd]").forEach((b) => b.addEventListener("click", () => command(b.dataset.mcmd, [], "mapping")));
+function jog(dir) { command("jog", ["frame=" + $("#jog-frame").value, "axis=" + $("#jog-axis").value, "direction=" + dir]); }
+$("#jog-plus").addEventListener("click", () => jog(1));
+$("#jog-minus").addEventListener("click", () => jog(-1));
+$("#jog-frame").addEventListener("change", () => {
+  const axes = $("#jog-frame").value === "joint" ? ["j1", "j2", "j3", "j4", "j5", "j6"] : ["x", "y", "z", "rx", "ry", "rz"];
+  $("#jog-axis").innerHTML = axes.map((a) => `<option>${a}</option>`).join("");
+});
+$("#cmdline").addEventListener("submit", (ev) => {
+  ev.preventDefault();
+  const words = $("#cmd").value.trim().split(/\s+/).filter(Boolean);
+  if (!words.length) return;
+  const target = words[0] === "mapping" ? (words.shift(), "mapping") : "slave";
+  command(words.shift(), words, target);
+  $("#cmd").value = "";
+});
+$("#record").addEventListener("click", () => send({ type: "record", action: window.consoleState && window.consoleState.recording ? "stop" : "start" }));
+
+// ------------------------------------------------------------------ rendering
+function logLine(sev, text) {
+  const d = document.createElement("div");
+  d.className = sev;
+  d.textContent = new Date().toLocaleTimeString() + " " + text;
+  const log = $("#log");
+  log.prepend(d);
+  while (log.childNodes.length > 60) log.lastChild.remove();
+  window.consoleNotices.push({ severity: sev, text });
+}
+const esc = (s) => String(s).replace(/[&<>"]/g, (c) => ({ "&": "&amp;", "<": "&lt;", ">": "&gt;", '"': "&quot;" }[c]));
+const fmt = (v, n = 1) => (v === null || v === undefined ? "—" : Number(v).toFixed(n));
+function st(s) { return `<span class="state st-${esc(s)}">${esc(s)}</span>`; }
+
+function armHtml(a) {
+  const tp = a.teleop, op = a.op, s = a.safety;
+  const rows = [];
+  rows.push(["teleop", tp ? `${st(tp.state)} ${tp.stale ? '<span class="bad">STALE</span>' : ""} <span class="dim">${esc(tp.reason)} · ${fmt(tp.since_s)} s · ${esc(tp.mode)}</span>` : '<span class="dim">no teleop state yet</span>']);
+  rows.push(["slave", op ? `${st(op.state)} · mode <b class="control-mode">${esc(op.control_mode)}</b> · ${op.follow ? "following" : "holding"}${op.reason ? " — " + esc(op.reason) : ""}${op.stale ? ' <span class="bad">STALE</span>' : ""}` : '<span class="dim">no operating state</span>']);
+  rows.push(["safety", s ? `${st(s.state)} ${s.causes.length ? '<span class="warn">' + esc(s.causes.join("; ")) + "</span>" : ""}${s.stale ? ' <span class="bad">STALE</span>' : ""}` : '<span class="dim">no safety state</span>']);
+  rows.push(["latency", s && s.samples ? `p50 <b class="p50">${fmt(s.p50_ms)}</b> ms · p99 <b class="p99">${fmt(s.p99_ms)}</b> ms <span class="dim">(${s.samples})</span>` : '<span class="dim">—</span>']);
+  rows.push(["scale", `operator <b class="op-scale">${tp ? fmt(tp.scale, 2) : "—"}</b> · watchdog factor <b class="wd-scale">${s ? fmt(s.scale, 2) : "—"}</b>`]);
+  rows.push(["tip mm", a.tip_mm ? `<span class="tip">${a.tip_mm.map((v) => fmt(v)).join(", ")}</span>` : "—"]);
+  if (op && op.control_mode && op.control_mode !== "non_trocar" && op.rcm_error_mm !== null) rows.push(["RCM error", `${fmt(op.rcm_error_mm, 2)} mm`]);
+  if (a.reply) rows.push(["reply", esc(a.reply)]);
+  let h = `<h2>${esc(a.arm)} <span class="dim">← ${esc(a.master)}</span></h2>`;
+  h += rows.map(([k, v]) => `<div class="row"><span class="k">${k}</span><span class="v ${k.replace(/\W/g, "")}">${v}</span></div>`).join("");
+  h += a.joints.map((j) => {
+    let bar = "";
+    if (j.lo !== undefined) {
+      const f = (j.pos - j.lo) / (j.hi - j.lo || 1);
+      bar = `<div class="bar${f < 0.05 || f > 0.95 ? " near" : ""}"><i style="left:${(Math.max(0, Math.min(1, f)) * 100).toFixed(1)}%"></i></div>`;
+    } else bar = "<div></div>";
+    const deg = /^j/.test(j.name) && j.lo !== undefined && Math.abs(j.hi) < 7 ? fmt(j.pos * 180 / Math.PI) + "°" : fmt(j.pos, 4);
+    return `<div class="joint"><span>${esc(j.name)}</span>${bar}<span>${deg}</span></div>`;
+  }).join("");
+  h += `<div class="events">${a.events.slice().reverse().map((e) => esc(`${e.src} ${e.kind}: ${e.text}`)).join("<br>")}</div>`;
+  return h;
+}
+
+function render(m) {
+  window.consoleState = m;
+  mmPerPx = m.mouse_mm_per_px || mmPerPx;
+  $("#site").textContent = "site " + m.site;
+  $("#alive").innerHTML = `<span class="dim">alive: ${esc(m.alive.join(" "))}</span>`;
+  const ms = m.masters[MASTER];
+  masterOn = !!ms;
+  const el = $("#master-status");
+  if (!ms) { el.textContent = "no browser master here (state and commands only)"; el.className = "dim"; }
+  if (ms) {
+    el.textContent = `master ${MASTER} (${ms.device || "—"}): ${ms.valid ? "publishing" : "not publishing"} · clutch ${ms.clutch ? "PRESSED" : ms.clutch_raw ? "held — release and press again" : "released"}`;
+    el.className = ms.valid ? (ms.clutch ? "ok" : "") : "bad";
+  }
+  $("#record").textContent = m.recording ? "■ stop recording" : "● record";
+  const box = $("#arms");
+  for (const a of m.arms) {
+    let d = document.getElementById("arm-" + a.arm);
+    if (!d) {
+      d = document.createElement("div");
+      d.className = "arm"; d.id = "arm-" + a.arm;
+      d.addEventListener("click", () => { selArm = a.arm; });
+      box.appendChild(d);
+    }
+    d.innerHTML = armHtml(a);
+  }
+  for (const n of m.notices || []) logLine(n.severity, n.text);
+  draw(m);
+}
+
+// Two orthographic views of each arm (base frame, mm): top (x right, y up) and side (x right,
+// z up); links grey, forceps yellow, measured tip green, commanded tip (ghost) hollow magenta.
+const bounds = { x: [-200, 900], y: [-500, 500], z: [-300, 900] };
+function draw(m) {
+  const c = view, g = c.getContext("2d");
+  const W = c.width, H = c.height;
+  g.fillStyle = "#0c0f12"; g.fillRect(0, 0, W, H);
+  const panels = [["top view (x → , y ↑)", 0, 1], ["side view (x → , z ↑)", 0, 2]];
+  const names = ["x", "y", "z"];
+  panels.forEach(([title, u, v], i) => {
+    const x0 = (i * W) / 2 + 10, w = W / 2 - 20, y0 = 24, h = H - 34;
+    const bu = bounds[names[u]], bv = bounds[names[v]];
+    const k = Math.min(w / (bu[1] - bu[0]), h / (bv[1] - bv[0]));
+    const P = (p) => [x0 + (p[u] - bu[0]) * k, y0 + h - (p[v] - bv[0]) * k];
+    g.strokeStyle = "#333b44"; g.strokeRect(x0, y0, w, h);
+    g.fillStyle = "#7d8793"; g.font = "12px sans-serif"; g.fillText(title, x0, 16);
+    for (const a of m.arms) {
+      const sk = a.sketch;
+      if (sk && sk.links) {
+        g.strokeStyle = "#9aa5b1"; g.lineWidth = 6; g.beginPath();
+        sk.links.forEach((p, j) => { const q = P(p); j ? g.lineTo(...q) : g.moveTo(...q); }); g.stroke();
+      }
+      if (sk && sk.forceps) {
+        g.strokeStyle = "#e8c547"; g.lineWidth = 3; g.beginPath();
+        sk.forceps.forEach((p, j) => { const q = P(p); j ? g.lineTo(...q) : g.moveTo(...q); }); g.stroke();
+      }
+      if (sk && sk.rcm) { for (const p of sk.rcm) { const q = P(p); g.strokeStyle = "#4dabf7"; g.lineWidth = 2; g.strokeRect(q[0] - 5, q[1] - 5, 10, 10); } }
+      if (a.ghost_mm) { const q = P(a.ghost_mm); g.strokeStyle = "#f06595"; g.lineWidth = 2; g.beginPath(); g.arc(q[0], q[1], 9, 0, 7); g.stroke(); }
+      if (a.tip_mm) { const q = P(a.tip_mm); g.fillStyle = "#5fd35f"; g.beginPath(); g.arc(q[0], q[1], 5, 0, 7); g.fill(); }
+    }
+    g.lineWidth = 1;
+  });
+}
+
+connect();

@@ -1,0 +1,576 @@
+"""``telesurg console --web``: the web surgeon console, served by this process (aiohttp).
+
+One page (``/``; its script and style under ``/static/``, nothing from the internet) shows per
+arm the teleop state, the operating state and control mode, the safety state with its causes,
+the command latency p50/p99, the operator's motion scale and the watchdog's factor (labelled
+apart), the joints with limit bars, the tip position (and the commanded tip, the "ghost", in the
+arm view), the RCM error in trocar mode; its controls are a large e-stop (a reset asks for
+confirmation), the clutch (a held key — Space, what USB foot pedals type — or the on-screen
+pedal), scale up / down, the operator commands and record start / stop.
+
+The page is also the master device: mouse and keyboard, a phone or tablet (device orientation +
+touch drag), or a gamepad (the browser's Gamepad API). It sends its samples over the websocket
+``/ws``; this process checks each frame (:mod:`telesurg.services.console.browser`) and publishes
+``master/<m>/measured_cp`` and ``master/<m>/buttons`` at ``web.rate_hz`` (and at once on each new
+sample) from a second node whose service id is ``web.master_service`` (``master_capture``: the
+mapping and the watchdog accept master streams from that id only), each pose stamped with the
+browser's own time of the sample mapped onto this host's clock. A browser that goes quiet —
+tab hidden, socket closed, no sample for ``web.sample_timeout_ms`` — makes its samples invalid at
+once: nothing is published and the watchdog holds; after a reconnect the clutch counts only
+after it was seen released (a fresh press). Commands and e-stops go out through the same
+:class:`~telesurg.services.console.model.ConsoleModel` as the terminal console, with its
+identity (``service``, ``console``).
+
+Examples::
+
+    telesurg console --web --connect tcp/127.0.0.1:7447            # http://127.0.0.1:8470/
+    telesurg console --web --port 8080 --set web.host=0.0.0.0      # a phone on the LAN
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import dataclasses
+import importlib.resources
+import json
+import logging
+import math
+import signal
+import threading
+import time
+import weakref
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from telesurg.services.common import install_stop_handlers, watch_parent
+from telesurg.services.console.browser import (
+    BrowserMaster,
+    ClockMap,
+    FrameError,
+    SocketGuard,
+    parse_sample,
+)
+from telesurg.services.console.model import ConsoleConfig, ConsoleModel
+from telesurg.shared import robots
+from telesurg.shared.bus import Node, only
+from telesurg.shared.errors import ConfigError
+from telesurg.shared.messages import CartesianPose, JointState, MasterButtons
+from telesurg.shared.timing import CycleTimer, start_loop
+
+log = logging.getLogger(__name__)
+
+
+def static_dir() -> Path:
+    """The page's files (``services/console/static``)."""
+    root = importlib.resources.files("telesurg.services.console") / "static"
+    if not isinstance(root, Path):
+        raise ConfigError(f"the web console's files are not on the file system ({root})")
+    return root
+
+
+def _r(v: float, nd: int = 3) -> float | None:
+    return round(v, nd) if math.isfinite(v) else None
+
+
+@dataclass
+class ArmView:
+    """What the page shows of an arm beyond the console model: joints, tip, commanded tip."""
+
+    js: JointState | None = None
+    js_rx: float = 0.0
+    tip: CartesianPose | None = None
+    setpoint: CartesianPose | None = None
+    setpoint_rx: float = 0.0
+
+
+class Counters:
+    """Totals over every connection (shown on the page, served on ``/api/stats``)."""
+
+    def __init__(self) -> None:
+        self.lock = threading.Lock()
+        self.rejected: dict[str, int] = {}
+        self.accepted = 0
+        self.closed_abusive = 0
+        self.connections = 0
+        self.busy = 0
+
+    def as_dict(self) -> dict[str, Any]:
+        with self.lock:
+            return {
+                "accepted": self.accepted,
+                "rejected": dict(self.rejected),
+                "rejected_total": sum(self.rejected.values()),
+                "closed_abusive": self.closed_abusive,
+                "connections": self.connections,
+                "busy": self.busy,
+            }
+
+
+class WebConsole:
+    """The bus side of the web console: the console model, the arm views and the browser masters."""
+
+    def __init__(self, cfg: ConsoleConfig, node: Node, master_node: Node | None) -> None:
+        self.cfg, self.web = cfg, cfg.web
+        self.model = ConsoleModel(cfg, node)
+        self.node, self.master_node = node, master_node
+        self.views = {a: ArmView() for a in self.model.arms}
+        self.lock = threading.Lock()  # views, masters
+        self._poll_lock = threading.Lock()
+        browser = self.model.masters if master_node is not None else []
+        self.masters = {m: BrowserMaster(m, self.web.sample_timeout_ms / 1e3) for m in browser}
+        self.counters = Counters()
+        self.published = dict.fromkeys(self.masters, 0)
+        k = node.keys
+        s_src = only(cfg.slave_source)
+        for arm in self.model.arms:
+            # (polled: 250 Hz streams only drawn at state_hz; no thread wake-up per message in the
+            # process that also relays the browser's samples)
+            node.subscribe(k.slave(arm, "measured_js"), JointState, self._on_js, sources=s_src, polled=True)
+            node.subscribe(
+                k.slave(arm, "measured_cp"), CartesianPose, self._on_cp, sources=s_src, polled=True
+            )
+            m_src = only(cfg.mapping_source)
+            node.subscribe(k.slave(arm, "setpoint_cp"), CartesianPose, self._on_setpoint, sources=m_src)
+        mk = node.keys
+        out = master_node.outlet if master_node is not None else None
+        self._pose_out = {m: out(mk.master(m, "measured_cp")) for m in self.masters if out}
+        self._buttons_out = {m: out(mk.master(m, "buttons")) for m in self.masters if out}
+        self._stop = threading.Event()
+        self._wake = threading.Event()
+        self._recorder: Any = None
+        self._thread = threading.Thread(target=self._publish_loop, daemon=True, name="web-master")
+        self._thread.start()
+
+    # -- slave streams (zenoh threads) -------------------------------------------------------
+    def _on_js(self, m: JointState, key: str) -> None:
+        with self.lock:
+            v = self.views[key.rsplit("/", 2)[-2]]
+            v.js, v.js_rx = m, time.monotonic()
+
+    def _on_cp(self, m: CartesianPose, key: str) -> None:
+        with self.lock:
+            self.views[key.rsplit("/", 2)[-2]].tip = m
+
+    def _on_setpoint(self, m: CartesianPose, key: str) -> None:
+        with self.lock:
+            v = self.views[key.rsplit("/", 2)[-2]]
+            v.setpoint, v.setpoint_rx = m, time.monotonic()
+
+    # -- browser masters ---------------------------------------------------------------------
+    def feed(self, conn: object, obj: dict[str, Any], clock: ClockMap) -> str:
+        """An admitted ``sample`` frame; "" when taken, else why it was not (FrameError if invalid)."""
+        received = time.time_ns()
+        s = parse_sample(obj, tuple(self.masters))
+        stamp = clock.stamp_ns(s.t_ms, received)
+        now = time.monotonic()
+        with self.lock:
+            bm = self.masters[s.master]
+            if bm.owner is not None and bm.owner is not conn and now - bm.rx <= bm.timeout_s:
+                return f"master {s.master} is driven by another page"
+            bm.feed(conn, s, stamp, now)
+        self._wake.set()
+        return ""
+
+    def release(self, conn: object, master: str | None = None) -> None:
+        """``conn`` closed or its tab was hidden: its masters' samples are invalid at once."""
+        with self.lock:
+            for m, bm in self.masters.items():
+                if master in (None, m):
+                    bm.detach(conn)
+
+    def _publish_loop(self) -> None:
+        start_loop(self.web.rt_priority)
+        timer = CycleTimer(self.web.rate_hz)
+        every = max(1, round(self.web.rate_hz / self.web.buttons_hz))
+        last: dict[str, tuple[bool, bool] | None] = dict.fromkeys(self.masters)
+        n = 0
+        while not self._stop.is_set():
+            now = time.monotonic()
+            with self.lock:
+                pubs = {m: bm.current(now) for m, bm in self.masters.items()}
+            n += 1
+            for m, p in pubs.items():
+                if p is None:
+                    last[m] = None  # buttons go out first when samples resume
+                    continue
+                buttons = (p.clutch, p.present)
+                bo, po = self._buttons_out[m], self._pose_out[m]
+                if buttons != last[m] or n % every == 0:
+                    last[m] = buttons
+                    bo.put(MasterButtons(bo.header(), *buttons))
+                h = dataclasses.replace(po.header(), stamp_ns=p.stamp_ns)
+                po.put(CartesianPose(h, "master", p.position, p.orientation))
+                self.published[m] += 1
+            # the next cycle, or at once when a new browser sample arrives
+            self._wake.wait(max(0.0, timer.period_s - (time.monotonic() - now)))
+            self._wake.clear()
+
+    # -- what the page shows -----------------------------------------------------------------
+    def state(self) -> dict[str, Any]:
+        """Everything the page draws, as JSON-ready data."""
+        with self._poll_lock:  # (the polled slave streams: one thread at a time)
+            self.node.poll()
+        arms, clutch, alive = self.model.snapshot()
+        now = time.monotonic()
+        stale = self.cfg.stale_s
+        out: list[dict[str, Any]] = []
+        with self.lock:
+            views = {a: dataclasses.replace(v) for a, v in self.views.items()}
+            masters = {
+                m: {
+                    "connected": bm.owner is not None,
+                    "valid": bm.current(now) is not None,
+                    "clutch": bool(bm.sample and bm.sample.clutch and bm.released_seen),
+                    "clutch_raw": bool(bm.sample and bm.sample.clutch),
+                    "device": bm.sample.device if bm.sample else "",
+                    "invalidations": bm.invalidations,
+                    "published": self.published[m],
+                }
+                for m, bm in self.masters.items()
+            }
+        for a in arms:
+            v = views[a.arm]
+            d: dict[str, Any] = {"arm": a.arm, "master": a.master}
+            tp = a.teleop
+            d["teleop"] = (
+                None
+                if tp is None
+                else {
+                    "state": tp.state,
+                    "previous": tp.previous,
+                    "reason": tp.reason,
+                    "since_s": round(max(0.0, time.time() - tp.since_ns / 1e9), 1),
+                    "scale": tp.scale,
+                    "safety_scale": tp.safety_scale,
+                    "mode": tp.mode,
+                    "stale": now - a.teleop_rx > stale,
+                }
+            )
+            op = a.op
+            d["op"] = (
+                None
+                if op is None
+                else {
+                    "state": op.state,
+                    "control_mode": op.control_mode,
+                    "follow": op.follow,
+                    "lease_ok": op.lease_ok,
+                    "reason": op.reason,
+                    "rcm_error_mm": _r(op.rcm_error_mm),
+                    "stale": now - a.op_rx > stale,
+                }
+            )
+            s = a.safety
+            d["safety"] = (
+                None
+                if s is None
+                else {
+                    "state": s.state,
+                    "causes": list(s.causes),
+                    "scale": s.scale,
+                    "p50_ms": _r(s.latency_p50_ms, 1),
+                    "p99_ms": _r(s.latency_p99_ms, 1),
+                    "samples": s.latency_samples,
+                    "stale": now - a.safety_rx > stale,
+                }
+            )
+            d["joints"] = self._joints(a.arm, v)
+            d["tip_mm"] = [round(x * 1e3, 2) for x in v.tip.position] if v.tip else None
+            d["ghost_mm"] = (
+                [round(x * 1e3, 2) for x in v.setpoint.position]
+                if v.setpoint and now - v.setpoint_rx < 0.5
+                else None
+            )
+            d["sketch"] = self._sketch(a.arm, v)
+            d["events"] = [
+                {"t": round(t, 3), "src": src, "kind": kind, "text": text}
+                for t, src, kind, text in list(a.events)[-self.cfg.events_per_arm :]
+            ]
+            d["reply"] = a.last_reply
+            d["console_clutch"] = clutch.get(a.master, False)
+            out.append(d)
+        return {
+            "type": "state",
+            "site": self.cfg.site,
+            "time": time.time(),
+            "arms": out,
+            "masters": masters,
+            "alive": sorted(alive),
+            "socket": self.counters.as_dict(),
+            "recording": self._recorder is not None and self._recorder.poll() is None,
+            "mouse_mm_per_px": self.web.mouse_mm_per_px,
+        }
+
+    @staticmethod
+    def _joints(arm: str, v: ArmView) -> list[dict[str, Any]]:
+        if v.js is None:
+            return []
+        found = robots.recognise(arm, v.js.names)
+        out = []
+        for i, (name, q) in enumerate(zip(v.js.names, v.js.position, strict=True)):
+            row: dict[str, Any] = {"name": name, "pos": _r(q, 4)}
+            if found is not None:
+                row["lo"], row["hi"] = found[1].lower[i], found[1].upper[i]
+            out.append(row)
+        return out
+
+    @staticmethod
+    def _sketch(arm: str, v: ArmView) -> dict[str, Any] | None:
+        if v.js is None:
+            return None
+        found = robots.recognise(arm, v.js.names)
+        if found is None:
+            return None
+        sk = found[0].sketch(arm, np.asarray(v.js.position, dtype=np.float64))
+
+        def mm(a: Any) -> list[list[float]] | None:
+            return None if a is None else np.round(np.atleast_2d(a) * 1e3, 1).tolist()
+
+        return {"links": mm(sk.links), "forceps": mm(sk.forceps), "rcm": mm(sk.rcm)}
+
+    # -- record ------------------------------------------------------------------------------
+    def record(self, action: str) -> str:
+        """Start or stop ``telesurg record`` for this site (a child process); a line for the log."""
+        import subprocess
+        import sys
+
+        if action == "start":
+            if self._recorder is not None and self._recorder.poll() is None:
+                return "already recording"
+            folder = Path(self.web.record_dir)
+            folder.mkdir(parents=True, exist_ok=True)
+            out = folder / time.strftime("console-%Y%m%d-%H%M%S.mcap")
+            argv = [sys.executable, "-m", "telesurg.services.cli", "record", "--out", str(out)]
+            argv += ["--site", self.cfg.site]
+            for ep in self.cfg.bus.connect:
+                argv += ["--connect", ep]
+            self._recorder = subprocess.Popen(argv, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+            return f"recording to {out}"
+        if action == "stop":
+            rec, self._recorder = self._recorder, None
+            if rec is None or rec.poll() is not None:
+                return "not recording"
+            rec.send_signal(signal.SIGINT)
+            try:
+                rec.wait(10)
+            except subprocess.TimeoutExpired:
+                rec.kill()
+            return "recording stopped"
+        raise FrameError("invalid", f"record action {action!r}; valid: start, stop")
+
+    def close(self) -> None:
+        """Stop publishing, stop a recording, close the model."""
+        self._stop.set()
+        self._wake.set()
+        self._thread.join(timeout=2.0)
+        if self._recorder is not None:
+            self.record("stop")
+        self.model.close()
+
+
+# --------------------------------------------------------------------------- the web server
+
+
+class Server:
+    """The aiohttp application: page, static files, ``/api/state``, ``/api/stats`` and ``/ws``."""
+
+    def __init__(self, wc: WebConsole) -> None:
+        from aiohttp import web
+
+        self.wc = wc
+        self.sockets: weakref.WeakSet[Any] = weakref.WeakSet()
+        self.app = web.Application()
+        self.app.router.add_get("/", self._index)
+        self.app.router.add_get("/api/state", self._api_state)
+        self.app.router.add_get("/api/stats", self._api_stats)
+        self.app.router.add_get("/ws", self._ws)
+        self.app.router.add_static("/static/", static_dir())
+
+    async def _index(self, request: Any) -> Any:
+        from aiohttp import web
+
+        return web.FileResponse(static_dir() / "index.html")
+
+    async def _api_state(self, request: Any) -> Any:
+        from aiohttp import web
+
+        return web.json_response(self.wc.state())
+
+    async def _api_stats(self, request: Any) -> Any:
+        from aiohttp import web
+
+        return web.json_response(self.wc.counters.as_dict())
+
+    async def _ws(self, request: Any) -> Any:
+        from aiohttp import WSCloseCode, WSMsgType, web
+
+        w = self.wc.web
+        # aiohttp's own cap (a larger frame closes the socket, code 1009); below it, SocketGuard
+        # refuses frames over max_frame_bytes and counts them
+        ws = web.WebSocketResponse(max_msg_size=16 * w.max_frame_bytes, heartbeat=5.0)
+        await ws.prepare(request)
+        guard = SocketGuard(rate_hz=w.max_frames_hz, max_rejects=w.max_rejects, max_bytes=w.max_frame_bytes)
+        clock = ClockMap()
+        conn = object()
+        with self.wc.counters.lock:
+            self.wc.counters.connections += 1
+        self.sockets.add(ws)
+        peer = request.remote
+        log.info("page connected from %s", peer)
+        await ws.send_json(self.wc.state())
+        try:
+            async for msg in ws:
+                if msg.type == WSMsgType.ERROR:
+                    self._count("oversized" if "size" in str(ws.exception()) else "protocol")
+                    break
+                text: str | bytes = msg.data if msg.type == WSMsgType.TEXT else bytes(msg.data)
+                try:
+                    reply = self._handle(conn, guard.admit(text), clock)  # admit counts its refusals
+                except FrameError as exc:
+                    if exc.admitted:  # refused after admission (a bad field): count it here
+                        guard.reject(exc.kind)
+                    self._count(exc.kind)
+                    if guard.abusive:
+                        with self.wc.counters.lock:
+                            self.wc.counters.closed_abusive += 1
+                        log.warning("closing the connection from %s: %d refused frames", peer, guard.rejected)
+                        self.wc.release(conn)
+                        await ws.close(code=WSCloseCode.POLICY_VIOLATION, message=b"too many refused frames")
+                        break
+                    if guard.counts[exc.kind] <= 3:  # tell the page, without echoing a flood
+                        await ws.send_json({"type": "refused", "kind": exc.kind, "text": str(exc)})
+                    continue
+                with self.wc.counters.lock:
+                    self.wc.counters.accepted += 1
+                if reply:
+                    await ws.send_json({"type": "notice", "text": reply})
+        finally:
+            self.wc.release(conn)
+            log.info("page from %s gone (%d frames refused)", peer, guard.rejected)
+        return ws
+
+    def _count(self, kind: str) -> None:
+        with self.wc.counters.lock:
+            self.wc.counters.rejected[kind] = self.wc.counters.rejected.get(kind, 0) + 1
+
+    def _handle(self, conn: object, obj: dict[str, Any], clock: ClockMap) -> str:
+        """One admitted frame; the text to tell the page, if any (FrameError marked admitted)."""
+        try:
+            return self._handle_frame(conn, obj, clock)
+        except FrameError as exc:
+            exc.admitted = True
+            raise
+
+    def _handle_frame(self, conn: object, obj: dict[str, Any], clock: ClockMap) -> str:
+        kind = obj["type"]
+        model = self.wc.model
+        if kind == "sample":
+            busy = self.wc.feed(conn, obj, clock)
+            if busy:
+                with self.wc.counters.lock:
+                    self.wc.counters.busy += 1
+            return ""
+        if kind == "hidden":
+            master = obj.get("master")
+            self.wc.release(conn, master if isinstance(master, str) else None)
+            return ""
+        if kind == "ping":
+            return ""
+        arm = obj.get("arm", "*")
+        if not isinstance(arm, str) or (arm != "*" and arm not in model.arms):
+            raise FrameError("invalid", f"arm {arm!r}; valid: *, {', '.join(model.arms)}")
+        if kind == "estop":
+            model.estop(arm, "estop", "web console: operator")
+            return ""
+        if kind == "reset":
+            if obj.get("confirm") is not True:
+                raise FrameError("invalid", "a reset needs confirm: true")
+            model.estop(arm, "reset", "web console: operator")
+            return ""
+        if kind == "command":
+            name, args, target = obj["name"], obj.get("args", []), obj.get("target", "slave")
+            if arm == "*" or not isinstance(name, str) or target not in ("slave", "mapping"):
+                raise FrameError("invalid", "command needs one arm, a name and target slave or mapping")
+            if not isinstance(args, list) or not all(isinstance(x, str) for x in args) or len(args) > 16:
+                raise FrameError("invalid", "command args must be a list of key=value strings")
+            model.command(arm, name, args, target=target)
+            return ""
+        if kind == "record":
+            action = obj["action"]
+            return self.wc.record(action if isinstance(action, str) else "")
+        raise FrameError("unknown", f"unknown frame type {kind!r}")
+
+    async def broadcast(self, stop: asyncio.Event) -> None:
+        """Push the state (and new notices) to every page at ``state_hz``."""
+        period = 1.0 / self.wc.web.state_hz
+        while not stop.is_set():
+            notices = self.wc.model.drain()
+            if self.sockets:
+                state = self.wc.state()
+                state["notices"] = [
+                    {"t": n.stamp, "severity": n.severity, "text": n.text, "toast": n.toast} for n in notices
+                ]
+                data = json.dumps(state)
+                for ws in list(self.sockets):
+                    if not ws.closed:
+                        with contextlib.suppress(Exception):
+                            await ws.send_str(data)
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(stop.wait(), period)
+
+
+async def serve(wc: WebConsole, stop: asyncio.Event) -> None:
+    """Serve the page until ``stop``; logs (and prints) the URL."""
+    from aiohttp import web
+
+    server = Server(wc)
+    runner = web.AppRunner(server.app, handle_signals=False, access_log=None)
+    await runner.setup()
+    site = web.TCPSite(runner, wc.web.host, wc.web.port)
+    await site.start()
+    port = wc.web.port
+    with contextlib.suppress(Exception):
+        port = runner.addresses[0][1]
+    url = f"http://{wc.web.host}:{port}/"
+    log.info("web console on %s", url)
+    print(f"web console: {url}", flush=True)
+    task = asyncio.create_task(server.broadcast(stop))
+    try:
+        await stop.wait()
+    finally:
+        for ws in list(server.sockets):
+            with contextlib.suppress(Exception):
+                await ws.close()
+        await task
+        await runner.cleanup()
+
+
+def run_web(cfg: ConsoleConfig, parent_pid: int = 0) -> None:
+    """Open the console's node and the master node, serve until SIGINT / SIGTERM (or, with
+    ``parent_pid``, until that launcher is gone)."""
+    cfg.web.validate()
+    gone = threading.Event()  # SIGINT / SIGTERM (from now on: no KeyboardInterrupt mid-start-up)
+    install_stop_handlers(gone)
+    if parent_pid:
+        watch_parent(parent_pid, gone)
+    with contextlib.ExitStack() as stack:
+        node = stack.enter_context(Node(cfg.bus, cfg.site, cfg.service))
+        ms = cfg.web.master_service
+        mnode = stack.enter_context(Node(cfg.bus, cfg.site, ms)) if ms else None
+        wc = WebConsole(cfg, node, mnode)
+        try:
+
+            async def main() -> None:
+                stop = asyncio.Event()
+                loop = asyncio.get_running_loop()
+                threading.Thread(
+                    target=lambda: (gone.wait(), loop.call_soon_threadsafe(stop.set)), daemon=True
+                ).start()
+                await serve(wc, stop)
+
+            asyncio.run(main())
+        finally:
+            wc.close()
