@@ -120,6 +120,20 @@ def init_keyring(directory: str | Path, identities: list[str] | tuple[str, ...] 
     return d
 
 
+#: Identities a site keyring starts with: the site's services and operator tools (any other
+#: identity adds its own key on first use to a keyring it can write).
+IDENTITIES = ("master_capture", "mapping", "slave_control", "watchdog", "mirror", "console", "record")
+
+
+def ensure_keyring(directory: str | Path) -> tuple[Path, bool]:
+    """The keyring at ``directory``, made (with :data:`IDENTITIES`) if absent: (path, made)."""
+    d = Path(directory)
+    made = not d.is_dir()
+    if made:
+        init_keyring(d, IDENTITIES)
+    return d, made
+
+
 @dataclass
 class Keyring:
     """The keys of a site, loaded from a keyring directory."""
