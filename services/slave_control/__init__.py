@@ -211,6 +211,10 @@ def run(cfg: SlaveControlConfig, stop: threading.Event) -> None:
                 # through the earlier ones, as a real arm would have.
                 held = max(0, missed - REPLAY_MAX_PERIODS)
                 backend.step(1 + held)
+                # the inputs that queued up during the stall first: the replayed periods judge
+                # the newest lease and setpoint (by arrival, cycles and their own stamps), never
+                # the ones from before the stall (a thawed slave acts on no old permission)
+                node.poll()
                 t_wake = time.monotonic()
                 for late in range(missed - held, 0, -1):
                     command(t_wake - late * dt, backend.read())

@@ -516,7 +516,9 @@ class ArmCore:
             age = wall - lease.stamp_ns
             if age > lease.valid_ns + self._lease_slack_ns:
                 lease = Lease(
-                    False, 0.0, f"lease stamped {age / 1e6:.0f} ms ago (valid {lease.valid_ns / 1e6:g} ms)"
+                    False,
+                    0.0,
+                    f"lease expired (stamped {age / 1e6:.0f} ms ago, valid {lease.valid_ns / 1e6:g} ms)",
                 )
         if sp is not None and sp.stamp_ns and wall - sp.stamp_ns > self._sp_max_age_ns:
             sp = None
