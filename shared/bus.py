@@ -664,7 +664,7 @@ class Node:
             with contextlib.suppress(Exception):  # the session may be closing
                 self.event(
                     "unauthenticated",
-                    f"rejected on {key} (claimed signer {claimed!r}; {stats.unauthenticated} so far): {why}",
+                    f"rejected message on {key} (claimed signer {claimed!r}; {stats.unauthenticated} so far): {why}",
                     severity="warning",
                 )
 
