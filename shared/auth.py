@@ -5,9 +5,10 @@ attachment, per-process session ids.
 the 32-byte key in hex, from :mod:`secrets`). An identity is a service instance id (the header
 ``src`` it publishes under: ``watchdog``, ``mapping``, ``console``, …). ``telesurg keys init DIR``
 makes one; ``telesurg up`` / ``demo`` make the default one if it is absent; every process loads
-it (:func:`default_keys_dir`, ``--keys DIR``, ``BusConfig.keys_dir``). Nothing secret is in the
-repository. A process whose own identity has no key yet adds one to a keyring it can write
-(:meth:`Keyring.ensure`): anyone who can write the keyring can read every key in it anyway.
+it (:func:`default_keys_dir`; ``--keyring DIR`` on every command line, ``--keys DIR`` for
+``up`` / ``demo``; ``BusConfig.keys_dir``). Nothing secret is in the repository. A process
+whose own identity has no key yet adds one to a keyring it can write (:meth:`Keyring.ensure`):
+anyone who can write the keyring can read every key in it anyway.
 Receivers look a signer they do not know up in the directory again, at most once a second per
 name (a key added after they started; a stranger's made-up names cost nothing more).
 
@@ -149,7 +150,7 @@ class Keyring:
         if not d.is_dir():
             raise ConfigError(
                 f"no keyring at {d}: make one with `telesurg keys init {d}` "
-                "(telesurg up / demo make the default one), or pass --keys DIR"
+                "(telesurg up / demo make the default one), or pass --keyring DIR"
             )
         ring = cls(d)
         for p in sorted(d.glob(f"*{KEY_SUFFIX}")):

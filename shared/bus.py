@@ -199,7 +199,7 @@ def add_bus_args(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--acl", metavar="FILE", help="access-control rules, JSON5 or TOML (router)")
     g.add_argument("--zenoh-log", metavar="FILTER", help="zenoh's own log, e.g. zenoh=info (stderr)")
     g.add_argument(
-        "--keys",
+        "--keyring",
         metavar="DIR",
         help="site keyring (default: $TELESURG_KEYS or $XDG_STATE_HOME/telesurg/<site>/keys)",
     )
@@ -237,8 +237,8 @@ def bus_from_args(args: argparse.Namespace, base: BusConfig | None = None) -> Bu
         cfg.allow_insecure_listen = True
     if zlog := getattr(args, "zenoh_log", None):
         cfg.zenoh_log = zlog
-    if keys := getattr(args, "keys", None):
-        cfg.keys_dir = keys
+    if keyring := getattr(args, "keyring", None):
+        cfg.keys_dir = keyring
     if cfg.mode == "client" and not cfg.connect and not cfg.config_file:
         cfg.connect = [LOCAL_ROUTER]  # every command line: the local site's router by default
     return cfg
@@ -664,7 +664,8 @@ class Node:
             with contextlib.suppress(Exception):  # the session may be closing
                 self.event(
                     "unauthenticated",
-                    f"rejected message on {key} (claimed signer {claimed!r}; {stats.unauthenticated} so far): {why}",
+                    f"rejected message on {key} (claimed signer {claimed!r}; "
+                    f"{stats.unauthenticated} so far): {why}",
                     severity="warning",
                 )
 

@@ -154,7 +154,7 @@ class SiteSpec:
     listen: tuple[str, ...] = ()  # more router endpoints, e.g. tls/0.0.0.0:7447 for remote consoles
     router_flags: tuple[str, ...] = ()  # router-only flags: --tls-ca/--tls-cert/--tls-key/--mtls/--acl
     plugins: tuple[str, ...] = ()  # robot plugin files, passed to every service as --plugin FILE
-    # the site keyring, passed to every service as --keys DIR; made if absent (None: the default,
+    # the site keyring, passed to every service as --keyring DIR; made if absent (None: the default,
     # shared/auth.py default_keys_dir)
     keys_dir: Path | None = None
 
@@ -180,7 +180,7 @@ def service_argv(spec: SiteSpec, name: str) -> list[str]:
     else:
         argv += ["--connect", spec.connect.get(name, spec.endpoint)]
         if spec.keys_dir is not None:
-            argv += ["--keys", str(spec.keys_dir)]
+            argv += ["--keyring", str(spec.keys_dir)]
         for plugin in spec.plugins:
             argv += ["--plugin", plugin]
     if spec.site_file is not None:
