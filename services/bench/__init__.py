@@ -31,6 +31,7 @@ BENCHES = {
     ),
     "decode": ("telesurg.services.bench.decode", "µs per strict decode / encode of the hot messages"),
     "flood": ("telesurg.services.bench.flood", "1 MB messages on a control and a master key: RSS, HOLDs"),
+    "auth": ("telesurg.services.bench.auth", "µs per sign / verify (HMAC, Ed25519) of the hot messages"),
     "transport": (
         "telesurg.services.bench.transport",
         "zenoh links for a 1 kHz stream under packet loss (root)",

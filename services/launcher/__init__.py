@@ -44,6 +44,7 @@ from types import TracebackType
 from typing import IO, Any
 
 from telesurg.services.common import install_stop_handlers, setup_logging
+from telesurg.shared.auth import default_keys_dir, ensure_keyring
 from telesurg.shared.bus import BusConfig, add_bus_args, bus_from_args
 from telesurg.shared.config import SITE_FILE, load_config, read_site, site_plugins
 from telesurg.shared.errors import ConfigError
@@ -181,6 +182,9 @@ class SiteSpec:
     # local PKI directory (services/launcher/lockdown.py): the router's local listener is mutual
     # TLS with it and each service connects with its own certificate (None: plain TCP, open)
     local_pki: Path | None = None
+    # the site keyring, passed to every service as --keyring DIR; made if absent (None: the default,
+    # shared/auth.py default_keys_dir)
+    keys_dir: Path | None = None
 
     @property
     def site_file(self) -> Path | None:
@@ -224,6 +228,8 @@ def service_argv(spec: SiteSpec, name: str) -> list[str]:
             from telesurg.services.launcher.lockdown import LocalPki
 
             argv += LocalPki(spec.local_pki).client_flags(name)
+        if spec.keys_dir is not None:
+            argv += ["--keyring", str(spec.keys_dir)]
         for plugin in spec.plugins:
             argv += ["--plugin", plugin]
     if name == "console":
@@ -251,6 +257,11 @@ class Site:
         seen): six Python processes importing at once saturate a 2-core host for seconds, long
         enough for the watchdog's deadlines to fire before the first engage.
         """
+        if self.spec.keys_dir is None:
+            self.spec.keys_dir = default_keys_dir(self.spec.site).resolve()
+        keys_dir, made = ensure_keyring(self.spec.keys_dir)
+        if made:
+            log.info("made the site keyring %s (telesurg keys list shows its identities)", keys_dir)
         self._spawn("router")
         router = self.procs["router"]
         deadline = time.monotonic() + 15.0
@@ -462,6 +473,12 @@ def add_site_args(parser: argparse.ArgumentParser) -> None:
         help="stop after this many seconds (default: run until Ctrl-C)",
     )
     parser.add_argument(
+        "--keys",
+        type=Path,
+        metavar="DIR",
+        help="site keyring, made if absent (default: $TELESURG_KEYS or $XDG_STATE_HOME/telesurg/<site>/keys)",
+    )
+    parser.add_argument(
         "--plugin",
         action="append",
         default=[],
@@ -540,6 +557,7 @@ def spec_from_args(args: argparse.Namespace, services: Sequence[str]) -> SiteSpe
         args.log_dir,
         args.log_level,
         plugins=plugins,
+        keys_dir=(args.keys or default_keys_dir(args.site)).resolve(),
     )
 
 

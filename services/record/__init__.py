@@ -51,6 +51,7 @@ from typing import IO, TYPE_CHECKING, Any
 
 from telesurg.services.common import install_stop_handlers, setup_logging
 from telesurg.shared import jsonio
+from telesurg.shared.auth import PUT, AuthError, Keyring, verify
 from telesurg.shared.bus import BusConfig, Node, add_bus_args, bus_from_args
 from telesurg.shared.errors import ConfigError, MessageError, TelesurgError
 from telesurg.shared.keys import Keys, check_id
@@ -318,6 +319,7 @@ class Recorder:
         self.prefix = Keys(site).prefix + "/"
         self.stats: dict[str, KeyStats] = {}
         self.error: BaseException | None = None
+        self.unauthenticated = 0  # samples not recorded: their authenticator did not verify
         self._queue: queue.SimpleQueue[tuple[bytes, str, int] | None] = queue.SimpleQueue()
         # bytes queued for the writer, bounded: beyond MAX_BACKLOG_BYTES (a flood, a disk too slow)
         # a sample is dropped and counted (``dropped``) instead of growing memory without limit
@@ -374,12 +376,25 @@ class Recorder:
             self._backlog_bytes += len(payload)
         self._queue.put((payload, key, rx_ns))
 
-    def subscribe(self, session: Any, key: str) -> None:
-        """Declare one raw subscriber on ``key`` feeding :meth:`push`."""
+    def subscribe(self, session: Any, key: str, keyring: Keyring | None = None) -> None:
+        """Declare one raw subscriber on ``key`` feeding :meth:`push`.
+
+        ``keyring``: record only samples whose authenticator verifies (shared/auth.py); the others
+        are counted in :attr:`unauthenticated`, never written (a replay must not re-sign a
+        forgery). The payload is written byte-exact either way."""
         push = self.push
 
         def on_sample(sample: Any) -> None:
-            push(sample.payload.to_bytes(), str(sample.key_expr), time.time_ns())
+            payload = sample.payload.to_bytes()
+            k = str(sample.key_expr)
+            if keyring is not None:
+                att = sample.attachment
+                try:
+                    verify(keyring, PUT, k, payload, att.to_bytes() if att is not None else None)
+                except AuthError:
+                    self.unauthenticated += 1
+                    return
+            push(payload, k, time.time_ns())
 
         self._subscribers.append(session.declare_subscriber(key, on_sample))
 
@@ -591,7 +606,7 @@ def run(cfg: RecordConfig, stop: threading.Event) -> dict[str, dict[str, Any]]:
         Node(cfg.bus, cfg.site, cfg.service) as node,
         Recorder(cfg.out, cfg.site, attachments=cfg.attach, info=info, compression=cfg.compression) as rec,
     ):
-        rec.subscribe(node.session, node.keys.all)
+        rec.subscribe(node.session, node.keys.all, node.keyring)
         log.info("recording %s to %s", node.keys.all, cfg.out)
         settle_gc()
         deadline = time.monotonic() + cfg.seconds if cfg.seconds > 0 else float("inf")
@@ -609,6 +624,8 @@ def run(cfg: RecordConfig, stop: threading.Event) -> dict[str, dict[str, Any]]:
             rec.dropped,
             MAX_BACKLOG_BYTES,
         )
+    if rec.unauthenticated:
+        log.warning("%d unauthenticated samples were not recorded", rec.unauthenticated)
     total = sum(r["messages"] for r in summary.values())
     log.info("wrote %d messages on %d keys to %s", total, len(summary), cfg.out)
     return summary
