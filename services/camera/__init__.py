@@ -165,7 +165,7 @@ class Camera:
             congestion_control=zenoh.CongestionControl.DROP,
         )
         self._pub_handle = pub  # zenoh undeclares a publisher that is garbage-collected
-        self.image = Outlet(pub, node.service)
+        self.image = Outlet(pub, node.service, node.signer, key)
         self.pose_out = node.outlet(node.keys.camera(cfg.camera, "measured_cp"), control=False, latest=True)
         if cfg.source == "sim":
             spec = robots.get(cfg.model)
