@@ -30,6 +30,7 @@ from telesurg.services.slave_control.teach import (
 )
 from telesurg.shared.errors import IKError, KinematicsError
 from telesurg.shared.kinematics.trocar import axis_angle_to_trocar, pose_to_trocar, posture_adjust
+from telesurg.shared.kinematics.trocar_limits import remove_step
 from telesurg.shared.messages import Command
 
 if TYPE_CHECKING:
@@ -138,6 +139,21 @@ class TrocarMotions:
                 target = job.ptp.next(dt)
             elif job.playback is not None:
                 target = job.playback.next(q_cmd, dt)
+            elif job.jog is not None and job.phase is Phase.REMOVE and _is_retraction(job.jog):
+                # the way out: straight back along the axis, pivoting about the trocar where the
+                # straight way would leave the arm's reach (trocar_limits.remove_step)
+                target, pivoted = remove_step(
+                    q_cmd,
+                    self.trocar,
+                    cfg.jog_speed_mm_s / 1e3 * dt,
+                    pivot_rad=REMOVE_PIVOT_RAD_S * dt,
+                )
+                if pivoted and not self.remove_pivoting:
+                    self._core.event(
+                        "remove_pivot",
+                        "removal pivots about the trocar: the straight way out leaves the arm's reach",
+                    )
+                self.remove_pivoting = pivoted
             elif job.jog is not None:
                 jog = job.jog
                 target = jog_step(
@@ -177,6 +193,8 @@ class TrocarMotions:
             raise MotionError(str(exc)) from exc
         out: np.ndarray = target
         return out
+
+    remove_pivoting = False  # the removal is pivoting about the trocar (for its event)
 
     def reached(self, q_out: np.ndarray, reading: ArmReading) -> None:
         core = self._core
@@ -471,3 +489,11 @@ class Internal:
     teach: bool  # direct teach: the arm follows a push
     mode: str  # control mode
     phase: Phase | None
+
+
+REMOVE_PIVOT_RAD_S = 0.25  # rad/s: pivot speed of the forceps about the trocar during removal
+
+
+def _is_retraction(jog: Jog) -> bool:
+    """The removal jog: outward along the forceps axis."""
+    return jog.frame.value == "forceps" and jog.axis == "x" and jog.direction < 0

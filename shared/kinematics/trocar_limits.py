@@ -51,9 +51,7 @@ class ClampedTarget:
     detail: str = ""
 
 
-def _depth_clamp(
-    p: FloatArray, c: FloatArray, u: FloatArray, lo: float, hi: float
-) -> tuple[FloatArray, str]:
+def _depth_clamp(p: FloatArray, c: FloatArray, u: FloatArray, lo: float, hi: float) -> tuple[FloatArray, str]:
     """``p`` with its distance beyond the trocar (along ``p - c``) clamped into ``[lo, hi]``.
 
     ``u`` is the unit direction wrist → trocar: a tip behind or beside the trocar (depth along
@@ -72,9 +70,7 @@ def _depth_clamp(
     return p, ""
 
 
-def _reach_clamp(
-    p: FloatArray, c: FloatArray, geom: ArmGeometry, margin: float
-) -> tuple[FloatArray, str]:
+def _reach_clamp(p: FloatArray, c: FloatArray, geom: ArmGeometry, margin: float) -> tuple[FloatArray, str]:
     """``p`` pivoted about the trocar (same depth) so the wrist centre is within reach − margin.
 
     The wrist centre of a tip ``p`` at depth ``δ = |p − c|`` lies on the sphere of radius
@@ -111,7 +107,8 @@ def _reach_clamp(
     w_new = c + x * e + rho * perp / n
     d_new = (c - w_new) / float(np.linalg.norm(c - w_new))
     angle = math.degrees(math.acos(max(-1.0, min(1.0, float(d @ d_new)))))
-    return c + delta * d_new, f"reach: pivot {angle:.1f}° toward the arm (wrist {dist_w * 1e3:.0f} → {r2 * 1e3:.0f} mm from the shoulder)"
+    note = f"reach: pivot {angle:.1f}° toward the arm (wrist {dist_w * 1e3:.0f} → {r2 * 1e3:.0f} mm from J2)"
+    return c + delta * d_new, note
 
 
 def clamped_trocar_ik(
@@ -214,7 +211,7 @@ def remove_step(
     step_m: float,
     geom: ArmGeometry = MH3F,
     *,
-    pivot_rad: float = 0.01,
+    pivot_rad: float = 0.001,
     exit_depth: float = -0.003,
 ) -> tuple[FloatArray, bool]:
     """One period of removal: the tip ``step_m`` back along the forceps axis, out of the patient.
@@ -267,18 +264,23 @@ def remove_step(
         e1 = np.cross(d, [0.0, 1.0, 0.0])
     e1 /= np.linalg.norm(e1)
     e2 = np.cross(d, e1)
+    # candidates: the axis tilted by pivot_rad toward 8 azimuths, retracting; if none is feasible,
+    # the same pivots in place (no retraction this period) until the retraction is feasible again
     best: tuple[float, FloatArray] | None = None
-    for k in range(8):
-        a = 2.0 * math.pi * k / 8.0
-        dk = math.cos(pivot_rad) * d + math.sin(pivot_rad) * (math.cos(a) * e1 + math.sin(a) * e2)
-        w_exit = c + (exit_depth - geom.wrist_to_tcp) * dk
-        dist = float(np.linalg.norm(w_exit - shoulder))
-        try:
-            qk = trocar_ik(c + new_depth * dk, c, q0, geom=geom, min_depth=_PIVOT_MIN_DEPTH / 2)
-        except IKError:
-            continue
-        if within_limits(qk, geom) and (best is None or dist < best[0]):
-            best = (dist, qk)
+    for tip_depth in (new_depth, depth):
+        for k in range(8):
+            a = 2.0 * math.pi * k / 8.0
+            dk = math.cos(pivot_rad) * d + math.sin(pivot_rad) * (math.cos(a) * e1 + math.sin(a) * e2)
+            w_exit = c + (exit_depth - geom.wrist_to_tcp) * dk
+            dist = float(np.linalg.norm(w_exit - shoulder))
+            try:
+                qk = trocar_ik(c + tip_depth * dk, c, q0, geom=geom, min_depth=_PIVOT_MIN_DEPTH / 2)
+            except IKError:
+                continue
+            if within_limits(qk, geom) and (best is None or dist < best[0]):
+                best = (dist, qk)
+        if best is not None:
+            break
     if best is None:
         raise IKError(
             f"remove: neither straight retraction ({straight}) nor a pivot of "

@@ -1,0 +1,66 @@
+"""Trocar-mode master–slave in the Cartesian mapping: the nearest feasible target, said in events.
+
+In trocar mode the mapping solves the trocar IK (the forceps pivots about the trocar). A master
+target beyond the arm's reach, its joint limits, the insertion depth range or, within one master
+sample, its joint speeds (Jinno 2014, Table 1) is not held: it is brought to the nearest feasible
+target by :func:`~telesurg.shared.kinematics.trocar_limits.clamped_trocar_ik` (the RCM stays
+exact), and each clamping episode is an event ``trocar_clamped`` saying what was clamped and by
+how much, with another when the target is feasible again.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from telesurg.shared.bus import Node
+from telesurg.shared.kinematics.mh3f import ArmGeometry
+from telesurg.shared.kinematics.trocar_limits import ClampedTarget, clamped_trocar_ik
+
+MAX_DT_S = 0.05  # s: a longer gap between master samples counts as this much for the speed limit
+
+
+class TrocarClamp:
+    """Per-pair state: the master clock of the last sample and the current clamping episode."""
+
+    def __init__(self, node: Node, slave: str, geom: ArmGeometry, depth_mm: tuple[float, float]) -> None:
+        self.node, self.slave, self.geom = node, slave, geom
+        self.min_depth, self.max_depth = depth_mm[0] / 1e3, depth_mm[1] / 1e3
+        self.last_stamp_ns: int | None = None
+        self.episode: tuple[str, ...] = ()
+        self.samples = 0  # samples clamped in the current episode
+        self.clamped_total = 0  # samples clamped since start
+
+    def reset(self, stamp_ns: int) -> None:
+        """A new engagement: the master clock starts at ``stamp_ns``."""
+        self.last_stamp_ns = stamp_ns
+        self.episode = ()
+        self.samples = 0
+
+    def solve(self, tip: np.ndarray, trocar: np.ndarray, q_last: np.ndarray, stamp_ns: int) -> ClampedTarget:
+        """The joints for this master sample (``stamp_ns``: its master-clock stamp)."""
+        last = self.last_stamp_ns if self.last_stamp_ns is not None else stamp_ns
+        dt = min(max((stamp_ns - last) * 1e-9, 0.0), MAX_DT_S)
+        r = clamped_trocar_ik(
+            tip, trocar, q_last, dt, self.geom, min_depth=self.min_depth, max_depth=self.max_depth
+        )
+        self.last_stamp_ns = stamp_ns
+        if r.clamped:
+            self.samples += 1
+            self.clamped_total += 1
+            if not self.episode or any(k not in self.episode for k in r.clamped):
+                self.episode = tuple(sorted(set(self.episode) | set(r.clamped)))
+                self.node.event(
+                    "trocar_clamped",
+                    f"trocar-mode target clamped ({', '.join(r.clamped)}): {r.detail}"[:480],
+                    arm=self.slave,
+                    severity="warning",
+                )
+        elif self.episode:
+            self.node.event(
+                "trocar_clamped",
+                f"trocar-mode target feasible again after {self.samples} clamped samples "
+                f"({', '.join(self.episode)})",
+                arm=self.slave,
+            )
+            self.episode = ()
+            self.samples = 0
+        return r
