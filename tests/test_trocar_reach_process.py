@@ -2,7 +2,7 @@
 
 From each start posture of ``telesurg experiment jinno-insertion`` the test, as the console and
 the master (a 250 Hz pose and clutch it publishes itself), adjusts the posture by PTP, inserts into
-trocar mode (50 mm), engages master–slave with the mapping's ``virtual_trocar`` master at scale
+trocar mode (50 mm), jogs 60 mm deeper (as the experiment's trace does), engages master–slave with the mapping's ``virtual_trocar`` master at scale
 0.5 and draws a 60 mm master circle on the side that used to take the arm past its reach, then an
 80 mm figure-eight; releases the clutch and removes the forceps.
 
@@ -189,6 +189,12 @@ def test_virtual_trocar_circle_and_eight_then_remove(
         time.sleep(0.5)
     assert send("insert").accepted
     assert pipe.wait(lambda: now("mode") == "trocar", 20), "never reached trocar mode"
+    # deeper first, as the experiment's trace does: 1.5 s at 40 mm/s → ~110 mm
+    assert send("set_motion_mode", "mode=jog").accepted
+    assert send("jog", "frame=forceps", "axis=x", "direction=1").accepted
+    time.sleep(1.5)
+    assert send("stop").accepted
+    time.sleep(0.5)
     assert send("set_motion_mode", "mode=master_slave").accepted
     time.sleep(0.2)
     master.clutch = True

@@ -120,7 +120,7 @@ def clamped_trocar_ik(
     *,
     min_depth: float = 0.010,
     max_depth: float | None = None,
-    speed_fraction: float = 0.9,
+    speed_fraction: float = 0.7,
     reach_margin: float = 0.010,
 ) -> ClampedTarget:
     """Trocar IK toward ``tip`` limited to what the arm can reach and do within ``dt``.
@@ -139,7 +139,9 @@ def clamped_trocar_ik(
         dt: time [s] since ``q_last`` was commanded (the master's clock), > 0 for any motion.
         geom: arm geometry (``tool`` = forceps length).
         min_depth, max_depth: insertion depth range [m].
-        speed_fraction: fraction of the joint speed limits (``geom.max_velocity``) allowed.
+        speed_fraction: fraction of the joint speed limits (``geom.max_velocity``) allowed; the
+            margin leaves the slave room to follow the setpoints on its own clock without
+            clipping them (clipping a trocar-mode motion bends it off the RCM).
         reach_margin: the wrist centre is kept this far [m] inside the arm's reach (near full
             stretch the elbow is singular and J2/J3 would have to move arbitrarily fast).
 
