@@ -12,6 +12,7 @@ asks this source each period whether it drives the arm and for its joint target.
 
 from __future__ import annotations
 
+import itertools
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
@@ -29,6 +30,7 @@ from telesurg.services.slave_control.teach import (
     playback_problem,
 )
 from telesurg.shared.errors import IKError, KinematicsError
+from telesurg.shared.kinematics.keepout import PatientBox, path_problem, pose_problem
 from telesurg.shared.kinematics.trocar import axis_angle_to_trocar, pose_to_trocar, posture_adjust
 from telesurg.shared.kinematics.trocar_limits import remove_step
 from telesurg.shared.messages import Command
@@ -187,12 +189,23 @@ class TrocarMotions:
             p = self.profile
             if not all(lo <= v <= hi for v, lo, hi in zip(target.tolist(), p.lower, p.upper, strict=True)):
                 raise IKError("a joint limit is reached")
+            if problem := pose_problem(target, self.patient_box()):  # checked before it is commanded
+                raise IKError(f"patient keep-out: {problem}")
         except (IKError, KinematicsError) as exc:
             if job.teach:  # direct teach: do not follow this push, stay in the mode
                 return q_cmd
             raise MotionError(str(exc)) from exc
         out: np.ndarray = target
         return out
+
+    def patient_box(self) -> PatientBox:
+        """The patient keep-out with the current trocar (no entry anywhere while none is taught)."""
+        c = self.trocar
+        trocar = (float(c[0]), float(c[1]), float(c[2])) if self.trocar_taught else None
+        lo, hi = self.cfg.patient_box_min_mm, self.cfg.patient_box_max_mm
+        return PatientBox(
+            (lo[0] / 1e3, lo[1] / 1e3, lo[2] / 1e3), (hi[0] / 1e3, hi[1] / 1e3, hi[2] / 1e3), trocar
+        )
 
     remove_pivoting = False  # the removal is pivoting about the trocar (for its event)
 
@@ -313,6 +326,13 @@ class TrocarMotions:
                 target = posture_adjust(self.q_cmd, self.trocar)
             except (IKError, KinematicsError) as exc:
                 return False, f"begin_posture_adjust refused: {exc}"
+        if method in ("ptp", "playback"):  # planned joint path, checked at fine steps before it starts
+            path = [self.q_cmd, target]
+            if method == "playback":
+                path = [self.q_cmd] + [np.array(pt.q) for pt in self.store.programs[program]]
+            for qa, qb in itertools.pairwise(path):
+                if crossing := path_problem(qa, qb, self.patient_box()):
+                    return False, f"begin_posture_adjust refused: patient keep-out: {crossing}"
         r = m.begin_posture_adjust(method, program_axis_angle_rad=angle)
         if not r.accepted:
             return r.accepted, r.reason
