@@ -15,6 +15,7 @@ from telesurg.shared.bus import Node
 from telesurg.shared.kinematics.mh3f import ArmGeometry
 from telesurg.shared.kinematics.trocar_limits import ClampedTarget, clamped_trocar_ik
 
+FIRST_DT_S = 0.004  # s: the engage sample has no predecessor; one 250 Hz period
 MAX_DT_S = 0.05  # s: a longer gap between master samples counts as this much for the speed limit
 
 
@@ -25,6 +26,7 @@ class TrocarClamp:
         self.node, self.slave, self.geom = node, slave, geom
         self.min_depth, self.max_depth = depth_mm[0] / 1e3, depth_mm[1] / 1e3
         self.last_stamp_ns: int | None = None
+        self.fresh = True  # the next sample is the first of an engagement
         self.episode: tuple[str, ...] = ()
         self.samples = 0  # samples clamped in the current episode
         self.clamped_total = 0  # samples clamped since start
@@ -32,13 +34,17 @@ class TrocarClamp:
     def reset(self, stamp_ns: int) -> None:
         """A new engagement: the master clock starts at ``stamp_ns``."""
         self.last_stamp_ns = stamp_ns
+        self.fresh = True
         self.episode = ()
         self.samples = 0
 
     def solve(self, tip: np.ndarray, trocar: np.ndarray, q_last: np.ndarray, stamp_ns: int) -> ClampedTarget:
         """The joints for this master sample (``stamp_ns``: its master-clock stamp)."""
-        last = self.last_stamp_ns if self.last_stamp_ns is not None else stamp_ns
-        dt = min(max((stamp_ns - last) * 1e-9, 0.0), MAX_DT_S)
+        if self.last_stamp_ns is None or self.fresh:  # the engage sample: one nominal period
+            dt = FIRST_DT_S
+        else:
+            dt = min(max((stamp_ns - self.last_stamp_ns) * 1e-9, 0.0), MAX_DT_S)
+        self.fresh = False
         r = clamped_trocar_ik(
             tip, trocar, q_last, dt, self.geom, min_depth=self.min_depth, max_depth=self.max_depth
         )
