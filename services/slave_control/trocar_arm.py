@@ -29,6 +29,7 @@ from telesurg.services.slave_control.teach import (
     direct_teach_step,
     playback_problem,
 )
+from telesurg.services.slave_control.work_frame import ConfiguredWorkFrame, WorkFrame
 from telesurg.shared.errors import IKError, KinematicsError
 from telesurg.shared.kinematics.keepout import PatientBox, path_problem, pose_problem
 from telesurg.shared.kinematics.trocar import axis_angle_to_trocar, pose_to_trocar, posture_adjust
@@ -72,6 +73,8 @@ class TrocarMotions:
             self.trocar = np.array(self.store.trocars[self.store.current_trocar])
             self.trocar_taught = True
         self.backend_push = push
+        # the work jog frame (the laparoscope view); a camera pose stream can replace it
+        self.work_frame: WorkFrame = ConfiguredWorkFrame(cfg.work_frame_rpy_deg)
         self.rcm_error_m = 0.0  # last measured RCM error (set by update_modes)
         self._vmax = np.array(profile.max_velocity)
 
@@ -167,6 +170,7 @@ class TrocarMotions:
                     speed_m_s=cfg.jog_speed_mm_s / 1e3,
                     joint_speed_rad_s=np.radians(cfg.jog_joint_speed_deg_s),
                     trocar=self.trocar if job.mode == "trocar" else None,
+                    work=self.work_frame.rotation(),
                 )
                 pt = self.posture_target
                 if job.phase is Phase.POSTURE and pt is not None and jog.axis in ("j4", "j5"):
