@@ -16,7 +16,8 @@ from telesurg.shared.kinematics.mh3f import ArmGeometry
 from telesurg.shared.kinematics.trocar_limits import ClampedTarget, clamped_trocar_ik
 
 FIRST_DT_S = 0.004  # s: the engage sample has no predecessor; one 250 Hz period
-MAX_DT_S = 0.05  # s: a longer gap between master samples counts as this much for the speed limit
+MAX_DT_S = 0.012  # s: a longer gap between master samples counts as this much for the speed
+# limit (a slave interpolating a larger step linearly in joint space would leave the RCM)
 
 
 class TrocarClamp:
