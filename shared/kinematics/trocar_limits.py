@@ -28,7 +28,7 @@ from telesurg.shared.kinematics.trocar import MIN_TIP_DEPTH, trocar_ik
 __all__ = ["ClampedTarget", "clamped_trocar_ik", "remove_step"]
 
 _PIVOT_MIN_DEPTH = 0.002  # [m] below this depth removal no longer pivots (axis ill defined)
-_BISECT_STEPS = 12  # bisection on the path fraction: 2^-12 of the sample's tip step
+_BISECT_STEPS = 8  # bisection on the path fraction: 2^-8 of the sample's tip step
 
 
 @dataclass(frozen=True)
@@ -170,6 +170,8 @@ def clamped_trocar_ik(
 
     why: list[str] = []
 
+    over: list[float] = []  # speed ratio of the last infeasible solution (its largest joint)
+
     def solve(target: FloatArray) -> FloatArray | None:
         try:
             q = trocar_ik(target, c, q0, geom=geom)
@@ -178,6 +180,7 @@ def clamped_trocar_ik(
             why.append(str(exc))
             return None
         if np.any(np.abs(q - q0) > vmax):
+            over.append(float(np.max(np.abs(q - q0) / np.maximum(vmax, 1e-12))))
             why.append("speed")
             j = int(np.argmax(np.abs(q - q0) / np.maximum(vmax, 1e-12)))
             why.append(f"{geom.joint_names[j]} {abs(q[j] - q0[j]) / max(dt, 1e-9):.2f} rad/s")
@@ -191,7 +194,16 @@ def clamped_trocar_ik(
         return ClampedTarget(q, p_req, tuple(clamped), "; ".join(notes))
     first_why = list(why)
     lo_s, hi_s, best = 0.0, 1.0, q0
-    for _ in range(_BISECT_STEPS):
+    if first_why[0] == "speed" and over and math.isfinite(over[0]) and over[0] > 1.0:
+        # joint speed only: the joints scale about linearly with a short tip step, so the
+        # fraction 1 / ratio (a little less) is usually feasible at once; bisect above it
+        s_guess = 0.98 / over[0]
+        q_guess = solve(p0 + s_guess * (p_req - p0))
+        if q_guess is not None:
+            lo_s, best = s_guess, q_guess
+        else:
+            hi_s = s_guess
+    for _ in range(_BISECT_STEPS if lo_s == 0.0 else 0):
         mid = 0.5 * (lo_s + hi_s)
         qm = solve(p0 + mid * (p_req - p0))
         if qm is None:
