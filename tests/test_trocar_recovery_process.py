@@ -22,7 +22,15 @@ import pytest
 from telesurg.services.bench.harness import Pipeline
 from telesurg.services.experiment.jinno import STARTS
 from telesurg.shared.bus import BusConfig, Node
-from telesurg.shared.messages import Command, CommandReply, OperatingState, SafetyEvent, SafetyState
+from telesurg.shared.messages import (
+    CartesianPose,
+    Command,
+    CommandReply,
+    MasterButtons,
+    OperatingState,
+    SafetyEvent,
+    SafetyState,
+)
 
 pytestmark = pytest.mark.process
 
@@ -83,6 +91,15 @@ class Console:
         else:
             pytest.fail("posture adjustment never finished")
         assert self.until("insert", "trocar", 20), "never reached trocar mode"
+
+
+def idle_master(node: Node, stop: threading.Event) -> None:
+    """A master at rest with the clutch released (nobody engages master–slave in this test)."""
+    pose = node.outlet(node.keys.master("m1", "measured_cp"))
+    buttons = node.outlet(node.keys.master("m1", "buttons"))
+    while not stop.wait(0.004):
+        buttons.put(MasterButtons(buttons.header(), False, True))
+        pose.put(CartesianPose(pose.header(), "master", (0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 1.0)))
 
 
 @pytest.fixture
