@@ -16,6 +16,7 @@ from telesurg.shared.kinematics.mh3f import ArmGeometry
 from telesurg.shared.kinematics.trocar_limits import ClampedTarget, clamped_trocar_ik
 
 FIRST_DT_S = 0.004  # s: the engage sample has no predecessor; one 250 Hz period
+QUIET_SAMPLES = 50  # an episode ends after this many unclamped samples (no event per jitter blip)
 MAX_DT_S = 0.012  # s: a longer gap between master samples counts as this much for the speed
 # limit (a slave interpolating a larger step linearly in joint space would leave the RCM)
 
@@ -28,6 +29,7 @@ class TrocarClamp:
         self.min_depth, self.max_depth = depth_mm[0] / 1e3, depth_mm[1] / 1e3
         self.last_stamp_ns: int | None = None
         self.fresh = True  # the next sample is the first of an engagement
+        self.quiet = 0  # unclamped samples since the last clamped one
         self.episode: tuple[str, ...] = ()
         self.samples = 0  # samples clamped in the current episode
         self.clamped_total = 0  # samples clamped since start
@@ -61,10 +63,15 @@ class TrocarClamp:
                     arm=self.slave,
                     severity="warning",
                 )
-        elif self.episode:
+            self.quiet = 0
+            return r
+        if not self.episode:
+            return r
+        self.quiet += 1
+        if self.quiet >= QUIET_SAMPLES:
             self.node.event(
                 "trocar_clamped",
-                f"trocar-mode target feasible again after {self.samples} clamped samples "
+                f"trocar-mode target feasible again ({self.samples} samples clamped in the episode) "
                 f"({', '.join(self.episode)})",
                 arm=self.slave,
             )
