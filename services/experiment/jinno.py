@@ -262,20 +262,41 @@ class Experiment:
         a.settle()
 
     def master_slave(self, run: Run) -> None:
-        """Master–slave in trocar mode after the insertion: one lap of a small master circle."""
+        """Master–slave in trocar mode after the insertion: one lap of a small master circle.
+
+        Like the trace, drawn again (at most ``TRACE_ATTEMPTS`` times) if a hold of a starved
+        machine stopped the slave following."""
         a, m = self.arm, self.master
         a.must("set_motion_mode", "mode=master_slave")
         time.sleep(0.3)
         m.radius = MS_RADIUS_M
-        m.clutch = True
-        self._must_wait(lambda: bool(a.log.states) and a.log.states[-1][4], 5, "the slave never followed")
-        time.sleep(0.3)
-        m.trace_t0 = time.monotonic()
-        time.sleep(MS_LAPS * TRACE_PERIOD_S)
-        m.clutch = False
-        m.trace_t0 = None
-        m.radius = TRACE_RADIUS_M
-        self._must_wait(lambda: not a.log.states[-1][4], 2, "the slave never let go")
+        try:
+            for _attempt in range(TRACE_ATTEMPTS):
+                a.wait(a.lease_ok, 10)
+                m.clutch = True
+                if not a.wait(lambda: bool(a.log.states) and a.log.states[-1][4], 5):
+                    m.clutch = False
+                    time.sleep(0.5)
+                    continue
+                time.sleep(0.3)
+                t0 = m.trace_t0 = time.monotonic()
+                time.sleep(MS_LAPS * TRACE_PERIOD_S)
+                m.clutch = False
+                m.trace_t0 = None
+                self._must_wait(lambda: not a.log.states[-1][4], 2, "the slave never let go")
+                with a.log.lock:
+                    lost = [
+                        s for s in a.log.states if t0 <= s[0] <= t0 + MS_LAPS * TRACE_PERIOD_S and not s[4]
+                    ]
+                if not lost:
+                    break
+                log.warning("%s: the slave stopped following during the master–slave lap; again", run.name)
+            else:
+                raise RuntimeError(f"{run.name}: master–slave never followed a whole lap")
+        finally:
+            m.clutch = False
+            m.trace_t0 = None
+            m.radius = TRACE_RADIUS_M
         run.t_ms_end = time.monotonic()
         a.settle()
 
