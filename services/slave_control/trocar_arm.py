@@ -193,7 +193,9 @@ class TrocarMotions:
             p = self.profile
             if not all(lo <= v <= hi for v, lo, hi in zip(target.tolist(), p.lower, p.upper, strict=True)):
                 raise IKError("a joint limit is reached")
-            if problem := pose_problem(target, self.patient_box()):  # checked before it is commanded
+            box = self.patient_box()  # checked before it is commanded; a pose already crossing
+            # (a start inside the box) may move, or it could never get out
+            if (problem := pose_problem(target, box)) and pose_problem(q_cmd, box) is None:
                 raise IKError(f"patient keep-out: {problem}")
         except (IKError, KinematicsError) as exc:
             if job.teach:  # direct teach: do not follow this push, stay in the mode
