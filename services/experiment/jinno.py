@@ -175,13 +175,16 @@ class Experiment:
                 raise RuntimeError("the PTP never finished")
         elif run.method == "jog":
             for j in (4, 5):
-                togo = target[j - 1] - a.q()[j - 1]
-                if abs(togo) < math.radians(0.1):
-                    continue
-                tj = time.monotonic()
-                a.must("jog", "frame=joint", f"axis=j{j}", f"direction={1 if togo > 0 else -1}")
-                if not a.wait_event("jog_stopped", tj, 40):  # the jog stops itself at the target
-                    raise RuntimeError(f"the J{j} jog never reached its target")
+                for _ in range(4):  # a hold of a starved host stops the jog: jog again
+                    togo = target[j - 1] - a.q()[j - 1]
+                    if abs(togo) < math.radians(0.1):
+                        break
+                    a.wait(a.lease_ok, 10)
+                    tj = time.monotonic()
+                    a.must("jog", "frame=joint", f"axis=j{j}", f"direction={1 if togo > 0 else -1}")
+                    if not a.wait_event("jog_stopped", tj, 40):  # the jog stops itself at the target
+                        raise RuntimeError(f"the J{j} jog never reached its target")
+                    a.settle()
         else:  # direct teach: push the tip the way J4/J5 must turn, as a person would
             deadline = time.monotonic() + 40
             while time.monotonic() < deadline:
