@@ -28,6 +28,8 @@ def test_jinno_insertion_experiment(tmp_path: Path) -> None:
         assert key in m
     assert m["rcm_error_samples"] > 100  # the trace was measured, many states
     assert m["rcm_error_max_mm"] < 1.0 and m["rcm_error_max_all_trocar_mm"] < 1.0
+    # from the measured joints at their full rate, over all of trocar mode (master–slave included)
+    assert m["rcm_full_rate_samples"] > 1000 and m["rcm_full_rate_max_mm"] < 1.0
     assert m["insertions_succeeded"] == m["insertions_attempted"] == 6
     # every run: into trocar mode and out again (5 transitions each)
     assert m["mode_transitions"] >= 30 and m["removals_succeeded"] == 6

@@ -56,13 +56,13 @@ from telesurg.services.mapping.engage import EngageGate
 from telesurg.services.mapping.joints import AllJointsMapping, VipMapping
 from telesurg.services.mapping.master import master_point
 from telesurg.services.mapping.position import PositionMapping
+from telesurg.services.mapping.trocar import TrocarClamp
 from telesurg.shared import robots
 from telesurg.shared.bus import BusConfig, Node, Outlet, only
 from telesurg.shared.errors import ConfigError, IKError
 from telesurg.shared.kinematics import matrix_from_quat, quat_from_matrix
 from telesurg.shared.kinematics.mh3f import MH3F, fk, ik
 from telesurg.shared.kinematics.transforms import rpy_matrix
-from telesurg.shared.kinematics.trocar import trocar_ik
 from telesurg.shared.messages import (
     CartesianPose,
     Command,
@@ -118,6 +118,9 @@ class MappingConfig:
     target_hz: float = 100.0  # Hz: setpoint_cp (for display; servo_jp carries every sample)
     workspace_min_mm: tuple[float, float, float] = (150.0, -600.0, -200.0)  # target box, base frame
     workspace_max_mm: tuple[float, float, float] = (1100.0, 600.0, 800.0)
+    # mm: insertion depth range of the tip beyond the trocar in trocar-mode master–slave (the
+    # target is clamped into it; the upper end leaves the non-shaft 150 mm of the forceps out)
+    trocar_depth_mm: tuple[float, float] = (10.0, 350.0)
     # Only these services may publish the inputs (others are rejected and counted; "" = anyone).
     master_source: str = "master_capture"
     slave_source: str = "slave_control"
@@ -154,6 +157,8 @@ class MappingConfig:
             raise ConfigError(f"master_mode {self.master_mode!r} invalid; valid: {', '.join(MASTER_MODES)}")
         if not 10.0 <= self.dummy_forceps_mm <= 1000.0:
             raise ConfigError(f"dummy_forceps_mm={self.dummy_forceps_mm} outside [10, 1000]")
+        if not 5.0 <= self.trocar_depth_mm[0] < self.trocar_depth_mm[1]:
+            raise ConfigError(f"trocar_depth_mm={self.trocar_depth_mm}: need 5 <= min < max")
         if any(a >= b for a, b in zip(self.workspace_min_mm, self.workspace_max_mm, strict=True)):
             raise ConfigError("workspace_min_mm must be below workspace_max_mm on every axis")
         for p in self.pairs:
@@ -186,6 +191,7 @@ class ArmMapping(EngageGate):
         self.ws_lo = [v / 1e3 for v in cfg.workspace_min_mm]
         self.ws_hi = [v / 1e3 for v in cfg.workspace_max_mm]
         self._clamping = False
+        self.trocar_clamp = TrocarClamp(node, slave, self.geom, cfg.trocar_depth_mm)
         # Newest master sample not yet mapped. The zenoh callback only stores it; the service
         # loop maps it. If mapping ever falls behind, it maps the newest sample and skips the
         # rest (counted in ``conflated``) instead of queueing latency.
@@ -273,6 +279,7 @@ class ArmMapping(EngageGate):
             t_s0[:3, :3].copy(),
         )
         self.q_last = self.q_meas.copy()
+        self.trocar_clamp.reset(pose.header.stamp_ns)
         self.last_pose = self.last_target = None
         self.ik_streak = 0
         k = self.scale * self.safety_scale
@@ -329,8 +336,12 @@ class ArmMapping(EngageGate):
                 st = self.slave_state
                 if st is not None and st.control_mode == "trocar":
                     # trocar mode: the tip follows the master; the forceps pivots about the
-                    # trocar (remote centre of motion), its roll kept continuous
-                    q = trocar_ik(target[:3, 3], np.array(st.trocar), self.q_last, geom=self.geom)
+                    # trocar (remote centre of motion), its roll kept continuous; a target out of
+                    # reach, depth or joint speed is brought to the nearest feasible one
+                    tc = self.trocar_clamp.solve(
+                        target[:3, 3], np.array(st.trocar), self.q_last, pose.header.stamp_ns
+                    )
+                    q, target[:3, 3] = tc.q, tc.tip
                 else:
                     q = ik(target, self.q_last, self.geom)
                 step = max(abs(a - b) for a, b in zip(q.tolist(), self.q_last.tolist(), strict=True))

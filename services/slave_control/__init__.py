@@ -92,6 +92,14 @@ class SlaveControlConfig:
     # operating_state are measured against it from the simulated arm's tip pose.
     trocar_mm: tuple[float, float, float] = (500.0, 0.0, 200.0)
     trocar_taught: bool = True  # the configured trocar counts as taught (teach_trocar replaces it)
+    # mm, base frame: the patient's body (the mh3f scene's torso under the drape). Every slave-side
+    # motion of the trocar arm is refused / stopped where the forceps would cross it outside the
+    # trocar (shared/kinematics/keepout.py); the entry must be within 5 mm of the trocar
+    # deg, roll/pitch/yaw of the work jog frame (the laparoscope's view: x image right, y image
+    # down, z into the image) in the base frame; default: looking down, patient's head (+x) up
+    work_frame_rpy_deg: tuple[float, float, float] = (180.0, 0.0, -90.0)
+    patient_box_min_mm: tuple[float, float, float] = (260.0, -170.0, 130.0)
+    patient_box_max_mm: tuple[float, float, float] = (740.0, 170.0, 198.0)
     jog_speed_mm_s: float = 10.0  # mm/s: Cartesian jog and insert/remove speed
     jog_joint_speed_deg_s: float = 5.0  # deg/s: joint jog speed
     ptp_speed_fraction: float = 0.2  # PTP moves (posture, playback) at this fraction of the joint limits

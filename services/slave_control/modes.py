@@ -61,7 +61,7 @@ Thresholds and hysteresis
 Safety rules: unknown or non-finite measurements count as missing, and anything that needs them
 is refused. Losing the taught trocar (``trocar_taught`` falling to False in update) outside
 ``non_trocar`` aborts. A running inward jog stops when the depth is lost or the axis angle passes
-``align_running_tolerance_rad`` (2°; starting needs ``align_tolerance_rad``, 0.5°); a
+``align_running_tolerance_rad`` (2°; starting needs ``align_tolerance_rad``, 0.05°); a
 posture jog stops when its joint reaches (or passes) its target.
 
 Events (``(kind, text)``, drained by the caller): ``mode_transition`` (``"A → B"``, with

@@ -7,7 +7,8 @@ lease. Pure (kinematics only), so it can be tested on its own.
 * :class:`PtpMotion` — point-to-point synchronous joint motion (posture adjustment of J4/J5):
   every joint arrives at the same time, linear in joint space.
 * :func:`jog_step` — one period of a jog: translation of the tip along an axis of the base
-  (``world``, ``base``, ``work`` = base here) or forceps frame at ``speed_m_s``, orientation kept;
+  (``world``, ``base``), the work frame (the laparoscope view, :mod:`.work_frame`) or the
+  forceps frame at ``speed_m_s``, orientation kept;
   a rotation ``rx``/``ry``/``rz`` about that axis through the tip at ``joint_speed_rad_s``, tip
   kept; or one joint at ``joint_speed_rad_s``. In trocar mode a translation goes through the
   trocar IK, so the forceps keeps pivoting about the trocar, and the only rotation is the roll
@@ -67,10 +68,12 @@ def jog_step(
     speed_m_s: float,
     joint_speed_rad_s: float,
     trocar: np.ndarray | None,
+    work: np.ndarray | None = None,
 ) -> np.ndarray:
     """Joint target one period ``dt`` further along the jog (raises IKError at a limit/reach).
 
-    ``trocar`` (m) given: translations keep the forceps through it (trocar-mode IK).
+    ``trocar`` (m) given: translations keep the forceps through it (trocar-mode IK). ``work``:
+    the work frame's rotation ``(3, 3)`` in the base frame (None: the base frame).
     """
     if axis.startswith("j"):
         out = q.copy()
@@ -79,8 +82,13 @@ def jog_step(
     if axis not in _AXES:
         raise IKError(f"jog about {axis} is not implemented")
     T = fk(q, MH3F)
-    # forceps: the TCP frame's axis; world, base, work: the base frame's axis (work = base here)
-    d = T[:3, _AXES[axis]] if frame == "forceps" else np.eye(3)[_AXES[axis]]
+    # forceps: the TCP frame's axis; work: the work frame's (laparoscope view); world, base: base
+    if frame == "forceps":
+        d = T[:3, _AXES[axis]]
+    elif frame == "work" and work is not None:
+        d = work[:, _AXES[axis]]
+    else:
+        d = np.eye(3)[_AXES[axis]]
     T_next = T.copy()
     if axis.startswith("r"):
         angle = direction * joint_speed_rad_s * dt

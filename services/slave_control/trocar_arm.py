@@ -12,6 +12,7 @@ asks this source each period whether it drives the arm and for its joint target.
 
 from __future__ import annotations
 
+import itertools
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
@@ -28,8 +29,11 @@ from telesurg.services.slave_control.teach import (
     direct_teach_step,
     playback_problem,
 )
+from telesurg.services.slave_control.work_frame import ConfiguredWorkFrame, WorkFrame
 from telesurg.shared.errors import IKError, KinematicsError
+from telesurg.shared.kinematics.keepout import PatientBox, path_problem, pose_problem
 from telesurg.shared.kinematics.trocar import axis_angle_to_trocar, pose_to_trocar, posture_adjust
+from telesurg.shared.kinematics.trocar_limits import remove_step
 from telesurg.shared.messages import Command
 
 if TYPE_CHECKING:
@@ -69,6 +73,8 @@ class TrocarMotions:
             self.trocar = np.array(self.store.trocars[self.store.current_trocar])
             self.trocar_taught = True
         self.backend_push = push
+        # the work jog frame (the laparoscope view); a camera pose stream can replace it
+        self.work_frame: WorkFrame = ConfiguredWorkFrame(cfg.work_frame_rpy_deg)
         self.rcm_error_m = 0.0  # last measured RCM error (set by update_modes)
         self._vmax = np.array(profile.max_velocity)
 
@@ -138,6 +144,21 @@ class TrocarMotions:
                 target = job.ptp.next(dt)
             elif job.playback is not None:
                 target = job.playback.next(q_cmd, dt)
+            elif job.jog is not None and job.phase is Phase.REMOVE and _is_retraction(job.jog):
+                # the way out: straight back along the axis, pivoting about the trocar where the
+                # straight way would leave the arm's reach (trocar_limits.remove_step)
+                target, pivoted = remove_step(
+                    q_cmd,
+                    self.trocar,
+                    cfg.jog_speed_mm_s / 1e3 * dt,
+                    pivot_rad=REMOVE_PIVOT_RAD_S * dt,
+                )
+                if pivoted and not self.remove_pivoting:
+                    self._core.event(
+                        "remove_pivot",
+                        "removal pivots about the trocar: the straight way out leaves the arm's reach",
+                    )
+                self.remove_pivoting = pivoted
             elif job.jog is not None:
                 jog = job.jog
                 target = jog_step(
@@ -149,6 +170,7 @@ class TrocarMotions:
                     speed_m_s=cfg.jog_speed_mm_s / 1e3,
                     joint_speed_rad_s=np.radians(cfg.jog_joint_speed_deg_s),
                     trocar=self.trocar if job.mode == "trocar" else None,
+                    work=self.work_frame.rotation(),
                 )
                 pt = self.posture_target
                 if job.phase is Phase.POSTURE and pt is not None and jog.axis in ("j4", "j5"):
@@ -171,12 +193,27 @@ class TrocarMotions:
             p = self.profile
             if not all(lo <= v <= hi for v, lo, hi in zip(target.tolist(), p.lower, p.upper, strict=True)):
                 raise IKError("a joint limit is reached")
+            box = self.patient_box()  # checked before it is commanded; a pose already crossing
+            # (a start inside the box) may move, or it could never get out
+            if (problem := pose_problem(target, box)) and pose_problem(q_cmd, box) is None:
+                raise IKError(f"patient keep-out: {problem}")
         except (IKError, KinematicsError) as exc:
             if job.teach:  # direct teach: do not follow this push, stay in the mode
                 return q_cmd
             raise MotionError(str(exc)) from exc
         out: np.ndarray = target
         return out
+
+    def patient_box(self) -> PatientBox:
+        """The patient keep-out with the current trocar (no entry anywhere while none is taught)."""
+        c = self.trocar
+        trocar = (float(c[0]), float(c[1]), float(c[2])) if self.trocar_taught else None
+        lo, hi = self.cfg.patient_box_min_mm, self.cfg.patient_box_max_mm
+        return PatientBox(
+            (lo[0] / 1e3, lo[1] / 1e3, lo[2] / 1e3), (hi[0] / 1e3, hi[1] / 1e3, hi[2] / 1e3), trocar
+        )
+
+    remove_pivoting = False  # the removal is pivoting about the trocar (for its event)
 
     def reached(self, q_out: np.ndarray, reading: ArmReading) -> None:
         core = self._core
@@ -295,6 +332,13 @@ class TrocarMotions:
                 target = posture_adjust(self.q_cmd, self.trocar)
             except (IKError, KinematicsError) as exc:
                 return False, f"begin_posture_adjust refused: {exc}"
+        if method in ("ptp", "playback"):  # planned joint path, checked at fine steps before it starts
+            path = [self.q_cmd, target]
+            if method == "playback":
+                path = [self.q_cmd] + [np.array(pt.q) for pt in self.store.programs[program]]
+            for qa, qb in itertools.pairwise(path):
+                if crossing := path_problem(qa, qb, self.patient_box()):
+                    return False, f"begin_posture_adjust refused: patient keep-out: {crossing}"
         r = m.begin_posture_adjust(method, program_axis_angle_rad=angle)
         if not r.accepted:
             return r.accepted, r.reason
@@ -471,3 +515,11 @@ class Internal:
     teach: bool  # direct teach: the arm follows a push
     mode: str  # control mode
     phase: Phase | None
+
+
+REMOVE_PIVOT_RAD_S = 0.25  # rad/s: pivot speed of the forceps about the trocar during removal
+
+
+def _is_retraction(jog: Jog) -> bool:
+    """The removal jog: outward along the forceps axis."""
+    return jog.frame.value == "forceps" and jog.axis == "x" and jog.direction < 0
