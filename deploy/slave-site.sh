@@ -34,6 +34,8 @@ options:
   --config-dir DIR     site folder: DIR/site.toml, a table per service (default: slave-site/
                        beside this script)
   --no-mapping         the mapping runs on the console machine (identity console-mapping)
+  --camera             also start the endoscope camera (camera/<cam>/image to the consoles; the
+                       watchdog then guards the video: docs/video.md)
   --mirror             also start the mirror (rerun viewer); with --serve or --save FILE.rrd
   --serve | --save F   mirror options (imply --mirror)
   --log-dir DIR        one log file per service
@@ -69,7 +71,8 @@ while [[ $# -gt 0 ]]; do
         --certs) certs="$2"; shift 2 ;;
         --acl) acl="$2"; shift 2 ;;
         --config-dir) config_dir="$2"; shift 2 ;;
-        --no-mapping) services=watchdog,slave_control; shift ;;
+        --no-mapping) services=${services/,mapping/}; shift ;;
+        --camera) services+=",camera"; shift ;;
         --mirror|--serve) mirror=1; shift ;;
         --save) mirror=1; save="$2"; shift 2 ;;
         --log-dir) extra+=(--log-dir "$2"); shift 2 ;;
