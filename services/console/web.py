@@ -57,7 +57,7 @@ from telesurg.services.console.model import ConsoleConfig, ConsoleModel
 from telesurg.shared import robots
 from telesurg.shared.bus import Node, only
 from telesurg.shared.errors import ConfigError
-from telesurg.shared.messages import CartesianPose, JointState, MasterButtons
+from telesurg.shared.messages import CameraImage, CartesianPose, JointState, MasterButtons
 from telesurg.shared.timing import CycleTimer, start_loop
 
 log = logging.getLogger(__name__)
@@ -134,6 +134,10 @@ class WebConsole:
             )
             m_src = only(cfg.mapping_source)
             node.subscribe(k.slave(arm, "setpoint_cp"), CartesianPose, self._on_setpoint, sources=m_src)
+        # the endoscope picture (camera service, docs/video.md): the newest frame of each camera,
+        # served to the page as an MJPEG stream (/video.mjpg); nothing is queued behind it
+        self.frames: dict[str, tuple[CameraImage, int]] = {}  # camera → (frame, receive time ns)
+        node.subscribe(f"{k.prefix}/camera/*/image", CameraImage, self._on_frame, sources=only("camera"))
         mk = node.keys
         out = master_node.outlet if master_node is not None else None
         self._pose_out = {m: out(mk.master(m, "measured_cp")) for m in self.masters if out}
@@ -158,6 +162,36 @@ class WebConsole:
         with self.lock:
             v = self.views[key.rsplit("/", 2)[-2]]
             v.setpoint, v.setpoint_rx = m, time.monotonic()
+
+    def _on_frame(self, m: CameraImage, key: str) -> None:
+        with self.lock:
+            self.frames[m.camera] = (m, time.time_ns())
+
+    def latest_frame(self, camera: str = "") -> CameraImage | None:
+        """The newest frame of ``camera`` ("" = the first camera seen), None if none yet."""
+        with self.lock:
+            if not self.frames:
+                return None
+            got = self.frames.get(camera or next(iter(self.frames)))
+        return got[0] if got is not None else None
+
+    def _video_state(self) -> dict[str, Any]:
+        """Per camera: image size, frame age at arrival and now (ms), sequence, layout."""
+        now = time.time_ns()
+        with self.lock:
+            frames = dict(self.frames)
+        return {
+            cam: {
+                "width": m.width,
+                "height": m.height,
+                "layout": m.layout,
+                "seq": m.header.seq,
+                "age_at_arrival_ms": round((rx - m.capture_ns) / 1e6, 1),
+                "age_ms": round((now - m.capture_ns) / 1e6, 1),
+                "dropped": m.dropped,
+            }
+            for cam, (m, rx) in frames.items()
+        }
 
     # -- browser masters ---------------------------------------------------------------------
     def feed(self, conn: object, obj: dict[str, Any], clock: ClockMap) -> str:
@@ -302,6 +336,7 @@ class WebConsole:
             "socket": self.counters.as_dict(),
             "recording": self._recorder is not None and self._recorder.poll() is None,
             "mouse_mm_per_px": self.web.mouse_mm_per_px,
+            "video": self._video_state(),
         }
 
     @staticmethod
@@ -387,6 +422,7 @@ class Server:
         self.app.router.add_get("/api/state", self._api_state)
         self.app.router.add_get("/api/stats", self._api_stats)
         self.app.router.add_get("/ws", self._ws)
+        self.app.router.add_get("/video.mjpg", self._video)
         self.app.router.add_static("/static/", static_dir())
 
     async def _index(self, request: Any) -> Any:
@@ -403,6 +439,30 @@ class Server:
         from aiohttp import web
 
         return web.json_response(self.wc.counters.as_dict())
+
+    async def _video(self, request: Any) -> Any:
+        """The endoscope picture as an MJPEG stream (``?camera=ID``; default: the first camera):
+        each new frame once, as the camera encoded it; a slow page skips frames, never queues."""
+        from aiohttp import web
+
+        camera = request.query.get("camera", "")
+        resp = web.StreamResponse(
+            headers={
+                "Content-Type": "multipart/x-mixed-replace; boundary=frame",
+                "Cache-Control": "no-store",
+            }
+        )
+        await resp.prepare(request)
+        last = -1
+        with contextlib.suppress(ConnectionError, asyncio.CancelledError):
+            while True:
+                m = self.wc.latest_frame(camera)
+                if m is not None and m.header.seq != last and m.encoding == "jpeg":
+                    last = m.header.seq
+                    head = f"--frame\r\nContent-Type: image/jpeg\r\nContent-Length: {len(m.data)}\r\n\r\n"
+                    await resp.write(head.encode() + m.data + b"\r\n")
+                await asyncio.sleep(0.02)
+        return resp
 
     async def _ws(self, request: Any) -> Any:
         from aiohttp import WSCloseCode, WSMsgType, web

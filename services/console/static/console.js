@@ -258,7 +258,22 @@ function render(m) {
     d.innerHTML = armHtml(a);
   }
   for (const n of m.notices || []) logLine(n.severity, n.text);
+  scope(m.video || {});
   draw(m);
+}
+
+// The endoscope picture (camera service): an MJPEG stream of the newest frames, shown once a
+// camera publishes, with the frame's age; hidden on a site without a camera.
+function scope(video) {
+  const cams = Object.keys(video);
+  const box = $("#scope");
+  if (!cams.length) { box.hidden = true; return; }
+  const v = video[cams[0]];
+  const img = $("#endoscope");
+  if (box.hidden) { img.src = "/video.mjpg?camera=" + encodeURIComponent(cams[0]); box.hidden = false; }
+  const old = v.age_ms > 500;
+  $("#scope-info").innerHTML = `camera ${esc(cams[0])} · ${v.width}×${v.height} ${esc(v.layout)} · ` +
+    `<span class="${old ? "bad" : ""}">frame age ${v.age_at_arrival_ms} ms at arrival, ${v.age_ms} ms now</span>`;
 }
 
 // Two orthographic views of each arm (base frame, mm): top (x right, y up) and side (x right,
