@@ -44,7 +44,7 @@ from pathlib import Path
 from types import TracebackType
 from typing import TYPE_CHECKING, Any, TypeVar
 
-from telesurg.shared.errors import ConfigError, MessageError
+from telesurg.shared.errors import AuthorityError, ConfigError, MessageError
 from telesurg.shared.keys import Keys, check_id
 from telesurg.shared.messages import Header, Heartbeat, Message, SafetyEvent, Sequencer, decode_as
 from telesurg.shared.streams import StreamTable
@@ -499,7 +499,9 @@ class Node:
         ``handler(request) -> reply message`` runs on a zenoh thread. A malformed request, a
         request from a source not in ``sources``, or a handler exception is answered with a
         zenoh error reply naming the problem (and counted in ``streams`` under ``key``); it never
-        reaches the handler twice and never crashes the service.
+        reaches the handler twice and never crashes the service. A handler that raises
+        :class:`~telesurg.shared.errors.AuthorityError` (the operator authority refused the
+        request) is answered ``refused: <reason>`` the same way, counted as rejected.
         """
         allowed = frozenset(sources) if sources is not None else None
 
@@ -524,6 +526,12 @@ class Node:
                 stats.received += 1
             try:
                 reply = handler(req)
+            except AuthorityError as exc:  # the operator authority refused it: the reason, no trace
+                with self._lock:
+                    stats.rejected += 1
+                with contextlib.suppress(Exception):
+                    query.reply_err(f"refused: {exc}".encode())
+                return
             except Exception as exc:  # a handler bug is answered, logged, and survived
                 log.exception("handler for %s failed", key)
                 with contextlib.suppress(Exception):

@@ -69,3 +69,23 @@ def feed_master(arm: Any, p: tuple[float, float, float], clutch: bool) -> None:
     arm.on_buttons(MasterButtons(TEST_HEADER, clutch, True), "")
     arm.on_master_pose(CartesianPose(TEST_HEADER, "master", p), "")
     arm.process()
+
+
+_operator_seq: dict[str, Any] = {}
+
+
+def operator_command(
+    node: Any, key: str, arm: str, name: str, *args: str, source: str = "console", confirm: bool = True
+) -> Any:
+    """Send one operator command as ``source`` (the operator console by default: only it may
+    command, shared/authority.py) and return the reply; ``confirm``: answer a ``confirm required``
+    reply with its token, as an operator who says yes."""
+    from telesurg.shared.messages import Command, CommandReply, Sequencer
+
+    seq = _operator_seq.setdefault(source, Sequencer(source))
+    r = node.request(key, Command(seq.next(), arm, name, args), CommandReply, 5.0)
+    if confirm and r.confirm:
+        r = node.request(
+            key, Command(seq.next(), arm, name, (*args, f"confirm={r.confirm}")), CommandReply, 5.0
+        )
+    return r

@@ -15,9 +15,10 @@ from collections.abc import Iterator
 
 import numpy as np
 import pytest
+from helpers import operator_command
 from telesurg.services.bench.harness import Pipeline
 from telesurg.shared.bus import BusConfig, Node
-from telesurg.shared.messages import CartesianPose, Command, CommandReply, MasterButtons, OperatingState
+from telesurg.shared.messages import CartesianPose, CommandReply, MasterButtons, OperatingState
 
 pytestmark = pytest.mark.process
 
@@ -81,10 +82,9 @@ def test_master_slave_about_the_trocar(site: tuple[Pipeline, Node, Master]) -> N
     node.subscribe(k.slave("arm1", "operating_state"), OperatingState, on_state)
     node.subscribe(k.slave("arm1", "measured_cp"), CartesianPose, on_tip)
     cmd_key = k.command("arm1")
-    out = node.outlet(cmd_key, control=False)
 
     def send(name: str, *args: str) -> CommandReply:
-        r = node.request(cmd_key, Command(out.header(), "arm1", name, args), CommandReply, 5.0)
+        r = operator_command(node, cmd_key, "arm1", name, *args)
         print(f"{name} {' '.join(args)} -> {'accepted' if r.accepted else 'REFUSED'}: {r.reason}")
         return r
 

@@ -44,6 +44,11 @@ class Console:
 
     def send(self, name: str, *args: str) -> CommandReply:
         r = self.node.request(self.key, Command(self.out.header(), "arm1", name, args), CommandReply, 5.0)
+        if r.confirm:  # a motion-starting command: the operator confirms (shared/authority.py)
+            confirmed = (*args, f"confirm={r.confirm}")
+            r = self.node.request(
+                self.key, Command(self.out.header(), "arm1", name, confirmed), CommandReply, 5.0
+            )
         print(f"{name} {' '.join(args)} -> {'accepted' if r.accepted else 'REFUSED'}: {r.reason}")
         return r
 

@@ -8,7 +8,7 @@ import time
 from conftest import wait_until
 from telesurg.services.watchdog import Watchdog, WatchdogConfig, _echo_loop
 from telesurg.shared.bus import BusConfig, Node
-from telesurg.shared.messages import EStop, SafetyLease
+from telesurg.shared.messages import EStop, Header, SafetyLease
 
 
 def test_echo_latency_source_and_estop(endpoint: str) -> None:
@@ -38,7 +38,11 @@ def test_echo_latency_source_and_estop(endpoint: str) -> None:
             assert wait_until(lambda: wd.arms[0].verdict.state == "ESTOP", 2.0)
             wd.tick()
             assert wd.arms[0].verdict.state == "ESTOP"  # latched
+            # a reset only from the operator console (shared/authority.py): master_capture's is refused
             out.put(EStop(out.header(), "arm1", "reset", "test"))
+            assert wait_until(lambda: wd.authority.refused == 1, 2.0)
+            assert wd.arms[0].safety.estop
+            out.put(EStop(Header("console", 1, time.time_ns()), "arm1", "reset", "test"))
             assert wait_until(lambda: wd.arms[0].safety.estop == "", 2.0)
             wd.tick()
             assert wd.arms[0].verdict.state == "HOLD"  # the other causes remain (no streams here)

@@ -43,6 +43,7 @@ from telesurg.shared.messages import (
     OperatingState,
     SafetyEvent,
     SafetyState,
+    Sequencer,
 )
 
 log = logging.getLogger(__name__)
@@ -219,6 +220,7 @@ class Pipeline:
         self.probe: Probe | None = None
         self._want_probe = probe
         self._estop_out: Outlet | None = None
+        self._estop_seq: dict[str, Sequencer] = {}
 
     def __enter__(self) -> Pipeline:
         try:
@@ -339,12 +341,14 @@ class Pipeline:
         self.impairer.set_delay(ms)
         return t
 
-    def estop(self, action: str, arm: str = "*") -> int:
-        """Send an e-stop (``action="estop"``) or its reset from the probe."""
+    def estop(self, action: str, arm: str = "*", source: str = "console") -> int:
+        """Send an e-stop (``action="estop"``) or its reset from the probe, signed as ``source``
+        (the operator console by default: only it may reset, shared/authority.py)."""
         if self._estop_out is None:
             self._estop_out = self.node.outlet(self.node.keys.estop)
+        seq = self._estop_seq.setdefault(source, Sequencer(source))
         t = now_ns()
-        self._estop_out.put(EStop(self._estop_out.header(), arm, action, "bench"))
+        self._estop_out.put(EStop(seq.next(), arm, action, "bench"))
         return t
 
     def restore(self) -> int:

@@ -38,6 +38,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from telesurg.services.common import service_main
 from telesurg.services.watchdog.logic import ArmSafety, Policy, Verdict
+from telesurg.shared.authority import Authority, AuthorityConfig
 from telesurg.shared.bus import BusConfig, Node, Outlet, only
 from telesurg.shared.errors import ConfigError
 from telesurg.shared.messages import (
@@ -102,6 +103,9 @@ class WatchdogConfig:
     master_source: str = "master_capture"
     mapping_source: str = "mapping"
     slave_source: str = "slave_control"
+    # who may send an e-stop and who may reset one (shared/authority.py; set once for the site in
+    # [site.authority]): a reset only from the operator console
+    authority: AuthorityConfig = field(default_factory=AuthorityConfig)
     bus: BusConfig = field(default_factory=BusConfig)  # zenoh session
 
     def validate(self) -> None:
@@ -183,6 +187,7 @@ class Watchdog:
         self.cfg, self.node = cfg, node
         self.lock = threading.Lock()  # guards alive and every ArmSafety
         self.alive: set[str] = set()
+        self.authority = Authority(cfg.authority)
         # Ticks executed, and the tick at which each stream last delivered. A stream is stale
         # only when it is old by wall time *and* by ticks: after the watchdog's own stall
         # (descheduled), queued messages get a chance to arrive before anything is judged stale.
@@ -231,6 +236,11 @@ class Watchdog:
             a.safety.on_slave_state(msg, time.monotonic())
 
     def _on_estop(self, msg: EStop, key: str) -> None:
+        if problem := self.authority.estop_problem(msg.header.source, msg.action):
+            self.node.event(
+                "estop_refused", problem, arm="" if msg.arm == "*" else msg.arm, severity="warning"
+            )
+            return
         with self.lock:
             changed = [a.safety.on_estop(msg) for a in self.arms]
         if any(changed):
