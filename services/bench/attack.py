@@ -88,6 +88,21 @@ KILL_HOLD_LIMIT_MS = 50.0
 FREEZE_MARGIN_MS = 20.0
 
 
+#: The bench judges forgery, not scheduling: on a shared 2-core machine the genuine streams miss
+#: the default deadlines (80-250 ms) often enough to hold the arm by themselves, which would hide
+#: what an attack does. The stream deadlines and latency limits are relaxed to seconds; the lease
+#: lifetime (250 ms), liveliness and every source / sequence / authority rule stay as configured.
+RELAXED_WATCHDOG = (
+    "master_deadline_ms=1000.0",
+    "buttons_deadline_ms=1000.0",
+    "servo_deadline_ms=1000.0",
+    "slave_deadline_ms=1000.0",
+    "slave_state_deadline_ms=1000.0",
+    "latency_budget_ms=2000.0",
+    "latency_limit_ms=5000.0",
+)
+
+
 @dataclass
 class Observer:
     """What the attacker sees of the genuine streams (last header seq per key, the lease, the
@@ -642,6 +657,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         selected = [known[n] for n in names]
     # the operator's clutch stays released: the genuine system keeps the slave still
     ov = {"master_capture": ["scripted.clutch=[[3600.0, 3601.0]]", "scripted.clutch_repeat_s=0.0"]}
+    ov["watchdog"] = list(RELAXED_WATCHDOG)
     with tempfile.TemporaryDirectory(prefix="telesurg-attack-") as tmp:
         log_dir = args.log_dir or Path(tmp) / "logs"
         with Pipeline(log_dir, overrides=ov, mirror=False, impair=False) as pipe:
