@@ -113,6 +113,7 @@ class Observer:
     top: dict[str, int] = field(default_factory=dict)  # key → last genuine seq seen
     lease_ms: float = 250.0
     teleop: list[tuple[int, str, float, float]] = field(default_factory=list)  # (ns, state, scale, safety)
+    paused: bool = False  # while forging: the forged numbers are not the genuine stream's
     events: list[tuple[int, str, str, str]] = field(default_factory=list)
 
     def __post_init__(self) -> None:
@@ -125,12 +126,14 @@ class Observer:
 
     def _on_seq(self, m: Message, key: str) -> None:
         with self.lock:
-            self.top[key] = max(self.top.get(key, -1), m.header.seq)
+            if not self.paused:
+                self.top[key] = m.header.seq
 
     def _on_lease(self, m: SafetyLease, key: str) -> None:
         with self.lock:
-            self.top[key] = max(self.top.get(key, -1), m.header.seq)
-            self.lease_ms = m.valid_for_ms
+            if not self.paused:
+                self.top[key] = m.header.seq
+                self.lease_ms = m.valid_for_ms
 
     def _on_teleop(self, m: TeleopState, key: str) -> None:
         with self.lock:
@@ -156,6 +159,7 @@ class Attacker:
         self.pipe, self.node, self.obs = pipe, node, obs
         self.k = node.keys
         self._seqs: dict[str, Sequencer] = {}
+        self.forge_s = 1.5  # s of forged streams per case
 
     def put(self, key: str, msg: Message) -> None:
         self.node.session.put(key, msg.encode())
@@ -179,12 +183,28 @@ class Attacker:
     def forge_motion(
         self, seconds: float, *, lease_seq: int | None, servo_seq: int, names: tuple[str, ...]
     ) -> tuple[int, int]:
-        """Forged ``servo_jp`` (src mapping, 500 Hz, j1 ramping at 0.3 rad/s from the measured
-        joints) and, with ``lease_seq``, forged allowing leases (src watchdog, 50 Hz), for
+        """Forged ``servo_jp`` (src mapping, 500 Hz: 0.1 s not following at the measured joints,
+        then following with j1 ramping at 0.3 rad/s) and, with ``lease_seq``, forged allowing leases (src watchdog, 50 Hz), for
         ``seconds``; returns (setpoints, leases) sent."""
         q0 = self.q_now()
         if not q0:
             return 0, 0
+        with self.obs.lock:
+            self.obs.paused = True
+        try:
+            return self._forge(q0, seconds, lease_seq, servo_seq, names)
+        finally:
+            with self.obs.lock:
+                self.obs.paused = False
+
+    def _forge(
+        self,
+        q0: tuple[float, ...],
+        seconds: float,
+        lease_seq: int | None,
+        servo_seq: int,
+        names: tuple[str, ...],
+    ) -> tuple[int, int]:
         k = self.k
         servo_key, lease_key = k.slave("arm1", "servo_jp"), k.safety("arm1", "lease")
         t0 = time.monotonic()
@@ -196,10 +216,13 @@ class Attacker:
                 self.put(lease_key, lease)
                 n_lease += 1
                 next_lease += 0.02
+            # 0.1 s of follow=False at the arm's joints first (the slave's engage needs a release
+            # seen before a press), then follow=True with j1 ramping away
+            arm_engage = t >= 0.1
             q = list(q0)
-            q[0] = q0[0] + 0.3 * t
+            q[0] = q0[0] + 0.3 * max(0.0, t - 0.1)
             sp = JointSetpoint(
-                self.header("mapping", servo_seq + n_sp), names, tuple(q), True, time.time_ns()
+                self.header("mapping", servo_seq + n_sp), names, tuple(q), arm_engage, time.time_ns()
             )
             self.put(servo_key, sp)
             n_sp += 1
@@ -214,6 +237,38 @@ class Case:
     name: str
     what: str
     run: Callable[[Attacker], dict[str, Any]]
+    fresh: bool = True  # start from a fresh site (its targets restarted: no state of earlier cases)
+
+
+#: the services a case may leave in a state of its making (sequence windows, latches)
+TARGETS = ("watchdog", "slave_control", "mapping")
+
+
+def fresh_site(a: Attacker, timeout: float = 30.0) -> bool:
+    """Restart the targets so a case starts clean (no sequence window or latch left by the
+    previous one); True once the slave holds a genuine lease again and the attacker has seen the
+    genuine lease stream."""
+    pipe = a.pipe
+    for name in TARGETS:
+        pipe.kill(name)
+    for name in TARGETS:
+        pipe.restart(name)
+    with a.obs.lock:
+        a.obs.top.clear()
+    t0 = now_ns()
+
+    def ready() -> bool:
+        rec = pipe.p.first_op_after(t0, lambda r: r[2])
+        with a.obs.lock:
+            seen = a.k.safety("arm1", "lease") in a.obs.top
+        return rec is not None and seen and _lease_now(pipe)
+
+    return pipe.wait(ready, timeout)
+
+
+def _lease_now(pipe: Pipeline) -> bool:
+    with pipe.p.lock:
+        return bool(pipe.p.op) and pipe.p.op[-1][2]
 
 
 def _rejected(pipe: Pipeline, service: str) -> int:
@@ -296,7 +351,7 @@ def _lease_seq_jump(a: Attacker) -> dict[str, Any]:
         t0 = now_ns()
         lease_key = a.k.safety("arm1", "lease")
         n_sp, n_lease = a.forge_motion(
-            1.5,
+            a.forge_s,
             lease_seq=a.obs.seq(lease_key) + SEQ_JUMP,
             servo_seq=a.obs.seq(a.k.slave("arm1", "servo_jp")) + SEQ_JUMP,
             names=_names(pipe),
@@ -324,10 +379,11 @@ def _watchdog_fault(kind: str, duplicate: bool = False) -> Callable[[Attacker], 
         lease_seq = a.obs.seq(lease_key) + 1  # the genuine stream's next number: no jump needed
         validity = a.obs.lease_ms
         before = {s: _rejected(pipe, s) for s in ("slave_control",)}
+        lease_before = _lease_now(pipe)
         t0 = pipe.freeze("watchdog") if kind == "freeze" else pipe.kill("watchdog")
         try:
             n_sp, n_lease = a.forge_motion(
-                1.5,
+                a.forge_s,
                 lease_seq=lease_seq,
                 servo_seq=a.obs.seq(a.k.slave("arm1", "servo_jp")) + 1,
                 names=_names(pipe),
@@ -336,6 +392,8 @@ def _watchdog_fault(kind: str, duplicate: bool = False) -> Callable[[Attacker], 
             limit = KILL_HOLD_LIMIT_MS if kind == "kill" else validity + FREEZE_MARGIN_MS
             row["time_to_hold_ms"] = _lease_lost_ms(pipe, t0, t0 + int(1.5e9))
             row["time_to_hold_limit_ms"] = limit
+            if not lease_before:
+                row["error"] = "the slave held no lease before the fault"
         finally:
             if token is not None:
                 token.undeclare()  # type: ignore[no-untyped-call]
@@ -354,7 +412,10 @@ def _servo_seq_jump(a: Attacker) -> dict[str, Any]:
     before = {s: _rejected(pipe, s) for s in ("slave_control",)}
     t0 = now_ns()
     n_sp, _ = a.forge_motion(
-        1.5, lease_seq=None, servo_seq=a.obs.seq(a.k.slave("arm1", "servo_jp")) + SEQ_JUMP, names=_names(pipe)
+        a.forge_s,
+        lease_seq=None,
+        servo_seq=a.obs.seq(a.k.slave("arm1", "servo_jp")) + SEQ_JUMP,
+        names=_names(pipe),
     )
     return _streams_row(a, ["slave_control"], n_sp, t0, before)
 
@@ -533,20 +594,25 @@ def cases() -> list[Case]:
             "stranger-ptp",
             "PTP from a stranger",
             _command_case(STRANGER, "slave", "begin_posture_adjust", "method=ptp"),
+            fresh=False,
         ),
         Case(
             "stranger-set-scale",
             "set_scale 2.0 from a stranger",
             _command_case(STRANGER, "mapping", "set_scale", "value=2.0"),
+            fresh=False,
         ),
-        Case("stranger-reset", "e-stop reset from a stranger", _stranger_reset),
+        Case("stranger-reset", "e-stop reset from a stranger", _stranger_reset, fresh=False),
         Case(
             "console-ptp",
             "PTP from the console, no confirmation",
             _command_case("console", "slave", "begin_posture_adjust", "method=ptp"),
+            fresh=False,
         ),
         Case("console-scale-follow", "set_scale 2.0 from the console while following", _console_scale_follow),
-        Case("local-tcp-client", "a client without credentials on the site's TCP listener", _local_tcp),
+        Case(
+            "local-tcp-client", "a client without credentials on the site's TCP listener", _local_tcp, False
+        ),
     ]
 
 
@@ -569,19 +635,21 @@ def run_cases(pipe: Pipeline, selected: Sequence[Case], quick: bool = False) -> 
     with Node(BusConfig(connect=[pipe.spec.endpoint]), pipe.spec.site, STRANGER) as node:
         obs = Observer(node)
         a = Attacker(pipe, node, obs)
+        a.forge_s = 1.0 if quick else 1.5
         if not pipe.wait(lambda: bool(pipe.p.joints) and bool(pipe.p.heartbeats) and bool(obs.top), 30.0):
             raise RuntimeError("the site did not come up (no slave joints / heartbeats)")
         for i, c in enumerate(selected, 1):
             print(f"[{i}/{len(selected)}] {c.name}: {c.what} ...", file=sys.stderr, flush=True)
             row: dict[str, Any] = {"case": c.name, "what": c.what}
             try:
+                if (c.fresh or not _wait_lease(pipe, True, 5.0)) and not fresh_site(a):
+                    raise RuntimeError("the site did not come back with a lease after its restart")
                 row.update(c.run(a))
             except Exception as exc:  # a case that could not run is a failed row, not a crash
                 log.exception("case %s", c.name)
                 row["error"] = f"{type(exc).__name__}: {exc}"
             row["ok"] = judge(row)
             rows.append(row)
-            _wait_lease(pipe, True, 10.0 if not quick else 5.0)  # the site back to normal
     return rows
 
 
