@@ -184,8 +184,8 @@ class Attacker:
         self, seconds: float, *, lease_seq: int | None, servo_seq: int, names: tuple[str, ...]
     ) -> tuple[int, int]:
         """Forged ``servo_jp`` (src mapping, 500 Hz: 0.1 s not following at the measured joints,
-        then following with j1 ramping at 0.3 rad/s) and, with ``lease_seq``, forged allowing leases (src watchdog, 50 Hz), for
-        ``seconds``; returns (setpoints, leases) sent."""
+        then following with j1 ramping at 0.3 rad/s) and, with ``lease_seq``, forged allowing
+        leases (src watchdog, 50 Hz), for ``seconds``; returns (setpoints, leases) sent."""
         q0 = self.q_now()
         if not q0:
             return 0, 0
