@@ -1,0 +1,150 @@
+"""Issue #17, acceptance 1 (operator authority and the attack bench), with the real services.
+
+One local site (router, watchdog, slave_control, mapping, master_capture; the operator's clutch
+released) runs ``telesurg bench attack --quick``'s cases (services/bench/attack.py); each case's
+row is judged against the acceptance limits: 0 messages accepted where the rules forbid, slave
+motion < 0.5 mm, the genuine faults' time to hold. The cases that need per-service message
+authentication (branch ``auth``) or the slave site's locked-down listener (branch ``lockdown``)
+are expected to fail until those merge (``xfail``, not strict: under load a forged stream may
+happen to be harmless).
+
+Then, on the same site: the operator console's commands are carried out only with the
+confirmation (PTP moves the arm once confirmed), a stranger's PTP / set_scale / reset are
+refused with the reason and move nothing.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+from telesurg.services.bench import attack
+from telesurg.services.bench.harness import Pipeline, now_ns
+from telesurg.shared.bus import BusConfig, Node
+
+pytestmark = pytest.mark.process
+
+#: the cases this branch's operator authority must pass
+AUTHORITY_CASES = (
+    "stranger-ptp",
+    "stranger-set-scale",
+    "stranger-reset",
+    "console-ptp",
+    "console-scale-follow",
+)
+#: the cases that need message authentication (auth) or the slave site's lockdown
+PENDING = {
+    "lease-seq-jump": "auth",
+    "watchdog-freeze": "auth",
+    "watchdog-kill": "auth",
+    "duplicate-alive": "auth",
+    "servo-seq-jump": "auth",
+    "seq0-poison": "auth",
+    "scale0-state": "auth",
+    "local-tcp-client": "lockdown",
+}
+
+
+@pytest.fixture(scope="module")
+def site(
+    tmp_path_factory: pytest.TempPathFactory,
+) -> Iterator[tuple[Pipeline, attack.Attacker, dict[str, Any]]]:
+    log_dir: Path = tmp_path_factory.mktemp("attack")
+    ov = {
+        "master_capture": ["scripted.clutch=[[3600.0, 3601.0]]", "scripted.clutch_repeat_s=0.0"],
+        "watchdog": list(attack.RELAXED_WATCHDOG),
+    }
+    with Pipeline(log_dir, overrides=ov, mirror=False, impair=False) as pipe:
+        rows = {r["case"]: r for r in attack.run_cases(pipe, attack.cases(), quick=True)}
+        for r in rows.values():
+            print(r)
+        with Node(BusConfig(connect=[pipe.spec.endpoint]), pipe.spec.site, "operator_test") as node:
+            a = attack.Attacker(pipe, node, attack.Observer(node))
+            yield pipe, a, rows
+
+
+def _check(row: dict[str, Any]) -> None:
+    assert "error" not in row or not row.get("connected", True), row
+    if row.get("forbidden"):
+        assert row["accepted"] == 0, f"{row['case']}: {row['accepted']} forbidden messages accepted: {row}"
+    m = row.get("motion_mm")
+    assert m is None or m < attack.MOTION_LIMIT_MM, f"{row['case']}: the slave moved {m} mm: {row}"
+    if "time_to_hold_limit_ms" in row:
+        t = row.get("time_to_hold_ms")
+        assert t is not None and t <= row["time_to_hold_limit_ms"], f"{row['case']}: time to hold {t} ms"
+
+
+@pytest.mark.parametrize("case", AUTHORITY_CASES)
+def test_operator_authority_cases_meet_the_limits(
+    site: tuple[Pipeline, Any, dict[str, Any]], case: str
+) -> None:
+    _, _, rows = site
+    _check(rows[case])
+    reply = rows[case].get("reply", "")
+    if case.startswith("stranger-") and case != "stranger-reset":
+        assert "only the operator console" in reply, reply  # the reason, in the query's error reply
+    if case == "console-ptp":
+        assert rows[case]["confirm_asked"] and "confirm required" in reply, reply
+    if case == "console-scale-follow":
+        assert rows[case]["following"], "the console's clutch did not engage: the case judged nothing"
+
+
+@pytest.mark.parametrize("case", sorted(PENDING))
+def test_forgery_cases_meet_the_limits(
+    site: tuple[Pipeline, Any, dict[str, Any]], case: str, request: pytest.FixtureRequest
+) -> None:
+    request.applymarker(pytest.mark.xfail(reason=f"needs branch {PENDING[case]}", strict=False))
+    _, _, rows = site
+    _check(rows[case])
+
+
+def test_console_commands_run_only_when_confirmed(
+    site: tuple[Pipeline, attack.Attacker, dict[str, Any]],
+) -> None:
+    pipe, a, _ = site
+    if not attack._wait_lease(pipe, True, 5.0):
+        assert attack.fresh_site(a), "no lease on the site"
+    key = a.k.command("arm1")
+    # a stranger: refused with the reason, nothing moves
+    t0 = now_ns()
+    ok, reason, token = a.request(key, attack.STRANGER, "begin_posture_adjust", "method=ptp")
+    assert not ok and not token and "only the operator console" in reason, reason
+    # the console without confirming: asked, nothing moves
+    ok, reason, token = a.request(key, "console", "begin_posture_adjust", "method=ptp")
+    assert not ok and token and "confirm required: begin_posture_adjust method=ptp on arm1" in reason
+    time.sleep(2.0)
+    still = attack._motion(pipe, t0, now_ns())
+    assert still is not None and still < attack.MOTION_LIMIT_MM, f"moved {still} mm without a confirmation"
+    # a wrong token is refused; the right one from the console starts the PTP: the arm moves
+    ok, reason, _ = a.request(
+        key, "console", "begin_posture_adjust", "method=ptp", "confirm=0123456789abcdef"
+    )
+    assert not ok and "unknown or already used" in reason, reason
+    t1 = now_ns()
+    ok, reason, _ = a.request(key, "console", "begin_posture_adjust", "method=ptp", f"confirm={token}")
+    assert ok, reason
+    assert pipe.wait(lambda: (attack._motion(pipe, t1, now_ns()) or 0.0) > 5.0, 15.0), (
+        "the confirmed PTP did not move"
+    )
+    a.request(key, "console", "abort")
+    # set_scale: a stranger is refused, the console (clutch released) is obeyed at once
+    mk = a.k.mapping_command("arm1")
+    ok, reason, _ = a.request(mk, attack.STRANGER, "set_scale", "value=0.3")
+    assert not ok and "only the operator console" in reason
+    ok, reason, token = a.request(mk, "console", "set_scale", "value=0.3")
+    assert ok and not token, reason
+    assert pipe.wait(lambda: a.obs.scale() == 0.3, 3.0)
+    # reset: a stranger's leaves the e-stop latched, the console's clears it
+    pipe.estop("estop", source=attack.STRANGER)  # anyone may stop
+    assert pipe.wait(lambda: pipe.p.safety_state() == "ESTOP", 5.0)
+    pipe.estop("reset", source=attack.STRANGER)
+    time.sleep(1.0)
+    assert pipe.p.safety_state() == "ESTOP"
+    with pipe.p.lock:
+        refused = [t for _, _, k, t in pipe.p.events if k == "estop_refused"]
+    assert any("only the operator console may reset" in t for t in refused), refused
+    pipe.estop("reset", source="console")
+    assert pipe.wait(lambda: pipe.p.safety_state() != "ESTOP", 5.0)
