@@ -74,15 +74,13 @@ def feed_master(arm: Any, p: tuple[float, float, float], clutch: bool) -> None:
 _operator_seq: dict[str, Any] = {}
 
 
-def operator_command(
-    node: Any, key: str, arm: str, name: str, *args: str, source: str = "console", confirm: bool = True
-) -> Any:
-    """Send one operator command as ``source`` (the operator console by default: only it may
-    command, shared/authority.py) and return the reply; ``confirm``: answer a ``confirm required``
-    reply with its token, as an operator who says yes."""
+def operator_command(node: Any, key: str, arm: str, name: str, *args: str, confirm: bool = True) -> Any:
+    """Send one operator command as ``node``'s service id (open it as ``console``: only the
+    operator console may command, shared/authority.py) and return the reply; ``confirm``: answer a
+    ``confirm required`` reply with its token, as an operator who says yes."""
     from telesurg.shared.messages import Command, CommandReply, Sequencer
 
-    seq = _operator_seq.setdefault(source, Sequencer(source))
+    seq = _operator_seq.setdefault(node.service, Sequencer(node.service))
     r = node.request(key, Command(seq.next(), arm, name, args), CommandReply, 5.0)
     if confirm and r.confirm:
         r = node.request(

@@ -57,13 +57,18 @@ def site(
         "master_capture": ["scripted.clutch=[[3600.0, 3601.0]]", "scripted.clutch_repeat_s=0.0"],
         "watchdog": list(attack.RELAXED_WATCHDOG),
     }
-    with Pipeline(log_dir, overrides=ov, mirror=False, impair=False) as pipe:
-        rows = {r["case"]: r for r in attack.run_cases(pipe, attack.cases(), quick=True)}
-        for r in rows.values():
-            print(r)
-        with Node(BusConfig(connect=[pipe.spec.endpoint]), pipe.spec.site, "operator_test") as node:
-            a = attack.Attacker(pipe, node, attack.Observer(node))
+    with (
+        Pipeline(log_dir, overrides=ov, mirror=False, impair=False) as pipe,
+        Node(BusConfig(connect=[pipe.spec.endpoint]), pipe.spec.site, attack.STRANGER) as node,
+    ):
+        a = attack.Attacker(pipe, node, attack.Observer(node))
+        try:
+            rows = {r["case"]: r for r in attack.run_cases(pipe, attack.cases(), quick=True, attacker=a)}
+            for r in rows.values():
+                print(r)
             yield pipe, a, rows
+        finally:
+            a.close()
 
 
 def _check(row: dict[str, Any]) -> None:

@@ -72,7 +72,6 @@ from telesurg.shared.messages import (
     SafetyEvent,
     SafetyLease,
     SafetyState,
-    Sequencer,
     TeleopState,
 )
 
@@ -153,12 +152,15 @@ class Observer:
 
 
 class Attacker:
-    """Forged messages on the site (raw puts with any header) and requests as any identity."""
+    """Forged messages on the site (raw puts claiming any header ``src``) and requests as an
+    identity: the stranger's own node, or the operator console's (a node of that service id, so
+    with message authentication on it signs as what it claims)."""
 
     def __init__(self, pipe: Pipeline, node: Node, obs: Observer) -> None:
         self.pipe, self.node, self.obs = pipe, node, obs
         self.k = node.keys
-        self._seqs: dict[str, Sequencer] = {}
+        self._nodes: dict[str, Node] = {node.service: node}
+        self._outs: dict[str, Any] = {}
         self.forge_s = 1.5  # s of forged streams per case
 
     def put(self, key: str, msg: Message) -> None:
@@ -167,11 +169,37 @@ class Attacker:
     def header(self, source: str, seq: int) -> Header:
         return Header(source, seq, time.time_ns())
 
+    def identity(self, source: str) -> Node:
+        """A node of service id ``source`` on the site (opened once; closed by :meth:`close`)."""
+        node = self._nodes.get(source)
+        if node is None:
+            node = self._nodes[source] = Node(
+                BusConfig(connect=[self.pipe.spec.endpoint]), self.pipe.spec.site, source
+            )
+            time.sleep(0.3)
+        return node
+
+    def outlet(self, source: str, key: str) -> Any:
+        """``source``'s publisher on ``key`` (its own headers)."""
+        out = self._outs.get(f"{source} {key}")
+        if out is None:
+            out = self._outs[f"{source} {key}"] = self.identity(source).outlet(key)
+            time.sleep(0.2)
+        return out
+
+    def close(self) -> None:
+        for s, n in list(self._nodes.items()):
+            if n is not self.node:
+                n.close()
+            del self._nodes[s]
+        self._outs.clear()
+
     def request(self, key: str, source: str, name: str, *args: str) -> tuple[bool, str, str]:
         """(accepted, reason, confirm token) of one command sent as ``source``."""
-        seq = self._seqs.setdefault(source, Sequencer(source))
+        node = self.identity(source)
+        seq = self.outlet(source, key)
         try:
-            r = self.node.request(key, Command(seq.next(), "arm1", name, args), CommandReply, 3.0)
+            r = node.request(key, Command(seq.header(), "arm1", name, args), CommandReply, 3.0)
         except (MessageError, TimeoutError) as exc:
             return False, str(exc), ""
         return r.accepted, r.reason, r.confirm
@@ -515,12 +543,12 @@ def _stranger_reset(a: Attacker) -> dict[str, Any]:
 def _console_scale_follow(a: Attacker) -> dict[str, Any]:
     pipe = a.pipe
     key = a.k.console_clutch("m1")
-    seq = Sequencer("console")
+    out = a.outlet("console", key)
     stop = threading.Event()
 
     def pedal(pressed_at: float) -> None:  # the console's clutch pedal, as the console sends it
         while not stop.is_set():
-            a.put(key, MasterButtons(seq.next(), time.monotonic() >= pressed_at, True))
+            out.put(MasterButtons(out.header(), time.monotonic() >= pressed_at, True))
             time.sleep(0.02)
 
     th = threading.Thread(target=pedal, args=(time.monotonic() + 0.3,), daemon=True)
@@ -544,7 +572,7 @@ def _console_scale_follow(a: Attacker) -> dict[str, Any]:
         stop.set()
         th.join(1.0)
         for _ in range(10):
-            a.put(key, MasterButtons(seq.next(), False, True))
+            out.put(MasterButtons(out.header(), False, True))
             time.sleep(0.02)
     if ok:
         a.request(a.k.mapping_command("arm1"), "console", "set_scale", f"value={scale0:g}")
@@ -629,27 +657,35 @@ def judge(row: dict[str, Any]) -> bool:
     return bool(ok)
 
 
-def run_cases(pipe: Pipeline, selected: Sequence[Case], quick: bool = False) -> list[dict[str, Any]]:
-    """Run ``selected`` against ``pipe`` (started, clutch released); one row per case."""
-    rows = []
-    with Node(BusConfig(connect=[pipe.spec.endpoint]), pipe.spec.site, STRANGER) as node:
-        obs = Observer(node)
-        a = Attacker(pipe, node, obs)
-        a.forge_s = 1.0 if quick else 1.5
-        if not pipe.wait(lambda: bool(pipe.p.joints) and bool(pipe.p.heartbeats) and bool(obs.top), 30.0):
-            raise RuntimeError("the site did not come up (no slave joints / heartbeats)")
-        for i, c in enumerate(selected, 1):
-            print(f"[{i}/{len(selected)}] {c.name}: {c.what} ...", file=sys.stderr, flush=True)
-            row: dict[str, Any] = {"case": c.name, "what": c.what}
+def run_cases(
+    pipe: Pipeline, selected: Sequence[Case], quick: bool = False, attacker: Attacker | None = None
+) -> list[dict[str, Any]]:
+    """Run ``selected`` against ``pipe`` (started, clutch released); one row per case.
+    ``attacker``: the attacker to use (default: one on a node ``intruder``, closed at the end)."""
+    if attacker is None:
+        with Node(BusConfig(connect=[pipe.spec.endpoint]), pipe.spec.site, STRANGER) as node:
+            a = Attacker(pipe, node, Observer(node))
             try:
-                if (c.fresh or not _wait_lease(pipe, True, 5.0)) and not fresh_site(a):
-                    raise RuntimeError("the site did not come back with a lease after its restart")
-                row.update(c.run(a))
-            except Exception as exc:  # a case that could not run is a failed row, not a crash
-                log.exception("case %s", c.name)
-                row["error"] = f"{type(exc).__name__}: {exc}"
-            row["ok"] = judge(row)
-            rows.append(row)
+                return run_cases(pipe, selected, quick, a)
+            finally:
+                a.close()
+    a = attacker
+    a.forge_s = 1.0 if quick else 1.5
+    if not pipe.wait(lambda: bool(pipe.p.joints) and bool(pipe.p.heartbeats) and bool(a.obs.top), 30.0):
+        raise RuntimeError("the site did not come up (no slave joints / heartbeats)")
+    rows = []
+    for i, c in enumerate(selected, 1):
+        print(f"[{i}/{len(selected)}] {c.name}: {c.what} ...", file=sys.stderr, flush=True)
+        row: dict[str, Any] = {"case": c.name, "what": c.what}
+        try:
+            if (c.fresh or not _wait_lease(pipe, True, 5.0)) and not fresh_site(a):
+                raise RuntimeError("the site did not come back with a lease after its restart")
+            row.update(c.run(a))
+        except Exception as exc:  # a case that could not run is a failed row, not a crash
+            log.exception("case %s", c.name)
+            row["error"] = f"{type(exc).__name__}: {exc}"
+        row["ok"] = judge(row)
+        rows.append(row)
     return rows
 
 

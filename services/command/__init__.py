@@ -25,7 +25,6 @@ Exit codes: 0 accepted, 1 refused (or not confirmed), 2 no reply / bad arguments
 from __future__ import annotations
 
 import argparse
-import os
 import sys
 from collections.abc import Sequence
 
@@ -69,7 +68,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         check_id("arm", a.arm)
         check_id("service", a.identity)
         bus = bus_from_args(a)
-        with Node(bus, a.site, f"console_cli_{os.getpid()}") as node:
+        with Node(bus, a.site, a.identity) as node:  # the identity signs (and is the header src)
             key = node.keys.mapping_command(a.arm) if a.mapping else node.keys.command(a.arm)
             seq = Sequencer(a.identity)
             # from_body validates like the receiver will (name pattern, key=value arguments)

@@ -47,7 +47,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         check_id("service", args.identity)
         bus = bus_from_args(args)
         action = "reset" if args.reset else "estop"
-        with Node(bus, args.site, f"estop_cli_{os.getpid()}") as node:
+        with Node(bus, args.site, args.identity) as node:  # the identity signs (and is the header src)
             done = threading.Event()
             seen: dict[str, str] = {}
 

@@ -44,17 +44,16 @@ class ArmLog:
 class ArmClient:
     """Commands and observations of one arm over an open :class:`~telesurg.shared.bus.Node`."""
 
-    def __init__(
-        self, node: Node, arm: str = "arm1", *, verbose: bool = False, identity: str = "console"
-    ) -> None:
-        """``identity``: the header ``src`` of the commands — the operator console by default
-        (only it may command the arm, shared/authority.py); the client confirms motion-starting
-        commands itself (``send(..., confirm=True)``), as an operator who answers yes."""
+    def __init__(self, node: Node, arm: str = "arm1", *, verbose: bool = False) -> None:
+        """``node``: the commands go out as its service id — open it as the operator console
+        (``console``: only it may command the arm, shared/authority.py). The client confirms
+        motion-starting commands itself (``send(..., confirm=True)``), as an operator who answers
+        yes."""
         self.node, self.arm, self.verbose = node, arm, verbose
         k = node.keys
         self.key = k.command(arm)
         self.out = node.outlet(self.key, control=False)
-        self._seq = Sequencer(identity)
+        self._seq = Sequencer(node.service)
         self.log = ArmLog()
         node.subscribe(k.slave(arm, "operating_state"), OperatingState, self._on_state)
         node.subscribe(k.slave(arm, "measured_cp"), CartesianPose, self._on_tip)
