@@ -166,3 +166,36 @@ def test_refusal_is_the_query_error_reply_and_confirm_round_trip(endpoint: str) 
         )
         assert r2.accepted and [c.args for c in done] == [("x=1", "y=2", "z=3")]
         assert server.streams.get(key).rejected == 1
+
+
+def test_telesurg_cmd_confirms_only_with_yes(endpoint: str, capsys: pytest.CaptureFixture[str]) -> None:
+    from telesurg.services.command import main as cmd_main
+
+    bus = BusConfig(connect=[endpoint])
+    done: list[Command] = []
+
+    def handler(c: Command) -> CommandReply:
+        done.append(c)
+        return CommandReply(Header("mapping", len(done), time.time_ns()), c.arm, c.name, True, "VIP set")
+
+    with Node(bus, "t", "mapping") as server:
+        server.serve(
+            server.keys.mapping_command("arm1"),
+            Command,
+            guarded(server, Authority(AuthorityConfig()), "arm1", handler),
+        )
+        time.sleep(0.3)
+        base = ["--site", "t", "--connect", endpoint, "--mapping", "set_vip", "x=1", "y=2", "z=3"]
+        # no terminal, no --yes: asked, not carried out
+        assert cmd_main(base) == 1
+        assert "not confirmed: confirm required: set_vip x=1 y=2 z=3 on arm1" in capsys.readouterr().out
+        assert not done
+        assert cmd_main([*base, "--yes"]) == 0
+        assert "accepted: VIP set" in capsys.readouterr().out
+        assert [c.args for c in done] == [("x=1", "y=2", "z=3")]
+        # a stranger: refused with the reason
+        assert cmd_main([*base, "--yes", "--as", "intruder"]) == 1
+        assert (
+            "refused: set_vip from 'intruder' refused: only the operator console" in capsys.readouterr().out
+        )
+        assert len(done) == 1
