@@ -281,6 +281,9 @@ def fresh_site(a: Attacker, targets: Sequence[str] = TARGETS, timeout: float = 6
     pipe = a.pipe
     for name in targets:
         pipe.kill(name)
+    with pipe.p.lock:  # the rejection counters of the new processes, not the old ones' last
+        for name in targets:
+            pipe.p.heartbeats.pop(name, None)
     for name in [t for t in TARGETS if t in targets]:  # the watchdog first: the others need it
         pipe.restart(name)
     with a.obs.lock:
@@ -291,7 +294,9 @@ def fresh_site(a: Attacker, targets: Sequence[str] = TARGETS, timeout: float = 6
         rec = pipe.p.first_op_after(t0, lambda r: r[2])
         with a.obs.lock:
             seen = a.k.safety("arm1", "lease") in a.obs.top
-        return rec is not None and seen and _lease_now(pipe)
+        with pipe.p.lock:
+            counted = all(name in pipe.p.heartbeats for name in targets)
+        return rec is not None and seen and counted and _lease_now(pipe)
 
     return pipe.wait(ready, timeout)
 
