@@ -1,29 +1,28 @@
 """Issue #17, acceptance 1 (operator authority and the attack bench), with the real services.
 
-One local site (router, watchdog, slave_control, mapping, master_capture; the operator's clutch
-released) runs ``telesurg bench attack --quick``'s cases (services/bench/attack.py); each case's
-row is judged against the acceptance limits: 0 messages accepted where the rules forbid, slave
+``telesurg bench attack --quick``'s cases (services/bench/attack.py) run against local sites
+(router, watchdog, slave_control, mapping, master_capture; the operator's clutch released); each
+case's row is judged against the acceptance limits: 0 messages accepted where the rules forbid, slave
 motion < 0.5 mm, the genuine faults' time to hold. The cases that need per-service message
 authentication (branch ``auth``) or the slave site's locked-down listener (branch ``lockdown``)
 are expected to fail until those merge (``xfail``, not strict: under load a forged stream may
 happen to be harmless).
 
-Then, on the same site: the operator console's commands are carried out only with the
+Then, on a site of its own: the operator console's commands are carried out only with the
 confirmation (PTP moves the arm once confirmed), a stranger's PTP / set_scale / reset are
 refused with the reason and move nothing.
 """
 
 from __future__ import annotations
 
+import contextlib
 import time
-from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 import pytest
 from telesurg.services.bench import attack
-from telesurg.services.bench.harness import Pipeline, now_ns
-from telesurg.shared.bus import BusConfig, Node
+from telesurg.services.bench.harness import now_ns
 
 pytestmark = pytest.mark.process
 
@@ -49,26 +48,14 @@ PENDING = {
 
 
 @pytest.fixture(scope="module")
-def site(
-    tmp_path_factory: pytest.TempPathFactory,
-) -> Iterator[tuple[Pipeline, attack.Attacker, dict[str, Any]]]:
-    log_dir: Path = tmp_path_factory.mktemp("attack")
-    ov = {
-        "master_capture": ["scripted.clutch=[[3600.0, 3601.0]]", "scripted.clutch_repeat_s=0.0"],
-        "watchdog": list(attack.RELAXED_WATCHDOG),
+def rows(tmp_path_factory: pytest.TempPathFactory) -> dict[str, dict[str, Any]]:
+    """Every case of ``telesurg bench attack --quick``, by name."""
+    out = {
+        r["case"]: r for r in attack.run_cases(tmp_path_factory.mktemp("attack"), attack.cases(), quick=True)
     }
-    with (
-        Pipeline(log_dir, overrides=ov, mirror=False, impair=False) as pipe,
-        Node(BusConfig(connect=[pipe.spec.endpoint]), pipe.spec.site, attack.STRANGER) as node,
-    ):
-        a = attack.Attacker(pipe, node, attack.Observer(node))
-        try:
-            rows = {r["case"]: r for r in attack.run_cases(pipe, attack.cases(), quick=True, attacker=a)}
-            for r in rows.values():
-                print(r)
-            yield pipe, a, rows
-        finally:
-            a.close()
+    for r in out.values():
+        print(r)
+    return out
 
 
 def _check(row: dict[str, Any]) -> None:
@@ -83,10 +70,7 @@ def _check(row: dict[str, Any]) -> None:
 
 
 @pytest.mark.parametrize("case", AUTHORITY_CASES)
-def test_operator_authority_cases_meet_the_limits(
-    site: tuple[Pipeline, Any, dict[str, Any]], case: str
-) -> None:
-    _, _, rows = site
+def test_operator_authority_cases_meet_the_limits(rows: dict[str, dict[str, Any]], case: str) -> None:
     _check(rows[case])
     reply = rows[case].get("reply", "")
     if case.startswith("stranger-") and case != "stranger-reset":
@@ -99,19 +83,19 @@ def test_operator_authority_cases_meet_the_limits(
 
 @pytest.mark.parametrize("case", sorted(PENDING))
 def test_forgery_cases_meet_the_limits(
-    site: tuple[Pipeline, Any, dict[str, Any]], case: str, request: pytest.FixtureRequest
+    rows: dict[str, dict[str, Any]], case: str, request: pytest.FixtureRequest
 ) -> None:
     request.applymarker(pytest.mark.xfail(reason=f"needs branch {PENDING[case]}", strict=False))
-    _, _, rows = site
     _check(rows[case])
 
 
-def test_console_commands_run_only_when_confirmed(
-    site: tuple[Pipeline, attack.Attacker, dict[str, Any]],
-) -> None:
-    pipe, a, _ = site
-    if not attack._wait_lease(pipe, True, 5.0):
-        assert attack.fresh_site(a), "no lease on the site"
+def test_console_commands_run_only_when_confirmed(tmp_path: Path) -> None:
+    with contextlib.ExitStack() as stack:
+        _console_commands(attack.open_site(stack, tmp_path / "logs", quick=True))
+
+
+def _console_commands(a: attack.Attacker) -> None:
+    pipe = a.pipe
     key = a.k.command("arm1")
     # a stranger: refused with the reason, nothing moves
     t0 = now_ns()

@@ -265,40 +265,9 @@ class Case:
     name: str
     what: str
     run: Callable[[Attacker], dict[str, Any]]
-    # the services restarted before the case, so none holds a sequence window or latch an earlier
-    # case left (the slave for the lease / setpoint cases; () = none)
-    fresh: tuple[str, ...] = ("slave_control",)
-
-
-#: the services a case may leave in a state of its making (sequence windows, latches)
-TARGETS = ("watchdog", "slave_control", "mapping")
-
-
-def fresh_site(a: Attacker, targets: Sequence[str] = TARGETS, timeout: float = 60.0) -> bool:
-    """Restart ``targets`` so a case starts clean (no sequence window or latch left by the
-    previous one); True once the slave holds a genuine lease again and the attacker has seen the
-    genuine lease stream."""
-    pipe = a.pipe
-    for name in targets:
-        pipe.kill(name)
-    with pipe.p.lock:  # the rejection counters of the new processes, not the old ones' last
-        for name in targets:
-            pipe.p.heartbeats.pop(name, None)
-    for name in [t for t in TARGETS if t in targets]:  # the watchdog first: the others need it
-        pipe.restart(name)
-    with a.obs.lock:
-        a.obs.top.clear()
-    t0 = now_ns()
-
-    def ready() -> bool:
-        rec = pipe.p.first_op_after(t0, lambda r: r[2])
-        with a.obs.lock:
-            seen = a.k.safety("arm1", "lease") in a.obs.top
-        with pipe.p.lock:
-            counted = all(name in pipe.p.heartbeats for name in targets)
-        return rec is not None and seen and counted and _lease_now(pipe)
-
-    return pipe.wait(ready, timeout)
+    # run on a site of its own (a forging case leaves sequence windows and latches of its making
+    # in its targets); False: on the site the command cases share
+    fresh: bool = True
 
 
 def _lease_now(pipe: Pipeline) -> bool:
@@ -623,34 +592,35 @@ def cases() -> list[Case]:
             _watchdog_fault("kill", duplicate=True),
         ),
         Case("servo-seq-jump", "forged servo_jp src=mapping 99,000 ahead", _servo_seq_jump),
-        Case("seq0-poison", "master pose src=master_capture seq 0", _seq0, TARGETS),
-        Case("scale0-state", "forged safety state scale 0", _scale0, ("watchdog", "mapping")),
+        Case("seq0-poison", "master pose src=master_capture seq 0", _seq0, True),
+        Case("scale0-state", "forged safety state scale 0", _scale0, True),
         Case(
             "stranger-ptp",
             "PTP from a stranger",
             _command_case(STRANGER, "slave", "begin_posture_adjust", "method=ptp"),
-            fresh=(),
+            fresh=False,
         ),
         Case(
             "stranger-set-scale",
             "set_scale 2.0 from a stranger",
             _command_case(STRANGER, "mapping", "set_scale", "value=2.0"),
-            fresh=(),
+            fresh=False,
         ),
-        Case("stranger-reset", "e-stop reset from a stranger", _stranger_reset, fresh=()),
+        Case("stranger-reset", "e-stop reset from a stranger", _stranger_reset, fresh=False),
         Case(
             "console-ptp",
             "PTP from the console, no confirmation",
             _command_case("console", "slave", "begin_posture_adjust", "method=ptp"),
-            fresh=(),
+            fresh=False,
         ),
         Case(
             "console-scale-follow",
             "set_scale 2.0 from the console while following",
             _console_scale_follow,
-            ("watchdog", "mapping"),
         ),
-        Case("local-tcp-client", "a client without credentials on the site's TCP listener", _local_tcp, ()),
+        Case(
+            "local-tcp-client", "a client without credentials on the site's TCP listener", _local_tcp, False
+        ),
     ]
 
 
@@ -667,38 +637,66 @@ def judge(row: dict[str, Any]) -> bool:
     return bool(ok)
 
 
-def run_cases(
-    pipe: Pipeline, selected: Sequence[Case], quick: bool = False, attacker: Attacker | None = None
-) -> list[dict[str, Any]]:
-    """Run ``selected`` against ``pipe`` (started, clutch released); one row per case.
-    ``attacker``: the attacker to use (default: one on a node ``intruder``, closed at the end)."""
-    if attacker is None:
-        with Node(BusConfig(connect=[pipe.spec.endpoint]), pipe.spec.site, STRANGER) as node:
-            a = Attacker(pipe, node, Observer(node))
-            try:
-                return run_cases(pipe, selected, quick, a)
-            finally:
-                a.close()
-    a = attacker
+def site_overrides() -> dict[str, list[str]]:
+    """The bench site's overrides: the operator's clutch stays released (the genuine system keeps
+    the slave still) and the watchdog's stream deadlines are relaxed (:data:`RELAXED_WATCHDOG`)."""
+    return {
+        "master_capture": ["scripted.clutch=[[3600.0, 3601.0]]", "scripted.clutch_repeat_s=0.0"],
+        "watchdog": list(RELAXED_WATCHDOG),
+    }
+
+
+def open_site(stack: contextlib.ExitStack, log_dir: Path, quick: bool = False) -> Attacker:
+    """A bench site and an attacker on it (node ``intruder``), closed with ``stack``; returns
+    once the slave holds a genuine lease and the attacker has seen the genuine streams."""
+    pipe = stack.enter_context(Pipeline(log_dir, overrides=site_overrides(), mirror=False, impair=False))
+    node = stack.enter_context(Node(BusConfig(connect=[pipe.spec.endpoint]), pipe.spec.site, STRANGER))
+    a = Attacker(pipe, node, Observer(node))
+    stack.callback(a.close)
     a.forge_s = 1.0 if quick else 1.5
-    if not pipe.wait(lambda: bool(pipe.p.joints) and bool(pipe.p.heartbeats) and bool(a.obs.top), 30.0):
-        raise RuntimeError("the site did not come up (no slave joints / heartbeats)")
+    lease_key = a.k.safety("arm1", "lease")
+
+    def up() -> bool:
+        with a.obs.lock:
+            seen = lease_key in a.obs.top
+        with pipe.p.lock:
+            counted = all(s in pipe.p.heartbeats for s in ("watchdog", "slave_control", "mapping"))
+        return seen and counted and bool(pipe.p.joints) and _lease_now(pipe)
+
+    if not pipe.wait(up, 60.0):
+        raise RuntimeError("the site did not come up (no lease / slave joints / heartbeats within 60 s)")
+    return a
+
+
+def run_cases(log_dir: Path, selected: Sequence[Case], quick: bool = False) -> list[dict[str, Any]]:
+    """Run ``selected``, each forging case on a site of its own, the command cases on one shared
+    site; one row per case."""
     rows = []
-    for i, c in enumerate(selected, 1):
-        print(f"[{i}/{len(selected)}] {c.name}: {c.what} ...", file=sys.stderr, flush=True)
-        row: dict[str, Any] = {"case": c.name, "what": c.what}
-        try:
-            if c.fresh and not fresh_site(a, c.fresh):
-                raise RuntimeError(f"the site did not come back with a lease after restarting {c.fresh}")
-            if not _wait_lease(pipe, True, 10.0) and not fresh_site(a):
-                raise RuntimeError("the site did not come back with a lease after its restart")
-            row.update(c.run(a))
-        except Exception as exc:  # a case that could not run is a failed row, not a crash
-            log.exception("case %s", c.name)
-            row["error"] = f"{type(exc).__name__}: {exc}"
-        row["ok"] = judge(row)
-        rows.append(row)
+    with contextlib.ExitStack() as shared_stack:
+        shared: Attacker | None = None
+        for i, c in enumerate(selected, 1):
+            print(f"[{i}/{len(selected)}] {c.name}: {c.what} ...", file=sys.stderr, flush=True)
+            row: dict[str, Any] = {"case": c.name, "what": c.what}
+            try:
+                if c.fresh:
+                    with contextlib.ExitStack() as own:
+                        row.update(_run_one(open_site(own, log_dir / c.name, quick), c))
+                else:
+                    if shared is None:
+                        shared = open_site(shared_stack, log_dir / "shared", quick)
+                    row.update(_run_one(shared, c))
+            except Exception as exc:  # a case that could not run is a failed row, not a crash
+                log.exception("case %s", c.name)
+                row["error"] = f"{type(exc).__name__}: {exc}"
+            row["ok"] = judge(row)
+            rows.append(row)
     return rows
+
+
+def _run_one(a: Attacker, c: Case) -> dict[str, Any]:
+    if not _wait_lease(a.pipe, True, 20.0):
+        raise RuntimeError("the slave holds no lease before the case")
+    return c.run(a)
 
 
 def _fmt(v: object) -> str:
@@ -771,14 +769,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             )
             return 2
         selected = [known[n] for n in names]
-    # the operator's clutch stays released: the genuine system keeps the slave still
-    ov = {"master_capture": ["scripted.clutch=[[3600.0, 3601.0]]", "scripted.clutch_repeat_s=0.0"]}
-    ov["watchdog"] = list(RELAXED_WATCHDOG)
     with tempfile.TemporaryDirectory(prefix="telesurg-attack-") as tmp:
-        log_dir = args.log_dir or Path(tmp) / "logs"
-        with Pipeline(log_dir, overrides=ov, mirror=False, impair=False) as pipe:
-            rows = run_cases(pipe, selected, args.quick)
-            codes = pipe.close()
+        rows = run_cases(args.log_dir or Path(tmp) / "logs", selected, args.quick)
     print_table(rows)
     result = strict(
         {
@@ -791,7 +783,6 @@ def main(argv: Sequence[str] | None = None) -> int:
                 "freeze_hold_margin_ms": FREEZE_MARGIN_MS,
             },
             "rows": rows,
-            "exit_codes": codes,
         }
     )
     if args.json:
