@@ -29,6 +29,9 @@ options:
   --site ID            site id, as on the slave site (default: lab)
   --certs DIR          ca.pem and IDENTITY.pem/.key (default: certs; telesurg certs)
   --identity NAME      certificate common name (default: console; console-mapping with --mapping)
+  --keyring DIR        the site keyring with this machine's identities (master_capture, console,
+                       mapping): telesurg keys export on the slave site, keys import here
+                       (default: $TELESURG_KEYS or ~/.local/state/telesurg/SITE/keys)
   --config-dir DIR     site folder: DIR/site.toml, a table per service (default: console/
                        beside this script)
   --mapping            also run the mapping here (the slave site runs with --no-mapping)
@@ -51,6 +54,7 @@ config_dir="$here/console"
 mapping=0
 ui=1
 log_dir=""
+keyring=""
 declare -A sets=([master_capture]="" [mapping]="" [console]="")
 while [[ $# -gt 0 ]]; do
     case "$1" in
@@ -64,6 +68,7 @@ while [[ $# -gt 0 ]]; do
         --mapping) mapping=1; shift ;;
         --no-console) ui=0; shift ;;
         --log-dir) log_dir="$2"; shift 2 ;;
+        --keyring) keyring="$2"; shift 2 ;;
         --set)
             svc="${2%%.*}"
             if [[ -z "${sets[$svc]+x}" || "$2" != *.*=* ]]; then
@@ -89,6 +94,7 @@ done
 [[ "$host" == *:* && "$host" != \[* ]] && host="[$host]"   # IPv6 literal
 bus=(--site "$site" --connect "$protocol/$host:$port" --tls-ca "$certs/ca.pem" --mtls
      --tls-cert "$certs/$identity.pem" --tls-key "$certs/$identity.key")
+[[ -n "$keyring" ]] && bus+=(--keyring "$keyring")
 
 has_console=0
 if [[ $ui == 1 ]] && "$py" -c 'import importlib.util as u, sys; sys.exit(u.find_spec("telesurg.services.console") is None)' 2>/dev/null; then

@@ -40,6 +40,7 @@ COMMANDS = {
         "operator console (terminal UI): state, clutch, commands, e-stop",
     ),
     "certs": ("telesurg.services.certs", "make a CA and per-identity certificates for mutual TLS"),
+    "keys": ("telesurg.services.keys", "the site keyring that authenticates every message (init, list, …)"),
     "record": ("telesurg.services.record", "record every message of a site into an MCAP file"),
     "replay": (
         "telesurg.services.record.replay",

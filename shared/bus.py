@@ -44,10 +44,21 @@ from pathlib import Path
 from types import TracebackType
 from typing import TYPE_CHECKING, Any, TypeVar
 
+from telesurg.shared.auth import (
+    PUT,
+    QUERY,
+    REPLY,
+    AuthError,
+    Keyring,
+    Signer,
+    attachment_signer,
+    default_keys_dir,
+    verify,
+)
 from telesurg.shared.errors import AuthorityError, ConfigError, MessageError
 from telesurg.shared.keys import Keys, check_id
 from telesurg.shared.messages import Header, Heartbeat, Message, SafetyEvent, Sequencer, decode_as
-from telesurg.shared.streams import StreamTable
+from telesurg.shared.streams import StreamStats, StreamTable
 
 if TYPE_CHECKING:
     import zenoh
@@ -84,6 +95,10 @@ class BusConfig:
     # zenoh's own log to stderr, a Rust tracing filter ("" = off; RUST_LOG wins if set), e.g.
     # "zenoh::net::routing::interceptor::access_control=trace" logs every ACL denial (router)
     zenoh_log: str = ""
+    # the site keyring (shared/auth.py): every message is signed with this process's key and every
+    # message received is verified with the signer's ("" = the default: $TELESURG_KEYS, else
+    # $XDG_STATE_HOME/telesurg/<site>/keys; `telesurg keys init DIR`, made by `telesurg up`/`demo`)
+    keys_dir: str = ""
 
     @property
     def secured(self) -> bool:
@@ -184,6 +199,11 @@ def add_bus_args(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--acl", metavar="FILE", help="access-control rules, JSON5 or TOML (router)")
     g.add_argument("--zenoh-log", metavar="FILTER", help="zenoh's own log, e.g. zenoh=info (stderr)")
     g.add_argument(
+        "--keyring",
+        metavar="DIR",
+        help="site keyring (default: $TELESURG_KEYS or $XDG_STATE_HOME/telesurg/<site>/keys)",
+    )
+    g.add_argument(
         "--allow-insecure-listen",
         action="store_true",
         default=None,
@@ -217,6 +237,8 @@ def bus_from_args(args: argparse.Namespace, base: BusConfig | None = None) -> Bu
         cfg.allow_insecure_listen = True
     if zlog := getattr(args, "zenoh_log", None):
         cfg.zenoh_log = zlog
+    if keyring := getattr(args, "keyring", None):
+        cfg.keys_dir = keyring
     if cfg.mode == "client" and not cfg.connect and not cfg.config_file:
         cfg.connect = [LOCAL_ROUTER]  # every command line: the local site's router by default
     return cfg
@@ -271,6 +293,11 @@ def open_session(cfg: BusConfig) -> zenoh.Session:
         ) from exc
 
 
+def _raw(attachment: Any) -> bytes | None:
+    """The bytes of a zenoh attachment (None: none)."""
+    return attachment.to_bytes() if attachment is not None else None
+
+
 def only(service: str) -> list[str] | None:
     """``sources=`` value for :meth:`Node.subscribe` allowing one service id ("" = anyone)."""
     return [service] if service else None
@@ -280,9 +307,11 @@ class Outlet:
     """A publisher plus the sequencer of its stream (and, for a ``latest`` outlet, its last
     message, which :class:`Node` serves to late joiners)."""
 
-    def __init__(self, publisher: Any, source: str) -> None:
+    def __init__(self, publisher: Any, source: str, signer: Signer, key: str) -> None:
         self._pub = publisher
         self._seq = Sequencer(source)
+        self._signer = signer
+        self._key = key
         self.last: bytes | None = None  # the last payload put (kept by a ``latest`` outlet only)
         self._keep = False
 
@@ -291,11 +320,11 @@ class Outlet:
         return self._seq.next()
 
     def put(self, msg: Message) -> None:
-        """Encode and publish."""
+        """Encode, sign and publish."""
         payload = msg.encode()
         if self._keep:
             self.last = payload
-        self._pub.put(payload)
+        self._pub.put(payload, attachment=self._signer.attach(PUT, self._key, payload))
 
     @property
     def sent(self) -> int:
@@ -306,14 +335,23 @@ class Outlet:
 class Node:
     """A service's presence on the bus: session, liveliness token, heartbeat, events, inputs.
 
-    Every subscription made with :meth:`subscribe` decodes through the strict decoder; malformed
-    or out-of-order messages are counted per key in :attr:`streams` and never reach the callback.
+    Every message it sends is signed with the service's key from the site keyring
+    (:mod:`telesurg.shared.auth`; ``bus.keys_dir``, default :func:`~telesurg.shared.auth.default_keys_dir`;
+    no keyring → ConfigError saying how to make one); every message it receives is verified
+    first, before decoding: one that fails (no authenticator, unknown signer, bad MAC, signer ≠
+    header ``src``) is rejected, counted (``unauthenticated``, within ``rejected``), reported as
+    an ``unauthenticated`` event (rate-limited) and changes nothing else. Every subscription made
+    with :meth:`subscribe` decodes through the strict decoder; malformed or out-of-order messages
+    are counted per key in :attr:`streams` and never reach the callback.
     Use as a context manager; it undeclares everything on exit.
     """
 
     def __init__(self, bus: BusConfig, site: str, service: str) -> None:
         self.keys = Keys(site)
         self.service = check_id("service", service)
+        self.keyring = Keyring.load(bus.keys_dir or default_keys_dir(site))
+        self.signer = Signer(self.service, self.keyring.ensure(self.service))
+        self._auth_reported: dict[str, tuple[int, float]] = {}  # key -> (reports, last report monotonic s)
         self.streams = StreamTable()
         self._lock = threading.Lock()
         self._start = time.monotonic()
@@ -352,7 +390,7 @@ class Node:
         else:
             pub = self.session.declare_publisher(key, priority=zenoh.Priority.DATA_HIGH)
         self._handles.append(pub)
-        out = Outlet(pub, self.service)
+        out = Outlet(pub, self.service, self.signer, key)
         if latest:
             out._keep = True
 
@@ -360,7 +398,7 @@ class Node:
                 last = out.last
                 with contextlib.suppress(Exception):  # the querier may be gone
                     if last is not None:
-                        query.reply(key, last)
+                        query.reply(key, last, attachment=self.signer.attach(REPLY, key, last))
 
             self._handles.append(self.session.declare_queryable(key, on_query))
         return out
@@ -418,8 +456,15 @@ class Node:
         def on_sample(sample: Any, rx_ns: int = 0, queried: bool = False) -> None:
             k = str(sample.key_expr)
             stats = table.get(k)
+            payload = sample.payload.to_bytes()
+            att = sample.attachment
+            try:  # authentication first: nothing of a forged message is looked at
+                who = verify(self.keyring, REPLY if queried else PUT, k, payload, _raw(att))
+            except AuthError as exc:
+                self._unauthenticated(stats, k, _raw(att), str(exc))
+                return
             try:
-                msg = decode_as(sample.payload.to_bytes(), cls)
+                msg = decode_as(payload, cls)
             except Exception as exc:  # MessageError; anything else is a decoder bug, still rejected
                 with self._lock:
                     stats.rejected += 1
@@ -428,6 +473,9 @@ class Node:
                     log.error("decoder bug on %s (message rejected): %r", k, exc)
                 elif bad <= 5 or bad % 1000 == 0:
                     log.warning("rejected message on %s (%d so far): %s", k, bad, exc)
+                return
+            if msg.header.source != who.signer:
+                self._unauthenticated(stats, k, _raw(att), f"signer {who.signer!r} is not the header src")
                 return
             if trusted is not None and not trusted(k, msg.header.source):
                 with self._lock:
@@ -441,7 +489,7 @@ class Node:
             with self._lock:
                 if queried and stats.source == msg.header.source and msg.header.seq <= stats.last_seq:
                     return  # a queried current value the subscription has delivered already
-                fresh = stats.accept(msg.header.source, msg.header.seq, rx_ns)
+                fresh = stats.accept(msg.header.source, msg.header.seq, rx_ns, who.sid, msg.header.stamp_ns)
             if not fresh:
                 return
             try:
@@ -508,10 +556,25 @@ class Node:
         def on_query(query: Any) -> None:
             stats = self.streams.get(key)
             payload = query.payload
+            k = str(query.key_expr)
+            att = query.attachment
+            raw = _raw(att)
+            try:  # authentication first
+                who = verify(self.keyring, QUERY, k, payload.to_bytes() if payload is not None else b"", raw)
+            except AuthError as exc:
+                self._unauthenticated(stats, k, raw, str(exc))
+                with contextlib.suppress(Exception):
+                    query.reply_err(f"rejected: {exc}".encode())
+                return
             try:
                 if payload is None:
                     raise MessageError("empty request")
                 req = decode_as(payload.to_bytes(), cls)
+                if req.header.source != who.signer:
+                    self._unauthenticated(stats, k, raw, f"signer {who.signer!r} is not the header src")
+                    with contextlib.suppress(Exception):
+                        query.reply_err(b"rejected: signer is not the header src")
+                    return
                 if allowed is not None and req.header.source not in allowed:
                     with self._lock:
                         stats.foreign += 1
@@ -537,8 +600,9 @@ class Node:
                 with contextlib.suppress(Exception):
                     query.reply_err(f"handler error: {type(exc).__name__}: {exc}".encode())
                 return
+            out = reply.encode()
             with contextlib.suppress(Exception):  # the querier may have gone
-                query.reply(query.key_expr, reply.encode())
+                query.reply(query.key_expr, out, attachment=self.signer.attach(REPLY, k, out))
 
         self._handles.append(self.session.declare_queryable(key, on_query))
 
@@ -549,9 +613,18 @@ class Node:
             TimeoutError: nobody answered within ``timeout`` s.
             MessageError: the server refused the request (its reason), or the reply is malformed.
         """
-        for reply in self.session.get(key, payload=msg.encode(), timeout=timeout):
+        payload = msg.encode()
+        att = self.signer.attach(QUERY, key, payload)
+        for reply in self.session.get(key, payload=payload, attachment=att, timeout=timeout):
             if reply.ok is not None:
-                return decode_as(reply.ok.payload.to_bytes(), reply_cls)
+                sample = reply.ok
+                body = sample.payload.to_bytes()
+                a = sample.attachment
+                who = verify(self.keyring, REPLY, str(sample.key_expr), body, _raw(a))
+                out = decode_as(body, reply_cls)
+                if out.header.source != who.signer:
+                    raise AuthError(f"reply signed by {who.signer!r} claims src {out.header.source!r}")
+                return out
             err = reply.err
             raise MessageError(err.payload.to_string() if err is not None else "error reply")
         raise TimeoutError(f"no reply on {key} within {timeout:g} s (is the service running?)")
@@ -582,6 +655,27 @@ class Node:
     def rejected(self) -> int:
         """Messages rejected by the strict decoder so far, all keys."""
         return self.streams.rejected
+
+    def _unauthenticated(self, stats: StreamStats, key: str, attachment: bytes | None, why: str) -> None:
+        """Count a message that failed authentication and report it (at most one event per key
+        per second, after the first five)."""
+        with self._lock:
+            stats.rejected += 1
+            stats.unauthenticated += 1
+            n, last = self._auth_reported.get(key, (0, 0.0))
+            now = time.monotonic()
+            report = n < 5 or now - last >= 1.0
+            if report:
+                self._auth_reported[key] = (n + 1, now)
+        if report and not self._closed:
+            claimed = attachment_signer(attachment)
+            with contextlib.suppress(Exception):  # the session may be closing
+                self.event(
+                    "unauthenticated",
+                    f"rejected message on {key} (claimed signer {claimed!r}; "
+                    f"{stats.unauthenticated} so far): {why}",
+                    severity="warning",
+                )
 
     def _heartbeat_loop(self) -> None:
         while not self._hb_stop.wait(0.5):

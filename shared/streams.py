@@ -66,6 +66,9 @@ class SeqTracker:
     reordered: int = 0
     duplicates: int = 0
     restarts: int = 0
+    # False: seq 0 after a higher number is *not* a restart (a stream whose restarts are known
+    # by other means, e.g. an authenticated session id): it is a late or duplicate number
+    zero_restarts: bool = True
     top: int = -1  # newest number (-1: none yet)
     first: int = -1
     holes: set[int] = field(default_factory=set)
@@ -94,7 +97,9 @@ class SeqTracker:
         if d == 1:
             self.top = seq
             return NEXT
-        if (seq == 0 and top > 0 and seq not in self.holes) or (d <= 0 and not self.reorders):
+        if (seq == 0 and top > 0 and self.zero_restarts and seq not in self.holes) or (
+            d <= 0 and not self.reorders
+        ):
             self.restarts += 1
             self.holes.clear()
             self.top = self.first = seq
@@ -149,7 +154,14 @@ class StreamStats:
     the next message continues it (one forged message cannot make the genuine stream look old). A
     new source id (a restarted publisher) is a restart, like ``seq`` 0 after a higher one.
     ``rejected`` counts what the strict decoder refused, messages from a source that may not
-    publish on this key (also in ``foreign``) and unconfirmed jumps.
+    publish on this key (also in ``foreign``), messages that failed authentication (also in
+    ``unauthenticated``; the bus rejects them before decoding, so they change nothing else here)
+    and unconfirmed jumps.
+
+    With an authenticated session id (``accept(..., sid=...)``, the bus's case) a restart is a new
+    ``sid`` only — ``seq`` 0 in the same session is an old or duplicate number, dropped — and a new
+    ``sid`` is taken only with a header stamp newer than the last accepted message's (a recorded
+    message of an earlier session, sent again, is refused and counted in ``stale_sessions``).
 
     Because late messages are dropped, ``lost`` counts every number jumped over (a late one never
     reaches the callback: the tracker's ``skipped``) and ``reordered`` every message dropped as not
@@ -162,6 +174,10 @@ class StreamStats:
     last_rx_ns: int = 0
     foreign: int = 0
     jumps: int = 0
+    unauthenticated: int = 0  # failed authentication (also in rejected)
+    stale_sessions: int = 0  # a session id change with an older stamp (also in rejected)
+    sid: bytes = b""  # authenticated session id of the source ("" = none seen / not tracked)
+    last_stamp_ns: int = 0  # header stamp of the last accepted message (with a sid)
     seq: SeqTracker = field(default_factory=lambda: SeqTracker(max_holes=BUS_MAX_HOLES))
     _jump_to: int = -1
 
@@ -190,11 +206,23 @@ class StreamStats:
         """Newest sequence number delivered (-1: none yet)."""
         return self.seq.top
 
-    def accept(self, source: str, seq: int, rx_ns: int = 0) -> bool:
+    def accept(self, source: str, seq: int, rx_ns: int = 0, sid: bytes = b"", stamp_ns: int = 0) -> bool:
         """Account one decoded message; False means drop it (old, duplicate or implausible).
 
-        ``rx_ns``: when it arrived (monotonic ns; 0 = now), for a message read from a buffer."""
+        ``rx_ns``: when it arrived (monotonic ns; 0 = now), for a message read from a buffer.
+        ``sid`` / ``stamp_ns``: its authenticated session id and header stamp (see the class)."""
         t = self.seq
+        if sid:
+            if self.sid != sid and source == self.source:
+                if stamp_ns <= self.last_stamp_ns:
+                    self.rejected += 1
+                    self.stale_sessions += 1
+                    return False
+                if self.sid:
+                    t.restart()
+                self._jump_to = -1
+            self.sid = sid
+            t.zero_restarts = False
         if seq > t.top + MAX_SEQ_JUMP and t.top >= 0 and source == self.source:
             if seq != self._jump_to + 1:
                 self._jump_to = seq
@@ -212,6 +240,8 @@ class StreamStats:
             return False
         self.received += 1
         self.last_rx_ns = rx_ns or time.monotonic_ns()
+        if stamp_ns > self.last_stamp_ns:
+            self.last_stamp_ns = stamp_ns
         return True
 
     def age_s(self) -> float:
@@ -230,6 +260,7 @@ class StreamStats:
             "rejected": self.rejected,
             "restarts": self.restarts,
             "foreign": self.foreign,
+            "unauthenticated": self.unauthenticated,
         }
 
 

@@ -1,13 +1,34 @@
-"""Shared fixtures: an in-process zenoh router on a free loopback port."""
+"""Shared fixtures: an in-process zenoh router on a free loopback port; one test keyring for the
+whole session (``$TELESURG_KEYS``, inherited by every process a test starts)."""
 
 from __future__ import annotations
 
+import os
+import shutil
+import tempfile
 import time
 from collections.abc import Callable, Iterator
 
 import pytest
 from telesurg.services.launcher import free_port
+from telesurg.shared.auth import KEYS_ENV, init_keyring
 from telesurg.shared.bus import BusConfig, open_session
+
+_KEYRING: list[str] = []
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    """Every Node of the tests (in-process or a started service) signs and verifies with one
+    throw-away keyring; each identity adds its own key on first use."""
+    d = tempfile.mkdtemp(prefix="telesurg-test-keys-")
+    init_keyring(os.path.join(d, "keys"))
+    os.environ[KEYS_ENV] = os.path.join(d, "keys")
+    _KEYRING.append(d)
+
+
+def pytest_unconfigure(config: pytest.Config) -> None:
+    for d in _KEYRING:
+        shutil.rmtree(d, ignore_errors=True)
 
 
 @pytest.fixture

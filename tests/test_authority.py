@@ -148,7 +148,11 @@ def test_refusal_is_the_query_error_reply_and_confirm_round_trip(endpoint: str) 
         done.append(c)
         return CommandReply(Header("mapping", len(done), time.time_ns()), c.arm, c.name, True, "ok")
 
-    with Node(bus, "t", "mapping") as server, Node(bus, "t", "probe") as client:
+    with (
+        Node(bus, "t", "mapping") as server,
+        Node(bus, "t", "intruder") as client,  # (each identity signs as itself)
+        Node(bus, "t", "console") as console,
+    ):
         server.serve(
             server.keys.mapping_command("arm1"),
             Command,
@@ -158,10 +162,10 @@ def test_refusal_is_the_query_error_reply_and_confirm_round_trip(endpoint: str) 
         time.sleep(0.3)
         with pytest.raises(MessageError, match="refused: set_vip from 'intruder' refused: only the operator"):
             client.request(key, cmd("intruder", "set_vip", "x=1", "y=2", "z=3"), CommandReply, 3.0)
-        r = client.request(key, cmd("console", "set_vip", "x=1", "y=2", "z=3"), CommandReply, 3.0)
+        r = console.request(key, cmd("console", "set_vip", "x=1", "y=2", "z=3"), CommandReply, 3.0)
         assert not r.accepted and r.confirm and "confirm required" in r.reason
         assert not done
-        r2 = client.request(
+        r2 = console.request(
             key, cmd("console", "set_vip", "x=1", "y=2", "z=3", f"confirm={r.confirm}"), CommandReply, 3.0
         )
         assert r2.accepted and [c.args for c in done] == [("x=1", "y=2", "z=3")]

@@ -8,7 +8,7 @@ import time
 from conftest import wait_until
 from telesurg.services.watchdog import Watchdog, WatchdogConfig, _echo_loop
 from telesurg.shared.bus import BusConfig, Node
-from telesurg.shared.messages import EStop, Header, SafetyLease
+from telesurg.shared.messages import EStop, SafetyLease
 
 
 def test_echo_latency_source_and_estop(endpoint: str) -> None:
@@ -17,7 +17,11 @@ def test_echo_latency_source_and_estop(endpoint: str) -> None:
     cfg.validate()
     leases: list[SafetyLease] = []
     stop = threading.Event()
-    with Node(bus, "t", "watchdog") as node, Node(bus, "t", "master_capture") as master:
+    with (
+        Node(bus, "t", "watchdog") as node,
+        Node(bus, "t", "master_capture") as master,
+        Node(bus, "t", "console") as console,
+    ):
         wd = Watchdog(cfg, node)
         master.subscribe(master.keys.safety("arm1", "lease"), SafetyLease, lambda m, k: leases.append(m))
         echo = threading.Thread(target=_echo_loop, args=(wd, cfg, stop), daemon=True)
@@ -42,7 +46,9 @@ def test_echo_latency_source_and_estop(endpoint: str) -> None:
             out.put(EStop(out.header(), "arm1", "reset", "test"))
             assert wait_until(lambda: wd.authority.refused == 1, 2.0)
             assert wd.arms[0].safety.estop
-            out.put(EStop(Header("console", 1, time.time_ns()), "arm1", "reset", "test"))
+            reset = console.outlet(console.keys.estop)
+            time.sleep(0.2)
+            reset.put(EStop(reset.header(), "arm1", "reset", "test"))
             assert wait_until(lambda: wd.arms[0].safety.estop == "", 2.0)
             wd.tick()
             assert wd.arms[0].verdict.state == "HOLD"  # the other causes remain (no streams here)

@@ -30,6 +30,7 @@ BENCHES = {
     "ik": ("telesurg.services.bench.perf", "analytic IK / mapping vs a generic numerical IK"),
     "sim": ("telesurg.services.bench.perf", "MuJoCo steps/s unpaced per robot model"),
     "decode": ("telesurg.services.bench.decode", "µs per strict decode / encode of the hot messages"),
+    "auth": ("telesurg.services.bench.auth", "µs per sign / verify (HMAC, Ed25519) of the hot messages"),
     "transport": (
         "telesurg.services.bench.transport",
         "zenoh links for a 1 kHz stream under packet loss (root)",

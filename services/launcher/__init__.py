@@ -42,6 +42,7 @@ from types import TracebackType
 from typing import IO, Any
 
 from telesurg.services.common import install_stop_handlers, setup_logging
+from telesurg.shared.auth import default_keys_dir, ensure_keyring
 from telesurg.shared.bus import BusConfig, add_bus_args, bus_from_args
 from telesurg.shared.config import SITE_FILE, load_config, read_site, site_plugins
 from telesurg.shared.errors import ConfigError
@@ -153,6 +154,9 @@ class SiteSpec:
     listen: tuple[str, ...] = ()  # more router endpoints, e.g. tls/0.0.0.0:7447 for remote consoles
     router_flags: tuple[str, ...] = ()  # router-only flags: --tls-ca/--tls-cert/--tls-key/--mtls/--acl
     plugins: tuple[str, ...] = ()  # robot plugin files, passed to every service as --plugin FILE
+    # the site keyring, passed to every service as --keyring DIR; made if absent (None: the default,
+    # shared/auth.py default_keys_dir)
+    keys_dir: Path | None = None
 
     @property
     def site_file(self) -> Path | None:
@@ -175,6 +179,8 @@ def service_argv(spec: SiteSpec, name: str) -> list[str]:
         argv += spec.router_flags
     else:
         argv += ["--connect", spec.connect.get(name, spec.endpoint)]
+        if spec.keys_dir is not None:
+            argv += ["--keyring", str(spec.keys_dir)]
         for plugin in spec.plugins:
             argv += ["--plugin", plugin]
     if spec.site_file is not None:
@@ -199,6 +205,11 @@ class Site:
         seen): six Python processes importing at once saturate a 2-core host for seconds, long
         enough for the watchdog's deadlines to fire before the first engage.
         """
+        if self.spec.keys_dir is None:
+            self.spec.keys_dir = default_keys_dir(self.spec.site).resolve()
+        keys_dir, made = ensure_keyring(self.spec.keys_dir)
+        if made:
+            log.info("made the site keyring %s (telesurg keys list shows its identities)", keys_dir)
         self._spawn("router")
         router = self.procs["router"]
         deadline = time.monotonic() + 15.0
@@ -341,6 +352,12 @@ def add_site_args(parser: argparse.ArgumentParser) -> None:
         help="stop after this many seconds (default: run until Ctrl-C)",
     )
     parser.add_argument(
+        "--keys",
+        type=Path,
+        metavar="DIR",
+        help="site keyring, made if absent (default: $TELESURG_KEYS or $XDG_STATE_HOME/telesurg/<site>/keys)",
+    )
+    parser.add_argument(
         "--plugin",
         action="append",
         default=[],
@@ -383,6 +400,7 @@ def spec_from_args(args: argparse.Namespace, services: Sequence[str]) -> SiteSpe
         args.log_dir,
         args.log_level,
         plugins=plugins,
+        keys_dir=(args.keys or default_keys_dir(args.site)).resolve(),
     )
 
 

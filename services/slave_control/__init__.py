@@ -80,6 +80,9 @@ class SlaveControlConfig:
     # refused (stale, or the hosts' clocks disagree); > the longest scheduling stall, so a
     # stalled slave does not refuse what waited in its queue
     setpoint_max_age_ms: float = 1000.0
+    # ms: a lease is honoured at most its valid_for_ms + this after its own header stamp (this
+    # host's wall clock, the watchdog's too): a thawed slave never acts on old leases
+    lease_stamp_slack_ms: float = 50.0
     # ms: joint-space arms interpolate sparse setpoints over their period, at most this long
     interpolation_max_ms: float = 100.0
     engage_tolerance_rad: float = 0.02  # rad: first followed setpoint must be this close to the arm
@@ -212,6 +215,10 @@ def run(cfg: SlaveControlConfig, stop: threading.Event) -> None:
                 # through the earlier ones, as a real arm would have.
                 held = max(0, missed - REPLAY_MAX_PERIODS)
                 backend.step(1 + held)
+                # the inputs that queued up during the stall first: the replayed periods judge
+                # the newest lease and setpoint (by arrival, cycles and their own stamps), never
+                # the ones from before the stall (a thawed slave acts on no old permission)
+                node.poll()
                 t_wake = time.monotonic()
                 for late in range(missed - held, 0, -1):
                     command(t_wake - late * dt, backend.read())

@@ -16,7 +16,12 @@ Rules (one of each, for every arm):
   lease never outlasts its grant by the polling interval. It allows motion while it says
   ``allow`` and is younger than its ``valid_for_ms``; as for every input age (``control.py``) it
   has expired only when both the wall clock and the control cycles executed since it came say
-  so. The watchdog's liveliness token dying revokes it at once.
+  so. The watchdog's liveliness token dying revokes it at once. **Stamp age:** whatever those
+  clocks say, a lease is honoured at most its ``valid_for_ms`` + ``lease_stamp_slack_ms`` after
+  its own header stamp, and a setpoint at most ``setpoint_max_age_ms`` after its stamp, judged on
+  this host's wall clock at the moment of use (the watchdog and the mapping run on the slave
+  site's host: one clock) — so after a freeze (SIGSTOP/SIGCONT) the arm never acts on the
+  permissions and setpoints queued before it, not even in the replayed periods.
 * **Setpoints.** A ``servo_jp`` is refused (counted in ``operating_state.rejected``, an event,
   nothing else changes) when its joint names are not the arm's, a joint is outside its limits,
   its header stamp is more than ``setpoint_max_age_ms`` away from this host's wall clock (stale
@@ -331,6 +336,8 @@ class ArmCore:
         self._vmax = np.array(p.max_velocity)
         self._reply_seq = Sequencer(cfg.service)
         self.authority = Authority(cfg.authority)
+        self._lease_slack_ns = round(cfg.lease_stamp_slack_ms * 1e6)
+        self._sp_max_age_ns = round(cfg.setpoint_max_age_ms * 1e6)
         if cfg.latency_log:
             self._applied = np.zeros((300_000, 3), dtype=np.int64)
         if self.motion is not None:
@@ -371,7 +378,15 @@ class ArmCore:
         now = self.node.received(key) if self.node is not None else time.monotonic()
         with self.lock:
             valid_cycles = round(msg.valid_for_ms / 1e3 / self.dt)
-            self.lease = Lease(msg.allow, now + msg.valid_for_ms / 1e3, msg.reason, self.cycle, valid_cycles)
+            self.lease = Lease(
+                msg.allow,
+                now + msg.valid_for_ms / 1e3,
+                msg.reason,
+                self.cycle,
+                valid_cycles,
+                msg.header.stamp_ns,
+                round(msg.valid_for_ms * 1e6),
+            )
 
     def on_watchdog_alive(self, service: str, alive: bool) -> None:
         if service == self.cfg.watchdog_service and not alive:
@@ -494,6 +509,7 @@ class ArmCore:
                 lease = Lease(False, 0.0, self.estop)
             internal = motion is not None and motion.active()
             blocked = motion.blocks_following() if motion is not None else ""
+        lease, sp = self._stamp_age(lease, sp)
         self._log_applied(sp)
         if reading.fault or self.held.active:
             if reading.fault and internal and motion is not None:
@@ -510,6 +526,24 @@ class ArmCore:
             out = ctl.update(now, q_meas, q_cmd, lease, sp, self.dt, self.cycle)
         self.q_cmd = out
         return out
+
+    def _stamp_age(self, lease: Lease, sp: Setpoint | None) -> tuple[Lease, Setpoint | None]:
+        """The stamp-age rule: judged on this host's wall clock *now* (also in a replayed period:
+        the stamps are as old as they are), a lease older than its lifetime +
+        ``lease_stamp_slack_ms`` is revoked and a setpoint older than ``setpoint_max_age_ms`` is
+        dropped (the controller sees no setpoint: stale), however recently they arrived."""
+        wall = time.time_ns()
+        if lease.allow and lease.stamp_ns:
+            age = wall - lease.stamp_ns
+            if age > lease.valid_ns + self._lease_slack_ns:
+                lease = Lease(
+                    False,
+                    0.0,
+                    f"lease expired (stamped {age / 1e6:.0f} ms ago, valid {lease.valid_ns / 1e6:g} ms)",
+                )
+        if sp is not None and sp.stamp_ns and wall - sp.stamp_ns > self._sp_max_age_ns:
+            sp = None
+        return lease, sp
 
     def _internal(self, motion: MotionSource, lease: Lease, now: float, reading: ArmReading) -> np.ndarray:
         """One period of a slave-side motion, only under a valid lease."""

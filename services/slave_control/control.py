@@ -109,7 +109,9 @@ class Lease:
     """Latest lease as seen by the slave (times on the local monotonic clock, s).
 
     ``cycle``/``valid_cycles``: control cycle at reception and lifetime in cycles (None: wall
-    time only).
+    time only). ``stamp_ns``/``valid_ns``: its own stamp and lifetime, for the stamp-age rule
+    (``arm.py``: a lease is never honoured longer than its lifetime after its own stamp, whatever
+    the arrival and cycle clocks say — a thawed process does not act on old permissions).
     """
 
     allow: bool = False
@@ -117,6 +119,8 @@ class Lease:
     reason: str = "no lease received"
     cycle: int | None = None
     valid_cycles: int = 0
+    stamp_ns: int = 0  # the lease's own header stamp (the watchdog's wall clock, ns; 0: unknown)
+    valid_ns: int = 0  # its lifetime, ns (valid_for_ms)
 
 
 @dataclass
