@@ -490,8 +490,13 @@ def _command_case(source: str, target: str, name: str, *args: str) -> Callable[[
 
 def _stranger_reset(a: Attacker) -> dict[str, Any]:
     pipe = a.pipe
-    pipe.estop("estop", source="console")
-    latched = pipe.wait(lambda: pipe.p.safety_state() == "ESTOP", 5.0)
+    latched = False
+    for _ in range(25):  # re-sent until latched (the first put may race the subscriptions)
+        pipe.estop("estop", source="console")
+        if latched := pipe.wait(lambda: pipe.p.safety_state() == "ESTOP", 0.2):
+            break
+    if not latched:
+        return {"sent": 0, "accepted": 0, "forbidden": True, "error": "the e-stop did not latch within 5 s"}
     t0 = now_ns()
     for _ in range(5):
         pipe.estop("reset", source=STRANGER)
