@@ -9,8 +9,8 @@ it (:func:`default_keys_dir`; ``--keyring DIR`` on every command line, ``--keys 
 ``up`` / ``demo``; ``BusConfig.keys_dir``). Nothing secret is in the repository. A process
 whose own identity has no key yet adds one to a keyring it can write (:meth:`Keyring.ensure`):
 anyone who can write the keyring can read every key in it anyway.
-Receivers look a signer they do not know up in the directory again, at most once a second per
-name (a key added after they started; a stranger's made-up names cost nothing more).
+Receivers look a signer they do not know up in the directory again, at most every 0.25 s per
+name (a key added after they started).
 
 **Authenticator.** Every publication, query and reply made through :class:`~telesurg.shared.bus.Node`
 carries, in the zenoh *attachment* (the msgpack payload is unchanged)::
@@ -51,7 +51,7 @@ KEY_BYTES = 32
 KEY_SUFFIX = ".key"
 PUT, QUERY, REPLY = b"P", b"Q", b"R"
 #: s between two directory look-ups of the same unknown signer
-LOOKUP_INTERVAL_S = 1.0
+LOOKUP_INTERVAL_S = 0.25
 _ID = re.compile(r"^[A-Za-z0-9_-]{1,64}$")
 #: environment variable naming the keyring directory (read once, by :func:`default_keys_dir`)
 KEYS_ENV = "TELESURG_KEYS"
@@ -102,12 +102,20 @@ def write_key(directory: Path, identity: str, key: bytes | None = None) -> bool:
     if len(key) != KEY_BYTES:
         raise ConfigError(f"key of {identity}: {len(key)} bytes, expected {KEY_BYTES}")
     path = directory / f"{identity}{KEY_SUFFIX}"
+    if path.exists():
+        return False
+    # written whole under a temporary name, then linked into place (fails if the name exists):
+    # a reader never sees a half-written key, and two processes adding one identity agree
+    tmp = directory / f".{identity}.{secrets.token_hex(8)}.tmp"
+    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
     try:
-        fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+        with os.fdopen(fd, "w") as f:
+            f.write(key.hex() + "\n")
+        os.link(tmp, path)
     except FileExistsError:
         return False
-    with os.fdopen(fd, "w") as f:
-        f.write(key.hex() + "\n")
+    finally:
+        tmp.unlink(missing_ok=True)
     return True
 
 
@@ -162,7 +170,8 @@ class Keyring:
         return sorted(self.keys)
 
     def key(self, identity: str) -> bytes | None:
-        """``identity``'s key; an unknown one is looked up on disk at most once a second."""
+        """``identity``'s key; an unknown one is looked up on disk at most every
+        :data:`LOOKUP_INTERVAL_S`."""
         k = self.keys.get(identity)
         if k is not None:
             return k

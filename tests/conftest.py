@@ -11,7 +11,7 @@ from collections.abc import Callable, Iterator
 
 import pytest
 from telesurg.services.launcher import free_port
-from telesurg.shared.auth import KEYS_ENV, init_keyring
+from telesurg.shared.auth import IDENTITIES, KEYS_ENV, init_keyring
 from telesurg.shared.bus import BusConfig, open_session
 
 _KEYRING: list[str] = []
@@ -19,9 +19,9 @@ _KEYRING: list[str] = []
 
 def pytest_configure(config: pytest.Config) -> None:
     """Every Node of the tests (in-process or a started service) signs and verifies with one
-    throw-away keyring; each identity adds its own key on first use."""
+    throw-away keyring with the site's identities; any other adds its own key on first use."""
     d = tempfile.mkdtemp(prefix="telesurg-test-keys-")
-    init_keyring(os.path.join(d, "keys"))
+    init_keyring(os.path.join(d, "keys"), IDENTITIES)
     os.environ[KEYS_ENV] = os.path.join(d, "keys")
     _KEYRING.append(d)
 

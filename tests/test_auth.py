@@ -20,6 +20,7 @@ from telesurg.shared.messages import (
     CommandReply,
     Header,
     JointSetpoint,
+    MasterButtons,
     SafetyEvent,
     SafetyLease,
 )
@@ -250,3 +251,25 @@ def test_a_restarted_publisher_is_a_new_session(endpoint: str) -> None:
         stats = sub.streams.get(key)
         assert wait_until(lambda: got == [0, 1, 2, 3, 4] * 2), got
         assert (stats.restarts, stats.lost, stats.gaps, stats.rejected) == (1, 0, 0, 0)
+
+
+def test_the_recorder_writes_only_authenticated_samples(endpoint: str, tmp_path: Path) -> None:
+    """A forgery on the bus never reaches a recording (a replay would publish it as genuine)."""
+    from telesurg.services.record import Recorder
+
+    bus = BusConfig(connect=[endpoint])
+    with Node(bus, "t", "record") as node, Node(bus, "t", "master_capture") as pub:
+        rec = Recorder(tmp_path / "r.mcap", "t")
+        with rec:
+            rec.subscribe(node.session, node.keys.all, node.keyring)
+            key = pub.keys.master("m1", "buttons")
+            out = pub.outlet(key)
+            time.sleep(0.3)
+            for _ in range(3):
+                out.put(MasterButtons(out.header(), True, True))
+                forged = MasterButtons(Header("master_capture", 99, time.time_ns()), False, True)
+                pub.session.put(key, forged.encode())
+            assert wait_until(lambda: rec.unauthenticated == 3)
+            time.sleep(0.3)
+            summary = rec.close()
+    assert summary["master/m1/buttons"]["messages"] == 3

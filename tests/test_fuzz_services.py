@@ -20,9 +20,10 @@ import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
-from telesurg.services.bench.fuzz import SERVICES, TARGETS, expected_rejections
+from telesurg.services.bench.fuzz import SERVICES, TARGETS, expected_rejections, fuzz_signer
 from telesurg.services.bench.fuzzgen import mutate, valid_template
 from telesurg.services.bench.harness import Pipeline
+from telesurg.shared.auth import PUT
 from telesurg.shared.kinematics import MH3F
 
 pytestmark = pytest.mark.process
@@ -58,6 +59,7 @@ def test_running_services_reject_count_and_never_move_the_slave_out_of_limits(pi
 
     p = pipe.p
     prefix = pipe.node.keys.prefix
+    signer = fuzz_signer(pipe.node)
     pubs = {
         k: pipe.node.session.declare_publisher(
             f"{prefix}/{k}", congestion_control=zenoh.CongestionControl.BLOCK
@@ -77,7 +79,8 @@ def test_running_services_reject_count_and_never_move_the_slave_out_of_limits(pi
             exp = expected_rejections(key, payload)
             if key == "estop" and exp["watchdog"] == 0:
                 continue  # a decodable e-stop would (rightly) stop the arm
-            pubs[key].put(payload)
+            # signed (as the fuzzer): the payloads pass authentication and meet the decoder
+            pubs[key].put(payload, attachment=signer.attach(PUT, f"{prefix}/{key}", payload))
             expected.update(exp)
             sent[key] += 1
         time.sleep(0.005)

@@ -31,6 +31,8 @@ import numpy as np
 from telesurg.services.bench.fuzzgen import FUZZ_KINDS, always_invalid, fuzz_cases, valid_template
 from telesurg.services.bench.harness import Pipeline
 from telesurg.services.mirror import SUBSCRIBED
+from telesurg.shared.auth import PUT, Signer
+from telesurg.shared.bus import Node
 from telesurg.shared.errors import MessageError
 from telesurg.shared.kinematics import MH3F
 from telesurg.shared.messages import (
@@ -67,8 +69,20 @@ MIRROR_TRUSTED = frozenset({"master_capture", "mapping", "slave_control", "watch
 MIRROR_SUBSCRIBED = SUBSCRIBED  # the keys the mirror draws (telesurg.services.mirror.SUBSCRIBED)
 
 
+#: The identity the fuzzer signs every payload with (shared/auth.py): its payloads pass the
+#: authenticator and meet the strict decoder and the source rules; a decodable one whose header
+#: ``src`` is not this signer is rejected by the authenticator (signer ≠ src).
+FUZZ_SIGNER = "fuzz"
+
+
+def fuzz_signer(node: Node) -> Signer:
+    """The fuzzer's signer, its key from ``node``'s keyring (added there if absent)."""
+    return Signer(FUZZ_SIGNER, node.keyring.ensure(FUZZ_SIGNER))
+
+
 def expected_rejections(key: str, payload: bytes) -> dict[str, int]:
-    """Which services must reject ``payload`` on ``key`` (1) — by the same strict decoder."""
+    """Which services must reject ``payload`` on ``key`` (1), signed by :data:`FUZZ_SIGNER` —
+    by the same strict decoder, source rules and signer = ``src`` rule."""
     cls, subs = TARGETS[key]
     out = {}
     try:
@@ -77,7 +91,7 @@ def expected_rejections(key: str, payload: bytes) -> dict[str, int]:
     except MessageError:
         msg, src = None, ""
     for svc, allowed in subs.items():
-        out[svc] = int(msg is None or (bool(allowed) and src != allowed))
+        out[svc] = int(msg is None or src != FUZZ_SIGNER or (bool(allowed) and src != allowed))
     if not any(fnmatchcase(key, pattern) for pattern in MIRROR_SUBSCRIBED):
         out["mirror"] = 0  # the mirror does not subscribe to this key (leases, e-stop)
         return out
@@ -85,7 +99,11 @@ def expected_rejections(key: str, payload: bytes) -> dict[str, int]:
         anymsg = decode(payload)
         role = key.split("/")[0]
         out["mirror"] = int(
-            anymsg.header.source not in MIRROR_TRUSTED and role in ("master", "slave", "safety", "mapping")
+            anymsg.header.source != FUZZ_SIGNER
+            or (
+                anymsg.header.source not in MIRROR_TRUSTED
+                and role in ("master", "slave", "safety", "mapping")
+            )
         )
     except MessageError:
         out["mirror"] = 1  # the mirror decodes any message type on the keys it draws
@@ -140,6 +158,7 @@ def run(count: int, rate: float, seed: int, log_dir: Path) -> dict[str, Any]:
         import zenoh
 
         prefix = pipe.node.keys.prefix
+        signer = fuzz_signer(pipe.node)
         # BLOCK, not zenoh's default DROP: every payload must arrive for the counts to match.
         pubs = {
             k: pipe.node.session.declare_publisher(
@@ -153,7 +172,7 @@ def run(count: int, rate: float, seed: int, log_dir: Path) -> dict[str, Any]:
             case = next(gens[key])
             if key == "estop" and expected_rejections(key, case.payload)["watchdog"] == 0:
                 continue  # never send a decodable e-stop
-            pubs[key].put(case.payload)
+            pubs[key].put(case.payload, attachment=signer.attach(PUT, f"{prefix}/{key}", case.payload))
             kinds_sent[case.kind] += 1
             expected.update(expected_rejections(key, case.payload))
             lag = t_start + (i + 1) / rate - time.monotonic()

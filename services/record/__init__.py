@@ -50,6 +50,7 @@ from types import TracebackType
 from typing import IO, TYPE_CHECKING, Any
 
 from telesurg.services.common import install_stop_handlers, setup_logging
+from telesurg.shared.auth import PUT, AuthError, Keyring, verify
 from telesurg.shared.bus import BusConfig, Node, add_bus_args, bus_from_args
 from telesurg.shared.errors import ConfigError, MessageError, TelesurgError
 from telesurg.shared.keys import Keys, check_id
@@ -309,6 +310,7 @@ class Recorder:
         self.prefix = Keys(site).prefix + "/"
         self.stats: dict[str, KeyStats] = {}
         self.error: BaseException | None = None
+        self.unauthenticated = 0  # samples not recorded: their authenticator did not verify
         self._queue: queue.SimpleQueue[tuple[bytes, str, int] | None] = queue.SimpleQueue()
         self._channels: dict[str, int] = {}
         self._schemas: dict[str, int] = {}
@@ -354,12 +356,25 @@ class Recorder:
         """Queue one received sample (the only thing a zenoh callback does)."""
         self._queue.put((payload, key, rx_ns))
 
-    def subscribe(self, session: Any, key: str) -> None:
-        """Declare one raw subscriber on ``key`` feeding :meth:`push`."""
+    def subscribe(self, session: Any, key: str, keyring: Keyring | None = None) -> None:
+        """Declare one raw subscriber on ``key`` feeding :meth:`push`.
+
+        ``keyring``: record only samples whose authenticator verifies (shared/auth.py); the others
+        are counted in :attr:`unauthenticated`, never written (a replay must not re-sign a
+        forgery). The payload is written byte-exact either way."""
         push = self.push
 
         def on_sample(sample: Any) -> None:
-            push(sample.payload.to_bytes(), str(sample.key_expr), time.time_ns())
+            payload = sample.payload.to_bytes()
+            k = str(sample.key_expr)
+            if keyring is not None:
+                att = sample.attachment
+                try:
+                    verify(keyring, PUT, k, payload, att.to_bytes() if att is not None else None)
+                except AuthError:
+                    self.unauthenticated += 1
+                    return
+            push(payload, k, time.time_ns())
 
         self._subscribers.append(session.declare_subscriber(key, on_sample))
 
@@ -568,7 +583,7 @@ def run(cfg: RecordConfig, stop: threading.Event) -> dict[str, dict[str, Any]]:
         Node(cfg.bus, cfg.site, cfg.service) as node,
         Recorder(cfg.out, cfg.site, attachments=cfg.attach, info=info, compression=cfg.compression) as rec,
     ):
-        rec.subscribe(node.session, node.keys.all)
+        rec.subscribe(node.session, node.keys.all, node.keyring)
         log.info("recording %s to %s", node.keys.all, cfg.out)
         settle_gc()
         deadline = time.monotonic() + cfg.seconds if cfg.seconds > 0 else float("inf")
@@ -580,6 +595,8 @@ def run(cfg: RecordConfig, stop: threading.Event) -> dict[str, dict[str, Any]]:
                 warned = True
                 log.warning("writer is %d samples behind (disk or CPU too slow)", rec.backlog)
         summary = rec.close()
+        if rec.unauthenticated:
+            log.warning("%d unauthenticated samples were not recorded", rec.unauthenticated)
     total = sum(r["messages"] for r in summary.values())
     log.info("wrote %d messages on %d keys to %s", total, len(summary), cfg.out)
     return summary
