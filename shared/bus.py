@@ -55,7 +55,7 @@ from telesurg.shared.auth import (
     default_keys_dir,
     verify,
 )
-from telesurg.shared.errors import ConfigError, MessageError
+from telesurg.shared.errors import AuthorityError, ConfigError, MessageError
 from telesurg.shared.keys import Keys, check_id
 from telesurg.shared.messages import Header, Heartbeat, Message, SafetyEvent, Sequencer, decode_as
 from telesurg.shared.streams import StreamStats, StreamTable
@@ -559,7 +559,9 @@ class Node:
         ``handler(request) -> reply message`` runs on a zenoh thread. A malformed request, a
         request from a source not in ``sources``, or a handler exception is answered with a
         zenoh error reply naming the problem (and counted in ``streams`` under ``key``); it never
-        reaches the handler twice and never crashes the service.
+        reaches the handler twice and never crashes the service. A handler that raises
+        :class:`~telesurg.shared.errors.AuthorityError` (the operator authority refused the
+        request) is answered ``refused: <reason>`` the same way, counted as rejected.
         """
         allowed = frozenset(sources) if sources is not None else None
 
@@ -599,6 +601,12 @@ class Node:
                 stats.received += 1
             try:
                 reply = handler(req)
+            except AuthorityError as exc:  # the operator authority refused it: the reason, no trace
+                with self._lock:
+                    stats.rejected += 1
+                with contextlib.suppress(Exception):
+                    query.reply_err(f"refused: {exc}".encode())
+                return
             except Exception as exc:  # a handler bug is answered, logged, and survived
                 log.exception("handler for %s failed", key)
                 with contextlib.suppress(Exception):

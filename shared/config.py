@@ -39,6 +39,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, TypeVar
 
+from telesurg.shared.authority import AuthorityConfig
 from telesurg.shared.errors import ConfigError
 
 T = TypeVar("T")
@@ -62,6 +63,7 @@ SHARED_FACTS: dict[str, tuple[str, ...]] = {
     "pairs": ("pairs", "arms"),
     "workspace_min_mm": ("workspace_min_mm",),
     "workspace_max_mm": ("workspace_max_mm",),
+    "authority": ("authority",),
 }
 
 
@@ -75,6 +77,9 @@ class SiteFacts:
     workspace_min_mm: tuple[float, float, float] | None = None
     workspace_max_mm: tuple[float, float, float] | None = None
     plugins: list[str] = field(default_factory=list)  # robot plugin files (paths relative to the site file)
+    # [site.authority]: who may send which operator command, e-stop or reset, and the confirmation
+    # of motion-starting commands (shared/authority.py; unset: the defaults, operator "console")
+    authority: AuthorityConfig | None = None
 
 
 @dataclass
@@ -225,6 +230,8 @@ def _with_facts(cls: type[Any], site: SiteFile, table: str) -> dict[str, Any]:
 
 
 def _plain(value: Any) -> Any:
+    if dataclasses.is_dataclass(value) and not isinstance(value, type):
+        return dataclasses.asdict(value)
     return [_plain(v) for v in value] if isinstance(value, (list, tuple)) else value
 
 

@@ -25,3 +25,8 @@ class IKError(KinematicsError):
 
 class DeviceConnectionError(TelesurgError, ConnectionError):
     """A device (serial port, simulator) could not be reached or stopped answering."""
+
+
+class AuthorityError(TelesurgError, PermissionError):
+    """An operator command, e-stop or reset refused by the operator authority (shared/authority.py);
+    the message is the reason the sender is told."""

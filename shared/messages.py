@@ -1003,6 +1003,12 @@ class CommandReply(Message):
     name: str = fld("", "the command answered")
     accepted: bool = fld(False, "true if the command was carried out (or started)")
     reason: str = fld("", 'why it was refused (`""` when accepted), or a short note')
+    confirm: str = fld(
+        "",
+        "a motion-starting command's confirmation token (refused with `confirm required`): send the "
+        'same command again with `confirm=<token>` added to carry it out (`""` otherwise)',
+        pattern=r"[0-9a-f]{0,32}",
+    )
 
 
 #: The teleop states of one master → slave pair (:class:`TeleopState`, services/mapping/engage.py).

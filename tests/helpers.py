@@ -243,3 +243,21 @@ def _stop_group(proc: subprocess.Popen[bytes]) -> None:
 def screenshot(cdp: DevTools, session: str) -> bytes:
     """PNG of the page's viewport."""
     return base64.b64decode(cdp.call("Page.captureScreenshot", {"format": "png"}, session)["data"])
+
+
+_operator_seq: dict[str, Any] = {}
+
+
+def operator_command(node: Any, key: str, arm: str, name: str, *args: str, confirm: bool = True) -> Any:
+    """Send one operator command as ``node``'s service id (open it as ``console``: only the
+    operator console may command, shared/authority.py) and return the reply; ``confirm``: answer a
+    ``confirm required`` reply with its token, as an operator who says yes."""
+    from telesurg.shared.messages import Command, CommandReply, Sequencer
+
+    seq = _operator_seq.setdefault(node.service, Sequencer(node.service))
+    r = node.request(key, Command(seq.next(), arm, name, args), CommandReply, 5.0)
+    if confirm and r.confirm:
+        r = node.request(
+            key, Command(seq.next(), arm, name, (*args, f"confirm={r.confirm}")), CommandReply, 5.0
+        )
+    return r

@@ -126,14 +126,25 @@ async def drive(app: ConsoleApp, tap: Tap) -> None:
         shown = re.compile(r"safety +(OK|DEGRADED) · scale ×[01]\.\d\d · latency p50 \d+\.\d ms  p99 ")
         assert await until(pilot, lambda: bool(shown.search(panel_text())), SHOWN_S), panel_text()
 
-        # A mode command refused with its reason: insert before any posture adjustment.
+        # A motion-starting command asks the operator first (the server's confirm required,
+        # shared/authority.py); "n" sends nothing, "y" sends it with the server's token.
         await pilot.press("i")
+        asked = "confirm required: insert on arm1"
+        assert await until(pilot, lambda: asked in dialog_text(app), SHOWN_S), screen_text(app)
+        await pilot.press("n")
+        assert await until(pilot, lambda: "insert: not confirmed, not sent" in screen_text(app), SHOWN_S)
+        await pilot.press("i")
+        assert await until(pilot, lambda: asked in dialog_text(app), SHOWN_S), screen_text(app)
+        await pilot.press("y")
+        # A mode command refused with its reason: insert before any posture adjustment.
         assert await until(pilot, lambda: "insert: REFUSED" in screen_text(app), SHOWN_S), screen_text(app)
         text = screen_text(app)
         assert "insert refused in non_trocar" in text, text  # the slave's reason, as sent
         assert await until(pilot, lambda: "insert: REFUSED" in toasts(app), SHOWN_S), "no pop-up"
         # the same through the command line
         await pilot.press("colon", *"remove", "enter")
+        assert await until(pilot, lambda: "confirm required: remove" in dialog_text(app), SHOWN_S)
+        await pilot.press("y")
         assert await until(pilot, lambda: "remove: REFUSED — remove refused" in screen_text(app), SHOWN_S)
 
         # E-stop latches: the panel shows ESTOP / FAULT and the slave stops following.

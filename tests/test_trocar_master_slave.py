@@ -15,9 +15,10 @@ from collections.abc import Iterator
 
 import numpy as np
 import pytest
+from helpers import operator_command
 from telesurg.services.bench.harness import Pipeline
 from telesurg.shared.bus import BusConfig, Node
-from telesurg.shared.messages import CartesianPose, Command, CommandReply, MasterButtons, OperatingState
+from telesurg.shared.messages import CartesianPose, CommandReply, MasterButtons, OperatingState
 
 pytestmark = pytest.mark.process
 
@@ -45,17 +46,18 @@ class Master(threading.Thread):
 
 
 @pytest.fixture(scope="module")
-def site(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[Pipeline, Node, Master]]:
+def site(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[Pipeline, Node, Master, Node]]:
     logs = tmp_path_factory.mktemp("trocar_ms") / "logs"
     overrides = {"slave_control": ["q_home=[0.0, -0.2, 0.6, 0.0, -0.3, 0.0]", "jog_speed_mm_s=40.0"]}
     with (
         Pipeline(logs, mirror=False, impair=False, master=False, probe=False, overrides=overrides) as p,
         Node(BusConfig(connect=[p.spec.endpoint]), "local", "master_capture") as node,
+        Node(BusConfig(connect=[p.spec.endpoint]), "local", "console") as console,  # the operator
     ):
         m = Master(node)
         m.start()
         try:
-            yield p, node, m
+            yield p, node, m, console
         finally:
             m.stop.set()
             m.join(2)
@@ -63,8 +65,8 @@ def site(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[Pipeline, N
         print(f"--- {f.name}\n{f.read_text()[-2500:]}")
 
 
-def test_master_slave_about_the_trocar(site: tuple[Pipeline, Node, Master]) -> None:
-    pipe, node, master = site
+def test_master_slave_about_the_trocar(site: tuple[Pipeline, Node, Master, Node]) -> None:
+    pipe, node, master, console = site
     states: list[tuple[float, str, float, bool, bool]] = []
     tips: list[tuple[float, float, float, float]] = []
     lock = threading.Lock()
@@ -81,10 +83,9 @@ def test_master_slave_about_the_trocar(site: tuple[Pipeline, Node, Master]) -> N
     node.subscribe(k.slave("arm1", "operating_state"), OperatingState, on_state)
     node.subscribe(k.slave("arm1", "measured_cp"), CartesianPose, on_tip)
     cmd_key = k.command("arm1")
-    out = node.outlet(cmd_key, control=False)
 
     def send(name: str, *args: str) -> CommandReply:
-        r = node.request(cmd_key, Command(out.header(), "arm1", name, args), CommandReply, 5.0)
+        r = operator_command(console, cmd_key, "arm1", name, *args)
         print(f"{name} {' '.join(args)} -> {'accepted' if r.accepted else 'REFUSED'}: {r.reason}")
         return r
 

@@ -44,6 +44,11 @@ class Console:
 
     def send(self, name: str, *args: str) -> CommandReply:
         r = self.node.request(self.key, Command(self.out.header(), "arm1", name, args), CommandReply, 5.0)
+        if r.confirm:  # a motion-starting command: the operator confirms (shared/authority.py)
+            confirmed = (*args, f"confirm={r.confirm}")
+            r = self.node.request(
+                self.key, Command(self.out.header(), "arm1", name, confirmed), CommandReply, 5.0
+            )
         print(f"{name} {' '.join(args)} -> {'accepted' if r.accepted else 'REFUSED'}: {r.reason}")
         return r
 
@@ -151,7 +156,10 @@ def test_cmd_cli_accepts_refuses_and_fails_clearly(console: Console) -> None:
     base = [sys.executable, "-m", "telesurg.services.cli", "cmd", "--connect", console.node_endpoint]
     ok = subprocess.run([*base, "state"], capture_output=True, text=True, timeout=30)
     assert ok.returncode == 0 and ok.stdout.startswith("accepted: non_trocar"), ok
-    no = subprocess.run([*base, "finish_posture_adjust"], capture_output=True, text=True, timeout=30)
+    # a motion-starting command: without a terminal and without --yes it is asked, not sent
+    asked = subprocess.run([*base, "finish_posture_adjust"], capture_output=True, text=True, timeout=30)
+    assert asked.returncode == 1 and asked.stdout.startswith("not confirmed: confirm required"), asked
+    no = subprocess.run([*base, "--yes", "finish_posture_adjust"], capture_output=True, text=True, timeout=30)
     assert no.returncode == 1 and no.stdout.startswith("refused: finish_posture_adjust refused"), no
     bad = subprocess.run([*base, "jog", "axis"], capture_output=True, text=True, timeout=30)
     assert bad.returncode == 2 and "key=value" in bad.stderr, bad

@@ -14,12 +14,12 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import operator_command
 from telesurg.services.bench.harness import Pipeline
 from telesurg.shared.bus import BusConfig, Node
 from telesurg.shared.kinematics import vip
 from telesurg.shared.messages import (
     CartesianPose,
-    Command,
     CommandReply,
     JointSetpoint,
     JointState,
@@ -140,10 +140,9 @@ def test_both_wrists_follow_25hz_commands_smoothly(site: tuple[Pipeline, Node, L
 def test_vip_commands_refused_while_following_and_reported(site: tuple[Pipeline, Node, Log]) -> None:
     _, node, log = site
     key = node.keys.mapping_command("arm1")
-    out = node.outlet(key, control=False)
 
     def send(name: str, *args: str) -> CommandReply:
-        r = node.request(key, Command(out.header(), "arm1", name, args), CommandReply, 5.0)
+        r = operator_command(node, key, "arm1", name, *args)
         print(f"{name} {' '.join(args)} -> {'accepted' if r.accepted else 'REFUSED'}: {r.reason}")
         return r
 

@@ -17,7 +17,11 @@ def test_echo_latency_source_and_estop(endpoint: str) -> None:
     cfg.validate()
     leases: list[SafetyLease] = []
     stop = threading.Event()
-    with Node(bus, "t", "watchdog") as node, Node(bus, "t", "master_capture") as master:
+    with (
+        Node(bus, "t", "watchdog") as node,
+        Node(bus, "t", "master_capture") as master,
+        Node(bus, "t", "console") as console,
+    ):
         wd = Watchdog(cfg, node)
         master.subscribe(master.keys.safety("arm1", "lease"), SafetyLease, lambda m, k: leases.append(m))
         echo = threading.Thread(target=_echo_loop, args=(wd, cfg, stop), daemon=True)
@@ -38,7 +42,13 @@ def test_echo_latency_source_and_estop(endpoint: str) -> None:
             assert wait_until(lambda: wd.arms[0].verdict.state == "ESTOP", 2.0)
             wd.tick()
             assert wd.arms[0].verdict.state == "ESTOP"  # latched
+            # a reset only from the operator console (shared/authority.py): master_capture's is refused
             out.put(EStop(out.header(), "arm1", "reset", "test"))
+            assert wait_until(lambda: wd.authority.refused == 1, 2.0)
+            assert wd.arms[0].safety.estop
+            reset = console.outlet(console.keys.estop)
+            time.sleep(0.2)
+            reset.put(EStop(reset.header(), "arm1", "reset", "test"))
             assert wait_until(lambda: wd.arms[0].safety.estop == "", 2.0)
             wd.tick()
             assert wd.arms[0].verdict.state == "HOLD"  # the other causes remain (no streams here)

@@ -3,6 +3,7 @@
 Subcommands::
 
     telesurg bench faults [--json FILE] [--only kill:mapping,cut:0.6,...]
+    telesurg bench attack [--json FILE] [--quick] [--only CASE,...]
     telesurg bench fuzz --count N [--json FILE]
     telesurg bench latency --rate 1000 --seconds 10 [--json FILE]
     telesurg bench soak --rate 1000 --seconds 60 [--json FILE]
@@ -20,6 +21,10 @@ from collections.abc import Sequence
 
 BENCHES = {
     "faults": ("telesurg.services.bench.faults", "inject faults one at a time; detection, motion, recovery"),
+    "attack": (
+        "telesurg.services.bench.attack",
+        "forged messages / commands against a site: accepted, motion",
+    ),
     "fuzz": ("telesurg.services.bench.fuzz", "malformed messages on every key while the pipeline runs"),
     "latency": ("telesurg.services.bench.perf", "one-way latency: bare zenoh relay vs the real pipeline"),
     "soak": ("telesurg.services.bench.perf", "long run: losses per stream, deadline misses, CPU and RSS"),

@@ -224,7 +224,8 @@ class Pipeline:
         self._node: Node | None = None
         self.probe: Probe | None = None
         self._want_probe = probe
-        self._estop_out: Outlet | None = None
+        self._estop_outs: dict[str, Outlet] = {}
+        self._extra_nodes: list[Node] = []  # the e-stop senders, one per identity
 
     def __enter__(self) -> Pipeline:
         try:
@@ -252,6 +253,10 @@ class Pipeline:
             if p.poll() is None:
                 with contextlib.suppress(ProcessLookupError):
                     os.kill(p.pid, signal.SIGCONT)
+        for n in self._extra_nodes:
+            n.close()
+        self._extra_nodes.clear()
+        self._estop_outs.clear()
         if self._node is not None:
             self._node.close()
             self._node = None
@@ -345,12 +350,17 @@ class Pipeline:
         self.impairer.set_delay(ms)
         return t
 
-    def estop(self, action: str, arm: str = "*") -> int:
-        """Send an e-stop (``action="estop"``) or its reset from the probe."""
-        if self._estop_out is None:
-            self._estop_out = self.node.outlet(self.node.keys.estop)
+    def estop(self, action: str, arm: str = "*", source: str = "console") -> int:
+        """Send an e-stop (``action="estop"``) or its reset as ``source`` (a node of that service
+        id, opened once; the operator console by default: only it may reset, shared/authority.py)."""
+        out = self._estop_outs.get(source)
+        if out is None:
+            node = Node(self.spec.client_bus("operator"), self.spec.site, source)
+            self._extra_nodes.append(node)
+            out = self._estop_outs[source] = node.outlet(node.keys.estop)
+            time.sleep(0.3)  # let the new publisher be matched before the first put
         t = now_ns()
-        self._estop_out.put(EStop(self._estop_out.header(), arm, action, "bench"))
+        out.put(EStop(out.header(), arm, action, "bench"))
         return t
 
     def restore(self) -> int:

@@ -12,7 +12,11 @@ causes and the arm's last events — and lets the operator act:
   device's own pedal. A terminal sees no key release, so the keyboard clutch is a toggle.
 * **operator commands** on ``slave/<arm>/command`` (trocar, posture, insert, remove, jog, stop,
   abort, motion mode, teach point, play …, see ``docs/trocar.md``), by key or typed on the
-  command line; every reply is logged and every refusal is shown with its reason;
+  command line; every reply is logged and every refusal is shown with its reason; a
+  motion-starting command (PTP, jog, insert / remove, playback, mode changes, VIP) is answered
+  ``confirm required`` by the server: the console shows the server's summary as a yes/no question
+  and sends the command again with the server's token only on yes (``ConsoleModel.confirm``);
+  the console's service id (``console``) is the operator identity of ``[site.authority]``;
 * **scale up / down**: ``scale_up`` / ``scale_down`` to the mapping's ``mapping/<arm>/command``;
 * **e-stop and reset** on ``estop`` (reset asks for confirmation), re-sent until the watchdog
   confirms.

@@ -252,6 +252,7 @@ class ConsoleApp(App[None]):
         self.cfg = model.cfg
         self.arm_ids = list(model.arms)
         self.selected = 0
+        self._asking = False  # a confirmation question is on screen
         # the widgets redrawn at 10 Hz, kept here (a query could miss them while the app closes)
         self.panels = {arm: ArmPanel(id=f"arm-{arm}") for arm in self.arm_ids}
         self.status = Static(id="status")
@@ -281,7 +282,17 @@ class ConsoleApp(App[None]):
         return self.arm_ids[self.selected]
 
     def refresh_view(self) -> None:
-        """Redraw from a model snapshot; move new notices to the log (and toasts)."""
+        """Redraw from a model snapshot; move new notices to the log (and toasts); ask the
+        operator to confirm a motion-starting command the server asked about."""
+        pending = self.model.pending_confirm
+        if pending is not None and not self._asking:
+            self._asking = True
+
+            def answered(yes: bool | None) -> None:
+                self._asking = False
+                self.model.confirm(bool(yes))
+
+            self.push_screen(ConfirmScreen(f"[{pending.arm}] {pending.question}"), answered)
         arms, clutch, alive = self.model.snapshot()
         now = time.monotonic()
         for a in arms:

@@ -43,6 +43,8 @@ FRAMES: dict[str, tuple[frozenset[str], frozenset[str]]] = {
     "reset": (frozenset({"type", "arm", "confirm"}), frozenset({"type", "confirm"})),
     "command": (frozenset({"type", "arm", "name", "args", "target"}), frozenset({"type", "arm", "name"})),
     "record": (frozenset({"type", "action"}), frozenset({"type", "action"})),
+    # the operator's answer to a server's ``confirm required`` (a motion-starting command)
+    "confirm": (frozenset({"type", "yes"}), frozenset({"type", "yes"})),
     "ping": (frozenset({"type", "t"}), frozenset({"type"})),
 }
 DEVICES = ("mouse", "touch", "gamepad", "keyboard")

@@ -17,6 +17,7 @@ from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 from telesurg.services.console.webconfig import WebConfig
+from telesurg.shared.authority import CONFIRM_ARG
 from telesurg.shared.bus import BusConfig, Node, only
 from telesurg.shared.errors import ConfigError, MessageError
 from telesurg.shared.keys import Keys, check_id
@@ -107,6 +108,19 @@ class Notice:
     toast: bool = False
 
 
+@dataclass(frozen=True)
+class PendingConfirm:
+    """A motion-starting command the server asked the operator to confirm (shared/authority.py)."""
+
+    arm: str
+    key: str
+    cmd: Command  # as first sent (without the token)
+    line: str
+    target: str
+    token: str
+    question: str  # the server's ``confirm required: …`` summary
+
+
 @dataclass
 class ArmState:
     """What the console knows about one arm (guarded by the model's lock)."""
@@ -169,6 +183,8 @@ class ConsoleModel:
         self._clutch_out = {m: node.outlet(console_clutch_key(k, m)) for m in self.masters}
         self._estop_out = node.outlet(k.estop)
         self._cmd_seq = Sequencer(cfg.service)  # headers of the commands (sent as queries)
+        # the command waiting for the operator's confirmation (the UI asks; confirm() answers)
+        self.pending_confirm: PendingConfirm | None = None
         s_src, w_src = only(cfg.slave_source), only(cfg.watchdog_source)
         for a in self.arms.values():
             node.subscribe(k.slave(a.arm, "operating_state"), OperatingState, self._on_op, sources=s_src)
@@ -358,6 +374,13 @@ class ConsoleModel:
         except MessageError as exc:  # the server (or the router's access control) refused it
             self._refused(arm, line, str(exc))
             return False
+        if reply.confirm:  # a motion-starting command: the operator must confirm it
+            with self.lock:
+                self.pending_confirm = PendingConfirm(
+                    arm, key, cmd, line, target, reply.confirm, reply.reason
+                )
+                self._notices.append(Notice(time.time(), "warning", f"[{arm}] {line}: {reply.reason}"))
+            return False
         if reply.accepted:
             text = f"[{arm}] {line}: accepted" + (f" — {reply.reason}" if reply.reason else "")
             with self.lock:
@@ -366,6 +389,23 @@ class ConsoleModel:
             return True
         self._refused(arm, line, reply.reason or "(no reason given)")
         return False
+
+    def confirm(self, yes: bool) -> Future[bool]:
+        """Answer the pending confirmation: send the command again with its token (``yes``), or
+        drop it. The future's result is True if the confirmed command was accepted."""
+        with self.lock:
+            p, self.pending_confirm = self.pending_confirm, None
+        if p is None or not yes:
+            if p is not None:
+                self.note("info", f"[{p.arm}] {p.line}: not confirmed, not sent")
+            done: Future[bool] = Future()
+            done.set_result(False)
+            return done
+        with self._cmd_lock:
+            header = self._cmd_seq.next()
+        cmd = Command(header, p.cmd.arm, p.cmd.name, (*p.cmd.args, f"{CONFIRM_ARG}={p.token}"))
+        self.note("info", f"[{p.arm}] > {p.line} (confirmed)")
+        return self._pool.submit(self._request, p.arm, p.key, cmd, p.line, p.target)
 
     def _refused(self, arm: str, line: str, reason: str) -> None:
         text = f"[{arm}] {line}: REFUSED — {reason}"

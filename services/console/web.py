@@ -337,6 +337,11 @@ class WebConsole:
             "recording": self._recorder is not None and self._recorder.poll() is None,
             "mouse_mm_per_px": self.web.mouse_mm_per_px,
             "video": self._video_state(),
+            "confirm": (
+                None
+                if (p := self.model.pending_confirm) is None
+                else {"arm": p.arm, "command": p.line, "question": p.question}
+            ),
         }
 
     @staticmethod
@@ -538,6 +543,13 @@ class Server:
             self.wc.release(conn, master if isinstance(master, str) else None)
             return ""
         if kind == "ping":
+            return ""
+        if kind == "confirm":  # the operator answers the question the page shows (state.confirm)
+            if not isinstance(obj["yes"], bool):
+                raise FrameError("invalid", "confirm needs yes: true or false")
+            if model.pending_confirm is None:
+                return "nothing to confirm"
+            model.confirm(obj["yes"])
             return ""
         arm = obj.get("arm", "*")
         if not isinstance(arm, str) or (arm != "*" and arm not in model.arms):

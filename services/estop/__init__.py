@@ -3,7 +3,8 @@
 The watchdog and slave_control both latch the e-stop: the arm holds (watchdog state ESTOP, slave
 ``FAULT``) until ``telesurg estop --reset``; after the reset the operator must engage again.
 The command waits until the watchdog's state confirms it and exits 0, or 1 if no confirmation
-came within ``--timeout``.
+came within ``--timeout``. It sends as the operator console identity (``--as``, default
+``console``): anyone may e-stop, only the operator console may reset (docs/security.md).
 
 Example::
 
@@ -22,7 +23,7 @@ from collections.abc import Sequence
 from telesurg.shared.bus import Node, add_bus_args, bus_from_args
 from telesurg.shared.errors import ConfigError
 from telesurg.shared.keys import check_id
-from telesurg.shared.messages import EStop, SafetyState
+from telesurg.shared.messages import EStop, SafetyState, Sequencer
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -35,14 +36,18 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--reset", action="store_true", help="reset a latched e-stop instead")
     ap.add_argument("--reason", default="", help="shown in the events")
     ap.add_argument("--timeout", type=float, default=2.0, help="s to wait for confirmation (default 2)")
+    ap.add_argument(
+        "--as", dest="identity", default="console", help="sender identity, header src (default: console)"
+    )
     add_bus_args(ap)
     args = ap.parse_args(argv)
     try:
         if args.arm != "*":
             check_id("arm", args.arm)
+        check_id("service", args.identity)
         bus = bus_from_args(args)
         action = "reset" if args.reset else "estop"
-        with Node(bus, args.site, f"estop_cli_{os.getpid()}") as node:
+        with Node(bus, args.site, args.identity) as node:  # the identity signs (and is the header src)
             done = threading.Event()
             seen: dict[str, str] = {}
 
@@ -55,10 +60,11 @@ def main(argv: Sequence[str] | None = None) -> int:
             arm_key = "*" if args.arm == "*" else args.arm
             node.subscribe(f"{node.keys.prefix}/safety/{arm_key}/state", SafetyState, on_state)
             out = node.outlet(node.keys.estop)
+            seq = Sequencer(args.identity)
             reason = args.reason or f"telesurg estop (pid {os.getpid()})"
             # Re-send until confirmed: the first put may race the subscriber discovery.
             for _ in range(max(1, int(args.timeout / 0.2))):
-                out.put(EStop(out.header(), args.arm, action, reason))
+                out.put(EStop(seq.next(), args.arm, action, reason))
                 if done.wait(0.2):
                     break
     except (ConfigError, ConnectionError) as exc:

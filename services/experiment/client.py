@@ -13,6 +13,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
+from telesurg.shared.authority import CONFIRM_ARG
 from telesurg.shared.bus import Node
 from telesurg.shared.messages import (
     CartesianPose,
@@ -22,6 +23,7 @@ from telesurg.shared.messages import (
     JointState,
     OperatingState,
     SafetyEvent,
+    Sequencer,
 )
 
 
@@ -43,10 +45,15 @@ class ArmClient:
     """Commands and observations of one arm over an open :class:`~telesurg.shared.bus.Node`."""
 
     def __init__(self, node: Node, arm: str = "arm1", *, verbose: bool = False) -> None:
+        """``node``: the commands go out as its service id — open it as the operator console
+        (``console``: only it may command the arm, shared/authority.py). The client confirms
+        motion-starting commands itself (``send(..., confirm=True)``), as an operator who answers
+        yes."""
         self.node, self.arm, self.verbose = node, arm, verbose
         k = node.keys
         self.key = k.command(arm)
         self.out = node.outlet(self.key, control=False)
+        self._seq = Sequencer(node.service)
         self.log = ArmLog()
         node.subscribe(k.slave(arm, "operating_state"), OperatingState, self._on_state)
         node.subscribe(k.slave(arm, "measured_cp"), CartesianPose, self._on_tip)
@@ -79,11 +86,20 @@ class ArmClient:
             self.log.events.append((time.monotonic(), m.kind, m.text))
 
     # -- commands
-    def send(self, name: str, *args: str, timeout: float = 5.0) -> CommandReply:
-        """Send one command and return the reply (raises TimeoutError without one)."""
+    def send(self, name: str, *args: str, timeout: float = 5.0, confirm: bool = True) -> CommandReply:
+        """Send one command and return the reply (raises TimeoutError without one, MessageError
+        when the authority refuses it). ``confirm``: answer a ``confirm required`` reply by sending
+        the command again with its token (else that reply is returned)."""
         r = self.node.request(
-            self.key, Command(self.out.header(), self.arm, name, args), CommandReply, timeout
+            self.key, Command(self._seq.next(), self.arm, name, args), CommandReply, timeout
         )
+        if confirm and r.confirm:
+            r = self.node.request(
+                self.key,
+                Command(self._seq.next(), self.arm, name, (*args, f"{CONFIRM_ARG}={r.confirm}")),
+                CommandReply,
+                timeout,
+            )
         with self.log.lock:
             self.log.replies.append((time.monotonic(), name, r.accepted, r.reason))
         if self.verbose:

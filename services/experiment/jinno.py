@@ -357,11 +357,12 @@ def run(out: Path, progress: Progress | None = None, *, keep_logs: bool = True) 
             out / "logs", mirror=False, impair=False, master=False, probe=False, overrides=overrides
         ) as p,
         Node(BusConfig(connect=[p.spec.endpoint]), "local", "master_capture") as node,
+        Node(BusConfig(connect=[p.spec.endpoint]), "local", "console") as console,
     ):
         master = Master(node)
         master.start()
         try:
-            arm = ArmClient(node)
+            arm = ArmClient(console)  # the operator's commands come from the console identity
             if not arm.wait(arm.lease_ok, 30):
                 raise RuntimeError("no lease from the watchdog")
             exp = Experiment(arm, master, say)

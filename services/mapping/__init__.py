@@ -46,7 +46,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -58,8 +58,9 @@ from telesurg.services.mapping.master import master_point
 from telesurg.services.mapping.position import PositionMapping
 from telesurg.services.mapping.trocar import TrocarClamp
 from telesurg.shared import robots
+from telesurg.shared.authority import Authority, AuthorityConfig, summary
 from telesurg.shared.bus import BusConfig, Node, Outlet, only
-from telesurg.shared.errors import ConfigError, IKError
+from telesurg.shared.errors import AuthorityError, ConfigError, IKError
 from telesurg.shared.kinematics import matrix_from_quat, quat_from_matrix
 from telesurg.shared.kinematics.mh3f import MH3F, fk, ik
 from telesurg.shared.kinematics.transforms import rpy_matrix
@@ -72,6 +73,7 @@ from telesurg.shared.messages import (
     MasterButtons,
     OperatingState,
     SafetyState,
+    Sequencer,
 )
 from telesurg.shared.pairs import parse_pair
 from telesurg.shared.timing import check_rt_priority, start_loop
@@ -128,6 +130,9 @@ class MappingConfig:
     # SCHED_FIFO priority of the thread that maps the samples, 1-99 (0: the normal scheduler): it
     # is not preempted mid-sample by the other processes' threads; needs root or CAP_SYS_NICE
     rt_priority: int = 0
+    # who may send the operator's commands (scale, VIP) and the confirmation of VIP changes
+    # (shared/authority.py; set once for the site in [site.authority])
+    authority: AuthorityConfig = field(default_factory=AuthorityConfig)
     bus: BusConfig = field(default_factory=BusConfig)  # zenoh session
 
     def validate(self) -> None:
@@ -395,9 +400,32 @@ def _quat(q: np.ndarray) -> tuple[float, float, float, float]:
     return (float(q[0]), float(q[1]), float(q[2]), float(q[3]))
 
 
+def guarded(
+    node: Node, authority: Authority, slave: str, handler: Callable[[Command], CommandReply]
+) -> Callable[[Command], CommandReply]:
+    """``handler`` behind the operator authority (:mod:`telesurg.shared.authority`): a refusal is
+    an event and an error reply with the reason; a command that needs confirming is answered with
+    a token and reaches ``handler`` only when confirmed."""
+    seq = Sequencer(node.service)
+
+    def on_command(cmd: Command) -> CommandReply:
+        try:
+            verdict = authority.check(cmd)
+        except AuthorityError as exc:
+            node.event("command_refused", str(exc), arm=slave, severity="warning")
+            raise
+        if verdict.command is None:
+            node.event("confirm_required", f"{summary(cmd)} from {cmd.header.source!r}", arm=slave)
+            return CommandReply(seq.next(), slave, cmd.name, False, verdict.reason, verdict.token)
+        return handler(verdict.command)
+
+    return on_command
+
+
 def run(cfg: MappingConfig, stop: threading.Event) -> None:
     """Map until ``stop``."""
     cfg.validate()
+    authority = Authority(cfg.authority)
     with Node(cfg.bus, cfg.site, cfg.service) as node:
         k = node.keys
         arms = []
@@ -415,7 +443,7 @@ def run(cfg: MappingConfig, stop: threading.Event) -> None:
                 node.subscribe(
                     k.master(master, "measured_cp"), CartesianPose, a.on_master_pose, sources=m_src
                 )
-                node.serve(k.mapping_command(slave), Command, a.on_command)
+                node.serve(k.mapping_command(slave), Command, guarded(node, authority, slave, a.on_command))
             elif cfg.mode == "all_joints":
                 a = AllJointsMapping(cfg, node, master, slave, work)
                 node.subscribe(k.master(master, "measured_js"), JointState, a.on_master_js, sources=m_src)
@@ -424,13 +452,13 @@ def run(cfg: MappingConfig, stop: threading.Event) -> None:
                 node.subscribe(
                     k.master(master, "measured_cp"), CartesianPose, a.on_master_pose, sources=m_src
                 )
-                node.serve(k.mapping_command(slave), Command, a.on_command)
+                node.serve(k.mapping_command(slave), Command, guarded(node, authority, slave, a.on_command))
             else:
                 a = ArmMapping(cfg, node, master, slave, work)
                 node.subscribe(
                     k.master(master, "measured_cp"), CartesianPose, a.on_master_pose, sources=m_src
                 )
-                node.serve(k.mapping_command(slave), Command, a.on_command)
+                node.serve(k.mapping_command(slave), Command, guarded(node, authority, slave, a.on_command))
                 if cfg.camera:
                     node.subscribe(
                         k.camera(cfg.camera, "measured_cp"),

@@ -42,7 +42,7 @@ import time
 from typing import TYPE_CHECKING
 
 import numpy as np
-from telesurg.services.mapping.scale import SCALE_COMMANDS, new_scale
+from telesurg.services.mapping.scale import SCALE_COMMANDS, follow_step_problem, new_scale
 from telesurg.shared.messages import (
     Command,
     CommandReply,
@@ -252,7 +252,7 @@ class EngageGate:
                 )
             elif cmd.name in SCALE_COMMANDS:
                 new, reason = new_scale(cmd.name, cmd.arg_map(), self.scale)
-                if new is None:
+                if new is None or (self.following and (reason := follow_step_problem(self.scale, new))):
                     ok = False
                 else:
                     self.scale = new

@@ -3,6 +3,11 @@
 ``scale_up`` / ``scale_down`` step through :data:`SCALE_STEPS` from the step nearest the current
 scale; ``set_scale value=V`` takes any V in (0, 2]. Anything else is refused with the reason, and
 the scale is left as it was.
+
+**While following** (the clutch pressed, the slave following), the mapping re-anchors at the
+current target so a new scale makes no jump, and the step is bounded: the scale may rise at most
+to the next step of :data:`SCALE_STEPS` above the current scale (``scale_up`` always fits;
+``set_scale 2.0`` from 0.5 is refused: release the clutch first); lowering it is always allowed.
 """
 
 from __future__ import annotations
@@ -36,3 +41,17 @@ def new_scale(name: str, args: dict[str, str], current: float) -> tuple[float | 
     if not 0.0 < new <= MAX_SCALE:
         return None, f"{name} refused: scale must be in (0, {MAX_SCALE:g}], got {new}"
     return new, ""
+
+
+def follow_step_problem(current: float, new: float) -> str:
+    """Why changing the scale from ``current`` to ``new`` while following is refused ("" = fine):
+    a rise beyond the next step of :data:`SCALE_STEPS` above ``current``."""
+    if new <= current:
+        return ""
+    bound = next((s for s in SCALE_STEPS if s > current + 1e-9), MAX_SCALE)
+    if new <= bound + 1e-9:
+        return ""
+    return (
+        f"scale {current:.3g} → {new:.3g} refused while following: at most one step up "
+        f"(to {bound:.3g}); release the clutch for a larger change"
+    )

@@ -49,6 +49,7 @@ from telesurg.services.slave_control.serial_backend import SerialBackendConfig
 from telesurg.services.slave_control.teach import TeachConfig
 from telesurg.services.slave_control.trocar_arm import TrocarMotions
 from telesurg.shared import robots
+from telesurg.shared.authority import AuthorityConfig
 from telesurg.shared.bus import BusConfig, Node
 from telesurg.shared.errors import ConfigError
 from telesurg.shared.robots import arms_of
@@ -113,6 +114,9 @@ class SlaveControlConfig:
     # sample, the setpoint's stamp, the wall time it was applied, ns) — for telesurg bench latency
     latency_log: str = ""
     command_sources: list[str] = field(default_factory=list)  # who may send commands ([] = anyone)
+    # who may send which operator command, e-stop or reset, and the confirmation of motion-starting
+    # commands (shared/authority.py; set once for the site in [site.authority])
+    authority: AuthorityConfig = field(default_factory=AuthorityConfig)
     # The watchdog's liveliness token is watched too: its death revokes the lease at once
     # (in ms), instead of after the lease lifetime.
     watchdog_service: str = "watchdog"

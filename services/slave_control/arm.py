@@ -73,6 +73,8 @@ from telesurg.services.slave_control.control import (
     Setpoint,
     SetpointInterpolator,
 )
+from telesurg.shared.authority import Authority, summary
+from telesurg.shared.errors import AuthorityError
 from telesurg.shared.kinematics.transforms import quat_from_matrix
 from telesurg.shared.limits import limit_step
 from telesurg.shared.messages import (
@@ -316,6 +318,7 @@ class ArmCore:
     q_cmd: np.ndarray = field(init=False)  # last command (set by the loop)
     _last_state: tuple[object, ...] | None = None
     _reply_seq: Sequencer = field(init=False)
+    authority: Authority = field(init=False)  # who may command, e-stop, reset (cfg.authority)
     _applied: np.ndarray | None = None
     _n_applied: int = 0
     _last_sp: Setpoint | None = None
@@ -332,6 +335,7 @@ class ArmCore:
         self._lower, self._upper = tuple(p.lower), tuple(p.upper)
         self._vmax = np.array(p.max_velocity)
         self._reply_seq = Sequencer(cfg.service)
+        self.authority = Authority(cfg.authority)
         self._lease_slack_ns = round(cfg.lease_stamp_slack_ms * 1e6)
         self._sp_max_age_ns = round(cfg.setpoint_max_age_ms * 1e6)
         if cfg.latency_log:
@@ -392,6 +396,9 @@ class ArmCore:
     def on_estop(self, msg: EStop, key: str) -> None:
         if not msg.applies_to(self.arm):
             return
+        if problem := self.authority.estop_problem(msg.header.source, msg.action):
+            self.event("estop_refused", problem, "warning")
+            return
         with self.lock:
             was = self.estop
             if msg.action == "estop":
@@ -448,7 +455,21 @@ class ArmCore:
             self.fresh_setpoint = True
 
     def on_command(self, cmd: Command) -> CommandReply:
-        """Answer one operator command (zenoh thread)."""
+        """Answer one operator command (zenoh thread) the operator authority allows
+        (:mod:`telesurg.shared.authority`): a refusal is an event and raises
+        :class:`~telesurg.shared.errors.AuthorityError` (the query's error reply names the reason);
+        a motion-starting command first gets a ``confirm required`` reply with a token."""
+        try:
+            verdict = self.authority.check(cmd)
+        except AuthorityError as exc:
+            self.event("command_refused", str(exc), "warning")
+            raise
+        if verdict.command is None:
+            self.event("confirm_required", f"{summary(cmd)} from {cmd.header.source!r}")
+            return CommandReply(
+                self._reply_seq.next(), self.arm, cmd.name, False, verdict.reason, verdict.token
+            )
+        cmd = verdict.command
         if cmd.arm != self.arm:
             ok, reason = False, f"{cmd.name} refused: this is arm {self.arm}, not {cmd.arm}"
         elif self.motion is not None:

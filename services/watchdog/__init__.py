@@ -44,6 +44,7 @@ import numpy as np
 from telesurg.services.common import service_main
 from telesurg.services.watchdog.logic import ArmSafety, Policy, Verdict
 from telesurg.services.watchdog.video import VideoPolicy, VideoWatch
+from telesurg.shared.authority import Authority, AuthorityConfig
 from telesurg.shared.bus import BusConfig, Node, Outlet, only
 from telesurg.shared.errors import ConfigError
 from telesurg.shared.messages import (
@@ -120,6 +121,9 @@ class WatchdogConfig:
     video_age_limit_ms: float = 500.0  # ms: a frame older than this at arrival → HOLD
     video_fresh_frames: int = 3  # fresh frames in a row needed before OK again
     video_window_s: float = 2.0  # s: window of the frame-age percentiles and fps
+    # who may send an e-stop and who may reset one (shared/authority.py; set once for the site in
+    # [site.authority]): a reset only from the operator console
+    authority: AuthorityConfig = field(default_factory=AuthorityConfig)
     bus: BusConfig = field(default_factory=BusConfig)  # zenoh session
 
     def video_policy(self) -> VideoPolicy:
@@ -224,6 +228,7 @@ class Watchdog:
         self.cfg, self.node = cfg, node
         self.lock = threading.Lock()  # guards alive and every ArmSafety
         self.alive: set[str] = set()
+        self.authority = Authority(cfg.authority)
         # Ticks executed, and the tick at which each stream last delivered. A stream is stale
         # only when it is old by wall time *and* by ticks: after the watchdog's own stall
         # (descheduled), queued messages get a chance to arrive before anything is judged stale.
@@ -293,6 +298,11 @@ class Watchdog:
             self.video.on_frame(msg.header.seq, age_ms, now)
 
     def _on_estop(self, msg: EStop, key: str) -> None:
+        if problem := self.authority.estop_problem(msg.header.source, msg.action):
+            self.node.event(
+                "estop_refused", problem, arm="" if msg.arm == "*" else msg.arm, severity="warning"
+            )
+            return
         with self.lock:
             changed = [a.safety.on_estop(msg) for a in self.arms]
         if any(changed):

@@ -259,7 +259,18 @@ function render(m) {
   }
   for (const n of m.notices || []) logLine(n.severity, n.text);
   scope(m.video || {});
+  askConfirm(m.confirm);
   draw(m);
+}
+
+// A motion-starting command is carried out only once the operator confirms the server's question.
+let asked = "";
+function askConfirm(c) {
+  if (!c) { asked = ""; return; }
+  const q = `${c.arm}: ${c.command}\n${c.question}\n\nStart this motion?`;
+  if (q === asked) return;
+  asked = q;
+  setTimeout(() => send({ type: "confirm", yes: window.confirm(q) }), 0);
 }
 
 // The endoscope picture (camera service): an MJPEG stream of the newest frames, shown once a

@@ -1,0 +1,144 @@
+"""Issue #17, acceptance 1 (operator authority and the attack bench), with the real services.
+
+``telesurg bench attack --quick``'s cases (services/bench/attack.py) run against local sites
+(router, watchdog, slave_control, mapping, master_capture; the operator's clutch released); each
+case's row is judged against the acceptance limits: 0 messages accepted where the rules forbid, slave
+motion < 0.5 mm, the genuine faults' time to hold. The operator-authority cases (this branch) and
+the forgery cases (message authentication, branch ``auth``, merged) must pass; the two that do
+not yet are ``xfail`` with the reason (not strict): a stranger's duplicate watchdog token delays
+the hold to the lease lifetime, and the local listener is open until branch ``lockdown``.
+
+Then, on a site of its own: the operator console's commands are carried out only with the
+confirmation (PTP moves the arm once confirmed), a stranger's PTP / set_scale / reset are
+refused with the reason and move nothing.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import time
+from pathlib import Path
+from typing import Any
+
+import pytest
+from telesurg.services.bench import attack
+from telesurg.services.bench.harness import now_ns
+
+pytestmark = pytest.mark.process
+
+#: the cases this branch's operator authority must pass
+AUTHORITY_CASES = (
+    "stranger-ptp",
+    "stranger-set-scale",
+    "stranger-reset",
+    "console-ptp",
+    "console-scale-follow",
+)
+#: the cases message authentication (branch auth, merged) must pass
+AUTH_CASES = (
+    "lease-seq-jump",
+    "watchdog-freeze",
+    "watchdog-kill",
+    "servo-seq-jump",
+    "seq0-poison",
+    "scale0-state",
+)
+#: the cases that still fail, and why
+PENDING = {
+    # a stranger's alive/watchdog token hides the death from liveliness: the slave holds when the
+    # last genuine lease expires (lease lifetime + stamp slack, ~300 ms), not within 50 ms
+    "duplicate-alive": "auth: a duplicate watchdog token delays the hold to the lease lifetime",
+    "local-tcp-client": "lockdown: the slave site's local listener takes any client",
+}
+
+
+@pytest.fixture(scope="module")
+def rows(tmp_path_factory: pytest.TempPathFactory) -> dict[str, dict[str, Any]]:
+    """Every case of ``telesurg bench attack --quick``, by name."""
+    out = {
+        r["case"]: r for r in attack.run_cases(tmp_path_factory.mktemp("attack"), attack.cases(), quick=True)
+    }
+    for r in out.values():
+        print(r)
+    return out
+
+
+def _check(row: dict[str, Any]) -> None:
+    assert "error" not in row or not row.get("connected", True), row
+    if row.get("forbidden"):
+        assert row["accepted"] == 0, f"{row['case']}: {row['accepted']} forbidden messages accepted: {row}"
+    m = row.get("motion_mm")
+    assert m is None or m < attack.MOTION_LIMIT_MM, f"{row['case']}: the slave moved {m} mm: {row}"
+    if "time_to_hold_limit_ms" in row:
+        t = row.get("time_to_hold_ms")
+        assert t is not None and t <= row["time_to_hold_limit_ms"], f"{row['case']}: time to hold {t} ms"
+
+
+@pytest.mark.parametrize("case", AUTHORITY_CASES + AUTH_CASES)
+def test_operator_authority_cases_meet_the_limits(rows: dict[str, dict[str, Any]], case: str) -> None:
+    _check(rows[case])
+    reply = rows[case].get("reply", "")
+    if case.startswith("stranger-") and case != "stranger-reset":
+        assert "only the operator console" in reply, reply  # the reason, in the query's error reply
+    if case == "console-ptp":
+        assert rows[case]["confirm_asked"] and "confirm required" in reply, reply
+    if case == "console-scale-follow":
+        assert rows[case]["following"], "the console's clutch did not engage: the case judged nothing"
+
+
+@pytest.mark.parametrize("case", sorted(PENDING))
+def test_pending_cases_meet_the_limits(
+    rows: dict[str, dict[str, Any]], case: str, request: pytest.FixtureRequest
+) -> None:
+    request.applymarker(pytest.mark.xfail(reason=PENDING[case], strict=False))
+    _check(rows[case])
+
+
+def test_console_commands_run_only_when_confirmed(tmp_path: Path) -> None:
+    with contextlib.ExitStack() as stack:
+        _console_commands(attack.open_site(stack, tmp_path / "logs", quick=True))
+
+
+def _console_commands(a: attack.Attacker) -> None:
+    pipe = a.pipe
+    key = a.k.command("arm1")
+    # a stranger: refused with the reason, nothing moves
+    t0 = now_ns()
+    ok, reason, token = a.request(key, attack.STRANGER, "begin_posture_adjust", "method=ptp")
+    assert not ok and not token and "only the operator console" in reason, reason
+    # the console without confirming: asked, nothing moves
+    ok, reason, token = a.request(key, "console", "begin_posture_adjust", "method=ptp")
+    assert not ok and token and "confirm required: begin_posture_adjust method=ptp on arm1" in reason
+    time.sleep(2.0)
+    still = attack._motion(pipe, t0, now_ns())
+    assert still is not None and still < attack.MOTION_LIMIT_MM, f"moved {still} mm without a confirmation"
+    # a wrong token is refused; the right one from the console starts the PTP: the arm moves
+    ok, reason, _ = a.request(
+        key, "console", "begin_posture_adjust", "method=ptp", "confirm=0123456789abcdef"
+    )
+    assert not ok and "unknown or already used" in reason, reason
+    t1 = now_ns()
+    ok, reason, _ = a.request(key, "console", "begin_posture_adjust", "method=ptp", f"confirm={token}")
+    assert ok, reason
+    assert pipe.wait(lambda: (attack._motion(pipe, t1, now_ns()) or 0.0) > 5.0, 15.0), (
+        "the confirmed PTP did not move"
+    )
+    a.request(key, "console", "abort")
+    # set_scale: a stranger is refused, the console (clutch released) is obeyed at once
+    mk = a.k.mapping_command("arm1")
+    ok, reason, _ = a.request(mk, attack.STRANGER, "set_scale", "value=0.3")
+    assert not ok and "only the operator console" in reason
+    ok, reason, token = a.request(mk, "console", "set_scale", "value=0.3")
+    assert ok and not token, reason
+    assert pipe.wait(lambda: a.obs.scale() == 0.3, 3.0)
+    # reset: a stranger's leaves the e-stop latched, the console's clears it
+    pipe.estop("estop", source=attack.STRANGER)  # anyone may stop
+    assert pipe.wait(lambda: pipe.p.safety_state() == "ESTOP", 5.0)
+    pipe.estop("reset", source=attack.STRANGER)
+    time.sleep(1.0)
+    assert pipe.p.safety_state() == "ESTOP"
+    with pipe.p.lock:
+        refused = [t for _, _, k, t in pipe.p.events if k == "estop_refused"]
+    assert any("only the operator console may reset" in t for t in refused), refused
+    pipe.estop("reset", source="console")
+    assert pipe.wait(lambda: pipe.p.safety_state() != "ESTOP", 5.0)
