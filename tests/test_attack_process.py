@@ -117,11 +117,18 @@ def _console_commands(a: attack.Attacker) -> None:
         key, "console", "begin_posture_adjust", "method=ptp", "confirm=0123456789abcdef"
     )
     assert not ok and "unknown or already used" in reason, reason
-    t1 = now_ns()
+    # the right token passes the authority (the PTP from this home would cross the patient: the
+    # keep-out refuses it, docs/trocar.md); a confirmed jog up, away from the patient, moves the arm
     ok, reason, _ = a.request(key, "console", "begin_posture_adjust", "method=ptp", f"confirm={token}")
-    assert ok, reason
+    assert ok or "patient keep-out" in reason, reason
+    t1 = now_ns()
+    for cmd in (("set_motion_mode", "mode=jog"), ("jog", "frame=base", "axis=z", "direction=1")):
+        ok, reason, token = a.request(key, "console", *cmd)
+        assert not ok and token and f"confirm required: {cmd[0]}" in reason, reason
+        ok, reason, _ = a.request(key, "console", *cmd, f"confirm={token}")
+        assert ok, reason
     assert pipe.wait(lambda: (attack._motion(pipe, t1, now_ns()) or 0.0) > 5.0, 15.0), (
-        "the confirmed PTP did not move"
+        "the confirmed jog did not move"
     )
     a.request(key, "console", "abort")
     # set_scale: a stranger is refused, the console (clutch released) is obeyed at once

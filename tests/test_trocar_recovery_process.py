@@ -19,12 +19,12 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
+from helpers import operator_command
 from telesurg.services.bench.harness import Pipeline
 from telesurg.services.experiment.jinno import STARTS
 from telesurg.shared.bus import BusConfig, Node
 from telesurg.shared.messages import (
     CartesianPose,
-    Command,
     CommandReply,
     MasterButtons,
     OperatingState,
@@ -39,7 +39,6 @@ class Console:
     def __init__(self, pipe: Pipeline, node: Node) -> None:
         self.pipe, self.node = pipe, node
         self.key = node.keys.command("arm1")
-        self.out = node.outlet(self.key, control=False)
         self.lock = threading.Lock()
         self.mode, self.lease, self.safety, self.depth = "", False, "", 0.0
         self.events: list[tuple[float, str, str]] = []
@@ -60,7 +59,7 @@ class Console:
             self.events.append((time.monotonic(), m.kind, m.text))
 
     def send(self, name: str, *args: str) -> CommandReply:
-        r = self.node.request(self.key, Command(self.out.header(), "arm1", name, args), CommandReply, 5.0)
+        r: CommandReply = operator_command(self.node, self.key, "arm1", name, *args)  # confirmed
         print(f"{name} {' '.join(args)} -> {'accepted' if r.accepted else 'REFUSED'}: {r.reason}")
         return r
 

@@ -30,6 +30,7 @@ import numpy as np
 from telesurg.services.bench.fuzzgen import FUZZ_KINDS, always_invalid, fuzz_cases, valid_template
 from telesurg.services.bench.harness import Pipeline
 from telesurg.services.mirror import SUBSCRIBED
+from telesurg.services.router import RouterConfig
 from telesurg.shared import jsonio
 from telesurg.shared.auth import PUT, Signer
 from telesurg.shared.bus import Node
@@ -78,6 +79,11 @@ FUZZ_SIGNER = "fuzz"
 def fuzz_signer(node: Node) -> Signer:
     """The fuzzer's signer, its key from ``node``'s keyring (added there if absent)."""
     return Signer(FUZZ_SIGNER, node.keyring.ensure(FUZZ_SIGNER))
+
+
+#: Payload + attachment bytes above which the site router drops a message on a control key where
+#: it enters (its size cap, services/router): such a payload reaches no service.
+ROUTER_CAP = RouterConfig().max_message_bytes
 
 
 def expected_rejections(key: str, payload: bytes) -> dict[str, int]:
@@ -167,14 +173,19 @@ def run(count: int, rate: float, seed: int, log_dir: Path) -> dict[str, Any]:
             for k in keys
         }
         t_start = time.monotonic()
+        at_router = 0
         for i in range(count):
             key = keys[i % len(keys)]
             case = next(gens[key])
             if key == "estop" and expected_rejections(key, case.payload)["watchdog"] == 0:
                 continue  # never send a decodable e-stop
-            pubs[key].put(case.payload, attachment=signer.attach(PUT, f"{prefix}/{key}", case.payload))
+            attachment = signer.attach(PUT, f"{prefix}/{key}", case.payload)
+            pubs[key].put(case.payload, attachment=attachment)
             kinds_sent[case.kind] += 1
-            expected.update(expected_rejections(key, case.payload))
+            if len(case.payload) + len(attachment) > ROUTER_CAP:
+                at_router += 1  # the router's size cap drops it before any service sees it
+            else:
+                expected.update(expected_rejections(key, case.payload))
             lag = t_start + (i + 1) / rate - time.monotonic()
             if lag > 0:
                 time.sleep(lag)
@@ -206,6 +217,7 @@ def run(count: int, rate: float, seed: int, log_dir: Path) -> dict[str, Any]:
         "exit_codes": codes,
         "rejected": rej,
         "expected_rejected": {s: expected.get(s, 0) for s in SERVICES},
+        "dropped_at_router": at_router,
         "slave_holds_during_fuzz": holds,
         "slave_rejected_setpoints_total": slave_rejected,
         "joint_samples_outside_limits": outside,

@@ -260,6 +260,21 @@ _COUNTERS = {
 }
 
 
+def deadline_misses(logs: dict[str, str]) -> dict[str, Any]:
+    """Each fixed-rate loop's cycles, overruns and miss % from its service's log at exit."""
+    misses: dict[str, Any] = {}
+    for svc, pat in _COUNTERS.items():
+        m = re.search(pat, logs.get(svc, ""))
+        if m:
+            total, over = int(m.group(1)), int(m.group(2))
+            misses[svc] = {
+                "cycles": total,
+                "overruns": over,
+                "miss_pct": round(100 * over / max(total, 1), 3),
+            }
+    return misses
+
+
 def _soak_run(a: argparse.Namespace, load: Load | None) -> dict[str, Any]:
     import importlib
 
@@ -308,16 +323,7 @@ def _soak_run(a: argparse.Namespace, load: Load | None) -> dict[str, Any]:
         cpu = {n: c for n, c in cpu_all.items() if n in procs}  # the pipeline's own services
         logs = {f.stem: f.read_text() for f in (tmp / "logs").glob("*.log")}
         summary = json.loads((tmp / "rec.json").read_text()) if (tmp / "rec.json").exists() else {}
-    misses: dict[str, Any] = {}
-    for svc, pat in _COUNTERS.items():
-        m = re.search(pat, logs.get(svc, ""))
-        if m:
-            total, over = int(m.group(1)), int(m.group(2))
-            misses[svc] = {
-                "cycles": total,
-                "overruns": over,
-                "miss_pct": round(100 * over / max(total, 1), 3),
-            }
+    misses = deadline_misses(logs)
     res["streams"] = summary.get("keys", summary)
     res["deadline_misses"] = misses
     res["cpu_pct"] = cpu

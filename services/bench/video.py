@@ -26,7 +26,6 @@ import argparse
 import importlib
 import json
 import os
-import re
 import sys
 import tempfile
 import threading
@@ -36,12 +35,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from telesurg.services.bench.perf import _overrides, _stats_ms
-
-_COUNTERS = {
-    "master_capture": r"sent (\d+) samples, (\d+) loop overruns",
-    "slave_control": r"stopped after (\d+) cycles: (\d+) overruns",
-}
+from telesurg.services.bench.perf import _overrides, _stats_ms, deadline_misses
 
 
 class FrameProbe:
@@ -108,16 +102,7 @@ def _block(camera: bool, a: argparse.Namespace, tmp: Path, k: int) -> dict[str, 
     applied = applied[(applied[:, 0] > 0) & (applied[:, 1] > 0)]
     applied = applied[len(applied) // 5 :]  # the start-up transient
     text = {f.stem: f.read_text() for f in logs.glob("*.log")}
-    misses: dict[str, Any] = {}
-    for svc, pat in _COUNTERS.items():
-        m = re.search(pat, text.get(svc, ""))
-        if m:
-            total, over = int(m.group(1)), int(m.group(2))
-            misses[svc] = {
-                "cycles": total,
-                "overruns": over,
-                "miss_pct": round(100 * over / max(total, 1), 3),
-            }
+    misses = deadline_misses(text)
     out: dict[str, Any] = {
         "camera": camera,
         "camera_started": started,  # False: it did not come up within 30 s (this block is left out)
