@@ -44,9 +44,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import json
 import logging
-import math
 import os
 import sys
 import tempfile
@@ -59,6 +57,7 @@ from typing import Any
 
 import numpy as np
 from telesurg.services.bench.harness import Pipeline, now_ns
+from telesurg.shared import jsonio
 from telesurg.shared.bus import BusConfig, Node
 from telesurg.shared.errors import MessageError
 from telesurg.shared.messages import (
@@ -738,17 +737,6 @@ def print_table(rows: list[dict[str, Any]]) -> None:
     Console(width=160).print(t)
 
 
-def strict(value: Any) -> Any:
-    """``value`` with every non-finite float replaced by None (strict JSON)."""
-    if isinstance(value, float):
-        return value if math.isfinite(value) else None
-    if isinstance(value, dict):
-        return {k: strict(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [strict(v) for v in value]
-    return value
-
-
 def main(argv: Sequence[str] | None = None) -> int:
     """``telesurg bench attack``."""
     ap = argparse.ArgumentParser(
@@ -777,7 +765,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     with tempfile.TemporaryDirectory(prefix="telesurg-attack-") as tmp:
         rows = run_cases(args.log_dir or Path(tmp) / "logs", selected, args.quick)
     print_table(rows)
-    result = strict(
+    result = jsonio.finite(
         {
             "date": time.strftime("%Y-%m-%d %H:%M:%S %Z"),
             "command": "telesurg bench attack " + " ".join(argv if argv is not None else sys.argv[2:]),
@@ -792,7 +780,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     )
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps(result, indent=2, allow_nan=False))
+        args.json.write_text(jsonio.dumps(result, indent=2))
     with contextlib.suppress(Exception):
         sys.stdout.flush()
     return 0 if all(r.get("ok") for r in rows) else 1
