@@ -61,7 +61,11 @@ def test_load_specs() -> None:
     from telesurg.services.bench.load import Load
 
     assert Load.parse("cpu:2") == Load("cpu", 2) and Load.parse("record").name == "record"
-    bad_specs = (("gpu", "valid: cpu:N, record, viewer"), ("cpu:0", "1..16"), ("record:3", "no argument"))
+    bad_specs = (
+        ("gpu", "valid: cpu:N, idle:N, record, viewer"),
+        ("cpu:0", "1..16"),
+        ("record:3", "no argument"),
+    )
     for bad, why in bad_specs:
         with pytest.raises(ValueError, match=why):
             Load.parse(bad)

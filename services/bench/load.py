@@ -4,6 +4,10 @@ A spec names what else runs on the host while the control path is measured:
 
 * ``cpu:N`` — N busy-loop processes at normal priority (nice 0, SCHED_OTHER): other programs
   on the same cores, e.g. a package install or a compiler;
+* ``idle:N`` — N busy-loop processes under ``SCHED_IDLE``, the class the launcher gives the
+  camera and the mirror: best-effort work that gets only the CPU the control path leaves. What it
+  still costs the control path is what the host's shared cores cost (caches, memory bandwidth,
+  a hypervisor's sibling threads), not the scheduler's choice;
 * ``record`` — the recorder (``telesurg record``) on the site's bus: every message of the site
   decoded and written to an MCAP file;
 * ``viewer`` — the rerun mirror serving the web viewer, and Debian's headless Chromium showing it
@@ -32,7 +36,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 #: The kinds a ``--load`` spec can name.
-KINDS = ("cpu", "record", "viewer")
+KINDS = ("cpu", "idle", "record", "viewer")
 CHROMIUM = ("chromium", "chromium-browser", "google-chrome")
 
 
@@ -41,17 +45,17 @@ class Load:
     """One kind of background load (see the module)."""
 
     kind: str
-    n: int = 1  # cpu: how many busy processes
+    n: int = 1  # cpu / idle: how many busy processes
 
     @classmethod
     def parse(cls, spec: str) -> Load:
-        """``cpu:2`` / ``record`` / ``viewer``; ValueError naming the valid forms."""
+        """``cpu:2`` / ``idle:1`` / ``record`` / ``viewer``; ValueError naming the valid forms."""
         kind, _, arg = spec.partition(":")
         if kind not in KINDS:
-            raise ValueError(f"--load {spec!r}: unknown kind; valid: cpu:N, record, viewer")
-        if kind == "cpu":
+            raise ValueError(f"--load {spec!r}: unknown kind; valid: cpu:N, idle:N, record, viewer")
+        if kind in ("cpu", "idle"):
             if not arg.isdigit() or not 1 <= int(arg) <= 16:
-                raise ValueError(f"--load {spec!r}: cpu:N needs N in 1..16")
+                raise ValueError(f"--load {spec!r}: {kind}:N needs N in 1..16")
             return cls(kind, int(arg))
         if arg:
             raise ValueError(f"--load {spec!r}: {kind} takes no argument")
@@ -60,7 +64,7 @@ class Load:
     @property
     def name(self) -> str:
         """The spec as given (``cpu:2``)."""
-        return f"cpu:{self.n}" if self.kind == "cpu" else self.kind
+        return f"{self.kind}:{self.n}" if self.kind in ("cpu", "idle") else self.kind
 
     def available(self) -> str:
         """ "" if this load can run here, else why not."""
@@ -76,6 +80,9 @@ class Load:
             if self.kind == "cpu":
                 for _ in range(self.n):
                     procs.append(_spawn([sys.executable, "-c", "while True: pass"]))
+            elif self.kind == "idle":
+                for _ in range(self.n):
+                    procs.append(_spawn([sys.executable, "-c", _IDLE_HOG]))
             elif self.kind == "record":
                 out = tmp / f"load-record-{time.monotonic_ns()}.mcap"
                 argv = [sys.executable, "-m", "telesurg.services.record", "--out", str(out)]
@@ -87,13 +94,25 @@ class Load:
             for p in procs:
                 if p.poll() is None:
                     with contextlib.suppress(ProcessLookupError):
-                        p.send_signal(signal.SIGINT if self.kind != "cpu" else signal.SIGKILL)
+                        p.send_signal(signal.SIGKILL if self.kind in ("cpu", "idle") else signal.SIGINT)
             for p in procs:
                 try:
                     p.wait(10)
                 except subprocess.TimeoutExpired:
                     p.kill()
                     p.wait(5)
+
+
+#: A busy loop under SCHED_IDLE (nice 19 where that is refused), set before it starts spinning.
+_IDLE_HOG = """
+import os
+try:
+    os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
+except (AttributeError, OSError):
+    os.nice(19)
+while True:
+    pass
+"""
 
 
 def _spawn(argv: list[str]) -> subprocess.Popen[bytes]:

@@ -612,7 +612,8 @@ def main(argv: Sequence[str] | None = None, name: str = "latency") -> int:
             metavar="SPEC",
             type=_load_arg,
             help="also measure under this background load, repeatable: cpu:N (N busy processes at "
-            "normal priority), record (the recorder on the bus), viewer (the rerun web viewer in "
+            "normal priority), idle:N (N busy processes under SCHED_IDLE, the camera's and mirror's "
+            "class), record (the recorder on the bus), viewer (the rerun web viewer in "
             "headless Chromium); the table shows idle and each load of the same run",
         )
     if name == "soak":
