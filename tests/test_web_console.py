@@ -35,7 +35,7 @@ from conftest import wait_until
 from helpers import CHROMIUM, DevTools, chromium, screenshot
 from telesurg.services.launcher import Site, SiteSpec, default_config_dir, free_port
 from telesurg.shared.bus import BusConfig, Node
-from telesurg.shared.messages import CartesianPose, JointSetpoint, SafetyState
+from telesurg.shared.messages import CameraImage, CartesianPose, JointSetpoint, SafetyState
 
 pytestmark = pytest.mark.process
 
@@ -112,14 +112,15 @@ class Probe:
 
 
 @contextmanager
-def running_console(tmp: Path) -> Iterator[tuple[str, str, Probe]]:
+def running_console(tmp: Path, camera: bool = False) -> Iterator[tuple[str, str, Probe]]:
     """``telesurg up --master web``'s processes (router, watchdog, slave_control, mapping and the
-    web console as the master; deploy/local) and a probe: (page URL, endpoint, probe)."""
+    web console as the master; deploy/local; ``camera``: the endoscope camera too) and a probe:
+    (page URL, endpoint, probe)."""
     web_port = free_port()
     spec = SiteSpec(
         port=free_port(),
         config_dir=default_config_dir(),
-        services=("watchdog", "slave_control", "mapping", "console"),
+        services=("watchdog", "slave_control", "mapping", *(("camera",) if camera else ()), "console"),
         # (web.rt_priority: the publisher under SCHED_FIFO, as master_capture in deploy/local)
         overrides={"console": [f"web.port={web_port}", "web.rt_priority=20"]},
         log_dir=tmp / "logs",
@@ -571,3 +572,114 @@ def test_gamepad_sticks_and_triggers_drive_the_slave(tmp_path: Path) -> None:
         still_mm = float(np.linalg.norm(p3 - p2) * 1e3)
         write_perf("gamepad", {"error_mm": round(err_mm, 3), "released_motion_mm": round(still_mm, 3)})
         assert still_mm < 0.5, f"the slave moved {still_mm:.2f} mm with the trigger released"
+
+
+#: In the page: at every animation frame (what the screen is painted from), the mean grey level
+#: of the endoscope picture as shown (the <img> drawn into a small canvas) with the page's clock
+#: in ms since the epoch, in ``window.__paint``.
+PAINT_JS = """
+window.__paint = [];
+(() => {
+  const c = document.createElement('canvas'); c.width = 32; c.height = 24;
+  const g = c.getContext('2d', {willReadFrequently: true});
+  function tick() {
+    const im = document.querySelector('#endoscope');
+    if (im && im.naturalWidth) {
+      g.drawImage(im, 0, 0, 32, 24);
+      const d = g.getImageData(0, 0, 32, 24).data;
+      let s = 0;
+      for (let i = 0; i < d.length; i += 4) s += d[i] + d[i + 1] + d[i + 2];
+      window.__paint.push([performance.timeOrigin + performance.now(), s / (d.length / 4 * 3)]);
+    }
+    requestAnimationFrame(tick);
+  }
+  requestAnimationFrame(tick);
+})();
+true
+"""
+
+
+@pytest.mark.timeout(600)
+def test_glass_to_glass_video_latency_in_the_browser(tmp_path: Path) -> None:
+    """Issue #18 (Build: glass-to-glass measured by a test in a real browser): the endoscope
+    picture in the web console, from the camera's capture to the picture painted in Chromium.
+
+    The test turns the simulated endoscope between the tissue (bright) and the dark above it
+    (``camera/endo/servo_cp``) ten times; for each turn, the first frame on the bus that shows it
+    gives the capture time (its ``capture_ns``), the first animation frame of the page whose
+    picture shows it gives the paint time; both clocks are this host's. Figures in
+    ``docs/data/perf/webconsole.json`` (``glass``) and docs/video.md."""
+    needs_chromium()
+    import simplejpeg
+    from telesurg.services.camera import pose_matrix, quat_xyzw
+
+    frames: list[tuple[int, float]] = []  # (capture_ns, mean grey level)
+    poses: list[CartesianPose] = []
+    lock = threading.Lock()
+
+    def on_frame(m: CameraImage, key: str) -> None:
+        grey = float(simplejpeg.decode_jpeg(m.data, colorspace="GRAY", fastdct=True).mean())
+        with lock:
+            frames.append((m.capture_ns, grey))
+
+    with (
+        running_console(tmp_path, camera=True) as (url, endpoint, _),
+        Node(BusConfig(connect=[endpoint]), "local", "console") as node,
+        chromium(url, tmp_path, nice=0) as (cdp, s),
+    ):
+        k = node.keys
+        node.subscribe(k.camera("endo", "image"), CameraImage, on_frame)
+        node.subscribe(
+            k.camera("endo", "measured_cp"), CartesianPose, lambda m, _: poses.append(m), latest=True
+        )
+        holder = node.outlet(k.camera("endo", "servo_cp"), control=False)
+        assert wait_until(lambda: bool(poses) and len(frames) > 3, 30.0), "no camera on the bus"
+        assert wait_until(lambda: bool(js(cdp, s, "document.querySelector('#endoscope').naturalWidth")), 30.0)
+        assert js(cdp, s, PAINT_JS) is True
+        T0 = pose_matrix(poses[-1])
+        T_up = T0.copy()
+        T_up[:3, :3] = T0[:3, :3] @ np.diag([1.0, -1.0, -1.0])  # 180° about the optical x axis
+
+        def put(T: np.ndarray) -> None:
+            p = tuple(float(x) for x in T[:3, 3])
+            holder.put(CartesianPose(holder.header(), "base", p, quat_xyzw(T[:3, :3])))
+
+        turns: list[tuple[float, bool]] = []  # (wall s of the command, toward the dark)
+        for i in range(10):
+            dark = i % 2 == 0
+            turns.append((time.time(), dark))
+            put(T_up if dark else T0)
+            time.sleep(1.2)
+        save_shot(screenshot(cdp, s), "console-endoscope.png", tmp_path)
+        paints = js(cdp, s, "window.__paint")
+        assert paints, "the page painted no picture"
+    with lock:
+        bus = list(frames)
+    grey_bus = [g for _, g in bus]
+    lo, hi = min(grey_bus), max(grey_bus)
+    assert hi - lo > 40, f"the turn did not change the picture (grey {lo:.0f}..{hi:.0f})"
+    mid = (lo + hi) / 2
+    g2g: list[float] = []
+    for t_cmd, dark in turns:
+        cross = (lambda g: g < mid) if dark else (lambda g: g > mid)
+        cap = next((c for c, g in bus if c / 1e9 >= t_cmd and cross(g)), None)
+        if cap is None:
+            continue
+        paint = next((t for t, g in paints if t / 1e3 >= cap / 1e9 and cross(g)), None)
+        if paint is None:
+            continue
+        g2g.append(paint - cap / 1e6)
+    print(
+        f"glass to glass (capture → painted in Chromium), {len(g2g)} of {len(turns)} turns: "
+        f"{np.round(g2g, 1)} ms"
+    )
+    assert len(g2g) >= 8, f"the page showed {len(g2g)} of {len(turns)} turns"
+    write_perf(
+        "glass",
+        {
+            "glass_to_glass_ms_p50": round(pct(g2g, 50), 1),
+            "glass_to_glass_ms_max": round(max(g2g), 1),
+            "glass_to_glass_ms": [round(x, 1) for x in g2g],
+            "turns": len(turns),
+        },
+    )
