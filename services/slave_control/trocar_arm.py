@@ -407,6 +407,11 @@ class TrocarMotions:
         trocar = self.trocar if self.trocar_taught else None
         if problem := playback_problem(pts, m.control_mode, trocar):
             return False, f"play refused: program {program!r}: {problem}"
+        if m.control_mode != "trocar":  # joint PTP moves: the planned path, checked before it starts
+            path = [self.q_cmd] + [np.array(pt.q) for pt in pts]
+            for qa, qb in itertools.pairwise(path):
+                if crossing := path_problem(qa, qb, self.patient_box()):
+                    return False, f"play refused: program {program!r}: patient keep-out: {crossing}"
         self._start_playback(program, m.control_mode)
         return True, f"playing {program!r} ({len(pts)} points) in {m.control_mode} mode"
 

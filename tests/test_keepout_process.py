@@ -1,0 +1,404 @@
+"""Patient keep-out for every slave-side motion, through the running services (issue #20, acceptance 2).
+
+The test is the operator console (and an idle master with the clutch released) of a running site —
+router, watchdog, slave_control on MuJoCo, mapping. From ever-changing random postures it sends
+500 random PTP targets — ``play`` of a one-point program (a joint PTP to a random pose; the
+programs are in the site's teach store, as if taught) and ``begin_posture_adjust method=ptp`` (the
+J4/J5 PTP that aims the forceps at the trocar) — and 100 random jog sequences (2–4 jogs each in the
+frames base / world / work / forceps / joint, random axis, direction and duration, then ``stop``).
+
+What a user would notice, judged by the test itself with the patient read from the site's MJCF
+(the scene's ``patient_torso`` box, its ``trocar`` site and the ``trocar_cannula`` radius),
+independently of the slave's own check (``shared/kinematics/keepout.py``, the site's larger
+``patient_box_*``):
+
+* the forceps as the slave actually moved it — every ``measured_js`` sample at its full rate,
+  interpolated in joint space between samples, forward kinematics by MuJoCo (the ``wrist_center``
+  and ``tip`` sites) — never enters the torso except through the trocar cannula;
+* no accepted PTP has a planned path (measured start → target, at ≤ 2 mrad steps) that crosses the
+  torso outside the trocar;
+* every refusal and every stop names its reason, a keep-out refusal says where.
+
+Speeds are raised for the test (PTP at 0.8 of the joint limits, jogs at 80 mm/s and 40°/s) so the
+500 + 100 motions run to completion in a few minutes; faster motions are the harder case for
+the keep-out (more lag and overshoot of the simulated arm behind its command).
+"""
+
+from __future__ import annotations
+
+import functools
+import itertools
+import json
+import math
+import threading
+import time
+from collections import Counter
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import mujoco
+import numpy as np
+import pytest
+import telesurg.services.slave_control as slave_control
+from helpers import operator_command
+from telesurg.services.bench.harness import Pipeline
+from telesurg.shared.bus import BusConfig, Node
+from telesurg.shared.kinematics.trocar import posture_adjust
+from telesurg.shared.messages import (
+    CartesianPose,
+    CommandReply,
+    JointState,
+    MasterButtons,
+    OperatingState,
+    SafetyEvent,
+)
+
+pytestmark = [pytest.mark.process, pytest.mark.timeout(900), pytest.mark.flaky(reruns=0)]  # TEMP
+
+N_PTP = 500  # random PTP targets (play + posture adjustment)
+N_JOG_SEQUENCES = 100
+N_PROGRAMS = 32  # one-point programs with random joint targets (the teach store's maximum)
+SEED = 20
+SCENE = Path(slave_control.__file__).parent / "models" / "mh3f" / "scene.xml"
+FRAMES = ("base", "world", "work", "forceps", "joint")
+CARTESIAN = ("x", "y", "z", "rx", "ry", "rz")
+JOINTS = ("j1", "j2", "j3", "j4", "j5", "j6")
+# random program targets: joints (rad) in this range, the forceps above the floor
+Q_LO = np.array([-0.6, -0.3, -0.2, -1.2, -1.6, -1.0])
+Q_HI = np.array([0.6, 0.6, 0.9, 1.2, 0.4, 1.0])
+
+
+class Patient:
+    """The patient as the site's MJCF models it, and the forceps shaft by MuJoCo's kinematics."""
+
+    def __init__(self) -> None:
+        self.model = mujoco.MjModel.from_xml_path(str(SCENE))
+        self.data = mujoco.MjData(self.model)
+        mujoco.mj_forward(self.model, self.data)
+        torso = self.data.geom("patient_torso")
+        assert np.allclose(torso.xmat, np.eye(3).ravel()), "the torso box is axis-aligned in the scene"
+        half = self.model.geom("patient_torso").size
+        self.lo, self.hi = torso.xpos - half, torso.xpos + half
+        self.trocar = self.data.site("trocar").xpos.copy()
+        self.cannula_r = float(self.model.geom("trocar_cannula").size[0])
+        self.qadr = [int(self.model.joint(j).qposadr[0]) for j in JOINTS]
+
+    def shaft(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Wrist centre and tip (m, base frame) at joints ``q`` (n, 6), by MuJoCo."""
+        m, d = self.model, self.data
+        w, t = np.empty((len(q), 3)), np.empty((len(q), 3))
+        for i, qi in enumerate(q):
+            d.qpos[self.qadr] = qi
+            mujoco.mj_kinematics(m, d)
+            w[i], t[i] = d.site("wrist_center").xpos, d.site("tip").xpos
+        return w, t
+
+    def penetration(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Per pose: how deep (m) the shaft is in the torso outside the trocar (0: not at all),
+        and its distance (m) from the torso where it is outside it (0 where it touches)."""
+        q = np.atleast_2d(q)
+        pen, gap = np.zeros(len(q)), np.zeros(len(q))
+        s = np.linspace(0.0, 1.0, 296)  # ~2 mm steps along the 590 mm wrist centre → tip
+        for a in range(0, len(q), 2000):
+            w, t = self.shaft(q[a : a + 2000])
+            d = t - w
+            length = np.linalg.norm(d, axis=1)
+            u = d / length[:, None]
+            c = self.trocar - w
+            through = np.linalg.norm(np.cross(c, u), axis=1) <= self.cannula_r  # in the cannula
+            s_c = np.einsum("ij,ij->i", c, u) / length  # the trocar along the shaft
+            p = w[:, None, :] + s[None, :, None] * d[:, None, :]
+            inside = np.min(np.minimum(p - self.lo, self.hi - p), axis=2)  # > 0 inside, per point
+            # beyond the trocar the shaft is in the patient through it: allowed
+            inside[through[:, None] & (s[None, :] > s_c[:, None] - 1e-9) & (s_c[:, None] > 0)] = -np.inf
+            pen[a : a + 2000] = np.maximum(inside.max(axis=1), 0.0)
+            out = np.linalg.norm(np.maximum(np.maximum(self.lo - p, p - self.hi), 0.0), axis=2)
+            out[inside == -np.inf] = np.inf
+            gap[a : a + 2000] = out.min(axis=1)
+        return pen, gap
+
+    def path_penetration(self, q_from: np.ndarray, q_to: np.ndarray) -> float:
+        """Deepest penetration (m) along the straight joint path, at ≤ 2 mrad steps."""
+        n = max(1, math.ceil(float(np.max(np.abs(q_to - q_from))) / 0.002))
+        qs = q_from + (q_to - q_from) * np.linspace(0.0, 1.0, n + 1)[:, None]
+        return float(self.penetration(qs)[0].max())
+
+
+def random_programs(patient: Patient, rng: np.random.Generator) -> dict[str, list[dict[str, object]]]:
+    """One-point programs at random joints, the forceps above the floor (tip and wrist ≥ 100 mm)."""
+    programs: dict[str, list[dict[str, object]]] = {}
+    while len(programs) < N_PROGRAMS:
+        q = rng.uniform(Q_LO, Q_HI)
+        w, t = patient.shaft(q[None, :])
+        if min(w[0, 2], t[0, 2]) < 0.1:
+            continue
+        tip = [float(v) for v in t[0]]
+        programs[f"r{len(programs):02d}"] = [{"q": [float(v) for v in q], "tip": tip, "mode": "non_trocar"}]
+    return programs
+
+
+class IdleMaster(threading.Thread):
+    """The master at rest with the clutch released (nobody engages master–slave here), 250 Hz."""
+
+    def __init__(self, node: Node) -> None:
+        super().__init__(daemon=True)
+        self.stop = threading.Event()
+        self.pose = node.outlet(node.keys.master("m1", "measured_cp"))
+        self.buttons = node.outlet(node.keys.master("m1", "buttons"))
+
+    def run(self) -> None:
+        while not self.stop.wait(0.004):
+            self.buttons.put(MasterButtons(self.buttons.header(), False, True))
+            self.pose.put(CartesianPose(self.pose.header(), "master", (0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 1.0)))
+
+
+@dataclass
+class Bus:
+    """What the console hears: measured joints at full rate, state, slave events."""
+
+    lock: threading.Lock = field(default_factory=threading.Lock)
+    js: list[tuple[int, tuple[float, ...]]] = field(default_factory=list)  # (seq, position)
+    mode: str = ""
+    lease: bool = False
+    events: list[tuple[float, str, str]] = field(default_factory=list)
+
+    def on_js(self, m: JointState, key: str) -> None:
+        with self.lock:
+            self.js.append((m.header.seq, m.position))
+
+    def on_state(self, m: OperatingState, key: str) -> None:
+        with self.lock:
+            self.mode, self.lease = m.control_mode, m.lease_ok
+
+    def on_event(self, m: SafetyEvent, key: str) -> None:
+        with self.lock:
+            self.events.append((time.monotonic(), m.kind, m.text))
+
+    def q(self) -> np.ndarray:
+        with self.lock:
+            return np.array(self.js[-1][1])
+
+    def events_since(self, t: float, kinds: tuple[str, ...]) -> list[tuple[str, str]]:
+        with self.lock:
+            return [(k, text) for ts, k, text in self.events if ts >= t and k in kinds]
+
+
+@dataclass
+class Tally:
+    """Every command sent and how it ended."""
+
+    ptp: Counter[str] = field(default_factory=Counter)  # "play accepted", "posture refused", ...
+    refusals: Counter[str] = field(default_factory=Counter)  # by reason class
+    stops: Counter[str] = field(default_factory=Counter)  # stopped by the slave, by reason class
+    jogs: Counter[str] = field(default_factory=Counter)
+    sequences: int = 0
+    bad_accepts: list[str] = field(default_factory=list)  # accepted PTPs whose planned path crosses
+    unnamed: list[str] = field(default_factory=list)  # refusals / stops without a reason
+    keepout_refused_torso: int = 0  # keep-out refusals whose path the test sees crossing the torso too
+    keepout_refused_margin: int = 0  # ... only the site's larger box (the margin around the torso)
+    planned_gap_mm: list[float] = field(default_factory=list)
+
+
+def reason_class(text: str) -> str:
+    t = text.lower()
+    for key, words in (
+        ("patient keep-out", ("keep-out",)),
+        ("joint limit", ("joint limit", "at its limit")),
+        ("reach / IK", ("reach", "singular", "ik ", "no solution", "not converge", "posture_adjust")),
+        ("watchdog hold (lease)", ("lease",)),
+        ("inside the trocar", ("inside the trocar",)),
+        ("mode", ("refused in", "motion mode", "select")),
+    ):
+        if any(w in t for w in words):
+            return key
+    return "other: " + text[:60]
+
+
+@dataclass
+class Site:
+    pipe: Pipeline
+    node: Node
+    bus: Bus
+    patient: Patient
+    rng: np.random.Generator
+    targets: dict[str, np.ndarray]  # program name → its one point's joints
+
+
+@pytest.fixture
+def site(tmp_path: Path) -> Iterator[Site]:
+    patient = Patient()
+    rng = np.random.default_rng(SEED)
+    programs = random_programs(patient, rng)
+    store = tmp_path / "teach.json"
+    store.write_text(
+        json.dumps({"version": 1, "arm": "arm1", "trocars": {}, "current_trocar": "", "programs": programs})
+    )
+    overrides = {
+        "slave_control": [
+            f"state_file={json.dumps(str(store))}",
+            "ptp_speed_fraction=0.8",
+            "playback_dwell_s=0.02",
+            "jog_speed_mm_s=80.0",
+            "jog_joint_speed_deg_s=40.0",
+        ]
+    }
+    with (
+        Pipeline(
+            tmp_path / "logs", mirror=False, impair=False, master=False, probe=False, overrides=overrides
+        ) as p,
+        Node(BusConfig(connect=[p.spec.endpoint]), "local", "master_capture") as master_node,
+        Node(BusConfig(connect=[p.spec.endpoint]), "local", "console") as node,
+    ):
+        bus = Bus()
+        k = node.keys
+        node.subscribe(k.slave("arm1", "measured_js"), JointState, bus.on_js)
+        node.subscribe(k.slave("arm1", "operating_state"), OperatingState, bus.on_state)
+        node.subscribe(k.events("slave_control"), SafetyEvent, bus.on_event)
+        master = IdleMaster(master_node)
+        master.start()
+        try:
+            targets = {name: np.array(pts[0]["q"], dtype=float) for name, pts in programs.items()}
+            yield Site(p, node, bus, patient, rng, targets)
+        finally:
+            master.stop.set()
+            master.join(2)
+    for f in sorted((tmp_path / "logs").glob("*.log")):
+        print(f"--- {f.name}\n{f.read_text()[-1500:]}")
+
+
+def test_random_ptp_and_jog_never_cross_the_patient_outside_the_trocar(site: Site) -> None:
+    pipe, node, bus, patient, rng = site.pipe, site.node, site.bus, site.patient, site.rng
+    key = node.keys.command("arm1")
+    tally = Tally()
+    programs = sorted(site.targets)
+    assert pipe.wait(lambda: bus.lease and bus.js, 60), "no lease / no measured_js"
+    assert bus.mode == "non_trocar"
+    t_start = time.monotonic()
+
+    def send(name: str, *args: str) -> CommandReply:
+        assert pipe.wait(lambda: bus.lease, 60), "no lease for a minute"
+        r: CommandReply = operator_command(node, key, "arm1", name, *args)  # confirmed
+        if not r.accepted and (not r.reason.strip() or r.reason.strip().endswith("refused")):
+            tally.unnamed.append(f"{name} {args}: {r.reason!r}")
+        return r
+
+    def run_until(t: float, done: str, timeout: float = 20.0) -> None:
+        """Wait for the motion to end (``done``, or stopped by the slave / a hold); note the stop."""
+        kinds = (done, "motion_stopped", "hold")
+        pipe.wait(lambda: bus.events_since(t, kinds), timeout)
+        for kind, text in bus.events_since(t, ("motion_stopped", "hold")):
+            why = text.split("stopped:", 1)[-1].strip()
+            if not why:
+                tally.unnamed.append(f"{kind}: {text!r}")
+            tally.stops[reason_class(text)] += 1
+
+    def ptp(kind: str, q_target: np.ndarray | None, *args: str) -> bool:
+        """One PTP target, judged at acceptance against the test's own planned path (True: accepted)."""
+        q0 = bus.q()
+        planned = patient.path_penetration(q0, q_target) if q_target is not None else 0.0
+        t = time.monotonic()
+        r = send(*args)
+        tally.ptp[f"{kind} {'accepted' if r.accepted else 'refused'}"] += 1
+        if r.accepted:
+            if planned > 0.0:
+                tally.bad_accepts.append(f"{args}: {r.reason} (planned path {planned * 1e3:.1f} mm deep)")
+            run_until(t, "playback_done" if kind == "play" else "ptp_done")
+            return True
+        cls = reason_class(r.reason)
+        tally.refusals[f"{kind}: {cls}"] += 1
+        if cls == "patient keep-out":
+            assert " mm" in r.reason, f"a keep-out refusal names where: {r.reason}"
+            if planned > 0.0:
+                tally.keepout_refused_torso += 1
+            else:
+                tally.keepout_refused_margin += 1
+        return False
+
+    def jog_sequence() -> None:
+        tally.sequences += 1
+        send("set_motion_mode", "mode=jog")
+        for _ in range(int(rng.integers(2, 5))):
+            frame = str(rng.choice(FRAMES))
+            axis = str(rng.choice(JOINTS if frame == "joint" else CARTESIAN))
+            direction = int(rng.choice((1, -1)))
+            t = time.monotonic()
+            r = send("jog", f"frame={frame}", f"axis={axis}", f"direction={direction}")
+            tally.jogs["accepted" if r.accepted else "refused"] += 1
+            if not r.accepted:
+                tally.refusals[f"jog: {reason_class(r.reason)}"] += 1
+                continue
+            pipe.wait(
+                functools.partial(bus.events_since, t, ("motion_stopped", "hold")), rng.uniform(0.15, 0.5)
+            )
+            send("stop")
+            for kind, text in bus.events_since(t, ("motion_stopped", "hold")):
+                if not text.split("stopped:", 1)[-1].strip():
+                    tally.unnamed.append(f"{kind}: {text!r}")
+                tally.stops[f"jog: {reason_class(text)}"] += 1
+
+    n_ptp, moved, playback = 0, True, False
+    while n_ptp < N_PTP or tally.sequences < N_JOG_SEQUENCES:
+        if n_ptp < N_PTP:  # to a random posture: play a random one-point program (a joint PTP)
+            if not playback:
+                playback = send("set_motion_mode", "mode=playback").accepted
+            prog = str(rng.choice(programs))
+            moved = ptp("play", site.targets[prog], "play", f"program={prog}") or moved
+            n_ptp += 1
+        if rng.random() < N_JOG_SEQUENCES / N_PTP * 2 or n_ptp >= N_PTP:
+            jog_sequence()
+            moved, playback = True, False
+        if n_ptp < N_PTP and moved:  # the posture adjustment PTP from here (J4/J5 aim at the trocar)
+            try:
+                target: np.ndarray | None = posture_adjust(bus.q(), patient.trocar)
+            except Exception:
+                target = None
+            ptp("posture", target, "begin_posture_adjust", "method=ptp")
+            n_ptp += 1
+            send("abort", "reason=next trial")
+            moved, playback = False, False  # (from the same posture the same PTP again: play first)
+        if n_ptp % 50 == 0:
+            print(
+                f"{time.monotonic() - t_start:.0f} s: {n_ptp} PTP, {tally.sequences} jog sequences",
+                flush=True,
+            )
+    seconds = time.monotonic() - t_start
+
+    with bus.lock:
+        samples = sorted(bus.js)
+    seqs = np.array([s for s, _ in samples])
+    qs = np.array([q for _, q in samples])
+    gaps = int(np.sum(np.diff(seqs) - 1))
+    steps = [qs[:1]]  # joint-space interpolation between consecutive samples, ≤ 2 mrad
+    for a, b in itertools.pairwise(qs):
+        n = max(1, math.ceil(float(np.max(np.abs(b - a))) / 0.002))
+        steps.append(a + (b - a) * (np.arange(1, n + 1) / n)[:, None])
+    path = np.concatenate(steps)
+    pen, gap = patient.penetration(path)
+    figures = {
+        "seconds": round(seconds, 1),
+        "ptp": dict(tally.ptp),
+        "ptp_refusals_by_reason": {k: v for k, v in tally.refusals.items() if not k.startswith("jog")},
+        "keepout_refusals_path_through_torso": tally.keepout_refused_torso,
+        "keepout_refusals_only_site_box_margin": tally.keepout_refused_margin,
+        "jog_sequences": tally.sequences,
+        "jogs": dict(tally.jogs),
+        "jog_refusals_by_reason": {k: v for k, v in tally.refusals.items() if k.startswith("jog")},
+        "stops_by_reason": dict(tally.stops),
+        "measured_js_samples": len(samples),
+        "measured_js_seq_gaps": gaps,
+        "poses_checked": len(path),
+        "max_penetration_mm": round(float(pen.max()) * 1e3, 3),
+        "closest_approach_outside_trocar_mm": round(float(gap.min()) * 1e3, 2),
+        "poses_within_10_mm": int(np.sum(gap < 0.01)),
+        "accepted_ptp_planned_through_patient": len(tally.bad_accepts),
+        "unnamed_refusals_or_stops": len(tally.unnamed),
+    }
+    print(json.dumps(figures, indent=1))
+    for line in tally.bad_accepts[:10] + tally.unnamed[:10]:
+        print(line)
+    assert tally.sequences >= N_JOG_SEQUENCES and n_ptp >= N_PTP
+    assert not tally.bad_accepts, f"{len(tally.bad_accepts)} accepted PTPs planned through the patient"
+    assert not tally.unnamed, f"refusals / stops without a reason: {tally.unnamed[:5]}"
+    assert pen.max() == 0.0, f"the forceps entered the patient outside the trocar: {pen.max() * 1e3:.2f} mm"
+    assert tally.keepout_refused_torso > 0, "no random PTP was refused for the keep-out: the test did not try"
