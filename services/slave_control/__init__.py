@@ -99,8 +99,11 @@ class SlaveControlConfig:
     # deg, roll/pitch/yaw of the work jog frame (the laparoscope's view: x image right, y image
     # down, z into the image) in the base frame; default: looking down, patient's head (+x) up
     work_frame_rpy_deg: tuple[float, float, float] = (180.0, 0.0, -90.0)
-    patient_box_min_mm: tuple[float, float, float] = (260.0, -170.0, 130.0)
-    patient_box_max_mm: tuple[float, float, float] = (740.0, 170.0, 198.0)
+    # (default: the torso (260, -170, 136)-(740, 170, 196) mm with 5 mm on every side and 6 mm below,
+    # and the top 2 mm under the trocar: the arm lags and overshoots its command by millimetres at
+    # PTP speed, and a path is checked at 0.005 rad steps)
+    patient_box_min_mm: tuple[float, float, float] = (255.0, -175.0, 130.0)
+    patient_box_max_mm: tuple[float, float, float] = (745.0, 175.0, 198.0)
     jog_speed_mm_s: float = 10.0  # mm/s: Cartesian jog and insert/remove speed
     jog_joint_speed_deg_s: float = 5.0  # deg/s: joint jog speed
     ptp_speed_fraction: float = 0.2  # PTP moves (posture, playback) at this fraction of the joint limits
