@@ -5,7 +5,10 @@ router, watchdog, slave_control on MuJoCo, mapping. From ever-changing random po
 500 random PTP targets — ``play`` of a one-point program (a joint PTP to a random pose; the
 programs are in the site's teach store, as if taught) and ``begin_posture_adjust method=ptp`` (the
 J4/J5 PTP that aims the forceps at the trocar) — and 100 random jog sequences (2–4 jogs each in the
-frames base / world / work / forceps / joint, random axis, direction and duration, then ``stop``).
+frames base / world / work / forceps / joint, random axis, direction and duration, then ``stop``);
+after some accepted posture adjustments (``TROCAR_SHARE``) the forceps is inserted into trocar
+mode, jogged there (translations through the trocar IK, the roll, and some jogs trocar mode
+refuses) and removed.
 
 What a user would notice, judged by the test itself with the patient read from the site's MJCF
 (the scene's ``patient_torso`` box, its ``trocar`` site and the ``trocar_cannula`` radius),
@@ -15,13 +18,15 @@ independently of the slave's own check (``shared/kinematics/keepout.py``, the si
 * the forceps as the slave actually moved it — every ``measured_js`` sample at its full rate,
   interpolated in joint space between samples, forward kinematics by MuJoCo (the ``wrist_center``
   and ``tip`` sites) — never enters the torso except through the trocar cannula;
-* no accepted PTP has a planned path (measured start → target, at ≤ 2 mrad steps) that crosses the
+* no accepted PTP has a planned path (settled measured start → target, at ≤ 3 mrad steps) that crosses the
   torso outside the trocar;
 * every refusal and every stop names its reason, a keep-out refusal says where.
 
-Speeds are raised for the test (PTP at 0.8 of the joint limits, jogs at 80 mm/s and 40°/s) so the
-500 + 100 motions run to completion in a few minutes; faster motions are the harder case for
-the keep-out (more lag and overshoot of the simulated arm behind its command).
+Speeds are raised for the test (PTP at 0.8 of the joint limits, jogs at 80 mm/s and 40°/s) so
+every accepted motion runs to completion (or until the slave or a watchdog hold stops it) within
+the test; faster motions are the harder case for the keep-out (more lag and overshoot of the
+simulated arm behind its command). Under load the watchdog holds now and then; a hold stops a
+motion, which is counted and the test goes on (the arm stays where the hold left it).
 """
 
 from __future__ import annotations
@@ -54,7 +59,8 @@ from telesurg.shared.messages import (
     SafetyEvent,
 )
 
-pytestmark = [pytest.mark.process, pytest.mark.timeout(1500), pytest.mark.flaky(reruns=0)]  # TEMP
+# (long: every accepted motion runs; see docs/trocar.md for the time it took)
+pytestmark = [pytest.mark.process, pytest.mark.timeout(1500)]
 
 N_PTP = 500  # random PTP targets (play + posture adjustment)
 N_JOG_SEQUENCES = 100
@@ -304,13 +310,19 @@ def test_random_ptp_and_jog_never_cross_the_patient_outside_the_trocar(site: Sit
                 tally.unnamed.append(f"{kind}: {text!r}")
             tally.stops[f"{done.split('_')[0]}: {reason_class(text)}"] += 1
 
-    def until_mode(command: str, mode: str, timeout: float = 10.0) -> bool:
-        """Command until the arm is in ``mode`` (a hold of this busy host stops a motion)."""
-        for _ in range(4):
+    def until_mode(command: str, mode: str, timeout: float = 90.0) -> bool:
+        """Command until the arm is in ``mode``: a hold of this busy host stops the motion, and the
+        operator commands it again once the lease is back (as long as ``timeout`` s)."""
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            t = time.monotonic()
             send(command)
-            if pipe.wait(lambda: bus.mode == mode, timeout):
-                return True
-        return False
+            kinds = ("motion_stopped", "hold")
+            if pipe.wait(lambda: bus.mode == mode or bool(bus.events_since(t, kinds)), 10):  # noqa: B023
+                if bus.mode == mode:
+                    return True
+                time.sleep(0.1)
+        return bus.mode == mode
 
     def ptp(kind: str, q_target: np.ndarray | None, *args: str) -> bool:
         """One PTP target, judged at acceptance against the test's own planned path (True: accepted)."""
@@ -364,16 +376,17 @@ def test_random_ptp_and_jog_never_cross_the_patient_outside_the_trocar(site: Sit
     def trocar_jog_sequence() -> bool:
         """After an accepted posture PTP: insert into trocar mode, a jog sequence there, remove."""
         if not pipe.wait(lambda: send("finish_posture_adjust").accepted or time.sleep(0.3), 3):  # type: ignore[func-returns-value]
-            return False
+            send("abort", "reason=not aligned")  # (a hold stopped the PTP short of the target)
+            return True
         if not until_mode("insert", "trocar"):
             send("abort", "reason=not inserted")
             return until_mode("remove", "non_trocar") if bus.mode != "non_trocar" else True
         jog_sequence("trocar")
-        assert until_mode("remove", "non_trocar"), "remove did not bring the forceps out"
-        return True
+        return until_mode("remove", "non_trocar")
 
     n_ptp, moved, playback = 0, True, False
-    while n_ptp < N_PTP or tally.sequences < N_JOG_SEQUENCES:
+    stuck = ""
+    while (n_ptp < N_PTP or tally.sequences < N_JOG_SEQUENCES) and not stuck:
         if n_ptp < N_PTP:  # to a random posture: play a random one-point program (a joint PTP)
             if not playback:
                 playback = send("set_motion_mode", "mode=playback").accepted
@@ -390,8 +403,11 @@ def test_random_ptp_and_jog_never_cross_the_patient_outside_the_trocar(site: Sit
                 target = None
             adjusted = ptp("posture", target, "begin_posture_adjust", "method=ptp")
             n_ptp += 1
-            if adjusted and not (rng.random() < TROCAR_SHARE and trocar_jog_sequence()):
-                send("abort", "reason=next trial")  # (a trocar sequence ends in non_trocar by itself)
+            if adjusted and rng.random() < TROCAR_SHARE:
+                if not trocar_jog_sequence():  # (it ends in non_trocar mode by itself)
+                    stuck = f"not out of {bus.mode} mode after the trocar-mode jogs (remove, 90 s)"
+            elif adjusted:
+                send("abort", "reason=next trial")
             moved = False  # (from the same posture the same PTP again: play first)
             playback = playback and not adjusted
         if n_ptp % 50 == 0:
@@ -436,6 +452,7 @@ def test_random_ptp_and_jog_never_cross_the_patient_outside_the_trocar(site: Sit
     print(json.dumps(figures, indent=1))
     for line in tally.bad_accepts[:10] + tally.unnamed[:10]:
         print(line)
+    assert not stuck, stuck
     assert tally.sequences >= N_JOG_SEQUENCES and n_ptp >= N_PTP
     assert not tally.bad_accepts, f"{len(tally.bad_accepts)} accepted PTPs planned through the patient"
     assert not tally.unnamed, f"refusals / stops without a reason: {tally.unnamed[:5]}"
