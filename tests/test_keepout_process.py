@@ -429,6 +429,9 @@ def test_random_ptp_and_jog_never_cross_the_patient_outside_the_trocar(site: Sit
     path = np.concatenate(steps)
     pen, gap = patient.penetration(path)
     deepest = patient.shaft(path[int(np.argmax(pen))][None, :])
+    w, t = deepest[0][0], deepest[1][0]  # how far the deepest pose's axis passes from the trocar
+    u = (t - w) / np.linalg.norm(t - w)
+    deepest_axis_mm = float(np.linalg.norm(np.cross(patient.trocar - w, u))) * 1e3
     figures = {
         "seconds": round(seconds, 1),
         "ptp": dict(tally.ptp),
@@ -444,6 +447,8 @@ def test_random_ptp_and_jog_never_cross_the_patient_outside_the_trocar(site: Sit
         "poses_checked": len(path),
         "max_penetration_mm": round(float(pen.max()) * 1e3, 3),
         "deepest_pose_wrist_tip_mm": [[round(v * 1e3) for v in x[0]] for x in deepest],
+        "deepest_pose_axis_from_trocar_mm": round(deepest_axis_mm, 2),
+        "poses_in_the_patient_outside_the_trocar": int(np.sum(pen > 0.0)),
         "closest_approach_outside_trocar_mm": round(float(gap.min()) * 1e3, 2),
         "poses_within_10_mm": int(np.sum(gap < 0.01)),
         "accepted_ptp_planned_through_patient": len(tally.bad_accepts),
