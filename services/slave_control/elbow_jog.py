@@ -54,8 +54,9 @@ MAX_MM = 100.0  # mm: the longest travel a jog may ask for
 MIDRANGE_PROBE_MM = 1.0
 #: control periods between two mid-range searches (10 ms at 1 kHz: 0.1 mm of travel at 10 mm/s)
 MIDRANGE_EVERY = 10
-#: mm: a first step this long is tried before a jog is accepted (a joint at its limit refuses it)
-TRIAL_MM = 0.5
+#: mm: a first step this long (or the jog's travel, if shorter) is tried before a jog is accepted:
+#: a joint on or near its limit refuses it
+TRIAL_MM = 2.0
 
 
 @dataclass
@@ -215,7 +216,7 @@ class ElbowJog:
                     )
             else:
                 heading = tangent(self.chain, q, W, direction)
-            elbow_move(self.chain, q, W, TRIAL_MM / 1e3 * heading)
+            elbow_move(self.chain, q, W, min(TRIAL_MM, mm) / 1e3 * heading)
         except ValueError as exc:
             return False, f"elbow_jog refused: {exc}"
         self.jog = _Jog(
