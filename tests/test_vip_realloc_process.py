@@ -24,6 +24,7 @@ target is the initial wrist moved 60 mm toward the feet (``FIG9_TARGET_OFFSET_M`
 
 from __future__ import annotations
 
+import contextlib
 import itertools
 import re
 import threading
@@ -159,40 +160,40 @@ def on_plateau(s: Site, x: float) -> bool:
     return abs(s.now_x() - x) < 1e-6
 
 
-def stroke(s: Site, during: Callable[[], None] | None = None) -> float:
-    """One outward stroke with the clutch held: pressed at the start of the master's 0 plateau
-    (engaged before its ramp), released on the −120 mm plateau once the wrist has settled.
-    ``during`` runs on that plateau while still engaged. Returns the time of the press. A stroke
-    the mapping did not follow from its start (a refused or late engage on this busy host) is
-    released and tried again on the next cycle."""
-    for _attempt in range(3):
-        wait_for("the master leaving its 0 plateau", lambda: not on_plateau(s, 0.0), 40.0)
-        wait_for("the master back on its 0 plateau", lambda: on_plateau(s, 0.0), 40.0)
-        t_press = time.monotonic()
-        s.clutch = True
+def stroke(s: Site, during: Callable[[], None] | None = None) -> bool:
+    """One outward stroke with the clutch held: pressed at the start of the master's 0 plateau,
+    released on the −120 mm plateau once the wrist has settled; ``during`` runs on that plateau
+    if the mapping still follows. Returns whether it followed from the start to the plateau. On
+    this busy host the watchdog may refuse the engage or hold in the middle (latency, stale
+    streams): the callers judge what the wrist did and stroke again."""
+    wait_for("the master leaving its 0 plateau", lambda: not on_plateau(s, 0.0), 40.0)
+    wait_for("the master back on its 0 plateau", lambda: on_plateau(s, 0.0), 40.0)
+    t_press = time.monotonic()
+    s.clutch = True
+    with contextlib.suppress(AssertionError):  # judged below
         wait_for(
             "the mapping engaged",
             lambda: (st := s.state()) is not None and st.state in ("ENABLED", "HOLDING"),
-            10.0,
+            2.5,
         )
-        st = s.state()
-        if st is None or st.state != "ENABLED" or not on_plateau(s, 0.0):
-            print(f"engage not usable ({st.state if st else None}, master x {s.now_x():.4f}): again")
-            s.clutch = False
-            continue
-        wait_for("the master on its −120 mm plateau", lambda: on_plateau(s, -STROKE_M), 20.0)
-        time.sleep(1.0)  # the 1 kHz interpolation and the servos settle on the last setpoint
-        with s.lock:
-            kept = all(m.state == "ENABLED" for t, m in s.teleop if t > t_press + 0.5)
-        if during is not None:
-            during()
+    st = s.state()
+    if st is None or st.state != "ENABLED":
+        print(f"engage not usable ({st.state if st else None}: {st.reason if st else ''}): next cycle")
         s.clutch = False
-        wait_for("the clutch released", lambda: (st := s.state()) is not None and st.state != "ENABLED", 10.0)
         time.sleep(0.5)
-        if kept:
-            return t_press
-        print("the engagement ended before the plateau (a hold on this busy host): again")
-    raise AssertionError("no complete stroke in three master cycles")
+        return False
+    wait_for("the master on its −120 mm plateau", lambda: on_plateau(s, -STROKE_M), 20.0)
+    time.sleep(1.0)  # the 1 kHz interpolation and the servos settle on the last setpoint
+    with s.lock:
+        kept = all(m.state == "ENABLED" for t, m in s.teleop if t > t_press + 0.5)
+    if kept and during is not None:
+        during()
+    s.clutch = False
+    wait_for("the clutch released", lambda: (st := s.state()) is not None and st.state != "ENABLED", 10.0)
+    time.sleep(0.5)
+    if not kept:
+        print("the engagement ended before the plateau (a hold on this busy host)")
+    return kept
 
 
 @pytest.fixture(scope="module")
@@ -239,9 +240,21 @@ def test_fig9_elbow_jog_and_live_reallocation_reach_the_target(site: tuple[Pipel
     assert r.accepted, r.reason
 
     # 1. before: the stroke asks for the target; the VIP IK leaves Table I and the wrist stalls
+    # (strokes again while a hold on this busy host cut one short: each asks for 60 mm more)
+    t1 = time.monotonic()
     refusal: list[CommandReply] = []
-    t1 = stroke(s, lambda: refusal.append(s.command(slave_key, "elbow_jog", "axis=z")))
-    assert not refusal[0].accepted and "release the clutch" in refusal[0].reason
+
+    def jog_while_following() -> None:
+        if not refusal:  # mm=0.1: harmless should a hold end the following just before it
+            r = s.command(slave_key, "elbow_jog", "axis=z", "mm=0.1")
+            if not r.accepted:
+                refusal.append(r)
+
+    for _ in range(6):
+        stroke(s, jog_while_following)
+        if refusal and any("IK" in h for h in s.events_since(t1, "clamped")):
+            break
+    assert refusal and "release the clutch" in refusal[0].reason
     P = s.now_wrist()
     short_mm = float(np.linalg.norm(target - P)) * 1e3
     holds = s.events_since(t1, "clamped")
@@ -257,24 +270,45 @@ def test_fig9_elbow_jog_and_live_reallocation_reach_the_target(site: tuple[Pipel
     r = s.command(slave_key, "elbow_jog", "axis=x", "direction=-1")
     if r.accepted:
         wait_for(
-            "the jog stopped at the limit", lambda: bool(s.events_since(t_limit, "motion_stopped")), 10.0
+            "the jog stopped",
+            lambda: bool(s.events_since(t_limit, "motion_stopped") + s.events_since(t_limit, "hold")),
+            10.0,
         )
-        print(f"stopped: {s.events_since(t_limit, 'motion_stopped')[0]}")
-        assert "q2" in s.events_since(t_limit, "motion_stopped")[0]
+        stops = s.events_since(t_limit, "motion_stopped")
+        print(f"stopped: {stops}")
+        assert stops and "q2" in stops[0]
         time.sleep(0.5)
         q_stall = s.now_q()
     else:
         assert "q2" in r.reason
 
-    # 2. Step 2: the elbow toward mid-range joints, the wrist held
+    # 2. Step 2: the elbow toward mid-range joints, the wrist held (sent again if a watchdog hold
+    # on this busy host stopped it: the search goes on from where the elbow is)
     t2 = time.monotonic()
-    r = s.command(slave_key, "elbow_jog", "axis=midrange")
-    assert r.accepted, r.reason
-    busy = s.command(mapping_key, "reallocate_vip")
-    assert not busy.accepted and "moving" in busy.reason
-    wait_for("the elbow jog's end", lambda: bool(s.events_since(t2, "elbow_jog_done")), 60.0)
+    checked_busy = False
+    for _ in range(10):
+        t_jog = time.monotonic()
+        r = s.command(slave_key, "elbow_jog", "axis=midrange")
+        if not r.accepted and "as mid-range as this wrist allows" in r.reason:
+            break
+        if not r.accepted:  # no lease at this moment
+            time.sleep(1.0)
+            continue
+        if not checked_busy:
+            busy = s.command(mapping_key, "reallocate_vip")
+            ended = s.events_since(t_jog, "elbow_jog_done") + s.events_since(t_jog, "hold")
+            assert (not busy.accepted and "moving" in busy.reason) or (busy.accepted and ended), busy.reason
+            checked_busy = True
+        wait_for(
+            "the elbow jog's end",
+            lambda t=t_jog: bool(s.events_since(t, "elbow_jog_done") + s.events_since(t, "hold")),
+            60.0,
+        )
+        if s.events_since(t_jog, "elbow_jog_done"):
+            break
+        time.sleep(1.0)
     time.sleep(0.5)
-    done = s.events_since(t2, "elbow_jog_done")[0]
+    done = s.events_since(t2, "elbow_jog_done")
     stopped = s.events_since(t2, "motion_stopped")
     assert not stopped, stopped
     with s.lock:
@@ -302,13 +336,13 @@ def test_fig9_elbow_jog_and_live_reallocation_reach_the_target(site: tuple[Pipel
     assert np.linalg.norm(V_new - V_expected) < 0.3e-3
 
     # 4. after: one more stroke covers what is left, at the scale the operator sets for it
-    for _attempt in range(3):
+    for _attempt in range(6):
         P2 = s.now_wrist()
         left = float(P2[0] - target[0])
         if abs(left) * 1e3 < TARGET_TOL_MM:
             break
         assert left > 0.0, f"the wrist went past the target ({left * 1e3:.1f} mm)"
-        r = s.command(mapping_key, "set_scale", f"value={left / STROKE_M:.5f}")
+        r = s.command(mapping_key, "set_scale", f"value={min(left / STROKE_M, 2.0):.5f}")
         assert r.accepted, r.reason
         t4 = time.monotonic()
         stroke(s)
