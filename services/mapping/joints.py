@@ -265,9 +265,14 @@ class VipMapping(PoseJointBase):
             if msg is None:
                 return
             pm = self.master_point(self.cfg, msg.position)
-            if self.following and self.q_cmd is not None and self.V is not None:
-                if self.ref is None:
-                    self.ref = (pm, self.vip.fk(self.q_cmd, self.geom).wrist)
+            if self.following and self.q_cmd is not None and self.V is not None and self.ref is None:
+                # the engage's first sample only anchors: its setpoint is where the slave is, so the
+                # slave's engage check (within engage_tolerance_rad of the arm) holds even when the
+                # elbow then moves over to a new VIP's line
+                self.ref = (pm, self.vip.fk(self.q_cmd, self.geom).wrist)
+                self.last = self.ref
+            elif self.following and self.q_cmd is not None and self.V is not None:
+                assert self.ref is not None
                 pm0, w0 = self.ref
                 w = w0 + self.scale * self.safety_scale * (self.r_ms @ (pm - pm0))
                 try:
