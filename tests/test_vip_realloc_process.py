@@ -352,7 +352,7 @@ def test_fig9_elbow_jog_and_live_reallocation_reach_the_target(site: tuple[Pipel
     err_mm = float(np.linalg.norm(W_end - target)) * 1e3
     q_end = s.now_q()
     print(
-        f"after: MuJoCo wrist {err_mm:.2f} mm from the target; joints "
+        f"after: MuJoCo wrist {err_mm:.3f} mm from the target; joints "
         f"{np.round(np.degrees(q_end[[0, 1, 3, 4]]), 1)} deg, q3 {q_end[2]:.4f} m; "
         f"smallest margin {limit_margin(q_end, G.lower, G.upper):.3f}"
     )
