@@ -11,6 +11,7 @@
 
 from __future__ import annotations
 
+import re
 import threading
 import time
 from collections.abc import Iterator
@@ -95,7 +96,8 @@ def test_reallocate_vip_waits_for_the_elbow_jog_and_takes_the_measured_joints(
     arm.on_slave_state(OperatingState(H, "PAUSED", "joint", False, True, "", 0), "")
     ok, why = arm._command(_cmd("reallocate_vip"))
     assert ok, why
-    assert "the elbow was 10.0 mm off the previous VIP line" in why
+    m = re.search(r"the elbow was ([0-9.]+) mm off the previous VIP line", why)
+    assert m and 9.5 <= float(m.group(1)) <= 10.0, why  # 10 mm swung on the forearm sphere
     assert arm.V is not None
     np.testing.assert_allclose(arm.V, vip.select_vip(moved, 0.05, G), atol=1e-12)
     assert off_line(vip.fk(moved, G).elbow, W, arm.V) < 1e-9
