@@ -163,7 +163,7 @@ def on_plateau(s: Site, x: float) -> bool:
 def stroke(s: Site, during: Callable[[], None] | None = None) -> bool:
     """One outward stroke with the clutch held: pressed at the start of the master's 0 plateau,
     released on the −120 mm plateau once the wrist has settled; ``during`` runs on that plateau
-    if the mapping still follows. Returns whether it followed from the start to the plateau. On
+    if the mapping follows then. Returns whether it followed from the start to the plateau. On
     this busy host the watchdog may refuse the engage or hold in the middle (latency, stale
     streams): the callers judge what the wrist did and stroke again."""
     wait_for("the master leaving its 0 plateau", lambda: not on_plateau(s, 0.0), 40.0)
@@ -186,8 +186,8 @@ def stroke(s: Site, during: Callable[[], None] | None = None) -> bool:
     time.sleep(1.0)  # the 1 kHz interpolation and the servos settle on the last setpoint
     with s.lock:
         kept = all(m.state == "ENABLED" for t, m in s.teleop if t > t_press + 0.5)
-    if kept and during is not None:
-        during()
+    if during is not None and (now := s.state()) is not None and now.state == "ENABLED":
+        during()  # (the mapping follows now, even if a hold cut the stroke short before)
     s.clutch = False
     wait_for("the clutch released", lambda: (st := s.state()) is not None and st.state != "ENABLED", 10.0)
     time.sleep(0.5)
@@ -250,7 +250,7 @@ def test_fig9_elbow_jog_and_live_reallocation_reach_the_target(site: tuple[Pipel
             if not r.accepted:
                 refusal.append(r)
 
-    for _ in range(6):
+    for _ in range(8):
         stroke(s, jog_while_following)
         if refusal and any("IK" in h for h in s.events_since(t1, "clamped")):
             break
