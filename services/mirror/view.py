@@ -65,6 +65,7 @@ from typing import Any
 
 import numpy as np
 import numpy.typing as npt
+from telesurg.services.mirror.geometry import KINDS, Body, quat_matrix
 from telesurg.shared.viewer import viewer_url
 
 log = logging.getLogger(__name__)
@@ -135,6 +136,13 @@ def mapping_path(arm: str, leaf: str) -> str:
 
 
 EVENTS_PATH = "/events"
+
+
+@functools.lru_cache(maxsize=4096)
+def geometry_path(body: str) -> str:
+    """``/slave/geometry/<body>``: a robot body of the slave's MuJoCo model (its static geoms are
+    children, its pose the entity's Transform3D)."""
+    return f"/slave/geometry/{_part(body)}"
 
 
 def _window(seconds: float) -> list[Any]:
@@ -430,6 +438,78 @@ class RerunView:
             fpath = slave_path(arm, "forceps")
             self._style_3d(fpath, FORCEPS_COLOR, _THICK, None)
             self._rec.log(fpath, rr.LineStrips3D.from_fields(strips=forceps))
+
+    def body(self, body: Body) -> None:
+        """The static geometry of one robot body at ``/slave/geometry/<body>``, in its own frame
+        (one child entity per primitive kind, all its geoms of that kind in one batch; meshes
+        each their own child); its pose comes with :meth:`body_pose`. Once per body."""
+        rr = self._rr
+        path = geometry_path(body.name)
+        if not self._once(path):
+            return
+        solid = rr.components.FillMode.Solid
+        for kind in KINDS:
+            prims = [p for p in body.primitives if p.kind == kind]
+            if not prims:
+                continue
+            size = np.asarray([p.size for p in prims])
+            center = np.asarray([p.center for p in prims])
+            quats = [rr.Quaternion(xyzw=np.roll(p.quat, -1)) for p in prims]
+            colors = [p.rgba for p in prims]
+            part: Any
+            if kind == "box":
+                part = rr.Boxes3D(
+                    half_sizes=size, centers=center, quaternions=quats, colors=colors, fill_mode=solid
+                )
+            elif kind == "ellipsoid":
+                part = rr.Ellipsoids3D(
+                    half_sizes=size, centers=center, quaternions=quats, colors=colors, fill_mode=solid
+                )
+            elif kind == "cylinder":
+                part = rr.Cylinders3D(
+                    radii=size[:, 0],
+                    lengths=size[:, 1],
+                    centers=center,
+                    quaternions=quats,
+                    colors=colors,
+                    fill_mode=solid,
+                )
+            else:  # capsule: rerun's starts at its translation and runs along +z
+                axis = np.asarray([quat_matrix(p.quat)[:, 2] for p in prims])
+                start = center - 0.5 * size[:, 1:2] * axis
+                part = rr.Capsules3D(
+                    radii=size[:, 0],
+                    lengths=size[:, 1],
+                    translations=start,
+                    quaternions=quats,
+                    colors=colors,
+                    fill_mode=solid,
+                )
+            self._rec.log(f"{path}/{kind}", part, static=True)
+        for i, mesh in enumerate(body.meshes):
+            self._rec.log(
+                f"{path}/mesh{i}",
+                rr.Mesh3D(
+                    vertex_positions=mesh.vertices, triangle_indices=mesh.faces, albedo_factor=mesh.rgba
+                ),
+                static=True,
+            )
+
+    def body_pose(
+        self,
+        name: str,
+        source_ns: int,
+        receive_ns: int,
+        position: npt.NDArray[np.float64],
+        quat_wxyz: npt.NDArray[np.float64],
+    ) -> None:
+        """The pose of robot body ``name`` (world frame, m; quaternion w x y z) from this time on."""
+        rr = self._rr
+        self._at(source_ns, receive_ns)
+        self._rec.log(
+            geometry_path(name),
+            rr.Transform3D(translation=position, quaternion=rr.Quaternion(xyzw=np.roll(quat_wxyz, -1))),
+        )
 
     def point(
         self,
