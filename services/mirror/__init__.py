@@ -42,6 +42,7 @@ from telesurg.services.common import service_main
 from telesurg.services.mirror.geometry import RobotGeometry, moved
 from telesurg.services.mirror.view import (
     EVENTS_PATH,
+    LAYOUTS,
     MASTER_COLOR,
     RCM_COLOR,
     SLAVE_COLOR,
@@ -126,6 +127,10 @@ class MirrorConfig:
     # per moved body per drawn frame, from mj_kinematics at the measured joints); false: only the
     # registry's sketch (link polyline, forceps)
     geometry: bool = True
+    # the viewer's default layout: "lean" — the slave 3D view, the joint plots, the states log
+    # (what software WebGL draws within 1 s of live); "full" — also the tip/target and master 3D
+    # views and the error, latency and scale plots (every entity is recorded either way)
+    layout: str = "lean"
     application_id: str = "telesurg"  # rerun application id (groups recordings in the viewer)
     recording_id: str = ""  # rerun recording id; "" = random; same id merges several processes
     # Only these services' master/, slave/ and safety/ streams are drawn (look-alikes from any
@@ -151,6 +156,8 @@ class MirrorConfig:
         ):
             if not lo <= value <= hi:
                 raise ConfigError(f"{name}={value} outside [{lo:g}, {hi:g}]")
+        if self.layout not in LAYOUTS:
+            raise ConfigError(f"layout={self.layout!r}: valid: {', '.join(LAYOUTS)}")
         for name, port in (("web_port", self.web_port), ("grpc_port", self.grpc_port)):
             if not 1 <= port <= 65535:
                 raise ConfigError(f"{name}={port} outside [1, 65535]")
@@ -332,8 +339,10 @@ class Mirror:
         plot_window_s: float = 20.0,
         layout_wait_s: float = 0.5,
         geometry: bool = True,
+        layout: str = "full",
     ) -> None:
         self.view = view
+        self._layout = layout
         self._geometry_on = geometry
         # robot (registry entry) → its MuJoCo geometry, None where it failed to load
         self._geometry: dict[str, RobotGeometry | None] = {}
@@ -564,7 +573,7 @@ class Mirror:
 
     def _send_layout(self) -> None:
         self.view.send_blueprint(
-            {arm: self._arms[arm].names for arm in sorted(self._arms)}, self._plot_window_s
+            {arm: self._arms[arm].names for arm in sorted(self._arms)}, self._plot_window_s, self._layout
         )
 
     def _draw_geometry(self) -> None:
@@ -745,6 +754,7 @@ def run(cfg: MirrorConfig, stop: threading.Event) -> None:
                 plot_window_s=cfg.plot_window_s,
                 layout_wait_s=cfg.layout_wait_s,
                 geometry=cfg.geometry,
+                layout=cfg.layout,
             )
             trusted = frozenset(cfg.trusted_sources)
 

@@ -164,11 +164,22 @@ def _lines(name: str, color: Color, width: float) -> Any:
     return rr.SeriesLines.from_fields(names=[name], colors=[color], widths=[width])
 
 
-def blueprint(slave_arms: Mapping[str, Sequence[str]] | None = None, plot_window_s: float = 20.0) -> Any:
+#: Layouts of :func:`blueprint`: ``lean`` (the default) and ``full`` (module docstring).
+LAYOUTS = ("lean", "full")
+
+
+def blueprint(
+    slave_arms: Mapping[str, Sequence[str]] | None = None, plot_window_s: float = 20.0, layout: str = "full"
+) -> Any:
     """The layout drawn in the module docstring: one joint plot per slave arm (``slave_arms``:
     arm → joint names; none: one plot of everything under ``/slave``). Series names, colours and
-    widths are blueprint overrides, so the recording holds only the samples."""
+    widths are blueprint overrides, so the recording holds only the samples. ``lean``: the slave
+    3D view, the joint plots and the text log only (fewer views for the viewer to draw each frame;
+    the other entities are in the recording, a view away)."""
     import rerun.blueprint as rrb
+
+    if layout not in LAYOUTS:
+        raise ValueError(f"layout {layout!r}: valid: {', '.join(LAYOUTS)}")
 
     arms = dict(slave_arms or {})
     window = _window(plot_window_s)
@@ -189,6 +200,22 @@ def blueprint(slave_arms: Mapping[str, Sequence[str]] | None = None, plot_window
         )
     if not joints:
         joints.append(rrb.TimeSeriesView(name="slave joints [rad | m]", origin="/slave", time_ranges=window))
+    events = rrb.TextLogView(
+        name="modes & safety events", contents=["/slave/**", "/mapping/**", "/safety/**", EVENTS_PATH]
+    )
+    slave_3d = rrb.Spatial3DView(name="slave (world frame, m)", origin="/", contents=["+ /slave/**"])
+    if layout == "lean":
+        return rrb.Blueprint(
+            rrb.Horizontal(
+                slave_3d,
+                rrb.Vertical(
+                    rrb.Horizontal(*joints) if len(joints) > 1 else joints[0], events, row_shares=[3, 2]
+                ),
+                column_shares=[3, 2],
+            ),
+            rrb.TimePanel(timeline="source_time"),
+            collapse_panels=True,
+        )
     errors: _Overrides = {}
     latency: _Overrides = {}
     scale: _Overrides = {}
@@ -230,15 +257,13 @@ def blueprint(slave_arms: Mapping[str, Sequence[str]] | None = None, plot_window
                 overrides=scale,
             ),
         ),
-        rrb.TextLogView(
-            name="modes & safety events", contents=["/slave/**", "/mapping/**", "/safety/**", EVENTS_PATH]
-        ),
+        events,
         row_shares=[3, 2, 2, 2],
     )
     return rrb.Blueprint(
         rrb.Horizontal(
             rrb.Vertical(
-                rrb.Spatial3DView(name="slave (world frame, m)", origin="/", contents=["+ /slave/**"]),
+                slave_3d,
                 rrb.Horizontal(
                     rrb.Spatial3DView(name="slave tip (blue) and target (orange)", origin="/", contents=tips),
                     rrb.Spatial3DView(name="master tip (device frame)", origin="/master"),
@@ -329,12 +354,17 @@ class RerunView:
         self._rec.log("/", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
         self._rec.log("/master", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
 
-    def send_blueprint(self, slave_arms: Mapping[str, Sequence[str]], plot_window_s: float = 20.0) -> None:
-        """Send the layout for these slave arms (arm → joint names), once (later calls do nothing)."""
+    def send_blueprint(
+        self, slave_arms: Mapping[str, Sequence[str]], plot_window_s: float = 20.0, layout: str = "full"
+    ) -> None:
+        """Send the layout (:data:`LAYOUTS`) for these slave arms (arm → joint names), once (later
+        calls do nothing)."""
         if self.blueprint_arms is not None:
             return
         self.blueprint_arms = tuple(slave_arms)
-        self._rec.send_blueprint(blueprint(slave_arms, plot_window_s), make_active=True, make_default=True)
+        self._rec.send_blueprint(
+            blueprint(slave_arms, plot_window_s, layout), make_active=True, make_default=True
+        )
 
     # -- styles, once per entity, static -------------------------------------------------
     def _once(self, path: str) -> bool:
