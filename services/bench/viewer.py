@@ -43,6 +43,8 @@ import numpy as np
 from telesurg.services.bench.browser import CHROMIUM, DevTools, chromium, screenshot
 from telesurg.shared import jsonio
 
+#: s a probe waits for the page to answer.
+PROBE_TIMEOUT_S = 20.0
 #: Timelines the mirror logs on (what the cursor can be on).
 TIMELINES = ("source_time", "receive_time")
 
@@ -146,7 +148,10 @@ def probe(cdp: DevTools, session: str) -> dict[str, Any] | None:
     (or the viewer in it) is not up."""
     try:
         r = cdp.call(
-            "Runtime.evaluate", {"expression": _STATE_JS, "returnByValue": True}, session, timeout=90
+            "Runtime.evaluate",
+            {"expression": _STATE_JS, "returnByValue": True},
+            session,
+            timeout=PROBE_TIMEOUT_S,
         )
     except (RuntimeError, TimeoutError):
         return None
@@ -225,23 +230,34 @@ def run(
             next_fps = t_open + warmup
             while demo.poll() is None:
                 time.sleep(1.0)
-                p = probe(cdp, session)
                 t = time.monotonic() - t_open
+                p = probe(cdp, session)
+                took = time.monotonic() - t_open - t
+                sample: dict[str, Any] = {
+                    "t_s": round(t, 2),
+                    "answered": p is not None,
+                    "probe_s": round(took, 2),
+                }
                 if p is not None:
                     lag = (p["page_ns"] - p["cursor_ns"]) / 1e9 if p["cursor_ns"] is not None else None
                     newest = p["newest_ns"].get("source_time")
-                    ingest = (p["page_ns"] - newest) / 1e9 if newest is not None else None
-                    samples.append({"t_s": round(t, 2), "lag_s": lag, "ingest_lag_s": ingest})
+                    sample["lag_s"] = lag
+                    sample["ingest_lag_s"] = (p["page_ns"] - newest) / 1e9 if newest is not None else None
+                samples.append(sample)
                 if time.monotonic() >= next_fps and demo.poll() is None:
                     f = frame_rate(cdp, session)
                     if f is not None:
                         fps.append({"t_s": round(time.monotonic() - t_open, 2), "fps": f})
                     next_fps = time.monotonic() + 10.0
             if png is not None:
-                png.write_bytes(screenshot(cdp, session))
+                try:
+                    png.write_bytes(screenshot(cdp, session))
+                except (RuntimeError, TimeoutError) as exc:  # a page that no longer answers
+                    print(f"no screenshot: {exc}", file=sys.stderr)
     rep = json.loads(report.read_text()) if report.is_file() else {}
-    lags = [s["lag_s"] for s in samples if s["lag_s"] is not None and s["t_s"] >= warmup]
-    first = next((s["t_s"] for s in samples if s["lag_s"] is not None), None)
+    counted = [s for s in samples if s["t_s"] >= warmup]
+    lags = [s["lag_s"] for s in counted if s.get("lag_s") is not None]
+    first = next((s["t_s"] for s in samples if s.get("lag_s") is not None), None)
     wd = rep.get("watchdog", {})
     return {
         "seconds": seconds,
@@ -255,6 +271,10 @@ def run(
             "p99": _pct(lags, 99),
             "max": max(lags) if lags else None,
             "share_under_1s": (sum(x < 1.0 for x in lags) / len(lags)) if lags else None,
+            # probes the page did not answer within PROBE_TIMEOUT_S (its JS thread busy in a frame
+            # the whole time: what it shows is at least that old)
+            "unanswered": sum(not s["answered"] for s in counted),
+            "probes": len(counted),
         },
         "fps": {"median": _pct([f["fps"] for f in fps], 50), "samples": fps},
         "watchdog": {arm: w.get("entered") for arm, w in wd.items()} if isinstance(wd, dict) else wd,
@@ -296,7 +316,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     print(f"viewer open {args.seconds:g} s (first picture after {f(res['first_cursor_s'], '.1f')} s)")
     print(
         f"lag behind live after {args.warmup:g} s: p50 {f(lag['p50'])} s, p90 {f(lag['p90'])} s, "
-        f"max {f(lag['max'])} s over {lag['n']} samples; under 1 s: {f(lag['share_under_1s'], '.0%')}"
+        f"max {f(lag['max'])} s over {lag['n']} samples; under 1 s: {f(lag['share_under_1s'], '.0%')}; "
+        f"{lag['unanswered']} of {lag['probes']} probes unanswered within {PROBE_TIMEOUT_S:g} s"
     )
     print(f"viewer frames/s (median): {f(res['fps']['median'], '.1f')}")
     print(f"demo: {res['summary']}; engagements {res['engagements']}")
