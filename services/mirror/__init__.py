@@ -7,7 +7,9 @@ draws: joint series (measured vs setpoint), the tip tracking and RCM errors, lat
 target trails, the mapping's teleop state of each pair (a text line per change, an engaged
 series), each slave arm from its kinematic model (the robot is recognised by the joint names
 of ``measured_js`` among the registered robots and drawn by its registry entry's ``sketch``, see
-:mod:`telesurg.shared.robots`; ``--plugin FILE`` adds robots), the trocar / RCM / VIP points,
+:mod:`telesurg.shared.robots`; ``--plugin FILE`` adds robots), the robot's own bodies from its
+MuJoCo scene posed by ``mj_kinematics`` at the measured joints
+(:mod:`telesurg.services.mirror.geometry`), the trocar / RCM / VIP points,
 the master tip, mode changes and events. Entity paths and the layout are described in
 :mod:`telesurg.services.mirror.view`; the layout is sent once, when the slave arms are known.
 

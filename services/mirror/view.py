@@ -3,6 +3,10 @@
 Entity paths (``<arm>`` an arm id, ``<joint>`` a joint name, both escaped for rerun)::
 
     /slave/<arm>/joints/<joint>/measured   Scalars       rad (m: prismatic), slave/<arm>/measured_js
+    /slave/geometry/<body>                 Transform3D   a body of the robot's MuJoCo model, posed by
+                                                         mj_kinematics at the measured joints; its
+                                                         geoms (static, body frame) are the children
+                                                         box|ellipsoid|capsule|cylinder|mesh<i>
     /slave/<arm>/joints/<joint>/setpoint   Scalars       rad (m), slave/<arm>/servo_jp
     /slave/<arm>/links                     LineStrips3D + Points3D  the arm's kinematic chain (from
                                                          measured_js: mh3f base→flange, vip R–E–W,
@@ -35,7 +39,8 @@ frame, +z up) in the "slave" 3D view. The master pose is in the master device's 
 has no fixed relation to the slave's (the mapping applies a clutch offset and a scale), so
 ``/master`` gets its own 3D view instead of being drawn at a made-up offset.
 
-The layout (:func:`blueprint`) is sent once, when the slave arms are known::
+The layout (:func:`blueprint`) is sent once, when the slave arms are known; ``lean`` (the live
+mirror's default) keeps the slave 3D view, the joint plots and the text log; ``full``::
 
     ┌───────────────────────────────┬─────────────────────────────────────────┐
     │ slave 3D (/slave/**)          │ <arm> joints: measured vs setpoint (one │
