@@ -56,7 +56,8 @@ _FPS_JS = """new Promise(done => {
   let n = 0; const t0 = performance.now();
   const tick = () => {
     n++;
-    if (performance.now() - t0 < 2000) requestAnimationFrame(tick); else done(n / 2);
+    const dt = performance.now() - t0;
+    if (dt < 2000) requestAnimationFrame(tick); else done(n / (dt / 1000));
   };
   requestAnimationFrame(tick);
 })"""
@@ -167,7 +168,8 @@ def probe(cdp: DevTools, session: str) -> dict[str, Any] | None:
 
 
 def frame_rate(cdp: DevTools, session: str) -> float | None:
-    """Animation frames a second of the page over 2 s (None if the page does not answer)."""
+    """Animation frames a second of the page over 2 s or its first frame after that (None if the
+    page does not answer within a minute)."""
     try:
         r = cdp.call(
             "Runtime.evaluate",
@@ -182,6 +184,25 @@ def frame_rate(cdp: DevTools, session: str) -> float | None:
 
 
 # --------------------------------------------------------------------------- the run
+
+
+def cpu_seconds(marker: str) -> float:
+    """CPU time (user + system, s) of the live processes whose command line holds ``marker``
+    (this run's Chromium: its profile directory), read from /proc."""
+    tick = os.sysconf("SC_CLK_TCK")
+    total = 0.0
+    for d in Path("/proc").iterdir():
+        if not d.name.isdigit():
+            continue
+        try:
+            if marker.encode() not in (d / "cmdline").read_bytes():
+                continue
+            stat = (d / "stat").read_text()
+        except OSError:
+            continue
+        parts = stat.rsplit(")", 1)[1].split()
+        total += (int(parts[11]) + int(parts[12])) / tick  # utime, stime (fields 14, 15)
+    return total
 
 
 @contextlib.contextmanager
@@ -220,13 +241,14 @@ def run(
         argv += ["--set", s]
     samples: list[dict[str, Any]] = []
     fps: list[dict[str, float]] = []
-    t_open = 0.0
+    t_open = load_open = browser_cpu = browser_wall = 0.0
     with _demo(argv, workdir / "demo.out") as demo:
         if not wait_port("127.0.0.1", web, 120.0):
             raise RuntimeError(f"the demo served no viewer: {(workdir / 'demo.out').read_text()[-2000:]}")
         url = viewer_url(f"rerun+http://127.0.0.1:{grpc}/proxy", web)
         with chromium(url, workdir, nice=0) as (cdp, session):
             t_open = time.monotonic()
+            load_open = os.getloadavg()[0]
             next_fps = t_open + warmup
             while demo.poll() is None:
                 time.sleep(1.0)
@@ -249,6 +271,8 @@ def run(
                     if f is not None:
                         fps.append({"t_s": round(time.monotonic() - t_open, 2), "fps": f})
                     next_fps = time.monotonic() + 10.0
+            browser_cpu = cpu_seconds(str(workdir / "chromium-profile"))
+            browser_wall = time.monotonic() - t_open
             if png is not None:
                 try:
                     png.write_bytes(screenshot(cdp, session))
@@ -280,6 +304,10 @@ def run(
         "watchdog": {arm: w.get("entered") for arm, w in wd.items()} if isinstance(wd, dict) else wd,
         "summary": rep.get("summary"),
         "engagements": rep.get("engagements"),
+        # Chromium's processes (browser, renderer, GPU process with SwiftShader): CPU they got
+        "browser_cpu_s": round(browser_cpu, 2),
+        "browser_cpu_share": round(browser_cpu / browser_wall, 3) if browser_wall > 0 else None,
+        "load_average_at_open": load_open,
         "load_average": list(os.getloadavg()),
         "cpus": os.cpu_count(),
         "samples": samples,
@@ -319,7 +347,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         f"max {f(lag['max'])} s over {lag['n']} samples; under 1 s: {f(lag['share_under_1s'], '.0%')}; "
         f"{lag['unanswered']} of {lag['probes']} probes unanswered within {PROBE_TIMEOUT_S:g} s"
     )
-    print(f"viewer frames/s (median): {f(res['fps']['median'], '.1f')}")
+    print(
+        f"viewer frames/s (median): {f(res['fps']['median'], '.1f')}; Chromium got "
+        f"{f(res['browser_cpu_share'])} of a core; load average {res['load_average_at_open']:.1f} at open, "
+        f"{res['load_average'][0]:.1f} at the end on {res['cpus']} CPUs"
+    )
     print(f"demo: {res['summary']}; engagements {res['engagements']}")
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
