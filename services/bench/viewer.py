@@ -49,7 +49,7 @@ PROBE_TIMEOUT_S = 20.0
 TIMELINES = ("source_time", "receive_time")
 
 _STATE_JS = (
-    "(() => { const h = window._handle; if (!h || h.has_panicked()) return null;"
+    "(() => { const h = window._handle; if (!h || h.has_panicked()) return [Date.now(), null];"
     " return [Date.now(), Array.from(h.viewer_state())]; })()"
 )
 _FPS_JS = """new Promise(done => {
@@ -145,8 +145,9 @@ def viewer_times(state: bytes) -> dict[str, Any]:
 
 
 def probe(cdp: DevTools, session: str) -> dict[str, Any] | None:
-    """One look at the viewer: the page's clock (ns) and :func:`viewer_times`; None while the page
-    (or the viewer in it) is not up."""
+    """One look at the viewer: the page's clock (ns) and :func:`viewer_times` (``"viewer": False``
+    while the page is up but the viewer application in it has not started); None if the page does
+    not answer within :data:`PROBE_TIMEOUT_S`."""
     try:
         r = cdp.call(
             "Runtime.evaluate",
@@ -160,11 +161,13 @@ def probe(cdp: DevTools, session: str) -> dict[str, Any] | None:
     if not value:
         return None
     page_ms, raw = value
+    if raw is None:
+        return {"page_ns": int(page_ms * 1e6), "viewer": False, "cursor_ns": None, "newest_ns": {}}
     try:
         times = viewer_times(bytes(raw))
     except ValueError:
         return None
-    return {"page_ns": int(page_ms * 1e6), **times}
+    return {"page_ns": int(page_ms * 1e6), "viewer": True, **times}
 
 
 def frame_rate(cdp: DevTools, session: str) -> float | None:
@@ -261,6 +264,7 @@ def run(
                     "probe_s": round(took, 2),
                 }
                 if p is not None:
+                    sample["viewer"] = p["viewer"]
                     lag = (p["page_ns"] - p["cursor_ns"]) / 1e9 if p["cursor_ns"] is not None else None
                     newest = p["newest_ns"].get("source_time")
                     sample["lag_s"] = lag
@@ -298,6 +302,7 @@ def run(
             # probes the page did not answer within PROBE_TIMEOUT_S (its JS thread busy in a frame
             # the whole time: what it shows is at least that old)
             "unanswered": sum(not s["answered"] for s in counted),
+            "viewer_not_started": sum(s.get("viewer") is False for s in counted),
             "probes": len(counted),
         },
         "fps": {"median": _pct([f["fps"] for f in fps], 50), "samples": fps},
@@ -345,7 +350,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     print(
         f"lag behind live after {args.warmup:g} s: p50 {f(lag['p50'])} s, p90 {f(lag['p90'])} s, "
         f"max {f(lag['max'])} s over {lag['n']} samples; under 1 s: {f(lag['share_under_1s'], '.0%')}; "
-        f"{lag['unanswered']} of {lag['probes']} probes unanswered within {PROBE_TIMEOUT_S:g} s"
+        f"{lag['unanswered']} of {lag['probes']} probes unanswered within {PROBE_TIMEOUT_S:g} s, "
+        f"{lag['viewer_not_started']} before the viewer application started"
     )
     print(
         f"viewer frames/s (median): {f(res['fps']['median'], '.1f')}; Chromium got "
