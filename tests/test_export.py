@@ -1,0 +1,239 @@
+"""``telesurg export --to foxglove``: a live site's recording opened by the mcap reader and rerun.
+
+One recording (module fixture) of a real site — router, watchdog, slave_control, mapping, camera
+and, started after the recorder, master_capture — exported by the CLI as a user runs it. The
+export is then read back twice: with the ``mcap`` reader and the Foxglove protobuf classes
+(``foxglove-schemas-protobuf`` is not a dependency: the schemas are in the file, decoded here with
+``google.protobuf`` from the file's own descriptor sets), and with rerun's MCAP importer
+(``rerun mcap convert``), whose output ``.rrd`` is read with rerun's own reader.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+from mcap.reader import make_reader
+from telesurg.services.bench.harness import Pipeline
+from telesurg.services.record import iter_decoded, open_mcap
+from telesurg.services.record.export import RobotModel, main
+from telesurg.shared import robots
+from telesurg.shared.messages import CameraImage, CartesianPose, JointState
+
+ROOT = Path(__file__).resolve().parents[1]
+RERUN = Path(sys.executable).with_name("rerun")
+ARM_BODIES = ("link1", "link2", "link3", "link4", "link5", "link6", "forceps")
+
+
+def _wait_alive(p: Pipeline, service: str, timeout: float) -> bool:
+    key = p.node.keys.alive(service)
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if any(r.ok is not None for r in p.node.session.liveliness().get(key, timeout=0.5)):
+            return True
+        time.sleep(0.1)
+    return False
+
+
+@pytest.fixture(scope="module")
+def exported(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[Path, Path]]:
+    """(the recording, its Foxglove export) of an 8 s live session with the camera."""
+    tmp = tmp_path_factory.mktemp("export")
+    run, out = tmp / "run.mcap", tmp / "run.foxglove.mcap"
+    argv = [sys.executable, "-m", "telesurg.services.cli", "record", "--out", str(run), "--seconds", "8"]
+    with Pipeline(tmp / "logs", mirror=False, impair=False, master=False, probe=False, camera=True) as p:
+        rec = subprocess.Popen(
+            [*argv, "--connect", p.spec.endpoint],
+            cwd=ROOT,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+            text=True,
+        )
+        try:
+            assert _wait_alive(p, "record", 30), "the recorder never came on the bus"
+            p.site.restart("master_capture")
+            text, _ = rec.communicate(timeout=90)
+        finally:
+            if rec.poll() is None:
+                rec.send_signal(signal.SIGINT)
+                rec.wait(15)
+    print(text)
+    assert rec.returncode == 0
+    assert main([str(run), "--to", "foxglove", str(out)]) == 0
+    yield run, out
+
+
+def _foxglove_classes(reader: Any) -> dict[int, Any]:
+    """schema id → protobuf message class, built from the FileDescriptorSet stored in the file."""
+    from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
+
+    summary = reader.get_summary()
+    out = {}
+    for sid, schema in summary.schemas.items():
+        if schema.encoding != "protobuf":
+            continue
+        fds = descriptor_pb2.FileDescriptorSet.FromString(schema.data)
+        pool = descriptor_pool.DescriptorPool()
+        for fd in fds.file:
+            pool.Add(fd)
+        out[sid] = message_factory.GetMessageClass(pool.FindMessageTypeByName(schema.name))
+    return out
+
+
+def _recorded(run: Path) -> dict[str, list[Any]]:
+    got: dict[str, list[Any]] = {}
+    with open_mcap(run) as reader:
+        for topic, _lt, _pt, _d, msg in iter_decoded(reader):
+            if msg is not None:
+                got.setdefault(topic.split("/", 2)[2], []).append(msg)
+    return got
+
+
+@pytest.mark.process
+def test_the_export_opens_with_the_mcap_reader_with_well_known_schemas(exported: tuple[Path, Path]) -> None:
+    run, out = exported
+    rec = _recorded(run)
+    js_rec = [m for m in rec["slave/arm1/measured_js"] if isinstance(m, JointState)]
+    cp_rec = [m for m in rec["slave/arm1/measured_cp"] if isinstance(m, CartesianPose)]
+    img_rec = [m for m in rec.get("camera/endo/image", []) if isinstance(m, CameraImage)]
+    assert len(js_rec) > 500 and len(cp_rec) > 500, {k: len(v) for k, v in rec.items()}
+
+    with out.open("rb") as f:
+        reader = make_reader(f)
+        summary = reader.get_summary()
+        assert summary is not None
+        classes = _foxglove_classes(reader)
+        schema_of = {c.topic: summary.schemas[c.schema_id] for c in summary.channels.values()}
+        decoded: dict[str, list[Any]] = {}
+        raw: dict[str, list[bytes]] = {}
+        for schema, channel, m in reader.iter_messages(log_time_order=True):
+            if schema is not None and schema.id in classes:
+                decoded.setdefault(channel.topic, []).append(classes[schema.id].FromString(m.data))
+            else:
+                raw.setdefault(channel.topic, []).append(m.data)
+
+    names = {t: (s.name, s.encoding) for t, s in schema_of.items()}
+    print({t: (n, len(decoded.get(t, raw.get(t, [])))) for t, n in sorted(names.items())})
+    assert names["/slave/arm1/measured_js"] == ("foxglove.JointStates", "protobuf")
+    assert names["/slave/arm1/measured_js/joint_state"] == ("sensor_msgs/msg/JointState", "ros2msg")
+    assert names["/slave/arm1/measured_cp"] == ("foxglove.PoseInFrame", "protobuf")
+    assert names["/tf"] == ("foxglove.FrameTransforms", "protobuf")
+    assert names["/robot_description"] == ("std_msgs/msg/String", "ros2msg")
+    assert names["/events"] == ("foxglove.Log", "protobuf")
+
+    # every measured joint sample, values and stamps as recorded
+    js = decoded["/slave/arm1/measured_js"]
+    assert len(js) == len(js_rec)
+    for a, b in zip(js, js_rec, strict=True):
+        assert [j.name for j in a.joints] == list(b.names)
+        assert [j.position for j in a.joints] == list(b.position)
+        assert a.timestamp.seconds * 1_000_000_000 + a.timestamp.nanos == b.header.stamp_ns
+    # poses as recorded, in the scene's world frame
+    cp = decoded["/slave/arm1/measured_cp"]
+    assert len(cp) == len(cp_rec)
+    assert cp[-1].frame_id == "world"
+    assert [cp[-1].pose.position.x, cp[-1].pose.position.y, cp[-1].pose.position.z] == list(
+        cp_rec[-1].position
+    )
+    # the arm moved during the session (the master's circle after the clutch press)
+    travel = np.ptp(np.array([m.position for m in js_rec]), axis=0)
+    assert travel.max() > 0.01, travel
+
+    # the frame transforms are the FK of the measured joints: the forceps tip of the MuJoCo model
+    # at the exported frames is the recorded measured_cp (the slave's own FK) at the same sample
+    tfs = decoded["/tf"]
+    assert len(tfs) == len(js_rec)
+    spec, _profile = robots.recognise("arm1", js_rec[-1].names) or (None, None)
+    assert spec is not None and spec.name == "mh3f"
+    frames = {t.child_frame_id: t for t in tfs[-1].transforms}
+    assert set(ARM_BODIES) <= set(frames)
+    T = np.eye(4)
+    chain = []
+    name = "forceps"
+    while name != "world":
+        chain.append(frames[name])
+        name = frames[name].parent_frame_id
+    for t in reversed(chain):
+        q = t.rotation
+        w, x, y, z = q.w, q.x, q.y, q.z
+        R = np.array(
+            [
+                [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+                [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+                [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+            ]
+        )
+        step = np.eye(4)
+        step[:3, :3], step[:3, 3] = R, [t.translation.x, t.translation.y, t.translation.z]
+        T = T @ step
+    model = RobotModel(spec, ["arm1"])
+    import mujoco
+
+    site = mujoco.mj_name2id(model.model, mujoco.mjtObj.mjOBJ_SITE, "tip")
+    tip_in_forceps = model.model.site_pos[site]
+    tip = T[:3, :3] @ tip_in_forceps + T[:3, 3]
+    last_cp = min(cp_rec, key=lambda m: abs(m.header.stamp_ns - js_rec[-1].header.stamp_ns))
+    assert np.linalg.norm(tip - np.array(last_cp.position)) < 1e-3, (tip, last_cp.position)
+
+    # the robot's description: a URDF with the arm's links
+    from rosbags.typesys import Stores, get_typestore
+
+    urdf = (
+        get_typestore(Stores.ROS2_JAZZY)
+        .deserialize_cdr(raw["/robot_description"][0], "std_msgs/msg/String")
+        .data
+    )
+    assert urdf.startswith("<?xml") and all(f'<link name="{b}">' in urdf for b in ARM_BODIES)
+    # the endoscope video: the recorded JPEG frames, unchanged
+    if img_rec:
+        imgs = decoded["/camera/endo/image"]
+        assert names["/camera/endo/image"] == ("foxglove.CompressedImage", "protobuf")
+        assert len(imgs) == len(img_rec) and imgs[-1].format == "jpeg" and imgs[-1].data == img_rec[-1].data
+    # events and state changes as logs
+    assert decoded["/events"] and all(e.message for e in decoded["/events"])
+    states = [e.message for e in decoded["/slave/arm1/operating_state"]]
+    assert any("follow=True" in s for s in states), states
+
+
+def _rrd_entities(rrd: Path) -> dict[str, set[str]]:
+    """entity path → component names in an .rrd, read with rerun's own reader."""
+    from rerun.chunk import RrdReader
+
+    out: dict[str, set[str]] = {}
+    for chunk in RrdReader(str(rrd)).stream():
+        out.setdefault(chunk.entity_path, set()).update(chunk.to_record_batch().schema.names)
+    return out
+
+
+@pytest.mark.process
+def test_rerun_imports_the_export_with_the_arm(exported: tuple[Path, Path], tmp_path: Path) -> None:
+    _run, out = exported
+    rrd = tmp_path / "export.rrd"
+    env = dict(os.environ, RERUN_ANALYTICS="0")
+    r = subprocess.run(
+        [str(RERUN), "mcap", "convert", str(out), "-o", str(rrd)],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        env=env,
+    )
+    assert r.returncode == 0, r.stderr[-2000:]
+    ents = _rrd_entities(rrd)
+    print(sorted(ents))
+    # the foxglove lenses: transforms, poses, logs, image; ROS 2 joint states as plots
+    assert any("Transform3D" in c for c in ents["/tf"])
+    assert any("InstancePoses3D" in c for c in ents["/slave/arm1/measured_cp"])
+    assert any("TextLog" in c for c in ents["/events"])
+    assert any("Scalars" in c for c in ents["/slave/arm1/measured_js/joint_state/position"])
+    assert any("EncodedImage" in c for c in ents.get("/camera/endo/image", {"EncodedImage"}))
+    # the arm's geometry from the URDF: one visual per link, in the link's frame
+    for b in ARM_BODIES:
+        assert any(e.startswith(f"/mh3f/visual_geometries/{b}/") for e in ents), b
