@@ -237,3 +237,83 @@ def test_rerun_imports_the_export_with_the_arm(exported: tuple[Path, Path], tmp_
     # the arm's geometry from the URDF: one visual per link, in the link's frame
     for b in ARM_BODIES:
         assert any(e.startswith(f"/mh3f/visual_geometries/{b}/") for e in ents), b
+
+
+# --------------------------------------------------------------------------- rerun, in a browser
+
+
+def _arm_pixels(png: bytes) -> int:
+    """Pixels of the MH3F's blue casting (drawn from the URDF) in the 3D view (left 60 %)."""
+    import io
+
+    from PIL import Image
+
+    img = np.asarray(Image.open(io.BytesIO(png)).convert("RGB"), dtype=np.int32)
+    left = img[:, : img.shape[1] * 6 // 10]
+    r, g, b = left[..., 0], left[..., 1], left[..., 2]
+    return int(((b > r + 40) & (b > g + 15) & (b > 120)).sum())
+
+
+def serve_export(mcap: Path, workdir: Path, png_out: Path, wait_s: float) -> int:
+    """Load ``mcap`` with rerun's MCAP importer in this process (``rr.log_file_from_path``), with
+    a layout whose 3D view is in the URDF's ``world`` frame; serve it to headless chromium and
+    screenshot it after ``wait_s``. Returns the arm's pixel count of the saved PNG."""
+    import rerun as rr
+    import rerun.blueprint as rrb
+    from helpers import chromium, screenshot
+    from telesurg.services.launcher import free_port
+    from telesurg.shared.viewer import viewer_url
+
+    rec = rr.RecordingStream("telesurg_export")
+    uri = rr.serve_grpc(grpc_port=free_port(), recording=rec)
+    web = free_port()
+    rr.serve_web_viewer(web_port=web, open_browser=False, connect_to=uri)
+    arm = rrb.Spatial3DView(
+        name="arm: URDF on /robot_description, moved by /tf",
+        origin="/",
+        contents=["/mh3f/**", "/slave/arm1/measured_cp", "/slave/arm1/setpoint_cp"],
+        spatial_information=rrb.archetypes.SpatialInformation(target_frame="world"),
+        eye_controls=rrb.archetypes.EyeControls3D(position=[1.15, -1.05, 0.85], look_target=[0.4, 0.0, 0.25]),
+    )
+    side = rrb.Vertical(
+        rrb.Spatial2DView(name="endoscope", origin="/camera/endo/image"),
+        rrb.TimeSeriesView(
+            name="measured joints [rad]", origin="/slave/arm1/measured_js/joint_state/position"
+        ),
+        rrb.TextLogView(
+            name="events", origin="/", contents=["/events", "/safety/**", "/slave/arm1/operating_state"]
+        ),
+    )
+    rec.send_blueprint(rrb.Blueprint(rrb.Horizontal(arm, side, column_shares=[3, 2]), collapse_panels=True))
+    rr.log_file_from_path(mcap, recording=rec)
+    rec.flush()
+    with chromium(viewer_url(uri, web), workdir) as (cdp, session):
+        time.sleep(wait_s)
+        png = screenshot(cdp, session)
+    rec.disconnect()
+    png_out.write_bytes(png)
+    return _arm_pixels(png)
+
+
+@pytest.mark.timeout(600)
+@pytest.mark.process
+def test_rerun_shows_the_arm_from_the_export(exported: tuple[Path, Path], tmp_path: Path) -> None:
+    from helpers import CHROMIUM
+
+    if not CHROMIUM.exists():
+        pytest.skip("needs Debian chromium at /usr/bin/chromium: apt-get install -y chromium")
+    _run, out = exported
+    png = tmp_path / "export_rerun.png"
+    arm = serve_export(out, tmp_path, png, 60.0)
+    print(f"screenshot {png}: {arm} px of the arm's blue")
+    assert arm > 2000, "rerun drew no arm from the export's URDF and transforms"
+
+
+if __name__ == "__main__":  # the picture of docs/recording.md from an existing export
+    import tempfile
+
+    with tempfile.TemporaryDirectory() as d:
+        n = serve_export(
+            Path(sys.argv[1]), Path(d), Path(sys.argv[2]), float(sys.argv[3]) if len(sys.argv) > 3 else 90
+        )
+    print(f"wrote {sys.argv[2]}: {n} px of the arm")

@@ -302,7 +302,7 @@ def to_foxglove(path: str | Path, out: str | Path, *, overwrite: bool = True) ->
 
     def ros2_channel(topic: str, typename: str) -> Any:
         def make(t: str) -> Any:
-            msgdef, _digest = store.generate_msgdef(typename)
+            msgdef, _digest = store.generate_msgdef(typename, ros_version=2)
             schema = foxglove.Schema(name=typename, encoding="ros2msg", data=msgdef.encode())
             return foxglove.Channel(t, schema=schema, message_encoding="cdr", context=ctx)
 
