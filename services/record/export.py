@@ -41,6 +41,7 @@ from typing import Any
 import numpy as np
 from telesurg.services.record import iter_decoded, open_mcap, read_metadata, recording_site
 from telesurg.shared import robots
+from telesurg.shared.errors import ConfigError
 from telesurg.shared.keys import Keys
 from telesurg.shared.messages import (
     CameraImage,
@@ -103,7 +104,7 @@ class RobotModel:
         for arm in arm_ids:
             try:
                 profile = robots.arm_profile(spec.name, arm)
-            except Exception:  # an arm id the model does not have: no frames for it
+            except ConfigError:  # an arm id the model does not have: no frames for it
                 continue
             adr = []
             for jn in profile.model_joints:
