@@ -52,11 +52,15 @@ log = logging.getLogger(__name__)
 
 TROCAR_MM = (500.0, 0.0, 200.0)
 TROCAR = np.array(TROCAR_MM) / 1e3
-#: Starts (rad): B for Fig. 9 (J4 and J5 both have to turn), A, B, C for Fig. 10, A for the trace.
+#: Starts (rad): B for Fig. 9, A, B, C for Fig. 10, A for the trace. From each, posture adjustment
+#: turns J4 and J5 by 43–51° each. Every start's tip lies inside the local site's workspace box
+#: (z 707–732 mm, under its 800 mm ceiling: deploy/local/site.toml), and its forceps point down
+#: and away from the patient; the aligned postures (J4/J5 toward the trocar) are those of the
+#: earlier starts, whose tips stood at z 860–1,225 mm (issue #20).
 STARTS: dict[str, tuple[float, ...]] = {
-    "start_a": (0.0, -0.2, 0.6, 0.0, -0.3, 0.0),
-    "start_b": (0.3, -0.15, 0.55, 0.4, -0.5, 0.0),
-    "start_c": (-0.35, -0.3, 0.5, -0.4, 0.2, 0.0),
+    "start_a": (0.0, -0.2, 0.6, -0.8, -1.0, 0.0),  # tip (585, −356, 729) mm
+    "start_b": (0.3, -0.15, 0.55, 0.65, -0.85, 0.0),  # tip (564, 455, 707) mm
+    "start_c": (-0.35, -0.3, 0.5, -0.6, -0.9, 0.0),  # tip (492, −457, 732) mm
 }
 TRACE_RADIUS_M = 0.03  # master circle; × mapping scale 0.5 = a 15 mm circle at the slave tip
 TRACE_PERIOD_S = 5.0

@@ -42,7 +42,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from telesurg.services.common import service_main
-from telesurg.services.slave_control.arm import REPLAY_MAX_PERIODS, ArmCore, MotionSource
+from telesurg.services.slave_control.arm import REPLAY_MAX_PERIODS, TROCAR_CATCHUP, ArmCore, MotionSource
 from telesurg.services.slave_control.backends import SlaveBackend, SlaveReading
 from telesurg.services.slave_control.factory import make_backend
 from telesurg.services.slave_control.serial_backend import SerialBackendConfig
@@ -158,7 +158,10 @@ def make_arms(cfg: SlaveControlConfig, backend: SlaveBackend) -> list[ArmCore]:
         idx = [names.index(j) for j in p.model_joints]
         contiguous = idx == list(range(idx[0], idx[0] + len(idx)))
         index = slice(idx[0], idx[0] + len(idx)) if contiguous else np.array(idx)
-        cores.append(ArmCore(p, index, cfg, backend.dt, motion=motion, interpolate=family == "joint"))
+        # every arm interpolates its setpoints (the trocar arm too: its servos must never see a
+        # step, see arm.ServoFollow); the trocar arm makes up stalls (arm.TROCAR_CATCHUP)
+        catchup = TROCAR_CATCHUP if family == "trocar" else 1.0
+        cores.append(ArmCore(p, index, cfg, backend.dt, motion=motion, interpolate=True, catchup=catchup))
     return cores
 
 
@@ -215,6 +218,8 @@ def run(cfg: SlaveControlConfig, stop: threading.Event) -> None:
                 # a real arm held its last command through the stall by itself; its MuJoCo shadow
                 # is stepped by the periods it missed, so it stays in real time too
                 backend.step(1 + missed)
+                for a in arms:
+                    a.stalled(missed * dt)
             else:
                 # a simulation: replay the missed periods, each with its own command computed at
                 # its own time (the catch-up rule, arm.py): the physics stays in real time and the
@@ -223,6 +228,8 @@ def run(cfg: SlaveControlConfig, stop: threading.Event) -> None:
                 # through the earlier ones, as a real arm would have.
                 held = max(0, missed - REPLAY_MAX_PERIODS)
                 backend.step(1 + held)
+                for a in arms:  # the arm held its command through them: its timeline pauses
+                    a.stalled(held * dt)
                 # the inputs that queued up during the stall first: the replayed periods judge
                 # the newest lease and setpoint (by arrival, cycles and their own stamps), never
                 # the ones from before the stall (a thawed slave acts on no old permission)
