@@ -258,7 +258,7 @@ def test_virtual_trocar_circle_and_eight_then_remove(
     assert not ik_fail, ik_fail[:3]
     assert hold_ms <= 100.0
     assert not speed, speed[:3]
-    # issue #20 asks < 1 mm at the full joint rate; measured 0.50–0.77 mm per start, but 1.40 mm
-    # from start C in one idle run: held to the watchdog's RCM limit (2 mm, beyond it the arm
-    # holds) until the < 1 mm goal holds every time (docs/trocar.md)
-    assert max(rcm) < 2.0
+    # issue #20: < 1 mm at the full joint rate, over all of trocar mode (holds and re-engagements
+    # included). It was 0.5–1.4 mm idle and 3–11 mm under load while the slave followed each
+    # servo_jp as a step (tests/test_trocar_servo_rcm.py shows why).
+    assert max(rcm) < 1.0

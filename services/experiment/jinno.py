@@ -84,6 +84,7 @@ class Run:
     t_aligned: float = 0.0
     t_trocar: float = 0.0
     t_end: float = 0.0
+    t_ms_start: float = 0.0  # master–slave motion (or the trace) after the insertion: start
     t_ms_end: float = 0.0  # end of the master–slave motion after the insertion (0: none)
     ms_attempts: int = 0  # laps drawn (a hold of a starved host interrupts one: drawn again)
     ms_whole_lap: bool = True  # one lap was followed throughout
@@ -318,6 +319,7 @@ class Experiment:
         run.t0 = time.monotonic()
         self.adjust(run)
         self.insert(run)
+        run.t_ms_start = time.monotonic()
         if trace:
             self.trace_circle()
         else:
@@ -379,6 +381,7 @@ def run(out: Path, progress: Progress | None = None, *, keep_logs: bool = True) 
             master.join(2)
     metrics = _metrics(exp, master, time.monotonic() - t_begin)
     _figures(out, exp, master)
+    _rcm_figure(out, exp)
     _save_trace(out / "trace.npz", exp, master)
     (out / "metrics.json").write_text(jsonio.dumps(metrics, indent=2) + "\n")
     say("done", 1.0)
@@ -399,11 +402,17 @@ def _metrics(exp: Experiment, master: Master, wall_s: float) -> dict[str, Any]:
     full = _full_rate_rcm(states, joints)
     full_trace = [e for t, e in full if t0 <= t <= t1]
     err = _tracking_error(tips, master, exp.trace)
+
+    def full_max(r: Run) -> float:  # the run's trocar mode, master–slave included
+        sel = [e for t, e in full if r.t0 <= t <= r.t_end]
+        return round(max(sel), 4) if sel else math.nan
+
     return {
         "rcm_full_rate_max_mm": round(max(e for _, e in full), 4) if full else math.nan,
         "rcm_full_rate_mean_mm": round(float(np.mean([e for _, e in full])), 4) if full else math.nan,
         "rcm_full_rate_samples": len(full),
         "rcm_full_rate_trace_max_mm": round(max(full_trace), 4) if full_trace else math.nan,
+        "rcm_full_rate_trace_mean_mm": round(float(np.mean(full_trace)), 4) if full_trace else math.nan,
         "rcm_error_max_mm": round(max(trace_rcm), 4),
         "rcm_error_mean_mm": round(float(np.mean(trace_rcm)), 4),
         "rcm_error_samples": len(trace_rcm),
@@ -428,6 +437,7 @@ def _metrics(exp: Experiment, master: Master, wall_s: float) -> dict[str, Any]:
                 "insert_to_trocar_s": round(r.t_trocar - r.t_aligned, 2),
                 "master_slave_attempts": r.ms_attempts,
                 "master_slave_whole_lap": r.ms_whole_lap if r.ms_attempts else None,
+                "rcm_full_rate_max_mm": full_max(r),
             }
             for r in exp.runs
         ],
@@ -453,6 +463,47 @@ def _full_rate_rcm(
         if i >= 0 and states[i][1] == "trocar":
             out.append((t, rcm_error(np.array(q), TROCAR, MH3F) * 1e3))
     return out
+
+
+def _rcm_figure(out: Path, exp: Experiment) -> None:
+    """``jinno-rcm.png``: the RCM error over all of trocar mode, from the measured joints at their
+    full rate (forward kinematics, as the paper computes it) beside slave_control's 20 Hz MuJoCo
+    figure; one panel per run, the master–slave motion shaded."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    log = exp.arm.log
+    with log.lock:
+        states = list(log.states)
+        joints = list(log.joints)
+    full = np.array(_full_rate_rcm(states, joints) or [(0.0, math.nan)])
+    slow = np.array([(s[0], s[2]) for s in states if s[1] == "trocar"] or [(0.0, math.nan)])
+    runs = exp.runs
+    fig, axes = plt.subplots(1, len(runs), figsize=(3.2 * len(runs), 3.6), sharey=True, squeeze=False)
+    for ax, r in zip(axes[0], runs, strict=True):
+        f = full[(full[:, 0] >= r.t0) & (full[:, 0] <= r.t_end)]
+        m = slow[(slow[:, 0] >= r.t0) & (slow[:, 0] <= r.t_end)]
+        t_in = f[0, 0] if len(f) else r.t_trocar
+        if len(f):
+            label = f"measured_js ({len(f)}; max {f[:, 1].max():.3f} mm)"
+            ax.plot(f[:, 0] - t_in, f[:, 1], lw=0.7, label=label)
+        if len(m):
+            ax.plot(m[:, 0] - t_in, m[:, 1], ".", ms=3, label="operating_state (MuJoCo tip, 20 Hz)")
+        end = exp.trace[1] if r.name == "trace" else r.t_ms_end
+        if r.t_ms_start and end:
+            ax.axvspan(r.t_ms_start - t_in, end - t_in, alpha=0.12, color="g", label="master–slave")
+        ax.axhline(1.0, color="r", ls="--", lw=1)
+        ax.set_title(r.name, fontsize=9)
+        ax.set_xlabel("time in trocar mode [s]")
+        ax.grid(True, alpha=0.3)
+        ax.legend(fontsize=6, loc="upper right")
+    axes[0][0].set_ylabel("RCM error [mm] (trocar to forceps axis)")
+    fig.suptitle("RCM error over all of trocar mode, from the measured joints at 250 Hz (red: 1 mm)")
+    fig.tight_layout()
+    fig.savefig(out / "jinno-rcm.png", dpi=110)
+    plt.close(fig)
 
 
 def _save_trace(path: Path, exp: Experiment, master: Master) -> None:
