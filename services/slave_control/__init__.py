@@ -13,8 +13,9 @@ setpoint validation, e-stop, engage, speed limit, the catch-up after a stall and
 (link lost, controller fault or watchdog, shadow divergence) holds every arm like a revoked
 lease, with the fault as the reason, until it clears and a new engage comes. An arm whose robot
 has the trocar motion family (the MH3F) gets the slave-side motions of Jinno 2014 as its motion
-source (:mod:`telesurg.services.slave_control.trocar_arm`); the others follow servo_jp only,
-interpolated to the control rate.
+source (:mod:`telesurg.services.slave_control.trocar_arm`); the others follow servo_jp only.
+Every arm follows servo_jp interpolated to the control rate on the master's clock (the trocar arm
+too: a step answered joint by joint by the servos leaves the trocar's RCM; ``arm.ServoFollow``).
 
 The control loop runs at the backend period (1 ms for MuJoCo, in real time: missed periods are
 replayed, and counted; ``serial.rate_hz`` for a serial arm). Setpoints arrive on
@@ -83,7 +84,7 @@ class SlaveControlConfig:
     # ms: a lease is honoured at most its valid_for_ms + this after its own header stamp (this
     # host's wall clock, the watchdog's too): a thawed slave never acts on old leases
     lease_stamp_slack_ms: float = 50.0
-    # ms: joint-space arms interpolate sparse setpoints over their period, at most this long
+    # ms: every arm interpolates its setpoints over their period (delay 1.5 periods), at most this long
     interpolation_max_ms: float = 100.0
     engage_tolerance_rad: float = 0.02  # rad: first followed setpoint must be this close to the arm
     # rad: while following, a setpoint farther than this from the previous one is refused (a jump)

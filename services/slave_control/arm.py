@@ -53,8 +53,11 @@ Rules (one of each, for every arm):
 Motions plug in as :class:`MotionSource`: each period the core asks the arm's slave-side source
 (trocar modes, PTP, jog, teach/playback) whether it is active and, if so, for the commanded
 joints; otherwise the arm follows the master through its default source, :class:`ServoFollow`
-(``servo_jp``, through the :class:`~.control.SetpointInterpolator` for arms fed sparse
-setpoints: the VIP/PLAS consoles at 25 Hz).
+(``servo_jp``, through the :class:`~.control.SetpointInterpolator`: the VIP/PLAS consoles at
+25 Hz, the MH3F's mapping at 250 Hz — its servos never see a step, which they would answer each
+at its own pace, off the trocar's RCM). An arm that catches up (the trocar arm,
+:data:`TROCAR_CATCHUP`) pauses its setpoint timeline through the periods it held its command in
+a stall and makes the delay up afterwards, so it resumes along the master's path where it stopped.
 """
 
 from __future__ import annotations
@@ -304,8 +307,8 @@ class ArmCore:
         dt: control period, s.
         node: the bus (None in unit tests: no events, no outputs).
         motion: the arm's slave-side motion source (None: the arm only follows servo_jp).
-        interpolate: interpolate sparse setpoints to the control rate (joint-space arms fed by a
-            console at 25 Hz; the MH3F gets one setpoint per master sample).
+        interpolate: interpolate the setpoints to the control rate (slave_control: every arm).
+        catchup: > 1: pause the setpoint timeline through a stall and make it up at this rate.
     """
 
     profile: ArmProfile
