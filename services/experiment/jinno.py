@@ -69,6 +69,7 @@ TRACE_DEPTH_JOG_S = 1.5  # before the trace the forceps goes this long deeper (a
 TRACE_LAPS = 2
 MS_RADIUS_M = 0.010  # master circle of the master–slave motion after each Fig. 9/10 insertion
 MS_LAPS = 1
+UNTIL_ATTEMPTS = 10  # an insertion / removal stopped by a hold is commanded again, at most this often
 
 Progress = Callable[[str, float], None]
 
@@ -158,13 +159,24 @@ class Experiment:
         if not self.arm.wait(pred, timeout):
             raise RuntimeError(f"{what} (within {timeout:.0f} s)")
 
+    def _finished(self, done: str, since: float, timeout: float = 30.0) -> bool:
+        """Wait for the event ``done`` of a slave-side motion started at ``since``: True; False as
+        soon as a hold (a scheduling stall of a busy host) or a stop ended it first."""
+        a = self.arm
+
+        def over() -> bool:
+            return any(a.events_of(kind, since) for kind in (done, "hold", "motion_stopped"))
+
+        a.wait(over, timeout)
+        return bool(a.events_of(done, since))
+
     def go_to(self, start: str) -> None:
         a = self.arm
-        for _ in range(4):  # a hold stops the playback: play it again, as an operator would
+        for _ in range(UNTIL_ATTEMPTS):  # a hold stops the playback: play it again, as an operator would
             a.wait(a.lease_ok, 10)
             a.send("set_motion_mode", "mode=playback")
             t = time.monotonic()
-            if a.send("play", f"program={start}").accepted and a.wait_event("playback_done", t, 30):
+            if a.send("play", f"program={start}").accepted and self._finished("playback_done", t):
                 a.settle()
                 return
         raise RuntimeError(f"playback of {start} never finished")
@@ -177,7 +189,14 @@ class Experiment:
         t = time.monotonic()
         a.must("begin_posture_adjust", f"method={run.method}")
         if run.method == "ptp":
-            if not a.wait_event("ptp_done", t, 30):
+            for _ in range(UNTIL_ATTEMPTS):  # a hold stops the PTP: back outside, adjust again
+                if self._finished("ptp_done", t):
+                    break
+                a.send("abort", "reason=held during the PTP")
+                a.wait(a.lease_ok, 10)
+                t = time.monotonic()
+                a.must("begin_posture_adjust", f"method={run.method}")
+            else:
                 raise RuntimeError("the PTP never finished")
         elif run.method == "jog":
             for j in (4, 5):
@@ -221,11 +240,16 @@ class Experiment:
         """Send ``command`` until the arm reaches ``mode``: a watchdog hold (a scheduling stall of a
         busy host) stops a slave-side motion, and the operator simply commands it again."""
         a = self.arm
-        for _ in range(4):
+        for _ in range(UNTIL_ATTEMPTS):
+            t = time.monotonic()
             a.must(command)
-            if a.wait(lambda: a.mode() == mode, 20):
+
+            def done_or_stopped(t: float = t) -> bool:
+                return a.mode() == mode or bool(a.events_of("hold", t) or a.events_of("motion_stopped", t))
+
+            if a.wait(done_or_stopped, 30) and a.wait(lambda: a.mode() == mode, 0.3):
                 return
-            a.wait(a.lease_ok, 10)
+            a.wait(a.lease_ok, 10)  # stopped by a hold: command it again once the lease is back
         raise RuntimeError(what)
 
     def remove(self) -> None:
