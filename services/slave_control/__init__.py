@@ -213,7 +213,14 @@ def run(cfg: SlaveControlConfig, stop: threading.Event) -> None:
         cycle = 0
         while not stop.is_set():
             node.poll()
-            command(time.monotonic(), reading)
+            now = time.monotonic()
+            if now > timer.deadline_s and not backend.realtime:
+                # late (a stall before this point): this command drives the first of the periods
+                # the loop missed, so it is computed at that period's time, before the replayed
+                # ones below — every period's command at its own time, in order (an interpolated
+                # reference sampled at the wake time and then at earlier times would jump back)
+                now = timer.deadline_s - dt
+            command(now, reading)
             missed = timer.wait()
             if backend.realtime or not missed:
                 # a real arm held its last command through the stall by itself; its MuJoCo shadow

@@ -117,7 +117,9 @@ class SetpointInterpolator:
             gain = min(self._shift, (self.catchup - 1.0) * (t - self._t_last))
             self._offset -= gain
             self._shift -= gain
-        self._t_last = t if self._t_last is None else max(self._t_last, t)
+        if self._t_last is not None and t < self._t_last:
+            t = self._t_last  # never played backward
+        self._t_last = t
         tp = t - self._offset - self._delay  # the source time being played now
         if tp <= pts[0][0]:
             return pts[0][1]
