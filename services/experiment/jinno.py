@@ -186,8 +186,14 @@ class Experiment:
         a = self.arm
         q0 = a.q()
         target = posture_adjust(q0, TROCAR)
-        t = time.monotonic()
+        t = t_begin = time.monotonic()
         a.must("begin_posture_adjust", f"method={run.method}")
+
+        def in_posture() -> None:  # a hold aborts the posture adjustment: begin it again
+            if a.mode() == "non_trocar":
+                a.wait(a.lease_ok, 10)
+                a.must("begin_posture_adjust", f"method={run.method}")
+
         if run.method == "ptp":
             for _ in range(UNTIL_ATTEMPTS):  # a hold stops the PTP: back outside, adjust again
                 if self._finished("ptp_done", t):
@@ -200,11 +206,12 @@ class Experiment:
                 raise RuntimeError("the PTP never finished")
         elif run.method == "jog":
             for j in (4, 5):
-                for _ in range(4):  # a hold of a starved host stops the jog: jog again
+                for _ in range(UNTIL_ATTEMPTS):  # a hold of a starved host stops the jog: jog again
                     togo = target[j - 1] - a.q()[j - 1]
                     if abs(togo) < math.radians(0.1):
                         break
                     a.wait(a.lease_ok, 10)
+                    in_posture()
                     tj = time.monotonic()
                     a.must("jog", "frame=joint", f"axis=j{j}", f"direction={1 if togo > 0 else -1}")
                     if not a.wait_event("jog_stopped", tj, 40):  # the jog stops itself at the target
@@ -217,6 +224,8 @@ class Experiment:
                 d45 = (target - q)[3:5]
                 if np.max(np.abs(d45)) < math.radians(0.01):  # J4/J5 stop exactly at the target
                     break
+                a.wait(a.lease_ok, 10)
+                in_posture()
                 v = jacobian(q, MH3F)[:3, 3:5] @ d45
                 f = 25.0 * v / np.linalg.norm(v)
                 a.must("push", f"fx={f[0]:.2f}", f"fy={f[1]:.2f}", f"fz={f[2]:.2f}", "seconds=0.4")
@@ -227,7 +236,7 @@ class Experiment:
                 raise RuntimeError("finish_posture_adjust never accepted")
             time.sleep(0.1)
         run.t_aligned = time.monotonic()
-        run.posture_s = run.t_aligned - t
+        run.posture_s = run.t_aligned - t_begin  # (any attempts a hold cut short included)
         q1 = a.q()
         run.moved_other_joints_deg = float(np.degrees(np.abs(q1 - q0)[[0, 1, 2, 5]]).max())
 
