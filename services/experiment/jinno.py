@@ -208,7 +208,7 @@ class Experiment:
             for j in (4, 5):
                 for _ in range(UNTIL_ATTEMPTS):  # a hold of a starved host stops the jog: jog again
                     togo = target[j - 1] - a.q()[j - 1]
-                    if abs(togo) < math.radians(0.1):
+                    if abs(togo) < math.radians(0.01):  # (slave_control's posture-jog deadband)
                         break
                     a.wait(a.lease_ok, 10)
                     in_posture()
