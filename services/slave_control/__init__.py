@@ -242,9 +242,11 @@ def run(cfg: SlaveControlConfig, stop: threading.Event) -> None:
                 # the newest lease and setpoint (by arrival, cycles and their own stamps), never
                 # the ones from before the stall (a thawed slave acts on no old permission)
                 node.poll()
-                t_wake = time.monotonic()
-                for late in range(missed - held, 0, -1):
-                    command(t_wake - late * dt, backend.read())
+                # each replayed period at its own time on the loop's schedule: right after the
+                # 1 + held periods the command above drove (not counted back from the wake-up,
+                # whose own delay would make the reference skip ahead between two periods)
+                for k in range(held + 1, missed + 1):
+                    command(now + k * dt, backend.read())
                     backend.step(1)
             reading = backend.read()
             cycle += 1
