@@ -245,8 +245,8 @@ def run(cfg: SlaveControlConfig, stop: threading.Event) -> None:
                 # each replayed period at its own time on the loop's schedule: right after the
                 # 1 + held periods the command above drove (not counted back from the wake-up,
                 # whose own delay would make the reference skip ahead between two periods)
-                for k in range(held + 1, missed + 1):
-                    command(now + k * dt, backend.read())
+                for period in range(held + 1, missed + 1):
+                    command(now + period * dt, backend.read())
                     backend.step(1)
             reading = backend.read()
             cycle += 1
