@@ -192,7 +192,8 @@ class Experiment:
         def in_posture() -> None:  # a hold aborts the posture adjustment: begin it again
             if a.mode() == "non_trocar":
                 a.wait(a.lease_ok, 10)
-                a.must("begin_posture_adjust", f"method={run.method}")
+                if a.send("begin_posture_adjust", f"method={run.method}").accepted:
+                    a.wait(lambda: a.mode() != "non_trocar", 2)  # (operating_state: 20 Hz)
 
         if run.method == "ptp":
             for _ in range(UNTIL_ATTEMPTS):  # a hold stops the PTP: back outside, adjust again
