@@ -97,6 +97,7 @@ class Record:
     setpoints: list[tuple[int, tuple[float, ...]]] = field(default_factory=list)  # following
     speed_causes: list[str] = field(default_factory=list)
     events: list[tuple[str, str]] = field(default_factory=list)
+    event_times: list[float] = field(default_factory=list)  # monotonic s, one per event
 
     follow_log: list[tuple[float, bool]] = field(default_factory=list)
 
@@ -123,6 +124,7 @@ class Record:
     def on_event(self, m: SafetyEvent, key: str) -> None:
         with self.lock:
             self.events.append((m.kind, m.text))
+            self.event_times.append(time.monotonic())
 
 
 def longest_hold_ms(setpoints: list[tuple[int, tuple[float, ...]]], t_from: int, t_to: int) -> float:
@@ -188,20 +190,43 @@ def test_virtual_trocar_circle_and_eight_then_remove(
         with rec.lock:
             return getattr(rec, attr)
 
+    def held_since(t: float) -> bool:
+        """A hold (or a stop) ended a slave-side motion since ``t`` (monotonic s)."""
+        with rec.lock:
+            return any(
+                k in ("hold", "motion_stopped")
+                for (k, _), te in zip(rec.events, rec.event_times, strict=True)
+                if te >= t
+            )
+
     def until(command: str, mode: str, timeout: float) -> bool:
         """Send ``command`` until the arm is in ``mode``: a watchdog hold (a scheduling stall of this
         busy host) stops a slave-side motion, and the operator commands it again."""
-        for _ in range(4):
+        for _ in range(10):
             assert pipe.wait(lambda: now("lease"), 30), "no lease"
+            t = time.monotonic()
             send(command)
-            if pipe.wait(lambda: now("mode") == mode, timeout):
+            if pipe.wait(lambda t=t: now("mode") == mode or held_since(t), timeout) and pipe.wait(
+                lambda: now("mode") == mode, 0.3
+            ):
                 return True
         return False
 
-    for _ in range(4):  # a hold stops the PTP: abort back outside and adjust again
-        assert pipe.wait(lambda: now("lease"), 30), "no lease"
+    def ptp_aligned() -> bool:
+        """Posture adjustment by PTP until finish_posture_adjust is accepted; False on a hold."""
+        t = time.monotonic()
         assert send("begin_posture_adjust", "method=ptp").accepted
-        if pipe.wait(lambda: send("finish_posture_adjust").accepted or time.sleep(0.5), 20):  # type: ignore[func-returns-value]
+        while time.monotonic() < t + 20:
+            if send("finish_posture_adjust").accepted:
+                return True
+            if held_since(t):
+                return False
+            time.sleep(0.2)
+        return False
+
+    for _ in range(10):  # a hold stops the PTP: abort back outside and adjust again
+        assert pipe.wait(lambda: now("lease"), 30), "no lease"
+        if ptp_aligned():
             break
         send("abort", "reason=held during the PTP")
     else:
