@@ -242,7 +242,7 @@ def test_virtual_trocar_circle_and_eight_then_remove(
     time.sleep(0.2)
     # Like an operator, draw again if the slave stopped following during the drawing (a watchdog
     # hold on this starved host): the drawing is judged on one the slave followed throughout.
-    for attempt in range(1, 4):
+    for attempt in range(1, 6):
         master.clutch = True
         assert pipe.wait(lambda: now("follow"), 10), "the slave never followed in trocar mode"
         t_draw = time.monotonic() + 0.3
@@ -277,7 +277,7 @@ def test_virtual_trocar_circle_and_eight_then_remove(
         f"speed DEGRADED causes {speed[:3]}; ik_failure events {len(ik_fail)}; "
         f"trocar_clamped events {len(clamps)} {clamps[:2]}; remove pivot {pivots}; out {out_ok}"
     )
-    assert not lost, "no drawing was followed throughout in 3 attempts"
+    assert not lost, "no drawing was followed throughout in 5 attempts"
     assert n_sp > 0.5 * 250 * (CIRCLE_S + EIGHT_S), "the slave did not follow the drawing"
     assert out_ok, "remove did not bring the forceps out"
     assert not ik_fail, ik_fail[:3]
