@@ -69,7 +69,7 @@ TRACE_DEPTH_JOG_S = 1.5  # before the trace the forceps goes this long deeper (a
 TRACE_LAPS = 2
 MS_RADIUS_M = 0.010  # master circle of the master–slave motion after each Fig. 9/10 insertion
 MS_LAPS = 1
-UNTIL_ATTEMPTS = 10  # an insertion / removal stopped by a hold is commanded again, at most this often
+UNTIL_ATTEMPTS = 40  # a slave-side motion stopped by a hold is commanded again, at most this often
 
 Progress = Callable[[str, float], None]
 
@@ -170,10 +170,19 @@ class Experiment:
         a.wait(over, timeout)
         return bool(a.events_of(done, since))
 
+    def _lease_back(self) -> None:
+        """After a hold: wait until the lease has been back for 0.3 s (operating_state is 20 Hz;
+        the watchdog keeps a HOLD latched a while after its cause clears)."""
+        a = self.arm
+        deadline = time.monotonic() + 20
+        while time.monotonic() < deadline:
+            if a.wait(a.lease_ok, 1) and not a.wait(lambda: not a.lease_ok(), 0.3):
+                return
+
     def go_to(self, start: str) -> None:
         a = self.arm
         for _ in range(UNTIL_ATTEMPTS):  # a hold stops the playback: play it again, as an operator would
-            a.wait(a.lease_ok, 10)
+            self._lease_back()
             a.send("set_motion_mode", "mode=playback")
             t = time.monotonic()
             if a.send("play", f"program={start}").accepted and self._finished("playback_done", t):
@@ -191,7 +200,7 @@ class Experiment:
 
         def in_posture() -> None:  # a hold aborts the posture adjustment: begin it again
             if a.mode() == "non_trocar":
-                a.wait(a.lease_ok, 10)
+                self._lease_back()
                 if a.send("begin_posture_adjust", f"method={run.method}").accepted:
                     a.wait(lambda: a.mode() != "non_trocar", 2)  # (operating_state: 20 Hz)
 
@@ -200,7 +209,7 @@ class Experiment:
                 if self._finished("ptp_done", t):
                     break
                 a.send("abort", "reason=held during the PTP")
-                a.wait(a.lease_ok, 10)
+                self._lease_back()
                 t = time.monotonic()
                 a.must("begin_posture_adjust", f"method={run.method}")
             else:
@@ -211,7 +220,7 @@ class Experiment:
                     togo = target[j - 1] - a.q()[j - 1]
                     if abs(togo) < math.radians(0.01):  # (slave_control's posture-jog deadband)
                         break
-                    a.wait(a.lease_ok, 10)
+                    self._lease_back()
                     in_posture()
                     tj = time.monotonic()
                     a.must("jog", "frame=joint", f"axis=j{j}", f"direction={1 if togo > 0 else -1}")
@@ -225,7 +234,7 @@ class Experiment:
                 d45 = (target - q)[3:5]
                 if np.max(np.abs(d45)) < math.radians(0.01):  # J4/J5 stop exactly at the target
                     break
-                a.wait(a.lease_ok, 10)
+                self._lease_back()
                 in_posture()
                 v = jacobian(q, MH3F)[:3, 3:5] @ d45
                 f = 25.0 * v / np.linalg.norm(v)
@@ -259,7 +268,7 @@ class Experiment:
 
             if a.wait(done_or_stopped, 30) and a.wait(lambda: a.mode() == mode, 0.3):
                 return
-            a.wait(a.lease_ok, 10)  # stopped by a hold: command it again once the lease is back
+            self._lease_back()  # stopped by a hold: command it again once the lease is back
         raise RuntimeError(what)
 
     def remove(self) -> None:
@@ -318,7 +327,7 @@ class Experiment:
         try:
             for attempt in range(1, TRACE_ATTEMPTS + 1):
                 run.ms_attempts = attempt
-                a.wait(a.lease_ok, 10)
+                self._lease_back()
                 m.clutch = True
                 if not a.wait(lambda: bool(a.log.states) and a.log.states[-1][4], 5):
                     m.clutch = False
