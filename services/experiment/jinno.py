@@ -228,7 +228,7 @@ class Experiment:
                         raise RuntimeError(f"the J{j} jog never reached its target")
                     a.settle()
         else:  # direct teach: push the tip the way J4/J5 must turn, as a person would
-            deadline = time.monotonic() + 40
+            deadline = time.monotonic() + 120
             while time.monotonic() < deadline:
                 q = a.q()
                 d45 = (target - q)[3:5]
@@ -242,8 +242,10 @@ class Experiment:
                 time.sleep(0.45)
         deadline = time.monotonic() + 5
         while not a.send("finish_posture_adjust").accepted:  # let the servo settle into alignment
+            if run.method != "ptp":
+                in_posture()  # (aborted by a hold at the very end: aligned already, begin again)
             if time.monotonic() > deadline:
-                raise RuntimeError("finish_posture_adjust never accepted")
+                raise RuntimeError(f"finish_posture_adjust never accepted (mode {a.mode()})")
             time.sleep(0.1)
         run.t_aligned = time.monotonic()
         run.posture_s = run.t_aligned - t_begin  # (any attempts a hold cut short included)
