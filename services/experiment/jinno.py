@@ -64,7 +64,7 @@ STARTS: dict[str, tuple[float, ...]] = {
 }
 TRACE_RADIUS_M = 0.03  # master circle; × mapping scale 0.5 = a 15 mm circle at the slave tip
 TRACE_PERIOD_S = 5.0
-TRACE_ATTEMPTS = 3  # a trace interrupted by a hold is traced again, at most this often
+TRACE_ATTEMPTS = 5  # a trace interrupted by a hold is traced again, at most this often
 TRACE_DEPTH_JOG_S = 1.5  # before the trace the forceps goes this long deeper (at 40 mm/s: +60 mm)
 TRACE_LAPS = 2
 MS_RADIUS_M = 0.010  # master circle of the master–slave motion after each Fig. 9/10 insertion
@@ -295,20 +295,26 @@ class Experiment:
         # a starved machine): the trace is judged on a lap the slave followed throughout.
         for attempt in range(1, TRACE_ATTEMPTS + 1):
             self.trace_attempts = attempt
+            self._lease_back()
             m.clutch = True  # press the pedal: engage
-            self._must_wait(lambda: bool(a.log.states) and a.log.states[-1][4], 5, "the slave never followed")
+            if not a.wait(lambda: bool(a.log.states) and a.log.states[-1][4], 5):
+                m.clutch = False  # refused (a hold): release, and press again once the lease is back
+                time.sleep(0.5)
+                continue
             time.sleep(0.3)
             t0 = m.trace_t0 = time.monotonic()
             time.sleep(TRACE_LAPS * TRACE_PERIOD_S)  # whole laps: the master ends where it started
             self.trace = (t0, time.monotonic())
             m.clutch = False
             m.trace_t0 = None
-            self._must_wait(lambda: not a.log.states[-1][4], 2, "the slave never let go")
+            self._must_wait(lambda: not a.log.states[-1][4], 10, "the slave never let go")
             with a.log.lock:
                 lost = [s for s in a.log.states if t0 <= s[0] <= self.trace[1] and not s[4]]
             if not lost:
                 break
             log.warning("trace: the slave stopped following during attempt %d; tracing again", attempt)
+        if self.trace == (0.0, 0.0):
+            raise RuntimeError(f"the slave never followed the trace in {TRACE_ATTEMPTS} attempts")
         a.settle()
         # back out the extra depth in trocar mode before the removal (the pose it was inserted in)
         a.must("set_motion_mode", "mode=jog")
@@ -340,7 +346,7 @@ class Experiment:
                 time.sleep(MS_LAPS * TRACE_PERIOD_S)
                 m.clutch = False
                 m.trace_t0 = None
-                self._must_wait(lambda: not a.log.states[-1][4], 2, "the slave never let go")
+                self._must_wait(lambda: not a.log.states[-1][4], 10, "the slave never let go")
                 with a.log.lock:
                     lost = [
                         s for s in a.log.states if t0 <= s[0] <= t0 + MS_LAPS * TRACE_PERIOD_S and not s[4]
