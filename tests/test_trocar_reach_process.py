@@ -170,6 +170,12 @@ def site(
         finally:
             m.stop.set()
             m.join(2)
+            with rec.lock:  # the figure also when the run failed on something else (a loaded host)
+                r = list(rec.rcm_mm)
+                holds = sum(1 for k, _ in rec.events if k == "hold")
+            if r:
+                print(f"RCM from measured_js in trocar mode: max {max(r):.3f} mm, mean {np.mean(r):.3f} mm")
+                print(f"over {len(r)} samples; {holds} hold events")
     for f in sorted((tmp_path / "logs").glob("*.log")):
         print(f"--- {f.name}\n{f.read_text()[-2000:]}")
 
