@@ -7,6 +7,7 @@ import json
 import os
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -103,3 +104,21 @@ def test_bench_latency_and_soak(tmp_path: Path) -> None:
     assert bare["recorder"] is None and bare["streams"] == {}
     assert set(bare["deadline_misses"]) == {"slave_control", "master_capture"}
     assert sum(bare["fifo_threads"].values()) == 0  # --rt-priority 0: the normal scheduler
+
+
+def test_watchdog_holds_counts_the_runs_holds_not_the_stop_sequences() -> None:
+    from telesurg.services.bench.perf import watchdog_holds
+
+    log = (
+        "2026-12-02 04:45:48,119 watchdog INFO telesurg.shared.bus: [arm1] safety_transition: HOLD → OK\n"
+        "2026-12-02 04:45:50,002 watchdog ERROR telesurg.shared.bus: [arm1] safety_transition: "
+        "OK → HOLD: master measured_cp stale (93 ms)\n"
+        "2026-12-02 04:45:50,500 watchdog INFO telesurg.shared.bus: [arm1] safety_transition: HOLD → OK\n"
+        "2026-12-02 04:45:51,000 watchdog WARNING telesurg.shared.bus: [arm1] safety_transition: "
+        "OK → DEGRADED: x\n"
+        "2026-12-02 04:45:52,011 watchdog ERROR telesurg.shared.bus: [arm1] safety_transition: "
+        "DEGRADED → HOLD: master_capture not alive\n"
+    )
+    stop = time.mktime(time.strptime("2026-12-02 04:45:52", "%Y-%m-%d %H:%M:%S"))
+    assert watchdog_holds(log) == ["master measured_cp stale (93 ms)", "master_capture not alive"]
+    assert watchdog_holds(log, until=stop) == ["master measured_cp stale (93 ms)"]

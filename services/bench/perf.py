@@ -140,10 +140,12 @@ def _pipeline_block(
         with _loaded(load, p.spec.endpoint, tmp):
             time.sleep(seconds + 1.0)
             fifo = {n: fifo_threads(pr.pid) for n, pr in p.site.procs.items() if n in RT_SERVICES}
+        t_stop = time.time()
         p.close()
     rows: np.ndarray = np.load(npy)
     logs = {f.stem: f.read_text() for f in (tmp / f"logs{k}").glob("*.log")}
-    return rows, {"holds": logs.get("watchdog", "").count("→ HOLD"), "fifo_threads": fifo}
+    holds = watchdog_holds(logs.get("watchdog", ""), t_stop)
+    return rows, {"holds": len(holds), "hold_causes": holds, "fifo_threads": fifo}
 
 
 def _loaded(load: Load | None, endpoint: str, tmp: Path) -> contextlib.AbstractContextManager[Any]:
@@ -260,6 +262,27 @@ _COUNTERS = {
 }
 
 
+_TRANSITION = re.compile(
+    r"^(\d{4}-\d\d-\d\d \d\d:\d\d:\d\d),(\d{3}) watchdog .*safety_transition: \w+ → HOLD(.*)$"
+)
+
+
+def watchdog_holds(log: str, until: float | None = None) -> list[str]:
+    """The watchdog's transitions into HOLD in its log (``→ HOLD`` with its causes), those logged
+    before the wall-clock time ``until`` (s since the epoch) when given: a bench passes the moment
+    it began to stop the pipeline, whose stop sequence (master_capture first) makes a HOLD of its
+    own that is not the run's."""
+    out = []
+    for line in log.splitlines():
+        m = _TRANSITION.match(line)
+        if m is None:
+            continue
+        t = time.mktime(time.strptime(m.group(1), "%Y-%m-%d %H:%M:%S")) + int(m.group(2)) / 1e3
+        if until is None or t < until:
+            out.append(m.group(3).lstrip(": ").strip())
+    return out
+
+
 def deadline_misses(logs: dict[str, str]) -> dict[str, Any]:
     """Each fixed-rate loop's cycles, overruns and miss % from its service's log at exit."""
     misses: dict[str, Any] = {}
@@ -319,6 +342,7 @@ def _soak_run(a: argparse.Namespace, load: Load | None) -> dict[str, Any]:
             rss = {n: round(pr.memory_info().rss / 2**20, 1) for n, pr in watched.items()}
             if rec is not None:
                 rec.wait(60)
+            t_stop = time.time()
             p.close()
         cpu = {n: c for n, c in cpu_all.items() if n in procs}  # the pipeline's own services
         logs = {f.stem: f.read_text() for f in (tmp / "logs").glob("*.log")}
@@ -331,7 +355,9 @@ def _soak_run(a: argparse.Namespace, load: Load | None) -> dict[str, Any]:
     res["recorder"] = {"cpu_pct": cpu_all["recorder"], "rss_mb": rss["recorder"]} if a.record else None
     res["rss_mb"] = rss
     res["fifo_threads"] = fifo
-    res["watchdog_holds"] = logs.get("watchdog", "").count("→ HOLD")
+    holds = watchdog_holds(logs.get("watchdog", ""), t_stop)
+    res["watchdog_holds"] = len(holds)
+    res["watchdog_hold_causes"] = holds
     from rich.console import Console
     from rich.table import Table
 
@@ -353,7 +379,11 @@ def _soak_run(a: argparse.Namespace, load: Load | None) -> dict[str, Any]:
         )
     Console().print(t)
     total, holds = res["cpu_total_pct"], res["watchdog_holds"]
-    print(f"total CPU of the pipeline {total} % of one core (2 cores = 200 %); watchdog holds {holds}")
+    causes = "; ".join(res["watchdog_hold_causes"])
+    print(
+        f"total CPU of the pipeline {total} % of one core (2 cores = 200 %); watchdog holds {holds}"
+        + (f" ({causes})" if causes else "")
+    )
     return res
 
 

@@ -35,7 +35,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from telesurg.services.bench.perf import _overrides, _stats_ms, deadline_misses
+from telesurg.services.bench.perf import _overrides, _stats_ms, deadline_misses, watchdog_holds
 
 
 class FrameProbe:
@@ -97,6 +97,7 @@ def _block(camera: bool, a: argparse.Namespace, tmp: Path, k: int) -> dict[str, 
         cpu = {n: round(pr.cpu_percent(None), 1) for n, pr in procs.items()}
         with probe.lock:
             rows = np.array(probe.rows, dtype=float) if probe.rows else np.zeros((0, 9))
+        t_stop = time.time()
         p.close()
     applied: np.ndarray = np.load(npy)
     applied = applied[(applied[:, 0] > 0) & (applied[:, 1] > 0)]
@@ -110,7 +111,8 @@ def _block(camera: bool, a: argparse.Namespace, tmp: Path, k: int) -> dict[str, 
         "control_end_to_end": _stats_ms(applied[:, 2] - applied[:, 0]),
         "deadline_misses": misses,
         "cpu_pct": cpu,
-        "watchdog_holds": text.get("watchdog", "").count("→ HOLD"),
+        "watchdog_holds": len(watchdog_holds(text.get("watchdog", ""), t_stop)),
+        "watchdog_hold_causes": watchdog_holds(text.get("watchdog", ""), t_stop),
     }
     if camera and len(rows):
         span_s = (rows[-1, 0] - rows[0, 0]) / 1e9 if len(rows) > 1 else a.seconds

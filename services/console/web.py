@@ -460,12 +460,15 @@ class Server:
         await resp.prepare(request)
         last = -1
         with contextlib.suppress(ConnectionError, asyncio.CancelledError):
+            await resp.write(b"--frame\r\n")
             while True:
                 m = self.wc.latest_frame(camera)
                 if m is not None and m.header.seq != last and m.encoding == "jpeg":
                     last = m.header.seq
-                    head = f"--frame\r\nContent-Type: image/jpeg\r\nContent-Length: {len(m.data)}\r\n\r\n"
-                    await resp.write(head.encode() + m.data + b"\r\n")
+                    head = f"Content-Type: image/jpeg\r\nContent-Length: {len(m.data)}\r\n\r\n"
+                    # each part ends with the next boundary at once: the part is complete when it
+                    # is written, not when the next frame comes
+                    await resp.write(head.encode() + m.data + b"\r\n--frame\r\n")
                 await asyncio.sleep(0.02)
         return resp
 

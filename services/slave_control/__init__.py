@@ -13,9 +13,11 @@ setpoint validation, e-stop, engage, speed limit, the catch-up after a stall and
 (link lost, controller fault or watchdog, shadow divergence) holds every arm like a revoked
 lease, with the fault as the reason, until it clears and a new engage comes. An arm whose robot
 has the trocar motion family (the MH3F) gets the slave-side motions of Jinno 2014 as its motion
-source (:mod:`telesurg.services.slave_control.trocar_arm`); the others follow servo_jp only.
-Every arm follows servo_jp interpolated to the control rate on the master's clock (the trocar arm
-too: a step answered joint by joint by the servos leaves the trocar's RCM; ``arm.ServoFollow``).
+source (:mod:`telesurg.services.slave_control.trocar_arm`); an arm with an elbow (the VIP arms)
+gets the elbow (null-space) jog (:mod:`telesurg.services.slave_control.elbow_jog`); the others
+follow servo_jp only. Every arm follows servo_jp interpolated to the control rate on the master's
+clock (the trocar arm too: a step answered joint by joint by the servos leaves the trocar's RCM;
+``arm.ServoFollow``).
 
 The control loop runs at the backend period (1 ms for MuJoCo, in real time: missed periods are
 replayed, and counted; ``serial.rate_hz`` for a serial arm). Setpoints arrive on
@@ -45,6 +47,7 @@ import numpy as np
 from telesurg.services.common import service_main
 from telesurg.services.slave_control.arm import REPLAY_MAX_PERIODS, TROCAR_CATCHUP, ArmCore, MotionSource
 from telesurg.services.slave_control.backends import SlaveBackend, SlaveReading
+from telesurg.services.slave_control.elbow_jog import ElbowJog
 from telesurg.services.slave_control.factory import make_backend
 from telesurg.services.slave_control.serial_backend import SerialBackendConfig
 from telesurg.services.slave_control.teach import TeachConfig
@@ -102,7 +105,7 @@ class SlaveControlConfig:
     work_frame_rpy_deg: tuple[float, float, float] = (180.0, 0.0, -90.0)
     patient_box_min_mm: tuple[float, float, float] = (260.0, -170.0, 130.0)
     patient_box_max_mm: tuple[float, float, float] = (740.0, 170.0, 198.0)
-    jog_speed_mm_s: float = 10.0  # mm/s: Cartesian jog and insert/remove speed
+    jog_speed_mm_s: float = 10.0  # mm/s: Cartesian jog, insert/remove and elbow (VIP) jog speed
     jog_joint_speed_deg_s: float = 5.0  # deg/s: joint jog speed
     ptp_speed_fraction: float = 0.2  # PTP moves (posture, playback) at this fraction of the joint limits
     playback_speed_mm_s: float = 20.0  # mm/s: tip speed of a playback in trocar mode
@@ -156,6 +159,8 @@ def make_arms(cfg: SlaveControlConfig, backend: SlaveBackend) -> list[ArmCore]:
         motion: MotionSource | None = None
         if family == "trocar":
             motion = TrocarMotions(cfg, p, getattr(backend, "push", None))
+        elif p.elbow is not None:  # an arm with an elbow (VIP): the elbow (null-space) jog
+            motion = ElbowJog(cfg, p)
         idx = [names.index(j) for j in p.model_joints]
         contiguous = idx == list(range(idx[0], idx[0] + len(idx)))
         index = slice(idx[0], idx[0] + len(idx)) if contiguous else np.array(idx)
