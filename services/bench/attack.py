@@ -283,10 +283,18 @@ class Case:
 
 
 def _forged_seen(a: Attacker) -> int:
-    """Unauthenticated messages the attacker's observer received so far (every forged key of the
-    cases is one it subscribes to)."""
-    with a.node._lock:
-        return sum(st.unauthenticated for st in a.node.streams.streams.values())
+    """Unauthenticated messages the bench's probe (a session of its own: zenoh delivers a
+    session's puts to its own subscribers without the router) received so far on the keys the
+    cases forge."""
+    k, node = a.k, a.pipe.node
+    keys = (
+        k.safety("arm1", "lease"),
+        k.slave("arm1", "servo_jp"),
+        k.master("m1", "measured_cp"),
+        k.safety("arm1", "state"),
+    )
+    with node._lock:
+        return sum(node.streams.get(key).unauthenticated for key in keys)
 
 
 def _lease_now(pipe: Pipeline) -> bool:
@@ -440,6 +448,8 @@ def _watchdog_fault(
             row = _streams_row(a, ["slave_control"], n_sp + n_lease, t0, before, extra=extra)
             limit = KILL_HOLD_LIMIT_MS if kind == "kill" else validity + FREEZE_MARGIN_MS
             row["time_to_hold_ms"] = _lease_lost_ms(pipe, t0, t0 + int(1.5e9))
+            hold = pipe.p.first_op_after(t0, lambda r: not r[2])
+            row["hold_reason"] = hold[1][3] if hold is not None else None
             row["time_to_hold_limit_ms"] = limit
             if not lease_before:
                 row["error"] = "the slave held no lease before the fault"
