@@ -46,7 +46,7 @@ AUTH_CASES = (
     "scale0-state",
 )
 #: the cases of session-keyed liveliness and the locked-down local listener (branch guard)
-GUARD_CASES = ("duplicate-alive", "duplicate-alive-copy", "local-tcp-client")
+GUARD_CASES = ("duplicate-alive", "watchdog-kill-locked", "duplicate-alive-copy", "local-tcp-client")
 
 
 @pytest.fixture(scope="module")
@@ -84,14 +84,22 @@ def test_operator_authority_cases_meet_the_limits(rows: dict[str, dict[str, Any]
 
 
 @pytest.mark.parametrize("case", GUARD_CASES)
-def test_liveliness_and_local_listener_cases_meet_the_limits(
-    rows: dict[str, dict[str, Any]], case: str
-) -> None:
+def test_liveliness_and_local_listener_cases(rows: dict[str, dict[str, Any]], case: str) -> None:
+    """0 accepted, < 0.5 mm; the watchdog's death is seen as a death — the slave's hold reason is
+    the watchdog's vanished token (``lease: watchdog not alive``), not a lease running out, whoever
+    else declares tokens for it (the time to hold is printed with the rows: on the shared 2-core
+    machine the probe's receipt carries the host's scheduling delays); a client without the
+    site's credentials gets no session on the locked-down slave site and nothing of it arrives."""
     row = rows[case]
-    _check(row)
-    if case.startswith("duplicate-alive"):
-        # the hold came from the death itself (the genuine token gone), not from a lease expiring
-        assert row["time_to_hold_ms"] is not None, row
+    assert "error" not in row or not row.get("connected", True), row
+    assert row["accepted"] == 0, f"{case}: {row['accepted']} forbidden messages accepted: {row}"
+    m = row.get("motion_mm")
+    assert m is not None and m < attack.MOTION_LIMIT_MM, f"{case}: the slave moved {m} mm: {row}"
+    if case != "local-tcp-client":
+        assert row["time_to_hold_ms"] is not None, f"{case}: the slave never held: {row}"
+        assert "watchdog not alive" in (row.get("hold_reason") or ""), row
+    if case == "duplicate-alive-copy":
+        assert row["site"] == "locked" and row["reached"] == 0, f"the ACL let the forgeries through: {row}"
     if case == "local-tcp-client":
         assert row["site"] == "locked" and not row["connected"], row
         assert row["reached"] == 0, f"messages of a client without credentials reached the site: {row}"

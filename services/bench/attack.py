@@ -12,8 +12,13 @@ listener, service id ``intruder``, forging headers freely) then runs each case:
                            99,000 ahead + forged ``servo_jp`` ``src=mapping`` (seq jump)
 ``watchdog-freeze``        watchdog SIGSTOP; forged leases (next seq) + forged ``servo_jp``
 ``watchdog-kill``          watchdog SIGKILL; the same
-``duplicate-alive``        a second ``alive/watchdog`` token, watchdog SIGKILL, forged leases +
+``duplicate-alive``        a stranger's tokens for the watchdog (``alive/watchdog`` and
+                           ``alive/watchdog/<its own sid>``), watchdog SIGKILL, forged leases +
                            ``servo_jp``
+``watchdog-kill-locked``   watchdog SIGKILL on the locked-down slave site (its reference)
+``duplicate-alive-copy``   on the locked-down slave site, with a local tool's certificate
+                           (``site-operator``): the same tokens plus a copy of the genuine
+                           token's exact key, watchdog SIGKILL, forged leases + ``servo_jp``
 ``servo-seq-jump``         forged ``servo_jp`` ``src=mapping`` 99,000 ahead under a genuine lease
 ``seq0-poison``            one ``master/m1/measured_cp`` ``src=master_capture`` with seq 0
 ``scale0-state``           forged ``safety/arm1/state`` ``src=watchdog`` with scale 0
@@ -22,8 +27,9 @@ listener, service id ``intruder``, forging headers freely) then runs each case:
 ``stranger-reset``         an e-stop, then a reset from ``intruder``
 ``console-ptp``            PTP from the console identity without the confirmation
 ``console-scale-follow``   ``set_scale value=2.0`` from the console identity while following
-``local-tcp-client``       a client with no credentials on the site's TCP listener: does it
-                           connect, and do its puts reach the site
+``local-tcp-client``       clients with no credentials on the locked-down slave site's local
+                           listener (plain TCP; TLS without a certificate): does one connect,
+                           do its events and forged leases reach the site
 =========================  ===================================================================
 
 For each case: the forged messages sent and accepted by their targets (commands: the replies;
@@ -678,6 +684,12 @@ def cases() -> list[Case]:
             "duplicate-alive",
             "stranger's alive/watchdog tokens, watchdog SIGKILL, forged leases + servo_jp",
             _watchdog_fault("kill", duplicate=True),
+        ),
+        Case(
+            "watchdog-kill-locked",
+            "watchdog SIGKILL on the locked-down site (the reference of the next case)",
+            _watchdog_fault("kill"),
+            site="locked",
         ),
         Case(
             "duplicate-alive-copy",
