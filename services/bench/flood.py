@@ -68,7 +68,8 @@ def memory_detail(pipe: Pipeline) -> dict[str, dict[str, float]]:
         if name not in pipe.site.procs or pipe.site.procs[name].poll() is not None:
             continue
         kb = {"heap": 0, "anon": 0, "file": 0}
-        kind = "anon"
+        files: dict[str, int] = {}
+        kind, path = "anon", ""
         try:
             with open(f"/proc/{pipe.site.pid(name)}/smaps") as f:
                 for line in f:
@@ -78,9 +79,14 @@ def memory_detail(pipe: Pipeline) -> dict[str, dict[str, float]]:
                         kind = "heap" if path == "[heap]" else "file" if path.startswith("/") else "anon"
                     elif parts and parts[0] == "Rss:":
                         kb[kind] += int(parts[1])
+                        if kind == "file":
+                            base = path.rsplit("/", 1)[-1]
+                            files[base] = files.get(base, 0) + int(parts[1])
         except OSError:
             continue
         out[name] = {k: round(v / 1024, 1) for k, v in kb.items()}
+        for base, v in sorted(files.items(), key=lambda kv: -kv[1])[:3]:  # the largest mapped files
+            out[name][f"file:{base}"] = round(v / 1024, 1)
     return out
 
 
