@@ -17,6 +17,11 @@ service knows *which* session is the genuine one:
   token or not;
 * until anything of a service is authenticated (or when its genuine session never declared a
   token this node saw), presence is by any token of it, as before;
+* after the genuine session's token vanished, a token that appears *later* counts again (a
+  restart: its messages make it the genuine session once they arrive); a token that existed
+  before the death never does. Only the death itself acts on safety (the slave revokes its lease
+  at once, the watchdog holds); being alive grants nothing — motion still needs fresh
+  authenticated leases and streams;
 * a session whose token vanished stays dead (:meth:`Presence.vanished`): a message of it still
   queued at a receiver (a polled lease) must not bring it back.
 
@@ -64,9 +69,11 @@ class Presence:
 
     def __init__(self) -> None:
         self._lock = threading.Lock()
-        self._tokens: dict[str, set[bytes]] = {}
+        self._tokens: dict[str, dict[bytes, int]] = {}  # service → {sid: order of appearance}
         self._genuine: dict[str, bytes] = {}
         self._gone: dict[str, deque[bytes]] = {}
+        self._died: dict[str, int] = {}  # service → order at which its genuine token vanished
+        self._order = 0
         self._watchers: list[_Watcher] = []
 
     # -- what is known -------------------------------------------------------------------------
@@ -76,11 +83,14 @@ class Presence:
             return self._alive(service)
 
     def _alive(self, service: str) -> bool:
-        toks = self._tokens.get(service, set())
+        toks = self._tokens.get(service, {})
         g = self._genuine.get(service)
         if g is None or (g not in toks and g not in self._gone.get(service, ())):
             return bool(toks)
-        return g in toks
+        if g in toks:
+            return True
+        died = self._died.get(service, 0)
+        return any(order > died for order in toks.values())  # a token that came after the death
 
     def vanished(self, service: str, sid: bytes) -> bool:
         """Did the token of ``service``'s session ``sid`` vanish (that session is dead)?"""
@@ -95,17 +105,20 @@ class Presence:
     def token(self, service: str, sid: bytes, present: bool) -> list[Call]:
         """A liveliness token ``alive/<service>/<sid>`` appeared (``present``) or vanished."""
         with self._lock:
-            toks = self._tokens.setdefault(service, set())
+            self._order += 1
+            toks = self._tokens.setdefault(service, {})
             if present:
-                toks.add(sid)
+                toks.setdefault(sid, self._order)
                 gone = self._gone.get(service)
                 if gone is not None and sid in gone:
                     gone.remove(sid)  # (a token seen again: zenoh redelivered it)
             else:
-                toks.discard(sid)
+                toks.pop(sid, None)
                 gone = self._gone.setdefault(service, deque(maxlen=GONE_MAX))
                 if sid not in gone:
                     gone.append(sid)
+                if sid == self._genuine.get(service):
+                    self._died[service] = self._order
             return self._changes(service)
 
     def authenticated(self, service: str, sid: bytes) -> list[Call]:

@@ -26,7 +26,9 @@ import pytest
 from telesurg.services.bench import attack
 from telesurg.services.bench.harness import now_ns
 
-pytestmark = pytest.mark.process
+#: the module's fixture runs every case, each forging case on a site of its own (15 sites, about a
+#: minute each on the shared 2-core machine under load): longer than the suite's 300 s per test
+pytestmark = [pytest.mark.process, pytest.mark.timeout(1800)]
 
 #: the cases this branch's operator authority must pass
 AUTHORITY_CASES = (

@@ -41,16 +41,19 @@ def test_before_anything_is_authenticated_presence_is_any_token() -> None:
     assert seen == [("watchdog", True), ("watchdog", False)]
 
 
-def test_a_restart_is_alive_again_once_its_session_is_authenticated() -> None:
+def test_a_restart_is_alive_again_a_token_from_before_the_death_never() -> None:
     p, seen = _watched()
+    p.run(p.token("watchdog", X, True))  # a stranger's token, declared before the death
     for call in (p.token("watchdog", A, True), p.authenticated("watchdog", A), p.token("watchdog", A, False)):
         p.run(call)
-    p.run(p.token("watchdog", B, True))  # the restarted watchdog's token, nothing signed yet
-    assert not p.alive("watchdog")
-    p.run(p.authenticated("watchdog", B))
+    assert not p.alive("watchdog") and seen[-1] == ("watchdog", False)
+    p.run(p.token("watchdog", B, True))  # the restarted watchdog's token (nothing signed yet)
     assert p.alive("watchdog") and seen[-1] == ("watchdog", True)
-    # a message of the dead session still queued somewhere does not bring it back
-    assert p.vanished("watchdog", A)
+    p.run(p.authenticated("watchdog", B))  # its first message: the genuine session now
+    p.run(p.token("watchdog", B, False))  # and its death is seen at once, X or not
+    assert not p.alive("watchdog") and seen[-1] == ("watchdog", False)
+    # a message of a dead session still queued somewhere does not bring it back
+    assert p.vanished("watchdog", A) and p.vanished("watchdog", B)
 
 
 def test_other_services_are_not_reported_to_a_watcher() -> None:
