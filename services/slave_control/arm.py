@@ -16,7 +16,10 @@ Rules (one of each, for every arm):
   lease never outlasts its grant by the polling interval. It allows motion while it says
   ``allow`` and is younger than its ``valid_for_ms``; as for every input age (``control.py``) it
   has expired only when both the wall clock and the control cycles executed since it came say
-  so. The watchdog's liveliness token dying revokes it at once. **Stamp age:** whatever those
+  so. The watchdog's liveliness token dying revokes it at once: the token of the watchdog
+  session whose leases this node authenticates (``alive/watchdog/<sid>``,
+  :mod:`telesurg.shared.presence`), so another token for the watchdog (a stranger's) does not
+  hide the death, and a lease of that session still queued here is dropped. **Stamp age:** whatever those
   clocks say, a lease is honoured at most its ``valid_for_ms`` + ``lease_stamp_slack_ms`` after
   its own header stamp, and a setpoint at most ``setpoint_max_age_ms`` after its stamp, judged on
   this host's wall clock at the moment of use (the watchdog and the mapping run on the slave
@@ -399,6 +402,10 @@ class ArmCore:
     # -- inputs (zenoh threads / the loop's poll) ----------------------------------------------
     def on_lease(self, msg: SafetyLease, key: str) -> None:
         now = self.node.received(key) if self.node is not None else time.monotonic()
+        if self.node is not None and self.node.presence.vanished(
+            self.cfg.watchdog_service, self.node.streams.get(key).sid
+        ):
+            return  # queued from a watchdog session whose token has vanished: it is dead
         with self.lock:
             valid_cycles = round(msg.valid_for_ms / 1e3 / self.dt)
             self.lease = Lease(
