@@ -46,6 +46,10 @@ COMMANDS = {
         "telesurg.services.record.replay",
         "replay a recording's master streams into a live site, compare",
     ),
+    "export": (
+        "telesurg.services.record.export",
+        "a recording in Foxglove / ROS 2 schemas (MCAP) or as a rerun .rrd",
+    ),
     "docs": ("telesurg.services.docs", "regenerate (or --check) the docs pages built from the code"),
     "experiment": ("telesurg.services.experiment", "reproduce a paper's evaluation (figures + metrics.json)"),
     "camera": (

@@ -58,6 +58,7 @@ from telesurg.shared.auth import (
 from telesurg.shared.errors import AuthorityError, ConfigError, MessageError
 from telesurg.shared.keys import Keys, check_id
 from telesurg.shared.messages import Header, Heartbeat, Message, SafetyEvent, Sequencer, decode_as
+from telesurg.shared.presence import Presence
 from telesurg.shared.streams import StreamStats, StreamTable
 
 if TYPE_CHECKING:
@@ -374,7 +375,12 @@ class Node:
         self._last_poll_ns = 0
         self._closed = False
         self.session = open_session(bus)
-        self._token: Any = self.session.liveliness().declare_token(self.keys.alive(service))
+        # presence by authenticated session (shared/presence.py): the token carries this node's sid
+        self.presence = Presence()
+        self._liveliness_subs: set[str] = set()
+        self._token: Any = self.session.liveliness().declare_token(
+            self.keys.alive_token(service, self.signer.sid.hex())
+        )
         self._events = self.outlet(self.keys.events(service), control=False)
         self._heartbeat = self.outlet(self.keys.heartbeat(service), control=False)
         # Echo: answers at once, so a peer on another host can measure the round-trip time.
@@ -504,6 +510,8 @@ class Node:
                 fresh = stats.accept(msg.header.source, msg.header.seq, rx_ns, who.sid, msg.header.stamp_ns)
             if not fresh:
                 return
+            if calls := self.presence.authenticated(who.signer, who.sid):
+                self.presence.run(calls)
             try:
                 callback(msg, k)
             except Exception:  # a bug in a handler must not kill the zenoh callback thread
@@ -642,14 +650,30 @@ class Node:
         raise TimeoutError(f"no reply on {key} within {timeout:g} s (is the service running?)")
 
     def watch_liveliness(self, pattern: str, callback: Callable[[str, bool], None]) -> None:
-        """``callback(service, alive)`` for liveliness tokens under ``pattern`` (with history)."""
+        """``callback(service, alive)`` when a service under ``pattern`` (``keys.alive(service)``
+        or ``keys.alive()``) comes or goes, with history. Alive means: the token of the session
+        whose messages this node authenticated is present (before anything of the service is
+        authenticated: any token of it) — a token of another session, a stranger's, does not
+        keep a dead service alive (:mod:`telesurg.shared.presence`)."""
         import zenoh
 
-        def on_sample(sample: Any) -> None:
-            service = self.keys.service_of_alive(str(sample.key_expr))
-            callback(service, sample.kind == zenoh.SampleKind.PUT)
+        service = self.keys.service_of_alive(pattern)
+        if pattern not in self._liveliness_subs:
+            self._liveliness_subs.add(pattern)
 
-        self._handles.append(self.session.liveliness().declare_subscriber(pattern, on_sample, history=True))
+            def on_sample(sample: Any) -> None:
+                svc, sid = self.keys.parse_alive(str(sample.key_expr))
+                try:
+                    raw = bytes.fromhex(sid)
+                except ValueError:
+                    raw = b""
+                if not raw:
+                    return  # not a token of a node (no session id): nobody's presence
+                self.presence.run(self.presence.token(svc, raw, sample.kind == zenoh.SampleKind.PUT))
+
+            sub = self.session.liveliness().declare_subscriber(pattern, on_sample, history=True)
+            self._handles.append(sub)
+        self.presence.run(self.presence.watch(lambda s: service in ("*", s), callback))
 
     def _on_echo(self, query: Any) -> None:
         with contextlib.suppress(Exception):  # the querier may be gone

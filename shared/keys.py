@@ -27,7 +27,7 @@ service instance id)::
     echo/<service>               (queryable)     replies at once: round-trip time across hosts
     events/<service>             SafetyEvent     events (transitions, IK failures, ...)
     heartbeat/<service>          Heartbeat       2 Hz service heartbeat
-    alive/<service>              (liveliness token)
+    alive/<service>/<sid>        (liveliness token; <sid>: the node's authenticated session id, hex)
 """
 
 from __future__ import annotations
@@ -39,6 +39,7 @@ from telesurg.shared.errors import ConfigError
 
 PREFIX_ROOT = "telesurg"
 _ID = re.compile(r"^[A-Za-z0-9_-]{1,64}$")
+_SID = re.compile(r"^[0-9a-f]{1,32}$")
 
 MASTER_STREAMS = ("measured_cp", "measured_js", "buttons")
 SLAVE_STREAMS = ("servo_jp", "setpoint_cp", "measured_js", "measured_cp", "measured_cf", "operating_state")
@@ -132,12 +133,28 @@ class Keys:
         return f"{self.prefix}/heartbeat/{svc}"
 
     def alive(self, service: str = "*") -> str:
-        """Liveliness token key ``telesurg/<site>/alive/<service>``."""
-        return f"{self.prefix}/alive/{service if service == '*' else check_id('service', service)}"
+        """Liveliness key expression of ``service``'s tokens, ``telesurg/<site>/alive/<service>/*``
+        (``*``: every service): what the launcher waits for and what presence watchers follow.
+        A token itself is :meth:`alive_token`."""
+        return f"{self.prefix}/alive/{service if service == '*' else check_id('service', service)}/*"
+
+    def alive_token(self, service: str, sid: str) -> str:
+        """The liveliness token of one node, ``telesurg/<site>/alive/<service>/<sid>``; ``sid``:
+        its authenticated session id in hex (the ``sid`` its messages are signed with), so the
+        token of the session whose messages a receiver authenticates is told apart from anyone
+        else's token for the same service (zenoh merges tokens of one key)."""
+        if not _SID.match(sid):
+            raise ConfigError(f"liveliness sid {sid!r} must be 1-32 hex digits")
+        return f"{self.prefix}/alive/{check_id('service', service)}/{sid}"
 
     def service_of_alive(self, key: str) -> str:
-        """Service id from a liveliness key (inverse of :meth:`alive`)."""
-        return key.rsplit("/", 1)[-1]
+        """Service id from a liveliness key (inverse of :meth:`alive_token`)."""
+        return self.parse_alive(key)[0]
+
+    def parse_alive(self, key: str) -> tuple[str, str]:
+        """``(service, sid)`` of a liveliness key (``sid`` "" for a key without one)."""
+        rest = key.split("/alive/", 1)[-1].split("/")
+        return rest[0], (rest[1] if len(rest) > 1 else "")
 
     def _arm_key(self, role: str, arm: str, stream: str, valid: tuple[str, ...]) -> str:
         if stream not in valid:

@@ -44,11 +44,14 @@ import threading
 from collections.abc import Callable
 from dataclasses import dataclass
 from functools import cache
-from typing import NamedTuple
+from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 import numpy.typing as npt
 from telesurg.shared.errors import ConfigError, IKError, KinematicsError
+
+if TYPE_CHECKING:
+    from telesurg.shared.kinematics.elbow import ElbowChain
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -76,6 +79,9 @@ class ArmProfile:
         jacobian_of: joints ``(n,)`` → geometric Jacobian ``(6, n)`` (module docstring).
         ik_of: optional analytic IK, (target pose ``(4, 4)``, joints to stay near ``(n,)``) →
             joints ``(n,)``, raising :class:`~telesurg.shared.errors.IKError`; None: no IK.
+        elbow: optional redundancy of an arm whose controlled point hangs from an elbow
+            (:class:`~telesurg.shared.kinematics.elbow.ElbowChain`, the VIP arms): slave_control
+            offers the elbow (null-space) jog on such an arm; None: no elbow.
 
     Raises:
         ConfigError: the tuples differ in length, a limit is not finite or ``lower > upper``,
@@ -93,6 +99,7 @@ class ArmProfile:
     pose_of: Callable[[FloatArray], FloatArray]
     jacobian_of: Callable[[FloatArray], FloatArray]
     ik_of: Callable[[FloatArray, FloatArray], FloatArray] | None = None
+    elbow: ElbowChain | None = None
 
     def __post_init__(self) -> None:
         n = len(self.joint_names)
@@ -394,6 +401,7 @@ def _plas_sketch(arm: str, q: FloatArray) -> Sketch:
 
 def _vip_arm(arm: str) -> ArmProfile:
     from telesurg.shared.kinematics import vip
+    from telesurg.shared.kinematics.elbow import ElbowChain
 
     geom = vip.VIP_ARM1 if arm == "arm1" else vip.VIP_ARM2
 
@@ -402,6 +410,15 @@ def _vip_arm(arm: str) -> ArmProfile:
 
     def jacobian(q: FloatArray) -> FloatArray:
         return vip.wrist_jacobian(q, geom)
+
+    def elbow(q: FloatArray) -> FloatArray:
+        return vip.fk(q, geom).elbow
+
+    def wrist(q: FloatArray) -> FloatArray:
+        return vip.fk(q, geom).wrist
+
+    def solve(E: FloatArray, W: FloatArray, q_near: FloatArray) -> FloatArray:
+        return vip.ik(E, W, geom, q4_ref=float(q_near[3]))
 
     names = geom.joint_names
     return ArmProfile(
@@ -415,6 +432,7 @@ def _vip_arm(arm: str) -> ArmProfile:
         f"{arm}_wrist",
         pose,
         jacobian,
+        elbow=ElbowChain(elbow, wrist, solve, geom.lower, geom.upper),
     )
 
 

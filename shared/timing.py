@@ -53,6 +53,11 @@ class CycleTimer:
         """Loop period, s."""
         return self._period_ns / 1e9
 
+    @property
+    def deadline_s(self) -> float:
+        """The next deadline (the end of the current period), monotonic s."""
+        return self._next_ns / 1e9
+
     def wait(self) -> int:
         """Sleep until the next deadline; return how many deadlines were missed (0 normally)."""
         self.cycles += 1

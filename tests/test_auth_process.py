@@ -161,12 +161,17 @@ def test_seq_zero_poisoning_leaves_the_loss_counters_alone(pipe: Pipeline) -> No
 
 
 def test_a_killed_watchdog_is_not_masked_by_a_strangers_token_and_leases(pipe: Pipeline) -> None:
-    """A stranger's ``alive/watchdog`` token and forged leases (50 Hz, allow): after the
-    watchdog's SIGKILL the slave holds — at the latest when the last genuine lease expires
-    (the token hides the death from liveliness: zenoh merges tokens of one key) — and does not
-    move afterwards."""
+    """A stranger's watchdog tokens (the plain ``alive/watchdog`` key and one under a session id
+    of its own) and forged leases (50 Hz, allow): after the watchdog's SIGKILL the slave holds
+    because the watchdog died — the token of the session whose leases it authenticated vanished
+    (shared/presence.py) — not only when the last lease expires, and does not move afterwards."""
     stranger = Stranger(pipe)
-    token = stranger.session.liveliness().declare_token(stranger.keys.alive("watchdog"))
+    lv = stranger.session.liveliness()
+    k = stranger.keys
+    tokens = [
+        lv.declare_token(k.alive("watchdog").removesuffix("/*")),
+        lv.declare_token(k.alive_token("watchdog", "5eed5eed5eed5eed")),
+    ]
     try:
         time.sleep(0.3)
         assert pipe.p.following()
@@ -192,8 +197,11 @@ def test_a_killed_watchdog_is_not_masked_by_a_strangers_token_and_leases(pipe: P
         )
         assert moved < MAX_MOTION_MM
         assert not pipe.p.following()
+        # the slave's reason for the hold: the watchdog is gone (not "lease expired")
+        assert "watchdog not alive" in hold[1][3], hold[1][3]
     finally:
-        token.undeclare()
+        for token in tokens:
+            token.undeclare()
         stranger.close()
 
 

@@ -40,7 +40,13 @@ def test_keys() -> None:
     assert k.master("m1", "measured_cp") == "telesurg/lab/master/m1/measured_cp"
     assert k.slave("arm2", "servo_jp") == "telesurg/lab/slave/arm2/servo_jp"
     assert k.safety("arm1", "lease") == "telesurg/lab/safety/arm1/lease"
-    assert k.alive("mapping") == "telesurg/lab/alive/mapping"
+    assert k.alive("mapping") == "telesurg/lab/alive/mapping/*"
+    assert k.alive() == "telesurg/lab/alive/*/*"
+    token = k.alive_token("mapping", "00ff12")
+    assert token == "telesurg/lab/alive/mapping/00ff12"
+    assert k.parse_alive(token) == ("mapping", "00ff12") and k.service_of_alive(token) == "mapping"
+    with pytest.raises(ConfigError, match="hex digits"):
+        k.alive_token("mapping", "*")
     assert k.all == "telesurg/lab/**"
     with pytest.raises(ConfigError, match="valid: servo_jp"):
         k.slave("arm1", "servo_cp")

@@ -28,16 +28,18 @@ def test_jinno_insertion_experiment(tmp_path: Path) -> None:
         assert key in m
     assert m["rcm_error_samples"] > 100  # the trace was measured, many states
     assert m["rcm_error_max_mm"] < 1.0 and m["rcm_error_max_all_trocar_mm"] < 1.0
-    # from the measured joints at their full rate, over all of trocar mode (master–slave included)
-    # (the < 1 mm goal of issue #20 at the full rate is not met yet: around holds and re-engagements
-    # the measured RCM error reaches a few mm; docs/experiments/jinno.md gives the figure)
+    # from the measured joints at their full rate, over all of trocar mode (master–slave included):
+    # issue #20 asks < 1 mm there too (the slave interpolates its setpoints: no step reaches the servos)
     full_max, full_n = m["rcm_full_rate_max_mm"], m["rcm_full_rate_samples"]
     print(f"full-rate RCM over trocar mode: max {full_max} mm over {full_n} samples")
+    print("per run:", {r["name"]: r["rcm_full_rate_max_mm"] for r in m["runs"]})
     assert m["rcm_full_rate_samples"] > 1000
+    assert full_max < 1.0
     assert m["insertions_succeeded"] == m["insertions_attempted"] == 6
     # every run: into trocar mode and out again (5 transitions each)
     assert m["mode_transitions"] >= 30 and m["removals_succeeded"] == 6
     assert all(run["other_joints_moved_deg"] < 0.05 for run in m["runs"])  # posture: J4/J5 only
     assert m["trace_tracking_error_max_mm"] < 2.0 and m["trace_attempts"] >= 1
-    for name in ("jinno-fig9.png", "jinno-fig10.png", "jinno-trace.png", "jinno-timeline.png"):
+    figures = ("jinno-fig9.png", "jinno-fig10.png", "jinno-trace.png", "jinno-timeline.png", "jinno-rcm.png")
+    for name in figures:
         assert (out / name).stat().st_size > 10_000

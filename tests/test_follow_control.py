@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from telesurg.services.slave_control.control import FollowController, Lease, Setpoint
 
 VMAX = np.full(6, 2.0)
@@ -108,3 +109,51 @@ def test_interpolator_is_smooth_between_sparse_jittery_setpoints_and_never_overs
     assert np.count_nonzero(np.abs(np.diff(steps)) > 1e-9) <= 2 * len(values)
     ip.push(np.array([9.0]), 0.0, 1.0)  # older than the newest: ignored
     assert ip.sample(10.0)[0] == 0.05  # type: ignore[index]
+
+
+def test_interpolator_pause_resumes_on_the_path_and_catches_up() -> None:
+    """A stall of the arm's loop (``pause``) and a dry buffer shift the timeline back: the
+    reference goes on along the setpoints where it stopped, never across to the newest one; with
+    ``catchup`` it then plays faster until the delay is made up, without a jump."""
+    from telesurg.services.slave_control.control import SetpointInterpolator
+
+    ip = SetpointInterpolator(catchup=1.25, window=300)
+    period = 0.004  # 250 Hz source: one setpoint per 4 ms, a ramp of 1 rad/s
+    out: list[float] = []
+    k = 0
+    t = 0.0
+    stall = (0.3, 0.4)  # the arm held its command through this (s, local clock)
+    while t < 2.0:
+        while k * period + 0.001 <= t:
+            ip.push(np.array([k * period]), k * period, k * period + 0.001)
+            k += 1
+        if stall[0] <= t < stall[1]:
+            t = stall[1]
+            ip.pause(stall[1] - stall[0])
+            continue
+        v = ip.sample(t)
+        if v is not None:
+            out.append(float(v[0]))
+        t = round(t + 0.001, 6)
+    a = np.array(out)
+    steps = np.diff(a)
+    assert steps.min() >= -1e-12  # never back
+    assert steps.max() <= 1.25e-3 + 1e-9  # at most the catch-up speed: no jump after the stall
+    i = round(stall[0] / 0.001) - 1  # (no output at t = 0)
+    assert a[i] - a[i - 1] <= 1.25e-3 + 1e-9  # resumed where it stopped
+    assert ip.behind == 0.0  # 100 ms made up at 0.25 s/s within 0.4 s
+    # last sample at 1.999 s: 1 ms transport and the buffer delay behind the source, as before the stall
+    assert a[-1] == pytest.approx(1.999 - 0.001 - ip.delay, abs=1e-9)
+
+
+def test_interpolator_without_catchup_keeps_the_shift() -> None:
+    from telesurg.services.slave_control.control import SetpointInterpolator
+
+    ip = SetpointInterpolator()
+    ip.push(np.array([0.0]), 0.0, 0.001)
+    ip.push(np.array([0.004]), 0.004, 0.005)
+    ip.sample(0.01)
+    ip.pause(0.05)
+    assert ip.behind == pytest.approx(0.05)
+    ip.sample(1.0)
+    assert ip.behind == pytest.approx(0.05)

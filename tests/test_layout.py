@@ -37,6 +37,7 @@ TOOLS = (
     "telesurg.services.experiment",
     "telesurg.services.device",
     "telesurg.services.record.replay",
+    "telesurg.services.record.export",
 )
 #: top-level names the test tree can be imported as (``tests``, or a file of it on ``sys.path``)
 TEST_NAMES = frozenset({"tests"} | {p.stem for p in (ROOT / "tests").glob("*.py")})

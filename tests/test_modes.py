@@ -506,9 +506,11 @@ def test_posture_jog_only_toward_the_target() -> None:
     assert m.jog_command == Jog(Frame.JOINT, "j4", 1)
     assert not m.jog("joint", "j5", 1).accepted
     ok(m.jog("joint", "j5", -1))
-    m.update(OUT, 10 * DEG, True, j45_to_target_rad=(0.1, 0.001))  # J5 within the 0.1° deadband
+    m.update(OUT, 10 * DEG, True, j45_to_target_rad=(0.1, -0.001))  # 0.06° to go: jogs on
+    assert m.jog_command == Jog(Frame.JOINT, "j5", -1)  # (a jog a hold stopped here is not stuck)
+    m.update(OUT, 10 * DEG, True, j45_to_target_rad=(0.1, -0.0001))  # J5 within the 0.01° deadband
     assert m.jog_command is None
-    stopped = "jog joint j5- stopped: J5 at its target (+0.06° to go, deadband 0.10°)"
+    stopped = "jog joint j5- stopped: J5 at its target (-0.01° to go, deadband 0.01°)"
     assert m.events[-1] == ("jog_stopped", stopped)
     reply = m.jog("joint", "j5", -1)
     assert not reply.accepted and "J5 at its target" in reply.reason

@@ -124,3 +124,29 @@ def test_random_ptp_paths_through_the_patient_are_found() -> None:
             refused += 1
             assert "patient" in problem or "trocar" in problem
     assert refused > 0
+
+
+def test_experiment_starts_lie_inside_the_local_workspace_and_reach_the_trocar_outside_the_patient() -> None:
+    """Issue #20: the jinno-insertion starts (tips at z 860–1,225 mm before) lie inside the local
+    site's workspace box, their PTP posture adjustments (J4 and J5 both turn) and the playbacks
+    between them (from 60 mm behind the trocar) keep the forceps out of the patient."""
+    import tomllib
+    from pathlib import Path
+
+    from telesurg.shared.kinematics.mh3f import ik
+
+    site = tomllib.loads((Path(__file__).parents[1] / "deploy/local/site.toml").read_text())["site"]
+    lo, hi = np.array(site["workspace_min_mm"]) / 1e3, np.array(site["workspace_max_mm"]) / 1e3
+    for name, q in STARTS.items():
+        tip = fk(np.array(q))[:3, 3]
+        assert np.all(tip >= lo) and np.all(tip <= hi), f"{name}: tip {tip * 1e3} mm outside the workspace"
+        aligned = posture_adjust(np.array(q), TROCAR)
+        turned = np.degrees(np.abs(aligned - q))
+        assert np.all(turned[3:5] > 20.0) and np.all(turned[[0, 1, 2, 5]] < 1e-9), (name, turned)
+        assert insertion_depth(aligned, TROCAR) < 0.0  # aligned outside: the insertion is left to do
+        assert path_problem(np.array(q), aligned, BOX) is None
+        T = fk(aligned)
+        T[:3, 3] += (-0.062 - insertion_depth(aligned, TROCAR)) * T[:3, 0]  # backed off after removal
+        behind = ik(T, aligned)
+        for other in STARTS.values():  # the experiment's playback to the next start
+            assert path_problem(behind, np.array(other), BOX) is None

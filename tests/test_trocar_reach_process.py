@@ -97,6 +97,7 @@ class Record:
     setpoints: list[tuple[int, tuple[float, ...]]] = field(default_factory=list)  # following
     speed_causes: list[str] = field(default_factory=list)
     events: list[tuple[str, str]] = field(default_factory=list)
+    event_times: list[float] = field(default_factory=list)  # monotonic s, one per event
 
     follow_log: list[tuple[float, bool]] = field(default_factory=list)
 
@@ -123,6 +124,7 @@ class Record:
     def on_event(self, m: SafetyEvent, key: str) -> None:
         with self.lock:
             self.events.append((m.kind, m.text))
+            self.event_times.append(time.monotonic())
 
 
 def longest_hold_ms(setpoints: list[tuple[int, tuple[float, ...]]], t_from: int, t_to: int) -> float:
@@ -168,6 +170,12 @@ def site(
         finally:
             m.stop.set()
             m.join(2)
+            with rec.lock:  # the figure also when the run failed on something else (a loaded host)
+                r = list(rec.rcm_mm)
+                holds = sum(1 for k, _ in rec.events if k == "hold")
+            if r:
+                print(f"RCM from measured_js in trocar mode: max {max(r):.3f} mm, mean {np.mean(r):.3f} mm")
+                print(f"over {len(r)} samples; {holds} hold events")
     for f in sorted((tmp_path / "logs").glob("*.log")):
         print(f"--- {f.name}\n{f.read_text()[-2000:]}")
 
@@ -188,20 +196,43 @@ def test_virtual_trocar_circle_and_eight_then_remove(
         with rec.lock:
             return getattr(rec, attr)
 
+    def held_since(t: float) -> bool:
+        """A hold (or a stop) ended a slave-side motion since ``t`` (monotonic s)."""
+        with rec.lock:
+            return any(
+                k in ("hold", "motion_stopped")
+                for (k, _), te in zip(rec.events, rec.event_times, strict=True)
+                if te >= t
+            )
+
     def until(command: str, mode: str, timeout: float) -> bool:
         """Send ``command`` until the arm is in ``mode``: a watchdog hold (a scheduling stall of this
         busy host) stops a slave-side motion, and the operator commands it again."""
-        for _ in range(4):
+        for _ in range(10):
             assert pipe.wait(lambda: now("lease"), 30), "no lease"
+            t = time.monotonic()
             send(command)
-            if pipe.wait(lambda: now("mode") == mode, timeout):
+            if pipe.wait(lambda t=t: now("mode") == mode or held_since(t), timeout) and pipe.wait(
+                lambda: now("mode") == mode, 0.3
+            ):
                 return True
         return False
 
-    for _ in range(4):  # a hold stops the PTP: abort back outside and adjust again
-        assert pipe.wait(lambda: now("lease"), 30), "no lease"
+    def ptp_aligned() -> bool:
+        """Posture adjustment by PTP until finish_posture_adjust is accepted; False on a hold."""
+        t = time.monotonic()
         assert send("begin_posture_adjust", "method=ptp").accepted
-        if pipe.wait(lambda: send("finish_posture_adjust").accepted or time.sleep(0.5), 20):  # type: ignore[func-returns-value]
+        while time.monotonic() < t + 20:
+            if send("finish_posture_adjust").accepted:
+                return True
+            if held_since(t):
+                return False
+            time.sleep(0.2)
+        return False
+
+    for _ in range(10):  # a hold stops the PTP: abort back outside and adjust again
+        assert pipe.wait(lambda: now("lease"), 30), "no lease"
+        if ptp_aligned():
             break
         send("abort", "reason=held during the PTP")
     else:
@@ -217,9 +248,16 @@ def test_virtual_trocar_circle_and_eight_then_remove(
     time.sleep(0.2)
     # Like an operator, draw again if the slave stopped following during the drawing (a watchdog
     # hold on this starved host): the drawing is judged on one the slave followed throughout.
-    for attempt in range(1, 4):
-        master.clutch = True
-        assert pipe.wait(lambda: now("follow"), 10), "the slave never followed in trocar mode"
+    for attempt in range(1, 6):
+        for _ in range(10):  # a refused engage (a hold at the press): release, press again
+            assert pipe.wait(lambda: now("lease"), 30), "no lease"
+            master.clutch = True
+            if pipe.wait(lambda: now("follow"), 3):
+                break
+            master.clutch = False
+            time.sleep(0.5)
+        else:
+            pytest.fail("the slave never followed in trocar mode")
         t_draw = time.monotonic() + 0.3
         master.t0 = t_draw
         ns_from = time.time_ns() + 300_000_000
@@ -252,13 +290,14 @@ def test_virtual_trocar_circle_and_eight_then_remove(
         f"speed DEGRADED causes {speed[:3]}; ik_failure events {len(ik_fail)}; "
         f"trocar_clamped events {len(clamps)} {clamps[:2]}; remove pivot {pivots}; out {out_ok}"
     )
-    assert not lost, "no drawing was followed throughout in 3 attempts"
+    assert not lost, "no drawing was followed throughout in 5 attempts"
     assert n_sp > 0.5 * 250 * (CIRCLE_S + EIGHT_S), "the slave did not follow the drawing"
     assert out_ok, "remove did not bring the forceps out"
     assert not ik_fail, ik_fail[:3]
     assert hold_ms <= 100.0
     assert not speed, speed[:3]
-    # issue #20 asks < 1 mm at the full joint rate; measured 0.50–0.77 mm per start, but 1.40 mm
-    # from start C in one idle run: held to the watchdog's RCM limit (2 mm, beyond it the arm
-    # holds) until the < 1 mm goal holds every time (docs/trocar.md)
-    assert max(rcm) < 2.0
+    # issue #20: < 1 mm at the full joint rate, over all of trocar mode (holds and re-engagements
+    # included). It was 0.5–1.4 mm idle and 3–11 mm under load while the slave followed each
+    # servo_jp as a step (tests/test_trocar_servo_rcm.py shows why); since, under load average
+    # 23–35: 0.074, 1.587 (unexplained, docs/trocar.md) and 0.166 mm from start C.
+    assert max(rcm) < 1.0

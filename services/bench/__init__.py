@@ -11,6 +11,7 @@ Subcommands::
     telesurg bench sim [--seconds 5] [--json FILE]
     telesurg bench decode [--n 20000] [--json FILE]
     telesurg bench flood [--site locked|open] [--no-caps] [--json FILE]
+    telesurg bench viewer [--seconds 100] [--json FILE]
 """
 
 from __future__ import annotations
@@ -37,6 +38,10 @@ BENCHES = {
     "decode": ("telesurg.services.bench.decode", "µs per strict decode / encode of the hot messages"),
     "flood": ("telesurg.services.bench.flood", "1 MB messages on a control and a master key: RSS, HOLDs"),
     "auth": ("telesurg.services.bench.auth", "µs per sign / verify (HMAC, Ed25519) of the hot messages"),
+    "viewer": (
+        "telesurg.services.bench.viewer",
+        "the rerun web viewer in Chromium during the demo: lag behind live, frames/s, HOLDs",
+    ),
     "transport": (
         "telesurg.services.bench.transport",
         "zenoh links for a 1 kHz stream under packet loss (root)",

@@ -12,8 +12,13 @@ listener, service id ``intruder``, forging headers freely) then runs each case:
                            99,000 ahead + forged ``servo_jp`` ``src=mapping`` (seq jump)
 ``watchdog-freeze``        watchdog SIGSTOP; forged leases (next seq) + forged ``servo_jp``
 ``watchdog-kill``          watchdog SIGKILL; the same
-``duplicate-alive``        a second ``alive/watchdog`` token, watchdog SIGKILL, forged leases +
+``duplicate-alive``        a stranger's tokens for the watchdog (``alive/watchdog`` and
+                           ``alive/watchdog/<its own sid>``), watchdog SIGKILL, forged leases +
                            ``servo_jp``
+``watchdog-kill-locked``   watchdog SIGKILL on the locked-down slave site (its reference)
+``duplicate-alive-copy``   on the locked-down slave site, with a local tool's certificate
+                           (``site-operator``): the same tokens plus a copy of the genuine
+                           token's exact key, watchdog SIGKILL, forged leases + ``servo_jp``
 ``servo-seq-jump``         forged ``servo_jp`` ``src=mapping`` 99,000 ahead under a genuine lease
 ``seq0-poison``            one ``master/m1/measured_cp`` ``src=master_capture`` with seq 0
 ``scale0-state``           forged ``safety/arm1/state`` ``src=watchdog`` with scale 0
@@ -22,8 +27,9 @@ listener, service id ``intruder``, forging headers freely) then runs each case:
 ``stranger-reset``         an e-stop, then a reset from ``intruder``
 ``console-ptp``            PTP from the console identity without the confirmation
 ``console-scale-follow``   ``set_scale value=2.0`` from the console identity while following
-``local-tcp-client``       a client with no credentials on the site's TCP listener: does it
-                           connect, and do its puts reach the site
+``local-tcp-client``       clients with no credentials on the locked-down slave site's local
+                           listener (plain TCP; TLS without a certificate): does one connect,
+                           do its events and forged leases reach the site
 =========================  ===================================================================
 
 For each case: the forged messages sent and accepted by their targets (commands: the replies;
@@ -57,6 +63,7 @@ from typing import Any
 
 import numpy as np
 from telesurg.services.bench.harness import Pipeline, now_ns
+from telesurg.services.launcher import deploy_dir
 from telesurg.shared import jsonio
 from telesurg.shared.bus import BusConfig, Node
 from telesurg.shared.errors import MessageError
@@ -80,6 +87,12 @@ log = logging.getLogger(__name__)
 SEQ_JUMP = 99_000
 #: the stranger's service id
 STRANGER = "intruder"
+#: the local certificate the attacker's nodes use on a locked-down site (``site-operator``: a tool
+#: on the slave machine; it may publish master streams and e-stops, query commands — not leases,
+#: setpoints or another service's liveliness); on the open site: none (plain TCP)
+CREDENTIAL = "operator"
+#: the locked-down slave site's access-control rules (``telesurg up --acl``)
+ACL_FILE = ("slave-site", "acl.json5")
 #: limits of the acceptance (issue #17, acceptance 1)
 MOTION_LIMIT_MM = 0.5
 KILL_HOLD_LIMIT_MS = 50.0
@@ -161,6 +174,8 @@ class Attacker:
         self._nodes: dict[str, Node] = {node.service: node}
         self._outs: dict[str, Any] = {}
         self.forge_s = 1.5  # s of forged streams per case
+        self.forged_seen0 = 0  # the observer's unauthenticated count when the case started
+        self.site = "open"  # the kind of site it runs on (Case.site)
 
     def put(self, key: str, msg: Message) -> None:
         self.node.session.put(key, msg.encode())
@@ -173,7 +188,7 @@ class Attacker:
         node = self._nodes.get(source)
         if node is None:
             node = self._nodes[source] = Node(
-                BusConfig(connect=[self.pipe.spec.endpoint]), self.pipe.spec.site, source
+                self.pipe.spec.client_bus(CREDENTIAL), self.pipe.spec.site, source
             )
             time.sleep(0.3)
         return node
@@ -267,6 +282,25 @@ class Case:
     # run on a site of its own (a forging case leaves sequence windows and latches of its making
     # in its targets); False: on the site the command cases share
     fresh: bool = True
+    # "open": the local site (any local client reaches the router); "locked": the slave site
+    # locked down (telesurg up --acl: local mutual TLS, deploy/slave-site/acl.json5), the
+    # attacker holding a local tool's certificate (CREDENTIAL)
+    site: str = "open"
+
+
+def _forged_seen(a: Attacker) -> int:
+    """Unauthenticated messages the bench's probe (a session of its own: zenoh delivers a
+    session's puts to its own subscribers without the router) received so far on the keys the
+    cases forge."""
+    k, node = a.k, a.pipe.node
+    keys = (
+        k.safety("arm1", "lease"),
+        k.slave("arm1", "servo_jp"),
+        k.master("m1", "measured_cp"),
+        k.safety("arm1", "state"),
+    )
+    with node._lock:
+        return sum(node.streams.get(key).unauthenticated for key in keys)
 
 
 def _lease_now(pipe: Pipeline) -> bool:
@@ -332,9 +366,13 @@ def _streams_row(
     t1 = now_ns() + int(0.5e9)
     time.sleep(0.5)
     rej = _settle_rejections(a.pipe, targets, before)
-    accepted = max(0, sent - sum(rej.values()))
+    # what reached a subscriber at all (the observer's own count of unauthenticated messages on
+    # the forged keys; on a locked-down site the router's ACL drops them before any subscriber)
+    reached = _forged_seen(a) - a.forged_seen0
+    accepted = max(0, min(sent, reached) - sum(rej.values()))
     row: dict[str, Any] = {
         "sent": sent,
+        "reached": reached,
         "rejected": rej,
         "accepted": accepted,
         "forbidden": forbidden,
@@ -370,13 +408,35 @@ def _lease_seq_jump(a: Attacker) -> dict[str, Any]:
     return row
 
 
-def _watchdog_fault(kind: str, duplicate: bool = False) -> Callable[[Attacker], dict[str, Any]]:
+def _duplicate_tokens(a: Attacker, copy: bool) -> tuple[list[Any], dict[str, Any]]:
+    """The attacker's liveliness tokens for the watchdog: the plain ``alive/watchdog`` key (the
+    token of a node before session-keyed tokens) and one under a session id of its own; with
+    ``copy`` also the genuine token's exact key, read off the bus (``alive/watchdog/<its sid>``).
+    Returns the tokens and what was declared."""
+    lv = a.node.session.liveliness()
+    keys = [a.k.alive("watchdog").removesuffix("/*"), a.k.alive_token("watchdog", os.urandom(8).hex())]
+    if copy:
+        seen = [str(r.ok.key_expr) for r in lv.get(a.k.alive("watchdog"), timeout=1.0) if r.ok is not None]
+        keys += seen
+    tokens = []
+    for key in keys:
+        try:
+            tokens.append(lv.declare_token(key))
+        except Exception as exc:  # (zenoh refuses nothing here; the router's ACL may drop it)
+            log.warning("token %s: %s", key, exc)
+    return tokens, {"tokens": keys}
+
+
+def _watchdog_fault(
+    kind: str, duplicate: bool = False, copy: bool = False
+) -> Callable[[Attacker], dict[str, Any]]:
     def run(a: Attacker) -> dict[str, Any]:
         pipe = a.pipe
         _wait_lease(pipe, True)
-        token = None
+        tokens: list[Any] = []
+        extra: dict[str, Any] = {}
         if duplicate:
-            token = a.node.session.liveliness().declare_token(a.k.alive("watchdog"))
+            tokens, extra = _duplicate_tokens(a, copy)
             time.sleep(0.3)
         lease_key = a.k.safety("arm1", "lease")
         lease_seq = a.obs.seq(lease_key) + 1  # the genuine stream's next number: no jump needed
@@ -391,15 +451,17 @@ def _watchdog_fault(kind: str, duplicate: bool = False) -> Callable[[Attacker], 
                 servo_seq=a.obs.seq(a.k.slave("arm1", "servo_jp")) + 1,
                 names=_names(pipe),
             )
-            row = _streams_row(a, ["slave_control"], n_sp + n_lease, t0, before)
+            row = _streams_row(a, ["slave_control"], n_sp + n_lease, t0, before, extra=extra)
             limit = KILL_HOLD_LIMIT_MS if kind == "kill" else validity + FREEZE_MARGIN_MS
             row["time_to_hold_ms"] = _lease_lost_ms(pipe, t0, t0 + int(1.5e9))
+            hold = pipe.p.first_op_after(t0, lambda r: not r[2])
+            row["hold_reason"] = hold[1][3] if hold is not None else None
             row["time_to_hold_limit_ms"] = limit
             if not lease_before:
                 row["error"] = "the slave held no lease before the fault"
         finally:
-            if token is not None:
-                token.undeclare()  # type: ignore[no-untyped-call]
+            for token in tokens:
+                token.undeclare()
             if kind == "freeze":
                 pipe.thaw("watchdog")
             else:
@@ -560,27 +622,55 @@ def _console_scale_follow(a: Attacker) -> dict[str, Any]:
     return row
 
 
+#: how a local client without the site's credentials tries the router's local listener
+LOCAL_CLIENTS = ("plain TCP", "TLS, no certificate")
+
+
+def _local_client_bus(pipe: Pipeline, how: str) -> BusConfig:
+    """The bus config of a local client without credentials (``how``: :data:`LOCAL_CLIENTS`)."""
+    host_port = pipe.spec.endpoint.split("/", 1)[1]
+    if how == "plain TCP":
+        return BusConfig(connect=[f"tcp/{host_port}"])
+    # TLS trusting the site's local CA (it is public: the services verify the router with it)
+    # but showing no certificate of its own
+    ca = pipe.spec.client_bus(CREDENTIAL).tls_root_ca
+    return BusConfig(connect=[f"tls/{host_port}"], tls_root_ca=ca)
+
+
 def _local_tcp(a: Attacker) -> dict[str, Any]:
-    """A client with no credentials on the router's TCP listener: connect, then put events the
-    probe watches for."""
+    """Clients with no credentials on the router's local listener (plain TCP; on a locked-down
+    site also TLS without a certificate): does each connect; then 10 events and 10 forged leases
+    (``src = watchdog``, allowing, 20 ms apart) from each that did — counted where they arrive
+    (the probe's events, the observer's unauthenticated leases) and the slave's motion."""
     pipe = a.pipe
-    row: dict[str, Any] = {"sent": 0, "accepted": 0, "forbidden": True, "motion_mm": None}
+    row: dict[str, Any] = {"sent": 0, "accepted": 0, "forbidden": True, "clients": {}}
     t0 = now_ns()
-    try:
-        with Node(BusConfig(connect=[pipe.spec.endpoint]), pipe.spec.site, "local_client") as n:
-            row["connected"] = True
-            out = n.outlet(n.keys.events("local_client"), control=False)
-            time.sleep(0.3)
-            for i in range(10):
-                out.put(SafetyEvent(out.header(), "", "probe", "info", f"local client put {i}"))
-                time.sleep(0.02)
-            row["sent"] = 10
-            time.sleep(0.5)
-    except ConnectionError as exc:
-        row["connected"] = False
-        row["error"] = str(exc)[:160]
+    lease_key = a.k.safety("arm1", "lease")
+    sent = 0
+    for how in LOCAL_CLIENTS if a.site == "locked" else LOCAL_CLIENTS[:1]:
+        try:
+            with Node(_local_client_bus(pipe, how), pipe.spec.site, "local_client") as n:
+                row["clients"][how] = "connected"
+                out = n.outlet(n.keys.events("local_client"), control=False)
+                time.sleep(0.3)
+                seq = a.obs.seq(lease_key) + 1
+                for i in range(10):
+                    out.put(SafetyEvent(out.header(), "", "probe", "info", f"local client put {i}"))
+                    lease = SafetyLease(a.header("watchdog", seq + i), "arm1", True, 250.0, "")
+                    n.session.put(lease_key, lease.encode())
+                    sent += 2
+                    time.sleep(0.02)
+                time.sleep(0.5)
+        except ConnectionError as exc:
+            row["clients"][how] = "refused: " + str(exc).splitlines()[-1][:140]
+    row["connected"] = any(v == "connected" for v in row["clients"].values())
+    row["sent"] = sent
+    time.sleep(0.5)
     with pipe.p.lock:
-        row["accepted"] = sum(1 for t, src, k, _ in pipe.p.events if t >= t0 and src == "local_client")
+        events = sum(1 for t, src, k, _ in pipe.p.events if t >= t0 and src == "local_client")
+    row["reached"] = events + _forged_seen(a) - a.forged_seen0
+    row["accepted"] = events  # (a forged lease that arrives is rejected: counted in reached)
+    row["motion_mm"] = _motion(pipe, t0, now_ns())
     return row
 
 
@@ -592,8 +682,20 @@ def cases() -> list[Case]:
         Case("watchdog-kill", "watchdog SIGKILL; forged leases + servo_jp", _watchdog_fault("kill")),
         Case(
             "duplicate-alive",
-            "2nd alive/watchdog token, watchdog SIGKILL, forged leases + servo_jp",
+            "stranger's alive/watchdog tokens, watchdog SIGKILL, forged leases + servo_jp",
             _watchdog_fault("kill", duplicate=True),
+        ),
+        Case(
+            "watchdog-kill-locked",
+            "watchdog SIGKILL on the locked-down site (the reference of the next case)",
+            _watchdog_fault("kill"),
+            site="locked",
+        ),
+        Case(
+            "duplicate-alive-copy",
+            "a copy of the watchdog's own token (locked site), SIGKILL, forged leases + servo_jp",
+            _watchdog_fault("kill", duplicate=True, copy=True),
+            site="locked",
         ),
         Case("servo-seq-jump", "forged servo_jp src=mapping 99,000 ahead", _servo_seq_jump),
         Case("seq0-poison", "master pose src=master_capture seq 0", _seq0, True),
@@ -623,7 +725,11 @@ def cases() -> list[Case]:
             _console_scale_follow,
         ),
         Case(
-            "local-tcp-client", "a client without credentials on the site's TCP listener", _local_tcp, False
+            "local-tcp-client",
+            "clients without credentials on the locked-down slave site's local listener",
+            _local_tcp,
+            False,
+            site="locked",
         ),
     ]
 
@@ -650,12 +756,19 @@ def site_overrides() -> dict[str, list[str]]:
     }
 
 
-def open_site(stack: contextlib.ExitStack, log_dir: Path, quick: bool = False) -> Attacker:
-    """A bench site and an attacker on it (node ``intruder``), closed with ``stack``; returns
-    once the slave holds a genuine lease and the attacker has seen the genuine streams."""
-    pipe = stack.enter_context(Pipeline(log_dir, overrides=site_overrides(), mirror=False, impair=False))
-    node = stack.enter_context(Node(BusConfig(connect=[pipe.spec.endpoint]), pipe.spec.site, STRANGER))
+def open_site(
+    stack: contextlib.ExitStack, log_dir: Path, quick: bool = False, site: str = "open"
+) -> Attacker:
+    """A bench site (``site``: see :class:`Case`) and an attacker on it (node ``intruder``),
+    closed with ``stack``; returns once the slave holds a genuine lease and the attacker has seen
+    the genuine streams."""
+    acl = deploy_dir().joinpath(*ACL_FILE) if site == "locked" else None
+    pipe = stack.enter_context(
+        Pipeline(log_dir, overrides=site_overrides(), mirror=False, impair=False, acl=acl)
+    )
+    node = stack.enter_context(Node(pipe.spec.client_bus(CREDENTIAL), pipe.spec.site, STRANGER))
     a = Attacker(pipe, node, Observer(node))
+    a.site = site
     stack.callback(a.close)
     a.forge_s = 1.0 if quick else 1.5
     lease_key = a.k.safety("arm1", "lease")
@@ -677,18 +790,18 @@ def run_cases(log_dir: Path, selected: Sequence[Case], quick: bool = False) -> l
     site; one row per case."""
     rows = []
     with contextlib.ExitStack() as shared_stack:
-        shared: Attacker | None = None
+        shared: dict[str, Attacker] = {}
         for i, c in enumerate(selected, 1):
             print(f"[{i}/{len(selected)}] {c.name}: {c.what} ...", file=sys.stderr, flush=True)
             row: dict[str, Any] = {"case": c.name, "what": c.what}
             try:
                 if c.fresh:
                     with contextlib.ExitStack() as own:
-                        row.update(_run_one(open_site(own, log_dir / c.name, quick), c))
+                        row.update(_run_one(open_site(own, log_dir / c.name, quick, c.site), c))
                 else:
-                    if shared is None:
-                        shared = open_site(shared_stack, log_dir / "shared", quick)
-                    row.update(_run_one(shared, c))
+                    if c.site not in shared:
+                        shared[c.site] = open_site(shared_stack, log_dir / f"shared-{c.site}", quick, c.site)
+                    row.update(_run_one(shared[c.site], c))
             except Exception as exc:  # a case that could not run is a failed row, not a crash
                 log.exception("case %s", c.name)
                 row["error"] = f"{type(exc).__name__}: {exc}"
@@ -700,7 +813,8 @@ def run_cases(log_dir: Path, selected: Sequence[Case], quick: bool = False) -> l
 def _run_one(a: Attacker, c: Case) -> dict[str, Any]:
     if not _wait_lease(a.pipe, True, 20.0):
         raise RuntimeError("the slave holds no lease before the case")
-    return c.run(a)
+    a.forged_seen0 = _forged_seen(a)
+    return {"site": a.site, **c.run(a)}
 
 
 def _fmt(v: object) -> str:
@@ -723,8 +837,8 @@ def print_table(rows: list[dict[str, Any]]) -> None:
         t.add_column(col, justify="left" if col in ("case", "note") else "right")
     for r in rows:
         note = r.get("error") or r.get("reply") or ""
-        if "connected" in r:
-            note = f"connected: {_fmt(r['connected'])}"
+        if "clients" in r:
+            note = "; ".join(f"{k}: {v}" for k, v in r["clients"].items())
         t.add_row(
             r["case"],
             _fmt(r.get("sent")),

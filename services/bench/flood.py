@@ -28,6 +28,7 @@ from __future__ import annotations
 import argparse
 import importlib
 import logging
+import os
 import tempfile
 import threading
 import time
@@ -54,6 +55,38 @@ def rss_mb(pipe: Pipeline) -> dict[str, float]:
     for name in WATCHED:
         if name in pipe.site.procs and pipe.site.procs[name].poll() is None:
             out[name] = round(psutil.Process(pipe.site.pid(name)).memory_info().rss / 1e6, 1)
+    return out
+
+
+def memory_detail(pipe: Pipeline) -> dict[str, dict[str, float]]:
+    """Where each watched process's resident memory is, MB (``/proc/<pid>/smaps``): ``heap``
+    (the brk heap: glibc's main arena), ``anon`` (anonymous mappings: glibc's thread arenas and
+    large ``mmap`` allocations, Rust's allocations through them, thread stacks) and ``file``
+    (code and data of the binaries and libraries)."""
+    out: dict[str, dict[str, float]] = {}
+    for name in WATCHED:
+        if name not in pipe.site.procs or pipe.site.procs[name].poll() is not None:
+            continue
+        kb = {"heap": 0, "anon": 0, "file": 0}
+        files: dict[str, int] = {}
+        kind, path = "anon", ""
+        try:
+            with open(f"/proc/{pipe.site.pid(name)}/smaps") as f:
+                for line in f:
+                    parts = line.split()
+                    if parts and "-" in parts[0] and len(parts) >= 5:  # a mapping's header line
+                        path = parts[5] if len(parts) > 5 else ""
+                        kind = "heap" if path == "[heap]" else "file" if path.startswith("/") else "anon"
+                    elif parts and parts[0] == "Rss:":
+                        kb[kind] += int(parts[1])
+                        if kind == "file":
+                            base = path.rsplit("/", 1)[-1]
+                            files[base] = files.get(base, 0) + int(parts[1])
+        except OSError:
+            continue
+        out[name] = {k: round(v / 1024, 1) for k, v in kb.items()}
+        for base, v in sorted(files.items(), key=lambda kv: -kv[1])[:3]:  # the largest mapped files
+            out[name][f"file:{base}"] = round(v / 1024, 1)
     return out
 
 
@@ -121,8 +154,10 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         time.sleep(args.settle)
         bus = pipe.spec.client_bus(args.flooder) if acl else BusConfig(connect=[pipe.spec.endpoint])
         quiet0 = now_ns()
+        quiet_start = rss_mb(pipe)  # the drift over a window as long as the flood, without it
         time.sleep(args.seconds + 1.0)
         base = rss_mb(pipe)
+        base_detail = memory_detail(pipe)
         t0 = now_ns()
         result = flood(pipe, bus, args.seconds, args.size)
         t1 = now_ns()
@@ -131,6 +166,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         holds_quiet = holds_between(pipe, quiet0, t0)
         time.sleep(max(0.0, args.after - 1.0))
         after = rss_mb(pipe)
+        after_detail = memory_detail(pipe)
         followed_after = pipe.wait_following(10)
     return {
         "site": args.site,
@@ -152,6 +188,13 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             }
             for name in WATCHED
         },
+        "quiet_drift_mb": {
+            name: round(base[name] - quiet_start[name], 1)
+            for name in WATCHED
+            if name in base and name in quiet_start
+        },
+        "memory_detail_mb": {"before": base_detail, "after": after_detail},
+        "malloc_arena_max": os.environ.get("MALLOC_ARENA_MAX", ""),
         "after_s": args.after,
         "holds_during_flood": holds_flood,
         "holds_quiet_window_before": holds_quiet,
@@ -185,7 +228,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     print(f"  delivered (> 64 KiB) to the probe: {res['delivered_over_64k']}")
     print(f"  {'process':<14} {'before':>8} {'peak':>8} {'after':>8}  MB (after = +{res['after_s']:g} s)")
     for name, r in res["rss_mb"].items():
-        print(f"  {name:<14} {r['before']!s:>8} {r['peak']!s:>8} {r['after']!s:>8}")
+        drift = res["quiet_drift_mb"].get(name)
+        print(f"  {name:<14} {r['before']!s:>8} {r['peak']!s:>8} {r['after']!s:>8}  (no-flood drift {drift})")
+    for name, d in res["memory_detail_mb"]["after"].items():
+        b = res["memory_detail_mb"]["before"].get(name, {})
+        print(f"  {name:<14} " + ", ".join(f"{k} {b.get(k)} → {v}" for k, v in d.items()))
     print(
         f"  HOLDs: {res['holds_during_flood']} during the flood (+1 s), "
         f"{res['holds_quiet_window_before']} in a quiet window before; "

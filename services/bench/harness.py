@@ -42,6 +42,7 @@ from telesurg.shared.messages import (
     MasterButtons,
     OperatingState,
     SafetyEvent,
+    SafetyLease,
     SafetyState,
 )
 
@@ -88,6 +89,8 @@ class Probe:
         sub(k.events(), SafetyEvent, self._on_event)
         sub(k.master(self.master, "measured_cp"), CartesianPose, lambda m, k: None, sources=master)
         sub(k.slave(self.arm, "servo_jp"), JointSetpoint, lambda m, k: None, sources=["mapping"])
+        # (counted only: forged leases that reach a subscriber show in its unauthenticated count)
+        sub(k.safety(self.arm, "lease"), SafetyLease, lambda m, k: None, sources=["watchdog"])
         sub(k.slave(self.arm, "measured_js"), JointState, self._on_js, sources=slave)
         for svc in HEARTBEAT_SOURCES:
             self.node.subscribe(k.heartbeat(svc), Heartbeat, self._on_heartbeat, sources=[svc])

@@ -52,19 +52,24 @@ log = logging.getLogger(__name__)
 
 TROCAR_MM = (500.0, 0.0, 200.0)
 TROCAR = np.array(TROCAR_MM) / 1e3
-#: Starts (rad): B for Fig. 9 (J4 and J5 both have to turn), A, B, C for Fig. 10, A for the trace.
+#: Starts (rad): B for Fig. 9, A, B, C for Fig. 10, A for the trace. From each, posture adjustment
+#: turns J4 and J5 by 43–51° each. Every start's tip lies inside the local site's workspace box
+#: (z 707–732 mm, under its 800 mm ceiling: deploy/local/site.toml), and its forceps point down
+#: and away from the patient; the aligned postures (J4/J5 toward the trocar) are those of the
+#: earlier starts, whose tips stood at z 860–1,225 mm (issue #20).
 STARTS: dict[str, tuple[float, ...]] = {
-    "start_a": (0.0, -0.2, 0.6, 0.0, -0.3, 0.0),
-    "start_b": (0.3, -0.15, 0.55, 0.4, -0.5, 0.0),
-    "start_c": (-0.35, -0.3, 0.5, -0.4, 0.2, 0.0),
+    "start_a": (0.0, -0.2, 0.6, -0.8, -1.0, 0.0),  # tip (585, −356, 729) mm
+    "start_b": (0.3, -0.15, 0.55, 0.65, -0.85, 0.0),  # tip (564, 455, 707) mm
+    "start_c": (-0.35, -0.3, 0.5, -0.6, -0.9, 0.0),  # tip (492, −457, 732) mm
 }
 TRACE_RADIUS_M = 0.03  # master circle; × mapping scale 0.5 = a 15 mm circle at the slave tip
 TRACE_PERIOD_S = 5.0
-TRACE_ATTEMPTS = 3  # a trace interrupted by a hold is traced again, at most this often
+TRACE_ATTEMPTS = 5  # a trace interrupted by a hold is traced again, at most this often
 TRACE_DEPTH_JOG_S = 1.5  # before the trace the forceps goes this long deeper (at 40 mm/s: +60 mm)
 TRACE_LAPS = 2
 MS_RADIUS_M = 0.010  # master circle of the master–slave motion after each Fig. 9/10 insertion
 MS_LAPS = 1
+UNTIL_ATTEMPTS = 40  # a slave-side motion stopped by a hold is commanded again, at most this often
 
 Progress = Callable[[str, float], None]
 
@@ -80,6 +85,7 @@ class Run:
     t_aligned: float = 0.0
     t_trocar: float = 0.0
     t_end: float = 0.0
+    t_ms_start: float = 0.0  # master–slave motion (or the trace) after the insertion: start
     t_ms_end: float = 0.0  # end of the master–slave motion after the insertion (0: none)
     ms_attempts: int = 0  # laps drawn (a hold of a starved host interrupts one: drawn again)
     ms_whole_lap: bool = True  # one lap was followed throughout
@@ -153,13 +159,33 @@ class Experiment:
         if not self.arm.wait(pred, timeout):
             raise RuntimeError(f"{what} (within {timeout:.0f} s)")
 
+    def _finished(self, done: str, since: float, timeout: float = 30.0) -> bool:
+        """Wait for the event ``done`` of a slave-side motion started at ``since``: True; False as
+        soon as a hold (a scheduling stall of a busy host) or a stop ended it first."""
+        a = self.arm
+
+        def over() -> bool:
+            return any(a.events_of(kind, since) for kind in (done, "hold", "motion_stopped"))
+
+        a.wait(over, timeout)
+        return bool(a.events_of(done, since))
+
+    def _lease_back(self) -> None:
+        """After a hold: wait until the lease has been back for 0.3 s (operating_state is 20 Hz;
+        the watchdog keeps a HOLD latched a while after its cause clears)."""
+        a = self.arm
+        deadline = time.monotonic() + 20
+        while time.monotonic() < deadline:
+            if a.wait(a.lease_ok, 1) and not a.wait(lambda: not a.lease_ok(), 0.3):
+                return
+
     def go_to(self, start: str) -> None:
         a = self.arm
-        for _ in range(4):  # a hold stops the playback: play it again, as an operator would
-            a.wait(a.lease_ok, 10)
+        for _ in range(UNTIL_ATTEMPTS):  # a hold stops the playback: play it again, as an operator would
+            self._lease_back()
             a.send("set_motion_mode", "mode=playback")
             t = time.monotonic()
-            if a.send("play", f"program={start}").accepted and a.wait_event("playback_done", t, 30):
+            if a.send("play", f"program={start}").accepted and self._finished("playback_done", t):
                 a.settle()
                 return
         raise RuntimeError(f"playback of {start} never finished")
@@ -169,41 +195,60 @@ class Experiment:
         a = self.arm
         q0 = a.q()
         target = posture_adjust(q0, TROCAR)
-        t = time.monotonic()
+        t = t_begin = time.monotonic()
         a.must("begin_posture_adjust", f"method={run.method}")
+
+        def in_posture() -> None:  # a hold aborts the posture adjustment: begin it again
+            if a.mode() == "non_trocar":
+                self._lease_back()
+                if a.send("begin_posture_adjust", f"method={run.method}").accepted:
+                    a.wait(lambda: a.mode() != "non_trocar", 2)  # (operating_state: 20 Hz)
+
         if run.method == "ptp":
-            if not a.wait_event("ptp_done", t, 30):
+            for _ in range(UNTIL_ATTEMPTS):  # a hold stops the PTP: back outside, adjust again
+                if self._finished("ptp_done", t):
+                    break
+                a.send("abort", "reason=held during the PTP")
+                self._lease_back()
+                t = time.monotonic()
+                a.must("begin_posture_adjust", f"method={run.method}")
+            else:
                 raise RuntimeError("the PTP never finished")
         elif run.method == "jog":
             for j in (4, 5):
-                for _ in range(4):  # a hold of a starved host stops the jog: jog again
+                for _ in range(UNTIL_ATTEMPTS):  # a hold of a starved host stops the jog: jog again
                     togo = target[j - 1] - a.q()[j - 1]
-                    if abs(togo) < math.radians(0.1):
+                    if abs(togo) < math.radians(0.01):  # (slave_control's posture-jog deadband)
                         break
-                    a.wait(a.lease_ok, 10)
+                    self._lease_back()
+                    in_posture()
                     tj = time.monotonic()
                     a.must("jog", "frame=joint", f"axis=j{j}", f"direction={1 if togo > 0 else -1}")
                     if not a.wait_event("jog_stopped", tj, 40):  # the jog stops itself at the target
                         raise RuntimeError(f"the J{j} jog never reached its target")
                     a.settle()
         else:  # direct teach: push the tip the way J4/J5 must turn, as a person would
-            deadline = time.monotonic() + 40
+            deadline = time.monotonic() + 120
             while time.monotonic() < deadline:
                 q = a.q()
                 d45 = (target - q)[3:5]
                 if np.max(np.abs(d45)) < math.radians(0.01):  # J4/J5 stop exactly at the target
                     break
+                self._lease_back()
+                in_posture()
                 v = jacobian(q, MH3F)[:3, 3:5] @ d45
                 f = 25.0 * v / np.linalg.norm(v)
                 a.must("push", f"fx={f[0]:.2f}", f"fy={f[1]:.2f}", f"fz={f[2]:.2f}", "seconds=0.4")
                 time.sleep(0.45)
         deadline = time.monotonic() + 5
         while not a.send("finish_posture_adjust").accepted:  # let the servo settle into alignment
+            if run.method != "ptp":
+                in_posture()  # (aborted by a hold at the very end: aligned already, begin again)
             if time.monotonic() > deadline:
-                raise RuntimeError("finish_posture_adjust never accepted")
+                raise RuntimeError(f"finish_posture_adjust never accepted (mode {a.mode()})")
             time.sleep(0.1)
         run.t_aligned = time.monotonic()
-        run.posture_s = run.t_aligned - t
+        run.posture_s = run.t_aligned - t_begin  # (any attempts a hold cut short included)
         q1 = a.q()
         run.moved_other_joints_deg = float(np.degrees(np.abs(q1 - q0)[[0, 1, 2, 5]]).max())
 
@@ -216,11 +261,16 @@ class Experiment:
         """Send ``command`` until the arm reaches ``mode``: a watchdog hold (a scheduling stall of a
         busy host) stops a slave-side motion, and the operator simply commands it again."""
         a = self.arm
-        for _ in range(4):
+        for _ in range(UNTIL_ATTEMPTS):
+            t = time.monotonic()
             a.must(command)
-            if a.wait(lambda: a.mode() == mode, 20):
+
+            def done_or_stopped(t: float = t) -> bool:
+                return a.mode() == mode or bool(a.events_of("hold", t) or a.events_of("motion_stopped", t))
+
+            if a.wait(done_or_stopped, 30) and a.wait(lambda: a.mode() == mode, 0.3):
                 return
-            a.wait(a.lease_ok, 10)
+            self._lease_back()  # stopped by a hold: command it again once the lease is back
         raise RuntimeError(what)
 
     def remove(self) -> None:
@@ -245,20 +295,26 @@ class Experiment:
         # a starved machine): the trace is judged on a lap the slave followed throughout.
         for attempt in range(1, TRACE_ATTEMPTS + 1):
             self.trace_attempts = attempt
+            self._lease_back()
             m.clutch = True  # press the pedal: engage
-            self._must_wait(lambda: bool(a.log.states) and a.log.states[-1][4], 5, "the slave never followed")
+            if not a.wait(lambda: bool(a.log.states) and a.log.states[-1][4], 5):
+                m.clutch = False  # refused (a hold): release, and press again once the lease is back
+                time.sleep(0.5)
+                continue
             time.sleep(0.3)
             t0 = m.trace_t0 = time.monotonic()
             time.sleep(TRACE_LAPS * TRACE_PERIOD_S)  # whole laps: the master ends where it started
             self.trace = (t0, time.monotonic())
             m.clutch = False
             m.trace_t0 = None
-            self._must_wait(lambda: not a.log.states[-1][4], 2, "the slave never let go")
+            self._must_wait(lambda: not a.log.states[-1][4], 10, "the slave never let go")
             with a.log.lock:
                 lost = [s for s in a.log.states if t0 <= s[0] <= self.trace[1] and not s[4]]
             if not lost:
                 break
             log.warning("trace: the slave stopped following during attempt %d; tracing again", attempt)
+        if self.trace == (0.0, 0.0):
+            raise RuntimeError(f"the slave never followed the trace in {TRACE_ATTEMPTS} attempts")
         a.settle()
         # back out the extra depth in trocar mode before the removal (the pose it was inserted in)
         a.must("set_motion_mode", "mode=jog")
@@ -279,7 +335,7 @@ class Experiment:
         try:
             for attempt in range(1, TRACE_ATTEMPTS + 1):
                 run.ms_attempts = attempt
-                a.wait(a.lease_ok, 10)
+                self._lease_back()
                 m.clutch = True
                 if not a.wait(lambda: bool(a.log.states) and a.log.states[-1][4], 5):
                     m.clutch = False
@@ -290,7 +346,7 @@ class Experiment:
                 time.sleep(MS_LAPS * TRACE_PERIOD_S)
                 m.clutch = False
                 m.trace_t0 = None
-                self._must_wait(lambda: not a.log.states[-1][4], 2, "the slave never let go")
+                self._must_wait(lambda: not a.log.states[-1][4], 10, "the slave never let go")
                 with a.log.lock:
                     lost = [
                         s for s in a.log.states if t0 <= s[0] <= t0 + MS_LAPS * TRACE_PERIOD_S and not s[4]
@@ -314,6 +370,7 @@ class Experiment:
         run.t0 = time.monotonic()
         self.adjust(run)
         self.insert(run)
+        run.t_ms_start = time.monotonic()
         if trace:
             self.trace_circle()
         else:
@@ -375,6 +432,7 @@ def run(out: Path, progress: Progress | None = None, *, keep_logs: bool = True) 
             master.join(2)
     metrics = _metrics(exp, master, time.monotonic() - t_begin)
     _figures(out, exp, master)
+    _rcm_figure(out, exp)
     _save_trace(out / "trace.npz", exp, master)
     (out / "metrics.json").write_text(jsonio.dumps(metrics, indent=2) + "\n")
     say("done", 1.0)
@@ -395,11 +453,17 @@ def _metrics(exp: Experiment, master: Master, wall_s: float) -> dict[str, Any]:
     full = _full_rate_rcm(states, joints)
     full_trace = [e for t, e in full if t0 <= t <= t1]
     err = _tracking_error(tips, master, exp.trace)
+
+    def full_max(r: Run) -> float:  # the run's trocar mode, master–slave included
+        sel = [e for t, e in full if r.t0 <= t <= r.t_end]
+        return round(max(sel), 4) if sel else math.nan
+
     return {
         "rcm_full_rate_max_mm": round(max(e for _, e in full), 4) if full else math.nan,
         "rcm_full_rate_mean_mm": round(float(np.mean([e for _, e in full])), 4) if full else math.nan,
         "rcm_full_rate_samples": len(full),
         "rcm_full_rate_trace_max_mm": round(max(full_trace), 4) if full_trace else math.nan,
+        "rcm_full_rate_trace_mean_mm": round(float(np.mean(full_trace)), 4) if full_trace else math.nan,
         "rcm_error_max_mm": round(max(trace_rcm), 4),
         "rcm_error_mean_mm": round(float(np.mean(trace_rcm)), 4),
         "rcm_error_samples": len(trace_rcm),
@@ -424,6 +488,7 @@ def _metrics(exp: Experiment, master: Master, wall_s: float) -> dict[str, Any]:
                 "insert_to_trocar_s": round(r.t_trocar - r.t_aligned, 2),
                 "master_slave_attempts": r.ms_attempts,
                 "master_slave_whole_lap": r.ms_whole_lap if r.ms_attempts else None,
+                "rcm_full_rate_max_mm": full_max(r),
             }
             for r in exp.runs
         ],
@@ -449,6 +514,47 @@ def _full_rate_rcm(
         if i >= 0 and states[i][1] == "trocar":
             out.append((t, rcm_error(np.array(q), TROCAR, MH3F) * 1e3))
     return out
+
+
+def _rcm_figure(out: Path, exp: Experiment) -> None:
+    """``jinno-rcm.png``: the RCM error over all of trocar mode, from the measured joints at their
+    full rate (forward kinematics, as the paper computes it) beside slave_control's 20 Hz MuJoCo
+    figure; one panel per run, the master–slave motion shaded."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    log = exp.arm.log
+    with log.lock:
+        states = list(log.states)
+        joints = list(log.joints)
+    full = np.array(_full_rate_rcm(states, joints) or [(0.0, math.nan)])
+    slow = np.array([(s[0], s[2]) for s in states if s[1] == "trocar"] or [(0.0, math.nan)])
+    runs = exp.runs
+    fig, axes = plt.subplots(1, len(runs), figsize=(3.2 * len(runs), 3.6), sharey=True, squeeze=False)
+    for ax, r in zip(axes[0], runs, strict=True):
+        f = full[(full[:, 0] >= r.t0) & (full[:, 0] <= r.t_end)]
+        m = slow[(slow[:, 0] >= r.t0) & (slow[:, 0] <= r.t_end)]
+        t_in = f[0, 0] if len(f) else r.t_trocar
+        if len(f):
+            label = f"measured_js ({len(f)}; max {f[:, 1].max():.3f} mm)"
+            ax.plot(f[:, 0] - t_in, f[:, 1], lw=0.7, label=label)
+        if len(m):
+            ax.plot(m[:, 0] - t_in, m[:, 1], ".", ms=3, label="operating_state (MuJoCo tip, 20 Hz)")
+        end = exp.trace[1] if r.name == "trace" else r.t_ms_end
+        if r.t_ms_start and end:
+            ax.axvspan(r.t_ms_start - t_in, end - t_in, alpha=0.12, color="g", label="master–slave")
+        ax.axhline(1.0, color="r", ls="--", lw=1)
+        ax.set_title(r.name, fontsize=9)
+        ax.set_xlabel("time in trocar mode [s]")
+        ax.grid(True, alpha=0.3)
+        ax.legend(fontsize=6, loc="upper right")
+    axes[0][0].set_ylabel("RCM error [mm] (trocar to forceps axis)")
+    fig.suptitle("RCM error over all of trocar mode, from the measured joints at 250 Hz (red: 1 mm)")
+    fig.tight_layout()
+    fig.savefig(out / "jinno-rcm.png", dpi=110)
+    plt.close(fig)
 
 
 def _save_trace(path: Path, exp: Experiment, master: Master) -> None:

@@ -362,8 +362,10 @@ class Site:
         self.off = (*self.off, name)
 
     def _wait_alive(self, session: object, key: str, timeout: float) -> bool:
-        """Poll the liveliness token ``key`` until present (True) or timeout / exit (False)."""
-        name = key.rsplit("/", 1)[-1]
+        """Poll the liveliness tokens ``key`` until one is present (True) or timeout / exit (False)."""
+        from telesurg.shared.keys import Keys
+
+        name = Keys(self.spec.site).service_of_alive(key)
         deadline = time.monotonic() + timeout
         while time.monotonic() < deadline and self.procs[name].poll() is None:
             replies = session.liveliness().get(key, timeout=0.5)  # type: ignore[attr-defined]

@@ -17,8 +17,13 @@ world frame, the point and frame of the slave's ``measured_cp``) goes out on
   wrist reference W; the elbow goes on the line W–V of the arm's virtual incision port V
   (:func:`telesurg.shared.kinematics.vip.vip_ik`). V is chosen at the first engage from the current joints
   (:func:`~telesurg.shared.kinematics.vip.select_vip`, ``vip_ev_mm``) and can be set or reallocated by an
-  operator command on ``mapping/<arm>/command`` while the arm is not following (a new V moves the
-  elbow); every change is an event. An IK failure (e.g. a joint limit) holds the last setpoint.
+  operator command on ``mapping/<arm>/command`` while the arm is not following and the slave runs
+  no slave-side motion (a new V moves the elbow); every change is an event. ``reallocate_vip``
+  takes the joints the slave measures: after an elbow jog on the slave (Step 2 of the paper,
+  :mod:`telesurg.services.slave_control.elbow_jog`) the new VIP line goes through the moved elbow
+  (the reply says how far the elbow was off the previous line and how far the VIP moved). The
+  operator's scale commands work as in the other modes. An IK failure (e.g. a joint limit) holds
+  the last setpoint.
 """
 
 from __future__ import annotations
@@ -30,8 +35,10 @@ from typing import TYPE_CHECKING
 import numpy as np
 from telesurg.services.mapping.engage import EngageGate
 from telesurg.services.mapping.master import master_point
+from telesurg.services.mapping.scale import SCALE_COMMANDS
 from telesurg.shared.bus import Node, Outlet
 from telesurg.shared.errors import IKError, KinematicsError
+from telesurg.shared.kinematics.elbow import off_line
 from telesurg.shared.kinematics.transforms import rpy_matrix
 from telesurg.shared.limits import limit_step
 from telesurg.shared.messages import (
@@ -258,9 +265,14 @@ class VipMapping(PoseJointBase):
             if msg is None:
                 return
             pm = self.master_point(self.cfg, msg.position)
-            if self.following and self.q_cmd is not None and self.V is not None:
-                if self.ref is None:
-                    self.ref = (pm, self.vip.fk(self.q_cmd, self.geom).wrist)
+            if self.following and self.q_cmd is not None and self.V is not None and self.ref is None:
+                # the engage's first sample only anchors: its setpoint is where the slave is, so the
+                # slave's engage check (within engage_tolerance_rad of the arm) holds even when the
+                # elbow then moves over to a new VIP's line
+                self.ref = (pm, self.vip.fk(self.q_cmd, self.geom).wrist)
+                self.last = self.ref
+            elif self.following and self.q_cmd is not None and self.V is not None:
+                assert self.ref is not None
                 pm0, w0 = self.ref
                 w = w0 + self.scale * self.safety_scale * (self.r_ms @ (pm - pm0))
                 try:
@@ -278,7 +290,10 @@ class VipMapping(PoseJointBase):
             self._put(msg.header.stamp_ns)
 
     def on_command(self, cmd: Command) -> CommandReply:
-        """``state``, ``set_vip x= y= z=`` (mm, world), ``reallocate_vip [ev_mm=]`` (from joints)."""
+        """``state``, ``set_vip x= y= z=`` (mm, world), ``reallocate_vip [ev_mm=]`` (from joints),
+        and the operator's scale commands (``scale_up``, ``scale_down``, ``set_scale value=``)."""
+        if cmd.name in SCALE_COMMANDS and cmd.arm == self.slave:
+            return self.scale_command(cmd, "vip mapping, ")
         with self.lock:
             ok, reason = self._command(cmd)
         if ok and cmd.name != "state":
@@ -293,11 +308,16 @@ class VipMapping(PoseJointBase):
             v = "none" if self.V is None else ", ".join(f"{x * 1e3:.1f}" for x in self.V)
             return True, f"VIP ({v}) mm; {'following' if self.following else 'not following'}"
         if cmd.name not in ("set_vip", "reallocate_vip"):
-            return False, f"unknown command {cmd.name!r}; valid: state, set_vip, reallocate_vip"
+            valid = ", ".join(("state", "set_vip", "reallocate_vip", *SCALE_COMMANDS))
+            return False, f"unknown command {cmd.name!r}; valid: {valid}"
         if self.following:
             return False, f"{cmd.name} refused: release the clutch first (a new VIP moves the elbow)"
         if self.q_meas is None:
             return False, f"{cmd.name} refused: no slave joint state yet"
+        st = self.slave_state
+        if st is not None and st.state == "ENABLED" and not st.follow:
+            # a slave-side motion (the elbow jog) is moving the joints the VIP would come from
+            return False, f"{cmd.name} refused: the slave is moving (elbow jog): let it end or stop it"
         try:
             if cmd.name == "set_vip":
                 V = np.array([float(a[k]) for k in ("x", "y", "z")]) / 1e3
@@ -310,15 +330,20 @@ class VipMapping(PoseJointBase):
             return False, f"set_vip refused: missing {exc} (x=, y=, z= in mm)"
         except ValueError as exc:  # KinematicsError / IKError are ValueErrors, and float() errors
             return False, f"{cmd.name} refused: {exc}"
-        self.V = V
+        old, self.V = self.V, V
         mm = ", ".join(f"{x * 1e3:.1f}" for x in V)
-        w = self.vip.fk(self.q_meas, self.geom).wrist
-        moved = np.linalg.norm(
-            self.vip.vip_elbow(w, V, self.geom) - self.vip.fk(self.q_meas, self.geom).elbow
-        )
+        pose = self.vip.fk(self.q_meas, self.geom)
+        w = pose.wrist
+        moved = np.linalg.norm(self.vip.vip_elbow(w, V, self.geom) - pose.elbow)
         note = (
             f"; the elbow moves {moved * 1e3:.1f} mm to its new line after the next engage"
             if moved > 1e-4
             else ""
         )
+        if old is not None:  # Step 2 shows here: how far the elbow had left the previous line
+            off = off_line(pose.elbow, w, old)
+            note += (
+                f"; VIP moved {np.linalg.norm(V - old) * 1e3:.1f} mm, the elbow was "
+                f"{off * 1e3:.1f} mm off the previous VIP line"
+            )
         return True, f"VIP at ({mm}) mm{note}"

@@ -7,7 +7,9 @@ draws: joint series (measured vs setpoint), the tip tracking and RCM errors, lat
 target trails, the mapping's teleop state of each pair (a text line per change, an engaged
 series), each slave arm from its kinematic model (the robot is recognised by the joint names
 of ``measured_js`` among the registered robots and drawn by its registry entry's ``sketch``, see
-:mod:`telesurg.shared.robots`; ``--plugin FILE`` adds robots), the trocar / RCM / VIP points,
+:mod:`telesurg.shared.robots`; ``--plugin FILE`` adds robots), the robot's own bodies from its
+MuJoCo scene posed by ``mj_kinematics`` at the measured joints
+(:mod:`telesurg.services.mirror.geometry`), the trocar / RCM / VIP points,
 the master tip, mode changes and events. Entity paths and the layout are described in
 :mod:`telesurg.services.mirror.view`; the layout is sent once, when the slave arms are known.
 
@@ -39,8 +41,10 @@ from typing import cast
 import numpy as np
 import numpy.typing as npt
 from telesurg.services.common import service_main
+from telesurg.services.mirror.geometry import RobotGeometry, moved
 from telesurg.services.mirror.view import (
     EVENTS_PATH,
+    LAYOUTS,
     MASTER_COLOR,
     RCM_COLOR,
     SLAVE_COLOR,
@@ -121,6 +125,14 @@ class MirrorConfig:
     # Hz: camera frames drawn per camera (the newest, as its JPEG; camera/*/image), 0 = none
     image_hz: float = 2.0
     layout_wait_s: float = 0.5  # s after the first slave arm is seen before the layout is sent
+    # draw each slave robot's own bodies from its MuJoCo model (static geoms sent once, one pose
+    # per moved body per drawn frame, from mj_kinematics at the measured joints); false: only the
+    # registry's sketch (link polyline, forceps)
+    geometry: bool = True
+    # the viewer's default layout: "lean" — the slave 3D view, the joint plots, the states log
+    # (what software WebGL draws within 1 s of live); "full" — also the tip/target and master 3D
+    # views and the error, latency and scale plots (every entity is recorded either way)
+    layout: str = "lean"
     application_id: str = "telesurg"  # rerun application id (groups recordings in the viewer)
     recording_id: str = ""  # rerun recording id; "" = random; same id merges several processes
     # Only these services' master/, slave/ and safety/ streams are drawn (look-alikes from any
@@ -146,6 +158,8 @@ class MirrorConfig:
         ):
             if not lo <= value <= hi:
                 raise ConfigError(f"{name}={value} outside [{lo:g}, {hi:g}]")
+        if self.layout not in LAYOUTS:
+            raise ConfigError(f"layout={self.layout!r}: valid: {', '.join(LAYOUTS)}")
         for name, port in (("web_port", self.web_port), ("grpc_port", self.grpc_port)):
             if not 1 <= port <= 65535:
                 raise ConfigError(f"{name}={port} outside [1, 65535]")
@@ -212,6 +226,9 @@ def nearest_on_line(
     out: npt.NDArray[np.float64] = a + (float((p - a) @ d) / n) * d
     return out
 
+
+#: An arm's profile and its latest measured joints (the geometry's forward kinematics input).
+_ArmQ = tuple[ArmProfile, tuple[float, ...]]
 
 #: Measured joints kept for the tip error, ns of source time.
 _HISTORY_NS = 1_000_000_000
@@ -323,8 +340,15 @@ class Mirror:
         plot_hz: float = 0.0,
         plot_window_s: float = 20.0,
         layout_wait_s: float = 0.5,
+        geometry: bool = True,
+        layout: str = "full",
     ) -> None:
         self.view = view
+        self._layout = layout
+        self._geometry_on = geometry
+        # robot (registry entry) → its MuJoCo geometry, None where it failed to load
+        self._geometry: dict[str, RobotGeometry | None] = {}
+        self._body_sent: dict[str, tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]] = {}
         self._prefix = prefix.rstrip("/") + "/"
         self._span_ns = int(trail_s * 1e9)
         self._min_dt_ns = int(1e9 / trail_hz)
@@ -534,6 +558,8 @@ class Mirror:
                 t.dirty = False
                 pts = np.asarray(t.points, np.float64)
                 self.view.trail(_trail_path(role, arm, leaf), t.src, t.rx, pts, _color(role, leaf))
+        if self._geometry_on:
+            self._draw_geometry()
         for arm, a in self._arms.items():
             self._draw_arm(arm, a)
         if self._now_rx - self._series_sent_rx >= self._series_dt_ns:
@@ -549,8 +575,53 @@ class Mirror:
 
     def _send_layout(self) -> None:
         self.view.send_blueprint(
-            {arm: self._arms[arm].names for arm in sorted(self._arms)}, self._plot_window_s
+            {arm: self._arms[arm].names for arm in sorted(self._arms)}, self._plot_window_s, self._layout
         )
+
+    def _draw_geometry(self) -> None:
+        """Pose every robot body of each robot with an arm measured since the last frame (one
+        forward kinematics per robot and frame; a body is sent only when it moved)."""
+        robots_now: dict[str, tuple[RobotSpec, dict[str, _ArmQ], int, int]] = {}
+        fresh: set[str] = set()
+        for arm, a in self._arms.items():
+            if a.q is None or a.profile is None or a.robot is None:
+                continue
+            src, rx, q = a.q
+            spec, arms, src0, rx0 = robots_now.get(a.robot.name, (a.robot, {}, 0, 0))
+            arms[arm] = (a.profile, q)
+            robots_now[a.robot.name] = (spec, arms, max(src0, src), max(rx0, rx))
+            if a.q_drawn != src:
+                fresh.add(a.robot.name)
+        for key in fresh:
+            spec, arms, src, rx = robots_now[key]
+            geo = self._robot_geometry(key, spec)
+            if geo is None:
+                continue
+            try:
+                poses = geo.pose(arms)
+            except (ConfigError, ValueError) as exc:
+                self._warn_once(f"geo-pose{key}", f"robot {key}: no geometry drawn: {exc}")
+                self._geometry[key] = None
+                continue
+            for name, pose in poses.items():
+                if moved(self._body_sent.get(name), pose):
+                    self._body_sent[name] = pose
+                    self.view.body_pose(name, src, rx, pose[0], pose[1])
+
+    def _robot_geometry(self, key: str, spec: RobotSpec) -> RobotGeometry | None:
+        if key in self._geometry:
+            return self._geometry[key]
+        geo: RobotGeometry | None = None
+        try:
+            geo = RobotGeometry.load(spec)
+        except Exception as exc:  # a model the mirror cannot read: the sketch still shows the arm
+            self._warn_once(f"geo{key}", f"robot {key}: no geometry drawn: {exc}")
+        else:
+            for body in geo.bodies:
+                self.view.body(body)
+            log.info("robot %s: %d bodies drawn from %s", key, len(geo.bodies), spec.scene)
+        self._geometry[key] = geo
+        return geo
 
     def _draw_arm(self, arm: str, a: _Arm) -> None:
         if a.q is None or a.profile is None or a.robot is None or a.q_drawn == a.q[0]:
@@ -684,6 +755,8 @@ def run(cfg: MirrorConfig, stop: threading.Event) -> None:
                 plot_hz=cfg.plot_hz,
                 plot_window_s=cfg.plot_window_s,
                 layout_wait_s=cfg.layout_wait_s,
+                geometry=cfg.geometry,
+                layout=cfg.layout,
             )
             trusted = frozenset(cfg.trusted_sources)
 

@@ -3,6 +3,10 @@
 Entity paths (``<arm>`` an arm id, ``<joint>`` a joint name, both escaped for rerun)::
 
     /slave/<arm>/joints/<joint>/measured   Scalars       rad (m: prismatic), slave/<arm>/measured_js
+    /slave/geometry/<body>                 Transform3D   a body of the robot's MuJoCo model, posed by
+                                                         mj_kinematics at the measured joints; its
+                                                         geoms (static, body frame) are the children
+                                                         box|ellipsoid|capsule|cylinder|mesh<i>
     /slave/<arm>/joints/<joint>/setpoint   Scalars       rad (m), slave/<arm>/servo_jp
     /slave/<arm>/links                     LineStrips3D + Points3D  the arm's kinematic chain (from
                                                          measured_js: mh3f base→flange, vip R–E–W,
@@ -35,7 +39,8 @@ frame, +z up) in the "slave" 3D view. The master pose is in the master device's 
 has no fixed relation to the slave's (the mapping applies a clutch offset and a scale), so
 ``/master`` gets its own 3D view instead of being drawn at a made-up offset.
 
-The layout (:func:`blueprint`) is sent once, when the slave arms are known::
+The layout (:func:`blueprint`) is sent once, when the slave arms are known; ``lean`` (the live
+mirror's default) keeps the slave 3D view, the joint plots and the text log; ``full``::
 
     ┌───────────────────────────────┬─────────────────────────────────────────┐
     │ slave 3D (/slave/**)          │ <arm> joints: measured vs setpoint (one │
@@ -65,6 +70,7 @@ from typing import Any
 
 import numpy as np
 import numpy.typing as npt
+from telesurg.services.mirror.geometry import KINDS, Body, quat_matrix
 from telesurg.shared.viewer import viewer_url
 
 log = logging.getLogger(__name__)
@@ -137,6 +143,13 @@ def mapping_path(arm: str, leaf: str) -> str:
 EVENTS_PATH = "/events"
 
 
+@functools.lru_cache(maxsize=4096)
+def geometry_path(body: str) -> str:
+    """``/slave/geometry/<body>``: a robot body of the slave's MuJoCo model (its static geoms are
+    children, its pose the entity's Transform3D)."""
+    return f"/slave/geometry/{_part(body)}"
+
+
 def _window(seconds: float) -> list[Any]:
     """Visible time ranges: the last ``seconds`` before the cursor, on both timelines."""
     import rerun.blueprint as rrb
@@ -156,11 +169,22 @@ def _lines(name: str, color: Color, width: float) -> Any:
     return rr.SeriesLines.from_fields(names=[name], colors=[color], widths=[width])
 
 
-def blueprint(slave_arms: Mapping[str, Sequence[str]] | None = None, plot_window_s: float = 20.0) -> Any:
+#: Layouts of :func:`blueprint`: ``lean`` (the default) and ``full`` (module docstring).
+LAYOUTS = ("lean", "full")
+
+
+def blueprint(
+    slave_arms: Mapping[str, Sequence[str]] | None = None, plot_window_s: float = 20.0, layout: str = "full"
+) -> Any:
     """The layout drawn in the module docstring: one joint plot per slave arm (``slave_arms``:
     arm → joint names; none: one plot of everything under ``/slave``). Series names, colours and
-    widths are blueprint overrides, so the recording holds only the samples."""
+    widths are blueprint overrides, so the recording holds only the samples. ``lean``: the slave
+    3D view, the joint plots and the text log only (fewer views for the viewer to draw each frame;
+    the other entities are in the recording, a view away)."""
     import rerun.blueprint as rrb
+
+    if layout not in LAYOUTS:
+        raise ValueError(f"layout {layout!r}: valid: {', '.join(LAYOUTS)}")
 
     arms = dict(slave_arms or {})
     window = _window(plot_window_s)
@@ -181,6 +205,22 @@ def blueprint(slave_arms: Mapping[str, Sequence[str]] | None = None, plot_window
         )
     if not joints:
         joints.append(rrb.TimeSeriesView(name="slave joints [rad | m]", origin="/slave", time_ranges=window))
+    events = rrb.TextLogView(
+        name="modes & safety events", contents=["/slave/**", "/mapping/**", "/safety/**", EVENTS_PATH]
+    )
+    slave_3d = rrb.Spatial3DView(name="slave (world frame, m)", origin="/", contents=["+ /slave/**"])
+    if layout == "lean":
+        return rrb.Blueprint(
+            rrb.Horizontal(
+                slave_3d,
+                rrb.Vertical(
+                    rrb.Horizontal(*joints) if len(joints) > 1 else joints[0], events, row_shares=[3, 2]
+                ),
+                column_shares=[3, 2],
+            ),
+            rrb.TimePanel(timeline="source_time"),
+            collapse_panels=True,
+        )
     errors: _Overrides = {}
     latency: _Overrides = {}
     scale: _Overrides = {}
@@ -222,15 +262,13 @@ def blueprint(slave_arms: Mapping[str, Sequence[str]] | None = None, plot_window
                 overrides=scale,
             ),
         ),
-        rrb.TextLogView(
-            name="modes & safety events", contents=["/slave/**", "/mapping/**", "/safety/**", EVENTS_PATH]
-        ),
+        events,
         row_shares=[3, 2, 2, 2],
     )
     return rrb.Blueprint(
         rrb.Horizontal(
             rrb.Vertical(
-                rrb.Spatial3DView(name="slave (world frame, m)", origin="/", contents=["+ /slave/**"]),
+                slave_3d,
                 rrb.Horizontal(
                     rrb.Spatial3DView(name="slave tip (blue) and target (orange)", origin="/", contents=tips),
                     rrb.Spatial3DView(name="master tip (device frame)", origin="/master"),
@@ -321,12 +359,17 @@ class RerunView:
         self._rec.log("/", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
         self._rec.log("/master", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
 
-    def send_blueprint(self, slave_arms: Mapping[str, Sequence[str]], plot_window_s: float = 20.0) -> None:
-        """Send the layout for these slave arms (arm → joint names), once (later calls do nothing)."""
+    def send_blueprint(
+        self, slave_arms: Mapping[str, Sequence[str]], plot_window_s: float = 20.0, layout: str = "full"
+    ) -> None:
+        """Send the layout (:data:`LAYOUTS`) for these slave arms (arm → joint names), once (later
+        calls do nothing)."""
         if self.blueprint_arms is not None:
             return
         self.blueprint_arms = tuple(slave_arms)
-        self._rec.send_blueprint(blueprint(slave_arms, plot_window_s), make_active=True, make_default=True)
+        self._rec.send_blueprint(
+            blueprint(slave_arms, plot_window_s, layout), make_active=True, make_default=True
+        )
 
     # -- styles, once per entity, static -------------------------------------------------
     def _once(self, path: str) -> bool:
@@ -430,6 +473,78 @@ class RerunView:
             fpath = slave_path(arm, "forceps")
             self._style_3d(fpath, FORCEPS_COLOR, _THICK, None)
             self._rec.log(fpath, rr.LineStrips3D.from_fields(strips=forceps))
+
+    def body(self, body: Body) -> None:
+        """The static geometry of one robot body at ``/slave/geometry/<body>``, in its own frame
+        (one child entity per primitive kind, all its geoms of that kind in one batch; meshes
+        each their own child); its pose comes with :meth:`body_pose`. Once per body."""
+        rr = self._rr
+        path = geometry_path(body.name)
+        if not self._once(path):
+            return
+        solid = rr.components.FillMode.Solid
+        for kind in KINDS:
+            prims = [p for p in body.primitives if p.kind == kind]
+            if not prims:
+                continue
+            size = np.asarray([p.size for p in prims])
+            center = np.asarray([p.center for p in prims])
+            quats = [rr.Quaternion(xyzw=np.roll(p.quat, -1)) for p in prims]
+            colors = [p.rgba for p in prims]
+            part: Any
+            if kind == "box":
+                part = rr.Boxes3D(
+                    half_sizes=size, centers=center, quaternions=quats, colors=colors, fill_mode=solid
+                )
+            elif kind == "ellipsoid":
+                part = rr.Ellipsoids3D(
+                    half_sizes=size, centers=center, quaternions=quats, colors=colors, fill_mode=solid
+                )
+            elif kind == "cylinder":
+                part = rr.Cylinders3D(
+                    radii=size[:, 0],
+                    lengths=size[:, 1],
+                    centers=center,
+                    quaternions=quats,
+                    colors=colors,
+                    fill_mode=solid,
+                )
+            else:  # capsule: rerun's starts at its translation and runs along +z
+                axis = np.asarray([quat_matrix(p.quat)[:, 2] for p in prims])
+                start = center - 0.5 * size[:, 1:2] * axis
+                part = rr.Capsules3D(
+                    radii=size[:, 0],
+                    lengths=size[:, 1],
+                    translations=start,
+                    quaternions=quats,
+                    colors=colors,
+                    fill_mode=solid,
+                )
+            self._rec.log(f"{path}/{kind}", part, static=True)
+        for i, mesh in enumerate(body.meshes):
+            self._rec.log(
+                f"{path}/mesh{i}",
+                rr.Mesh3D(
+                    vertex_positions=mesh.vertices, triangle_indices=mesh.faces, albedo_factor=mesh.rgba
+                ),
+                static=True,
+            )
+
+    def body_pose(
+        self,
+        name: str,
+        source_ns: int,
+        receive_ns: int,
+        position: npt.NDArray[np.float64],
+        quat_wxyz: npt.NDArray[np.float64],
+    ) -> None:
+        """The pose of robot body ``name`` (world frame, m; quaternion w x y z) from this time on."""
+        rr = self._rr
+        self._at(source_ns, receive_ns)
+        self._rec.log(
+            geometry_path(name),
+            rr.Transform3D(translation=position, quaternion=rr.Quaternion(xyzw=np.roll(quat_wxyz, -1))),
+        )
 
     def point(
         self,

@@ -30,7 +30,7 @@ from typing import Any
 
 from telesurg.services.common import service_main
 from telesurg.services.router.zlog import ACL_MODES, ZenohLogRelay
-from telesurg.shared.bus import BusConfig, open_session
+from telesurg.shared.bus import BusConfig
 from telesurg.shared.errors import ConfigError
 from telesurg.shared.messages import MAX_PAYLOAD_BYTES
 
@@ -70,6 +70,13 @@ class RouterConfig:
     # access-control log: "off", "denied" (denials only, at most 20 lines/s, the rest counted)
     # or "all" (every decision, DEBUG; megabytes a minute on a busy site)
     acl_log: str = "off"
+    # zenoh's shared-memory transport on the router's links (off): with it, zenoh 1.x maps the
+    # 16 MiB SHM pool of every client on this host that sent it a message over 3 KiB
+    # (transport/shared_memory/transport_optimization) and keeps it mapped after that client's
+    # session ends — +16 MB of router RSS per such session (a flooder's included; measured,
+    # docs/security.md#flood-memory-and-holds). The site's messages are small and cross loopback
+    # TCP at ~1 GB/s; off, no client negotiates SHM with the router.
+    shared_memory: bool = False
 
     def validate(self) -> None:
         """Raise ConfigError naming the valid options."""
@@ -113,21 +120,21 @@ def run(cfg: RouterConfig, stop: threading.Event) -> None:
     zenoh.init_log_from_env_or(relay.filter)
     cfg.bus.zenoh_log = ""  # initialised above
     caps = size_caps(cfg)
+    z = zenoh_config(cfg.bus)
     if caps:
-        z = zenoh_config(cfg.bus)
         z.insert_json5("low_pass_filter", json.dumps(caps))
-        try:
-            session = zenoh.open(z)
-        except zenoh.ZError as exc:
-            raise ConnectionError(f"zenoh router failed (listen={cfg.bus.listen}): {exc}") from exc
-    else:
-        session = open_session(cfg.bus)
+    z.insert_json5("transport/shared_memory/enabled", json.dumps(cfg.shared_memory))
+    try:
+        session = zenoh.open(z)
+    except zenoh.ZError as exc:
+        raise ConnectionError(f"zenoh router failed (listen={cfg.bus.listen}): {exc}") from exc
     log.info(
-        "router %s listening on %s; size caps %s; acl log %s",
+        "router %s listening on %s; size caps %s; acl log %s; shared memory %s",
         session.zid(),
         ", ".join(ep.partition("#")[0] for ep in cfg.bus.listen),
         ", ".join(f"{c['id']} {c['size_limit']} B" for c in caps) or "off",
         cfg.acl_log,
+        "on" if cfg.shared_memory else "off",
     )
     try:
         stop.wait()

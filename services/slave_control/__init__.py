@@ -13,8 +13,11 @@ setpoint validation, e-stop, engage, speed limit, the catch-up after a stall and
 (link lost, controller fault or watchdog, shadow divergence) holds every arm like a revoked
 lease, with the fault as the reason, until it clears and a new engage comes. An arm whose robot
 has the trocar motion family (the MH3F) gets the slave-side motions of Jinno 2014 as its motion
-source (:mod:`telesurg.services.slave_control.trocar_arm`); the others follow servo_jp only,
-interpolated to the control rate.
+source (:mod:`telesurg.services.slave_control.trocar_arm`); an arm with an elbow (the VIP arms)
+gets the elbow (null-space) jog (:mod:`telesurg.services.slave_control.elbow_jog`); the others
+follow servo_jp only. Every arm follows servo_jp interpolated to the control rate on the master's
+clock (the trocar arm too: a step answered joint by joint by the servos leaves the trocar's RCM;
+``arm.ServoFollow``).
 
 The control loop runs at the backend period (1 ms for MuJoCo, in real time: missed periods are
 replayed, and counted; ``serial.rate_hz`` for a serial arm). Setpoints arrive on
@@ -42,8 +45,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from telesurg.services.common import service_main
-from telesurg.services.slave_control.arm import REPLAY_MAX_PERIODS, ArmCore, MotionSource
+from telesurg.services.slave_control.arm import REPLAY_MAX_PERIODS, TROCAR_CATCHUP, ArmCore, MotionSource
 from telesurg.services.slave_control.backends import SlaveBackend, SlaveReading
+from telesurg.services.slave_control.elbow_jog import ElbowJog
 from telesurg.services.slave_control.factory import make_backend
 from telesurg.services.slave_control.serial_backend import SerialBackendConfig
 from telesurg.services.slave_control.teach import TeachConfig
@@ -83,7 +87,7 @@ class SlaveControlConfig:
     # ms: a lease is honoured at most its valid_for_ms + this after its own header stamp (this
     # host's wall clock, the watchdog's too): a thawed slave never acts on old leases
     lease_stamp_slack_ms: float = 50.0
-    # ms: joint-space arms interpolate sparse setpoints over their period, at most this long
+    # ms: every arm interpolates its setpoints over their period (delay 1.5 periods), at most this long
     interpolation_max_ms: float = 100.0
     engage_tolerance_rad: float = 0.02  # rad: first followed setpoint must be this close to the arm
     # rad: while following, a setpoint farther than this from the previous one is refused (a jump)
@@ -104,7 +108,7 @@ class SlaveControlConfig:
     # PTP speed, and a path is checked at 0.005 rad steps)
     patient_box_min_mm: tuple[float, float, float] = (255.0, -175.0, 130.0)
     patient_box_max_mm: tuple[float, float, float] = (745.0, 175.0, 198.0)
-    jog_speed_mm_s: float = 10.0  # mm/s: Cartesian jog and insert/remove speed
+    jog_speed_mm_s: float = 10.0  # mm/s: Cartesian jog, insert/remove and elbow (VIP) jog speed
     jog_joint_speed_deg_s: float = 5.0  # deg/s: joint jog speed
     ptp_speed_fraction: float = 0.2  # PTP moves (posture, playback) at this fraction of the joint limits
     playback_speed_mm_s: float = 20.0  # mm/s: tip speed of a playback in trocar mode
@@ -158,10 +162,15 @@ def make_arms(cfg: SlaveControlConfig, backend: SlaveBackend) -> list[ArmCore]:
         motion: MotionSource | None = None
         if family == "trocar":
             motion = TrocarMotions(cfg, p, getattr(backend, "push", None))
+        elif p.elbow is not None:  # an arm with an elbow (VIP): the elbow (null-space) jog
+            motion = ElbowJog(cfg, p)
         idx = [names.index(j) for j in p.model_joints]
         contiguous = idx == list(range(idx[0], idx[0] + len(idx)))
         index = slice(idx[0], idx[0] + len(idx)) if contiguous else np.array(idx)
-        cores.append(ArmCore(p, index, cfg, backend.dt, motion=motion, interpolate=family == "joint"))
+        # every arm interpolates its setpoints (the trocar arm too: its servos must never see a
+        # step, see arm.ServoFollow); the trocar arm makes up stalls (arm.TROCAR_CATCHUP)
+        catchup = TROCAR_CATCHUP if family == "trocar" else 1.0
+        cores.append(ArmCore(p, index, cfg, backend.dt, motion=motion, interpolate=True, catchup=catchup))
     return cores
 
 
@@ -212,12 +221,21 @@ def run(cfg: SlaveControlConfig, stop: threading.Event) -> None:
         cycle = 0
         while not stop.is_set():
             node.poll()
-            command(time.monotonic(), reading)
+            now = time.monotonic()
+            if now > timer.deadline_s and not backend.realtime:
+                # late (a stall before this point): this command drives the first of the periods
+                # the loop missed, so it is computed at that period's time, before the replayed
+                # ones below — every period's command at its own time, in order (an interpolated
+                # reference sampled at the wake time and then at earlier times would jump back)
+                now = timer.deadline_s - dt
+            command(now, reading)
             missed = timer.wait()
             if backend.realtime or not missed:
                 # a real arm held its last command through the stall by itself; its MuJoCo shadow
                 # is stepped by the periods it missed, so it stays in real time too
                 backend.step(1 + missed)
+                for a in arms:
+                    a.stalled(missed * dt)
             else:
                 # a simulation: replay the missed periods, each with its own command computed at
                 # its own time (the catch-up rule, arm.py): the physics stays in real time and the
@@ -226,13 +244,17 @@ def run(cfg: SlaveControlConfig, stop: threading.Event) -> None:
                 # through the earlier ones, as a real arm would have.
                 held = max(0, missed - REPLAY_MAX_PERIODS)
                 backend.step(1 + held)
+                for a in arms:  # the arm held its command through them: its timeline pauses
+                    a.stalled(held * dt)
                 # the inputs that queued up during the stall first: the replayed periods judge
                 # the newest lease and setpoint (by arrival, cycles and their own stamps), never
                 # the ones from before the stall (a thawed slave acts on no old permission)
                 node.poll()
-                t_wake = time.monotonic()
-                for late in range(missed - held, 0, -1):
-                    command(t_wake - late * dt, backend.read())
+                # each replayed period at its own time on the loop's schedule: right after the
+                # 1 + held periods the command above drove (not counted back from the wake-up,
+                # whose own delay would make the reference skip ahead between two periods)
+                for period in range(held + 1, missed + 1):
+                    command(now + period * dt, backend.read())
                     backend.step(1)
             reading = backend.read()
             cycle += 1

@@ -16,7 +16,10 @@ Rules (one of each, for every arm):
   lease never outlasts its grant by the polling interval. It allows motion while it says
   ``allow`` and is younger than its ``valid_for_ms``; as for every input age (``control.py``) it
   has expired only when both the wall clock and the control cycles executed since it came say
-  so. The watchdog's liveliness token dying revokes it at once. **Stamp age:** whatever those
+  so. The watchdog's liveliness token dying revokes it at once: the token of the watchdog
+  session whose leases this node authenticates (``alive/watchdog/<sid>``,
+  :mod:`telesurg.shared.presence`), so another token for the watchdog (a stranger's) does not
+  hide the death, and a lease of that session still queued here is dropped. **Stamp age:** whatever those
   clocks say, a lease is honoured at most its ``valid_for_ms`` + ``lease_stamp_slack_ms`` after
   its own header stamp, and a setpoint at most ``setpoint_max_age_ms`` after its stamp, judged on
   this host's wall clock at the moment of use (the watchdog and the mapping run on the slave
@@ -53,8 +56,11 @@ Rules (one of each, for every arm):
 Motions plug in as :class:`MotionSource`: each period the core asks the arm's slave-side source
 (trocar modes, PTP, jog, teach/playback) whether it is active and, if so, for the commanded
 joints; otherwise the arm follows the master through its default source, :class:`ServoFollow`
-(``servo_jp``, through the :class:`~.control.SetpointInterpolator` for arms fed sparse
-setpoints: the VIP/PLAS consoles at 25 Hz).
+(``servo_jp``, through the :class:`~.control.SetpointInterpolator`: the VIP/PLAS consoles at
+25 Hz, the MH3F's mapping at 250 Hz — its servos never see a step, which they would answer each
+at its own pace, off the trocar's RCM). An arm that catches up (the trocar arm,
+:data:`TROCAR_CATCHUP`) pauses its setpoint timeline through the periods it held its command in
+a stall and makes the delay up afterwards, so it resumes along the master's path where it stopped.
 """
 
 from __future__ import annotations
@@ -103,6 +109,16 @@ FRAME = "base"
 #: Missed periods a simulation replays after a stall (the catch-up rule): 20 ms at 1 kHz, at most
 #: ~2 ms of work (a jog's IK included) before the loop publishes again.
 REPLAY_MAX_PERIODS = 20
+#: Playback rate of the trocar arm's setpoint timeline while it makes up a stall
+#: (:class:`~.control.SetpointInterpolator`): the mapping keeps every trocar-mode step within
+#: 0.7 × the joint speed limits (``shared/kinematics/trocar_limits.py``), so 1.25× stays within
+#: 0.875 × them — the catch-up is never speed-clipped (a clipped step leaves the RCM).
+TROCAR_CATCHUP = 1.25
+#: Accepted setpoints kept between two control periods (the interpolator gets every one of them).
+PENDING_MAX = 256
+#: Setpoints the interpolator keeps: 1.2 s at 250 Hz, longer than the longest stall an arm still
+#: follows through (a lease lives 250 ms), so a paused timeline always resumes on kept setpoints.
+INTERP_WINDOW = 300
 
 
 class MotionError(Exception):
@@ -202,24 +218,27 @@ class MotionSource(Protocol):
 @dataclass
 class ServoFollow:
     """Master–slave following, the arm's default motion source: the reference is the newest
-    accepted ``servo_jp`` — or, for an arm fed sparse setpoints (``interpolate``: the joint-space
-    family, a console at 25 Hz), the :class:`~.control.SetpointInterpolator`'s smooth 1 kHz
-    replay of them. The core's follow/engage rule (:class:`~.control.FollowController`) decides
-    whether the arm follows it."""
+    accepted ``servo_jp`` — or, for an arm whose setpoints are interpolated (``interpolate``: the
+    joint-space family fed by a console at 25 Hz, and the trocar arm at 250 Hz, whose servos must
+    never see a step: a step answered joint by joint leaves the RCM), the
+    :class:`~.control.SetpointInterpolator`'s smooth 1 kHz replay of every accepted setpoint on
+    the master's clock. The core's follow/engage rule (:class:`~.control.FollowController`)
+    decides whether the arm follows it."""
 
     interpolate: bool
     interp: SetpointInterpolator
     _last_follow: bool = False
 
-    def reference(self, sp: Setpoint | None, fresh: bool, now: float) -> Setpoint | None:
-        """The setpoint to follow at time ``now`` (``fresh``: ``sp`` arrived since the last call)."""
+    def reference(self, sp: Setpoint | None, arrived: list[Setpoint], now: float) -> Setpoint | None:
+        """The setpoint to follow at time ``now`` (``arrived``: the setpoints accepted since the
+        last call, oldest first, ``sp`` the newest)."""
         if not self.interpolate or sp is None:
             return sp
-        if fresh:
-            if sp.follow and not self._last_follow:
+        for a in arrived:
+            if a.follow and not self._last_follow:
                 self.interp.reset()  # a new engage starts a new timeline (no jump)
-            self.interp.push(sp.position, sp.source_time, sp.received)
-            self._last_follow = sp.follow
+            self.interp.push(a.position, a.source_time, a.received)
+            self._last_follow = a.follow
         if sp.follow and (ref := self.interp.sample(now)) is not None:
             return Setpoint(ref, True, sp.received, sp.cycle)
         return sp
@@ -291,8 +310,8 @@ class ArmCore:
         dt: control period, s.
         node: the bus (None in unit tests: no events, no outputs).
         motion: the arm's slave-side motion source (None: the arm only follows servo_jp).
-        interpolate: interpolate sparse setpoints to the control rate (joint-space arms fed by a
-            console at 25 Hz; the MH3F gets one setpoint per master sample).
+        interpolate: interpolate the setpoints to the control rate (slave_control: every arm).
+        catchup: > 1: pause the setpoint timeline through a stall and make it up at this rate.
     """
 
     profile: ArmProfile
@@ -306,6 +325,10 @@ class ArmCore:
     lease: Lease = field(default_factory=Lease)
     setpoint: Setpoint | None = None
     fresh_setpoint: bool = False  # a new setpoint arrived since the loop last looked
+    # playback rate of the interpolated timeline while it makes up a stall (1: never; see
+    # TROCAR_CATCHUP and control.SetpointInterpolator)
+    catchup: float = 1.0
+    _arrived: list[Setpoint] = field(default_factory=list)  # accepted since the loop last looked
     estop: str = ""  # latched e-stop cause ("" = none); only an explicit reset clears it
     rejected: int = 0  # setpoints refused by the rules above
     cycle: int = 0  # control cycles executed; stamped on inputs (see control.py)
@@ -330,7 +353,10 @@ class ArmCore:
             setpoint_timeout=cfg.setpoint_timeout_ms / 1e3,
             engage_tolerance=cfg.engage_tolerance_rad,
         )
-        self.servo = ServoFollow(self.interpolate, SetpointInterpolator(cfg.interpolation_max_ms / 1e3))
+        self.servo = ServoFollow(
+            self.interpolate,
+            SetpointInterpolator(cfg.interpolation_max_ms / 1e3, window=INTERP_WINDOW, catchup=self.catchup),
+        )
         self.q_cmd = np.array(p.home, dtype=float)
         self._lower, self._upper = tuple(p.lower), tuple(p.upper)
         self._vmax = np.array(p.max_velocity)
@@ -376,6 +402,10 @@ class ArmCore:
     # -- inputs (zenoh threads / the loop's poll) ----------------------------------------------
     def on_lease(self, msg: SafetyLease, key: str) -> None:
         now = self.node.received(key) if self.node is not None else time.monotonic()
+        if self.node is not None and self.node.presence.vanished(
+            self.cfg.watchdog_service, self.node.streams.get(key).sid
+        ):
+            return  # queued from a watchdog session whose token has vanished: it is dead
         with self.lock:
             valid_cycles = round(msg.valid_for_ms / 1e3 / self.dt)
             self.lease = Lease(
@@ -453,6 +483,8 @@ class ArmCore:
                 stamp_ns=msg.header.stamp_ns,
             )
             self.fresh_setpoint = True
+            self._arrived.append(self.setpoint)
+            del self._arrived[:-PENDING_MAX]
 
     def on_command(self, cmd: Command) -> CommandReply:
         """Answer one operator command (zenoh thread) the operator authority allows
@@ -503,13 +535,17 @@ class ArmCore:
         """The arm's joint command for the period at time ``now`` (s, monotonic)."""
         q_meas, q_cmd, ctl, motion = reading.position, self.q_cmd, self.ctl, self.motion
         with self.lock:
-            lease, sp, fresh = self.lease, self.setpoint, self.fresh_setpoint
+            lease, sp, arrived = self.lease, self.setpoint, self._arrived
             self.fresh_setpoint = False
+            self._arrived = []
             if self.estop:
                 lease = Lease(False, 0.0, self.estop)
             internal = motion is not None and motion.active()
             blocked = motion.blocks_following() if motion is not None else ""
         lease, sp = self._stamp_age(lease, sp)
+        if arrived and self._sp_max_age_ns:  # the stamp-age rule for every one the timeline gets
+            wall = time.time_ns()
+            arrived = [a for a in arrived if not a.stamp_ns or wall - a.stamp_ns <= self._sp_max_age_ns]
         self._log_applied(sp)
         if reading.fault or self.held.active:
             if reading.fault and internal and motion is not None:
@@ -522,10 +558,19 @@ class ArmCore:
             if blocked:
                 ctl.pause(q_meas, blocked)
                 sp = None
-            sp = self.servo.reference(sp, fresh, now)
+            sp = self.servo.reference(sp, arrived, now)
             out = ctl.update(now, q_meas, q_cmd, lease, sp, self.dt, self.cycle)
         self.q_cmd = out
         return out
+
+    def stalled(self, seconds: float) -> None:
+        """The arm held its command through ``seconds`` of a stall of the control loop (the
+        catch-up rule): an arm that catches up (``catchup`` > 1) pauses its setpoint timeline as
+        long, so it resumes along the master's path where it stopped — never across to the newest
+        setpoint (a speed-clipped jump answered joint by joint leaves the trocar's RCM) — and then
+        makes up the delay at ``catchup``."""
+        if self.interpolate and self.catchup > 1.0:
+            self.servo.interp.pause(seconds)
 
     def _stamp_age(self, lease: Lease, sp: Setpoint | None) -> tuple[Lease, Setpoint | None]:
         """The stamp-age rule: judged on this host's wall clock *now* (also in a replayed period:

@@ -22,6 +22,7 @@ a silent input still times out after the same time once the loop runs.
 
 from __future__ import annotations
 
+import bisect
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -48,16 +49,27 @@ class SetpointInterpolator:
     the box of the joint limits they lie in (no overshoot); its speed is constant between
     setpoints (no steps); it never extrapolates. :meth:`reset` starts a new timeline (engage).
 
+    **Catch-up.** The timeline shifts back by every stall (the buffer ran dry, or the arm held its
+    command through a stall of its own loop: :meth:`pause`), so the reference goes on along the
+    setpoints' path from where it stopped instead of cutting across to the newest one. With
+    ``catchup`` > 1 the playback clock then runs that much faster than the local clock until the
+    shift is made up, so a stall does not add latency for the rest of the engagement (the
+    reference's speed is the source's × ``catchup`` meanwhile; 1 = never catch up).
+
     Attributes:
         max_period: s; the longest delay.
         window: setpoints kept.
+        catchup: playback rate (× the local clock) while the timeline runs behind its start.
     """
 
     max_period: float = 0.1
     window: int = 50
+    catchup: float = 1.0
     _pts: list[tuple[float, np.ndarray]] = field(default_factory=list)  # (source time s, q)
     _offset: float | None = None  # local time - source time of the playback clock, s
     _delay: float = 0.0
+    _shift: float = 0.0  # s the timeline was shifted back by stalls and has not yet made up
+    _t_last: float | None = None  # local time of the last sample, s
 
     def push(self, q: np.ndarray, t_source: float, t_arrival: float) -> None:
         """A setpoint ``q`` sampled at ``t_source`` (source clock, s) arrived at ``t_arrival``."""
@@ -68,6 +80,7 @@ class SetpointInterpolator:
             behind = t_arrival - self._offset - self._delay - pts[-1][0]
             if behind > 0.0:  # the reference has been holding the last setpoint: resume there
                 self._offset += behind
+                self._shift += behind
         pts.append((t_source, q.copy()))
         del pts[: -self.window]
         if self._offset is None and len(pts) >= 2:
@@ -79,6 +92,20 @@ class SetpointInterpolator:
         """Buffer delay of the current timeline, s."""
         return self._delay
 
+    @property
+    def behind(self) -> float:
+        """How far (s) the timeline runs behind its start offset: stalls not yet made up."""
+        return self._shift
+
+    def pause(self, seconds: float) -> None:
+        """The arm held its command for ``seconds`` (a stall of its own loop): the playback clock
+        stops for as long, so the reference resumes on the path where the command stopped."""
+        if self._offset is not None and seconds > 0.0:
+            self._offset += seconds
+            self._shift += seconds
+            if self._t_last is not None:  # the paused time is not played: nothing to make up in it
+                self._t_last += seconds
+
     def sample(self, t: float) -> np.ndarray | None:
         """Reference at local time ``t`` (s); None before the first setpoint."""
         pts = self._pts
@@ -86,22 +113,30 @@ class SetpointInterpolator:
             return None
         if self._offset is None:
             return pts[0][1]
+        if self._t_last is not None and t > self._t_last and self._shift > 0.0 and self.catchup > 1.0:
+            gain = min(self._shift, (self.catchup - 1.0) * (t - self._t_last))
+            self._offset -= gain
+            self._shift -= gain
+        if self._t_last is not None and t < self._t_last:
+            t = self._t_last  # never played backward
+        self._t_last = t
         tp = t - self._offset - self._delay  # the source time being played now
         if tp <= pts[0][0]:
             return pts[0][1]
         if tp >= pts[-1][0]:
             return pts[-1][1]  # ran dry: hold the newest setpoint
-        for (ta, qa), (tb, qb) in zip(pts[-2::-1], pts[:0:-1], strict=True):  # newest first
-            if ta <= tp:
-                out: np.ndarray = qa + (tp - ta) / (tb - ta) * (qb - qa)
-                return out
-        return pts[0][1]
+        i = bisect.bisect_right(pts, tp, key=lambda p: p[0])  # pts[i - 1][0] <= tp < pts[i][0]
+        (ta, qa), (tb, qb) = pts[i - 1], pts[i]
+        out: np.ndarray = qa + (tp - ta) / (tb - ta) * (qb - qa)
+        return out
 
     def reset(self) -> None:
         """Forget the history (a new engage starts a new timeline)."""
         self._pts.clear()
         self._offset = None
         self._delay = 0.0
+        self._shift = 0.0
+        self._t_last = None
 
 
 @dataclass

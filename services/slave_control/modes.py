@@ -220,7 +220,9 @@ class ModeConfig:
         align_tolerance_rad: largest forceps-axis angle to the trocar direction to finish the
             posture adjustment and to insert, rad.
         joint_deadband_rad: a posture jog of J4/J5 is done when its remaining distance to the
-            target is at most this, rad.
+            target is at most this, rad; below ``align_tolerance_rad``, so a jog a hold stopped
+            just short of its target can be jogged on to it (0.1° used to leave it stuck
+            0.09° short, more than the 0.05° alignment finish_posture_adjust asks).
         align_running_tolerance_rad: a running insertion stops when the axis angle exceeds
             this (hysteresis above ``align_tolerance_rad``: servo lag while the arm moves must not
             stop it), rad.
@@ -229,7 +231,7 @@ class ModeConfig:
     trocar_depth_m: float = TROCAR_MODE_DEPTH
     exit_margin_m: float = 0.002
     align_tolerance_rad: float = math.radians(0.05)
-    joint_deadband_rad: float = math.radians(0.1)
+    joint_deadband_rad: float = math.radians(0.01)
     align_running_tolerance_rad: float = math.radians(2.0)
 
     def __post_init__(self) -> None:

@@ -1,0 +1,189 @@
+"""Headless Debian Chromium driven over the DevTools protocol on a pipe: the benches' and the
+tests' browser (the rerun web viewer, the web console).
+
+``--remote-debugging-pipe``: Chromium reads NUL-terminated JSON commands on its fd 3 and writes
+replies and events on its fd 4 — no websocket, no extra package. :func:`chromium` starts it on a
+URL in its own process group (ended on exit), :class:`DevTools` sends commands,
+:func:`screenshot` takes the viewport as PNG.
+
+Example::
+
+    with chromium("http://127.0.0.1:9090/", Path("/tmp/x")) as (cdp, session):
+        png = screenshot(cdp, session)
+"""
+
+from __future__ import annotations
+
+import base64
+import contextlib
+import fcntl
+import json
+import os
+import select
+import signal
+import subprocess
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+# --------------------------------------------------------------------------- chromium over DevTools
+
+CHROMIUM = Path("/usr/bin/chromium")
+WINDOW = (1600, 900)  # px: viewport of the screenshot
+#: Flags for a closed network and a fresh profile (the profile dir is added per run).
+CHROMIUM_FLAGS = (
+    "--headless",
+    "--no-sandbox",
+    "--disable-gpu",
+    "--enable-unsafe-swiftshader",  # software WebGL (no GPU in CI)
+    "--disable-quic",
+    "--no-first-run",
+    "--no-default-browser-check",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+    "--disable-extensions",
+    "--mute-audio",
+    # a headless page may count as hidden: keep its animation frames and timers running
+    "--disable-renderer-backgrounding",
+    "--disable-background-timer-throttling",
+    "--disable-backgrounding-occluded-windows",
+    "--hide-scrollbars",
+    f"--window-size={WINDOW[0]},{WINDOW[1]}",
+    "--remote-debugging-pipe",
+)
+
+
+# --------------------------------------------------------------------------- DevTools over a pipe
+
+
+class DevTools:
+    """Minimal Chrome DevTools Protocol client over ``--remote-debugging-pipe``.
+
+    Chromium reads commands from its fd 3 and writes replies and events to its fd 4, each a JSON
+    object followed by a NUL byte. :meth:`call` sends one command and returns its ``result``,
+    skipping events; a protocol error raises RuntimeError.
+    """
+
+    def __init__(self, to_browser: int, from_browser: int) -> None:
+        self._out = to_browser
+        self._in = from_browser
+        self._buf = b""
+        self._id = 0
+
+    def call(
+        self, method: str, params: dict[str, Any] | None = None, session: str = "", timeout: float = 120.0
+    ) -> dict[str, Any]:
+        self._id += 1
+        msg: dict[str, Any] = {"id": self._id, "method": method, "params": params or {}}
+        if session:
+            msg["sessionId"] = session
+        data = json.dumps(msg).encode() + b"\0"
+        while data:
+            data = data[os.write(self._out, data) :]
+        deadline = time.monotonic() + timeout
+        while True:
+            reply = self._next(deadline, method)
+            if reply.get("id") == self._id:
+                if "error" in reply:
+                    raise RuntimeError(f"{method}: {reply['error']}")
+                result: dict[str, Any] = reply.get("result", {})
+                return result
+
+    def _next(self, deadline: float, method: str) -> dict[str, Any]:
+        while b"\0" not in self._buf:
+            left = deadline - time.monotonic()
+            if left <= 0:
+                raise TimeoutError(f"chromium did not answer {method}")
+            ready, _, _ = select.select([self._in], [], [], left)
+            if ready:
+                chunk = os.read(self._in, 1 << 20)
+                if not chunk:
+                    raise ConnectionError(f"chromium closed the DevTools pipe during {method}")
+                self._buf += chunk
+        raw, self._buf = self._buf.split(b"\0", 1)
+        out: dict[str, Any] = json.loads(raw)
+        return out
+
+
+def _high_fd(fd: int) -> int:
+    """``fd`` moved to a number >= 10 (the original is closed)."""
+    high = fcntl.fcntl(fd, fcntl.F_DUPFD_CLOEXEC, 10)
+    os.close(fd)
+    return high
+
+
+@contextlib.contextmanager
+def chromium(
+    url: str, workdir: Path, window: tuple[int, int] = WINDOW, mobile: bool = False, nice: int = 10
+) -> Iterator[tuple[DevTools, str]]:
+    """Headless chromium showing ``url``: (DevTools client, page session id); killed on exit.
+
+    ``window``/``mobile``: the emulated viewport (a phone: e.g. (390, 844), mobile, touch on);
+    ``nice``: chromium's niceness (10: it yields to the services; 0 where the page is a master)."""
+    profile = workdir / "chromium-profile"
+    profile.mkdir(parents=True, exist_ok=True)
+    cmd_r, cmd_w = os.pipe()  # we write commands → chromium's fd 3
+    out_r, out_w = os.pipe()  # chromium's fd 4 → we read replies
+    cmd_r, out_w = _high_fd(cmd_r), _high_fd(out_w)  # not 3 or 4 themselves: no clash when moved
+    # bash moves the pipe ends to fds 3 and 4 (multi-digit fds: dash cannot), then execs chromium
+    argv = [
+        "bash",
+        "-c",
+        f'exec 3<&{cmd_r} 4>&{out_w} {cmd_r}<&- {out_w}>&-; exec nice -n {nice} "$@"',
+        "chromium",
+        str(CHROMIUM),
+        *CHROMIUM_FLAGS,
+        f"--user-data-dir={profile}",
+        "about:blank",
+    ]
+    log = (workdir / "chromium.log").open("wb")
+    proc = subprocess.Popen(
+        argv, pass_fds=(cmd_r, out_w), stdout=log, stderr=subprocess.STDOUT, start_new_session=True
+    )
+    os.close(cmd_r)
+    os.close(out_w)
+    try:
+        cdp = DevTools(cmd_w, out_r)
+        target = cdp.call("Target.createTarget", {"url": url})["targetId"]
+        session = cdp.call("Target.attachToTarget", {"targetId": target, "flatten": True})["sessionId"]
+        cdp.call(
+            "Emulation.setDeviceMetricsOverride",
+            {"width": window[0], "height": window[1], "deviceScaleFactor": 1, "mobile": mobile},
+            session,
+        )
+        if mobile:
+            cdp.call("Emulation.setTouchEmulationEnabled", {"enabled": True, "maxTouchPoints": 5}, session)
+        cdp.call("Emulation.setFocusEmulationEnabled", {"enabled": True}, session)
+        cdp.call("Page.bringToFront", {}, session)
+        yield cdp, session
+    finally:
+        _stop_group(proc)
+        os.close(cmd_w)
+        os.close(out_r)
+        log.close()
+
+
+def _stop_group(proc: subprocess.Popen[bytes]) -> None:
+    """SIGTERM chromium's process group (its own session: browser, zygote, renderers, GPU
+    process), wait until every member is gone; SIGKILL after 10 s."""
+    for sig in (signal.SIGTERM, signal.SIGKILL):
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(proc.pid, sig)
+        deadline = time.monotonic() + 10.0
+        while time.monotonic() < deadline:
+            if proc.poll() is None:
+                time.sleep(0.1)
+                continue
+            try:
+                os.killpg(proc.pid, 0)  # any member left?
+            except ProcessLookupError:
+                return
+            time.sleep(0.1)
+    proc.wait(timeout=10)
+
+
+def screenshot(cdp: DevTools, session: str) -> bytes:
+    """PNG of the page's viewport."""
+    return base64.b64decode(cdp.call("Page.captureScreenshot", {"format": "png"}, session)["data"])

@@ -1,0 +1,68 @@
+"""``telesurg bench viewer`` reads the viewer's time from rerun's encoded viewer state.
+
+The bytes are built here in the wire layout rerun 0.41's web viewer answers
+``window._handle.viewer_state()`` with (a ``GetStateResponse``: field 3 the active recording, its
+field 2 per timeline (name, type, range {min, max}), its field 3 the active timeline (name, type,
+{time})), captured from a live viewer while writing the bench.
+"""
+
+from __future__ import annotations
+
+import pytest
+from telesurg.services.bench.viewer import fields, viewer_times
+
+
+def _varint(n: int) -> bytes:
+    out = bytearray()
+    while True:
+        b = n & 0x7F
+        n >>= 7
+        out.append(b | (0x80 if n else 0))
+        if not n:
+            return bytes(out)
+
+
+def _int(num: int, value: int) -> bytes:
+    return _varint(num << 3) + _varint(value)
+
+
+def _msg(num: int, body: bytes) -> bytes:
+    return _varint(num << 3 | 2) + _varint(len(body)) + body
+
+
+def _name(name: str) -> bytes:
+    return _msg(1, _msg(1, name.encode()))
+
+
+def _state(active: str, cursor: int, newest: dict[str, int]) -> bytes:
+    rec = _msg(1, b"recording:telesurg:abc")
+    for tl, hi in newest.items():
+        rec += _msg(2, _name(tl) + _int(2, 3) + _msg(3, _int(1, hi - 10**9) + _int(2, hi)))
+    rec += _msg(3, _name(active) + _int(2, 3) + _msg(3, _int(1, cursor)))
+    return _msg(1, b"about:recording") + _msg(3, rec) + _msg(6, b"0.41.0")
+
+
+def test_cursor_and_newest_times_are_read() -> None:
+    t = 1_796_186_793_067_907_673
+    state = _state("source_time", t - 5, {"source_time": t, "receive_time": t + 7})
+    got = viewer_times(state)
+    assert got == {
+        "active": "source_time",
+        "cursor_ns": t - 5,
+        "newest_ns": {"source_time": t, "receive_time": t + 7},
+    }
+
+
+def test_a_viewer_without_data_has_no_cursor() -> None:
+    assert viewer_times(_msg(1, b"about:welcome") + _msg(6, b"0.41.0")) == {
+        "active": None,
+        "cursor_ns": None,
+        "newest_ns": {},
+    }
+
+
+def test_bytes_that_are_not_a_message_raise() -> None:
+    with pytest.raises(ValueError):
+        fields(b"\x0a\x10abc")  # a length-delimited field longer than the bytes
+    with pytest.raises(ValueError):
+        viewer_times(b"\x1a\x05\x0f\xff\xff\xff\xff")  # a recording whose body has wire type 7
