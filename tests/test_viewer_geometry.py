@@ -16,6 +16,7 @@ from __future__ import annotations
 import colorsys
 import io
 import math
+import os
 import signal
 import subprocess
 import sys
@@ -156,6 +157,11 @@ def _loading_page(png: bytes) -> bool:
 
 @pytest.mark.process
 @pytest.mark.timeout(600)
+@pytest.mark.skipif(
+    not os.environ.get("TELESURG_SLOW"),
+    reason="the rerun web viewer under software WebGL takes minutes to draw (7 min without a "
+    "picture in make test on an idle 2-core VM): TELESURG_SLOW=1 runs it",
+)
 def test_web_viewer_shows_the_robot_geometry(tmp_path: Path) -> None:
     if not CHROMIUM.exists():
         pytest.skip("needs Debian chromium at /usr/bin/chromium: apt-get install -y chromium")

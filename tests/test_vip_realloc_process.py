@@ -196,7 +196,7 @@ def stroke(s: Site, during: Callable[[], None] | None = None) -> bool:
     return kept
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture  # (per test: a rerun after a failure gets a fresh site)
 def site(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[Pipeline, Site]]:
     tmp = tmp_path_factory.mktemp("vip_realloc")
     csv = tmp / "stroke.csv"
