@@ -26,6 +26,7 @@ Examples::
 from __future__ import annotations
 
 import argparse
+import contextlib
 import importlib
 import importlib.resources
 import json
@@ -78,12 +79,50 @@ CONTROL_SERVICES = tuple(s for s in SERVICES if s not in OPTIONAL)
 OPTIONAL_OFF = {"camera": {"watchdog": ['video_camera=""'], "mapping": ['camera=""']}}
 
 
+#: The control path's processes run at this nice value (all their threads: the loops, zenoh's
+#: runtime threads, the Python threads that take the samples), so other programs at normal
+#: priority on the host cannot starve them; best-effort work (:data:`NICE`) stays below.
+#: Lowering nice needs root or CAP_SYS_NICE (docs/deploy.md); where refused the process runs at
+#: nice 0 and the launcher says so. ``$TELESURG_CONTROL_NICE`` overrides (0: leave as is).
+CONTROL_NICE = -10
+CONTROL = ("router", "watchdog", "slave_control", "mapping", "master_capture")
+
+
+def control_nice() -> int:
+    """The nice value for the control processes (``$TELESURG_CONTROL_NICE`` or
+    :data:`CONTROL_NICE`)."""
+    try:
+        return int(os.environ.get("TELESURG_CONTROL_NICE", CONTROL_NICE))
+    except ValueError:
+        return CONTROL_NICE
+
+
+def _foreground() -> None:
+    """preexec_fn of a control process: :func:`control_nice`, if permitted (else nice 0)."""
+    n = control_nice()
+    if n:
+        with contextlib.suppress(AttributeError, OSError):
+            os.setpriority(os.PRIO_PROCESS, 0, n)
+        _autogroup_nice(n)
+
+
+def _autogroup_nice(n: int) -> None:
+    """Give this process's scheduler autogroup the nice value ``n``, where Linux has autogroups
+    (``kernel.sched_autogroup_enabled``). Each service is started in a session of its own
+    (``start_new_session``), and a session is an autogroup: the scheduler shares the CPU between
+    autogroups first, so a process's own nice value or ``SCHED_IDLE`` counts only against the
+    threads of its own group, not against a CPU hog in another session. Harmless elsewhere."""
+    with contextlib.suppress(OSError):
+        Path("/proc/self/autogroup").write_text(f"{n}\n")
+
+
 def _background() -> None:
     """preexec_fn: lowest CPU priority, inherited by every thread the process starts."""
     try:
         os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
     except (AttributeError, OSError):  # not Linux, or not permitted
         os.nice(19)
+    _autogroup_nice(19)  # (its session's autogroup too: see _autogroup_nice)
 
 
 CLI_NAME = {
@@ -388,9 +427,23 @@ class Site:
             stderr=subprocess.STDOUT if out else None,
             start_new_session=True,
             # The mirror only watches: it yields the CPU to the control processes.
-            preexec_fn=_background if name in NICE else None,
+            preexec_fn=_background if name in NICE else _foreground if name in CONTROL else None,
         )
-        log.info("started %-15s pid %d", name, self.procs[name].pid)
+        pid = self.procs[name].pid
+        if name in CONTROL and control_nice():
+            try:
+                got = os.getpriority(os.PRIO_PROCESS, pid)
+            except OSError:  # already gone: its own exit is reported
+                got = control_nice()
+            if got != control_nice():
+                log.warning(
+                    "%s runs at nice %d, not %d: lowering nice needs root or CAP_SYS_NICE "
+                    "(docs/deploy.md); other programs on this host can starve it",
+                    name,
+                    got,
+                    control_nice(),
+                )
+        log.info("started %-15s pid %d", name, pid)
 
     def restart(self, name: str) -> None:
         """Start ``name`` again (after it died or was killed); the old process must be gone."""
