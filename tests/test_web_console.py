@@ -524,9 +524,11 @@ def test_gamepad_sticks_and_triggers_drive_the_slave(tmp_path: Path) -> None:
     releasing the trigger holds the slave while the stick still moves."""
     needs_chromium()
     with running_console(tmp_path) as (url, _, probe), chromium(url, tmp_path, nice=0) as (cdp, s):
-        assert js(cdp, s, PAD_JS) is True
         wait_page(cdp, s, "#arm-arm1 .v.safety .state", lambda t: t == "OK", 30.0)
         wait_page(cdp, s, "#arm-arm1 .v.teleop .state", lambda t: t == "IDLE", 10.0)
+        # (into the loaded page: a pad put into the document before the console's page has
+        # replaced it would be gone)
+        assert js(cdp, s, PAD_JS) is True
         stick = (0.8, -0.5, 0.0, 0.0)  # right and up the screen; lt: into the screen
         scale = float("nan")
         for attempt in range(6):
