@@ -165,6 +165,21 @@ class ArmReading:
         return (x, y, z, w)
 
 
+class AttachedSource:
+    """The :meth:`MotionSource.attach` half every slave-side motion source shares: it keeps the
+    core it is attached to, and :attr:`_core` returns it (an error before :meth:`attach`)."""
+
+    core: ArmCore | None = None
+
+    def attach(self, core: ArmCore) -> None:
+        self.core = core
+
+    @property
+    def _core(self) -> ArmCore:
+        assert self.core is not None, "attach() first"
+        return self.core
+
+
 class MotionSource(Protocol):
     """A slave-side motion of one arm (trocar modes with PTP, jog, teach/playback, ...).
 

@@ -35,7 +35,7 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import numpy as np
-from telesurg.services.slave_control.arm import ArmCore, ArmReading, MotionError
+from telesurg.services.slave_control.arm import ArmCore, ArmReading, AttachedSource, MotionError
 from telesurg.shared.kinematics.elbow import ElbowChain, elbow_move, limit_margin, midrange_direction, tangent
 from telesurg.shared.messages import Command
 
@@ -75,7 +75,7 @@ class _Jog:
     done: str = ""  # why it ended by itself ("" = running)
 
 
-class ElbowJog:
+class ElbowJog(AttachedSource):
     """The elbow jog of one arm (a :class:`~telesurg.services.slave_control.arm.MotionSource`)."""
 
     def __init__(self, cfg: SlaveControlConfig, profile: ArmProfile) -> None:
@@ -88,14 +88,6 @@ class ElbowJog:
         self.jog: _Jog | None = None
 
     # -- MotionSource ---------------------------------------------------------------------------
-    def attach(self, core: ArmCore) -> None:
-        self.core = core
-
-    @property
-    def _core(self) -> ArmCore:
-        assert self.core is not None, "attach() first"
-        return self.core
-
     @property
     def control_mode(self) -> str:
         return "joint"

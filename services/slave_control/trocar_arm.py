@@ -17,7 +17,7 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import numpy as np
-from telesurg.services.slave_control.arm import ArmCore, ArmReading, MotionError
+from telesurg.services.slave_control.arm import ArmCore, ArmReading, AttachedSource, MotionError
 from telesurg.services.slave_control.backends import PUSH_POINTS
 from telesurg.services.slave_control.modes import ControlMode, ControlModes, Jog, MotionMode, Phase
 from telesurg.services.slave_control.motion import SUPPORTED_JOG_AXES, PtpMotion, jog_step, ptp_duration
@@ -43,7 +43,7 @@ if TYPE_CHECKING:
     from telesurg.shared.robots import ArmProfile
 
 
-class TrocarMotions:
+class TrocarMotions(AttachedSource):
     """The trocar motion family of one arm (a :class:`~telesurg.services.slave_control.arm.MotionSource`).
 
     Args:
@@ -79,14 +79,6 @@ class TrocarMotions:
         self._vmax = np.array(profile.max_velocity)
 
     # -- MotionSource ---------------------------------------------------------------------------
-    def attach(self, core: ArmCore) -> None:
-        self.core = core
-
-    @property
-    def _core(self) -> ArmCore:
-        assert self.core is not None, "attach() first"
-        return self.core
-
     @property
     def q_cmd(self) -> np.ndarray:
         """The arm's last command (the core's)."""
