@@ -2,12 +2,15 @@
 
 * .rrd readers — what the mirror wrote, read back with rerun's own chunk reader;
 * :func:`clutch_flags` — the bench's clutch schedule as ``--set`` flags for a launched site;
+* :class:`MasterHand` — a master publishing its pose and clutch at 250 Hz (process tests);
 * headless Debian chromium driven over the DevTools protocol on a pipe (:func:`chromium`,
   :class:`DevTools`, :func:`screenshot`): the viewer and web console browser tests.
 """
 
 from __future__ import annotations
 
+import threading
+import time
 from pathlib import Path
 from typing import Any
 
@@ -62,6 +65,32 @@ def text_logs(path: str | Path) -> list[tuple[str, str, str]]:
                 level = lv[i] if lv and i < len(lv) else ""
                 out.append((c.entity_path, str(level or ""), str(line)))
     return out
+
+
+class MasterHand(threading.Thread):
+    """The surgeon's master on the bus, as a process test plays it: ``master/<m>/measured_cp`` and
+    ``buttons`` at ``rate`` Hz from its own thread, the clutch held while :attr:`clutch` is true.
+    The pose is :meth:`position` at each tick (a subclass draws its path there; the default
+    rests at the origin); set :attr:`stop` to end it."""
+
+    def __init__(self, node: Any, master: str = "m1", rate: float = 250.0) -> None:
+        super().__init__(daemon=True)
+        self.clutch, self.stop, self.rate = False, threading.Event(), rate
+        self.pose = node.outlet(node.keys.master(master, "measured_cp"))
+        self.buttons = node.outlet(node.keys.master(master, "buttons"))
+
+    def position(self, now: float) -> tuple[float, float, float]:
+        """The master's position (m) at ``now`` (``time.monotonic()``)."""
+        return (0.0, 0.0, 0.0)
+
+    def run(self) -> None:
+        start, n = time.monotonic(), 0
+        while not self.stop.is_set():
+            p = self.position(time.monotonic())
+            self.buttons.put(MasterButtons(self.buttons.header(), self.clutch, True))
+            self.pose.put(CartesianPose(self.pose.header(), "master", p, (0.0, 0.0, 0.0, 1.0)))
+            n += 1
+            self.stop.wait(max(0.0, start + n / self.rate - time.monotonic()))
 
 
 def feed_master(arm: Any, p: tuple[float, float, float], clutch: bool) -> None:

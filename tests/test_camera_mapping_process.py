@@ -23,35 +23,26 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import MasterHand
 from telesurg.services.bench.harness import Pipeline
 from telesurg.services.camera import pose_matrix, quat_xyzw
 from telesurg.shared.bus import BusConfig, Node
-from telesurg.shared.messages import CameraImage, CartesianPose, MasterButtons, OperatingState
+from telesurg.shared.messages import CameraImage, CartesianPose, OperatingState
 
 pytestmark = pytest.mark.process
 
 
-class Master(threading.Thread):
+class Master(MasterHand):
     """The surgeon's hand: 250 Hz pose (moved smoothly to ``goal``) and clutch."""
 
     def __init__(self, node: Node) -> None:
-        super().__init__(daemon=True)
-        self.clutch, self.stop = False, threading.Event()
+        super().__init__(node)
         self.p, self.goal = np.zeros(3), np.zeros(3)
-        k = node.keys
-        self.pose = node.outlet(k.master("m1", "measured_cp"))
-        self.buttons = node.outlet(k.master("m1", "buttons"))
 
-    def run(self) -> None:
-        start, n = time.monotonic(), 0
-        while not self.stop.is_set():
-            step = self.goal - self.p  # at most 40 mm/s: a hand, not a jump
-            self.p = self.p + step * min(1.0, 0.16e-3 / max(float(np.linalg.norm(step)), 1e-12))
-            self.buttons.put(MasterButtons(self.buttons.header(), self.clutch, True))
-            p = tuple(float(x) for x in self.p)
-            self.pose.put(CartesianPose(self.pose.header(), "master", p, (0.0, 0.0, 0.0, 1.0)))
-            n += 1
-            self.stop.wait(max(0.0, start + n / 250 - time.monotonic()))
+    def position(self, now: float) -> tuple[float, float, float]:
+        step = self.goal - self.p  # at most 40 mm/s: a hand, not a jump
+        self.p = self.p + step * min(1.0, 0.16e-3 / max(float(np.linalg.norm(step)), 1e-12))
+        return (float(self.p[0]), float(self.p[1]), float(self.p[2]))
 
 
 @dataclass

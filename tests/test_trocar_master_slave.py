@@ -15,34 +15,24 @@ from collections.abc import Iterator
 
 import numpy as np
 import pytest
-from helpers import operator_command
+from helpers import MasterHand, operator_command
 from telesurg.services.bench.harness import Pipeline
 from telesurg.shared.bus import BusConfig, Node
-from telesurg.shared.messages import CartesianPose, CommandReply, MasterButtons, OperatingState
+from telesurg.shared.messages import CartesianPose, CommandReply, OperatingState
 
 pytestmark = pytest.mark.process
 
 
-class Master(threading.Thread):
+class Master(MasterHand):
     """A 250 Hz master drawing a 10 mm circle, with a clutch the test presses."""
 
     def __init__(self, node: Node) -> None:
-        super().__init__(daemon=True)
-        self.node, self.clutch, self.stop = node, False, threading.Event()
-        k = node.keys
-        self.pose = node.outlet(k.master("m1", "measured_cp"))
-        self.buttons = node.outlet(k.master("m1", "buttons"))
+        super().__init__(node)
+        self.node, self.t0 = node, time.monotonic()
 
-    def run(self) -> None:
-        t0 = time.monotonic()
-        n = 0
-        while not self.stop.is_set():
-            t = time.monotonic() - t0
-            p = (0.01 * math.cos(2 * math.pi * t / 3.0), 0.01 * math.sin(2 * math.pi * t / 3.0), 0.0)
-            self.buttons.put(MasterButtons(self.buttons.header(), self.clutch, True))
-            self.pose.put(CartesianPose(self.pose.header(), "master", p, (0.0, 0.0, 0.0, 1.0)))
-            n += 1
-            self.stop.wait(max(0.0, t0 + n / 250 - time.monotonic()))
+    def position(self, now: float) -> tuple[float, float, float]:
+        a = 2 * math.pi * (now - self.t0) / 3.0
+        return (0.01 * math.cos(a), 0.01 * math.sin(a), 0.0)
 
 
 @pytest.fixture(scope="module")

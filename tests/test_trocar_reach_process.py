@@ -25,18 +25,16 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from helpers import operator_command
+from helpers import MasterHand, operator_command
 from telesurg.services.bench.harness import Pipeline
 from telesurg.services.experiment.jinno import STARTS
 from telesurg.shared.bus import BusConfig, Node
 from telesurg.shared.kinematics.mh3f import MH3F
 from telesurg.shared.kinematics.trocar import rcm_error
 from telesurg.shared.messages import (
-    CartesianPose,
     CommandReply,
     JointSetpoint,
     JointState,
-    MasterButtons,
     OperatingState,
     SafetyEvent,
     SafetyState,
@@ -64,24 +62,13 @@ def handle(t: float) -> tuple[float, float, float]:
     return (0.0, 0.0, 0.0)
 
 
-class Master(threading.Thread):
+class Master(MasterHand):
     """250 Hz master pose and clutch; draws :func:`handle` from ``t0``."""
 
-    def __init__(self, node: Node) -> None:
-        super().__init__(daemon=True)
-        self.clutch, self.stop, self.t0 = False, threading.Event(), math.inf
-        k = node.keys
-        self.pose = node.outlet(k.master("m1", "measured_cp"))
-        self.buttons = node.outlet(k.master("m1", "buttons"))
+    t0 = math.inf
 
-    def run(self) -> None:
-        start, n = time.monotonic(), 0
-        while not self.stop.is_set():
-            p = handle(time.monotonic() - self.t0)
-            self.buttons.put(MasterButtons(self.buttons.header(), self.clutch, True))
-            self.pose.put(CartesianPose(self.pose.header(), "master", p, (0.0, 0.0, 0.0, 1.0)))
-            n += 1
-            self.stop.wait(max(0.0, start + n / 250 - time.monotonic()))
+    def position(self, now: float) -> tuple[float, float, float]:
+        return handle(now - self.t0)
 
 
 @dataclass
