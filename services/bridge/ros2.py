@@ -112,6 +112,7 @@ class Bridge:
         self.forwarded = 0
         self.last_q: np.ndarray | None = None  # the last forwarded setpoint
         self.measured: np.ndarray = np.array(profile.home, dtype=np.float64)
+        self.closed = False
         s = node.session
         zid = str(s.info.zid())
         self.ros = rmw.RosNode(cfg.domain, zid, 0, cfg.node_name)
@@ -180,8 +181,14 @@ class Bridge:
         )
 
     def _out(self, name: str, msg: Any) -> None:
+        if self.closed:
+            return
         p = self.pubs[name]
-        p.put(self.codec.encode(msg, p.typename), now_ns())
+        try:
+            p.put(self.codec.encode(msg, p.typename), now_ns())
+        except Exception:
+            if not self.closed:  # (a publisher undeclared by close() under a late callback)
+                raise
 
     # -- ROS 2 → telesurg ------------------------------------------------------------------------
     def _inbound(self, t: crtk.Topic) -> Callable[[Any], None]:
@@ -209,15 +216,21 @@ class Bridge:
     def _servo_jp(self, msg: Any) -> None:
         names = tuple(str(n) for n in msg.name)
         position = tuple(float(v) for v in msg.position)
-        prev = self.last_q if self.console.enabled and not self.console.edge else None
-        self._forward(check_joints(self.profile, names, position, prev, self.cfg.max_step_rad))
+        self._forward(check_joints(self.profile, names, position, self._previous(), self.cfg.max_step_rad))
 
     def _servo_cp(self, msg: Any) -> None:
         p, o = msg.pose.position, msg.pose.orientation
         near = self.last_q if self.last_q is not None else self.measured
         q = check_pose(self.profile, str(msg.header.frame_id), (p.x, p.y, p.z), (o.x, o.y, o.z, o.w), near)
-        prev = self.last_q if self.console.enabled and not self.console.edge else None
-        self._forward(check_joints(self.profile, (), tuple(q.tolist()), prev, self.cfg.max_step_rad))
+        self._forward(
+            check_joints(self.profile, (), tuple(q.tolist()), self._previous(), self.cfg.max_step_rad)
+        )
+
+    def _previous(self) -> np.ndarray | None:
+        """The setpoint a new one may not jump from: the last forwarded one while the slave
+        follows this console (not before: the slave engages only near its measured joints)."""
+        c = self.console
+        return self.last_q if c.enabled and c.slave_followed and not c.edge else None
 
     def _state_command(self, msg: Any) -> None:
         text = str(msg.string)
@@ -286,6 +299,8 @@ class Bridge:
         b.put(MasterButtons(b.header(), clutch, present))
 
     def close(self) -> None:
+        """Undeclare the ROS 2 side (tokens, publishers, subscribers); log the counts."""
+        self.closed = True
         for h in reversed(self._handles):
             with contextlib.suppress(Exception):  # the session may be closing
                 h.undeclare()
