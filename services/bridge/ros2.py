@@ -204,6 +204,8 @@ class Bridge:
                     rmw.decode_attachment(sample.attachment.to_bytes())
                 msg = self.codec.decode(sample.payload.to_bytes(), t.typename)
                 with self.lock:
+                    if self.closed:  # (a late sample while the bridge stops)
+                        return
                     handle(msg)
             except (Rejected, ValueError) as exc:
                 self._reject(t.name, str(exc))
@@ -300,7 +302,8 @@ class Bridge:
 
     def close(self) -> None:
         """Undeclare the ROS 2 side (tokens, publishers, subscribers); log the counts."""
-        self.closed = True
+        with self.lock:  # a handler running now finishes first; later ones see closed
+            self.closed = True
         for h in reversed(self._handles):
             with contextlib.suppress(Exception):  # the session may be closing
                 h.undeclare()
