@@ -200,6 +200,21 @@ def test_bridge_on_the_bus(endpoint: str, codec: crtk.Codec) -> None:
             pub.put(rc.JointState(rc.header(), names, list(HOME + 0.001), [], []).serialize())
             assert wait_until(lambda: len(servo) == 3)
             assert [s.follow for s in servo[1:]] == [False, True]  # the engage edge
+            # servo_cp: the pose of some joints → IK → those joints on servo_jp
+            from telesurg.shared.kinematics.transforms import quat_from_matrix
+
+            q_cp = HOME + 0.01
+            T = PROFILE.pose(q_cp)
+            quat = tuple(float(v) for v in quat_from_matrix(T[:3, :3]))
+            pose = codec.pose_stamped(time.time_ns(), "base", tuple(T[:3, 3].tolist()), quat)  # type: ignore[arg-type]
+            cp_key = (
+                f"0/arm1/servo_cp/geometry_msgs::msg::dds_::PoseStamped_/{codec.type_hash(crtk.POSE_STAMPED)}"
+            )
+            cp_pub = ros.declare_publisher(cp_key)
+            time.sleep(0.3)
+            cp_pub.put(codec.encode(pose, crtk.POSE_STAMPED))
+            assert wait_until(lambda: len(servo) == 4)
+            assert np.allclose(servo[3].position, q_cp, atol=1e-6) and servo[3].follow
             bridge.tick()
             assert wait_until(lambda: bool(buttons) and buttons[-1].clutch and buttons[-1].operator_present)
             time.sleep(0.15)
