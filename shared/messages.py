@@ -869,8 +869,8 @@ class OperatingState(Message):
     )
     is_homed: bool = fld(
         True,
-        "CRTK `is_homed`: the arm's joint positions are referenced (a MuJoCo arm always; a serial "
-        "arm once its controller reports it ready)",
+        "CRTK `is_homed`: the arm's joint positions are referenced; slave_control has no homing "
+        "procedure and always sends true (the MuJoCo arms start at their home pose)",
     )
     is_busy: bool = fld(
         False,
