@@ -98,6 +98,7 @@ class Client:
         self.session = zenoh.open(conf)
         self.domain, self.arm = args.domain, args.arm
         self.lock = threading.Lock()
+        self.tx_lock = threading.Lock()
         self.q0: list[float] | None = None
         self.q_meas: list[float] = []  # the newest measured_js
         self.names: list[str] = []
@@ -126,7 +127,7 @@ class Client:
         self.servo = self.session.declare_publisher(self.servo_key)
         self.command_pub = None
 
-    def discover(self, timeout: float = 30.0) -> dict[str, str]:
+    def discover(self, timeout: float = 80.0) -> dict[str, str]:
         """The bridge's endpoints from the liveliness graph: topic → token."""
         deadline = time.monotonic() + timeout
         found: dict[str, str] = {}
@@ -158,18 +159,20 @@ class Client:
             emit({"js": stamp, "pos": list(m.position), "att_seq": att[0] if att else None})
 
     def put_servo(self, names: list[str], q: list[float], raw: bytes | None = None) -> None:
-        self.seq += 1
-        payload = raw if raw is not None else JointState(header(), names, q, [], []).serialize()
-        self.servo.put(payload, attachment=attachment(self.seq, self.gid))
+        with self.tx_lock:  # (pycdr2 serializes into a buffer per type: one thread at a time)
+            self.seq += 1
+            payload = raw if raw is not None else JointState(header(), names, q, [], []).serialize()
+            self.servo.put(payload, attachment=attachment(self.seq, self.gid))
 
     def state_command(self, text: str, hash_: str) -> None:
         if self.command_pub is None:
             key = f"{self.domain}/{self.arm}/state_command/{STRING_STAMPED_DDS}/{hash_}"
             self.command_pub = self.session.declare_publisher(key)
             time.sleep(0.2)
-        self.seq += 1
-        payload = StringStamped(header(), text).serialize()
-        self.command_pub.put(payload, attachment=attachment(self.seq, self.gid))
+        with self.tx_lock:
+            self.seq += 1
+            payload = StringStamped(header(), text).serialize()
+            self.command_pub.put(payload, attachment=attachment(self.seq, self.gid))
 
     def stream(self, stop: threading.Event) -> None:
         """servo_jp at 100 Hz: the start pose + offsets moving toward their targets."""
@@ -219,8 +222,8 @@ def main() -> int:
     if servo_token.split("/")[10:12] != [JOINT_STATE_DDS, JOINT_STATE_HASH]:
         raise SystemExit(f"the bridge's servo_jp is not a Jazzy sensor_msgs/JointState: {servo_token}")
     command_hash = found[f"MS %{args.arm}%state_command"].split("/")[11]
-    deadline = time.monotonic() + 30
-    while c.q0 is None and time.monotonic() < deadline:
+    deadline = time.monotonic() + 60
+    while c.q0 is None and time.monotonic() < deadline:  # (the site's measured_js, through the bridge)
         time.sleep(0.05)
     if c.q0 is None:
         raise SystemExit("no measured_js from the bridge")

@@ -168,8 +168,15 @@ def test_bridge_on_the_bus(endpoint: str, codec: crtk.Codec) -> None:
 
             js_key = f"0/arm1/measured_js/{rc.JOINT_STATE_DDS}/{rc.JOINT_STATE_HASH}"
             sub = ros.declare_subscriber(js_key, on_ros_js)
-            tokens = [str(r.ok.key_expr) for r in ros.liveliness().get("@ros2_lv/0/**", timeout=2.0) if r.ok]
-            assert len(tokens) == 1 + len(crtk.TOPICS)
+            tokens: list[str] = []
+
+            def graph() -> bool:
+                tokens[:] = [
+                    str(r.ok.key_expr) for r in ros.liveliness().get("@ros2_lv/0/**", timeout=2.0) if r.ok
+                ]
+                return len(tokens) == 1 + len(crtk.TOPICS)
+
+            assert wait_until(graph, 10), tokens
             assert any("/MS/" in t and "%arm1%servo_jp" in t for t in tokens)
             time.sleep(0.3)
             out = slave.outlet(k.slave("arm1", "measured_js"))

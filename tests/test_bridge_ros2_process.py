@@ -175,6 +175,12 @@ def test_ros2_client_reads_the_arm_and_drives_it_only_under_the_lease(
             return np.array(ours[max(ours)]) if ours else np.zeros(0)
 
     assert pipe.wait(lambda: len(ours) > 10, 30), "the test's own measured_js subscription is silent"
+    alive = pipe.node.keys.alive("ros2_bridge")
+
+    def bridge_alive() -> bool:
+        return any(r.ok is not None for r in pipe.node.session.liveliness().get(alive, timeout=1.0))
+
+    assert pipe.wait(bridge_alive, 60), "the bridge never came up"
     client = Proc(
         [sys.executable, str(CLIENT), "--connect", pipe.spec.endpoint, "--arm", "arm1"],
         tmp_path / "logs" / "ros2_client.log",
