@@ -61,7 +61,8 @@ def test_attachment_layout() -> None:
     raw = rmw.encode_attachment(7, 1_700_000_000_123_456_789, gid)
     assert rc.parse_attachment(raw) == (7, 1_700_000_000_123_456_789, gid)  # the client's own parser
     assert rmw.decode_attachment(rc.attachment(9, gid))[::2] == (9, gid)
-    for bad in (b"", raw[:20], struct.pack("<qqB", 1, 2, 3) + b"abc"):
+    assert rmw.decode_attachment(raw + bytes(7)) == rmw.decode_attachment(raw)  # padding ignored
+    for bad in (b"", raw[:20], struct.pack("<qqB", 1, 2, 3) + bytes(16)):
         with pytest.raises(ValueError):
             rmw.decode_attachment(bad)
     with pytest.raises(ValueError):

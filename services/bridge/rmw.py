@@ -83,13 +83,21 @@ def encode_attachment(seq: int, stamp_ns: int, gid: bytes) -> bytes:
     return out
 
 
+#: bytes of an attachment: two int64, the GID's length (one LEB128 byte) and the GID
+ATTACHMENT_BYTES = 8 + 8 + 1 + GID_BYTES
+
+
 def decode_attachment(raw: bytes) -> tuple[int, int, bytes]:
-    """``(sequence number, source timestamp ns, gid)`` of an attachment; ValueError if malformed."""
+    """``(sequence number, source timestamp ns, gid)`` of an attachment; ValueError if malformed.
+    Bytes after the first :data:`ATTACHMENT_BYTES` are ignored (seen on a loaded host: an
+    attachment padded to a multiple of 8 bytes in transit; nothing the bridge uses is in them)."""
     from zenoh import ZBytes
     from zenoh.ext import Int64, ZDeserializeError, z_deserialize
 
+    if len(raw) < ATTACHMENT_BYTES:
+        raise ValueError(f"rmw_zenoh attachment of {len(raw)} bytes, expected {ATTACHMENT_BYTES}")
     try:
-        seq, ts, gid = z_deserialize(tuple[Int64, Int64, bytes], ZBytes(raw))
+        seq, ts, gid = z_deserialize(tuple[Int64, Int64, bytes], ZBytes(raw[:ATTACHMENT_BYTES]))
     except (ZDeserializeError, TypeError) as exc:
         raise ValueError(f"malformed rmw_zenoh attachment ({len(raw)} bytes): {exc}") from None
     if len(gid) != GID_BYTES:
