@@ -113,6 +113,15 @@ class Bridge:
         self.last_q: np.ndarray | None = None  # the last forwarded setpoint
         self.measured: np.ndarray = np.array(profile.home, dtype=np.float64)
         self.closed = False
+        k, src = node.keys, only(cfg.slave_source)
+        # the telesurg outlets first: a ROS 2 command may arrive as soon as its subscriber exists
+        self.servo_out: Outlet | None = None
+        self.master_cp: Outlet | None = None
+        self.buttons: Outlet | None = None
+        if cfg.control:
+            self.servo_out = node.outlet(k.slave(cfg.arm, "servo_jp"))
+            self.master_cp = node.outlet(k.master(cfg.master, "measured_cp"))
+            self.buttons = node.outlet(k.master(cfg.master, "buttons"))
         s = node.session
         zid = str(s.info.zid())
         self.ros = rmw.RosNode(cfg.domain, zid, 0, cfg.node_name)
@@ -135,18 +144,10 @@ class Bridge:
                 pub = s.declare_publisher(key)
                 self._handles.append(pub)
                 self.pubs[t.name] = RosPublisher(pub, t.typename)
-        k, src = node.keys, only(cfg.slave_source)
         node.subscribe(k.slave(cfg.arm, "measured_js"), JointState, self._on_js, sources=src)
         node.subscribe(k.slave(cfg.arm, "setpoint_js"), JointState, self._on_setpoint_js, sources=src)
         node.subscribe(k.slave(cfg.arm, "measured_cp"), CartesianPose, self._on_cp, sources=src)
         node.subscribe(k.slave(cfg.arm, "operating_state"), OperatingState, self._on_state, sources=src)
-        self.servo_out: Outlet | None = None
-        self.master_cp: Outlet | None = None
-        self.buttons: Outlet | None = None
-        if cfg.control:
-            self.servo_out = node.outlet(k.slave(cfg.arm, "servo_jp"))
-            self.master_cp = node.outlet(k.master(cfg.master, "measured_cp"))
-            self.buttons = node.outlet(k.master(cfg.master, "buttons"))
         log.info(
             "ROS 2 node /%s (domain %d, zenoh session %s): %s",
             cfg.node_name,
