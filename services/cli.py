@@ -57,6 +57,7 @@ COMMANDS = {
         "the endoscope view: MuJoCo render or a real camera → JPEG frames",
     ),
     "view": ("telesurg.services.camera.view", "show a site's live camera picture in a small web page"),
+    "bridge": ("telesurg.services.bridge", "bridge ros2: an arm's CRTK topics for ROS 2 (rmw_zenoh)"),
 }
 
 

@@ -867,6 +867,16 @@ class OperatingState(Message):
         "for master–slave motion in trocar mode",
         unit="m",
     )
+    is_homed: bool = fld(
+        True,
+        "CRTK `is_homed`: the arm's joint positions are referenced; slave_control has no homing "
+        "procedure and always sends true (the MuJoCo arms start at their home pose)",
+    )
+    is_busy: bool = fld(
+        False,
+        "CRTK `is_busy`: a slave-side motion (PTP, jog, playback, direct teach) is running; "
+        "`servo_jp` is not followed meanwhile",
+    )
 
 
 SAFETY_STATES = frozenset({"OK", "DEGRADED", "HOLD", "ESTOP"})

@@ -200,6 +200,7 @@ class Pipeline:
         config_dir: Path | None = None,
         acl: Path | None = None,
         camera: bool = False,
+        mapping: bool = True,
     ) -> None:
         self.log_dir = log_dir
         port = free_port()
@@ -209,7 +210,8 @@ class Pipeline:
             ov["mirror"] = [f"save={json.dumps(str(log_dir / 'session.rrd'))}"]
         for name, items in (overrides or {}).items():
             ov.setdefault(name, []).extend(items)
-        services: tuple[str, ...] = ("watchdog", "slave_control", "mapping")
+        # (without the mapping another master stands in for it, e.g. telesurg bridge ros2)
+        services: tuple[str, ...] = ("watchdog", "slave_control") + (("mapping",) if mapping else ())
         services += (("master_capture",) if master else ()) + (("mirror",) if mirror else ())
         services += ("camera",) if camera else ()  # (its video then guards the arm: Site._camera_first)
         self.spec = SiteSpec(

@@ -106,6 +106,8 @@ log = logging.getLogger(__name__)
 
 #: The frame of measured_cp / measured_cf for every arm (see the module doc).
 FRAME = "base"
+#: setpoint_js (the commanded joints, CRTK) goes out with every this-many-th measured_js
+SETPOINT_JS_EVERY = 5
 #: Missed periods a simulation replays after a stall (the catch-up rule): 20 ms at 1 kHz, at most
 #: ~2 ms of work (a jog's IK included) before the loop publishes again.
 REPLAY_MAX_PERIODS = 20
@@ -354,6 +356,7 @@ class ArmCore:
     outlets: dict[str, Outlet] = field(default_factory=dict)
     reading: ArmReading | None = None  # last reading (set by the loop)
     q_cmd: np.ndarray = field(init=False)  # last command (set by the loop)
+    _n_measured: int = field(default=0, init=False)  # publish_measured calls (setpoint_js decimation)
     _last_state: tuple[object, ...] | None = None
     _reply_seq: Sequencer = field(init=False)
     authority: Authority = field(init=False)  # who may command, e-stop, reset (cfg.authority)
@@ -399,6 +402,7 @@ class ArmCore:
         self.node = node
         for stream in ("measured_js", "measured_cp", "measured_cf", "operating_state"):
             self.outlets[stream] = node.outlet(k.slave(arm, stream))
+        self.outlets["setpoint_js"] = node.outlet(k.slave(arm, "setpoint_js"), control=False)
         # polled: read by the control loop at each tick (see the lease-age rule)
         node.subscribe(
             k.safety(arm, "lease"), SafetyLease, self.on_lease, sources=[cfg.watchdog_service], polled=True
@@ -672,6 +676,10 @@ class ArmCore:
         cp.put(
             CartesianPose(cp.header(), FRAME, (float(t[0, 3]), float(t[1, 3]), float(t[2, 3])), r.tip_quat)
         )
+        self._n_measured += 1
+        if self._n_measured % SETPOINT_JS_EVERY == 1:  # the commanded joints, at a fifth of the rate
+            sp = self.outlets["setpoint_js"]
+            sp.put(JointState(sp.header(), self.profile.joint_names, tuple(self.q_cmd.tolist())))
 
     def publish_wrench(self, r: ArmReading) -> None:
         """measured_cf, when the backend estimates external torques."""
@@ -713,6 +721,7 @@ class ArmCore:
                 ctl.clipped,
                 self.rejected + servo_rejected,
                 trocar,
+                is_busy=internal,
             )
         )
 
