@@ -310,6 +310,9 @@ class FieldSpec:
         unit_quat: a 4-array that must be a unit quaternion ``[x, y, z, w]`` (norm 1 ± 1e-3).
         check: a further check of the decoded value (raises MessageError); ``check_doc`` says
             what it checks.
+        absent: ``(default,)`` for a field added to a type after messages of it were recorded:
+            a message without it (an older recording) decodes with that default; ``()`` (every
+            other field): a message without it is refused.
     """
 
     name: str
@@ -331,6 +334,7 @@ class FieldSpec:
     unit_quat: bool = False
     check: Callable[[Any], None] | None = None
     check_doc: str = ""
+    absent: tuple[Any, ...] = ()  # (default,): a field added later, absent in older recordings
 
 
 def _interval(s: FieldSpec) -> str:
@@ -357,6 +361,7 @@ def fld(
     joint_names: bool = False,
     check: Callable[[Any], None] | None = None,
     check_doc: str = "",
+    added: bool = False,
 ) -> T:
     """Declare one message field: its default and everything the codec and the docs need.
 
@@ -377,6 +382,9 @@ def fld(
         joint_names: a ``tuple[str, ...]`` of 1 to MAX_JOINTS distinct, non-empty joint names.
         check: a further check of the decoded value, raising MessageError; ``check_doc`` says
             what it checks, for the docs.
+        added: the field was added to the type after messages of it were recorded: a message
+            without it (an older recording) decodes with ``default``; every other field must be
+            present.
 
     Returns:
         A dataclass field (typed as its default, so the class keeps its annotations).
@@ -402,6 +410,7 @@ def fld(
         unit_quat=unit_quat,
         check=check,
         check_doc=check_doc,
+        absent=(default,) if added else (),
     )
     out: T = field(default=default, metadata={_SPEC_KEY: (spec, joint_names)})
     return out
@@ -450,12 +459,16 @@ def _body_lines(cls_name: str, specs: Sequence[FieldSpec], env: dict[str, Any]) 
     out: list[str] = []
     for s in specs:
         x, w = f"x_{s.name}", repr(s.wire)
-        out += [
-            "    try:",
-            f"        {x} = d[{w}]",
-            "    except KeyError:",
-            f"        raise _E({'missing field ' + repr(s.wire)!r}) from None",
-        ]
+        if s.absent:  # (added later: an older recording's message has the default)
+            env[f"A_{s.name}"] = s.absent[0]
+            out += [f"    {x} = d.get({w}, A_{s.name})"]
+        else:
+            out += [
+                "    try:",
+                f"        {x} = d[{w}]",
+                "    except KeyError:",
+                f"        raise _E({'missing field ' + repr(s.wire)!r}) from None",
+            ]
         if s.kind == "str":
             empty = " or not " + x if s.nonempty else ""
             out += [
@@ -871,11 +884,13 @@ class OperatingState(Message):
         True,
         "CRTK `is_homed`: the arm's joint positions are referenced; slave_control has no homing "
         "procedure and always sends true (the MuJoCo arms start at their home pose)",
+        added=True,
     )
     is_busy: bool = fld(
         False,
         "CRTK `is_busy`: a slave-side motion (PTP, jog, playback, direct teach) is running; "
         "`servo_jp` is not followed meanwhile",
+        added=True,
     )
 
 

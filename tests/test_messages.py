@@ -193,3 +193,16 @@ def test_a_duplicated_key_is_rejected(header: str) -> None:
     assert decode(_raw_map(pairs, header)) == decode(good)
     with pytest.raises(MessageError, match="duplicate keys"):
         decode(_raw_map([*pairs, ("frame", "tool")], header))
+
+
+def test_an_older_recordings_operating_state_decodes_without_the_fields_added_later() -> None:
+    """``is_homed`` / ``is_busy`` (CRTK, added after recordings were made) may be absent: a
+    recording made before them still replays and exports; every other field stays required."""
+    wire = msgpack.unpackb(OperatingState(H, "ENABLED", "trocar", True, True, "", 2).encode())
+    old = {k: v for k, v in wire.items() if k not in ("is_homed", "is_busy")}
+    m = decode(msgpack.packb(old))
+    assert isinstance(m, OperatingState)
+    assert (m.is_homed, m.is_busy, m.control_mode, m.follow) == (True, False, "trocar", True)
+    del old["control_mode"]
+    with pytest.raises(MessageError, match="missing field .control_mode."):
+        decode(msgpack.packb(old))

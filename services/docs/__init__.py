@@ -147,6 +147,13 @@ def rules_text(s: FieldSpec, wire_of: dict[str, str] | None = None) -> str:
     """The decoder's rules for this field in words (what docs/messages.md lists).
 
     ``wire_of``: wire key by attribute name of the message's fields (for ``same_len``)."""
+    out = _rules(s, wire_of)
+    if s.absent:  # (a field added later)
+        out += f"; may be absent (older recordings): then `{json.dumps(s.absent[0])}`"
+    return out
+
+
+def _rules(s: FieldSpec, wire_of: dict[str, str] | None) -> str:
     k = s.kind
     if k == "str":
         if s.choices is not None:
