@@ -204,5 +204,5 @@ def test_an_older_recordings_operating_state_decodes_without_the_fields_added_la
     assert isinstance(m, OperatingState)
     assert (m.is_homed, m.is_busy, m.control_mode, m.follow) == (True, False, "trocar", True)
     del old["control_mode"]
-    with pytest.raises(MessageError, match="missing field .control_mode."):
+    with pytest.raises(MessageError, match="missing field 'control_mode'"):
         decode(msgpack.packb(old))
