@@ -24,7 +24,9 @@ replayed, and counted; ``serial.rate_hz`` for a serial arm). Setpoints arrive on
 ``slave/<arm>/servo_jp``. Each arm publishes ``measured_js`` and its controlled point's
 ``measured_cp`` (full pose, ``base`` frame) at ``publish_hz``, the estimated external wrench at
 that point ``measured_cf`` (for masters with force feedback; backends that estimate external
-torques) at ``wrench_hz``, and its ``operating_state`` at ``state_hz`` and on change. Rates count
+torques) at ``wrench_hz``, and its ``operating_state`` at ``state_hz`` and on change; while a
+slave-side motion drives an arm, its commanded joints go out on ``setpoint_js`` at
+``setpoint_js_hz`` for the watchdog, which checks them as it checks followed ``servo_jp``. Rates count
 periods of real time, so they hold when the loop wakes late and catches up.
 
 Example::
@@ -79,6 +81,10 @@ class SlaveControlConfig:
     publish_hz: float = 250.0  # Hz: measured_js and measured_cp
     wrench_hz: float = 50.0  # Hz: measured_cf (estimated tip wrench; MuJoCo and torque-sensing arms)
     state_hz: float = 20.0  # Hz: operating_state (also sent on every change)
+    # Hz: setpoint_js, the commanded joints while a slave-side motion drives the arm (PTP, jog,
+    # playback, insert/remove, direct teach), checked by the watchdog; the watchdog checks the
+    # joint path between two samples at fine steps, so this rate only sets its reaction time
+    setpoint_js_hz: float = 100.0
     setpoint_timeout_ms: float = 100.0  # ms: an older setpoint is stale → hold
     # ms: a setpoint whose header stamp is further than this from this host's wall clock is
     # refused (stale, or the hosts' clocks disagree); > the longest scheduling stall, so a
@@ -177,6 +183,8 @@ def make_arms(cfg: SlaveControlConfig, backend: SlaveBackend) -> list[ArmCore]:
 def run(cfg: SlaveControlConfig, stop: threading.Event) -> None:
     """Run the slave until ``stop``."""
     check_rt_priority(cfg.rt_priority)
+    if not 10.0 <= cfg.setpoint_js_hz <= 1000.0:  # the watchdog needs them at least every 100 ms
+        raise ConfigError(f"setpoint_js_hz={cfg.setpoint_js_hz} outside [10, 1000]")
     profiles = arms_of(cfg.model, cfg.arm)
     home = tuple(v for p in profiles for v in p.home)
     sites = tuple(p.tip_site for p in profiles)
@@ -197,6 +205,7 @@ def run(cfg: SlaveControlConfig, stop: threading.Event) -> None:
         measure_every = max(1, round(0.01 / dt))  # 100 Hz
         wrench_every = max(1, round(1.0 / (dt * cfg.wrench_hz)))
         state_every = max(1, round(1.0 / (dt * cfg.state_hz)))
+        commanded_every = max(1, round(1.0 / (dt * cfg.setpoint_js_hz)))
         shadow_every = max(1, round(cfg.shadow_report_s / dt))
         reading = backend.read()
         for a in arms:  # the first operating_state already carries the measurements
@@ -272,6 +281,9 @@ def run(cfg: SlaveControlConfig, stop: threading.Event) -> None:
             if timer.every(wrench_every, 2):
                 for a, r in zip(arms, arm_readings, strict=True):
                     a.publish_wrench(r)
+            if timer.every(commanded_every, 5):  # (phase 5: with 10 periods, never with 0-3 above)
+                for a in arms:
+                    a.publish_commanded()
             force_state = timer.every(state_every, 3)
             for a, s in zip(arms, servo_streams, strict=True):
                 a.publish_state(force_state, s.rejected)

@@ -348,6 +348,9 @@ class ArmCore:
     rejected: int = 0  # setpoints refused by the rules above
     cycle: int = 0  # control cycles executed; stamped on inputs (see control.py)
     following: bool = False  # mirrors the controller (set by the control loop)
+    # a slave-side motion drove the arm in the last period (its commanded joints go out on
+    # setpoint_js for the watchdog, publish_commanded)
+    commanding: bool = False
     held: FaultHold = field(default_factory=FaultHold)
     ctl: FollowController = field(init=False)
     servo: ServoFollow = field(init=False)
@@ -397,7 +400,7 @@ class ArmCore:
         """Subscribe the arm's inputs and declare its outputs on ``node``."""
         k, cfg, arm = node.keys, self.cfg, self.arm
         self.node = node
-        for stream in ("measured_js", "measured_cp", "measured_cf", "operating_state"):
+        for stream in ("measured_js", "measured_cp", "measured_cf", "operating_state", "setpoint_js"):
             self.outlets[stream] = node.outlet(k.slave(arm, stream))
         # polled: read by the control loop at each tick (see the lease-age rule)
         node.subscribe(
@@ -569,6 +572,7 @@ class ArmCore:
             out = self.held.update(ctl, reading.fault, q_meas)
         elif internal and motion is not None:
             out = self._internal(motion, lease, now, reading)
+            self.commanding = True
         else:
             if blocked:
                 ctl.pause(q_meas, blocked)
@@ -672,6 +676,16 @@ class ArmCore:
         cp.put(
             CartesianPose(cp.header(), FRAME, (float(t[0, 3]), float(t[1, 3]), float(t[2, 3])), r.tip_quat)
         )
+
+    def publish_commanded(self) -> None:
+        """setpoint_js: the joints commanded by a slave-side motion (PTP, jog, playback,
+        insert/remove, direct teach) since the last call, for the watchdog's checks (joint limits,
+        speed, workspace, patient keep-out); nothing while the arm follows servo_jp or holds."""
+        if not self.commanding:
+            return
+        self.commanding = False
+        out = self.outlets["setpoint_js"]
+        out.put(JointState(out.header(), self.profile.joint_names, tuple(self.q_cmd.tolist()), (), ()))
 
     def publish_wrench(self, r: ArmReading) -> None:
         """measured_cf, when the backend estimates external torques."""
