@@ -54,10 +54,12 @@ from telesurg.services.slave_control.factory import make_backend
 from telesurg.services.slave_control.serial_backend import SerialBackendConfig
 from telesurg.services.slave_control.teach import TeachConfig
 from telesurg.services.slave_control.trocar_arm import TrocarMotions
+from telesurg.services.slave_control.work_frame import CameraWorkFrame, ConfiguredWorkFrame
 from telesurg.shared import robots
 from telesurg.shared.authority import AuthorityConfig
-from telesurg.shared.bus import BusConfig, Node
+from telesurg.shared.bus import BusConfig, Node, only
 from telesurg.shared.errors import ConfigError
+from telesurg.shared.messages import CartesianPose
 from telesurg.shared.robots import arms_of
 from telesurg.shared.timing import CycleTimer, check_rt_priority, start_loop
 
@@ -109,6 +111,11 @@ class SlaveControlConfig:
     # deg, roll/pitch/yaw of the work jog frame (the laparoscope's view: x image right, y image
     # down, z into the image) in the base frame; default: looking down, patient's head (+x) up
     work_frame_rpy_deg: tuple[float, float, float] = (180.0, 0.0, -90.0)
+    # camera id: `work` jogs in its view (camera/<cam>/measured_cp: the endoscope's optical frame
+    # is the laparoscope's view frame) while its pose is younger than 0.5 s, else
+    # work_frame_rpy_deg ("" = always work_frame_rpy_deg; telesurg up sets it when a camera runs)
+    camera: str = ""
+    camera_source: str = "camera"  # the only publisher accepted on camera/<cam>/measured_cp
     # (default: the torso (260, -170, 136)-(740, 170, 196) mm with 5 mm on every side and 6 mm below,
     # and the top 2 mm under the trocar: the arm lags and overshoots its command by millimetres at
     # PTP speed, and a path is checked at 0.005 rad steps)
@@ -180,6 +187,24 @@ def make_arms(cfg: SlaveControlConfig, backend: SlaveBackend) -> list[ArmCore]:
     return cores
 
 
+def follow_camera(node: Node, cfg: SlaveControlConfig, motion: TrocarMotions) -> None:
+    """``work`` jogs of ``motion`` in the view of camera ``cfg.camera`` (its pose stream, read at
+    the loop's poll), falling back to ``work_frame_rpy_deg`` while no fresh pose is known."""
+    frame = CameraWorkFrame(ConfiguredWorkFrame(cfg.work_frame_rpy_deg))
+    motion.work_frame = frame
+
+    def on_pose(msg: CartesianPose, key: str) -> None:
+        frame.on_pose(msg.orientation)
+
+    node.subscribe(
+        node.keys.camera(cfg.camera, "measured_cp"),
+        CartesianPose,
+        on_pose,
+        sources=only(cfg.camera_source),
+        polled=True,
+    )
+
+
 def run(cfg: SlaveControlConfig, stop: threading.Event) -> None:
     """Run the slave until ``stop``."""
     check_rt_priority(cfg.rt_priority)
@@ -194,6 +219,8 @@ def run(cfg: SlaveControlConfig, stop: threading.Event) -> None:
         arms = make_arms(cfg, backend)
         for a in arms:
             a.connect(node)
+            if cfg.camera and isinstance(a.motion, TrocarMotions):
+                follow_camera(node, cfg, a.motion)
         servo_streams = [node.streams.get(k.slave(a.arm, "servo_jp")) for a in arms]
         # Sub-rate tasks run in different cycles (phases 0-3 below: with these periods of 4, 10,
         # 20 and 50 cycles no two of them ever share a cycle), so no cycle carries the sum of their
