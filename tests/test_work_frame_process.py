@@ -11,6 +11,11 @@ slave's measured tip (``slave/arm1/measured_cp``):
    (0.5, −0.87, 0), 60° from the base x axis — by scale 0.5 × the master's 40 mm;
 2. a master motion along +y (the view's up) moves it along the work frame's −y (up the image);
 3. a ``jog frame=work axis=x`` moves it along the same direction as 1.
+
+With the endoscope camera running (``camera=True``: the launcher names it to the mapping and to
+slave_control) and turned 90° about its view axis by its holder, the work frame is the camera's
+view: a ``jog frame=work axis=x`` and a master motion along +x both move the tip to the right in
+the picture (along the camera's optical x axis), not along the configured frame's.
 """
 
 from __future__ import annotations
@@ -25,6 +30,7 @@ import numpy as np
 import pytest
 from helpers import operator_command
 from telesurg.services.bench.harness import Pipeline
+from telesurg.services.camera import pose_matrix, quat_xyzw
 from telesurg.services.launcher import default_config_dir
 from telesurg.shared.bus import BusConfig, Node
 from telesurg.shared.config import SITE_FILE
@@ -64,7 +70,9 @@ class Seen:
         self.lock = threading.Lock()
         self.tips: list[tuple[float, np.ndarray]] = []
         self.follow = self.lease = False
+        self.cam: CartesianPose | None = None
         k = node.keys
+        node.subscribe(k.camera("endo", "measured_cp"), CartesianPose, self._cam)
         node.subscribe(k.slave("arm1", "measured_cp"), CartesianPose, self._tip)
         node.subscribe(k.slave("arm1", "operating_state"), OperatingState, self._state)
 
@@ -75,6 +83,10 @@ class Seen:
     def _state(self, m: OperatingState, key: str) -> None:
         with self.lock:
             self.follow, self.lease = m.follow, m.lease_ok
+
+    def _cam(self, m: CartesianPose, key: str) -> None:
+        with self.lock:
+            self.cam = m
 
     def settled_tip(self, quiet_mm: float = 0.02, timeout: float = 8.0) -> np.ndarray:
         """The tip once it moved less than ``quiet_mm`` over 0.3 s."""
@@ -96,7 +108,7 @@ def angle_deg(a: np.ndarray, b: np.ndarray) -> float:
 
 
 @pytest.fixture
-def site(tmp_path: Path) -> Iterator[tuple[Pipeline, Master, Seen, Node]]:
+def site(tmp_path: Path, request: pytest.FixtureRequest) -> Iterator[tuple[Pipeline, Master, Seen, Node]]:
     site_dir = tmp_path / "site"
     site_dir.mkdir()
     text = (default_config_dir() / SITE_FILE).read_text()
@@ -110,6 +122,7 @@ def site(tmp_path: Path) -> Iterator[tuple[Pipeline, Master, Seen, Node]]:
             master=False,
             probe=False,
             config_dir=site_dir,
+            camera=getattr(request, "param", False),
             overrides={
                 "mapping": ['master_frame="work"', "scale=0.5"],
                 "slave_control": ["jog_speed_mm_s=20.0"],
@@ -118,6 +131,8 @@ def site(tmp_path: Path) -> Iterator[tuple[Pipeline, Master, Seen, Node]]:
         Node(BusConfig(connect=[p.spec.endpoint]), "local", "master_capture") as node,
         Node(BusConfig(connect=[p.spec.endpoint]), "local", "console") as console,
     ):
+        if getattr(request, "param", False):
+            assert "camera" not in p.site.off, f"the camera did not start: {p.site.off}"
         seen = Seen(node)
         m = Master(node)
         m.start()
@@ -188,3 +203,48 @@ def test_master_and_jog_move_the_tip_along_the_work_frame(site: tuple[Pipeline, 
     print(f"jog work +x → tip {np.round(dj * 1e3, 2)} mm")
     assert angle_deg(dj, work_x) < 3.0, f"{angle_deg(dj, work_x):.1f}° from the work frame's +x"
     assert angle_deg(dj, dx) < 5.0  # the jog and the master agree on the work frame
+
+
+@pytest.mark.parametrize("site", [True], indirect=True, ids=["camera"])
+def test_with_the_endoscope_camera_the_work_frame_is_its_view(
+    site: tuple[Pipeline, Master, Seen, Node],
+) -> None:
+    pipe, _, seen, console = site  # (master right in the picture: tests/test_camera_mapping_process.py)
+    assert pipe.wait(lambda: seen.lease and seen.cam is not None and len(seen.tips) > 10, 60), "no lease"
+    holder = console.outlet(console.keys.camera("endo", "servo_cp"), control=False)
+    assert seen.cam is not None
+    T = pose_matrix(seen.cam)
+    T[:3, :3] = T[:3, :3] @ rpy_matrix((0.0, 0.0, 90.0))  # turned 90° about its view axis
+    for _ in range(5):  # (the camera renders on a busy host: its pose may come late)
+        holder.put(
+            CartesianPose(holder.header(), "base", tuple(float(v) for v in T[:3, 3]), quat_xyzw(T[:3, :3]))
+        )
+        if pipe.wait(lambda: angle_deg(pose_matrix(seen.cam)[:3, 0], T[:3, 0]) < 0.5, 5):  # type: ignore[arg-type]
+            break
+    else:
+        raise AssertionError("the camera did not take the commanded pose")
+    cam_x = T[:3, 0]  # right in the picture, base frame
+    print(
+        f"camera x (image right) in base: {np.round(cam_x, 3)}; configured work x: "
+        f"{np.round(R_WORK[:, 0], 3)}"
+    )
+    assert angle_deg(cam_x, R_WORK[:, 0]) > 30.0  # the two frames differ: the test can tell them apart
+    time.sleep(0.5)
+
+    def send(name: str, *args: str) -> CommandReply:
+        r: CommandReply = operator_command(console, console.keys.command("arm1"), "arm1", name, *args)
+        print(f"{name} {' '.join(args)} -> {'accepted' if r.accepted else 'REFUSED'}: {r.reason}")
+        return r
+
+    assert send("set_motion_mode", "mode=jog").accepted
+    for _ in range(4):
+        assert pipe.wait(lambda: seen.lease, 30), "no lease"
+        p0 = seen.settled_tip()
+        assert send("jog", "frame=work", "axis=x", "direction=1").accepted
+        time.sleep(1.0)
+        send("stop")
+        dj = seen.settled_tip() - p0
+        if np.linalg.norm(dj) > 0.01:  # (a load hold cut it short: again)
+            break
+    print(f"jog work +x → tip {np.round(dj * 1e3, 2)} mm")
+    assert angle_deg(dj, cam_x) < 3.0, f"{angle_deg(dj, cam_x):.1f}° from the camera's image right"
