@@ -158,3 +158,16 @@ def test_no_trocar_reported_means_no_entry_anywhere() -> None:
     depth_now = float(np.dot(t[:3, 3] - np.array(TROCAR), t[:3, 0]))
     insert = base_line(q, t[:3, 0] * (0.08 - depth_now), 400)
     assert any("patient keep-out" in f for f in feed(c, insert))
+
+
+def test_a_motion_starting_above_the_workspace_may_come_back_in_but_not_go_further_out() -> None:
+    # the trocar process tests' start: the tip at z = 1,024 mm, above the local site's 800 mm
+    start = np.array([0.0, -0.2, 0.6, 0.0, -0.3, 0.0])
+    assert fk(start)[2, 3] > 0.8
+    adjust = [start + (posture_adjust(start, np.array(TROCAR)) - start) * s for s in np.linspace(0, 1, 100)]
+    c = check()
+    assert not any(feed(c, adjust)), "the posture adjustment from above the workspace was held"
+    c = check()
+    up = base_line(start, np.array([0.0, 0.0, 0.02]), 20)
+    faults = feed(c, up)
+    assert faults[0] == "" and any("outside the workspace" in f for f in faults)

@@ -9,7 +9,10 @@ rules of followed setpoints (:meth:`~telesurg.services.watchdog.logic.ArmSafety.
 * joint names and joint limits;
 * speed: faster than ``velocity_hold_factor`` × the joint speed limits over
   ``velocity_window_ms`` (source time) is a jump (the slave rate-limits its commands to 1×);
-* the workspace box, by forward kinematics of the commanded joints;
+* the workspace box, by forward kinematics of the commanded joints; as with the keep-out below,
+  a motion that starts with the tip outside the box (an arm started there) may move — back in —
+  but not further out (the tip's distance outside may not grow by more than
+  :data:`FURTHER_OUT_TOL_M`); leaving the box is a fault at once;
 * the **patient keep-out** (robots of the trocar family, :mod:`telesurg.shared.kinematics.keepout`):
   the forceps shaft may enter the patient box only through the trocar the slave reports
   (``operating_state.trocar``; none known yet: no entry anywhere). The joint path between two
@@ -42,6 +45,8 @@ NEW_MOTION_GAP_S = 0.1
 #: m: a pose already crossing the patient box may move (to get out) but its shaft may not go this
 #: much deeper into the box.
 DEEPER_TOL_M = 0.0005
+#: m: a tip already outside the workspace box may move (back in) but not this much further out.
+FURTHER_OUT_TOL_M = 0.0005
 
 
 @dataclass
@@ -62,7 +67,7 @@ class CommandedCheck:
     trocar: tuple[float, float, float] | None = None  # from operating_state (None: not known yet)
     checked: int = 0  # setpoint_js samples checked
     faults: int = 0  # samples that found a violation
-    _prev: tuple[int, np.ndarray, float] | None = None  # (stamp ns, q, shaft inside the box m)
+    _prev: tuple[int, np.ndarray, float, float] | None = None  # (stamp ns, q, shaft in box m, tip out m)
     _history: deque[tuple[int, tuple[float, ...]]] = field(default_factory=lambda: deque(maxlen=1000))
 
     def on_slave_state(self, msg: OperatingState) -> None:
@@ -100,12 +105,12 @@ class CommandedCheck:
             prev = None  # another motion (or a reordered sample): no path back to the last one
             self._history.clear()
         found = self._speed(ts, pos, now)
+        out = 0.0
         if self.tip_of is not None:
-            before = s.counters.get("workspace", 0)
-            s.check_workspace(self.tip_of(q), now)
-            if s.counters.get("workspace", 0) > before:
-                self.faults += 1
-                found = found or "slave-side motion: target outside the workspace"
+            out, text = self._outside(self.tip_of(q))
+            # a motion's first sample may be outside (an arm started there); then only back in
+            if out > 0.0 and prev is not None and (prev[3] == 0.0 or out > prev[3] + FURTHER_OUT_TOL_M):
+                found = self._fault("workspace", f"slave-side motion: tip outside the workspace: {text}", now)
         box = self.box()
         inside = 0.0
         if box is not None:
@@ -126,8 +131,23 @@ class CommandedCheck:
                 problem = f"no forward kinematics: {exc}"
             if problem:
                 found = self._fault("keepout", f"slave-side motion: patient keep-out: {problem}", now)
-        self._prev = (ts, q, inside)
+        self._prev = (ts, q, inside, out)
         return found
+
+    def _outside(self, tip: np.ndarray) -> tuple[float, str]:
+        """How far [m] the tip ``tip`` (base frame) is outside the workspace box, and where."""
+        p = self.safety.policy
+        lo, hi = p.workspace_min_mm, p.workspace_max_mm
+        mm = [v * 1e3 for v in tip.tolist()]
+        gaps = [max(a - v, 0.0, v - b) for v, a, b in zip(mm, lo, hi, strict=True)]
+        if not any(gaps):
+            return 0.0, ""
+        text = ", ".join(
+            f"{ax}={v:.0f} mm ({a:.0f}..{b:.0f})"
+            for ax, v, a, b, g in zip("xyz", mm, lo, hi, gaps, strict=True)
+            if g > 0.0
+        )
+        return math.sqrt(sum(g * g for g in gaps)) / 1e3, text
 
     def _speed(self, ts: int, pos: tuple[float, ...], now: float) -> str:
         """The servo_jp speed rule on the commanded joints: only a jump (> hold factor) faults."""
