@@ -32,7 +32,7 @@ BOX = PatientBox(
 def check() -> CommandedCheck:
     safety = ArmSafety("arm1", CFG.policy("arm1"), PROFILE.joint_names, tip_of=PROFILE.tip)
     c = CommandedCheck(safety, CFG.patient_box_min_mm, CFG.patient_box_max_mm, tip_of=PROFILE.tip)
-    c.on_slave_state(OperatingState(Header("slave_control", 0, 1), trocar=TROCAR))
+    c.on_slave_state(OperatingState(Header("slave_control", 0, 1), trocar=TROCAR), 0.0)
     return c
 
 
@@ -152,7 +152,7 @@ def test_a_robot_without_the_trocar_family_has_no_keep_out() -> None:
 
 def test_no_trocar_reported_means_no_entry_anywhere() -> None:
     c = check()
-    c.on_slave_state(OperatingState(Header("slave_control", 1, 2), trocar=(0.0, 0.0, 0.0)))
+    c.on_slave_state(OperatingState(Header("slave_control", 1, 2), trocar=(0.0, 0.0, 0.0)), 0.0)
     q = posture_adjust(np.array(STARTS["start_a"]), np.array(TROCAR))
     t = fk(q)
     depth_now = float(np.dot(t[:3, 3] - np.array(TROCAR), t[:3, 0]))
@@ -171,3 +171,17 @@ def test_a_motion_starting_above_the_workspace_may_come_back_in_but_not_go_furth
     up = base_line(start, np.array([0.0, 0.0, 0.02]), 20)
     faults = feed(c, up)
     assert faults[0] == "" and any("outside the workspace" in f for f in faults)
+
+
+def test_a_slave_side_motion_reported_by_the_slave_starts_the_freshness_clock() -> None:
+    """``motion_since``: set while the slave reports ENABLED without following (a slave-side
+    motion: the service then needs setpoint_js fresh), cleared otherwise."""
+    c = check()
+    assert c.motion_since is None
+    c.on_slave_state(OperatingState(Header("slave_control", 1, 2), "ENABLED", follow=False), 5.0)
+    c.on_slave_state(OperatingState(Header("slave_control", 2, 3), "ENABLED", follow=False), 6.0)
+    assert c.motion_since == 5.0  # from the motion's start
+    c.on_slave_state(OperatingState(Header("slave_control", 3, 4), "ENABLED", follow=True), 7.0)
+    assert c.motion_since is None  # following servo_jp: not a slave-side motion
+    c.on_slave_state(OperatingState(Header("slave_control", 4, 5), "PAUSED", follow=False), 8.0)
+    assert c.motion_since is None

@@ -138,12 +138,16 @@ AWAY = ["patient_box_min_mm=[-2100.0, -2100.0, -2100.0]", "patient_box_max_mm=[-
 
 @pytest.fixture
 def console(tmp_path: Path, request: pytest.FixtureRequest) -> Iterator[Console]:
+    case = getattr(request, "param", "")
     overrides = {
         # the slave's own keep-out misses the patient
         "slave_control": [f"q_home={start_pose()}", "jog_speed_mm_s=20.0", *AWAY],
         # the control case (blind_watchdog): the watchdog's misses it too
-        "watchdog": list(AWAY) if getattr(request, "param", False) else [],
+        "watchdog": list(AWAY) if case == "blind_watchdog" else [],
     }
+    if case == "sparse":  # setpoint_js every 100 ms, the watchdog wants one every 50 ms
+        overrides["slave_control"].append("setpoint_js_hz=10.0")
+        overrides["watchdog"].append("setpoint_js_deadline_ms=50.0")
     stop = threading.Event()
     with (
         Pipeline(
@@ -208,7 +212,7 @@ def test_the_watchdog_holds_a_jog_into_the_patient_that_the_slave_missed(console
     assert deepest < 40.0, "the forceps went deep into the patient before the hold"
 
 
-@pytest.mark.parametrize("console", [True], indirect=True, ids=["blind_watchdog"])
+@pytest.mark.parametrize("console", ["blind_watchdog"], indirect=True)
 def test_without_the_watchdog_check_the_same_jog_goes_into_the_patient(console: Console) -> None:
     """The control case: with the watchdog's box moved away as well, nothing stops the jog."""
     c, pipe = console, console.pipe
@@ -216,7 +220,7 @@ def test_without_the_watchdog_check_the_same_jog_goes_into_the_patient(console: 
     assert c.send("set_motion_mode", "mode=jog").accepted
     t0 = time.monotonic()
     deepest = 0.0
-    for _ in range(4):
+    for _ in range(10):  # (each load hold stops the jog; commanded again, it goes on from there)
         assert pipe.wait(lambda: c.lease, 30), "no lease"
         assert c.send("jog", "frame=base", "axis=z", "direction=-1").accepted
         pipe.wait(lambda: c.deepest_mm(t0) > 20.0, 6)
@@ -227,3 +231,28 @@ def test_without_the_watchdog_check_the_same_jog_goes_into_the_patient(console: 
     print(f"measured shaft inside the patient box: max {deepest:.1f} mm")
     assert not c.keepout_holds(t0)
     assert deepest > 20.0
+
+
+@pytest.mark.parametrize("console", ["sparse"], indirect=True)
+def test_a_slave_side_motion_without_fresh_setpoint_js_is_held(console: Console) -> None:
+    """Any doubt → hold: while the slave reports a slave-side motion, its commanded joints must
+    come within ``setpoint_js_deadline_ms`` (here 50 ms, the slave sending them every 100 ms)."""
+    c, pipe = console, console.pipe
+    assert pipe.wait(lambda: c.lease and len(c.js) > 10, 30), "no lease"
+    assert c.send("set_motion_mode", "mode=jog").accepted
+    t0 = time.monotonic()
+
+    def stale() -> list[str]:
+        with c.lock:
+            return [
+                x for t, s, cs in c.safety if t >= t0 and s == "HOLD" for x in cs if "setpoint_js stale" in x
+            ]
+
+    for _ in range(4):
+        assert pipe.wait(lambda: c.lease, 30), "no lease"
+        assert c.send("jog", "frame=base", "axis=y", "direction=1").accepted
+        if pipe.wait(stale, 5):
+            break
+    c.send("stop")
+    print("watchdog:", stale()[:1])
+    assert stale(), "the watchdog did not hold on the missing setpoint_js"

@@ -97,6 +97,9 @@ class WatchdogConfig:
     servo_deadline_ms: float = 80.0  # ms: servo_jp older than this → HOLD
     slave_deadline_ms: float = 100.0  # ms: slave measured_js older than this → HOLD
     slave_state_deadline_ms: float = 250.0  # ms: slave operating_state (20 Hz) older → HOLD
+    # ms: while the slave reports a slave-side motion, its commanded joints (setpoint_js, 100 Hz)
+    # older than this → HOLD (counted from the motion's start at the earliest)
+    setpoint_js_deadline_ms: float = 100.0
     max_loss_per_s: int = 10  # lost + reordered control messages per second above this → DEGRADED
     latency_source: str = "clock"  # clock: servo_jp origin stamps (one host); echo: RTT/2
     echo_service: str = "master_capture"  # whose echo queryable is probed (latency_source=echo)
@@ -241,6 +244,8 @@ class ArmWatch:
             node.outlet(k.safety(arm, "video"), control=False) if cfg.video_camera else None
         )
         self.verdict = Verdict("HOLD", ("starting",), 1.0, 0.0, 0.0, 0.0, 0)
+        self.commanded_key = k.slave(arm, "setpoint_js")
+        self.motion_tick: int | None = None  # the tick at which the slave began a slave-side motion
 
 
 class Watchdog:
@@ -307,10 +312,15 @@ class Watchdog:
         self.last_tick[key] = self.ticks
         with self.lock:
             a.safety.on_slave_state(msg, time.monotonic())
-            a.commanded.on_slave_state(msg)
+            a.commanded.on_slave_state(msg, time.monotonic())
+            if a.commanded.motion_since is not None and a.motion_tick is None:
+                a.motion_tick = self.ticks
+            elif a.commanded.motion_since is None:
+                a.motion_tick = None
 
     def _on_commanded(self, a: ArmWatch, msg: JointState, key: str) -> None:
         """The slave's commanded joints of a slave-side motion: a violation holds at once."""
+        self.last_tick[key] = self.ticks
         with self.lock:
             fault = a.commanded.on_setpoint_js(msg, time.monotonic())
         if fault:
@@ -366,6 +376,13 @@ class Watchdog:
         with self.lock:
             alive = set(self.alive)
         out = [f"{s} not alive" for s in self.cfg.required_services if s not in alive]
+        if (since := a.commanded.motion_since) is not None:  # a slave-side motion: setpoint_js fresh
+            key, deadline = a.commanded_key, self.cfg.setpoint_js_deadline_ms
+            age_ms = min(self.node.streams.get(key).age_s(), time.monotonic() - since) * 1e3
+            ticks = self.ticks - max(self.last_tick.get(key, -(10**9)), a.motion_tick or 0)
+            if age_ms > deadline and ticks * 1e3 / self.cfg.lease_hz >= deadline:
+                why = f"({age_ms:.0f} ms > {deadline:.0f} ms)"
+                out.append(f"slave/{a.arm}/setpoint_js stale during a slave-side motion {why}")
         for key, deadline in a.deadlines.items():
             age_ms = self.node.streams.get(key).age_s() * 1e3
             ticks = self.ticks - self.last_tick.get(key, -(10**9))

@@ -21,6 +21,12 @@ rules of followed setpoints (:meth:`~telesurg.services.watchdog.logic.ArmSafety.
   starts with the forceps already crossing the box may move (it must be able to get out), but not
   deeper: the shaft's length inside the box may not grow by more than :data:`DEEPER_TOL_M`.
 
+And the stream itself: while the slave's ``operating_state`` says a slave-side motion drives the
+arm (``ENABLED`` and not following ``servo_jp``), ``setpoint_js`` must be fresh — older than the
+deadline (``setpoint_js_deadline_ms``, counted from the motion's start at the earliest) is a HOLD
+like any stale control stream: a slave that does not publish it (or a site whose router drops
+it) would move unchecked.
+
 A violation is a message-level fault of :class:`~telesurg.services.watchdog.logic.ArmSafety`:
 HOLD with the reason, for at least ``fault_latch_ms``; the slave stops the motion when the lease
 says hold, and the operator must command it again. I/O-free; the caller holds the watchdog's lock.
@@ -65,15 +71,24 @@ class CommandedCheck:
     box_max_mm: tuple[float, float, float] | None = None
     tip_of: Callable[[np.ndarray], np.ndarray] | None = None
     trocar: tuple[float, float, float] | None = None  # from operating_state (None: not known yet)
+    # monotonic s at which the slave's operating_state began to report a slave-side motion (None:
+    # it reports none): setpoint_js must be fresh from then on
+    motion_since: float | None = None
     checked: int = 0  # setpoint_js samples checked
     faults: int = 0  # samples that found a violation
     _prev: tuple[int, np.ndarray, float, float] | None = None  # (stamp ns, q, shaft in box m, tip out m)
     _history: deque[tuple[int, tuple[float, ...]]] = field(default_factory=lambda: deque(maxlen=1000))
 
-    def on_slave_state(self, msg: OperatingState) -> None:
-        """The trocar the slave uses: the one place the patient may be entered."""
+    def on_slave_state(self, msg: OperatingState, now: float) -> None:
+        """The trocar the slave uses (the one place the patient may be entered), and whether a
+        slave-side motion drives the arm (``ENABLED``, not following ``servo_jp``)."""
         t = msg.trocar
         self.trocar = (float(t[0]), float(t[1]), float(t[2])) if any(t) else None
+        moving = msg.state == "ENABLED" and not msg.follow
+        if not moving:
+            self.motion_since = None
+        elif self.motion_since is None:
+            self.motion_since = now
 
     def box(self) -> PatientBox | None:
         """The patient box with the current trocar, or None without a keep-out."""
