@@ -40,6 +40,7 @@ Example::
 from __future__ import annotations
 
 import logging
+import math
 import threading
 import time
 from collections.abc import Sequence
@@ -112,8 +113,8 @@ class SlaveControlConfig:
     # down, z into the image) in the base frame; default: looking down, patient's head (+x) up
     work_frame_rpy_deg: tuple[float, float, float] = (180.0, 0.0, -90.0)
     # camera id: `work` jogs in its view (camera/<cam>/measured_cp: the endoscope's optical frame
-    # is the laparoscope's view frame) while its pose is younger than 0.5 s, else
-    # work_frame_rpy_deg ("" = always work_frame_rpy_deg; telesurg up sets it when a camera runs)
+    # is the laparoscope's view frame; work_frame_rpy_deg until its first pose) ("" = always
+    # work_frame_rpy_deg; telesurg up sets it when a camera runs)
     camera: str = ""
     camera_source: str = "camera"  # the only publisher accepted on camera/<cam>/measured_cp
     # (default: the torso (260, -170, 136)-(740, 170, 196) mm with 5 mm on every side and 6 mm below,
@@ -189,8 +190,11 @@ def make_arms(cfg: SlaveControlConfig, backend: SlaveBackend) -> list[ArmCore]:
 
 def follow_camera(node: Node, cfg: SlaveControlConfig, motion: TrocarMotions) -> None:
     """``work`` jogs of ``motion`` in the view of camera ``cfg.camera`` (its pose stream, read at
-    the loop's poll), falling back to ``work_frame_rpy_deg`` while no fresh pose is known."""
-    frame = CameraWorkFrame(ConfiguredWorkFrame(cfg.work_frame_rpy_deg))
+    the loop's poll); ``work_frame_rpy_deg`` until its first pose. The last pose holds however old
+    (as in the mapping): the camera's pose changes only when it is moved, and a move is published
+    at once — a lagging pose stream (the camera runs at idle priority) must not turn a running jog
+    back to the configured frame."""
+    frame = CameraWorkFrame(ConfiguredWorkFrame(cfg.work_frame_rpy_deg), max_age_s=math.inf)
     motion.work_frame = frame
 
     def on_pose(msg: CartesianPose, key: str) -> None:
