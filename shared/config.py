@@ -64,6 +64,9 @@ SHARED_FACTS: dict[str, tuple[str, ...]] = {
     "workspace_min_mm": ("workspace_min_mm",),
     "workspace_max_mm": ("workspace_max_mm",),
     "authority": ("authority",),
+    "patient_box_min_mm": ("patient_box_min_mm",),
+    "patient_box_max_mm": ("patient_box_max_mm",),
+    "work_frame_rpy_deg": ("work_frame_rpy_deg",),
 }
 
 
@@ -80,6 +83,13 @@ class SiteFacts:
     # [site.authority]: who may send which operator command, e-stop or reset, and the confirmation
     # of motion-starting commands (shared/authority.py; unset: the defaults, operator "console")
     authority: AuthorityConfig | None = None
+    # mm, the slave's base frame: the patient's body of a trocar-family robot, the keep-out of
+    # slave_control's slave-side motions and of the watchdog's check of them (unset: theirs)
+    patient_box_min_mm: tuple[float, float, float] | None = None
+    patient_box_max_mm: tuple[float, float, float] | None = None
+    # deg, roll/pitch/yaw of the work frame (the laparoscope's view) in the slave's base frame:
+    # slave_control's `work` jogs and the mapping's `master_frame = "work"` (unset: theirs)
+    work_frame_rpy_deg: tuple[float, float, float] | None = None
 
 
 @dataclass

@@ -11,8 +11,8 @@ service instance id)::
     slave/<arm>/measured_js      JointState      slave joints
     slave/<arm>/measured_cp      CartesianPose   slave forceps-tip pose, base frame
     slave/<arm>/measured_cf      CartesianWrench external wrench at the tip, base frame (estimate)
-    slave/<arm>/setpoint_js      JointState      the joints the slave commands its servos (CRTK setpoint_js)
     slave/<arm>/operating_state  OperatingState  slave state, mode, follow, hold reason
+    slave/<arm>/setpoint_js      JointState      commanded joints of a slave-side motion (watchdog)
     safety/<arm>/lease           SafetyLease     watchdog → slave permission to move
     safety/<arm>/state           SafetyState     watchdog's view of the arm
     safety/<arm>/video           VideoState      watchdog's view of the arm's video (frame age)
@@ -43,13 +43,10 @@ _ID = re.compile(r"^[A-Za-z0-9_-]{1,64}$")
 _SID = re.compile(r"^[0-9a-f]{1,32}$")
 
 MASTER_STREAMS = ("measured_cp", "measured_js", "buttons")
-SLAVE_STREAMS = (
-    "servo_jp",
-    "setpoint_cp",
-    "measured_js",
-    "measured_cp",
-    "measured_cf",
-    "operating_state",
+#: (``setpoint_js``: the slave's commanded joints while a slave-side motion drives the arm — PTP,
+#: jog, playback, insert/remove, direct teach —, checked by the watchdog as it checks servo_jp)
+SLAVE_STREAMS: tuple[str, ...] = (
+    *("servo_jp", "setpoint_cp", "measured_js", "measured_cp", "measured_cf", "operating_state"),
     "setpoint_js",
 )
 SAFETY_STREAMS = ("lease", "state", "video")

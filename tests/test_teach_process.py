@@ -33,6 +33,11 @@ def arm(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[ArmClient, P
     overrides = {
         "master_capture": ["scripted.clutch=[]"],  # nobody engages master–slave in this test
         "slave_control": [f"q_home={START}", "jog_speed_mm_s=40.0", f"state_file={json.dumps(str(store))}"],
+        # START's tip (z = 1,024 mm) lies above the local site's 800 mm workspace ceiling, and the
+        # watchdog holds slave-side motions that leave the workspace (or go further out of it):
+        # this test pushes the arm about there (up to z ≈ 1,100 mm) and plays back to START: its
+        # ceiling is 1,300 mm
+        "watchdog": ["workspace_max_mm=[1100.0, 600.0, 1300.0]"],
     }
     with (
         Pipeline(tmp / "logs", mirror=False, impair=False, overrides=overrides) as p,

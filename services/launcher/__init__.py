@@ -76,7 +76,9 @@ OPTIONAL = ("camera",)
 #: What a :class:`SiteSpec` starts by default: every service but the camera (``telesurg up`` and
 #: ``demo`` add it; a test or bench names it when it wants video).
 CONTROL_SERVICES = tuple(s for s in SERVICES if s not in OPTIONAL)
-OPTIONAL_OFF = {"camera": {"watchdog": ['video_camera=""'], "mapping": ['camera=""']}}
+OPTIONAL_OFF = {
+    "camera": {"watchdog": ['video_camera=""'], "mapping": ['camera=""'], "slave_control": ['camera=""']}
+}
 
 
 #: The control path's processes run at this nice value (all their threads: the loops, zenoh's
@@ -371,18 +373,18 @@ class Site:
         self._watch_video(cam.camera)
 
     def _watch_video(self, camera: str) -> None:
-        """A site that runs a camera watches its video: the watchdog's ``video_camera`` and the
-        mapping's ``camera`` (the view frame) name it, unless the site file or ``--set`` says
-        otherwise."""
+        """A site that runs a camera watches its video: the watchdog's ``video_camera``, the
+        mapping's ``camera`` (the view frame) and slave_control's ``camera`` (the ``work`` jog
+        frame) name it, unless the site file or ``--set`` says otherwise."""
         spec = self.spec
-        for svc, key in (("watchdog", "video_camera"), ("mapping", "camera")):
+        for svc, key in (("watchdog", "video_camera"), ("mapping", "camera"), ("slave_control", "camera")):
             if svc not in spec.services:
                 continue
             items = spec.overrides.get(svc, [])
             cfg = load_config(config_class(svc), spec.site_file, items, table=svc)
             if getattr(cfg, key) == "" and not any(i.startswith(f"{key}=") for i in items):
                 spec.overrides.setdefault(svc, []).append(f"{key}={json.dumps(camera)}")
-        log.info("camera %s is on: the watchdog watches its video, the mapping maps in its view", camera)
+        log.info("camera %s is on: the watchdog watches its video; mapping, work jogs: its view", camera)
 
     def _without(self, name: str, rc: int | None) -> None:
         """Go on without optional service ``name`` (it exited or never came up), saying why."""

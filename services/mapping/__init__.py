@@ -25,6 +25,11 @@ Master modes (``master_mode``): ``pen`` maps the master position as the tip; ``v
 console and maps the dummy tip beyond the fulcrum (:func:`master_point`), so the surgeon feels the
 same fulcrum effect as with the real forceps in the patient.
 
+Work frame (``master_frame = "work"``): master motion is mapped in the laparoscope's view frame
+(``work_frame_rpy_deg``, as the slave's ``work`` jogs), the master's axes as the surgeon sees the
+picture (:mod:`telesurg.services.mapping.work_frame`); with ``camera`` set, the camera's pose
+replaces it once it arrives.
+
 Camera frame (``camera`` set, Cartesian mode): master motion is mapped in the endoscope's view
 frame, the dVRK convention — the master frame is the surgeon's view (x right, y up, z toward the
 surgeon), so moving the hand to the right moves the instrument to the right *in the picture*.
@@ -57,13 +62,13 @@ from telesurg.services.mapping.joints import AllJointsMapping, VipMapping
 from telesurg.services.mapping.master import master_point
 from telesurg.services.mapping.position import PositionMapping
 from telesurg.services.mapping.trocar import TrocarClamp
+from telesurg.services.mapping.work_frame import MASTER_FRAMES, master_rotation
 from telesurg.shared import robots
 from telesurg.shared.authority import Authority, AuthorityConfig, summary
 from telesurg.shared.bus import BusConfig, Node, Outlet, only
 from telesurg.shared.errors import AuthorityError, ConfigError, IKError
 from telesurg.shared.kinematics import matrix_from_quat, quat_from_matrix
 from telesurg.shared.kinematics.mh3f import MH3F, fk, ik
-from telesurg.shared.kinematics.transforms import rpy_matrix
 from telesurg.shared.messages import (
     CartesianPose,
     Command,
@@ -109,6 +114,14 @@ class MappingConfig:
     dummy_forceps_mm: float = 250.0  # handle → dummy tip, along the dummy forceps
     # Rotation of the master frame expressed in the slave base frame, roll/pitch/yaw in degrees.
     master_to_slave_rpy_deg: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    # fixed: the master frame is master_to_slave_rpy_deg; work: master motion in the work frame,
+    # the laparoscope's view (master x = image right, y = image up, z = toward the surgeon;
+    # services/mapping/work_frame.py): the camera's pose where `camera` is set, else
+    # work_frame_rpy_deg
+    master_frame: str = "fixed"
+    # deg, roll/pitch/yaw of the work frame (x image right, y image down, z into the image) in the
+    # slave base frame, as slave_control's `work` jogs; default: looking down, patient's head up
+    work_frame_rpy_deg: tuple[float, float, float] = (180.0, 0.0, -90.0)
     # camera id: map master motion in its view frame (camera/<cam>/measured_cp; Cartesian mode;
     # "" = the fixed master_to_slave_rpy_deg, a site without a camera)
     camera: str = ""
@@ -158,6 +171,10 @@ class MappingConfig:
             raise ConfigError(f"all_joints_mode {self.all_joints_mode!r} invalid; valid: factor, tip_exact")
         if not 20.0 <= self.vip_ev_mm <= 50.0:
             raise ConfigError(f"vip_ev_mm={self.vip_ev_mm} outside [20, 50] (Jang 2014, Step 5)")
+        if self.master_frame not in MASTER_FRAMES:
+            raise ConfigError(
+                f"master_frame {self.master_frame!r} invalid; valid: {', '.join(MASTER_FRAMES)}"
+            )
         if self.master_mode not in MASTER_MODES:
             raise ConfigError(f"master_mode {self.master_mode!r} invalid; valid: {', '.join(MASTER_MODES)}")
         if not 10.0 <= self.dummy_forceps_mm <= 1000.0:
@@ -178,7 +195,7 @@ class ArmMapping(EngageGate):
     ) -> None:
         super().__init__(cfg, node, master, slave, work, MH3F.joint_names)
         self.geom = MH3F
-        self.r_ms = rpy_matrix(cfg.master_to_slave_rpy_deg)
+        self.r_ms = master_rotation(cfg)  # (a camera pose replaces it: on_camera_pose)
         self.r_ms_rows: list[list[float]] = self.r_ms.tolist()
         self.camera_poses = 0  # camera view-frame changes applied (on_camera_pose)
         self.servo_out: Outlet = node.outlet(node.keys.slave(slave, "servo_jp"))

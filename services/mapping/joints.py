@@ -36,10 +36,10 @@ import numpy as np
 from telesurg.services.mapping.engage import EngageGate
 from telesurg.services.mapping.master import master_point
 from telesurg.services.mapping.scale import SCALE_COMMANDS
+from telesurg.services.mapping.work_frame import master_rotation
 from telesurg.shared.bus import Node, Outlet
 from telesurg.shared.errors import IKError, KinematicsError
 from telesurg.shared.kinematics.elbow import off_line
-from telesurg.shared.kinematics.transforms import rpy_matrix
 from telesurg.shared.limits import limit_step
 from telesurg.shared.messages import (
     CartesianPose,
@@ -210,7 +210,7 @@ class PoseJointBase(_JointBase):
         self, cfg: MappingConfig, node: Node, master: str, slave: str, work: threading.Event
     ) -> None:
         super().__init__(cfg, node, master, slave, work)
-        self.r_ms = rpy_matrix(cfg.master_to_slave_rpy_deg)
+        self.r_ms = master_rotation(cfg)
         self.master_point = master_point
         self.pending: CartesianPose | None = None
         self.ref: tuple[np.ndarray, np.ndarray] | None = None  # (master point, slave point) anchor

@@ -24,7 +24,9 @@ replayed, and counted; ``serial.rate_hz`` for a serial arm). Setpoints arrive on
 ``slave/<arm>/servo_jp``. Each arm publishes ``measured_js`` and its controlled point's
 ``measured_cp`` (full pose, ``base`` frame) at ``publish_hz``, the estimated external wrench at
 that point ``measured_cf`` (for masters with force feedback; backends that estimate external
-torques) at ``wrench_hz``, and its ``operating_state`` at ``state_hz`` and on change. Rates count
+torques) at ``wrench_hz``, and its ``operating_state`` at ``state_hz`` and on change; while a
+slave-side motion drives an arm, its commanded joints go out on ``setpoint_js`` at
+``setpoint_js_hz`` for the watchdog, which checks them as it checks followed ``servo_jp``. Rates count
 periods of real time, so they hold when the loop wakes late and catches up.
 
 Example::
@@ -38,6 +40,7 @@ Example::
 from __future__ import annotations
 
 import logging
+import math
 import threading
 import time
 from collections.abc import Sequence
@@ -52,10 +55,12 @@ from telesurg.services.slave_control.factory import make_backend
 from telesurg.services.slave_control.serial_backend import SerialBackendConfig
 from telesurg.services.slave_control.teach import TeachConfig
 from telesurg.services.slave_control.trocar_arm import TrocarMotions
+from telesurg.services.slave_control.work_frame import CameraWorkFrame, ConfiguredWorkFrame
 from telesurg.shared import robots
 from telesurg.shared.authority import AuthorityConfig
-from telesurg.shared.bus import BusConfig, Node
+from telesurg.shared.bus import BusConfig, Node, only
 from telesurg.shared.errors import ConfigError
+from telesurg.shared.messages import CartesianPose
 from telesurg.shared.robots import arms_of
 from telesurg.shared.timing import CycleTimer, check_rt_priority, start_loop
 
@@ -79,6 +84,10 @@ class SlaveControlConfig:
     publish_hz: float = 250.0  # Hz: measured_js and measured_cp
     wrench_hz: float = 50.0  # Hz: measured_cf (estimated tip wrench; MuJoCo and torque-sensing arms)
     state_hz: float = 20.0  # Hz: operating_state (also sent on every change)
+    # Hz: setpoint_js, the commanded joints while a slave-side motion drives the arm (PTP, jog,
+    # playback, insert/remove, direct teach), checked by the watchdog; the watchdog checks the
+    # joint path between two samples at fine steps, so this rate only sets its reaction time
+    setpoint_js_hz: float = 100.0
     setpoint_timeout_ms: float = 100.0  # ms: an older setpoint is stale → hold
     # ms: a setpoint whose header stamp is further than this from this host's wall clock is
     # refused (stale, or the hosts' clocks disagree); > the longest scheduling stall, so a
@@ -103,6 +112,11 @@ class SlaveControlConfig:
     # deg, roll/pitch/yaw of the work jog frame (the laparoscope's view: x image right, y image
     # down, z into the image) in the base frame; default: looking down, patient's head (+x) up
     work_frame_rpy_deg: tuple[float, float, float] = (180.0, 0.0, -90.0)
+    # camera id: `work` jogs in its view (camera/<cam>/measured_cp: the endoscope's optical frame
+    # is the laparoscope's view frame; work_frame_rpy_deg until its first pose) ("" = always
+    # work_frame_rpy_deg; telesurg up sets it when a camera runs)
+    camera: str = ""
+    camera_source: str = "camera"  # the only publisher accepted on camera/<cam>/measured_cp
     # (default: the torso (260, -170, 136)-(740, 170, 196) mm with 5 mm on every side and 6 mm below,
     # and the top 2 mm under the trocar: the arm lags and overshoots its command by millimetres at
     # PTP speed, and a path is checked at 0.005 rad steps)
@@ -174,9 +188,32 @@ def make_arms(cfg: SlaveControlConfig, backend: SlaveBackend) -> list[ArmCore]:
     return cores
 
 
+def follow_camera(node: Node, cfg: SlaveControlConfig, motion: TrocarMotions) -> None:
+    """``work`` jogs of ``motion`` in the view of camera ``cfg.camera`` (its pose stream, read at
+    the loop's poll); ``work_frame_rpy_deg`` until its first pose. The last pose holds however old
+    (as in the mapping): the camera's pose changes only when it is moved, and a move is published
+    at once — a lagging pose stream (the camera runs at idle priority) must not turn a running jog
+    back to the configured frame."""
+    frame = CameraWorkFrame(ConfiguredWorkFrame(cfg.work_frame_rpy_deg), max_age_s=math.inf)
+    motion.work_frame = frame
+
+    def on_pose(msg: CartesianPose, key: str) -> None:
+        frame.on_pose(msg.orientation)
+
+    node.subscribe(
+        node.keys.camera(cfg.camera, "measured_cp"),
+        CartesianPose,
+        on_pose,
+        sources=only(cfg.camera_source),
+        polled=True,
+    )
+
+
 def run(cfg: SlaveControlConfig, stop: threading.Event) -> None:
     """Run the slave until ``stop``."""
     check_rt_priority(cfg.rt_priority)
+    if not 10.0 <= cfg.setpoint_js_hz <= 1000.0:  # the watchdog needs them at least every 100 ms
+        raise ConfigError(f"setpoint_js_hz={cfg.setpoint_js_hz} outside [10, 1000]")
     profiles = arms_of(cfg.model, cfg.arm)
     home = tuple(v for p in profiles for v in p.home)
     sites = tuple(p.tip_site for p in profiles)
@@ -186,6 +223,8 @@ def run(cfg: SlaveControlConfig, stop: threading.Event) -> None:
         arms = make_arms(cfg, backend)
         for a in arms:
             a.connect(node)
+            if cfg.camera and isinstance(a.motion, TrocarMotions):
+                follow_camera(node, cfg, a.motion)
         servo_streams = [node.streams.get(k.slave(a.arm, "servo_jp")) for a in arms]
         # Sub-rate tasks run in different cycles (phases 0-3 below: with these periods of 4, 10,
         # 20 and 50 cycles no two of them ever share a cycle), so no cycle carries the sum of their
@@ -197,6 +236,7 @@ def run(cfg: SlaveControlConfig, stop: threading.Event) -> None:
         measure_every = max(1, round(0.01 / dt))  # 100 Hz
         wrench_every = max(1, round(1.0 / (dt * cfg.wrench_hz)))
         state_every = max(1, round(1.0 / (dt * cfg.state_hz)))
+        commanded_every = max(1, round(1.0 / (dt * cfg.setpoint_js_hz)))
         shadow_every = max(1, round(cfg.shadow_report_s / dt))
         reading = backend.read()
         for a in arms:  # the first operating_state already carries the measurements
@@ -272,6 +312,9 @@ def run(cfg: SlaveControlConfig, stop: threading.Event) -> None:
             if timer.every(wrench_every, 2):
                 for a, r in zip(arms, arm_readings, strict=True):
                     a.publish_wrench(r)
+            if timer.every(commanded_every, 5):  # (phase 5: with 10 periods, never with 0-3 above)
+                for a in arms:
+                    a.publish_commanded()
             force_state = timer.every(state_every, 3)
             for a, s in zip(arms, servo_streams, strict=True):
                 a.publish_state(force_state, s.rejected)

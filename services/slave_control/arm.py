@@ -106,8 +106,6 @@ log = logging.getLogger(__name__)
 
 #: The frame of measured_cp / measured_cf for every arm (see the module doc).
 FRAME = "base"
-#: setpoint_js (the commanded joints, CRTK) goes out with every this-many-th measured_js
-SETPOINT_JS_EVERY = 5
 #: Missed periods a simulation replays after a stall (the catch-up rule): 20 ms at 1 kHz, at most
 #: ~2 ms of work (a jog's IK included) before the loop publishes again.
 REPLAY_MAX_PERIODS = 20
@@ -350,13 +348,15 @@ class ArmCore:
     rejected: int = 0  # setpoints refused by the rules above
     cycle: int = 0  # control cycles executed; stamped on inputs (see control.py)
     following: bool = False  # mirrors the controller (set by the control loop)
+    # a slave-side motion drove the arm in the last period (its commanded joints go out on
+    # setpoint_js for the watchdog, publish_commanded)
+    commanding: bool = False
     held: FaultHold = field(default_factory=FaultHold)
     ctl: FollowController = field(init=False)
     servo: ServoFollow = field(init=False)
     outlets: dict[str, Outlet] = field(default_factory=dict)
     reading: ArmReading | None = None  # last reading (set by the loop)
     q_cmd: np.ndarray = field(init=False)  # last command (set by the loop)
-    _n_measured: int = field(default=0, init=False)  # publish_measured calls (setpoint_js decimation)
     _last_state: tuple[object, ...] | None = None
     _reply_seq: Sequencer = field(init=False)
     authority: Authority = field(init=False)  # who may command, e-stop, reset (cfg.authority)
@@ -400,9 +400,8 @@ class ArmCore:
         """Subscribe the arm's inputs and declare its outputs on ``node``."""
         k, cfg, arm = node.keys, self.cfg, self.arm
         self.node = node
-        for stream in ("measured_js", "measured_cp", "measured_cf", "operating_state"):
+        for stream in ("measured_js", "measured_cp", "measured_cf", "operating_state", "setpoint_js"):
             self.outlets[stream] = node.outlet(k.slave(arm, stream))
-        self.outlets["setpoint_js"] = node.outlet(k.slave(arm, "setpoint_js"), control=False)
         # polled: read by the control loop at each tick (see the lease-age rule)
         node.subscribe(
             k.safety(arm, "lease"), SafetyLease, self.on_lease, sources=[cfg.watchdog_service], polled=True
@@ -573,6 +572,7 @@ class ArmCore:
             out = self.held.update(ctl, reading.fault, q_meas)
         elif internal and motion is not None:
             out = self._internal(motion, lease, now, reading)
+            self.commanding = True
         else:
             if blocked:
                 ctl.pause(q_meas, blocked)
@@ -676,10 +676,16 @@ class ArmCore:
         cp.put(
             CartesianPose(cp.header(), FRAME, (float(t[0, 3]), float(t[1, 3]), float(t[2, 3])), r.tip_quat)
         )
-        self._n_measured += 1
-        if self._n_measured % SETPOINT_JS_EVERY == 1:  # the commanded joints, at a fifth of the rate
-            sp = self.outlets["setpoint_js"]
-            sp.put(JointState(sp.header(), self.profile.joint_names, tuple(self.q_cmd.tolist())))
+
+    def publish_commanded(self) -> None:
+        """setpoint_js: the joints commanded by a slave-side motion (PTP, jog, playback,
+        insert/remove, direct teach) since the last call, for the watchdog's checks (joint limits,
+        speed, workspace, patient keep-out); nothing while the arm follows servo_jp or holds."""
+        if not self.commanding:
+            return
+        self.commanding = False
+        out = self.outlets["setpoint_js"]
+        out.put(JointState(out.header(), self.profile.joint_names, tuple(self.q_cmd.tolist()), (), ()))
 
     def publish_wrench(self, r: ArmReading) -> None:
         """measured_cf, when the backend estimates external torques."""

@@ -13,6 +13,11 @@ and ``docs/safety.md``):
 * joint position and speed of the setpoints, the workspace (the tip position the followed
   setpoint would give, by forward kinematics), the RCM error in trocar mode, the
   operator-presence switch of the master;
+* the same for the slave's commanded joints of slave-side motions (``slave/<arm>/setpoint_js``:
+  PTP, jog, playback, insert/remove, direct teach), plus the patient keep-out for a trocar-family
+  robot: the forceps may cross the patient box (``patient_box_min_mm``/``patient_box_max_mm``)
+  only through the trocar (:mod:`telesurg.services.watchdog.commanded`); a violation revokes the
+  lease at once;
 * e-stop commands on ``estop`` (latched until an explicit reset);
 * with ``video_camera`` set, the endoscope video (``camera/<cam>/image``): no frame for
   ``video_stale_ms`` or a frame older than ``video_age_budget_ms`` → DEGRADED, beyond
@@ -42,6 +47,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from telesurg.services.common import service_main
+from telesurg.services.watchdog.commanded import CommandedCheck
 from telesurg.services.watchdog.logic import ArmSafety, Policy, Verdict
 from telesurg.services.watchdog.video import VideoPolicy, VideoWatch
 from telesurg.shared.authority import Authority, AuthorityConfig
@@ -62,6 +68,7 @@ from telesurg.shared.messages import (
 )
 from telesurg.shared.pairs import parse_pair
 from telesurg.shared.robots import arm_profile
+from telesurg.shared.robots import get as robot_spec
 from telesurg.shared.timing import settle_gc
 
 log = logging.getLogger(__name__)
@@ -90,6 +97,9 @@ class WatchdogConfig:
     servo_deadline_ms: float = 80.0  # ms: servo_jp older than this → HOLD
     slave_deadline_ms: float = 100.0  # ms: slave measured_js older than this → HOLD
     slave_state_deadline_ms: float = 250.0  # ms: slave operating_state (20 Hz) older → HOLD
+    # ms: while the slave reports a slave-side motion, its commanded joints (setpoint_js, 100 Hz)
+    # older than this → HOLD (counted from the motion's start at the earliest)
+    setpoint_js_deadline_ms: float = 100.0
     max_loss_per_s: int = 10  # lost + reordered control messages per second above this → DEGRADED
     latency_source: str = "clock"  # clock: servo_jp origin stamps (one host); echo: RTT/2
     echo_service: str = "master_capture"  # whose echo queryable is probed (latency_source=echo)
@@ -102,6 +112,12 @@ class WatchdogConfig:
     workspace_min_mm: tuple[float, float, float] = (150.0, -600.0, -200.0)  # target box, base frame
     workspace_max_mm: tuple[float, float, float] = (1100.0, 600.0, 800.0)
     rcm_limit_mm: float = 2.0  # mm: RCM error above this in trocar mode → HOLD
+    # mm, base frame: the patient's body for a trocar-family robot (the MH3F): the slave's
+    # commanded joints of slave-side motions (setpoint_js) may take the forceps into it only
+    # through the trocar the slave reports, else → HOLD; the default is slave_control's (the mh3f
+    # scene's torso with its margin)
+    patient_box_min_mm: tuple[float, float, float] = (255.0, -175.0, 130.0)
+    patient_box_max_mm: tuple[float, float, float] = (745.0, 175.0, 198.0)
     fault_latch_ms: float = 500.0  # ms: a message-level fault holds at least this long
     min_hold_ms: float = 250.0  # ms: a HOLD outlasts its causes by this much (no flapping lease)
     require_operator: bool = True  # HOLD while the master reports no operator present
@@ -162,6 +178,8 @@ class WatchdogConfig:
             raise ConfigError("velocity_hold_factor must be >= 1")
         if any(a >= b for a, b in zip(self.workspace_min_mm, self.workspace_max_mm, strict=True)):
             raise ConfigError("workspace_min_mm must be below workspace_max_mm on every axis")
+        if any(a >= b for a, b in zip(self.patient_box_min_mm, self.patient_box_max_mm, strict=True)):
+            raise ConfigError("patient_box_min_mm must be below patient_box_max_mm on every axis")
         for p in self.pairs:
             arm_profile(self.model, parse_pair(p)[1])
 
@@ -212,6 +230,13 @@ class ArmWatch:
         ]
         profile = arm_profile(cfg.model, arm)
         self.safety = ArmSafety(arm, cfg.policy(arm), profile.joint_names, tip_of=profile.tip)
+        keepout = robot_spec(cfg.model).slave_family == "trocar"  # the forceps arm and its patient
+        self.commanded = CommandedCheck(
+            self.safety,
+            cfg.patient_box_min_mm if keepout else None,
+            cfg.patient_box_max_mm if keepout else None,
+            tip_of=profile.tip,
+        )
         self.loss: deque[tuple[float, int]] = deque()  # (mono s, lost + reordered so far)
         self.lease_out: Outlet = node.outlet(k.safety(arm, "lease"))
         self.state_out: Outlet = node.outlet(k.safety(arm, "state"), control=False)
@@ -219,6 +244,8 @@ class ArmWatch:
             node.outlet(k.safety(arm, "video"), control=False) if cfg.video_camera else None
         )
         self.verdict = Verdict("HOLD", ("starting",), 1.0, 0.0, 0.0, 0.0, 0)
+        self.commanded_key = k.slave(arm, "setpoint_js")
+        self.motion_tick: int | None = None  # the tick at which the slave began a slave-side motion
 
 
 class Watchdog:
@@ -246,6 +273,7 @@ class Watchdog:
             sub(k.slave(a.arm, "servo_jp"), JointSetpoint, self._bind(a, self._on_servo), sources=mp)
             sub(k.slave(a.arm, "measured_js"), JointState, self._on_stream, sources=sl, polled=True)
             sub(k.slave(a.arm, "operating_state"), OperatingState, self._bind(a, self._on_slave), sources=sl)
+            sub(k.slave(a.arm, "setpoint_js"), JointState, self._bind(a, self._on_commanded), sources=sl)
         node.subscribe(k.estop, EStop, self._on_estop)
         self.video: VideoWatch | None = None
         if cfg.video_camera:
@@ -284,6 +312,19 @@ class Watchdog:
         self.last_tick[key] = self.ticks
         with self.lock:
             a.safety.on_slave_state(msg, time.monotonic())
+            a.commanded.on_slave_state(msg, time.monotonic())
+            if a.commanded.motion_since is not None and a.motion_tick is None:
+                a.motion_tick = self.ticks
+            elif a.commanded.motion_since is None:
+                a.motion_tick = None
+
+    def _on_commanded(self, a: ArmWatch, msg: JointState, key: str) -> None:
+        """The slave's commanded joints of a slave-side motion: a violation holds at once."""
+        self.last_tick[key] = self.ticks
+        with self.lock:
+            fault = a.commanded.on_setpoint_js(msg, time.monotonic())
+        if fault:
+            self.tick(force_state=True)  # revoke the lease now, not at the next period
 
     def _on_frame(self, msg: CameraImage, key: str) -> None:
         now = time.monotonic()
@@ -335,6 +376,13 @@ class Watchdog:
         with self.lock:
             alive = set(self.alive)
         out = [f"{s} not alive" for s in self.cfg.required_services if s not in alive]
+        if (since := a.commanded.motion_since) is not None:  # a slave-side motion: setpoint_js fresh
+            key, deadline = a.commanded_key, self.cfg.setpoint_js_deadline_ms
+            age_ms = min(self.node.streams.get(key).age_s(), time.monotonic() - since) * 1e3
+            ticks = self.ticks - max(self.last_tick.get(key, -(10**9)), a.motion_tick or 0)
+            if age_ms > deadline and ticks * 1e3 / self.cfg.lease_hz >= deadline:
+                why = f"({age_ms:.0f} ms > {deadline:.0f} ms)"
+                out.append(f"slave/{a.arm}/setpoint_js stale during a slave-side motion {why}")
         for key, deadline in a.deadlines.items():
             age_ms = self.node.streams.get(key).age_s() * 1e3
             ticks = self.ticks - self.last_tick.get(key, -(10**9))

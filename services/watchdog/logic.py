@@ -288,6 +288,11 @@ class ArmSafety:
         scale = p.degraded_scale if state == "DEGRADED" else 1.0
         return Verdict(state, tuple(c[:500] for c in causes[:64]), scale, p50, p90, p99, n)
 
+    def fault(self, tag: str, text: str, now: float) -> None:
+        """A message-level fault found by a check outside this class (the commanded joints of
+        slave-side motions, :mod:`telesurg.services.watchdog.commanded`): HOLD, latched."""
+        self._fault(tag, text, now)
+
     # -- internals ----------------------------------------------------------------------------
     def _latch(self, tag: str, text: str, now: float) -> None:
         self._latched[tag] = (text, now + self.policy.fault_latch_ms / 1e3)

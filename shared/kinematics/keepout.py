@@ -21,7 +21,7 @@ import numpy.typing as npt
 from telesurg.shared.errors import KinematicsError
 from telesurg.shared.kinematics.mh3f import MH3F, ArmGeometry, fk
 
-__all__ = ["PatientBox", "path_problem", "pose_problem"]
+__all__ = ["PatientBox", "path_problem", "pose_problem", "shaft_inside_m"]
 
 
 @dataclass(frozen=True)
@@ -115,3 +115,21 @@ def path_problem(
         if problem := pose_problem(q, box, geom):
             return f"{problem} ({i / n:.0%} along the path)"
     return None
+
+
+def shaft_inside_m(q: npt.ArrayLike, box: PatientBox, geom: ArmGeometry = MH3F) -> float:
+    """Length [m] of the forceps shaft (wrist centre → tip) inside the box at ``q`` (0 outside).
+
+    A pose already crossing the box may move, so that it can get out; whether it goes deeper is
+    this length growing.
+    """
+    T = fk(q, geom)
+    tip = T[:3, 3]
+    w = tip - geom.wrist_to_tcp * T[:3, 0]
+    lo, hi = np.array(box.lo), np.array(box.hi)
+    enter = _segment_entry(w, tip, lo, hi)
+    if enter is None:
+        return 0.0
+    leave = _segment_entry(tip, w, lo, hi)
+    assert leave is not None  # the same segment, walked the other way
+    return max(0.0, (1.0 - leave) - enter) * geom.wrist_to_tcp

@@ -1,0 +1,36 @@
+"""The master frame of the mapping: fixed, or the work frame (the laparoscope's view, Jinno 2014).
+
+``master_frame = "fixed"`` (default): the master frame's axes in the slave base frame are the
+rotation ``master_to_slave_rpy_deg``. ``master_frame = "work"``: master motion is expressed in the
+**work frame** — the laparoscope's view frame, as the slave's ``work`` jogs use it (x to the
+image's right, y down the image, z into the image; ``work_frame_rpy_deg`` in the base frame, the
+default a laparoscope looking straight down with the patient's head up in the image). The master
+is held in front of the picture, so as for the camera frame
+(:mod:`telesurg.services.mapping.camera_frame`) the master's axes are the surgeon's view of that
+frame: master +x = work +x (image right), master +y = work −y (image up), master +z = work −z
+(toward the surgeon), i.e. ``R_ms = R_work · diag(1, −1, −1)``. Where the site has an endoscope
+camera (``camera`` set), its published pose replaces the configured work frame as soon as it
+arrives (the camera's optical frame *is* the laparoscope's view frame).
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+import numpy as np
+from telesurg.services.mapping.camera_frame import VIEW_TO_OPTICAL
+from telesurg.shared.kinematics.transforms import rpy_matrix
+
+if TYPE_CHECKING:
+    from telesurg.services.mapping import MappingConfig
+
+#: Valid ``master_frame`` values.
+MASTER_FRAMES = ("fixed", "work")
+
+
+def master_rotation(cfg: MappingConfig) -> np.ndarray:
+    """``(3, 3)`` the master frame's axes in the slave base frame (columns), before any camera pose."""
+    if cfg.master_frame == "work":
+        out: np.ndarray = rpy_matrix(cfg.work_frame_rpy_deg) @ VIEW_TO_OPTICAL
+        return out
+    return rpy_matrix(cfg.master_to_slave_rpy_deg)
