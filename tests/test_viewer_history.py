@@ -98,9 +98,9 @@ def test_a_late_viewer_gets_the_recent_data_and_the_geometry_not_the_whole_sessi
         time.sleep(1.5)  # the mirror's last series block and rerun's flush tick
         # a viewer that opens now, after the session: rerun's CLI saving what the server replays
         client_log = (tmp_path / "late.out").open("wb")
+        url = f"rerun+http://127.0.0.1:{grpc}/proxy"
         client = subprocess.Popen(
-            [str(rerun_cli), f"rerun+http://127.0.0.1:{grpc}/proxy", "--save", str(late)]
-            + ["--port", str(free_port())],
+            [str(rerun_cli), url, "--save", str(late), "--port", str(free_port())],
             stdout=client_log,
             stderr=subprocess.STDOUT,
         )
