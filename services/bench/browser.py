@@ -221,7 +221,7 @@ def _stop_group(proc: subprocess.Popen[bytes]) -> None:
             except ProcessLookupError:
                 return
             time.sleep(0.1)
-    proc.wait(timeout=10)
+    proc.wait(timeout=60)  # a starved host (a browser at autogroup nice 19) reaps slowly
 
 
 def screenshot(cdp: DevTools, session: str) -> bytes:
