@@ -189,6 +189,17 @@ def _flags(extra: Sequence[str]) -> list[str]:
     return [*(f for f in CHROMIUM_FLAGS if f.split("=", 1)[0] not in names), *extra]
 
 
+def lowest_priority() -> None:
+    """``preexec_fn`` of a process started in a session of its own (``start_new_session``): nice 19
+    and its session's scheduler autogroup at nice 19, so neither it nor anything it starts (a
+    browser's renderer and GPU processes) takes CPU from another session's work — the control
+    path's processes run in autogroups of nice −10 (the launcher) or 0."""
+    with contextlib.suppress(OSError):
+        os.nice(19)
+    with contextlib.suppress(OSError):
+        Path("/proc/self/autogroup").write_text("19\n")
+
+
 def autogroups(marker: str) -> dict[int, str]:
     """pid → ``/proc/<pid>/autogroup`` (e.g. ``/autogroup-123 nice 19``) of every live process whose
     command line holds ``marker`` (one chromium's profile directory: all its processes)."""
