@@ -313,6 +313,8 @@ def run(
                 except (RuntimeError, TimeoutError) as exc:  # a page that no longer answers
                     print(f"no screenshot: {exc}", file=sys.stderr)
     rep = json.loads(report.read_text()) if report.is_file() else {}
+    if not rep:  # the demo ended without its report: say why
+        print(f"the demo wrote no report:\n{(workdir / 'demo.out').read_text()[-3000:]}", file=sys.stderr)
     counted = [s for s in samples if s["t_s"] >= warmup]
     lags = [s["lag_s"] for s in counted if s.get("lag_s") is not None]
     first = next((s["t_s"] for s in samples if s.get("lag_s") is not None), None)
