@@ -2,9 +2,11 @@
 
 Runs ``telesurg demo`` (router, every service, the mirror serving the web viewer, the camera and
 the web console, as a user starts it) for ``--seconds``, opens the viewer in headless Debian
-Chromium (software WebGL, as on a console without a GPU; at nice 0, as a user's browser) driven
-over the DevTools protocol (:mod:`telesurg.services.bench.browser`), and once a second asks the
-page what the viewer shows:
+Chromium (software WebGL, as on a console without a GPU; in a session whose scheduler autogroup
+runs at nice 19, below the control path — ``--autogroup-nice 0`` for a browser at a user's normal
+priority; every Chromium process's ``/proc/<pid>/autogroup`` is reported) driven over the
+DevTools protocol (:mod:`telesurg.services.bench.browser`), and once a second asks the page what
+the viewer shows:
 
 * the viewer's own state (``window._handle.viewer_state()``, the encoded ``GetStateResponse`` of
   rerun's Viewer Control API, computed at once from the viewer's last frame): the time cursor of
@@ -22,6 +24,7 @@ Examples::
 
     telesurg bench viewer --seconds 100 --json docs/data/perf/viewer.json
     telesurg bench viewer --seconds 60 --set mirror.layout=\\"full\\"    # the full layout
+    telesurg bench viewer --seconds 100 --window 800x450             # a smaller page
 """
 
 from __future__ import annotations
