@@ -134,7 +134,7 @@ def test_a_late_viewer_gets_the_recent_data_and_the_geometry_not_the_whole_sessi
     # last block goes out with the next sample or at shutdown), not the session's start
     assert got[-1] >= last - 0.5e9
     assert got[0] > first + 0.5 * (last - first), "the late viewer was replayed the session's first half"
-    # the robot's own geometry (static) is always kept for a new viewer
+    # the robot's own geometry (static) is kept for a new viewer (at 0.05 MB it was not)
     geometry = {p for p in late_paths if p.startswith("/slave/geometry/")}
     assert any(p.endswith(("/box", "/capsule", "/cylinder", "/ellipsoid", "/mesh0")) for p in geometry), (
         geometry

@@ -111,7 +111,7 @@ class MirrorConfig:
     web_port: int = 9090  # TCP port of the web viewer, HTTP (static viewer files only, no data)
     grpc_port: int = 9876  # TCP port of the rerun gRPC data server on 127.0.0.1
     # MB of recent data the gRPC server keeps for a viewer that opens later (oldest dropped
-    # first; static data — the robot geometry, the styles — always kept): a new viewer starts
+    # first; the static robot geometry stays while it fits: at 0.05 MB it did not): a new viewer starts
     # near live instead of replaying the session from its start; 0 = rerun's default (1 GiB)
     history_mb: float = 1.0
     draw_hz: float = 30.0  # Hz: how often the 3D scene is redrawn (arm, trails, points)

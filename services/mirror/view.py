@@ -319,7 +319,8 @@ class RerunView:
         save: path of an .rrd to write ("" → none).
         serve: host a gRPC server on 127.0.0.1:``grpc_port`` and the web viewer on ``web_port``.
         history_mb: MB of logged data the gRPC server keeps for a viewer that connects later (the
-            oldest dropped first; static data — the robot geometry, styles — is always kept);
+            oldest dropped first; static data — the robot geometry, styles — stays while the
+            limit holds it: at 0.05 MB a late viewer got none of it, at 0.5 MB all of the MH3F's);
             0: rerun's default (1 GiB: a new viewer gets the whole session, from its start).
         flush_s: s between the batcher's sends to the sinks (0: rerun's default, 200 ms).
     """
