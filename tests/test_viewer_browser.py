@@ -125,6 +125,9 @@ def served_demo(
     demo_argv += clutch_flags()
     mirror_argv = [*cli, "mirror", "--connect", f"tcp/127.0.0.1:{port}", "--serve", "--save", str(rrd)]
     mirror_argv += ["--set", f"web_port={web}", "--set", f"grpc_port={grpc}"]
+    # the viewer opens after the session and shows all of it: the server keeps the whole session
+    # (a live viewer gets only the recent history_mb, tests/test_viewer_history.py)
+    mirror_argv += ["--set", "history_mb=0"]
     for item in mirror_set:
         mirror_argv += ["--set", item]
     procs: list[subprocess.Popen[bytes]] = []

@@ -23,7 +23,7 @@ import select
 import signal
 import subprocess
 import time
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -116,25 +116,42 @@ def _high_fd(fd: int) -> int:
 
 @contextlib.contextmanager
 def chromium(
-    url: str, workdir: Path, window: tuple[int, int] = WINDOW, mobile: bool = False, nice: int = 10
+    url: str,
+    workdir: Path,
+    window: tuple[int, int] = WINDOW,
+    mobile: bool = False,
+    nice: int = 10,
+    autogroup_nice: int | None = None,
+    flags: Sequence[str] = (),
 ) -> Iterator[tuple[DevTools, str]]:
     """Headless chromium showing ``url``: (DevTools client, page session id); killed on exit.
 
     ``window``/``mobile``: the emulated viewport (a phone: e.g. (390, 844), mobile, touch on);
-    ``nice``: chromium's niceness (10: it yields to the services; 0 where the page is a master)."""
+    ``nice``: chromium's niceness (10: it yields to the services; 0 where the page is a master);
+    ``autogroup_nice``: the nice value of the scheduler autogroup chromium runs in (its own
+    session: every chromium process — browser, renderer, GPU process — is in it), None to leave
+    it at 0. With autogroups (Linux's default) a process's own nice counts only inside its group;
+    19 puts the whole browser below every other session's work, the control path's included
+    (see :func:`autogroups`); ``flags``: extra chromium flags."""
     profile = workdir / "chromium-profile"
     profile.mkdir(parents=True, exist_ok=True)
     cmd_r, cmd_w = os.pipe()  # we write commands → chromium's fd 3
     out_r, out_w = os.pipe()  # chromium's fd 4 → we read replies
     cmd_r, out_w = _high_fd(cmd_r), _high_fd(out_w)  # not 3 or 4 themselves: no clash when moved
     # bash moves the pipe ends to fds 3 and 4 (multi-digit fds: dash cannot), then execs chromium
+    # a session is an autogroup: its nice value is set from inside, before chromium starts
+    group = (
+        f"echo {int(autogroup_nice)} > /proc/self/autogroup 2>/dev/null; "
+        if autogroup_nice is not None
+        else ""
+    )
     argv = [
         "bash",
         "-c",
-        f'exec 3<&{cmd_r} 4>&{out_w} {cmd_r}<&- {out_w}>&-; exec nice -n {nice} "$@"',
+        f'{group}exec 3<&{cmd_r} 4>&{out_w} {cmd_r}<&- {out_w}>&-; exec nice -n {nice} "$@"',
         "chromium",
         str(CHROMIUM),
-        *CHROMIUM_FLAGS,
+        *_flags(flags),
         f"--user-data-dir={profile}",
         "about:blank",
     ]
@@ -165,6 +182,40 @@ def chromium(
         log.close()
 
 
+def _flags(extra: Sequence[str]) -> list[str]:
+    """:data:`CHROMIUM_FLAGS` with ``extra`` added (an extra ``--name=value`` replaces the default
+    flag of that name)."""
+    names = {f.split("=", 1)[0] for f in extra}
+    return [*(f for f in CHROMIUM_FLAGS if f.split("=", 1)[0] not in names), *extra]
+
+
+def lowest_priority() -> None:
+    """``preexec_fn`` of a process started in a session of its own (``start_new_session``): nice 19
+    and its session's scheduler autogroup at nice 19, so neither it nor anything it starts (a
+    browser's renderer and GPU processes) takes CPU from another session's work — the control
+    path's processes run in autogroups of nice −10 (the launcher) or 0."""
+    with contextlib.suppress(OSError):
+        os.nice(19)
+    with contextlib.suppress(OSError):
+        Path("/proc/self/autogroup").write_text("19\n")
+
+
+def autogroups(marker: str) -> dict[int, str]:
+    """pid → ``/proc/<pid>/autogroup`` (e.g. ``/autogroup-123 nice 19``) of every live process whose
+    command line holds ``marker`` (one chromium's profile directory: all its processes)."""
+    out: dict[int, str] = {}
+    for d in Path("/proc").iterdir():
+        if not d.name.isdigit():
+            continue
+        try:
+            if marker.encode() not in (d / "cmdline").read_bytes():
+                continue
+            out[int(d.name)] = (d / "autogroup").read_text().strip()
+        except OSError:
+            continue
+    return out
+
+
 def _stop_group(proc: subprocess.Popen[bytes]) -> None:
     """SIGTERM chromium's process group (its own session: browser, zygote, renderers, GPU
     process), wait until every member is gone; SIGKILL after 10 s."""
@@ -181,7 +232,7 @@ def _stop_group(proc: subprocess.Popen[bytes]) -> None:
             except ProcessLookupError:
                 return
             time.sleep(0.1)
-    proc.wait(timeout=10)
+    proc.wait(timeout=60)  # a starved host (a browser at autogroup nice 19) reaps slowly
 
 
 def screenshot(cdp: DevTools, session: str) -> bytes:

@@ -11,7 +11,8 @@ A spec names what else runs on the host while the control path is measured:
 * ``record`` — the recorder (``telesurg record``) on the site's bus: every message of the site
   decoded and written to an MCAP file;
 * ``viewer`` — the rerun mirror serving the web viewer, and Debian's headless Chromium showing it
-  (software WebGL), as a researcher watching the session on the console host.
+  (software WebGL), as a researcher watching the session on the console host; both at the lowest
+  priority, each in a scheduler autogroup of nice 19 (as the launcher runs the mirror).
 
 Each :class:`Load` is started after the pipeline it loads (it needs the router's endpoint) and
 stopped with it; every process it starts is its own and is ended by PID.
@@ -100,7 +101,10 @@ class Load:
                     p.wait(10)
                 except subprocess.TimeoutExpired:
                     p.kill()
-                    p.wait(5)
+                    p.wait(30)
+                if self.kind == "viewer":  # its own process group: a browser's children too
+                    with contextlib.suppress(ProcessLookupError, PermissionError):
+                        os.killpg(p.pid, signal.SIGKILL)
 
 
 #: A busy loop under SCHED_IDLE (nice 19 where that is refused), set before it starts spinning.
@@ -115,8 +119,20 @@ while True:
 """
 
 
-def _spawn(argv: list[str]) -> subprocess.Popen[bytes]:
-    return subprocess.Popen(argv, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+def _spawn(argv: list[str], lowest: bool = False) -> subprocess.Popen[bytes]:
+    """``argv`` with its output discarded; ``lowest``: in a session of its own at the lowest
+    priority (:func:`telesurg.services.bench.browser.lowest_priority`)."""
+    if not lowest:
+        return subprocess.Popen(argv, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    from telesurg.services.bench.browser import lowest_priority
+
+    return subprocess.Popen(
+        argv,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+        start_new_session=True,
+        preexec_fn=lowest_priority,
+    )
 
 
 def _viewer(endpoint: str, tmp: Path) -> list[subprocess.Popen[bytes]]:
@@ -127,7 +143,7 @@ def _viewer(endpoint: str, tmp: Path) -> list[subprocess.Popen[bytes]]:
     web, grpc = free_port(), free_port()
     argv = [sys.executable, "-m", "telesurg.services.mirror", "--connect", endpoint, "--serve"]
     argv += ["--set", f"web_port={web}", "--set", f"grpc_port={grpc}"]
-    mirror = _spawn(argv)
+    mirror = _spawn(argv, lowest=True)
     time.sleep(3.0)  # the viewer's files are served once the mirror is up
     browser = next(c for c in CHROMIUM if shutil.which(c))
     url = viewer_url(f"rerun+http://127.0.0.1:{grpc}/proxy", web)
@@ -147,5 +163,5 @@ def _viewer(endpoint: str, tmp: Path) -> list[subprocess.Popen[bytes]]:
         f"--user-data-dir={profile}",
         "--remote-debugging-port=0",  # keeps the headless browser (and the page) alive
     ]
-    chrome = _spawn([browser, *flags, url])
+    chrome = _spawn([browser, *flags, url], lowest=True)
     return [chrome, mirror]

@@ -2,9 +2,11 @@
 
 Runs ``telesurg demo`` (router, every service, the mirror serving the web viewer, the camera and
 the web console, as a user starts it) for ``--seconds``, opens the viewer in headless Debian
-Chromium (software WebGL, as on a console without a GPU; at nice 0, as a user's browser) driven
-over the DevTools protocol (:mod:`telesurg.services.bench.browser`), and once a second asks the
-page what the viewer shows:
+Chromium (software WebGL, as on a console without a GPU; in a session whose scheduler autogroup
+runs at nice 19, below the control path — ``--autogroup-nice 0`` for a browser at a user's normal
+priority; every Chromium process's ``/proc/<pid>/autogroup`` is reported) driven over the
+DevTools protocol (:mod:`telesurg.services.bench.browser`), and once a second asks the page what
+the viewer shows:
 
 * the viewer's own state (``window._handle.viewer_state()``, the encoded ``GetStateResponse`` of
   rerun's Viewer Control API, computed at once from the viewer's last frame): the time cursor of
@@ -22,6 +24,7 @@ Examples::
 
     telesurg bench viewer --seconds 100 --json docs/data/perf/viewer.json
     telesurg bench viewer --seconds 60 --set mirror.layout=\\"full\\"    # the full layout
+    telesurg bench viewer --seconds 100 --window 800x450             # a smaller page
 """
 
 from __future__ import annotations
@@ -35,16 +38,19 @@ import subprocess
 import sys
 import tempfile
 import time
-from collections.abc import Iterator, Sequence
+from collections.abc import Iterable, Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-from telesurg.services.bench.browser import CHROMIUM, DevTools, chromium, screenshot
+from telesurg.services.bench.browser import CHROMIUM, WINDOW, DevTools, autogroups, chromium, screenshot
 from telesurg.shared import jsonio
 
 #: s a probe waits for the page to answer.
 PROBE_TIMEOUT_S = 20.0
+#: Chromium's scheduler autogroup runs at this nice value: below every other session's work
+#: (the control processes' autogroups are at −10 or 0), as the launcher runs the mirror and camera.
+AUTOGROUP_NICE = 19
 #: Timelines the mirror logs on (what the cursor can be on).
 TIMELINES = ("source_time", "receive_time")
 
@@ -224,14 +230,31 @@ def _demo(argv: list[str], log: Path) -> Iterator[subprocess.Popen[bytes]]:
                     proc.wait(timeout=10)
 
 
+def _count(values: Iterable[str]) -> dict[str, int]:
+    out: dict[str, int] = {}
+    for v in values:
+        out[v] = out.get(v, 0) + 1
+    return out
+
+
 def _pct(xs: Sequence[float], q: float) -> float | None:
     return float(np.percentile(np.asarray(xs), q)) if xs else None
 
 
 def run(
-    seconds: float, warmup: float, sets: Sequence[str], workdir: Path, png: Path | None = None
+    seconds: float,
+    warmup: float,
+    sets: Sequence[str],
+    workdir: Path,
+    png: Path | None = None,
+    *,
+    window: tuple[int, int] = WINDOW,
+    autogroup_nice: int | None = AUTOGROUP_NICE,
+    flags: Sequence[str] = (),
 ) -> dict[str, Any]:
-    """The demo for ``seconds`` with the viewer open; the figures (module docstring)."""
+    """The demo for ``seconds`` with the viewer open; the figures (module docstring).
+    ``window``: the page's viewport (px); ``autogroup_nice``: the nice value of Chromium's
+    scheduler autogroup (None: 0); ``flags``: extra Chromium flags."""
     from telesurg.services.launcher import free_port, wait_port
     from telesurg.shared.viewer import viewer_url
 
@@ -249,7 +272,16 @@ def run(
         if not wait_port("127.0.0.1", web, 120.0):
             raise RuntimeError(f"the demo served no viewer: {(workdir / 'demo.out').read_text()[-2000:]}")
         url = viewer_url(f"rerun+http://127.0.0.1:{grpc}/proxy", web)
-        with chromium(url, workdir, nice=0) as (cdp, session):
+        profile = str(workdir / "chromium-profile")
+        groups: dict[int, str] = {}
+        with chromium(
+            url,
+            workdir,
+            window=window,
+            nice=0,
+            autogroup_nice=autogroup_nice,
+            flags=[f"--window-size={window[0]},{window[1]}", *flags],
+        ) as (cdp, session):
             t_open = time.monotonic()
             load_open = os.getloadavg()[0]
             next_fps = t_open + warmup
@@ -270,12 +302,13 @@ def run(
                     sample["lag_s"] = lag
                     sample["ingest_lag_s"] = (p["page_ns"] - newest) / 1e9 if newest is not None else None
                 samples.append(sample)
+                groups.update(autogroups(profile))  # every Chromium process seen
                 if time.monotonic() >= next_fps and demo.poll() is None:
                     f = frame_rate(cdp, session)
                     if f is not None:
                         fps.append({"t_s": round(time.monotonic() - t_open, 2), "fps": f})
                     next_fps = time.monotonic() + 10.0
-            browser_cpu = cpu_seconds(str(workdir / "chromium-profile"))
+            browser_cpu = cpu_seconds(profile)
             browser_wall = time.monotonic() - t_open
             if png is not None:
                 try:
@@ -283,6 +316,8 @@ def run(
                 except (RuntimeError, TimeoutError) as exc:  # a page that no longer answers
                     print(f"no screenshot: {exc}", file=sys.stderr)
     rep = json.loads(report.read_text()) if report.is_file() else {}
+    if not rep:  # the demo ended without its report: say why
+        print(f"the demo wrote no report:\n{(workdir / 'demo.out').read_text()[-3000:]}", file=sys.stderr)
     counted = [s for s in samples if s["t_s"] >= warmup]
     lags = [s["lag_s"] for s in counted if s.get("lag_s") is not None]
     first = next((s["t_s"] for s in samples if s.get("lag_s") is not None), None)
@@ -311,12 +346,26 @@ def run(
         "engagements": rep.get("engagements"),
         # Chromium's processes (browser, renderer, GPU process with SwiftShader): CPU they got
         "browser_cpu_s": round(browser_cpu, 2),
+        "window": list(window),
+        "chromium_flags": list(flags),
+        # /proc/<pid>/autogroup of every Chromium process seen: (group, nice) → processes
+        "chromium_autogroups": _count(groups.values()),
         "browser_cpu_share": round(browser_cpu / browser_wall, 3) if browser_wall > 0 else None,
         "load_average_at_open": load_open,
         "load_average": list(os.getloadavg()),
         "cpus": os.cpu_count(),
         "samples": samples,
     }
+
+
+def _size(text: str) -> tuple[int, int]:
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r}: expected WxH, e.g. 1600x900") from None
+    if not (100 <= w <= 8000 and 100 <= h <= 8000):
+        raise argparse.ArgumentTypeError(f"{text!r}: width and height in [100, 8000] px")
+    return w, h
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -333,6 +382,26 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument(
         "--set", action="append", default=[], metavar="SERVICE.KEY=VALUE", help="passed to the demo"
     )
+    ap.add_argument(
+        "--window",
+        type=_size,
+        default=WINDOW,
+        metavar="WxH",
+        help=f"the page's viewport, px (default {WINDOW[0]}x{WINDOW[1]})",
+    )
+    ap.add_argument(
+        "--autogroup-nice",
+        type=int,
+        default=AUTOGROUP_NICE,
+        help=f"nice value of Chromium's scheduler autogroup (default {AUTOGROUP_NICE}: below the services)",
+    )
+    ap.add_argument(
+        "--chromium-flag",
+        action="append",
+        default=[],
+        metavar="FLAG",
+        help="extra Chromium flag, e.g. --chromium-flag=--use-angle=swiftshader (repeatable)",
+    )
     ap.add_argument("--json", type=Path, help="write the figures here")
     ap.add_argument("--png", type=Path, help="save the last screenshot here")
     args = ap.parse_args(argv)
@@ -340,7 +409,16 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"telesurg bench viewer: needs Chromium at {CHROMIUM} (Debian: apt-get install chromium)")
         return 2
     with tempfile.TemporaryDirectory(prefix="bench-viewer-") as tmp:
-        res = run(args.seconds, args.warmup, args.set, Path(tmp), args.png)
+        res = run(
+            args.seconds,
+            args.warmup,
+            args.set,
+            Path(tmp),
+            args.png,
+            window=args.window,
+            autogroup_nice=args.autogroup_nice,
+            flags=args.chromium_flag,
+        )
     lag = res["lag_s"]
 
     def f(x: float | None, fmt: str = ".2f") -> str:
@@ -359,6 +437,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         f"{res['load_average'][0]:.1f} at the end on {res['cpus']} CPUs"
     )
     print(f"demo: {res['summary']}; engagements {res['engagements']}")
+    print(
+        f"viewport {res['window'][0]}x{res['window'][1]}; Chromium's processes by autogroup: "
+        + ", ".join(f"{g}: {n}" for g, n in res["chromium_autogroups"].items())
+    )
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(jsonio.dumps(res, indent=1) + "\n")

@@ -110,6 +110,10 @@ class MirrorConfig:
     serve: bool = False  # serve gRPC (data, 127.0.0.1 only) + the web viewer; open the logged URL
     web_port: int = 9090  # TCP port of the web viewer, HTTP (static viewer files only, no data)
     grpc_port: int = 9876  # TCP port of the rerun gRPC data server on 127.0.0.1
+    # MB of recent data the gRPC server keeps for a viewer that opens later (oldest dropped
+    # first; the static robot geometry stays while it fits: at 0.05 MB it did not): a new viewer starts
+    # near live instead of replaying the session from its start; 0 = rerun's default (1 GiB)
+    history_mb: float = 1.0
     draw_hz: float = 30.0  # Hz: how often the 3D scene is redrawn (arm, trails, points)
     series_hz: float = (
         5.0  # Hz: how often scalar samples are sent, in blocks (plot lag; rerun batches 3D at 5 Hz)
@@ -155,6 +159,7 @@ class MirrorConfig:
             ("plot_hz", self.plot_hz, 0.0, 100_000.0),
             ("plot_window_s", self.plot_window_s, 1.0, 3600.0),
             ("layout_wait_s", self.layout_wait_s, 0.0, 60.0),
+            ("history_mb", self.history_mb, 0.0, 1_000_000.0),
         ):
             if not lo <= value <= hi:
                 raise ConfigError(f"{name}={value} outside [{lo:g}, {hi:g}]")
@@ -737,6 +742,7 @@ def run(cfg: MirrorConfig, stop: threading.Event) -> None:
         serve=cfg.serve,
         web_port=cfg.web_port,
         grpc_port=cfg.grpc_port,
+        history_mb=cfg.history_mb,
     )
     try:
         if view.url:

@@ -318,6 +318,11 @@ class RerunView:
         recording_id: rerun recording id ("" → random); equal ids merge processes' data.
         save: path of an .rrd to write ("" → none).
         serve: host a gRPC server on 127.0.0.1:``grpc_port`` and the web viewer on ``web_port``.
+        history_mb: MB of logged data the gRPC server keeps for a viewer that connects later (the
+            oldest dropped first; static data — the robot geometry, styles — stays while the
+            limit holds it: at 0.05 MB a late viewer got none of it, at 0.5 MB all of the MH3F's);
+            0: rerun's default (1 GiB: a new viewer gets the whole session, from its start).
+        flush_s: s between the batcher's sends to the sinks (0: rerun's default, 200 ms).
     """
 
     def __init__(
@@ -329,6 +334,8 @@ class RerunView:
         serve: bool = False,
         web_port: int = 9090,
         grpc_port: int = 9876,
+        history_mb: float = 0.0,
+        flush_s: float = 0.0,
     ) -> None:
         import rerun as rr
 
@@ -337,7 +344,10 @@ class RerunView:
         self.blueprint_arms: tuple[str, ...] | None = None  # set once the layout is sent
         self._styled: set[str] = set()
         self._flushers: list[Callable[[], None]] = []
-        self._rec: Any = rr.RecordingStream(application_id, recording_id=recording_id or None)
+        batcher = rr.ChunkBatcherConfig(flush_tick=flush_s) if flush_s > 0 else None
+        self._rec: Any = rr.RecordingStream(
+            application_id, recording_id=recording_id or None, batcher_config=batcher
+        )
         self._rec.set_log_tick_enabled(False)
         self._rec.set_log_time_enabled(False)
         sinks: list[Any] = []
@@ -346,7 +356,8 @@ class RerunView:
             sinks.append(rr.FileSink(save))
         if serve:
             _check_port_free("127.0.0.1", grpc_port, "grpc_port")  # rerun only logs this failure
-            server = rr.GrpcServerSink(bind_ip="127.0.0.1", port=grpc_port)
+            limit = f"{history_mb:g}MB" if history_mb > 0 else "1GiB"  # rerun's default
+            server = rr.GrpcServerSink(bind_ip="127.0.0.1", port=grpc_port, server_memory_limit=limit)
             sinks.append(server)
         self._rec.set_sinks(*sinks)
         if serve:
