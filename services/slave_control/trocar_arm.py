@@ -13,6 +13,8 @@ asks this source each period whether it drives the arm and for its joint target.
 from __future__ import annotations
 
 import itertools
+import math
+import time
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
@@ -77,6 +79,12 @@ class TrocarMotions(AttachedSource):
         self.work_frame: WorkFrame = ConfiguredWorkFrame(cfg.work_frame_rpy_deg)
         self.rcm_error_m = 0.0  # last measured RCM error (set by update_modes)
         self._vmax = np.array(profile.max_velocity)
+        # the RCM guard of slave-side motions with the forceps in the trocar (rcm_guard_problem)
+        self._guarded: object = None  # the motion the guard watches (its floor is its own)
+        self._rcm_floor_m = math.inf  # smallest RCM error measured since that motion started
+        # a `remove` commanded while the watchdog holds: it starts when the lease is back (monotonic
+        # deadline, s; 0 = none), see REMOVE_LEASE_WAIT_S
+        self.remove_pending_until = 0.0
 
     # -- MotionSource ---------------------------------------------------------------------------
     @property
@@ -107,11 +115,33 @@ class TrocarMotions(AttachedSource):
 
     def measure(self, reading: ArmReading, q_cmd: np.ndarray) -> None:
         core = self._core
+        note = ""
         with core.lock:
             self.update_modes(reading)
+            if self.remove_pending_until:
+                note = self._pending_removal(time.monotonic())
             mode_events, self.modes.events = self.modes.events, []
         for kind, text in mode_events:
             core.event(kind, text)
+        if note:
+            core.event("remove_pending", note, "info" if note.startswith("lease back") else "warning")
+
+    def _pending_removal(self, now: float) -> str:
+        """Start the removal commanded during a hold once the lease is back (lock held); the
+        event text, or "" while it still waits."""
+        m = self.modes
+        if m.phase is not Phase.REMOVE or m.jog_command is not None:
+            self.remove_pending_until = 0.0  # left the removal or jogging already: nothing pending
+            return ""
+        if self._core.ctl.lease_valid and not self._core.estop:
+            self.remove_pending_until = 0.0
+            r = m.remove()
+            return f"lease back: {r.reason}"
+        if now > self.remove_pending_until:
+            self.remove_pending_until = 0.0
+            why = self._core.ctl.reason
+            return f"remove: no lease within {REMOVE_LEASE_WAIT_S:g} s ({why}); send remove again"
+        return ""
 
     def command(self, cmd: Command) -> tuple[bool, str]:
         """Answer one operator command (zenoh thread)."""
@@ -131,6 +161,8 @@ class TrocarMotions(AttachedSource):
                 self.modes.control_mode,
                 self.modes.phase,
             )
+        if stray := self.rcm_guard_problem(job):
+            raise MotionError(stray)
         try:
             if job.ptp is not None:
                 target = job.ptp.next(dt)
@@ -205,6 +237,34 @@ class TrocarMotions(AttachedSource):
             (lo[0] / 1e3, lo[1] / 1e3, lo[2] / 1e3), (hi[0] / 1e3, hi[1] / 1e3, hi[2] / 1e3), trocar
         )
 
+    def rcm_guard_problem(self, job: Internal) -> str:
+        """Why the slave-side motion ``job`` must stop for the RCM ("" = it may go on).
+
+        With the forceps in the trocar (trocar mode, insertion, removal) the measured RCM error
+        (MuJoCo's tip pose, 100 Hz) of a running motion may not exceed :data:`RCM_STOP_MM`, nor
+        grow more than :data:`RCM_STOP_SLACK_MM` above the smallest error measured since the
+        motion started — so a removal that starts off the trocar (the way out of an RCM hold) may
+        run while it does not stray further, and any motion that strays is stopped before the
+        shaft can leave the cannula (its command, RCM-exact, then pulls the arm back).
+        """
+        motion: object = job.ptp or job.playback or job.jog or ("teach" if job.teach else None)
+        inside = job.mode == "trocar" or job.phase in (Phase.INSERT, Phase.REMOVE)
+        if motion is None or not inside:
+            self._guarded = None
+            return ""
+        if motion is not self._guarded:
+            self._guarded, self._rcm_floor_m = motion, math.inf
+        rcm = self.rcm_error_m
+        self._rcm_floor_m = min(self._rcm_floor_m, rcm)
+        limit = max(RCM_STOP_MM / 1e3, self._rcm_floor_m + RCM_STOP_SLACK_MM / 1e3)
+        if rcm <= limit:
+            return ""
+        self._guarded = None
+        return (
+            f"RCM error {rcm * 1e3:.2f} mm > {limit * 1e3:.2f} mm (the forceps strays from the trocar; "
+            f"stop at {RCM_STOP_MM:g} mm, or {RCM_STOP_SLACK_MM:g} mm above the motion's smallest)"
+        )
+
     remove_pivoting = False  # the removal is pivoting about the trocar (for its event)
 
     def reached(self, q_out: np.ndarray, reading: ArmReading) -> None:
@@ -263,7 +323,18 @@ class TrocarMotions(AttachedSource):
             r = getattr(m, cmd.name)()
             if r.accepted and cmd.name == "finish_posture_adjust":
                 self.posture_target = None
+            if r.accepted and cmd.name == "remove" and not self._core.ctl.lease_valid:
+                # the watchdog holds (e.g. for the RCM error in trocar mode, which it does not judge
+                # in transitional/remove): the removal waits for the lease, the arm does not move
+                m.jog_command = None
+                self.remove_pending_until = time.monotonic() + REMOVE_LEASE_WAIT_S
+                return True, (
+                    f"{r.reason}; no lease now ({self._core.ctl.reason or 'held'}): the removal starts "
+                    f"when the watchdog allows motion (within {REMOVE_LEASE_WAIT_S:g} s, else remove again)"
+                )
             return r.accepted, r.reason
+        if cmd.name in ("stop", "abort", "jog", "set_motion_mode"):
+            self.remove_pending_until = 0.0
         if cmd.name == "stop":
             if self.playback is not None:
                 self.playback = None
@@ -515,6 +586,14 @@ class Internal:
 
 
 REMOVE_PIVOT_RAD_S = 0.25  # rad/s: pivot speed of the forceps about the trocar during removal
+#: mm: a slave-side motion with the forceps in the trocar stops when the measured RCM error
+#: exceeds this (below the watchdog's 2 mm hold in trocar mode and the 5.5 mm cannula radius)
+RCM_STOP_MM = 1.5
+#: mm: ... or grows this much above the smallest error measured since the motion started (a
+#: removal starting off the trocar may run while it does not stray further)
+RCM_STOP_SLACK_MM = 0.25
+#: s: a `remove` commanded while the watchdog holds starts when the lease is back within this time
+REMOVE_LEASE_WAIT_S = 5.0
 
 
 def _is_retraction(jog: Jog) -> bool:
