@@ -171,12 +171,15 @@ class TrocarMotions(AttachedSource):
             elif job.jog is not None and job.phase is Phase.REMOVE and _is_retraction(job.jog):
                 # the way out: straight back along the axis, pivoting about the trocar where the
                 # straight way would leave the arm's reach (trocar_limits.remove_step)
-                target, pivoted = remove_step(
-                    q_cmd,
-                    self.trocar,
-                    cfg.jog_speed_mm_s / 1e3 * dt,
-                    pivot_rad=REMOVE_PIVOT_RAD_S * dt,
-                )
+                def removal(f: float) -> tuple[np.ndarray, bool]:
+                    return remove_step(
+                        q_cmd,
+                        self.trocar,
+                        f * cfg.jog_speed_mm_s / 1e3 * dt,
+                        pivot_rad=f * REMOVE_PIVOT_RAD_S * dt,
+                    )
+
+                target, pivoted = self.paced(job, q_cmd, dt, removal)
                 if pivoted and not self.remove_pivoting:
                     self._core.event(
                         "remove_pivot",
@@ -185,17 +188,21 @@ class TrocarMotions(AttachedSource):
                 self.remove_pivoting = pivoted
             elif job.jog is not None:
                 jog = job.jog
-                target = jog_step(
-                    q_cmd,
-                    jog.frame.value,
-                    jog.axis,
-                    jog.direction,
-                    dt,
-                    speed_m_s=cfg.jog_speed_mm_s / 1e3,
-                    joint_speed_rad_s=np.radians(cfg.jog_joint_speed_deg_s),
-                    trocar=self.trocar if job.mode == "trocar" else None,
-                    work=self.work_frame.rotation(),
-                )
+
+                def jogged(f: float) -> tuple[np.ndarray, bool]:
+                    return jog_step(
+                        q_cmd,
+                        jog.frame.value,
+                        jog.axis,
+                        jog.direction,
+                        dt,
+                        speed_m_s=f * cfg.jog_speed_mm_s / 1e3,
+                        joint_speed_rad_s=f * np.radians(cfg.jog_joint_speed_deg_s),
+                        trocar=self.trocar if job.mode == "trocar" else None,
+                        work=self.work_frame.rotation(),
+                    ), False
+
+                target = self.paced(job, q_cmd, dt, jogged)[0]
                 pt = self.posture_target
                 if job.phase is Phase.POSTURE and pt is not None and jog.axis in ("j4", "j5"):
                     j = int(jog.axis[1]) - 1  # a posture jog stops exactly at its target, never past it
@@ -265,6 +272,46 @@ class TrocarMotions(AttachedSource):
             f"stop at {RCM_STOP_MM:g} mm, or {RCM_STOP_SLACK_MM:g} mm above the motion's smallest)"
         )
 
+    def paced(
+        self,
+        job: Internal,
+        q_cmd: np.ndarray,
+        dt: float,
+        solve: Callable[[float], tuple[np.ndarray, bool]],
+    ) -> tuple[np.ndarray, bool]:
+        """One period of a jog, paced where the forceps is in the trocar (trocar mode, insertion,
+        removal): ``solve(f)`` is the jog's step at the fraction ``f`` of its speed.
+
+        The MuJoCo arm's position servos answer fast joint motion each at its own pace (force
+        limits, inertia): a trocar-mode jog at 40 mm/s that asked for 2–4 rad/s, or for a
+        speed-clipped joint step near the reach limit, left the measured RCM by up to 15 mm
+        (offline, ``tests/test_trocar_jog_pace.py``) though every command was RCM-exact. So the
+        jog starts over :data:`TROCAR_JOG_RAMP_S`, slows so no joint goes faster than
+        :data:`TROCAR_JOG_SPEED_CAP` × its limit, and stops (with the reason) where a period would
+        need more than :data:`TROCAR_JOG_JUMP` × the limits at full speed (the reach limit, a
+        singularity: the step is no longer a small motion). Elsewhere ``solve(1.0)``.
+        """
+        if not (job.mode == "trocar" or job.phase in (Phase.INSERT, Phase.REMOVE)):
+            return solve(1.0)
+        if job.jog is not self._paced_jog:
+            self._paced_jog, self._paced_s = job.jog, 0.0
+        self._paced_s += dt
+        f = min(1.0, self._paced_s / TROCAR_JOG_RAMP_S)
+        target, extra = solve(f)
+        ratio = np.abs(target - q_cmd) / (self._vmax * dt)
+        worst = float(ratio.max())
+        if worst / f > TROCAR_JOG_JUMP:
+            j = int(np.argmax(ratio))
+            raise IKError(
+                f"the jog would move J{j + 1} at {worst / f:.1f}× its speed limit: near the reach "
+                "limit or a singularity"
+            )
+        if worst > TROCAR_JOG_SPEED_CAP:
+            target, extra = solve(f * TROCAR_JOG_SPEED_CAP / worst)
+        return target, extra
+
+    _paced_jog: object = None  # the jog being paced (its ramp is its own)
+    _paced_s = 0.0  # s since it started
     remove_pivoting = False  # the removal is pivoting about the trocar (for its event)
 
     def reached(self, q_out: np.ndarray, reading: ArmReading) -> None:
@@ -586,6 +633,13 @@ class Internal:
 
 
 REMOVE_PIVOT_RAD_S = 0.25  # rad/s: pivot speed of the forceps about the trocar during removal
+#: Pacing of the jogs with the forceps in the trocar (TrocarMotions.paced): the fastest joint at
+#: most this fraction of its speed limit (the mapping's trocar-mode master–slave: 0.7) ...
+TROCAR_JOG_SPEED_CAP = 0.5
+#: ... a step needing more than this × the limits at full jog speed stops the jog (reach, singularity)
+TROCAR_JOG_JUMP = 4.0
+#: s: ... and the jog speed ramps up over this time from its start (no velocity step for the servos)
+TROCAR_JOG_RAMP_S = 0.15
 #: mm: a slave-side motion with the forceps in the trocar stops when the measured RCM error
 #: exceeds this (below the watchdog's 2 mm hold in trocar mode and the 5.5 mm cannula radius)
 RCM_STOP_MM = 1.5
