@@ -11,8 +11,8 @@ joint motion — a 40 mm/s lateral jog 50–65 mm deep asks J1/J4/J6 for 2–4 r
 start, and the measured forceps strays ~3 mm though every command is RCM-exact — and, next to the
 reach limit, a step that asks for many times the speed limits: the core's speed limit cuts it to
 a straight joint-space step toward a far trocar-IK solution, which is itself 3 mm off the RCM.
-Pacing — a 0.15 s ramp, the fastest joint at ≤ 0.5 × its limit, a stop where a step would need > 4 × — keeps the
-measured RCM error below 1 mm.
+Pacing — a 0.15 s ramp, the fastest joint at ≤ 0.5 × its limit, a stop where a step
+would need > 4 × — keeps the measured RCM error below 1 mm.
 """
 
 from __future__ import annotations
