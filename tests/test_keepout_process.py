@@ -64,11 +64,11 @@ from telesurg.shared.messages import (
 pytestmark = [
     pytest.mark.process,
     pytest.mark.timeout(1500),
-    # ~7 min of motions on this 2-core VM, and not met yet (docs/trocar.md, "Not done": the
-    # measured forceps 20.8 mm past the trocar in the last full run): a run on request, not CI's
+    # 7–15 min of motions on this 2-core VM, and not met yet (docs/trocar.md, "Not done": the
+    # measured forceps 1.6 mm in the torso next to the trocar in the run of 08:14): on request
     pytest.mark.skipif(
         not os.environ.get("TELESURG_SLOW"),
-        reason="issue #20 acceptance 2, ~7 min and not met yet: TELESURG_SLOW=1 runs it",
+        reason="issue #20 acceptance 2, 7–15 min and not met yet: TELESURG_SLOW=1 runs it",
     ),
 ]
 
@@ -177,6 +177,9 @@ class Bus:
 
     lock: threading.Lock = field(default_factory=threading.Lock)
     js: list[tuple[int, tuple[float, ...]]] = field(default_factory=list)  # (seq, position)
+    js_at: dict[int, tuple[float, str]] = field(default_factory=dict)  # seq → (arrival, control mode)
+    sent: list[tuple[float, str]] = field(default_factory=list)  # (time, command) accepted
+    rcm_trocar_max_mm: float = 0.0  # the slave's RCM error in trocar mode, largest reported
     mode: str = ""
     lease: bool = False
     events: list[tuple[float, str, str]] = field(default_factory=list)
@@ -184,11 +187,14 @@ class Bus:
     def on_js(self, m: JointState, key: str) -> None:
         with self.lock:
             self.js.append((m.header.seq, m.position))
+            self.js_at[m.header.seq] = (time.monotonic(), self.mode)
             self._speed = max((abs(v) for v in m.velocity), default=0.0)
 
     def on_state(self, m: OperatingState, key: str) -> None:
         with self.lock:
             self.mode, self.lease = m.control_mode, m.lease_ok
+            if m.control_mode == "trocar":
+                self.rcm_trocar_max_mm = max(self.rcm_trocar_max_mm, m.rcm_error_mm)
 
     def on_event(self, m: SafetyEvent, key: str) -> None:
         with self.lock:
@@ -230,6 +236,7 @@ def reason_class(text: str) -> str:
     t = text.lower()
     for key, words in (
         ("patient keep-out", ("keep-out",)),
+        ("RCM guard", ("rcm error",)),
         ("watchdog hold", ("hold:",)),
         ("joint limit", ("joint limit", "at its limit")),
         ("reach / IK", ("reach", "singular", "ik ", "no solution", "not converge", "posture_adjust")),
@@ -266,7 +273,7 @@ def site(tmp_path: Path) -> Iterator[Site]:
             f"state_file={json.dumps(str(store))}",
             "ptp_speed_fraction=0.8",
             "playback_dwell_s=0.02",
-            "jog_speed_mm_s=40.0",  # (80: a trocar-mode jog left the RCM 3.9 mm off, a HOLD for good)
+            "jog_speed_mm_s=40.0",  # (trocar-mode jogs are paced: trocar_arm.TrocarMotions.paced)
             "jog_joint_speed_deg_s=40.0",
         ]
     }
@@ -302,10 +309,14 @@ def test_random_ptp_and_jog_never_cross_the_patient_outside_the_trocar(site: Sit
     assert pipe.wait(lambda: bus.lease and bus.js, 60), "no lease / no measured_js"
     assert bus.mode == "non_trocar"
     t_start = time.monotonic()
+    load_start = round(os.getloadavg()[0], 1)
 
     def send(name: str, *args: str) -> CommandReply:
         assert pipe.wait(lambda: bus.lease, 60), "no lease for a minute"
         r: CommandReply = operator_command(node, key, "arm1", name, *args)  # confirmed
+        if r.accepted:
+            with bus.lock:
+                bus.sent.append((time.monotonic(), f"{name} {' '.join(args)}"))
         if not r.accepted and (not r.reason.strip() or r.reason.strip().endswith("refused")):
             tally.unnamed.append(f"{name} {args}: {r.reason!r}")
         return r
@@ -432,8 +443,14 @@ def test_random_ptp_and_jog_never_cross_the_patient_outside_the_trocar(site: Sit
     seqs = np.array([s for s, _ in samples])
     qs = np.array([q for _, q in samples])
     gaps = int(np.sum(np.diff(seqs) - 1))
-    steps = [qs[:1]]  # joint-space interpolation between consecutive samples, ≤ 2 mrad
-    for a, b in itertools.pairwise(qs):
+    # joint-space interpolation between consecutive samples (4 ms apart), ≤ 2 mrad; across a
+    # sequence gap (samples lost on the way) only the samples themselves: the path between is
+    # unknown, and a straight joint-space line across a long gap is not the arm's path
+    steps = [qs[:1]]
+    for (sa, a), (sb, b) in itertools.pairwise(zip(seqs, qs, strict=True)):
+        if sb - sa != 1:
+            steps.append(b[None, :])
+            continue
         n = max(1, math.ceil(float(np.max(np.abs(b - a))) / 0.002))
         steps.append(a + (b - a) * (np.arange(1, n + 1) / n)[:, None])
     path = np.concatenate(steps)
@@ -442,8 +459,22 @@ def test_random_ptp_and_jog_never_cross_the_patient_outside_the_trocar(site: Sit
     w, t = deepest[0][0], deepest[1][0]  # how far the deepest pose's axis passes from the trocar
     u = (t - w) / np.linalg.norm(t - w)
     deepest_axis_mm = float(np.linalg.norm(np.cross(patient.trocar - w, u))) * 1e3
+    # where the measured forceps was in the patient outside the trocar: when, in which mode, after what
+    pen_samples = patient.penetration(qs)[0]
+    for i in np.argsort(pen_samples)[::-1][:5]:
+        if pen_samples[i] <= 0.0:
+            break
+        at, mode = bus.js_at.get(int(seqs[i]), (0.0, "?"))
+        before = [c for ts, c in bus.sent if ts <= at][-3:]
+        print(
+            f"in the patient {pen_samples[i] * 1e3:.2f} mm at {at - t_start:.1f} s in {mode} mode, "
+            f"seq {seqs[i]}, after {before}"
+        )
     figures = {
         "seconds": round(seconds, 1),
+        "load_average_1min_start_end": [load_start, round(os.getloadavg()[0], 1)],
+        "rcm_error_trocar_mode_max_mm": round(bus.rcm_trocar_max_mm, 3),
+        "measured_samples_in_the_patient_outside_the_trocar": int(np.sum(pen_samples > 0.0)),
         "ptp": dict(tally.ptp),
         "ptp_refusals_by_reason": {k: v for k, v in tally.refusals.items() if not k.startswith("jog")},
         "keepout_refusals_path_through_torso": tally.keepout_refused_torso,

@@ -120,6 +120,7 @@ def test_workspace_and_rcm_limits() -> None:
     b.on_slave_state(st, 0.0)
     v = b.evaluate(0.0)
     assert v.state == "HOLD" and "RCM error 2.50 mm" in v.causes[0]
+    assert "way out: remove" in v.causes[0]  # the operator is told which command gets out
 
 
 def test_operator_absent_holds() -> None:

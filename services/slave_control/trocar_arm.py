@@ -13,6 +13,8 @@ asks this source each period whether it drives the arm and for its joint target.
 from __future__ import annotations
 
 import itertools
+import math
+import time
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
@@ -77,6 +79,12 @@ class TrocarMotions(AttachedSource):
         self.work_frame: WorkFrame = ConfiguredWorkFrame(cfg.work_frame_rpy_deg)
         self.rcm_error_m = 0.0  # last measured RCM error (set by update_modes)
         self._vmax = np.array(profile.max_velocity)
+        # the RCM guard of slave-side motions with the forceps in the trocar (rcm_guard_problem)
+        self._guarded: object = None  # the motion the guard watches (its floor is its own)
+        self._rcm_floor_m = math.inf  # smallest RCM error measured since that motion started
+        # a `remove` commanded while the watchdog holds: it starts when the lease is back (monotonic
+        # deadline, s; 0 = none), see REMOVE_LEASE_WAIT_S
+        self.remove_pending_until = 0.0
 
     # -- MotionSource ---------------------------------------------------------------------------
     @property
@@ -107,11 +115,33 @@ class TrocarMotions(AttachedSource):
 
     def measure(self, reading: ArmReading, q_cmd: np.ndarray) -> None:
         core = self._core
+        note = ""
         with core.lock:
             self.update_modes(reading)
+            if self.remove_pending_until:
+                note = self._pending_removal(time.monotonic())
             mode_events, self.modes.events = self.modes.events, []
         for kind, text in mode_events:
             core.event(kind, text)
+        if note:
+            core.event("remove_pending", note, "info" if note.startswith("lease back") else "warning")
+
+    def _pending_removal(self, now: float) -> str:
+        """Start the removal commanded during a hold once the lease is back (lock held); the
+        event text, or "" while it still waits."""
+        m = self.modes
+        if m.phase is not Phase.REMOVE or m.jog_command is not None:
+            self.remove_pending_until = 0.0  # left the removal or jogging already: nothing pending
+            return ""
+        if self._core.ctl.lease_valid and not self._core.estop:
+            self.remove_pending_until = 0.0
+            r = m.remove()
+            return f"lease back: {r.reason}"
+        if now > self.remove_pending_until:
+            self.remove_pending_until = 0.0
+            why = self._core.ctl.reason
+            return f"remove: no lease within {REMOVE_LEASE_WAIT_S:g} s ({why}); send remove again"
+        return ""
 
     def command(self, cmd: Command) -> tuple[bool, str]:
         """Answer one operator command (zenoh thread)."""
@@ -131,6 +161,8 @@ class TrocarMotions(AttachedSource):
                 self.modes.control_mode,
                 self.modes.phase,
             )
+        if stray := self.rcm_guard_problem(job):
+            raise MotionError(stray)
         try:
             if job.ptp is not None:
                 target = job.ptp.next(dt)
@@ -139,12 +171,15 @@ class TrocarMotions(AttachedSource):
             elif job.jog is not None and job.phase is Phase.REMOVE and _is_retraction(job.jog):
                 # the way out: straight back along the axis, pivoting about the trocar where the
                 # straight way would leave the arm's reach (trocar_limits.remove_step)
-                target, pivoted = remove_step(
-                    q_cmd,
-                    self.trocar,
-                    cfg.jog_speed_mm_s / 1e3 * dt,
-                    pivot_rad=REMOVE_PIVOT_RAD_S * dt,
-                )
+                def removal(f: float) -> tuple[np.ndarray, bool]:
+                    return remove_step(
+                        q_cmd,
+                        self.trocar,
+                        f * cfg.jog_speed_mm_s / 1e3 * dt,
+                        pivot_rad=f * REMOVE_PIVOT_RAD_S * dt,
+                    )
+
+                target, pivoted = self.paced(job, q_cmd, dt, removal)
                 if pivoted and not self.remove_pivoting:
                     self._core.event(
                         "remove_pivot",
@@ -153,17 +188,21 @@ class TrocarMotions(AttachedSource):
                 self.remove_pivoting = pivoted
             elif job.jog is not None:
                 jog = job.jog
-                target = jog_step(
-                    q_cmd,
-                    jog.frame.value,
-                    jog.axis,
-                    jog.direction,
-                    dt,
-                    speed_m_s=cfg.jog_speed_mm_s / 1e3,
-                    joint_speed_rad_s=np.radians(cfg.jog_joint_speed_deg_s),
-                    trocar=self.trocar if job.mode == "trocar" else None,
-                    work=self.work_frame.rotation(),
-                )
+
+                def jogged(f: float) -> tuple[np.ndarray, bool]:
+                    return jog_step(
+                        q_cmd,
+                        jog.frame.value,
+                        jog.axis,
+                        jog.direction,
+                        dt,
+                        speed_m_s=f * cfg.jog_speed_mm_s / 1e3,
+                        joint_speed_rad_s=f * np.radians(cfg.jog_joint_speed_deg_s),
+                        trocar=self.trocar if job.mode == "trocar" else None,
+                        work=self.work_frame.rotation(),
+                    ), False
+
+                target = self.paced(job, q_cmd, dt, jogged)[0]
                 pt = self.posture_target
                 if job.phase is Phase.POSTURE and pt is not None and jog.axis in ("j4", "j5"):
                     j = int(jog.axis[1]) - 1  # a posture jog stops exactly at its target, never past it
@@ -205,6 +244,74 @@ class TrocarMotions(AttachedSource):
             (lo[0] / 1e3, lo[1] / 1e3, lo[2] / 1e3), (hi[0] / 1e3, hi[1] / 1e3, hi[2] / 1e3), trocar
         )
 
+    def rcm_guard_problem(self, job: Internal) -> str:
+        """Why the slave-side motion ``job`` must stop for the RCM ("" = it may go on).
+
+        With the forceps in the trocar (trocar mode, insertion, removal) the measured RCM error
+        (MuJoCo's tip pose, 100 Hz) of a running motion may not exceed :data:`RCM_STOP_MM`, nor
+        grow more than :data:`RCM_STOP_SLACK_MM` above the smallest error measured since the
+        motion started — so a removal that starts off the trocar (the way out of an RCM hold) may
+        run while it does not stray further, and any motion that strays is stopped before the
+        shaft can leave the cannula (its command, RCM-exact, then pulls the arm back).
+        """
+        motion: object = job.ptp or job.playback or job.jog or ("teach" if job.teach else None)
+        inside = job.mode == "trocar" or job.phase in (Phase.INSERT, Phase.REMOVE)
+        if motion is None or not inside:
+            self._guarded = None
+            return ""
+        if motion is not self._guarded:
+            self._guarded, self._rcm_floor_m = motion, math.inf
+        rcm = self.rcm_error_m
+        self._rcm_floor_m = min(self._rcm_floor_m, rcm)
+        limit = max(RCM_STOP_MM / 1e3, self._rcm_floor_m + RCM_STOP_SLACK_MM / 1e3)
+        if rcm <= limit:
+            return ""
+        self._guarded = None
+        return (
+            f"RCM error {rcm * 1e3:.2f} mm > {limit * 1e3:.2f} mm (the forceps strays from the trocar; "
+            f"stop at {RCM_STOP_MM:g} mm, or {RCM_STOP_SLACK_MM:g} mm above the motion's smallest)"
+        )
+
+    def paced(
+        self,
+        job: Internal,
+        q_cmd: np.ndarray,
+        dt: float,
+        solve: Callable[[float], tuple[np.ndarray, bool]],
+    ) -> tuple[np.ndarray, bool]:
+        """One period of a jog, paced where the forceps is in the trocar (trocar mode, insertion,
+        removal): ``solve(f)`` is the jog's step at the fraction ``f`` of its speed.
+
+        The MuJoCo arm's position servos answer fast joint motion each at its own pace (force
+        limits, inertia): a trocar-mode jog at 40 mm/s that asked for 2–4 rad/s, or for a
+        speed-clipped joint step near the reach limit, left the measured RCM by up to 15 mm
+        (offline, ``tests/test_trocar_jog_pace.py``) though every command was RCM-exact. So the
+        jog starts over :data:`TROCAR_JOG_RAMP_S`, slows so no joint goes faster than
+        :data:`TROCAR_JOG_SPEED_CAP` × its limit, and stops (with the reason) where a period would
+        need more than :data:`TROCAR_JOG_JUMP` × the limits at full speed (the reach limit, a
+        singularity: the step is no longer a small motion). Elsewhere ``solve(1.0)``.
+        """
+        if not (job.mode == "trocar" or job.phase in (Phase.INSERT, Phase.REMOVE)):
+            return solve(1.0)
+        if job.jog is not self._paced_jog:
+            self._paced_jog, self._paced_s = job.jog, 0.0
+        self._paced_s += dt
+        f = min(1.0, self._paced_s / TROCAR_JOG_RAMP_S)
+        target, extra = solve(f)
+        ratio = np.abs(target - q_cmd) / (self._vmax * dt)
+        worst = float(ratio.max())
+        if worst / f > TROCAR_JOG_JUMP:
+            j = int(np.argmax(ratio))
+            raise IKError(
+                f"the jog would move J{j + 1} at {worst / f:.1f}× its speed limit: near the reach "
+                "limit or a singularity"
+            )
+        if worst > TROCAR_JOG_SPEED_CAP:
+            target, extra = solve(f * TROCAR_JOG_SPEED_CAP / worst)
+        return target, extra
+
+    _paced_jog: object = None  # the jog being paced (its ramp is its own)
+    _paced_s = 0.0  # s since it started
     remove_pivoting = False  # the removal is pivoting about the trocar (for its event)
 
     def reached(self, q_out: np.ndarray, reading: ArmReading) -> None:
@@ -263,7 +370,18 @@ class TrocarMotions(AttachedSource):
             r = getattr(m, cmd.name)()
             if r.accepted and cmd.name == "finish_posture_adjust":
                 self.posture_target = None
+            if r.accepted and cmd.name == "remove" and not self._core.ctl.lease_valid:
+                # the watchdog holds (e.g. for the RCM error in trocar mode, which it does not judge
+                # in transitional/remove): the removal waits for the lease, the arm does not move
+                m.jog_command = None
+                self.remove_pending_until = time.monotonic() + REMOVE_LEASE_WAIT_S
+                return True, (
+                    f"{r.reason}; no lease now ({self._core.ctl.reason or 'held'}): the removal starts "
+                    f"when the watchdog allows motion (within {REMOVE_LEASE_WAIT_S:g} s, else remove again)"
+                )
             return r.accepted, r.reason
+        if cmd.name in ("stop", "abort", "jog", "set_motion_mode"):
+            self.remove_pending_until = 0.0
         if cmd.name == "stop":
             if self.playback is not None:
                 self.playback = None
@@ -515,6 +633,21 @@ class Internal:
 
 
 REMOVE_PIVOT_RAD_S = 0.25  # rad/s: pivot speed of the forceps about the trocar during removal
+#: Pacing of the jogs with the forceps in the trocar (TrocarMotions.paced): the fastest joint at
+#: most this fraction of its speed limit (the mapping's trocar-mode master–slave: 0.7) ...
+TROCAR_JOG_SPEED_CAP = 0.5
+#: ... a step needing more than this × the limits at full jog speed stops the jog (reach, singularity)
+TROCAR_JOG_JUMP = 4.0
+#: s: ... and the jog speed ramps up over this time from its start (no velocity step for the servos)
+TROCAR_JOG_RAMP_S = 0.15
+#: mm: a slave-side motion with the forceps in the trocar stops when the measured RCM error
+#: exceeds this (below the watchdog's 2 mm hold in trocar mode and the 5.5 mm cannula radius)
+RCM_STOP_MM = 1.5
+#: mm: ... or grows this much above the smallest error measured since the motion started (a
+#: removal starting off the trocar may run while it does not stray further)
+RCM_STOP_SLACK_MM = 0.25
+#: s: a `remove` commanded while the watchdog holds starts when the lease is back within this time
+REMOVE_LEASE_WAIT_S = 5.0
 
 
 def _is_retraction(jog: Jog) -> bool:

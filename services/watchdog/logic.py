@@ -220,7 +220,8 @@ class ArmSafety:
         if msg.control_mode == "trocar" and msg.rcm_error_mm > self.policy.rcm_limit_mm:
             self._fault(
                 "rcm",
-                f"RCM error {msg.rcm_error_mm:.2f} mm > limit {self.policy.rcm_limit_mm:.2f} mm",
+                f"RCM error {msg.rcm_error_mm:.2f} mm > limit {self.policy.rcm_limit_mm:.2f} mm "
+                "in trocar mode (way out: remove, docs/trocar.md)",
                 now,
             )
 
