@@ -392,6 +392,8 @@ def test_flood_of_large_messages_reaches_no_service(tmp_path: Path) -> None:
         site="locked",
         flooder="master_capture",
         no_caps=False,
+        no_mirror=False,
+        acl_log=None,
         seconds=3.0,
         size=1 << 20,
         after=5.0,

@@ -26,6 +26,7 @@ Example::
 from __future__ import annotations
 
 import argparse
+import contextlib
 import importlib
 import logging
 import os
@@ -92,14 +93,95 @@ def memory_detail(pipe: Pipeline) -> dict[str, dict[str, float]]:
 
 def holds_between(pipe: Pipeline, t0: int, t1: int) -> int:
     """The watchdog's entries into HOLD with a probe time in [t0, t1)."""
+    return len(hold_causes(pipe, t0, t1))
+
+
+def hold_causes(pipe: Pipeline, t0: int, t1: int) -> list[list[str]]:
+    """The causes the watchdog gave for each entry into HOLD with a probe time in [t0, t1)."""
     with pipe.p.lock:
-        states = [(t, s) for t, s, *_ in pipe.p.safety]
-    n, prev = 0, ""
-    for t, s in states:
+        states = [(t, s, causes) for t, s, causes, *_ in pipe.p.safety]
+    out: list[list[str]] = []
+    prev = ""
+    for t, s, causes in states:
         if s == "HOLD" and prev != "HOLD" and t0 <= t < t1:
-            n += 1
+            out.append(list(causes))
         prev = s
-    return n
+    return out
+
+
+def _ticks(path: str) -> float:
+    """utime + stime (s) of a ``/proc/.../stat`` file (0 if gone)."""
+    try:
+        with open(path) as f:
+            fields = f.read().rsplit(")", 1)[1].split()
+    except (OSError, IndexError):
+        return 0.0
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def _comm(path: str) -> str:
+    try:
+        with open(path) as f:
+            return f.read().strip()
+    except OSError:
+        return "?"
+
+
+def cpu_snapshot(pipe: Pipeline) -> dict[str, Any]:
+    """CPU seconds so far of every site process (and of this bench process: the flooder's
+    thread and the probe), and of each thread of the router by name (zenoh's runtime pools:
+    ``rx-*``, ``tx-*``, ``net-*``, ``acc-*``, ``app-*``)."""
+    procs: dict[str, float] = {}
+    for name, p in pipe.site.procs.items():
+        if p.poll() is None:
+            procs[name] = _ticks(f"/proc/{p.pid}/stat")
+    procs["bench (flooder + probe)"] = _ticks(f"/proc/{os.getpid()}/stat")
+    with contextlib.suppress(OSError):  # the kernel's softirq threads: loopback TCP delivery they take over
+        for pid in os.listdir("/proc"):
+            if pid.isdigit() and _comm(f"/proc/{pid}/comm").startswith("ksoftirqd/"):
+                procs["ksoftirqd"] = procs.get("ksoftirqd", 0.0) + _ticks(f"/proc/{pid}/stat")
+    threads: dict[str, float] = {}
+    if "router" in pipe.site.procs:
+        task = f"/proc/{pipe.site.pid('router')}/task"
+        with contextlib.suppress(OSError):
+            for tid in os.listdir(task):
+                name = _comm(f"{task}/{tid}/comm")
+                threads[name] = threads.get(name, 0.0) + _ticks(f"{task}/{tid}/stat")
+    host: dict[str, float] = {}
+    with contextlib.suppress(OSError), open("/proc/stat") as f:
+        names = ("user", "nice", "system", "idle", "iowait", "irq", "softirq", "steal")
+        fields = f.readline().split()[1:9]
+        host = {n: int(v) / os.sysconf("SC_CLK_TCK") for n, v in zip(names, fields, strict=False)}
+    with contextlib.suppress(OSError, ValueError), open("/proc/net/softnet_stat") as f:
+        # per CPU: processed, dropped, time_squeeze (hex): softirq ran out of budget, the rest of
+        # the backlog waits for ksoftirqd (counts, not seconds; cpu_share reports them per second)
+        rows = [line.split() for line in f]
+        host["softnet_dropped"] = float(sum(int(r[1], 16) for r in rows))
+        host["softnet_time_squeeze"] = float(sum(int(r[2], 16) for r in rows))
+    return {
+        "t": time.monotonic(),
+        "procs": procs,
+        "router_threads": threads,
+        "host": host,
+        "load": os.getloadavg(),
+    }
+
+
+def cpu_share(a: dict[str, Any], b: dict[str, Any]) -> dict[str, Any]:
+    """Cores used between two :func:`cpu_snapshot` calls (1.0 = one core busy all the time)."""
+    dt = max(b["t"] - a["t"], 1e-6)
+
+    def rate(x: dict[str, float], y: dict[str, float]) -> dict[str, float]:
+        used = {k: (v - x.get(k, 0.0)) / dt for k, v in y.items()}
+        return {k: round(v, 3) for k, v in sorted(used.items(), key=lambda kv: -kv[1])}
+
+    return {
+        "seconds": round(dt, 2),
+        "cores": rate(a["procs"], b["procs"]),
+        "router_threads_cores": rate(a["router_threads"], b["router_threads"]),
+        "host_cores": rate(a["host"], b["host"]),  # the whole VM (/proc/stat): user, softirq, steal, ...
+        "load_average_1min": [round(a["load"][0], 2), round(b["load"][0], 2)],
+    }
 
 
 def flood(pipe: Pipeline, bus: BusConfig, seconds: float, size: int) -> dict[str, Any]:
@@ -147,30 +229,40 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     overrides: dict[str, list[str]] = {}
     if args.no_caps:
         overrides["router"] = ["max_message_bytes=0", "max_bulk_bytes=0"]
+    if args.acl_log is not None:  # (after the harness's acl_log="denied" on the command line)
+        overrides.setdefault("router", []).append(f'acl_log="{args.acl_log}"')
     acl = deploy_dir() / "slave-site" / "acl.json5" if args.site == "locked" else None
-    with Pipeline(out, overrides=overrides, impair=False, acl=acl) as pipe:
+    with Pipeline(out, overrides=overrides, impair=False, acl=acl, mirror=not args.no_mirror) as pipe:
         if not pipe.wait_following(120):
             raise TelesurgError("the slave did not follow within 120 s")
         time.sleep(args.settle)
         bus = pipe.spec.client_bus(args.flooder) if acl else BusConfig(connect=[pipe.spec.endpoint])
         quiet0 = now_ns()
         quiet_start = rss_mb(pipe)  # the drift over a window as long as the flood, without it
+        cpu_q0 = cpu_snapshot(pipe)
         time.sleep(args.seconds + 1.0)
+        cpu_q1 = cpu_snapshot(pipe)
         base = rss_mb(pipe)
         base_detail = memory_detail(pipe)
         t0 = now_ns()
+        cpu_f0 = cpu_snapshot(pipe)
         result = flood(pipe, bus, args.seconds, args.size)
+        cpu_f1 = cpu_snapshot(pipe)
         t1 = now_ns()
         time.sleep(1.0)
-        holds_flood = holds_between(pipe, t0, now_ns())
-        holds_quiet = holds_between(pipe, quiet0, t0)
+        causes_flood = hold_causes(pipe, t0, now_ns())
+        causes_quiet = hold_causes(pipe, quiet0, t0)
+        t_after0 = now_ns()
         time.sleep(max(0.0, args.after - 1.0))
+        causes_after = hold_causes(pipe, t_after0, now_ns())
         after = rss_mb(pipe)
         after_detail = memory_detail(pipe)
         followed_after = pipe.wait_following(10)
     return {
         "site": args.site,
+        "mirror": not args.no_mirror,
         "size_caps": not args.no_caps,
+        "acl_log": args.acl_log or "denied",
         "flooder": args.flooder if acl else "any local client (open site)",
         "keys": list(KEYS),
         "message_bytes": args.size,
@@ -196,8 +288,11 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         "memory_detail_mb": {"before": base_detail, "after": after_detail},
         "malloc_arena_max": os.environ.get("MALLOC_ARENA_MAX", ""),
         "after_s": args.after,
-        "holds_during_flood": holds_flood,
-        "holds_quiet_window_before": holds_quiet,
+        "holds_during_flood": len(causes_flood),
+        "holds_quiet_window_before": len(causes_quiet),
+        "holds_after": len(causes_after),
+        "hold_causes": {"quiet_before": causes_quiet, "flood": causes_flood, "after": causes_after},
+        "cpu": {"quiet_before": cpu_share(cpu_q0, cpu_q1), "flood": cpu_share(cpu_f0, cpu_f1)},
         "followed_after": followed_after,
         "logs": str(out),
     }
@@ -211,6 +306,16 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--site", choices=("locked", "open"), default="locked", help="default: locked")
     ap.add_argument("--flooder", default="mirror", help="local identity that floods (locked site)")
     ap.add_argument("--no-caps", action="store_true", help="the router's size caps off")
+    ap.add_argument(
+        "--no-mirror",
+        action="store_true",
+        help="without the mirror (it runs under SCHED_IDLE and may not start on a saturated host)",
+    )
+    ap.add_argument(
+        "--acl-log",
+        choices=("off", "denied", "all"),
+        help="the router's acl_log (default: the bench pipeline's, denied)",
+    )
     ap.add_argument("--seconds", type=float, default=10.0, help="flood duration (default 10)")
     ap.add_argument("--size", type=int, default=1 << 20, help="message bytes (default 1 MiB)")
     ap.add_argument("--after", type=float, default=30.0, help="RSS measured this long after (s)")
@@ -233,11 +338,20 @@ def main(argv: Sequence[str] | None = None) -> int:
     for name, d in res["memory_detail_mb"]["after"].items():
         b = res["memory_detail_mb"]["before"].get(name, {})
         print(f"  {name:<14} " + ", ".join(f"{k} {b.get(k)} → {v}" for k, v in d.items()))
+    for window, c in res["cpu"].items():
+        print(f"  cores used, {window} ({c['seconds']} s, load average {c['load_average_1min']}):")
+        print("    " + ", ".join(f"{k} {v}" for k, v in c["cores"].items()))
+        print("    host: " + ", ".join(f"{k} {v}" for k, v in c["host_cores"].items()))
+        threads = c["router_threads_cores"].items()
+        print("    router threads: " + ", ".join(f"{k} {v}" for k, v in threads if v))
     print(
         f"  HOLDs: {res['holds_during_flood']} during the flood (+1 s), "
-        f"{res['holds_quiet_window_before']} in a quiet window before; "
+        f"{res['holds_quiet_window_before']} in a quiet window before, {res['holds_after']} after; "
         f"followed after: {res['followed_after']}"
     )
+    for window, causes in res["hold_causes"].items():
+        for c in causes:
+            print(f"    HOLD ({window}): {'; '.join(c)}")
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         jsonio.write(args.json, res)
