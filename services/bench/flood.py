@@ -28,12 +28,16 @@ from __future__ import annotations
 import argparse
 import contextlib
 import importlib
+import json
 import logging
 import os
+import subprocess
+import sys
 import tempfile
 import threading
 import time
 from collections.abc import Sequence
+from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
@@ -184,8 +188,40 @@ def cpu_share(a: dict[str, Any], b: dict[str, Any]) -> dict[str, Any]:
     }
 
 
-def flood(pipe: Pipeline, bus: BusConfig, seconds: float, size: int) -> dict[str, Any]:
-    """Flood from ``bus``'s identity; sent / delivered counts and peak RSS."""
+def send(bus: BusConfig, site: str, seconds: float, size: int) -> int:
+    """Put ``size``-byte messages on :data:`KEYS` in turn for ``seconds`` from ``bus``'s identity,
+    as fast as one zenoh publisher takes them; the number of ``put()`` calls."""
+    payload = b"\xa5" * size
+    sent = 0
+    tx = open_session(bus)
+    try:
+        pubs = [tx.declare_publisher(f"telesurg/{site}/{k}") for k in KEYS]
+        deadline = time.monotonic() + seconds
+        while time.monotonic() < deadline:
+            pubs[sent % 2].put(payload)
+            sent += 1
+    finally:
+        tx.close()  # type: ignore[no-untyped-call]
+    return sent
+
+
+def flood_process(bus: BusConfig, site: str, seconds: float, size: int) -> int:
+    """:func:`send` in a process of its own (its own session and scheduler autogroup, nice 0:
+    an attacker's process on the host, not a thread of the bench); the number of ``put()`` calls."""
+    argv = [sys.executable, "-m", "telesurg.services.bench.flood", "--send-only", json.dumps(asdict(bus))]
+    argv += ["--site-name", site, "--seconds", str(seconds), "--size", str(size)]
+    out = subprocess.run(argv, capture_output=True, text=True, start_new_session=True, timeout=seconds + 120)
+    for line in out.stdout.splitlines():
+        if line.startswith("sent "):
+            return int(line.split()[1])
+    raise TelesurgError(f"the flooding process failed (exit code {out.returncode}): {out.stderr[-500:]}")
+
+
+def flood(
+    pipe: Pipeline, bus: BusConfig, seconds: float, size: int, separate: bool = False
+) -> dict[str, Any]:
+    """Flood from ``bus``'s identity (``separate``: from a process of its own); sent / delivered
+    counts and peak RSS."""
     site = pipe.spec.site
     delivered = [0]
     peak: dict[str, float] = {}
@@ -205,22 +241,39 @@ def flood(pipe: Pipeline, bus: BusConfig, seconds: float, size: int) -> dict[str
 
     sampler = threading.Thread(target=sample_rss, daemon=True)
     sampler.start()
-    payload = b"\xa5" * size
-    sent = 0
-    tx = open_session(bus)
     try:
-        pubs = [tx.declare_publisher(f"telesurg/{site}/{k}") for k in KEYS]
-        deadline = time.monotonic() + seconds
-        while time.monotonic() < deadline:
-            pubs[sent % 2].put(payload)
-            sent += 1
+        sent = flood_process(bus, site, seconds, size) if separate else send(bus, site, seconds, size)
     finally:
-        tx.close()  # type: ignore[no-untyped-call]
         stop.set()
         sampler.join()
         for s in subs:
             s.undeclare()  # type: ignore[no-untyped-call]
     return {"sent": sent, "delivered_over_64k": delivered[0], "peak_rss_mb": peak}
+
+
+def alternate(pipe: Pipeline, bus: BusConfig, args: argparse.Namespace) -> list[dict[str, Any]]:
+    """``args.rounds`` pairs of a quiet window and a flood window, ``args.window`` s each (+0.5 s
+    for the watchdog's state to arrive): HOLD entries and their causes, CPU per process, per window.
+    The host's other load changes slowly compared with a window, so the two kinds see the same."""
+    out: list[dict[str, Any]] = []
+    for i in range(args.rounds):
+        for kind in ("quiet", "flood"):
+            t0, c0 = now_ns(), cpu_snapshot(pipe)
+            sent = 0
+            if kind == "quiet":
+                time.sleep(args.window)
+            elif args.separate:
+                sent = flood_process(bus, pipe.spec.site, args.window, args.size)
+            else:
+                sent = send(bus, pipe.spec.site, args.window, args.size)
+            c1 = cpu_snapshot(pipe)
+            time.sleep(0.5)
+            causes = hold_causes(pipe, t0, now_ns())
+            out.append(
+                {"round": i, "kind": kind, "sent": sent, "hold_causes": causes, "cpu": cpu_share(c0, c1)}
+            )
+            log.info("round %d %s: %d HOLD entries, %d put calls", i, kind, len(causes), sent)
+    return out
 
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
@@ -246,7 +299,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         base_detail = memory_detail(pipe)
         t0 = now_ns()
         cpu_f0 = cpu_snapshot(pipe)
-        result = flood(pipe, bus, args.seconds, args.size)
+        result = flood(pipe, bus, args.seconds, args.size, args.separate)
         cpu_f1 = cpu_snapshot(pipe)
         t1 = now_ns()
         time.sleep(1.0)
@@ -258,6 +311,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         after = rss_mb(pipe)
         after_detail = memory_detail(pipe)
         followed_after = pipe.wait_following(10)
+        rounds = alternate(pipe, bus, args) if args.rounds else []
     return {
         "site": args.site,
         "mirror": not args.no_mirror,
@@ -294,6 +348,12 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         "hold_causes": {"quiet_before": causes_quiet, "flood": causes_flood, "after": causes_after},
         "cpu": {"quiet_before": cpu_share(cpu_q0, cpu_q1), "flood": cpu_share(cpu_f0, cpu_f1)},
         "followed_after": followed_after,
+        "flooder_process": "separate" if args.separate else "a thread of the bench",
+        "rounds": rounds,
+        "rounds_holds": {
+            kind: sum(len(r["hold_causes"]) for r in rounds if r["kind"] == kind)
+            for kind in ("quiet", "flood")
+        },
         "logs": str(out),
     }
 
@@ -316,6 +376,20 @@ def main(argv: Sequence[str] | None = None) -> int:
         choices=("off", "denied", "all"),
         help="the router's acl_log (default: the bench pipeline's, denied)",
     )
+    ap.add_argument(
+        "--separate",
+        action="store_true",
+        help="flood from a process of its own (nice 0, its own session), not a thread of the bench",
+    )
+    ap.add_argument(
+        "--rounds",
+        type=int,
+        default=0,
+        help="afterwards, this many pairs of a quiet and a flood window (HOLDs per kind of window)",
+    )
+    ap.add_argument("--window", type=float, default=5.0, help="length of each window of --rounds (s)")
+    ap.add_argument("--send-only", metavar="BUS_JSON", help=argparse.SUPPRESS)  # (the flooding process)
+    ap.add_argument("--site-name", default="local", help=argparse.SUPPRESS)
     ap.add_argument("--seconds", type=float, default=10.0, help="flood duration (default 10)")
     ap.add_argument("--size", type=int, default=1 << 20, help="message bytes (default 1 MiB)")
     ap.add_argument("--after", type=float, default=30.0, help="RSS measured this long after (s)")
@@ -323,6 +397,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--log-dir", help="service logs (default: a temporary folder)")
     ap.add_argument("--json", type=Path, help="write the result here")
     args = ap.parse_args(argv)
+    if args.send_only:  # the flooding process of --separate
+        print(
+            f"sent {send(BusConfig(**json.loads(args.send_only)), args.site_name, args.seconds, args.size)}"
+        )
+        return 0
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
     try:
         res = run(args)
@@ -349,6 +428,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         f"{res['holds_quiet_window_before']} in a quiet window before, {res['holds_after']} after; "
         f"followed after: {res['followed_after']}"
     )
+    if res["rounds"]:
+        print(f"  rounds of {args.window:g} s: HOLD entries {res['rounds_holds']}")
     for window, causes in res["hold_causes"].items():
         for c in causes:
             print(f"    HOLD ({window}): {'; '.join(c)}")
@@ -356,3 +437,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         jsonio.write(args.json, res)
     return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
