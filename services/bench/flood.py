@@ -11,6 +11,19 @@ master re-clutches every 4 s) is flooded for ``--seconds`` (default 10) by a cli
   length before it, and whether the slave followed again afterwards;
 * messages sent by the flooder and how many reached a subscriber (the bench's probe).
 
+and, to find what the flood does to the control path, per window: the CPU each site process used
+(and each thread of the router by name: zenoh's ``rx-*``, ``tx-*`` pools), the host's CPU
+(``/proc/stat``: user, system, softirq, steal; ``ksoftirqd``; softnet drops and squeezes), and
+the causes the watchdog gave for each entry into HOLD.
+
+``--rounds N`` then alternates N quiet and N flood windows of ``--window`` s (default 5) on the
+same pipeline: the host's other load changes slowly compared with a window, so the HOLD entries
+of the two kinds of window compare the flood with its absence under the same load.
+``--separate`` floods from a process of its own (nice 0, its own session and scheduler
+autogroup: an attacker's process), not from a thread of the bench process (which also hosts the
+probe). ``--no-mirror`` leaves the mirror out (it runs under ``SCHED_IDLE`` and may not start on
+a saturated host); ``--acl-log off`` runs the router without its ACL log.
+
 ``--site locked`` (default) runs the locked-down site (``telesurg up --acl``: local mutual TLS,
 deploy/slave-site/acl.json5, size caps) and floods from an identity the ACL refuses on those keys
 (``site-mirror``); ``--flooder master_capture`` floods from an identity the ACL allows on the master
@@ -21,6 +34,7 @@ Example::
 
     telesurg bench flood --json docs/data/perf/flood.json
     telesurg bench flood --site open --no-caps --json out/flood-open.json
+    telesurg bench flood --separate --rounds 5 --json out/flood-rounds.json
 """
 
 from __future__ import annotations
@@ -188,14 +202,17 @@ def cpu_share(a: dict[str, Any], b: dict[str, Any]) -> dict[str, Any]:
     }
 
 
-def send(bus: BusConfig, site: str, seconds: float, size: int) -> int:
+def send(bus: BusConfig, site: str, seconds: float, size: int, ready: Any = None) -> int:
     """Put ``size``-byte messages on :data:`KEYS` in turn for ``seconds`` from ``bus``'s identity,
-    as fast as one zenoh publisher takes them; the number of ``put()`` calls."""
+    as fast as one zenoh publisher takes them; the number of ``put()`` calls. ``ready()``, if
+    given, is called once the session and publishers are up, before the first put."""
     payload = b"\xa5" * size
     sent = 0
     tx = open_session(bus)
     try:
         pubs = [tx.declare_publisher(f"telesurg/{site}/{k}") for k in KEYS]
+        if ready is not None:
+            ready()
         deadline = time.monotonic() + seconds
         while time.monotonic() < deadline:
             pubs[sent % 2].put(payload)
@@ -205,23 +222,72 @@ def send(bus: BusConfig, site: str, seconds: float, size: int) -> int:
     return sent
 
 
-def flood_process(bus: BusConfig, site: str, seconds: float, size: int) -> int:
-    """:func:`send` in a process of its own (its own session and scheduler autogroup, nice 0:
-    an attacker's process on the host, not a thread of the bench); the number of ``put()`` calls."""
-    argv = [sys.executable, "-m", "telesurg.services.bench.flood", "--send-only", json.dumps(asdict(bus))]
-    argv += ["--site-name", site, "--seconds", str(seconds), "--size", str(size)]
-    out = subprocess.run(argv, capture_output=True, text=True, start_new_session=True, timeout=seconds + 120)
-    for line in out.stdout.splitlines():
-        if line.startswith("sent "):
-            return int(line.split()[1])
-    raise TelesurgError(f"the flooding process failed (exit code {out.returncode}): {out.stderr[-500:]}")
+class FloodProcess:
+    """:func:`send` in a process of its own (its own session and scheduler autogroup, nice 0: an
+    attacker's process on the host, not a thread of the bench). :meth:`start` returns once its
+    session and publishers are up (the interpreter's start is no part of a flood window);
+    :meth:`run` floods and returns the number of ``put()`` calls."""
+
+    def __init__(self, bus: BusConfig, site: str, seconds: float, size: int) -> None:
+        argv = [sys.executable, "-m", "telesurg.services.bench.flood", "--send-only", json.dumps(asdict(bus))]
+        argv += ["--site-name", site, "--seconds", str(seconds), "--size", str(size)]
+        self.seconds = seconds
+        self.proc = subprocess.Popen(
+            argv,
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            stderr=None,  # (the bench's: a failure to connect shows)
+            text=True,
+            start_new_session=True,
+        )
+
+    def start(self) -> FloodProcess:
+        """Wait until the flooder is connected and ready."""
+        assert self.proc.stdout is not None
+        for line in self.proc.stdout:  # (zenoh may log to stdout before)
+            if line.strip() == "ready":
+                return self
+        self.proc.kill()
+        self.proc.wait()
+        raise TelesurgError(f"the flooding process did not start (exit code {self.proc.returncode})")
+
+    def run(self) -> int:
+        """Flood now; the number of ``put()`` calls (once the flooder says so: its interpreter's
+        exit is no part of a flood window either; :meth:`close` waits for it)."""
+        assert self.proc.stdin is not None and self.proc.stdout is not None
+        self.proc.stdin.write("go\n")
+        self.proc.stdin.flush()
+        for line in self.proc.stdout:
+            if line.startswith("sent "):
+                return int(line.split()[1])
+        raise TelesurgError(f"the flooding process failed (exit code {self.proc.wait()})")
+
+    def close(self) -> None:
+        """Wait for the process to exit (kill it after 30 s)."""
+        try:
+            self.proc.communicate(timeout=30)
+        except subprocess.TimeoutExpired:
+            self.proc.kill()
+            self.proc.communicate()
+
+
+def _send_only(args: argparse.Namespace) -> int:
+    """The flooding process of ``--separate``: connect, say ``ready``, wait for ``go``, flood."""
+
+    def ready() -> None:
+        print("ready", flush=True)
+        sys.stdin.readline()
+
+    bus = BusConfig(**json.loads(args.send_only))
+    print(f"sent {send(bus, args.site_name, args.seconds, args.size, ready)}", flush=True)
+    return 0
 
 
 def flood(
-    pipe: Pipeline, bus: BusConfig, seconds: float, size: int, separate: bool = False
+    pipe: Pipeline, bus: BusConfig, seconds: float, size: int, proc: FloodProcess | None = None
 ) -> dict[str, Any]:
-    """Flood from ``bus``'s identity (``separate``: from a process of its own); sent / delivered
-    counts and peak RSS."""
+    """Flood from ``bus``'s identity (from ``proc``, started, if given); sent / delivered counts
+    and peak RSS."""
     site = pipe.spec.site
     delivered = [0]
     peak: dict[str, float] = {}
@@ -242,7 +308,7 @@ def flood(
     sampler = threading.Thread(target=sample_rss, daemon=True)
     sampler.start()
     try:
-        sent = flood_process(bus, site, seconds, size) if separate else send(bus, site, seconds, size)
+        sent = proc.run() if proc is not None else send(bus, site, seconds, size)
     finally:
         stop.set()
         sampler.join()
@@ -258,17 +324,22 @@ def alternate(pipe: Pipeline, bus: BusConfig, args: argparse.Namespace) -> list[
     out: list[dict[str, Any]] = []
     for i in range(args.rounds):
         for kind in ("quiet", "flood"):
+            proc = None
+            if kind == "flood" and args.separate:
+                proc = FloodProcess(bus, pipe.spec.site, args.window, args.size).start()
             t0, c0 = now_ns(), cpu_snapshot(pipe)
             sent = 0
             if kind == "quiet":
                 time.sleep(args.window)
-            elif args.separate:
-                sent = flood_process(bus, pipe.spec.site, args.window, args.size)
+            elif proc is not None:
+                sent = proc.run()
             else:
                 sent = send(bus, pipe.spec.site, args.window, args.size)
             c1 = cpu_snapshot(pipe)
             time.sleep(0.5)
             causes = hold_causes(pipe, t0, now_ns())
+            if proc is not None:
+                proc.close()
             out.append(
                 {"round": i, "kind": kind, "sent": sent, "hold_causes": causes, "cpu": cpu_share(c0, c1)}
             )
@@ -297,13 +368,16 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         cpu_q1 = cpu_snapshot(pipe)
         base = rss_mb(pipe)
         base_detail = memory_detail(pipe)
+        proc = FloodProcess(bus, pipe.spec.site, args.seconds, args.size).start() if args.separate else None
         t0 = now_ns()
         cpu_f0 = cpu_snapshot(pipe)
-        result = flood(pipe, bus, args.seconds, args.size, args.separate)
+        result = flood(pipe, bus, args.seconds, args.size, proc)
         cpu_f1 = cpu_snapshot(pipe)
         t1 = now_ns()
         time.sleep(1.0)
         causes_flood = hold_causes(pipe, t0, now_ns())
+        if proc is not None:
+            proc.close()
         causes_quiet = hold_causes(pipe, quiet0, t0)
         t_after0 = now_ns()
         time.sleep(max(0.0, args.after - 1.0))
@@ -354,6 +428,10 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             kind: sum(len(r["hold_causes"]) for r in rounds if r["kind"] == kind)
             for kind in ("quiet", "flood")
         },
+        "rounds_seconds": {
+            kind: round(sum(r["cpu"]["seconds"] + 0.5 for r in rounds if r["kind"] == kind), 1)
+            for kind in ("quiet", "flood")
+        },
         "logs": str(out),
     }
 
@@ -398,10 +476,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--json", type=Path, help="write the result here")
     args = ap.parse_args(argv)
     if args.send_only:  # the flooding process of --separate
-        print(
-            f"sent {send(BusConfig(**json.loads(args.send_only)), args.site_name, args.seconds, args.size)}"
-        )
-        return 0
+        return _send_only(args)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
     try:
         res = run(args)
@@ -429,7 +504,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         f"followed after: {res['followed_after']}"
     )
     if res["rounds"]:
-        print(f"  rounds of {args.window:g} s: HOLD entries {res['rounds_holds']}")
+        print(
+            f"  rounds of {args.window:g} s: HOLD entries {res['rounds_holds']} in {res['rounds_seconds']} s"
+        )
     for window, causes in res["hold_causes"].items():
         for c in causes:
             print(f"    HOLD ({window}): {'; '.join(c)}")
