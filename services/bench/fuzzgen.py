@@ -27,7 +27,7 @@ nonfinite           yes     a float field or a float in a list set to NaN/+inf/-
 huge_number         no      an int/float field or element set to 2**64 (as a float: msgpack has no
                             such integer), 2**64-1, 2**63, -1, -2**63, ±1e308 (fine for unbounded
                             float fields)
-missing_field       yes     one header or body key removed (or the empty map)
+missing_field       yes     one required header or body key removed (or the empty map)
 extra_field         yes     unknown keys added (another type's body key, case/whitespace
                             variants of header keys, an int key, a bytes key, str and bytes mixed)
 bad_version         yes     ``v`` = 0, 2, "1", 1.0, -1, True, None, 2**32, [1], ...
@@ -570,6 +570,7 @@ class _Info:
     payload: bytes
     wire: Wire | None
     keys: tuple[Any, ...] = ()
+    required: tuple[Any, ...] = ()  # keys a message must have (not a field added later)
     body_keys: tuple[Any, ...] = ()
     allowed: frozenset[Any] = frozenset()
     cat: dict[Any, str] = dataclasses.field(default_factory=dict)
@@ -677,6 +678,8 @@ def _analyse(payload: bytes) -> _Info | None:
     cls = MESSAGE_TYPES.get(tag)
     header = _header_keys()
     keys = tuple(wire)
+    # a field added to the type later may be absent (an older recording's message decodes)
+    optional = {f.wire for f in cls.FIELDS if f.absent} if cls is not None else set()
     allowed = frozenset(keys) | header | (cls.BODY if cls is not None else frozenset())
     cat = {k: _category(v) for k, v in wire.items()}
     elem = {k: _element_category(v) for k, v in wire.items() if cat[k] == "list"}
@@ -723,6 +726,7 @@ def _analyse(payload: bytes) -> _Info | None:
         payload=payload,
         wire=wire,
         keys=keys,
+        required=tuple(k for k in keys if k not in optional),
         body_keys=tuple(k for k in keys if k not in header),
         allowed=allowed,
         cat=cat,
@@ -955,10 +959,10 @@ class _Gen:
     def _missing_field(self, rng: random.Random, info: _Info) -> bytes:
         wire = info.wire
         assert wire is not None
-        if not info.keys or rng.random() < 1 / 32:
+        if not info.required or rng.random() < 1 / 32:
             return _pack({})
         d = dict(wire)
-        del d[_pick(rng, info.keys)]
+        del d[_pick(rng, info.required)]
         return _pack(d)
 
     def _extra_field(self, rng: random.Random, info: _Info) -> bytes:
