@@ -40,7 +40,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
-from telesurg.services.watchdog.logic import ArmSafety
+from telesurg.services.watchdog.logic import ArmSafety, outside_limits
 from telesurg.shared.errors import KinematicsError
 from telesurg.shared.kinematics.keepout import PatientBox, path_problem, pose_problem, shaft_inside_m
 from telesurg.shared.messages import JointState, OperatingState
@@ -106,12 +106,8 @@ class CommandedCheck:
         if msg.names != s.names:
             return self._fault("joints", f"setpoint_js joint names {list(msg.names)} != {list(s.names)}", now)
         pos = msg.position
-        if not all(lo <= v <= hi for v, lo, hi in zip(pos, p.lower_t, p.upper_t, strict=True)):
-            text = ", ".join(
-                f"{n}={math.degrees(v):.1f}° (limits {math.degrees(lo):.0f}..{math.degrees(hi):.0f}°)"
-                for n, v, lo, hi in zip(s.names, pos, p.lower_t, p.upper_t, strict=True)
-                if not lo <= v <= hi
-            )
+        text = outside_limits(s.names, pos, p.lower_t, p.upper_t)
+        if text:
             return self._fault("joint_limit", f"slave-side motion outside joint limits: {text}", now)
         q = np.asarray(pos, dtype=np.float64)
         ts = msg.header.stamp_ns
