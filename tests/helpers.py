@@ -3,6 +3,7 @@
 * .rrd readers — what the mirror wrote, read back with rerun's own chunk reader;
 * :func:`clutch_flags` — the bench's clutch schedule as ``--set`` flags for a launched site;
 * :class:`MasterHand` — a master publishing its pose and clutch at 250 Hz (process tests);
+  :class:`GoalMaster` moves it smoothly to a goal; :func:`settled_tip` waits for the slave's tip;
 * headless Debian chromium driven over the DevTools protocol on a pipe (:func:`chromium`,
   :class:`DevTools`, :func:`screenshot`): the viewer and web console browser tests.
 """
@@ -14,6 +15,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 from telesurg.services.bench.harness import BENCH_CLUTCH
 from telesurg.shared.messages import CartesianPose, Header, MasterButtons
 
@@ -91,6 +93,37 @@ class MasterHand(threading.Thread):
             self.pose.put(CartesianPose(self.pose.header(), "master", p, (0.0, 0.0, 0.0, 1.0)))
             n += 1
             self.stop.wait(max(0.0, start + n / self.rate - time.monotonic()))
+
+
+class GoalMaster(MasterHand):
+    """A surgeon's hand that moves the master smoothly to :attr:`goal` (m, at most 40 mm/s: a
+    hand, not a jump), 250 Hz."""
+
+    def __init__(self, node: Any) -> None:
+        super().__init__(node)
+        self.p, self.goal = np.zeros(3), np.zeros(3)
+
+    def position(self, now: float) -> tuple[float, float, float]:
+        step = self.goal - self.p
+        self.p = self.p + step * min(1.0, 0.16e-3 / max(float(np.linalg.norm(step)), 1e-12))
+        return (float(self.p[0]), float(self.p[1]), float(self.p[2]))
+
+
+def settled_tip(
+    lock: threading.Lock, tips: list[tuple[float, Any]], quiet_mm: float = 0.02, timeout: float = 8.0
+) -> Any:
+    """The newest of ``tips`` ((monotonic s, position m) samples appended under ``lock``) once
+    the tip moved less than ``quiet_mm`` over 0.3 s, or after ``timeout`` s."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        t = time.monotonic()
+        time.sleep(0.3)
+        with lock:
+            pts = np.array([p for s, p in tips if s >= t])
+        if len(pts) > 5 and np.ptp(pts, axis=0).max() * 1e3 < quiet_mm:
+            break
+    with lock:
+        return tips[-1][1].copy()
 
 
 def feed_master(arm: Any, p: tuple[float, float, float], clutch: bool) -> None:

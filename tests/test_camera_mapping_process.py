@@ -23,26 +23,14 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from helpers import MasterHand
+from helpers import GoalMaster as Master
+from helpers import settled_tip
 from telesurg.services.bench.harness import Pipeline
 from telesurg.services.camera import pose_matrix, quat_xyzw
 from telesurg.shared.bus import BusConfig, Node
 from telesurg.shared.messages import CameraImage, CartesianPose, OperatingState
 
 pytestmark = pytest.mark.process
-
-
-class Master(MasterHand):
-    """The surgeon's hand: 250 Hz pose (moved smoothly to ``goal``) and clutch."""
-
-    def __init__(self, node: Node) -> None:
-        super().__init__(node)
-        self.p, self.goal = np.zeros(3), np.zeros(3)
-
-    def position(self, now: float) -> tuple[float, float, float]:
-        step = self.goal - self.p  # at most 40 mm/s: a hand, not a jump
-        self.p = self.p + step * min(1.0, 0.16e-3 / max(float(np.linalg.norm(step)), 1e-12))
-        return (float(self.p[0]), float(self.p[1]), float(self.p[2]))
 
 
 @dataclass
@@ -72,16 +60,7 @@ class Seen:
 
     def settled_tip(self, quiet_mm: float = 0.02, timeout: float = 8.0) -> np.ndarray:
         """The tip once it moved less than ``quiet_mm`` over 0.3 s."""
-        deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline:
-            t = time.monotonic()
-            time.sleep(0.3)
-            with self.lock:
-                pts = np.array([p for s, p in self.tips if s >= t])
-            if len(pts) > 5 and np.ptp(pts, axis=0).max() * 1e3 < quiet_mm:
-                break
-        with self.lock:
-            return self.tips[-1][1].copy()
+        return np.asarray(settled_tip(self.lock, self.tips, quiet_mm, timeout))
 
     def camera(self) -> np.ndarray:
         with self.lock:

@@ -28,41 +28,20 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from helpers import operator_command
+from helpers import GoalMaster as Master
+from helpers import operator_command, settled_tip
 from telesurg.services.bench.harness import Pipeline
 from telesurg.services.camera import pose_matrix, quat_xyzw
 from telesurg.services.launcher import default_config_dir
 from telesurg.shared.bus import BusConfig, Node
 from telesurg.shared.config import SITE_FILE
 from telesurg.shared.kinematics.transforms import rpy_matrix
-from telesurg.shared.messages import CartesianPose, CommandReply, MasterButtons, OperatingState
+from telesurg.shared.messages import CartesianPose, CommandReply, OperatingState
 
 pytestmark = pytest.mark.process
 
 WORK_RPY = (180.0, 0.0, -60.0)
 R_WORK = rpy_matrix(WORK_RPY)  # columns: the work frame's x (image right), y (down), z (into) in base
-
-
-class Master(threading.Thread):
-    """The surgeon's hand: 250 Hz pose (moved smoothly to ``goal`` at 40 mm/s) and clutch."""
-
-    def __init__(self, node: Node) -> None:
-        super().__init__(daemon=True)
-        self.clutch, self.stop = False, threading.Event()
-        self.p, self.goal = np.zeros(3), np.zeros(3)
-        self.pose = node.outlet(node.keys.master("m1", "measured_cp"))
-        self.buttons = node.outlet(node.keys.master("m1", "buttons"))
-
-    def run(self) -> None:
-        start, n = time.monotonic(), 0
-        while not self.stop.is_set():
-            step = self.goal - self.p
-            self.p = self.p + step * min(1.0, 0.16e-3 / max(float(np.linalg.norm(step)), 1e-12))
-            self.buttons.put(MasterButtons(self.buttons.header(), self.clutch, True))
-            p = tuple(float(x) for x in self.p)
-            self.pose.put(CartesianPose(self.pose.header(), "master", p, (0.0, 0.0, 0.0, 1.0)))
-            n += 1
-            self.stop.wait(max(0.0, start + n / 250 - time.monotonic()))
 
 
 class Seen:
@@ -90,16 +69,7 @@ class Seen:
 
     def settled_tip(self, quiet_mm: float = 0.02, timeout: float = 8.0) -> np.ndarray:
         """The tip once it moved less than ``quiet_mm`` over 0.3 s."""
-        deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline:
-            t = time.monotonic()
-            time.sleep(0.3)
-            with self.lock:
-                pts = np.array([p for s, p in self.tips if s >= t])
-            if len(pts) > 5 and np.ptp(pts, axis=0).max() * 1e3 < quiet_mm:
-                break
-        with self.lock:
-            return self.tips[-1][1].copy()
+        return np.asarray(settled_tip(self.lock, self.tips, quiet_mm, timeout))
 
 
 def angle_deg(a: np.ndarray, b: np.ndarray) -> float:
