@@ -47,15 +47,13 @@ import mujoco
 import numpy as np
 import pytest
 import telesurg.services.slave_control as slave_control
-from helpers import operator_command
+from helpers import MasterHand, operator_command
 from telesurg.services.bench.harness import Pipeline
 from telesurg.shared.bus import BusConfig, Node
 from telesurg.shared.kinematics.trocar import posture_adjust
 from telesurg.shared.messages import (
-    CartesianPose,
     CommandReply,
     JointState,
-    MasterButtons,
     OperatingState,
     SafetyEvent,
 )
@@ -154,21 +152,6 @@ def random_programs(patient: Patient, rng: np.random.Generator) -> dict[str, lis
         tip = [float(v) for v in t[0]]
         programs[f"r{len(programs):02d}"] = [{"q": [float(v) for v in q], "tip": tip, "mode": "non_trocar"}]
     return programs
-
-
-class IdleMaster(threading.Thread):
-    """The master at rest with the clutch released (nobody engages master–slave here), 250 Hz."""
-
-    def __init__(self, node: Node) -> None:
-        super().__init__(daemon=True)
-        self.stop = threading.Event()
-        self.pose = node.outlet(node.keys.master("m1", "measured_cp"))
-        self.buttons = node.outlet(node.keys.master("m1", "buttons"))
-
-    def run(self) -> None:
-        while not self.stop.wait(0.004):
-            self.buttons.put(MasterButtons(self.buttons.header(), False, True))
-            self.pose.put(CartesianPose(self.pose.header(), "master", (0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 1.0)))
 
 
 @dataclass
@@ -289,7 +272,7 @@ def site(tmp_path: Path) -> Iterator[Site]:
         node.subscribe(k.slave("arm1", "measured_js"), JointState, bus.on_js)
         node.subscribe(k.slave("arm1", "operating_state"), OperatingState, bus.on_state)
         node.subscribe(k.events("slave_control"), SafetyEvent, bus.on_event)
-        master = IdleMaster(master_node)
+        master = MasterHand(master_node)
         master.start()
         try:
             targets = {name: np.array(pts[0]["q"], dtype=float) for name, pts in programs.items()}

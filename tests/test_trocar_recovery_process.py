@@ -24,7 +24,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
-from helpers import operator_command
+from helpers import MasterHand, operator_command
 from telesurg.services.bench.harness import Pipeline
 from telesurg.services.experiment.jinno import STARTS
 from telesurg.shared.bus import BusConfig, Node
@@ -173,25 +173,10 @@ PUSH_N = 60.0  # N at the tip, sideways (the forceps points down into the patien
 PUSH_S = 0.4  # s
 
 
-class PedalMaster(threading.Thread):
-    """A master at rest whose clutch pedal the test presses (250 Hz)."""
-
-    def __init__(self, node: Node) -> None:
-        super().__init__(daemon=True)
-        self.clutch, self.stop = False, threading.Event()
-        self.pose = node.outlet(node.keys.master("m1", "measured_cp"))
-        self.buttons = node.outlet(node.keys.master("m1", "buttons"))
-
-    def run(self) -> None:
-        while not self.stop.wait(0.004):
-            self.buttons.put(MasterButtons(self.buttons.header(), self.clutch, True))
-            self.pose.put(CartesianPose(self.pose.header(), "master", (0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 1.0)))
-
-
 class RcmConsole(Console):
     """The console, with the RCM error, the follow flag and the watchdog's causes as they come."""
 
-    def __init__(self, pipe: Pipeline, node: Node, master: PedalMaster) -> None:
+    def __init__(self, pipe: Pipeline, node: Node, master: MasterHand) -> None:
         super().__init__(pipe, node)
         self.master = master
         self.following, self.rcm = False, 0.0
@@ -224,7 +209,7 @@ def rcm_console(tmp_path: Path) -> Iterator[RcmConsole]:
         Node(BusConfig(connect=[p.spec.endpoint]), "local", "master_capture") as master_node,
         Node(BusConfig(connect=[p.spec.endpoint]), "local", "console") as node,
     ):
-        master = PedalMaster(master_node)
+        master = MasterHand(master_node)
         master.start()
         try:
             yield RcmConsole(p, node, master)
