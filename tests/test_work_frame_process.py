@@ -77,6 +77,29 @@ def angle_deg(a: np.ndarray, b: np.ndarray) -> float:
     return math.degrees(math.acos(max(-1.0, min(1.0, c))))
 
 
+def jog_work_x(pipe: Pipeline, seen: Seen, console: Node) -> np.ndarray:
+    """``jog frame=work axis=x direction=1`` for 1 s from the console; the tip's settled
+    displacement (m), jogged again when a load hold cut it short."""
+
+    def send(name: str, *args: str) -> CommandReply:
+        r: CommandReply = operator_command(console, console.keys.command("arm1"), "arm1", name, *args)
+        print(f"{name} {' '.join(args)} -> {'accepted' if r.accepted else 'REFUSED'}: {r.reason}")
+        return r
+
+    assert send("set_motion_mode", "mode=jog").accepted
+    for _ in range(4):
+        assert pipe.wait(lambda: seen.lease, 30), "no lease"
+        p0 = seen.settled_tip()
+        assert send("jog", "frame=work", "axis=x", "direction=1").accepted
+        time.sleep(1.0)
+        send("stop")
+        dj = seen.settled_tip() - p0
+        if np.linalg.norm(dj) > 0.01:  # (a load hold cut it short: again)
+            break
+    print(f"jog work +x → tip {np.round(dj * 1e3, 2)} mm")
+    return dj
+
+
 @pytest.fixture
 def site(tmp_path: Path, request: pytest.FixtureRequest) -> Iterator[tuple[Pipeline, Master, Seen, Node]]:
     site_dir = tmp_path / "site"
@@ -154,23 +177,8 @@ def test_master_and_jog_move_the_tip_along_the_work_frame(site: tuple[Pipeline, 
     assert abs(np.linalg.norm(dy) * 1e3 - 20.0) < 2.0
     master.clutch = False
 
-    def send(name: str, *args: str) -> CommandReply:
-        r: CommandReply = operator_command(console, console.keys.command("arm1"), "arm1", name, *args)
-        print(f"{name} {' '.join(args)} -> {'accepted' if r.accepted else 'REFUSED'}: {r.reason}")
-        return r
-
     assert pipe.wait(lambda: not seen.follow, 5)
-    assert send("set_motion_mode", "mode=jog").accepted
-    for _ in range(4):
-        assert pipe.wait(lambda: seen.lease, 30), "no lease"
-        p0 = seen.settled_tip()
-        assert send("jog", "frame=work", "axis=x", "direction=1").accepted
-        time.sleep(1.0)
-        send("stop")
-        dj = seen.settled_tip() - p0
-        if np.linalg.norm(dj) > 0.01:  # (a load hold cut it short: again)
-            break
-    print(f"jog work +x → tip {np.round(dj * 1e3, 2)} mm")
+    dj = jog_work_x(pipe, seen, console)
     assert angle_deg(dj, work_x) < 3.0, f"{angle_deg(dj, work_x):.1f}° from the work frame's +x"
     assert angle_deg(dj, dx) < 5.0  # the jog and the master agree on the work frame
 
@@ -201,20 +209,5 @@ def test_with_the_endoscope_camera_the_work_frame_is_its_view(
     assert angle_deg(cam_x, R_WORK[:, 0]) > 30.0  # the two frames differ: the test can tell them apart
     time.sleep(0.5)
 
-    def send(name: str, *args: str) -> CommandReply:
-        r: CommandReply = operator_command(console, console.keys.command("arm1"), "arm1", name, *args)
-        print(f"{name} {' '.join(args)} -> {'accepted' if r.accepted else 'REFUSED'}: {r.reason}")
-        return r
-
-    assert send("set_motion_mode", "mode=jog").accepted
-    for _ in range(4):
-        assert pipe.wait(lambda: seen.lease, 30), "no lease"
-        p0 = seen.settled_tip()
-        assert send("jog", "frame=work", "axis=x", "direction=1").accepted
-        time.sleep(1.0)
-        send("stop")
-        dj = seen.settled_tip() - p0
-        if np.linalg.norm(dj) > 0.01:  # (a load hold cut it short: again)
-            break
-    print(f"jog work +x → tip {np.round(dj * 1e3, 2)} mm")
+    dj = jog_work_x(pipe, seen, console)
     assert angle_deg(dj, cam_x) < 3.0, f"{angle_deg(dj, cam_x):.1f}° from the camera's image right"
