@@ -8,6 +8,10 @@ refused (docs/security.md):
   attachment; default the decoders' 64 KiB limit + 1 KiB for an authenticator) is dropped where it
   enters, before it is delivered to any subscriber; bulk keys (:data:`BULK_CLASSES`: camera
   frames) have their own, larger ``max_bulk_bytes``;
+* **link guard** (services/router/linkguard.py): a client link (TCP connection) that receives
+  more than ``link_rx_budget_mb_s`` on average, beyond a burst of ``link_rx_burst_mb``, is shut
+  down, so zenoh closes that session: a flooder's megabytes stop crossing the host. Each cut is
+  logged and published as a ``link_cut`` event on ``events/router`` naming the link;
 * **diagnostics** (services/router/zlog.py): ``acl_log = "denied"`` logs access-control denials
   only (``"all"``: every decision), refused TLS handshakes are always logged with the peer and
   the reason.
@@ -24,11 +28,12 @@ from __future__ import annotations
 import json
 import logging
 import threading
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
 from telesurg.services.common import service_main
+from telesurg.services.router.linkguard import LinkCut, LinkGuard
 from telesurg.services.router.zlog import ACL_MODES, ZenohLogRelay
 from telesurg.shared.bus import BusConfig
 from telesurg.shared.errors import ConfigError
@@ -58,7 +63,7 @@ CAPPED_MESSAGES = ("put", "delete", "query", "reply")
 class RouterConfig:
     """Router process config."""
 
-    site: str = "local"  # unused by the router itself; kept for a uniform CLI
+    site: str = "local"  # key prefix telesurg/<site> of the router's events (link guard)
     service: str = "router"  # instance id for logs
     bus: BusConfig = field(default_factory=lambda: BusConfig(mode="router", listen=["tcp/127.0.0.1:7447"]))
     # bytes (payload + attachment) a put/query/reply on a control or service key may have; larger
@@ -77,6 +82,15 @@ class RouterConfig:
     # docs/security.md#flood-memory-and-holds). The site's messages are small and cross loopback
     # TCP at ~1 GB/s; off, no client negotiates SHM with the router.
     shared_memory: bool = False
+    # MB/s (10**6 bytes) a client link may send to the router on average (link guard,
+    # services/router/linkguard.py); a link whose bucket of link_rx_burst_mb runs dry is shut down.
+    # The busiest genuine link measured sent 0.4 MB/s (docs/security.md#link-guard); a 1 MiB flood
+    # sends hundreds. 0 = no guard.
+    link_rx_budget_mb_s: float = 50.0
+    # MB a link may send at once above the budget (a burst of camera frames, a recording's start)
+    link_rx_burst_mb: float = 50.0
+    # s between two looks at the links' byte counters: bounds what a flooder sends before the cut
+    link_guard_period_s: float = 0.05
 
     def validate(self) -> None:
         """Raise ConfigError naming the valid options."""
@@ -86,6 +100,15 @@ class RouterConfig:
             value = getattr(self, name)
             if value != 0 and not 1024 <= value <= 1 << 30:
                 raise ConfigError(f"router {name}={value} outside [1024, 2**30] (0 = no cap)")
+        if self.link_rx_budget_mb_s != 0 and not 1.0 <= self.link_rx_budget_mb_s <= 10_000.0:
+            raise ConfigError(
+                f"router link_rx_budget_mb_s={self.link_rx_budget_mb_s} outside [1, 10000] MB/s "
+                "(0 = no guard)"
+            )
+        if not 1.0 <= self.link_rx_burst_mb <= 10_000.0:
+            raise ConfigError(f"router link_rx_burst_mb={self.link_rx_burst_mb} outside [1, 10000] MB")
+        if not 0.01 <= self.link_guard_period_s <= 1.0:
+            raise ConfigError(f"router link_guard_period_s={self.link_guard_period_s} outside [0.01, 1] s")
 
 
 def size_caps(cfg: RouterConfig, site: str = "*") -> list[dict[str, Any]]:
@@ -136,13 +159,59 @@ def run(cfg: RouterConfig, stop: threading.Event) -> None:
         cfg.acl_log,
         "on" if cfg.shared_memory else "off",
     )
+    guard = None
+    if cfg.link_rx_budget_mb_s:
+        report = link_cut_reporter(session, cfg)
+        guard = LinkGuard(cfg.link_rx_budget_mb_s, cfg.link_rx_burst_mb, report, cfg.link_guard_period_s)
+        guard.start()
+        log.info(
+            "link guard: %g MB/s a link, burst %g MB, every %g s",
+            cfg.link_rx_budget_mb_s,
+            cfg.link_rx_burst_mb,
+            cfg.link_guard_period_s,
+        )
     try:
         stop.wait()
     finally:
+        if guard is not None:
+            guard.stop()
+            busiest = sorted(guard.peaks().items(), key=lambda kv: -kv[1][0])[:8]
+            log.info(
+                "link guard: %d links cut; busiest links (peak MB/s over 0.5 s, MB in all): %s",
+                len(guard.cuts),
+                ", ".join(f"{peer} {rate} MB/s {mb} MB" for peer, (rate, mb) in busiest) or "none",
+            )
         session.close()  # type: ignore[no-untyped-call]
         log.info(
             "router stopped: %d ACL denials, %d refused TLS handshakes", relay.denied, relay.tls_failures
         )
+
+
+def link_cut_reporter(session: Any, cfg: RouterConfig) -> Callable[[LinkCut], None]:
+    """What the link guard does with a cut: log it (WARNING) and publish a ``link_cut`` event
+    (severity ``warning``) on ``events/router``, signed as ``router`` like every service's events
+    — if the router has a keyring (``--keyring``; ``telesurg up`` gives it the site's). Without
+    one the cut is only logged."""
+    from telesurg.shared.auth import Keyring, Signer, default_keys_dir
+    from telesurg.shared.bus import Outlet
+    from telesurg.shared.keys import Keys
+    from telesurg.shared.messages import SafetyEvent
+
+    outlet: Outlet | None = None
+    try:
+        keyring = Keyring.load(cfg.bus.keys_dir or default_keys_dir(cfg.site))
+        signer = Signer(cfg.service, keyring.ensure(cfg.service))
+        key = Keys(cfg.site).events(cfg.service)
+        outlet = Outlet(session.declare_publisher(key), cfg.service, signer, key)
+    except ConfigError as exc:
+        log.warning("link guard: cuts are logged, not published as events (%s)", exc)
+
+    def report(cut: LinkCut) -> None:
+        log.warning("link_cut: %s", cut.describe())
+        if outlet is not None:
+            outlet.put(SafetyEvent(outlet.header(), "", "link_cut", "warning", cut.describe()))
+
+    return report
 
 
 def main(argv: Sequence[str] | None = None) -> int:

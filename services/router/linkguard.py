@@ -1,0 +1,238 @@
+"""The router's link guard: cut off a client link that sends more than its byte budget.
+
+zenoh 1.10.2's router cannot close a session whose messages its ACL or size caps drop: a flooder
+keeps its link and its megabytes keep crossing the host's loopback TCP (docs/security.md, "Flood:
+where the HOLDs come from"). The guard works below zenoh, on the router process's own sockets:
+every ``period_s`` it lists the TCP sockets in ``/proc/self/fd``, reads each connected one's
+``tcpi_bytes_received`` (``getsockopt(IPPROTO_TCP, TCP_INFO)``; bytes the kernel received on
+the connection, whether or not zenoh has read them yet) and charges them to a token bucket per
+link (``budget_mb_s`` refill, ``burst_mb`` depth). A link whose bucket runs dry is shut down
+(``shutdown(SHUT_RDWR)``): zenoh's read fails, it closes that transport and the client's session
+loses the router; the other links are untouched. A client that reconnects gets a new link with
+a full bucket and is cut again when it floods again. Listening sockets are never touched.
+
+The guard sees links, not identities: a link is a peer address (for a local client,
+``127.0.0.1:<ephemeral port>``); TLS and the certificate's name are above it.
+
+Example (one pass, as the router's thread does it every ``period_s``)::
+
+    guard = LinkGuard(budget_mb_s=200.0, burst_mb=100.0, on_cut=print)
+    guard.scan()
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import os
+import socket
+import struct
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+log = logging.getLogger(__name__)
+
+#: ``struct tcp_info`` (linux/tcp.h): ``tcpi_state`` is its first byte, ``__u64
+#: tcpi_bytes_received`` (Linux ≥ 4.1) follows 8 bytes of flags, 24 ``__u32`` fields and four
+#: ``__u64`` (pacing_rate, max_pacing_rate, bytes_acked): offset 128 (checked on Linux 6.18 by
+#: ``tests/test_link_guard.py``)
+TCPI_STATE_OFFSET = 0
+TCPI_BYTES_RECEIVED_OFFSET = 128
+TCP_INFO_LEN = 136
+TCP_ESTABLISHED = 1
+TCP_LISTEN = 10
+
+
+@dataclass(frozen=True)
+class LinkCut:
+    """One link the guard shut down."""
+
+    peer: str  # the client's address, ``host:port``
+    local: str  # the router's end, ``host:port``
+    received_bytes: int  # bytes received on the link in all, when it was cut
+    seen_s: float  # since the guard first saw the link (0: cut at the first look)
+    rate_mb_s: float | None  # received rate since the previous look, MB/s (None at the first look)
+    budget_mb_s: float  # the guard's budget and burst when it cut
+    burst_mb: float
+
+    def describe(self) -> str:
+        """The event's text."""
+        rate = "at the first look"
+        if self.rate_mb_s is not None:
+            rate = f"{self.rate_mb_s:.0f} MB/s at the last look"
+        return (
+            f"cut off link from {self.peer} (to {self.local}): {self.received_bytes / 1e6:.1f} MB received "
+            f"in {self.seen_s:.2f} s since first seen, {rate}; budget {self.budget_mb_s:g} MB/s, "
+            f"burst {self.burst_mb:g} MB"
+        )
+
+
+@dataclass
+class _Link:
+    peer: str
+    local: str
+    first_t: float
+    last_t: float
+    last_bytes: int
+    tokens: float  # bytes the link may still receive at once
+    peak_rate: float = 0.0  # highest rate over a window of at least ``PEAK_WINDOW_S``, bytes/s
+    window_t: float = 0.0
+    window_bytes: int = 0
+
+
+PEAK_WINDOW_S = 0.5
+
+
+@dataclass
+class LinkGuard:
+    """Token bucket per connected TCP link of this process; see the module docstring.
+
+    ``on_cut(cut)`` runs on the guard's thread after a link is shut down.
+    """
+
+    budget_mb_s: float  # refill of each link's bucket, MB/s
+    burst_mb: float  # depth of the bucket (what a link may send at once above the budget), MB
+    on_cut: Callable[[LinkCut], None] = lambda cut: None
+    period_s: float = 0.05  # scan period, s
+    cuts: list[LinkCut] = field(default_factory=list)
+    _links: dict[int, _Link] = field(default_factory=dict)  # socket inode -> state
+    # links seen and closed: peer -> (peak B/s, bytes)
+    _peaks: dict[str, tuple[float, int]] = field(default_factory=dict)
+    _stop: threading.Event = field(default_factory=threading.Event)
+    _thread: threading.Thread | None = None
+
+    # -- one pass -------------------------------------------------------------------------
+    def scan(self, now: float | None = None) -> list[LinkCut]:
+        """Inspect every connected TCP socket once; shut down those over budget; the cuts."""
+        now = time.monotonic() if now is None else now
+        seen: set[int] = set()
+        cuts: list[LinkCut] = []
+        for inode, fd in _socket_fds():
+            try:
+                dup = os.dup(fd)
+            except OSError:  # closed meanwhile
+                continue
+            try:
+                if os.fstat(dup).st_ino != inode:  # the fd number was reused meanwhile
+                    continue
+                with socket.socket(fileno=dup) as sock:
+                    dup = -1  # the socket object owns it now
+                    cut = self._inspect(sock, inode, now)
+                seen.add(inode)
+                if cut is not None:
+                    cuts.append(cut)
+            except OSError:
+                continue
+            finally:
+                if dup >= 0:
+                    os.close(dup)
+        for inode in set(self._links) - seen:  # closed links
+            gone = self._links.pop(inode)
+            self._keep_peak(gone)
+        for cut in cuts:
+            self.cuts.append(cut)
+            try:
+                self.on_cut(cut)
+            except Exception:  # (a report that fails must not stop the guard)
+                log.exception("link guard: reporting a cut failed")
+        return cuts
+
+    def _inspect(self, sock: socket.socket, inode: int, now: float) -> LinkCut | None:
+        if sock.family not in (socket.AF_INET, socket.AF_INET6) or sock.type != socket.SOCK_STREAM:
+            return None
+        info = sock.getsockopt(socket.IPPROTO_TCP, socket.TCP_INFO, TCP_INFO_LEN)
+        if len(info) < TCP_INFO_LEN or info[TCPI_STATE_OFFSET] != TCP_ESTABLISHED:
+            return None  # listening, closing, or a kernel without tcpi_bytes_received
+        received = struct.unpack_from("=Q", info, TCPI_BYTES_RECEIVED_OFFSET)[0]  # (host order)
+        link = self._links.get(inode)
+        burst = self.burst_mb * 1e6
+        if link is None:
+            peer, local = _addr(sock.getpeername()), _addr(sock.getsockname())
+            # everything it received before the guard first saw it counts
+            link = _Link(peer, local, now, now, 0, burst, window_t=now)
+            self._links[inode] = link
+        dt = max(now - link.last_t, 0.0)
+        got = received - link.last_bytes
+        link.tokens = min(burst, link.tokens + self.budget_mb_s * 1e6 * dt) - got
+        rate = got / dt if dt > 0 else 0.0
+        link.last_t, link.last_bytes = now, received
+        link.window_bytes += got
+        if now - link.window_t >= PEAK_WINDOW_S:
+            link.peak_rate = max(link.peak_rate, link.window_bytes / (now - link.window_t))
+            link.window_t, link.window_bytes = now, 0
+        if link.tokens >= 0:
+            return None
+        with contextlib.suppress(OSError):  # (already closing)
+            sock.shutdown(socket.SHUT_RDWR)
+        del self._links[inode]
+        self._keep_peak(link)
+        return LinkCut(
+            link.peer,
+            link.local,
+            received,
+            round(now - link.first_t, 3),
+            round(rate / 1e6, 1) if dt > 0 else None,
+            self.budget_mb_s,
+            self.burst_mb,
+        )
+
+    def _keep_peak(self, link: _Link) -> None:
+        total = link.last_bytes
+        if link.peer in self._peaks:
+            total = max(total, self._peaks[link.peer][1])
+        self._peaks[link.peer] = (max(link.peak_rate, self._peaks.get(link.peer, (0.0, 0))[0]), total)
+        while len(self._peaks) > 256:  # keep the newest
+            self._peaks.pop(next(iter(self._peaks)))
+
+    def peaks(self) -> dict[str, tuple[float, int]]:
+        """Every link seen: peer -> (highest received rate over ≥ 0.5 s windows in MB/s, MB in all)."""
+        out = {p: (round(r / 1e6, 2), round(b / 1e6, 1)) for p, (r, b) in self._peaks.items()}
+        for link in self._links.values():
+            out[link.peer] = (round(link.peak_rate / 1e6, 2), round(link.last_bytes / 1e6, 1))
+        return out
+
+    # -- the thread -----------------------------------------------------------------------
+    def start(self) -> LinkGuard:
+        """Scan every ``period_s`` on a daemon thread until :meth:`stop`."""
+        self._thread = threading.Thread(target=self._loop, name="link-guard", daemon=True)
+        self._thread.start()
+        return self
+
+    def _loop(self) -> None:
+        while not self._stop.wait(self.period_s):
+            try:
+                self.scan()
+            except Exception:  # (never let the guard die silently)
+                log.exception("link guard: scan failed")
+
+    def stop(self) -> None:
+        """Stop the thread (waits for it)."""
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join()
+
+
+def _socket_fds() -> list[tuple[int, int]]:
+    """(inode, fd) of every socket this process has open."""
+    out = []
+    try:
+        fds = os.listdir("/proc/self/fd")
+    except OSError:
+        return out
+    for name in fds:
+        try:
+            target = os.readlink(f"/proc/self/fd/{name}")
+        except OSError:
+            continue
+        if target.startswith("socket:["):
+            out.append((int(target[8:-1]), int(name)))
+    return out
+
+
+def _addr(a: object) -> str:
+    if isinstance(a, tuple) and len(a) >= 2:
+        host = str(a[0])
+        return f"[{host}]:{a[1]}" if ":" in host else f"{host}:{a[1]}"
+    return str(a)
