@@ -96,6 +96,9 @@ class LinkGuard:
     burst_mb: float  # depth of the bucket (what a link may send at once above the budget), MB
     on_cut: Callable[[LinkCut], None] = lambda cut: None
     period_s: float = 0.05  # scan period, s
+    # local ports whose links are guarded; None: the ports this process listens on (found at each
+    # scan), i.e. the links clients opened to the router, not connections the process made itself
+    ports: frozenset[int] | None = None
     cuts: list[LinkCut] = field(default_factory=list)
     _links: dict[int, _Link] = field(default_factory=dict)  # socket inode -> state
     # links seen and closed: peer -> (peak B/s, bytes)
@@ -109,25 +112,28 @@ class LinkGuard:
         now = time.monotonic() if now is None else now
         seen: set[int] = set()
         cuts: list[LinkCut] = []
-        for inode, fd in _socket_fds():
-            try:
-                dup = os.dup(fd)
-            except OSError:  # closed meanwhile
-                continue
-            try:
-                if os.fstat(dup).st_ino != inode:  # the fd number was reused meanwhile
+        established: list[tuple[int, socket.socket]] = []
+        listening: set[int] = set()
+        try:
+            for inode, sock in _tcp_sockets():
+                if sock[1] == TCP_LISTEN:
+                    listening.add(sock[2])
+                    sock[0].close()
+                elif sock[1] == TCP_ESTABLISHED:
+                    established.append((inode, sock[0]))
+                else:
+                    sock[0].close()
+            ports = self.ports if self.ports is not None else listening
+            for inode, s in established:
+                if s.getsockname()[1] not in ports:
                     continue
-                with socket.socket(fileno=dup) as sock:
-                    dup = -1  # the socket object owns it now
-                    cut = self._inspect(sock, inode, now)
                 seen.add(inode)
+                cut = self._inspect(s, inode, now)
                 if cut is not None:
                     cuts.append(cut)
-            except OSError:
-                continue
-            finally:
-                if dup >= 0:
-                    os.close(dup)
+        finally:
+            for _, s in established:
+                s.close()
         for inode in set(self._links) - seen:  # closed links
             gone = self._links.pop(inode)
             self._keep_peak(gone)
@@ -140,16 +146,17 @@ class LinkGuard:
         return cuts
 
     def _inspect(self, sock: socket.socket, inode: int, now: float) -> LinkCut | None:
-        if sock.family not in (socket.AF_INET, socket.AF_INET6) or sock.type != socket.SOCK_STREAM:
+        try:
+            info = sock.getsockopt(socket.IPPROTO_TCP, socket.TCP_INFO, TCP_INFO_LEN)
+            peer, local = _addr(sock.getpeername()), _addr(sock.getsockname())
+        except OSError:  # closed meanwhile
             return None
-        info = sock.getsockopt(socket.IPPROTO_TCP, socket.TCP_INFO, TCP_INFO_LEN)
-        if len(info) < TCP_INFO_LEN or info[TCPI_STATE_OFFSET] != TCP_ESTABLISHED:
-            return None  # listening, closing, or a kernel without tcpi_bytes_received
+        if len(info) < TCP_INFO_LEN:
+            return None  # a kernel without tcpi_bytes_received
         received = struct.unpack_from("=Q", info, TCPI_BYTES_RECEIVED_OFFSET)[0]  # (host order)
         link = self._links.get(inode)
         burst = self.burst_mb * 1e6
         if link is None:
-            peer, local = _addr(sock.getpeername()), _addr(sock.getsockname())
             # everything it received before the guard first saw it counts
             link = _Link(peer, local, now, now, 0, burst, window_t=now)
             self._links[inode] = link
@@ -167,6 +174,8 @@ class LinkGuard:
         with contextlib.suppress(OSError):  # (already closing)
             sock.shutdown(socket.SHUT_RDWR)
         del self._links[inode]
+        if now > link.window_t:  # (the window it was cut in)
+            link.peak_rate = max(link.peak_rate, link.window_bytes / (now - link.window_t))
         self._keep_peak(link)
         return LinkCut(
             link.peer,
@@ -212,6 +221,34 @@ class LinkGuard:
         self._stop.set()
         if self._thread is not None:
             self._thread.join()
+
+
+def _tcp_sockets() -> list[tuple[int, tuple[socket.socket, int, int]]]:
+    """(inode, (socket, TCP state, local port)) of every TCP socket this process has open; each
+    socket a duplicate of the process's descriptor (the caller closes it)."""
+    out = []
+    for inode, fd in _socket_fds():
+        try:
+            dup = os.dup(fd)
+        except OSError:  # closed meanwhile
+            continue
+        try:
+            if os.fstat(dup).st_ino != inode:  # the fd number was reused meanwhile
+                os.close(dup)
+                continue
+            sock = socket.socket(fileno=dup)
+        except OSError:
+            os.close(dup)
+            continue
+        try:
+            if sock.family not in (socket.AF_INET, socket.AF_INET6) or sock.type != socket.SOCK_STREAM:
+                sock.close()
+                continue
+            state = sock.getsockopt(socket.IPPROTO_TCP, socket.TCP_INFO, 8)[TCPI_STATE_OFFSET]
+            out.append((inode, (sock, state, int(sock.getsockname()[1]))))
+        except (OSError, IndexError):
+            sock.close()
+    return out
 
 
 def _socket_fds() -> list[tuple[int, int]]:
