@@ -91,6 +91,10 @@ class RouterConfig:
     link_rx_burst_mb: float = 50.0
     # s between two looks at the links' byte counters: bounds what a flooder sends before the cut
     link_guard_period_s: float = 0.05
+    # s a cut client session's new links are cut at once (it reconnects by itself), doubling with
+    # each further cut of the same zenoh session up to link_max_cooldown_s. 0 = no cool-down.
+    link_cooldown_s: float = 1.0
+    link_max_cooldown_s: float = 60.0
 
     def validate(self) -> None:
         """Raise ConfigError naming the valid options."""
@@ -107,6 +111,11 @@ class RouterConfig:
             )
         if not 1.0 <= self.link_rx_burst_mb <= 10_000.0:
             raise ConfigError(f"router link_rx_burst_mb={self.link_rx_burst_mb} outside [1, 10000] MB")
+        if not 0.0 <= self.link_cooldown_s <= self.link_max_cooldown_s <= 86_400.0:
+            raise ConfigError(
+                f"router link_cooldown_s={self.link_cooldown_s}, link_max_cooldown_s="
+                f"{self.link_max_cooldown_s}: need 0 <= link_cooldown_s <= link_max_cooldown_s <= 86400"
+            )
         if not 0.01 <= self.link_guard_period_s <= 1.0:
             raise ConfigError(f"router link_guard_period_s={self.link_guard_period_s} outside [0.01, 1] s")
 
@@ -147,6 +156,12 @@ def run(cfg: RouterConfig, stop: threading.Event) -> None:
     if caps:
         z.insert_json5("low_pass_filter", json.dumps(caps))
     z.insert_json5("transport/shared_memory/enabled", json.dumps(cfg.shared_memory))
+    if cfg.link_rx_budget_mb_s and cfg.link_cooldown_s:
+        # the link guard asks its own session which client session is at a link address; a client
+        # reaches the admin space (@/**) only where the ACL lets it query that (the site's: no)
+        z.insert_json5(
+            "adminspace", json.dumps({"enabled": True, "permissions": {"read": True, "write": False}})
+        )
     try:
         session = zenoh.open(z)
     except zenoh.ZError as exc:
@@ -162,7 +177,15 @@ def run(cfg: RouterConfig, stop: threading.Event) -> None:
     guard = None
     if cfg.link_rx_budget_mb_s:
         report = link_cut_reporter(session, cfg)
-        guard = LinkGuard(cfg.link_rx_budget_mb_s, cfg.link_rx_burst_mb, report, cfg.link_guard_period_s)
+        guard = LinkGuard(
+            cfg.link_rx_budget_mb_s,
+            cfg.link_rx_burst_mb,
+            report,
+            cfg.link_guard_period_s,
+            identify=link_sessions(session) if cfg.link_cooldown_s else None,
+            cooldown_s=cfg.link_cooldown_s,
+            max_cooldown_s=cfg.link_max_cooldown_s,
+        )
         guard.start()
         log.info(
             "link guard: %g MB/s a link, burst %g MB, every %g s",
@@ -185,6 +208,27 @@ def run(cfg: RouterConfig, stop: threading.Event) -> None:
         log.info(
             "router stopped: %d ACL denials, %d refused TLS handshakes", relay.denied, relay.tls_failures
         )
+
+
+def link_sessions(session: Any) -> Callable[[list[str]], dict[str, str]]:
+    """The link guard's look-up: peer addresses (``host:port``) -> the zenoh session id of the
+    client at each, from the router's admin space (``@/<zid>/router``: each session's links)."""
+    key = f"@/{session.zid()}/router"
+
+    def identify(peers: list[str]) -> dict[str, str]:
+        wanted = set(peers)
+        out: dict[str, str] = {}
+        for reply in session.get(key, timeout=1.0):
+            if reply.ok is None:
+                continue
+            for s in json.loads(reply.ok.payload.to_bytes()).get("sessions", []):
+                for link in s.get("links", []):
+                    addr = str(link.get("dst", "")).partition("/")[2].partition("#")[0]
+                    if addr in wanted:
+                        out[addr] = str(s.get("peer", ""))
+        return out
+
+    return identify
 
 
 def link_cut_reporter(session: Any, cfg: RouterConfig) -> Callable[[LinkCut], None]:

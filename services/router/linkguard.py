@@ -12,7 +12,12 @@ loses the router; the other links are untouched. A client that reconnects gets a
 a full bucket and is cut again when it floods again. Listening sockets are never touched.
 
 The guard sees links, not identities: a link is a peer address (for a local client,
-``127.0.0.1:<ephemeral port>``); TLS and the certificate's name are above it.
+``127.0.0.1:<ephemeral port>``); TLS and the certificate's name are above it. With ``identify``
+(the router gives it a look-up in its zenoh admin space: the session id of the client at each link
+address) it also recognises a **repeat offender**: a zenoh client whose link is cut reconnects
+by itself with the same session id, and each of its new links is cut at once for a cool-down
+that doubles with every cut of that session (``cooldown_s``, up to ``max_cooldown_s``). A new
+session (a restarted flooder) starts with a full bucket again.
 
 Example (one pass, as the router's thread does it every ``period_s``)::
 
@@ -56,16 +61,23 @@ class LinkCut:
     rate_mb_s: float | None  # received rate since the previous look, MB/s (None at the first look)
     budget_mb_s: float  # the guard's budget and burst when it cut
     burst_mb: float
+    session: str = ""  # the client's zenoh session id, if ``identify`` knew it
+    strikes: int = 1  # cuts of that session so far (this one included)
+    banned_s: float = 0.0  # its new links are cut at once for this long (0: no cool-down)
 
     def describe(self) -> str:
         """The event's text."""
         rate = "at the first look"
         if self.rate_mb_s is not None:
             rate = f"{self.rate_mb_s:.0f} MB/s at the last look"
+        who = ""
+        if self.session:
+            who = f"; session {self.session}, cut {self.strikes} times"
+            who += f", its new links cut for {self.banned_s:g} s"
         return (
             f"cut off link from {self.peer} (to {self.local}): {self.received_bytes / 1e6:.1f} MB received "
             f"in {self.seen_s:.2f} s since first seen, {rate}; budget {self.budget_mb_s:g} MB/s, "
-            f"burst {self.burst_mb:g} MB"
+            f"burst {self.burst_mb:g} MB{who}"
         )
 
 
@@ -99,6 +111,11 @@ class LinkGuard:
     # local ports whose links are guarded; None: the ports this process listens on (found at each
     # scan), i.e. the links clients opened to the router, not connections the process made itself
     ports: frozenset[int] | None = None
+    # peer addresses -> the zenoh session id at each (those it knows); None: no repeat offenders
+    identify: Callable[[list[str]], dict[str, str]] | None = None
+    cooldown_s: float = 1.0  # a repeat offender's new links are cut for this long after its 1st cut,
+    max_cooldown_s: float = 60.0  # doubling with each further cut, up to this
+    _strikes: dict[str, tuple[int, float]] = field(default_factory=dict)  # session -> (cuts, banned until)
     cuts: list[LinkCut] = field(default_factory=list)
     _links: dict[int, _Link] = field(default_factory=dict)  # socket inode -> state
     # links seen and closed: peer -> (peak B/s, bytes)
@@ -124,11 +141,11 @@ class LinkGuard:
                 else:
                     sock[0].close()
             ports = self.ports if self.ports is not None else listening
-            for inode, s in established:
-                if s.getsockname()[1] not in ports:
-                    continue
+            guarded = [(inode, s) for inode, s in established if s.getsockname()[1] in ports]
+            banned = self._banned_sessions(guarded, now)
+            for inode, s in guarded:
                 seen.add(inode)
-                cut = self._inspect(s, inode, now)
+                cut = self._inspect(s, inode, now, banned)
                 if cut is not None:
                     cuts.append(cut)
         finally:
@@ -145,7 +162,35 @@ class LinkGuard:
                 log.exception("link guard: reporting a cut failed")
         return cuts
 
-    def _inspect(self, sock: socket.socket, inode: int, now: float) -> LinkCut | None:
+    def _banned_sessions(self, guarded: list[tuple[int, socket.socket]], now: float) -> dict[int, str]:
+        """inode -> session id of the new links whose session is in its cool-down."""
+        self._strikes = {k: v for k, v in self._strikes.items() if now < v[1] + self.max_cooldown_s}
+        if self.identify is None or not any(until > now for _, until in self._strikes.values()):
+            return {}
+        new = {}
+        for inode, s in guarded:
+            if inode not in self._links:
+                with contextlib.suppress(OSError):
+                    new[_addr(s.getpeername())] = inode
+        if not new:
+            return {}
+        sessions = self._identify(list(new))
+        return {
+            new[peer]: zid
+            for peer, zid in sessions.items()
+            if peer in new and self._strikes.get(zid, (0, 0.0))[1] > now
+        }
+
+    def _identify(self, peers: list[str]) -> dict[str, str]:
+        if self.identify is None:
+            return {}
+        try:
+            return self.identify(peers)
+        except Exception:  # (the look-up is a help, not a condition)
+            log.exception("link guard: identifying links failed")
+            return {}
+
+    def _inspect(self, sock: socket.socket, inode: int, now: float, banned: dict[int, str]) -> LinkCut | None:
         try:
             info = sock.getsockopt(socket.IPPROTO_TCP, socket.TCP_INFO, TCP_INFO_LEN)
             peer, local = _addr(sock.getpeername()), _addr(sock.getsockname())
@@ -169,10 +214,16 @@ class LinkGuard:
         if now - link.window_t >= PEAK_WINDOW_S:
             link.peak_rate = max(link.peak_rate, link.window_bytes / (now - link.window_t))
             link.window_t, link.window_bytes = now, 0
-        if link.tokens >= 0:
+        if link.tokens >= 0 and inode not in banned:
             return None
+        session = banned.get(inode) or self._identify([link.peer]).get(link.peer, "")
         with contextlib.suppress(OSError):  # (already closing)
             sock.shutdown(socket.SHUT_RDWR)
+        strikes, cooldown = 1, 0.0
+        if session:
+            strikes = self._strikes.get(session, (0, 0.0))[0] + 1
+            cooldown = min(self.cooldown_s * 2 ** (strikes - 1), self.max_cooldown_s)
+            self._strikes[session] = (strikes, now + cooldown)
         del self._links[inode]
         if now > link.window_t:  # (the window it was cut in)
             link.peak_rate = max(link.peak_rate, link.window_bytes / (now - link.window_t))
@@ -185,6 +236,9 @@ class LinkGuard:
             round(rate / 1e6, 1) if dt > 0 else None,
             self.budget_mb_s,
             self.burst_mb,
+            session,
+            strikes,
+            cooldown,
         )
 
     def _keep_peak(self, link: _Link) -> None:
