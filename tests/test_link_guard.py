@@ -8,9 +8,9 @@ down a client's TCP link once it has sent more than its byte budget. Here:
   the link over budget is shut down (its peer reads end-of-stream), a quiet link and the
   listening socket are left alone;
 * the real router process, 1 MiB puts from a client in a process of its own: the router cuts the
-  flooder's link (and each link it reconnects with) after a bounded amount of data, publishes a
-  signed ``link_cut`` event naming the flooder's address, and a genuine low-rate client keeps its
-  link and its messages — the same sockets before and after, no cut among them.
+  flooder's link after a bounded amount of data, publishes a signed ``link_cut`` event naming the
+  flooder's address and zenoh session, and a genuine low-rate client keeps its link and its
+  messages — the same sockets before and after, no cut among them.
 """
 
 from __future__ import annotations
@@ -114,7 +114,7 @@ conf.insert_json5("connect/endpoints", json.dumps([sys.argv[1]]))
 payload = os.urandom(1 << 20)
 with zenoh.open(conf) as s:
     pub = s.declare_publisher("telesurg/local/slave/arm1/servo_jp")
-    print("ready", flush=True)
+    print("ready", s.zid(), flush=True)
     sys.stdin.readline()
     end = time.monotonic() + float(sys.argv[2])
     n = 0
@@ -191,7 +191,8 @@ def test_router_cuts_off_a_flooding_client_and_keeps_the_genuine_one(tmp_path: P
                 text=True,
             )
             assert flooder.stdout is not None and flooder.stdin is not None
-            assert flooder.stdout.readline().strip() == "ready"
+            ready, flooder_zid = flooder.stdout.readline().split()
+            assert ready == "ready"
             flooder_ports = _ports_to(flooder.pid, port)
             n_before = len(genuine)
             flooder.stdin.write("go\n")
@@ -224,6 +225,9 @@ def test_router_cuts_off_a_flooding_client_and_keeps_the_genuine_one(tmp_path: P
                 # bounded: the burst and budget, plus what loopback carries between two looks
                 assert float(m.group(2)) < 400, text
             assert cut_ports & flooder_ports, (cut_ports, flooder_ports)
+            # the flooder's session is named, and it reconnects by itself: its new links are cut at once
+            assert f"session {flooder_zid}, cut 1 time," in cut_text[0], cut_text[0]
+            print("repeat cuts:", [t for t in cut_text if "cut 1 time," not in t][:2])
             assert not cut_ports & genuine_ports, "a genuine link was cut"
             # the genuine client kept its links (the same sockets) and its messages
             assert genuine_ports <= _ports_to(os.getpid(), port)

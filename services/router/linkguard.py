@@ -72,7 +72,7 @@ class LinkCut:
             rate = f"{self.rate_mb_s:.0f} MB/s at the last look"
         who = ""
         if self.session:
-            who = f"; session {self.session}, cut {self.strikes} times"
+            who = f"; session {self.session}, cut {self.strikes} time{'s' if self.strikes > 1 else ''}"
             who += f", its new links cut for {self.banned_s:g} s"
         return (
             f"cut off link from {self.peer} (to {self.local}): {self.received_bytes / 1e6:.1f} MB received "
