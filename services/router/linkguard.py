@@ -16,8 +16,9 @@ The guard sees links, not identities: a link is a peer address (for a local clie
 (the router gives it a look-up in its zenoh admin space: the session id of the client at each link
 address) it also recognises a **repeat offender**: a zenoh client whose link is cut reconnects
 by itself with the same session id, and each of its new links is cut at once for a cool-down
-that doubles with every cut of that session (``cooldown_s``, up to ``max_cooldown_s``). A new
-session (a restarted flooder) starts with a full bucket again.
+that doubles with every cut of that session (``cooldown_s``, up to ``max_cooldown_s``); after
+the cool-down its new links get the budget but no burst. A new session (a restarted flooder)
+starts with a full bucket again.
 
 Example (one pass, as the router's thread does it every ``period_s``)::
 
@@ -142,10 +143,10 @@ class LinkGuard:
                     sock[0].close()
             ports = self.ports if self.ports is not None else listening
             guarded = [(inode, s) for inode, s in established if s.getsockname()[1] in ports]
-            banned = self._banned_sessions(guarded, now)
+            offenders = self._offenders(guarded, now)
             for inode, s in guarded:
                 seen.add(inode)
-                cut = self._inspect(s, inode, now, banned)
+                cut = self._inspect(s, inode, now, offenders)
                 if cut is not None:
                     cuts.append(cut)
         finally:
@@ -162,10 +163,11 @@ class LinkGuard:
                 log.exception("link guard: reporting a cut failed")
         return cuts
 
-    def _banned_sessions(self, guarded: list[tuple[int, socket.socket]], now: float) -> dict[int, str]:
-        """inode -> session id of the new links whose session is in its cool-down."""
+    def _offenders(self, guarded: list[tuple[int, socket.socket]], now: float) -> dict[int, tuple[str, bool]]:
+        """inode -> (session id, in its cool-down) of the new links whose session was cut before
+        (remembered until ``max_cooldown_s`` after its cool-down)."""
         self._strikes = {k: v for k, v in self._strikes.items() if now < v[1] + self.max_cooldown_s}
-        if self.identify is None or not any(until > now for _, until in self._strikes.values()):
+        if self.identify is None or not self._strikes:
             return {}
         new = {}
         for inode, s in guarded:
@@ -176,9 +178,9 @@ class LinkGuard:
             return {}
         sessions = self._identify(list(new))
         return {
-            new[peer]: zid
+            new[peer]: (zid, self._strikes[zid][1] > now)
             for peer, zid in sessions.items()
-            if peer in new and self._strikes.get(zid, (0, 0.0))[1] > now
+            if peer in new and zid in self._strikes
         }
 
     def _identify(self, peers: list[str]) -> dict[str, str]:
@@ -190,7 +192,9 @@ class LinkGuard:
             log.exception("link guard: identifying links failed")
             return {}
 
-    def _inspect(self, sock: socket.socket, inode: int, now: float, banned: dict[int, str]) -> LinkCut | None:
+    def _inspect(
+        self, sock: socket.socket, inode: int, now: float, offenders: dict[int, tuple[str, bool]]
+    ) -> LinkCut | None:
         try:
             info = sock.getsockopt(socket.IPPROTO_TCP, socket.TCP_INFO, TCP_INFO_LEN)
             peer, local = _addr(sock.getpeername()), _addr(sock.getsockname())
@@ -201,9 +205,11 @@ class LinkGuard:
         received = struct.unpack_from("=Q", info, TCPI_BYTES_RECEIVED_OFFSET)[0]  # (host order)
         link = self._links.get(inode)
         burst = self.burst_mb * 1e6
+        known, banned = offenders.get(inode, ("", False))
         if link is None:
-            # everything it received before the guard first saw it counts
-            link = _Link(peer, local, now, now, 0, burst, window_t=now)
+            # everything it received before the guard first saw it counts; a session cut before
+            # gets no burst, only the budget
+            link = _Link(peer, local, now, now, 0, 0.0 if known else burst, window_t=now)
             self._links[inode] = link
         dt = max(now - link.last_t, 0.0)
         got = received - link.last_bytes
@@ -214,9 +220,9 @@ class LinkGuard:
         if now - link.window_t >= PEAK_WINDOW_S:
             link.peak_rate = max(link.peak_rate, link.window_bytes / (now - link.window_t))
             link.window_t, link.window_bytes = now, 0
-        if link.tokens >= 0 and inode not in banned:
+        if link.tokens >= 0 and not banned:
             return None
-        session = banned.get(inode) or self._identify([link.peer]).get(link.peer, "")
+        session = known or self._identify([link.peer]).get(link.peer, "")
         with contextlib.suppress(OSError):  # (already closing)
             sock.shutdown(socket.SHUT_RDWR)
         strikes, cooldown = 1, 0.0
