@@ -203,7 +203,7 @@ def test_router_cuts_off_a_flooding_client_and_keeps_the_genuine_one(tmp_path: P
                 except psutil.Error:
                     break
                 time.sleep(0.02)
-            out = flooder.stdout.read()
+            out, _ = flooder.communicate(timeout=60)
             assert "sent" in out, out
             time.sleep(1.0)
             n_during = len(genuine) - n_before
@@ -239,9 +239,10 @@ def test_router_cuts_off_a_flooding_client_and_keeps_the_genuine_one(tmp_path: P
             assert big[0] == 0  # (the size cap: no 1 MiB message reached a subscriber)
         assert "panic" not in router_log.read_text().lower()
     finally:
-        if flooder is not None and flooder.poll() is None:
-            flooder.kill()
-            flooder.wait()
+        if flooder is not None:
+            if flooder.poll() is None:
+                flooder.kill()
+            flooder.communicate()
         router.send_signal(signal.SIGINT)
         try:
             router.wait(15)
