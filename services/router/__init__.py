@@ -198,9 +198,9 @@ def run(cfg: RouterConfig, stop: threading.Event) -> None:
     finally:
         if guard is not None:
             guard.stop()
-            busiest = sorted(guard.peaks().items(), key=lambda kv: -kv[1][0])[:8]
+            busiest = sorted(guard.peaks(cut=False).items(), key=lambda kv: -kv[1][0])[:8]
             log.info(
-                "link guard: %d links cut; busiest links (peak MB/s over 0.5 s, MB in all): %s",
+                "link guard: %d links cut; busiest links not cut (peak MB/s over 0.5 s, MB in all): %s",
                 len(guard.cuts),
                 ", ".join(f"{peer} {rate} MB/s {mb} MB" for peer, (rate, mb) in busiest) or "none",
             )

@@ -255,11 +255,15 @@ class LinkGuard:
         while len(self._peaks) > 256:  # keep the newest
             self._peaks.pop(next(iter(self._peaks)))
 
-    def peaks(self) -> dict[str, tuple[float, int]]:
-        """Every link seen: peer -> (highest received rate over ≥ 0.5 s windows in MB/s, MB in all)."""
-        out = {p: (round(r / 1e6, 2), round(b / 1e6, 1)) for p, (r, b) in self._peaks.items()}
+    def peaks(self, cut: bool = True) -> dict[str, tuple[float, float]]:
+        """Links seen (the last 256 closed and every open one; with ``cut=False`` only those never
+        cut): peer -> (highest received rate over ≥ 0.5 s windows in MB/s, MB in all)."""
+        out = {p: (round(r / 1e6, 3), round(b / 1e6, 1)) for p, (r, b) in self._peaks.items()}
         for link in self._links.values():
-            out[link.peer] = (round(link.peak_rate / 1e6, 2), round(link.last_bytes / 1e6, 1))
+            out[link.peer] = (round(link.peak_rate / 1e6, 3), round(link.last_bytes / 1e6, 1))
+        if not cut:
+            for c in self.cuts:
+                out.pop(c.peer, None)
         return out
 
     # -- the thread -----------------------------------------------------------------------
