@@ -97,6 +97,63 @@ def test_guard_shuts_down_the_link_over_budget_only() -> None:
                 sock.close()
 
 
+def test_a_repeat_offender_is_cut_at_once_during_its_cool_down() -> None:
+    """A zenoh client reconnects by itself with the same session id: its new link is cut at the
+    first look while the cool-down lasts, whatever it sent; another session's link is not."""
+    with socket.create_server(("127.0.0.1", 0)) as listener:
+        sessions: dict[str, str] = {}
+        cuts: list[LinkCut] = []
+        port = listener.getsockname()[1]
+        guard = LinkGuard(1.0, 1.0, cuts.append, ports=frozenset({port}), identify=lambda peers: sessions)
+        socks = []
+        try:
+            flooder, server = _pair(listener)
+            socks += [flooder, server]
+            sessions[f"127.0.0.1:{flooder.getsockname()[1]}"] = "f100d"
+            guard.scan()
+            flooder.sendall(b"y" * 200_000)  # fits the receive buffer
+            _received(guard, server, 200_000)
+            flooder.sendall(b"y" * 2_000_000)
+            _drain_until_cut(guard, server, cuts, 1)
+            assert (cuts[0].session, cuts[0].strikes, cuts[0].banned_s) == ("f100d", 1, 1.0)
+            assert "session f100d, cut 1 time, its new links cut for 1 s" in cuts[0].describe()
+            # it reconnects (same session) and sends 10 bytes: cut at once, cool-down doubled
+            again, server2 = _pair(listener)
+            other, server3 = _pair(listener)  # and a genuine client (another session)
+            socks += [again, server2, other, server3]
+            sessions[f"127.0.0.1:{again.getsockname()[1]}"] = "f100d"
+            sessions[f"127.0.0.1:{other.getsockname()[1]}"] = "9e9e"
+            again.sendall(b"0123456789")
+            other.sendall(b"0123456789")
+            guard.scan()
+            assert len(cuts) == 2, cuts
+            assert (cuts[1].peer, cuts[1].strikes, cuts[1].banned_s) == (
+                f"127.0.0.1:{again.getsockname()[1]}",
+                2,
+                2.0,
+            )
+        finally:
+            for sock in socks:
+                sock.close()
+
+
+def _received(guard: LinkGuard, server: socket.socket, n: int) -> None:
+    got = 0
+    while got < n:
+        got += len(server.recv(1 << 20))
+    assert guard.scan() == []
+
+
+def _drain_until_cut(guard: LinkGuard, server: socket.socket, cuts: list[LinkCut], n: int) -> None:
+    server.settimeout(0.2)
+    deadline = time.monotonic() + 30
+    while len(cuts) < n and time.monotonic() < deadline:
+        with contextlib.suppress(TimeoutError, OSError):
+            server.recv(1 << 20)
+        guard.scan()
+    assert len(cuts) == n, cuts
+
+
 def test_guard_config_is_validated() -> None:
     for bad in ({"link_rx_budget_mb_s": 0.5}, {"link_rx_burst_mb": 0.0}, {"link_guard_period_s": 5.0}):
         with pytest.raises(ConfigError, match=next(iter(bad))):

@@ -17,7 +17,7 @@ The guard sees links, not identities: a link is a peer address (for a local clie
 address) it also recognises a **repeat offender**: a zenoh client whose link is cut reconnects
 by itself with the same session id, and each of its new links is cut at once for a cool-down
 that doubles with every cut of that session (``cooldown_s``, up to ``max_cooldown_s``); after
-the cool-down its new links get the budget but no burst. A new session (a restarted flooder)
+the cool-down its new links get the budget and a tenth of the burst. A new session (a restarted flooder)
 starts with a full bucket again.
 
 Example (one pass, as the router's thread does it every ``period_s``)::
@@ -90,12 +90,19 @@ class _Link:
     last_t: float
     last_bytes: int
     tokens: float  # bytes the link may still receive at once
+    cap: float  # depth of its bucket, bytes
+    session: str = ""  # the zenoh session at it, once ``identify`` found it among the offenders
     peak_rate: float = 0.0  # highest rate over a window of at least ``PEAK_WINDOW_S``, bytes/s
     window_t: float = 0.0
     window_bytes: int = 0
 
 
 PEAK_WINDOW_S = 0.5
+#: s after its first sighting a link is still looked up among the offenders (zenoh lists a session's
+#: link once its TLS and zenoh handshakes are done, not at the TCP accept)
+IDENTIFY_S = 3.0
+#: an offender's bucket depth after its cool-down, as a fraction of the burst
+OFFENDER_BURST = 0.1
 
 
 @dataclass
@@ -171,7 +178,8 @@ class LinkGuard:
             return {}
         new = {}
         for inode, s in guarded:
-            if inode not in self._links:
+            link = self._links.get(inode)
+            if link is None or (not link.session and now - link.first_t < IDENTIFY_S):
                 with contextlib.suppress(OSError):
                     new[_addr(s.getpeername())] = inode
         if not new:
@@ -207,13 +215,16 @@ class LinkGuard:
         burst = self.burst_mb * 1e6
         known, banned = offenders.get(inode, ("", False))
         if link is None:
-            # everything it received before the guard first saw it counts; a session cut before
-            # gets no burst, only the budget
-            link = _Link(peer, local, now, now, 0, 0.0 if known else burst, window_t=now)
+            # everything it received before the guard first saw it counts
+            link = _Link(peer, local, now, now, 0, burst, burst, window_t=now)
             self._links[inode] = link
+        if known and not link.session:  # a session cut before: a tenth of the burst
+            link.session = known
+            link.tokens -= link.cap * (1.0 - OFFENDER_BURST)
+            link.cap *= OFFENDER_BURST
         dt = max(now - link.last_t, 0.0)
         got = received - link.last_bytes
-        link.tokens = min(burst, link.tokens + self.budget_mb_s * 1e6 * dt) - got
+        link.tokens = min(link.cap, link.tokens + self.budget_mb_s * 1e6 * dt) - got
         rate = got / dt if dt > 0 else 0.0
         link.last_t, link.last_bytes = now, received
         link.window_bytes += got
