@@ -84,8 +84,9 @@ class RouterConfig:
     shared_memory: bool = False
     # MB/s (10**6 bytes) a client link may send to the router on average (link guard,
     # services/router/linkguard.py); a link whose bucket of link_rx_burst_mb runs dry is shut down.
-    # The busiest genuine link measured sent 0.4 MB/s (docs/security.md#link-guard); a 1 MiB flood
-    # sends hundreds. 0 = no guard.
+    # The busiest genuine link measured peaked at 0.28 MB/s, the camera at its defaults sends 0.14
+    # (docs/security.md#link-guard-the-router-cuts-off-a-flooding-link); a 1 MiB flood 150-1500.
+    # 0 = no guard.
     link_rx_budget_mb_s: float = 50.0
     # MB a link may send at once above the budget (a burst of camera frames, a recording's start)
     link_rx_burst_mb: float = 50.0
