@@ -10,8 +10,10 @@ refused (docs/security.md):
   frames) have their own, larger ``max_bulk_bytes``;
 * **link guard** (services/router/linkguard.py): a client link (TCP connection) that receives
   more than ``link_rx_budget_mb_s`` on average, beyond a burst of ``link_rx_burst_mb``, is shut
-  down, so zenoh closes that session: a flooder's megabytes stop crossing the host. Each cut is
-  logged and published as a ``link_cut`` event on ``events/router`` naming the link;
+  down, so zenoh closes that session: a flooder's megabytes stop crossing the host. The new links
+  of a session cut before (a zenoh client reconnects by itself; its session id from the router's
+  admin space) are cut at once for ``link_cooldown_s``, doubling per cut. Each cut is logged and
+  published as a ``link_cut`` event on ``events/router`` naming the link and the session;
 * **diagnostics** (services/router/zlog.py): ``acl_log = "denied"`` logs access-control denials
   only (``"all"``: every decision), refused TLS handshakes are always logged with the peer and
   the reason.

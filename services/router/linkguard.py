@@ -328,7 +328,7 @@ def _tcp_sockets() -> list[tuple[int, tuple[socket.socket, int, int]]]:
 
 def _socket_fds() -> list[tuple[int, int]]:
     """(inode, fd) of every socket this process has open."""
-    out = []
+    out: list[tuple[int, int]] = []
     try:
         fds = os.listdir("/proc/self/fd")
     except OSError:
