@@ -204,7 +204,7 @@ def run(cfg: RouterConfig, stop: threading.Event) -> None:
             busiest = sorted(guard.peaks(cut=False).items(), key=lambda kv: -kv[1][0])[:8]
             log.info(
                 "link guard: %d links cut; busiest links not cut (peak MB/s over 0.5 s, MB in all): %s",
-                len(guard.cuts),
+                guard.n_cuts,
                 ", ".join(f"{peer} {rate} MB/s {mb} MB" for peer, (rate, mb) in busiest) or "none",
             )
         session.close()  # type: ignore[no-untyped-call]

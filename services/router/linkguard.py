@@ -35,6 +35,7 @@ import socket
 import struct
 import threading
 import time
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
@@ -124,7 +125,8 @@ class LinkGuard:
     cooldown_s: float = 1.0  # a repeat offender's new links are cut for this long after its 1st cut,
     max_cooldown_s: float = 60.0  # doubling with each further cut, up to this
     _strikes: dict[str, tuple[int, float]] = field(default_factory=dict)  # session -> (cuts, banned until)
-    cuts: list[LinkCut] = field(default_factory=list)
+    cuts: deque[LinkCut] = field(default_factory=lambda: deque(maxlen=1000))  # the latest
+    n_cuts: int = 0  # links cut so far
     _links: dict[int, _Link] = field(default_factory=dict)  # socket inode -> state
     # links seen and closed: peer -> (peak B/s, bytes)
     _peaks: dict[str, tuple[float, int]] = field(default_factory=dict)
@@ -137,7 +139,7 @@ class LinkGuard:
         now = time.monotonic() if now is None else now
         seen: set[int] = set()
         cuts: list[LinkCut] = []
-        established: list[tuple[int, socket.socket]] = []
+        established: list[tuple[int, socket.socket, int]] = []  # (inode, socket, local port)
         listening: set[int] = set()
         try:
             for inode, sock in _tcp_sockets():
@@ -145,11 +147,11 @@ class LinkGuard:
                     listening.add(sock[2])
                     sock[0].close()
                 elif sock[1] == TCP_ESTABLISHED:
-                    established.append((inode, sock[0]))
+                    established.append((inode, sock[0], sock[2]))
                 else:
                     sock[0].close()
             ports = self.ports if self.ports is not None else listening
-            guarded = [(inode, s) for inode, s in established if s.getsockname()[1] in ports]
+            guarded = [(inode, s) for inode, s, port in established if port in ports]
             offenders = self._offenders(guarded, now)
             for inode, s in guarded:
                 seen.add(inode)
@@ -157,13 +159,14 @@ class LinkGuard:
                 if cut is not None:
                     cuts.append(cut)
         finally:
-            for _, s in established:
+            for _, s, _ in established:
                 s.close()
         for inode in set(self._links) - seen:  # closed links
             gone = self._links.pop(inode)
             self._keep_peak(gone)
         for cut in cuts:
             self.cuts.append(cut)
+            self.n_cuts += 1
             try:
                 self.on_cut(cut)
             except Exception:  # (a report that fails must not stop the guard)
