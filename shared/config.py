@@ -369,6 +369,7 @@ def _coerce(tp: Any, value: Any, where: str) -> Any:
 
 #: name suffix → unit (longest first)
 _SUFFIX_UNITS = (
+    ("_mb_s", "MB/s"),
     ("_mm_s", "mm/s"),
     ("_deg_s", "deg/s"),
     ("_rad_s", "rad/s"),
@@ -376,6 +377,7 @@ _SUFFIX_UNITS = (
     ("_ms", "ms"),
     ("_hz", "Hz"),
     ("_mm", "mm"),
+    ("_mb", "MB"),
     ("_rad", "rad"),
     ("_deg", "deg"),
     ("_nm", "N·m"),

@@ -317,11 +317,27 @@ def flood(
     return {"sent": sent, "delivered_over_64k": delivered[0], "peak_rss_mb": peak}
 
 
+def link_cuts(pipe: Pipeline) -> list[float]:
+    """MB received on each link the router's link guard cut off so far (its log's ``link_cut``
+    lines), in order."""
+    try:
+        text = (pipe.log_dir / "router.log").read_text(errors="replace")
+    except OSError:
+        return []
+    out = []
+    for line in text.splitlines():
+        if "link_cut: cut off link" in line:
+            with contextlib.suppress(ValueError, IndexError):
+                out.append(float(line.split(": ", 3)[-1].split(" MB received")[0].rsplit(" ", 1)[-1]))
+    return out
+
+
 def alternate(pipe: Pipeline, bus: BusConfig, args: argparse.Namespace) -> list[dict[str, Any]]:
     """``args.rounds`` pairs of a quiet window and a flood window, ``args.window`` s each (+0.5 s
     for the watchdog's state to arrive): HOLD entries and their causes, CPU per process, per window.
     The host's other load changes slowly compared with a window, so the two kinds see the same."""
     out: list[dict[str, Any]] = []
+    cuts_before = len(link_cuts(pipe))
     for i in range(args.rounds):
         for kind in ("quiet", "flood"):
             proc = None
@@ -340,10 +356,27 @@ def alternate(pipe: Pipeline, bus: BusConfig, args: argparse.Namespace) -> list[
             causes = hold_causes(pipe, t0, now_ns())
             if proc is not None:
                 proc.close()
+            cuts = link_cuts(pipe)
             out.append(
-                {"round": i, "kind": kind, "sent": sent, "hold_causes": causes, "cpu": cpu_share(c0, c1)}
+                {
+                    "round": i,
+                    "kind": kind,
+                    "sent": sent,
+                    "hold_causes": causes,
+                    "link_cuts": len(cuts) - cuts_before,
+                    "cut_mb": cuts[cuts_before:],
+                    "cpu": cpu_share(c0, c1),
+                }
             )
-            log.info("round %d %s: %d HOLD entries, %d put calls", i, kind, len(causes), sent)
+            log.info(
+                "round %d %s: %d HOLD entries, %d put calls, %d links cut",
+                i,
+                kind,
+                len(causes),
+                sent,
+                len(cuts) - cuts_before,
+            )
+            cuts_before = len(cuts)
     return out
 
 
@@ -355,6 +388,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         overrides["router"] = ["max_message_bytes=0", "max_bulk_bytes=0"]
     if args.acl_log is not None:  # (after the harness's acl_log="denied" on the command line)
         overrides.setdefault("router", []).append(f'acl_log="{args.acl_log}"')
+    overrides.setdefault("router", []).extend(args.router_set)
     acl = deploy_dir() / "slave-site" / "acl.json5" if args.site == "locked" else None
     with Pipeline(out, overrides=overrides, impair=False, acl=acl, mirror=not args.no_mirror) as pipe:
         if not pipe.wait_following(120):
@@ -378,6 +412,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         causes_flood = hold_causes(pipe, t0, now_ns())
         if proc is not None:
             proc.close()
+        cuts_flood = link_cuts(pipe)
         causes_quiet = hold_causes(pipe, quiet0, t0)
         t_after0 = now_ns()
         time.sleep(max(0.0, args.after - 1.0))
@@ -422,12 +457,16 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         "hold_causes": {"quiet_before": causes_quiet, "flood": causes_flood, "after": causes_after},
         "cpu": {"quiet_before": cpu_share(cpu_q0, cpu_q1), "flood": cpu_share(cpu_f0, cpu_f1)},
         "followed_after": followed_after,
+        "router_set": list(args.router_set),
+        "link_cuts_flood": len(cuts_flood),
+        "link_cut_mb_flood": cuts_flood,
         "flooder_process": "separate" if args.separate else "a thread of the bench",
         "rounds": rounds,
         "rounds_holds": {
             kind: sum(len(r["hold_causes"]) for r in rounds if r["kind"] == kind)
             for kind in ("quiet", "flood")
         },
+        "rounds_link_cuts": sum(r["link_cuts"] for r in rounds if r["kind"] == "flood"),
         "rounds_seconds": {
             kind: round(sum(r["cpu"]["seconds"] + 0.5 for r in rounds if r["kind"] == kind), 1)
             for kind in ("quiet", "flood")
@@ -466,6 +505,13 @@ def main(argv: Sequence[str] | None = None) -> int:
         help="afterwards, this many pairs of a quiet and a flood window (HOLDs per kind of window)",
     )
     ap.add_argument("--window", type=float, default=5.0, help="length of each window of --rounds (s)")
+    ap.add_argument(
+        "--router-set",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="a router config override (repeatable), e.g. link_rx_budget_mb_s=0 (the link guard off)",
+    )
     ap.add_argument("--send-only", metavar="BUS_JSON", help=argparse.SUPPRESS)  # (the flooding process)
     ap.add_argument("--site-name", default="local", help=argparse.SUPPRESS)
     ap.add_argument("--seconds", type=float, default=10.0, help="flood duration (default 10)")
@@ -503,9 +549,14 @@ def main(argv: Sequence[str] | None = None) -> int:
         f"{res['holds_quiet_window_before']} in a quiet window before, {res['holds_after']} after; "
         f"followed after: {res['followed_after']}"
     )
+    print(
+        f"  links the router cut off during the flood: {res['link_cuts_flood']} {res['link_cut_mb_flood']} MB"
+    )
     if res["rounds"]:
         print(
-            f"  rounds of {args.window:g} s: HOLD entries {res['rounds_holds']} in {res['rounds_seconds']} s"
+            f"  rounds of {args.window:g} s: HOLD entries {res['rounds_holds']} "
+            f"in {res['rounds_seconds']} s, "
+            f"{res['rounds_link_cuts']} links cut"
         )
     for window, causes in res["hold_causes"].items():
         for c in causes:

@@ -263,6 +263,8 @@ def service_argv(spec: SiteSpec, name: str) -> list[str]:
         for ep in (local, *spec.listen):
             argv += ["--listen", ep]
         argv += spec.router_flags
+        if spec.keys_dir is not None:  # (the link guard's events are signed as router)
+            argv += ["--keyring", str(spec.keys_dir)]
     else:
         argv += ["--connect", spec.connect.get(name, spec.endpoint)]
         if spec.local_pki:

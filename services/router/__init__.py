@@ -8,6 +8,12 @@ refused (docs/security.md):
   attachment; default the decoders' 64 KiB limit + 1 KiB for an authenticator) is dropped where it
   enters, before it is delivered to any subscriber; bulk keys (:data:`BULK_CLASSES`: camera
   frames) have their own, larger ``max_bulk_bytes``;
+* **link guard** (services/router/linkguard.py): a client link (TCP connection) that receives
+  more than ``link_rx_budget_mb_s`` on average, beyond a burst of ``link_rx_burst_mb``, is shut
+  down, so zenoh closes that session: a flooder's megabytes stop crossing the host. The new links
+  of a session cut before (a zenoh client reconnects by itself; its session id from the router's
+  admin space) are cut at once for ``link_cooldown_s``, doubling per cut. Each cut is logged and
+  published as a ``link_cut`` event on ``events/router`` naming the link and the session;
 * **diagnostics** (services/router/zlog.py): ``acl_log = "denied"`` logs access-control denials
   only (``"all"``: every decision), refused TLS handshakes are always logged with the peer and
   the reason.
@@ -24,11 +30,12 @@ from __future__ import annotations
 import json
 import logging
 import threading
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
 from telesurg.services.common import service_main
+from telesurg.services.router.linkguard import LinkCut, LinkGuard
 from telesurg.services.router.zlog import ACL_MODES, ZenohLogRelay
 from telesurg.shared.bus import BusConfig
 from telesurg.shared.errors import ConfigError
@@ -58,7 +65,7 @@ CAPPED_MESSAGES = ("put", "delete", "query", "reply")
 class RouterConfig:
     """Router process config."""
 
-    site: str = "local"  # unused by the router itself; kept for a uniform CLI
+    site: str = "local"  # key prefix telesurg/<site> of the router's events (link guard)
     service: str = "router"  # instance id for logs
     bus: BusConfig = field(default_factory=lambda: BusConfig(mode="router", listen=["tcp/127.0.0.1:7447"]))
     # bytes (payload + attachment) a put/query/reply on a control or service key may have; larger
@@ -77,6 +84,20 @@ class RouterConfig:
     # docs/security.md#flood-memory-and-holds). The site's messages are small and cross loopback
     # TCP at ~1 GB/s; off, no client negotiates SHM with the router.
     shared_memory: bool = False
+    # MB/s (10**6 bytes) a client link may send to the router on average (link guard,
+    # services/router/linkguard.py); a link whose bucket of link_rx_burst_mb runs dry is shut down.
+    # The busiest genuine link measured peaked at 0.28 MB/s, the camera at its defaults sends 0.14
+    # (docs/security.md#link-guard-the-router-cuts-off-a-flooding-link); a 1 MiB flood 150-1500.
+    # 0 = no guard.
+    link_rx_budget_mb_s: float = 50.0
+    # MB a link may send at once above the budget (a burst of camera frames, a recording's start)
+    link_rx_burst_mb: float = 50.0
+    # s between two looks at the links' byte counters: bounds what a flooder sends before the cut
+    link_guard_period_s: float = 0.05
+    # s a cut client session's new links are cut at once (it reconnects by itself), doubling with
+    # each further cut of the same zenoh session up to link_max_cooldown_s. 0 = no cool-down.
+    link_cooldown_s: float = 1.0
+    link_max_cooldown_s: float = 60.0
 
     def validate(self) -> None:
         """Raise ConfigError naming the valid options."""
@@ -86,6 +107,20 @@ class RouterConfig:
             value = getattr(self, name)
             if value != 0 and not 1024 <= value <= 1 << 30:
                 raise ConfigError(f"router {name}={value} outside [1024, 2**30] (0 = no cap)")
+        if self.link_rx_budget_mb_s != 0 and not 1.0 <= self.link_rx_budget_mb_s <= 10_000.0:
+            raise ConfigError(
+                f"router link_rx_budget_mb_s={self.link_rx_budget_mb_s} outside [1, 10000] MB/s "
+                "(0 = no guard)"
+            )
+        if not 1.0 <= self.link_rx_burst_mb <= 10_000.0:
+            raise ConfigError(f"router link_rx_burst_mb={self.link_rx_burst_mb} outside [1, 10000] MB")
+        if not 0.0 <= self.link_cooldown_s <= self.link_max_cooldown_s <= 86_400.0:
+            raise ConfigError(
+                f"router link_cooldown_s={self.link_cooldown_s}, link_max_cooldown_s="
+                f"{self.link_max_cooldown_s}: need 0 <= link_cooldown_s <= link_max_cooldown_s <= 86400"
+            )
+        if not 0.01 <= self.link_guard_period_s <= 1.0:
+            raise ConfigError(f"router link_guard_period_s={self.link_guard_period_s} outside [0.01, 1] s")
 
 
 def size_caps(cfg: RouterConfig, site: str = "*") -> list[dict[str, Any]]:
@@ -124,6 +159,12 @@ def run(cfg: RouterConfig, stop: threading.Event) -> None:
     if caps:
         z.insert_json5("low_pass_filter", json.dumps(caps))
     z.insert_json5("transport/shared_memory/enabled", json.dumps(cfg.shared_memory))
+    if cfg.link_rx_budget_mb_s and cfg.link_cooldown_s:
+        # the link guard asks its own session which client session is at a link address; a client
+        # reaches the admin space (@/**) only where the ACL lets it query that (the site's: no)
+        z.insert_json5(
+            "adminspace", json.dumps({"enabled": True, "permissions": {"read": True, "write": False}})
+        )
     try:
         session = zenoh.open(z)
     except zenoh.ZError as exc:
@@ -136,13 +177,88 @@ def run(cfg: RouterConfig, stop: threading.Event) -> None:
         cfg.acl_log,
         "on" if cfg.shared_memory else "off",
     )
+    guard = None
+    if cfg.link_rx_budget_mb_s:
+        report = link_cut_reporter(session, cfg)
+        guard = LinkGuard(
+            cfg.link_rx_budget_mb_s,
+            cfg.link_rx_burst_mb,
+            report,
+            cfg.link_guard_period_s,
+            identify=link_sessions(session) if cfg.link_cooldown_s else None,
+            cooldown_s=cfg.link_cooldown_s,
+            max_cooldown_s=cfg.link_max_cooldown_s,
+        )
+        guard.start()
+        log.info(
+            "link guard: %g MB/s a link, burst %g MB, every %g s",
+            cfg.link_rx_budget_mb_s,
+            cfg.link_rx_burst_mb,
+            cfg.link_guard_period_s,
+        )
     try:
         stop.wait()
     finally:
+        if guard is not None:
+            guard.stop()
+            busiest = sorted(guard.peaks(cut=False).items(), key=lambda kv: -kv[1][0])[:8]
+            log.info(
+                "link guard: %d links cut; busiest links not cut (peak MB/s over 0.5 s, MB in all): %s",
+                guard.n_cuts,
+                ", ".join(f"{peer} {rate} MB/s {mb} MB" for peer, (rate, mb) in busiest) or "none",
+            )
         session.close()  # type: ignore[no-untyped-call]
         log.info(
             "router stopped: %d ACL denials, %d refused TLS handshakes", relay.denied, relay.tls_failures
         )
+
+
+def link_sessions(session: Any) -> Callable[[list[str]], dict[str, str]]:
+    """The link guard's look-up: peer addresses (``host:port``) -> the zenoh session id of the
+    client at each, from the router's admin space (``@/<zid>/router``: each session's links)."""
+    key = f"@/{session.zid()}/router"
+
+    def identify(peers: list[str]) -> dict[str, str]:
+        wanted = set(peers)
+        out: dict[str, str] = {}
+        for reply in session.get(key, timeout=1.0):
+            if reply.ok is None:
+                continue
+            for s in json.loads(reply.ok.payload.to_bytes()).get("sessions", []):
+                for link in s.get("links", []):
+                    addr = str(link.get("dst", "")).partition("/")[2].partition("#")[0]
+                    if addr in wanted:
+                        out[addr] = str(s.get("peer", ""))
+        return out
+
+    return identify
+
+
+def link_cut_reporter(session: Any, cfg: RouterConfig) -> Callable[[LinkCut], None]:
+    """What the link guard does with a cut: log it (WARNING) and publish a ``link_cut`` event
+    (severity ``warning``) on ``events/router``, signed as ``router`` like every service's events
+    — if the router has a keyring (``--keyring``; ``telesurg up`` gives it the site's). Without
+    one the cut is only logged."""
+    from telesurg.shared.auth import Keyring, Signer, default_keys_dir
+    from telesurg.shared.bus import Outlet
+    from telesurg.shared.keys import Keys
+    from telesurg.shared.messages import SafetyEvent
+
+    outlet: Outlet | None = None
+    try:
+        keyring = Keyring.load(cfg.bus.keys_dir or default_keys_dir(cfg.site))
+        signer = Signer(cfg.service, keyring.ensure(cfg.service))
+        key = Keys(cfg.site).events(cfg.service)
+        outlet = Outlet(session.declare_publisher(key), cfg.service, signer, key)
+    except ConfigError as exc:
+        log.warning("link guard: cuts are logged, not published as events (%s)", exc)
+
+    def report(cut: LinkCut) -> None:
+        log.warning("link_cut: %s", cut.describe())
+        if outlet is not None:
+            outlet.put(SafetyEvent(outlet.header(), "", "link_cut", "warning", cut.describe()))
+
+    return report
 
 
 def main(argv: Sequence[str] | None = None) -> int:
