@@ -132,7 +132,9 @@ class SlaveControlConfig:
     state_file: str = ""
     teach: TeachConfig = field(default_factory=TeachConfig)  # direct-teach admittance
     # .npy written at exit: one row per setpoint the control loop applied (origin_ns of the master
-    # sample, the setpoint's stamp, the wall time it was applied, ns) — for telesurg bench latency
+    # sample, the setpoint's stamp, the wall time the loop first used it, the wall time the backend
+    # stepped that period's command, the master time its interpolated reference played, ns; 0 =
+    # none) — for telesurg bench latency
     latency_log: str = ""
     command_sources: list[str] = field(default_factory=list)  # who may send commands ([] = anyone)
     # who may send which operator command, e-stop or reset, and the confirmation of motion-starting
@@ -249,6 +251,13 @@ def run(cfg: SlaveControlConfig, stop: threading.Event) -> None:
                 q_cmd[a.index] = a.control(now, a.arm_reading(reading))
             backend.command(q_cmd)
 
+        def stepped() -> None:
+            """The backend stepped: the latency log's "acts" time (latency_log only)."""
+            if cfg.latency_log:
+                t = time.time_ns()
+                for a in arms:
+                    a.stepped(t)
+
         log.info(
             "slave %s (%s/%s, arms %s) running at %.0f Hz",
             cfg.service,
@@ -274,6 +283,7 @@ def run(cfg: SlaveControlConfig, stop: threading.Event) -> None:
                 # a real arm held its last command through the stall by itself; its MuJoCo shadow
                 # is stepped by the periods it missed, so it stays in real time too
                 backend.step(1 + missed)
+                stepped()
                 for a in arms:
                     a.stalled(missed * dt)
             else:
@@ -284,6 +294,7 @@ def run(cfg: SlaveControlConfig, stop: threading.Event) -> None:
                 # through the earlier ones, as a real arm would have.
                 held = max(0, missed - REPLAY_MAX_PERIODS)
                 backend.step(1 + held)
+                stepped()
                 for a in arms:  # the arm held its command through them: its timeline pauses
                     a.stalled(held * dt)
                 # the inputs that queued up during the stall first: the replayed periods judge
@@ -296,6 +307,7 @@ def run(cfg: SlaveControlConfig, stop: threading.Event) -> None:
                 for period in range(held + 1, missed + 1):
                     command(now + period * dt, backend.read())
                     backend.step(1)
+                    stepped()
             reading = backend.read()
             cycle += 1
             arm_readings = [a.arm_reading(reading) for a in arms]
