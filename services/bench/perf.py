@@ -4,7 +4,9 @@
   zenoh relay (:mod:`telesurg.services.bench.relay`) through the site router, and (b) the real pipeline
   master_capture → mapping → slave_control with the real services, the setpoint timed when the
   slave's control loop first uses it. One-way latency per hop and end to end (every process on one
-  host stamps with the same wall clock), p50/p90/p99/max, and the pipeline/relay ratios.
+  host stamps with the same wall clock), p50/p90/p99/max, and the pipeline/relay ratios; and each
+  stage of every setpoint the slave used (:data:`STAGES`: the mapping's ``latency_log``, a tap
+  subscriber in this process, the slave's use and backend step, its reference's age).
   ``--rate 0`` is unpaced: the relay's source publishes back to back, the master runs at its top
   rate (:data:`UNPACED_MASTER_HZ`).
 * ``soak`` — the whole pipeline for ``--seconds`` with the recorder on the bus: messages, losses,
