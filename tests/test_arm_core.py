@@ -19,6 +19,7 @@ backends that estimate external joint torques (MuJoCo), not from the serial cont
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import os
 import signal
@@ -26,7 +27,8 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
+from pathlib import Path
 from typing import IO
 
 import numpy as np
@@ -420,11 +422,12 @@ def _stop(proc: subprocess.Popen[str] | None, err: IO[str] | None, sig: int = si
     return code
 
 
-@pytest.fixture(scope="module", params=list(KINDS))
-def rig(request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFactory) -> Iterator[Rig]:
-    kind: str = request.param
+@contextlib.contextmanager
+def running_slave(kind: str, tmp: Path, extra: Sequence[str] = ()) -> Iterator[Rig]:
+    """The real slave_control of ``kind`` (the serial kind behind the emulator on a pty) on a
+    loopback router, with its latency log at ``tmp / "latency.npy"`` (written when it stops, on
+    leaving the block), and the test's rig; ``extra``: more ``--set`` overrides."""
     model, backend = KINDS[kind]
-    tmp = tmp_path_factory.mktemp(f"arm_core_{kind}")
     ep = f"tcp/127.0.0.1:{free_port()}"
     router = open_session(BusConfig(mode="router", listen=[ep]))
     emu: subprocess.Popen[str] | None = None
@@ -445,7 +448,7 @@ def rig(request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFactory
         sets += [f"serial.port={pty}", "serial.timeout_ms=250", "serial.stale_ms=250", "shadow=true"]
         sets += ["shadow_limit_rad=0.1"]
     argv = [sys.executable, "-m", "telesurg.services.cli", "slave-control", "--connect", ep]
-    for s in sets:
+    for s in [*sets, *extra]:
         argv += ["--set", s]
     log_path = tmp / "slave_control.log"
     err = log_path.open("w")
@@ -464,10 +467,18 @@ def rig(request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFactory
         router.close()  # type: ignore[no-untyped-call]
         print(f"--- {kind} slave_control log\n{log_path.read_text()[-3000:]}")
     assert code == 0, f"{kind}: slave_control exited {code}"
+
+
+@pytest.fixture(scope="module", params=list(KINDS))
+def rig(request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFactory) -> Iterator[Rig]:
+    kind: str = request.param
+    tmp = tmp_path_factory.mktemp(f"arm_core_{kind}")
+    with running_slave(kind, tmp) as r:
+        yield r
     log_file = tmp / "latency.npy"
     assert log_file.exists(), "the latency log was not written"
     applied = np.load(log_file)
-    assert applied.ndim == 2 and applied.shape[1] == 3 and len(applied) > 0  # a row per applied setpoint
+    assert applied.ndim == 2 and applied.shape[1] == 5 and len(applied) > 0  # a row per applied setpoint
 
 
 @pytest.mark.process
@@ -686,3 +697,29 @@ def test_a_stall_of_the_slave_never_makes_it_jump(rig: Rig) -> None:
     # the servo may overshoot a little when the catch-up at the speed limit ends (seen: 12 mrad on
     # the MH3F's wrist); never more than the engage tolerance
     assert len(samples) > 50 and speed < 1.2 and beyond < 0.02
+
+
+@pytest.mark.process
+def test_a_setpoint_acts_in_the_first_exchange_after_it_came(tmp_path: Path) -> None:
+    """The serial slave at 20 Hz (a 50 ms control period, far longer than the host's message
+    delivery), fed the test's 100 Hz servo_jp: the loop reads its inputs at each period's
+    deadline, right before the exchange that sends the command, so a setpoint that came while it
+    slept is in the very next SETPOINT frame — not one period later, as when the loop read its
+    inputs right after an exchange and then slept with that command. Judged from the slave's own
+    log of which exchange first carried each setpoint (``latency_log``), against the loop's period:
+    the newest setpoint an exchange uses was sent less than one period before it."""
+    period_ns = 50_000_000
+    with running_slave("serial", tmp_path, ["serial.rate_hz=20"]) as r:
+        r.lease = (True, LONG_LEASE_MS, "")
+        r.sp = (r.q_at(), False)  # (every new setpoint is used, following or not)
+        time.sleep(3.0)  # ~60 exchanges
+    rows = np.load(tmp_path / "latency.npy")
+    rows = rows[(rows[:, 1] > 0) & (rows[:, 3] > 0)]
+    in_time = (rows[:, 3] - rows[:, 1]) < period_ns  # sent → its first exchange, wall clock
+    print(
+        f"{len(rows)} exchanges used a new setpoint; {in_time.mean():.0%} of them carried it in the "
+        f"first exchange after it was sent (sent → exchange: median "
+        f"{np.median(rows[:, 3] - rows[:, 1]) / 1e6:.1f} ms, period 50 ms)"
+    )
+    # with the inputs read right after the previous exchange instead, ~all of them wait a period
+    assert len(rows) >= 30 and in_time.mean() > 0.5

@@ -10,6 +10,7 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 
@@ -84,6 +85,10 @@ def test_bench_latency_and_soak(tmp_path: Path) -> None:
     lat = bench(tmp_path, "latency", "--rate", "250", "--seconds", "2", "--blocks", "1", "--load", "cpu:1")
     assert lat["relay"]["end_to_end"]["n"] > 300 and lat["pipeline"]["end_to_end"]["n"] > 200
     assert lat["ratio_p50"] > 0
+    # every stage of the setpoints the slave used, from the mapping's and the slave's logs
+    stages = lat["stages"]
+    assert stages["mapping_work"]["n"] > 200 and stages["slave_used_to_stepped"]["n"] > 200
+    assert stages["end_to_end_used"]["p50"] == lat["pipeline"]["end_to_end"]["p50"]
     # the same run under one busy process: its own figures beside the idle ones, and the hog gone
     loaded = lat["loaded"]["cpu:1"]
     assert loaded["pipeline"]["end_to_end"]["n"] > 200 and loaded["pipeline_p99_vs_idle"] > 0
@@ -122,3 +127,24 @@ def test_watchdog_holds_counts_the_runs_holds_not_the_stop_sequences() -> None:
     stop = time.mktime(time.strptime("2026-12-02 04:45:52", "%Y-%m-%d %H:%M:%S"))
     assert watchdog_holds(log) == ["master measured_cp stale (93 ms)", "master_capture not alive"]
     assert watchdog_holds(log, until=stop) == ["master measured_cp stale (93 ms)"]
+
+
+def test_the_stages_join_each_setpoint_across_the_logs() -> None:
+    """A setpoint's row takes the mapping's and the tap's times by its servo_jp stamp; a setpoint
+    one log lacks keeps 0 there (and that stage leaves it out)."""
+    from telesurg.services.bench.perf import STAGE_COLUMNS, _stage_figures, _stages
+
+    # the slave's log: origin, servo_jp stamp, used, stepped, reference played (ns)
+    slave = np.array([[100, 300, 900, 950, 50], [200, 400, 1000, 1100, 0]], dtype=np.int64)
+    mapping = np.array([[200, 250, 260, 400], [100, 150, 160, 300]], dtype=np.int64)  # (unsorted)
+    tap = np.array([[300, 600]], dtype=np.int64)  # the second setpoint never reached the tap
+    rows = _stages(slave, mapping, tap)
+    col = {c: i for i, c in enumerate(STAGE_COLUMNS)}
+    assert rows[:, col["mapping_received"]].tolist() == [150, 250]
+    assert rows[:, col["mapping_began"]].tolist() == [160, 260]
+    assert rows[:, col["tap_received"]].tolist() == [600, 0]
+    assert rows[:, col["slave_stepped"]].tolist() == [950, 1100]
+    figs = _stage_figures(rows)
+    assert figs["servo_jp_to_tap"]["n"] == 1 and figs["servo_jp_to_tap"]["p50"] == 300 / 1e6
+    assert figs["reference_lag"]["n"] == 1 and figs["reference_lag"]["p50"] == 900 / 1e6
+    assert figs["end_to_end_used"]["n"] == 2

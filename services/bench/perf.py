@@ -4,7 +4,9 @@
   zenoh relay (:mod:`telesurg.services.bench.relay`) through the site router, and (b) the real pipeline
   master_capture → mapping → slave_control with the real services, the setpoint timed when the
   slave's control loop first uses it. One-way latency per hop and end to end (every process on one
-  host stamps with the same wall clock), p50/p90/p99/max, and the pipeline/relay ratios.
+  host stamps with the same wall clock), p50/p90/p99/max, and the pipeline/relay ratios; and each
+  stage of every setpoint the slave used (:data:`STAGES`: the mapping's ``latency_log``, a tap
+  subscriber in this process, the slave's use and backend step, its reference's age).
   ``--rate 0`` is unpaced: the relay's source publishes back to back, the master runs at its top
   rate (:data:`UNPACED_MASTER_HZ`).
 * ``soak`` — the whole pipeline for ``--seconds`` with the recorder on the bus: messages, losses,
@@ -130,22 +132,87 @@ def _pipeline_block(
 ) -> tuple[np.ndarray, dict[str, Any]]:
     from telesurg.services.bench.harness import Pipeline
 
-    npy = tmp / f"applied{k}.npy"
+    npy, mapping_npy = tmp / f"applied{k}.npy", tmp / f"mapped{k}.npy"
     overrides = _overrides(
         rate if rate > 0 else UNPACED_MASTER_HZ,
         rt_priority,
         slave_control=[f"latency_log={json.dumps(str(npy))}"],
+        mapping=[f"latency_log={json.dumps(str(mapping_npy))}"],
     )
     with Pipeline(tmp / f"logs{k}", mirror=False, impair=False, probe=False, overrides=overrides) as p:
+        tap = _ServoTap(p.node)
         with _loaded(load, p.spec.endpoint, tmp):
             time.sleep(seconds + 1.0)
             fifo = {n: fifo_threads(pr.pid) for n, pr in p.site.procs.items() if n in RT_SERVICES}
+        tap.close()
         t_stop = time.time()
         p.close()
-    rows: np.ndarray = np.load(npy)
+    rows = _stages(np.load(npy), np.load(mapping_npy), tap.rows())
     logs = {f.stem: f.read_text() for f in (tmp / f"logs{k}").glob("*.log")}
     holds = watchdog_holds(logs.get("watchdog", ""), t_stop)
     return rows, {"holds": len(holds), "hold_causes": holds, "fifo_threads": fifo}
+
+
+class _ServoTap:
+    """The bench's own subscriber on ``servo_jp`` (a callback, normal priority, in the bench's
+    process): when each setpoint reaches a subscriber on this host — the transport's share of the
+    mapping → slave hop, beside the slave's pick-up. (One more copy for the router to send.)"""
+
+    def __init__(self, node: Any) -> None:
+        from telesurg.shared.messages import JointSetpoint, decode_as
+
+        self._rows: list[tuple[int, int]] = []
+
+        def on_sample(sample: Any) -> None:
+            t = time.time_ns()
+            with contextlib.suppress(Exception):  # (a foreign message: not timed)
+                self._rows.append((decode_as(sample.payload.to_bytes(), JointSetpoint).header.stamp_ns, t))
+
+        self._sub = node.session.declare_subscriber(node.keys.slave("arm1", "servo_jp"), on_sample)
+
+    def close(self) -> None:
+        self._sub.undeclare()
+
+    def rows(self) -> np.ndarray:
+        """(n, 2): servo_jp stamp, received, ns."""
+        return np.array(self._rows, dtype=np.int64).reshape(-1, 2)
+
+
+#: Columns of :func:`_stages`' rows (wall clock ns, one clock for every process on the host; 0 =
+#: not known for that setpoint).
+STAGE_COLUMNS = (
+    "master_sent",  # the master sample's stamp (master_capture, right before it publishes)
+    "mapping_received",  # the mapping's subscriber callback got it
+    "mapping_began",  # the mapping's loop began to map it
+    "servo_jp_sent",  # the servo_jp's stamp (the mapping, right before it publishes)
+    "tap_received",  # servo_jp reached the bench's own subscriber (_ServoTap)
+    "slave_used",  # the slave's control loop first used it (its period's command)
+    "slave_stepped",  # the backend stepped (MuJoCo) / sent (serial) that period's command
+    "reference_played",  # the master time the stepped command's interpolated reference plays
+)
+
+
+def _stages(slave: np.ndarray, mapping: np.ndarray, tap: np.ndarray) -> np.ndarray:
+    """One row per setpoint the slave used (:data:`STAGE_COLUMNS`), from the slave's latency log
+    (origin, stamp, used, stepped, played), the mapping's (origin, received, began, stamp) and the
+    tap's (stamp, received), joined on the servo_jp stamp."""
+    slave = slave.reshape(-1, slave.shape[1] if slave.ndim == 2 else 5)
+    out = np.zeros((len(slave), len(STAGE_COLUMNS)), dtype=np.int64)
+    out[:, 0], out[:, 3], out[:, 5] = slave[:, 0], slave[:, 1], slave[:, 2]
+    if slave.shape[1] >= 5:
+        out[:, 6], out[:, 7] = slave[:, 3], slave[:, 4]
+    # (table, its key column, (its column, our column) pairs)
+    joins = ((mapping.reshape(-1, 4), 3, ((1, 1), (2, 2))), (tap.reshape(-1, 2), 0, ((1, 4),)))
+    for table, key, cols in joins:
+        if len(table) == 0:
+            continue
+        order = np.argsort(table[:, key])
+        keys = table[order, key]
+        i = np.clip(np.searchsorted(keys, out[:, 3]), 0, len(keys) - 1)
+        hit = keys[i] == out[:, 3]
+        for src, dst in cols:
+            out[hit, dst] = table[order[i[hit]], src]
+    return out
 
 
 def _loaded(load: Load | None, endpoint: str, tmp: Path) -> contextlib.AbstractContextManager[Any]:
@@ -156,7 +223,7 @@ def _latency_figures(relay_rows: list[np.ndarray], pipe_rows: list[np.ndarray]) 
     """Per-hop and end-to-end percentiles of the relay and the pipeline, and their ratios."""
     r = np.concatenate(relay_rows)
     pl = np.concatenate(pipe_rows)
-    pl = pl[(pl[:, 0] > 0) & (pl[:, 1] > 0)]
+    pl = pl[(pl[:, 0] > 0) & (pl[:, 3] > 0)]
     pl = pl[len(pl) // 20 :]  # drop the start-up transient
     res: dict[str, Any] = {
         "relay": {
@@ -165,15 +232,42 @@ def _latency_figures(relay_rows: list[np.ndarray], pipe_rows: list[np.ndarray]) 
             "end_to_end": _stats_ms(r[:, 2] - r[:, 0]),
         },
         "pipeline": {
-            "master_to_mapping_out": _stats_ms(pl[:, 1] - pl[:, 0]),
-            "mapping_out_to_slave_applied": _stats_ms(pl[:, 2] - pl[:, 1]),
-            "end_to_end": _stats_ms(pl[:, 2] - pl[:, 0]),
+            "master_to_mapping_out": _stats_ms(pl[:, 3] - pl[:, 0]),
+            "mapping_out_to_slave_applied": _stats_ms(pl[:, 5] - pl[:, 3]),
+            "end_to_end": _stats_ms(pl[:, 5] - pl[:, 0]),
         },
+        "stages": _stage_figures(pl),
     }
     e_r, e_p = res["relay"]["end_to_end"], res["pipeline"]["end_to_end"]
     res["ratio_p50"] = round(e_p["p50"] / e_r["p50"], 3)
     res["ratio_p99"] = round(e_p["p99"] / e_r["p99"], 3)
     return res
+
+
+#: The stages of :func:`_stage_figures`: (name, label, from column, to column of STAGE_COLUMNS).
+STAGES = (
+    ("master_to_mapping_callback", "master sent → mapping callback", "master_sent", "mapping_received"),
+    ("mapping_callback_to_loop", "mapping callback → its loop begins", "mapping_received", "mapping_began"),
+    ("mapping_work", "mapping loop: map + sign + stamp", "mapping_began", "servo_jp_sent"),
+    ("servo_jp_to_tap", "servo_jp sent → a subscriber (bench tap)", "servo_jp_sent", "tap_received"),
+    ("tap_to_slave_used", "bench tap → slave loop uses it", "tap_received", "slave_used"),
+    ("servo_jp_to_slave_used", "servo_jp sent → slave loop uses it", "servo_jp_sent", "slave_used"),
+    ("slave_used_to_stepped", "slave uses it → backend steps it", "slave_used", "slave_stepped"),
+    ("end_to_end_used", "END TO END: master sent → slave uses", "master_sent", "slave_used"),
+    ("end_to_end_stepped", "master sent → backend steps", "master_sent", "slave_stepped"),
+    ("reference_lag", "stepped command's reference: age", "reference_played", "slave_stepped"),
+)
+
+
+def _stage_figures(pl: np.ndarray) -> dict[str, Any]:
+    """Percentiles of every stage of :data:`STAGES` over the setpoints that have both stamps."""
+    col = {c: i for i, c in enumerate(STAGE_COLUMNS)}
+    out = {}
+    for name, _label, a, b in STAGES:
+        x, y = pl[:, col[a]], pl[:, col[b]]
+        ok = (x > 0) & (y > 0)
+        out[name] = _stats_ms(y[ok] - x[ok])
+    return out
 
 
 def latency(a: argparse.Namespace) -> dict[str, Any]:
@@ -235,6 +329,10 @@ def latency(a: argparse.Namespace) -> dict[str, Any]:
                 ("pipeline: mapping out → slave applied", figs["pipeline"]["mapping_out_to_slave_applied"]),
                 ("pipeline: end to end", e_p),
             ],
+        )
+        _table(
+            f"the pipeline's stages, {name} (one row per setpoint the slave used; wall clock)",
+            [(f"{label}", figs["stages"][n]) for n, label, _a, _b in STAGES],
         )
         vs_idle = f"; pipeline p99 × {figs['pipeline_p99_vs_idle']} of idle" if name != "idle" else ""
         print(

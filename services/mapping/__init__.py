@@ -143,6 +143,10 @@ class MappingConfig:
     # SCHED_FIFO priority of the thread that maps the samples, 1-99 (0: the normal scheduler): it
     # is not preempted mid-sample by the other processes' threads; needs root or CAP_SYS_NICE
     rt_priority: int = 0
+    # .npy written at exit (cartesian mode): one row per servo_jp sent — the master sample's stamp,
+    # when its callback got it, when the loop began to map it and the servo_jp's own stamp (wall
+    # clock, ns) — for the stages of telesurg bench latency ("" = none)
+    latency_log: str = ""
     # who may send the operator's commands (scale, VIP) and the confirmation of VIP changes
     # (shared/authority.py; set once for the site in [site.authority])
     authority: AuthorityConfig = field(default_factory=AuthorityConfig)
@@ -218,6 +222,11 @@ class ArmMapping(EngageGate):
         # loop maps it. If mapping ever falls behind, it maps the newest sample and skips the
         # rest (counted in ``conflated``) instead of queueing latency.
         self.pending: CartesianPose | None = None
+        self.last_stamp_ns = 0  # header stamp of the last servo_jp sent (wall clock, ns)
+        self.pending_rx_ns = 0  # wall clock (ns) when ``pending`` reached the callback
+        # cfg.latency_log: (origin, received, mapping began, published) ns per servo_jp sent
+        self.trace: np.ndarray | None = np.zeros((300_000, 4), dtype=np.int64) if cfg.latency_log else None
+        self.traced = 0
 
     # -- inputs -----------------------------------------------------------------------
     def on_safety_state(self, msg: SafetyState, key: str) -> None:
@@ -276,6 +285,7 @@ class ArmMapping(EngageGate):
             if self.pending is not None:
                 self.conflated += 1
             self.pending = msg
+            self.pending_rx_ns = time.time_ns()
         self.work.set()
 
     def process(self) -> None:
@@ -284,9 +294,15 @@ class ArmMapping(EngageGate):
             msg, self.pending = self.pending, None
             if msg is None:
                 return
+            rx_ns, begin_ns = self.pending_rx_ns, time.time_ns()
             if self.want_engage and not self.following:
                 self._try_engage(msg)
+            sent = self.servo_out.sent
             self._publish(msg)
+            tr = self.trace
+            if tr is not None and self.servo_out.sent > sent and self.traced < len(tr):
+                tr[self.traced] = (msg.header.stamp_ns, rx_ns, begin_ns, self.last_stamp_ns)
+                self.traced += 1
 
     # -- internals (lock held) ------------------------------------------------------------
     def _try_engage(self, pose: CartesianPose) -> None:
@@ -398,9 +414,11 @@ class ArmMapping(EngageGate):
         q_pub = self.q_last if self.q_last is not None else self.q_meas
         if q_pub is None:
             return
+        h = self.servo_out.header()
+        self.last_stamp_ns = h.stamp_ns
         self.servo_out.put(
             JointSetpoint(
-                self.servo_out.header(),
+                h,
                 self.geom.joint_names,
                 tuple(q_pub.tolist()),
                 follow=self.following,
@@ -517,6 +535,8 @@ def run(cfg: MappingConfig, stop: threading.Event) -> None:
                 for a in arms:
                     a.check_timeouts()
         for a in arms:
+            if isinstance(a, ArmMapping) and a.trace is not None:
+                np.save(cfg.latency_log, a.trace[: a.traced])
             log.info(
                 "%s → %s: %d IK failures, %d samples skipped (conflated), %d targets clamped",
                 a.master,

@@ -132,7 +132,9 @@ class SlaveControlConfig:
     state_file: str = ""
     teach: TeachConfig = field(default_factory=TeachConfig)  # direct-teach admittance
     # .npy written at exit: one row per setpoint the control loop applied (origin_ns of the master
-    # sample, the setpoint's stamp, the wall time it was applied, ns) — for telesurg bench latency
+    # sample, the setpoint's stamp, the wall time the loop first used it, the wall time the backend
+    # stepped that period's command, the master time its interpolated reference played, ns; 0 =
+    # none) — for telesurg bench latency
     latency_log: str = ""
     command_sources: list[str] = field(default_factory=list)  # who may send commands ([] = anyone)
     # who may send which operator command, e-stop or reset, and the confirmation of motion-starting
@@ -249,6 +251,13 @@ def run(cfg: SlaveControlConfig, stop: threading.Event) -> None:
                 q_cmd[a.index] = a.control(now, a.arm_reading(reading))
             backend.command(q_cmd)
 
+        def stepped() -> None:
+            """The backend stepped: the latency log's "acts" time (latency_log only)."""
+            if cfg.latency_log:
+                t = time.time_ns()
+                for a in arms:
+                    a.stepped(t)
+
         log.info(
             "slave %s (%s/%s, arms %s) running at %.0f Hz",
             cfg.service,
@@ -260,42 +269,43 @@ def run(cfg: SlaveControlConfig, stop: threading.Event) -> None:
         start_loop(cfg.rt_priority)
         cycle = 0
         while not stop.is_set():
+            # the period's inputs are read and its command computed right at its deadline, just
+            # before the step that sends it: a setpoint that came while the loop slept acts in
+            # this step, not one period later (the command is never older than the poll)
+            missed = timer.wait()
             node.poll()
             now = time.monotonic()
-            if now > timer.deadline_s and not backend.realtime:
-                # late (a stall before this point): this command drives the first of the periods
-                # the loop missed, so it is computed at that period's time, before the replayed
-                # ones below — every period's command at its own time, in order (an interpolated
-                # reference sampled at the wake time and then at earlier times would jump back)
-                now = timer.deadline_s - dt
-            command(now, reading)
-            missed = timer.wait()
             if backend.realtime or not missed:
                 # a real arm held its last command through the stall by itself; its MuJoCo shadow
                 # is stepped by the periods it missed, so it stays in real time too
+                command(now, reading)
                 backend.step(1 + missed)
+                stepped()
                 for a in arms:
                     a.stalled(missed * dt)
             else:
-                # a simulation: replay the missed periods, each with its own command computed at
-                # its own time (the catch-up rule, arm.py): the physics stays in real time and the
-                # arm on its commanded path, never a jump. Only the last REPLAY_MAX_PERIODS are
-                # replayed (bounded work before the next publication); the arm held its command
-                # through the earlier ones, as a real arm would have.
+                # a simulation woke late: replay the missed periods, each with its own command
+                # computed at its own time (the catch-up rule, arm.py): the physics stays in real
+                # time and the arm on its commanded path, never a jump. The first command drives
+                # the first missed period, at that period's time; only the last
+                # REPLAY_MAX_PERIODS are replayed (bounded work before the next publication); the
+                # arm held that first command through the earlier ones, as a real arm would have.
+                # Every one of them judges the newest lease and setpoint (polled above: by
+                # arrival, cycles and their own stamps, on this host's wall clock now), never
+                # the ones from before the stall (a thawed slave acts on no old permission).
+                now -= missed * dt
+                command(now, reading)
                 held = max(0, missed - REPLAY_MAX_PERIODS)
                 backend.step(1 + held)
+                stepped()
                 for a in arms:  # the arm held its command through them: its timeline pauses
                     a.stalled(held * dt)
-                # the inputs that queued up during the stall first: the replayed periods judge
-                # the newest lease and setpoint (by arrival, cycles and their own stamps), never
-                # the ones from before the stall (a thawed slave acts on no old permission)
-                node.poll()
                 # each replayed period at its own time on the loop's schedule: right after the
-                # 1 + held periods the command above drove (not counted back from the wake-up,
-                # whose own delay would make the reference skip ahead between two periods)
+                # 1 + held periods the command above drove
                 for period in range(held + 1, missed + 1):
                     command(now + period * dt, backend.read())
                     backend.step(1)
+                    stepped()
             reading = backend.read()
             cycle += 1
             arm_readings = [a.arm_reading(reading) for a in arms]

@@ -363,6 +363,7 @@ class ArmCore:
     _applied: np.ndarray | None = None
     _n_applied: int = 0
     _last_sp: Setpoint | None = None
+    _step_row: int | None = None  # latency-log row waiting for its step time (stepped)
 
     def __post_init__(self) -> None:
         p, cfg = self.profile, self.cfg
@@ -383,7 +384,7 @@ class ArmCore:
         self._lease_slack_ns = round(cfg.lease_stamp_slack_ms * 1e6)
         self._sp_max_age_ns = round(cfg.setpoint_max_age_ms * 1e6)
         if cfg.latency_log:
-            self._applied = np.zeros((300_000, 3), dtype=np.int64)
+            self._applied = np.zeros((300_000, 5), dtype=np.int64)
         if self.motion is not None:
             self.motion.attach(self)
 
@@ -564,7 +565,7 @@ class ArmCore:
         if arrived and self._sp_max_age_ns:  # the stamp-age rule for every one the timeline gets
             wall = time.time_ns()
             arrived = [a for a in arrived if not a.stamp_ns or wall - a.stamp_ns <= self._sp_max_age_ns]
-        self._log_applied(sp)
+        logged = self._log_applied(sp)
         if reading.fault or self.held.active:
             if reading.fault and internal and motion is not None:
                 motion.stop(f"fault: {reading.fault}")
@@ -579,8 +580,17 @@ class ArmCore:
                 sp = None
             sp = self.servo.reference(sp, arrived, now)
             out = ctl.update(now, q_meas, q_cmd, lease, sp, self.dt, self.cycle)
+            if logged and ctl.following and self.interpolate and self._applied is not None:
+                self._applied[self._n_applied - 1, 4] = round(self.servo.interp.played * 1e9)
         self.q_cmd = out
         return out
+
+    def stepped(self, wall_ns: int) -> None:
+        """The backend stepped (sent) the command of the period (wall clock ``wall_ns``): the
+        latency log's "acts" time of the setpoint first used in it."""
+        if self._step_row is not None and self._applied is not None:
+            self._applied[self._step_row, 3] = wall_ns
+            self._step_row = None
 
     def stalled(self, seconds: float) -> None:
         """The arm held its command through ``seconds`` of a stall of the control loop (the
@@ -638,12 +648,17 @@ class ArmCore:
         ctl.track(out)
         return out
 
-    def _log_applied(self, sp: Setpoint | None) -> None:
+    def _log_applied(self, sp: Setpoint | None) -> bool:
+        """Latency log: a row for ``sp`` if the loop uses it for the first time (True)."""
         a = self._applied
-        if a is not None and sp is not None and sp is not self._last_sp and self._n_applied < len(a):
-            a[self._n_applied] = (sp.origin_ns, sp.stamp_ns, time.time_ns())
+        new = a is not None and sp is not None and sp is not self._last_sp and self._n_applied < len(a)
+        if new:
+            assert a is not None and sp is not None
+            a[self._n_applied] = (sp.origin_ns, sp.stamp_ns, time.time_ns(), 0, 0)
+            self._step_row = self._n_applied
             self._n_applied += 1
         self._last_sp = sp
+        return new
 
     def after_period(self, cycle: int, reading: ArmReading) -> None:
         """After the backend stepped: remember the reading, drain the controller's events."""

@@ -70,6 +70,7 @@ class SetpointInterpolator:
     _delay: float = 0.0
     _shift: float = 0.0  # s the timeline was shifted back by stalls and has not yet made up
     _t_last: float | None = None  # local time of the last sample, s
+    played: float = 0.0  # source time (s) of the reference the last sample returned (0: none yet)
 
     def push(self, q: np.ndarray, t_source: float, t_arrival: float) -> None:
         """A setpoint ``q`` sampled at ``t_source`` (source clock, s) arrived at ``t_arrival``."""
@@ -122,9 +123,12 @@ class SetpointInterpolator:
         self._t_last = t
         tp = t - self._offset - self._delay  # the source time being played now
         if tp <= pts[0][0]:
+            self.played = pts[0][0]
             return pts[0][1]
         if tp >= pts[-1][0]:
+            self.played = pts[-1][0]
             return pts[-1][1]  # ran dry: hold the newest setpoint
+        self.played = tp
         i = bisect.bisect_right(pts, tp, key=lambda p: p[0])  # pts[i - 1][0] <= tp < pts[i][0]
         (ta, qa), (tb, qb) = pts[i - 1], pts[i]
         out: np.ndarray = qa + (tp - ta) / (tb - ta) * (qb - qa)
