@@ -114,6 +114,10 @@ class MirrorConfig:
     # first; the static robot geometry stays while it fits: at 0.05 MB it did not): a new viewer starts
     # near live instead of replaying the session from its start; 0 = rerun's default (1 GiB)
     history_mb: float = 1.0
+    # s between rerun's batcher sends of the logged rows (3D scene, trails, text) to the viewer and
+    # the file: each send is one message per entity, and the web viewer ingests only ~10 ms of
+    # messages a frame (docs/performance.md); 0 = rerun's default (0.2 s)
+    flush_s: float = 0.0
     draw_hz: float = 30.0  # Hz: how often the 3D scene is redrawn (arm, trails, points)
     series_hz: float = (
         5.0  # Hz: how often scalar samples are sent, in blocks (plot lag; rerun batches 3D at 5 Hz)
@@ -160,6 +164,7 @@ class MirrorConfig:
             ("plot_window_s", self.plot_window_s, 1.0, 3600.0),
             ("layout_wait_s", self.layout_wait_s, 0.0, 60.0),
             ("history_mb", self.history_mb, 0.0, 1_000_000.0),
+            ("flush_s", self.flush_s, 0.0, 10.0),
         ):
             if not lo <= value <= hi:
                 raise ConfigError(f"{name}={value} outside [{lo:g}, {hi:g}]")
@@ -743,6 +748,7 @@ def run(cfg: MirrorConfig, stop: threading.Event) -> None:
         web_port=cfg.web_port,
         grpc_port=cfg.grpc_port,
         history_mb=cfg.history_mb,
+        flush_s=cfg.flush_s,
     )
     try:
         if view.url:

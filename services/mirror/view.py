@@ -159,6 +159,16 @@ def _window(seconds: float) -> list[Any]:
     return [rrb.VisibleTimeRange(t, start=start, end=end) for t in ("source_time", "receive_time")]
 
 
+def _time_panel() -> Any:
+    """The time panel: the ``source_time`` timeline, **following** — the time cursor stays on the
+    newest data the viewer has (not playing at 1× from where it started). rerun 0.41's viewer
+    already follows a live stream by default; saying so in the blueprint keeps it so for every
+    viewer the layout reaches (a late one included) whatever the viewer's own default."""
+    import rerun.blueprint as rrb
+
+    return rrb.TimePanel(timeline="source_time", play_state="following")
+
+
 #: Blueprint overrides: entity path → SeriesLines (rerun types its keys as EntityPath | str).
 _Overrides = dict[Any, Any]
 
@@ -218,7 +228,7 @@ def blueprint(
                 ),
                 column_shares=[3, 2],
             ),
-            rrb.TimePanel(timeline="source_time"),
+            _time_panel(),
             collapse_panels=True,
         )
     errors: _Overrides = {}
@@ -278,7 +288,7 @@ def blueprint(
             right,
             column_shares=[1, 1],
         ),
-        rrb.TimePanel(timeline="source_time"),
+        _time_panel(),
         collapse_panels=True,
     )
 
