@@ -172,6 +172,7 @@ class Bus:
             self.js.append((m.header.seq, m.position))
             self.js_at[m.header.seq] = (time.monotonic(), self.mode)
             self._speed = max((abs(v) for v in m.velocity), default=0.0)
+            self._stamp_ns = m.header.stamp_ns
 
     def on_state(self, m: OperatingState, key: str) -> None:
         with self.lock:
@@ -193,6 +194,12 @@ class Bus:
             return self._speed
 
     _speed: float = 0.0
+    _stamp_ns: int = 0
+
+    def age_ms(self) -> float:
+        """Age of the last sample (its stamp against this host's clock), ms."""
+        with self.lock:
+            return (time.time_ns() - self._stamp_ns) / 1e6
 
     def events_since(self, t: float, kinds: tuple[str, ...]) -> list[tuple[str, str]]:
         with self.lock:
@@ -330,15 +337,18 @@ def test_random_ptp_and_jog_never_cross_the_patient_outside_the_trocar(site: Sit
 
     def ptp(kind: str, q_target: np.ndarray | None, *args: str) -> bool:
         """One PTP target, judged at acceptance against the test's own planned path (True: accepted)."""
-        pipe.wait(lambda: bus.speed() < 0.05, 0.5)  # settled: the measured joints are the command
-        q0 = bus.q()
+        settled = pipe.wait(lambda: bus.speed() < 0.05, 0.5)  # settled: the measured joints are the command
+        q0, age, speed = bus.q(), bus.age_ms(), bus.speed()
         planned = patient.path_penetration(q0, q_target) if q_target is not None else 0.0
         t = time.monotonic()
         r = send(*args)
         tally.ptp[f"{kind} {'accepted' if r.accepted else 'refused'}"] += 1
         if r.accepted:
             if planned > 0.0:
-                tally.bad_accepts.append(f"{args}: {r.reason} (planned path {planned * 1e3:.1f} mm deep)")
+                tally.bad_accepts.append(
+                    f"{args}: {r.reason} (planned path {planned * 1e3:.1f} mm deep; from the sample "
+                    f"{age:.0f} ms old, {speed:.3f} rad/s, {'settled' if settled else 'not settled: 0.5 s'})"
+                )
             run_until(t, "playback_done" if kind == "play" else "ptp_done")
             return True
         cls = reason_class(r.reason)
