@@ -4,10 +4,10 @@ arm now stays on its checked path (issue #20, acceptance 2).
 The keep-out process test (``tests/test_keepout_process.py``, seed 20, PTP at 0.8 of the joint
 limits) measured the forceps 1.5–1.6 mm inside the torso, 8.4–8.6 mm off the trocar line, in two
 runs at one pose: the end of the posture PTP from its program ``r06`` (``START`` below). The
-planned path was clear — it ends with the tip 1.3 mm above the slave's keep-out box, the axis
+planned path was clear — it ends with the tip 0.7 mm above the slave's keep-out box, the axis
 through the trocar — but the PTP ran at constant speed and stopped at once: J5 (1.3 rad in 0.31 s,
-at its 30 N·m force limit) lagged 27 mrad behind its command and then overshot the end by 20 mrad,
-which tipped the forceps 8 mm off the trocar and 2 mm into the torso. Here the slave's own pieces —
+at its 30 N·m force limit) lagged 27 mrad behind its command and then overshot the end by 13 mrad,
+which tipped the forceps 8 mm off the trocar and 1.6 mm into the torso. Here the slave's own pieces —
 :class:`ArmCore` with :class:`TrocarMotions`, its speed limit and commands — drive the MuJoCo MH3F
 (1 ms physics, the MJCF's position servos) on one simulated clock, and the patient is judged from
 the MJCF like the process test does. The PTP now has a smooth (cosine) profile, and a PTP stopped
