@@ -62,11 +62,12 @@ from telesurg.shared.messages import (
 pytestmark = [
     pytest.mark.process,
     pytest.mark.timeout(1500),
-    # 7–15 min of motions on this 2-core VM, and not met yet (docs/trocar.md, "Not done": the
-    # measured forceps 1.6 mm in the torso next to the trocar in the run of 08:14): on request
+    # 7–25 min of motions and analysis on this 2-core VM, and not met yet (docs/trocar.md, "Not
+    # done": since the smooth PTP the measured forceps stays out of the torso, but in each of two
+    # runs one accepted posture PTP the test judges planned through it, unexplained): on request
     pytest.mark.skipif(
         not os.environ.get("TELESURG_SLOW"),
-        reason="issue #20 acceptance 2, 7–15 min and not met yet: TELESURG_SLOW=1 runs it",
+        reason="issue #20 acceptance 2, 7–25 min and not met yet: TELESURG_SLOW=1 runs it",
     ),
 ]
 
@@ -347,7 +348,8 @@ def test_random_ptp_and_jog_never_cross_the_patient_outside_the_trocar(site: Sit
             if planned > 0.0:
                 tally.bad_accepts.append(
                     f"{args}: {r.reason} (planned path {planned * 1e3:.1f} mm deep; from the sample "
-                    f"{age:.0f} ms old, {speed:.3f} rad/s, {'settled' if settled else 'not settled: 0.5 s'})"
+                    f"{age:.0f} ms old, {speed:.3f} rad/s, {'settled' if settled else 'not settled: 0.5 s'}; "
+                    f"q0 {np.round(q0, 4).tolist()}, the test's target {np.round(q_target, 4).tolist()})"
                 )
             run_until(t, "playback_done" if kind == "play" else "ptp_done")
             return True
