@@ -340,6 +340,11 @@ def test_random_ptp_and_jog_never_cross_the_patient_outside_the_trocar(site: Sit
         """One PTP target, judged at acceptance against the test's own planned path (True: accepted)."""
         settled = pipe.wait(lambda: bus.speed() < 0.05, 0.5)  # settled: the measured joints are the command
         q0, age, speed = bus.q(), bus.age_ms(), bus.speed()
+        if kind == "posture":  # its target from the same sample as its start (J4/J5 aimed from here)
+            try:
+                q_target = posture_adjust(q0, patient.trocar)
+            except Exception:
+                q_target = None
         planned = patient.path_penetration(q0, q_target) if q_target is not None else 0.0
         t = time.monotonic()
         r = send(*args)
@@ -413,11 +418,9 @@ def test_random_ptp_and_jog_never_cross_the_patient_outside_the_trocar(site: Sit
             jog_sequence()
             moved, playback = True, False
         if n_ptp < N_PTP and moved:  # the posture adjustment PTP from here (J4/J5 aim at the trocar)
-            try:
-                target: np.ndarray | None = posture_adjust(bus.q(), patient.trocar)
-            except Exception:
-                target = None
-            adjusted = ptp("posture", target, "begin_posture_adjust", "method=ptp")
+            # (its target is predicted from the settled start: from a sample taken before the arm
+            # settled, J1-J3 were up to 28 mrad off and the test judged a path the slave never planned)
+            adjusted = ptp("posture", None, "begin_posture_adjust", "method=ptp")
             n_ptp += 1
             if adjusted and rng.random() < TROCAR_SHARE:
                 if not trocar_jog_sequence():  # (it ends in non_trocar mode by itself)
