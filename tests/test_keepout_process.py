@@ -62,12 +62,10 @@ from telesurg.shared.messages import (
 pytestmark = [
     pytest.mark.process,
     pytest.mark.timeout(1500),
-    # 7–25 min of motions and analysis on this 2-core VM, and not met yet (docs/trocar.md, "Not
-    # done": since the smooth PTP the measured forceps stays out of the torso, but in each of two
-    # runs one accepted posture PTP the test judges planned through it, unexplained): on request
+    # 6–25 min of motions and analysis on this 2-core VM (docs/trocar.md): too long for make test
     pytest.mark.skipif(
         not os.environ.get("TELESURG_SLOW"),
-        reason="issue #20 acceptance 2, 7–25 min and not met yet: TELESURG_SLOW=1 runs it",
+        reason="issue #20 acceptance 2, a slow test (6–25 min): TELESURG_SLOW=1 runs it",
     ),
 ]
 
