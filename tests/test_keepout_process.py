@@ -62,11 +62,10 @@ from telesurg.shared.messages import (
 pytestmark = [
     pytest.mark.process,
     pytest.mark.timeout(1500),
-    # 7–15 min of motions on this 2-core VM, and not met yet (docs/trocar.md, "Not done": the
-    # measured forceps 1.6 mm in the torso next to the trocar in the run of 08:14): on request
+    # 6–25 min of motions and analysis on this 2-core VM (docs/trocar.md): too long for make test
     pytest.mark.skipif(
         not os.environ.get("TELESURG_SLOW"),
-        reason="issue #20 acceptance 2, 7–15 min and not met yet: TELESURG_SLOW=1 runs it",
+        reason="issue #20 acceptance 2, a slow test (6–25 min): TELESURG_SLOW=1 runs it",
     ),
 ]
 
@@ -172,6 +171,7 @@ class Bus:
             self.js.append((m.header.seq, m.position))
             self.js_at[m.header.seq] = (time.monotonic(), self.mode)
             self._speed = max((abs(v) for v in m.velocity), default=0.0)
+            self._stamp_ns = m.header.stamp_ns
 
     def on_state(self, m: OperatingState, key: str) -> None:
         with self.lock:
@@ -193,6 +193,12 @@ class Bus:
             return self._speed
 
     _speed: float = 0.0
+    _stamp_ns: int = 0
+
+    def age_ms(self) -> float:
+        """Age of the last sample (its stamp against this host's clock), ms."""
+        with self.lock:
+            return (time.time_ns() - self._stamp_ns) / 1e6
 
     def events_since(self, t: float, kinds: tuple[str, ...]) -> list[tuple[str, str]]:
         with self.lock:
@@ -330,15 +336,24 @@ def test_random_ptp_and_jog_never_cross_the_patient_outside_the_trocar(site: Sit
 
     def ptp(kind: str, q_target: np.ndarray | None, *args: str) -> bool:
         """One PTP target, judged at acceptance against the test's own planned path (True: accepted)."""
-        pipe.wait(lambda: bus.speed() < 0.05, 0.5)  # settled: the measured joints are the command
-        q0 = bus.q()
+        settled = pipe.wait(lambda: bus.speed() < 0.05, 0.5)  # settled: the measured joints are the command
+        q0, age, speed = bus.q(), bus.age_ms(), bus.speed()
+        if kind == "posture":  # its target from the same sample as its start (J4/J5 aimed from here)
+            try:
+                q_target = posture_adjust(q0, patient.trocar)
+            except Exception:
+                q_target = None
         planned = patient.path_penetration(q0, q_target) if q_target is not None else 0.0
         t = time.monotonic()
         r = send(*args)
         tally.ptp[f"{kind} {'accepted' if r.accepted else 'refused'}"] += 1
         if r.accepted:
             if planned > 0.0:
-                tally.bad_accepts.append(f"{args}: {r.reason} (planned path {planned * 1e3:.1f} mm deep)")
+                tally.bad_accepts.append(
+                    f"{args}: {r.reason} (planned path {planned * 1e3:.1f} mm deep; from the sample "
+                    f"{age:.0f} ms old, {speed:.3f} rad/s, {'settled' if settled else 'not settled: 0.5 s'}; "
+                    f"q0 {np.round(q0, 4).tolist()}, the test's target {np.round(q_target, 4).tolist()})"
+                )
             run_until(t, "playback_done" if kind == "play" else "ptp_done")
             return True
         cls = reason_class(r.reason)
@@ -401,11 +416,9 @@ def test_random_ptp_and_jog_never_cross_the_patient_outside_the_trocar(site: Sit
             jog_sequence()
             moved, playback = True, False
         if n_ptp < N_PTP and moved:  # the posture adjustment PTP from here (J4/J5 aim at the trocar)
-            try:
-                target: np.ndarray | None = posture_adjust(bus.q(), patient.trocar)
-            except Exception:
-                target = None
-            adjusted = ptp("posture", target, "begin_posture_adjust", "method=ptp")
+            # (its target is predicted from the settled start: from a sample taken before the arm
+            # settled, J1-J3 were up to 28 mrad off and the test judged a path the slave never planned)
+            adjusted = ptp("posture", None, "begin_posture_adjust", "method=ptp")
             n_ptp += 1
             if adjusted and rng.random() < TROCAR_SHARE:
                 if not trocar_jog_sequence():  # (it ends in non_trocar mode by itself)

@@ -118,8 +118,8 @@ class SlaveControlConfig:
     camera: str = ""
     camera_source: str = "camera"  # the only publisher accepted on camera/<cam>/measured_cp
     # (default: the torso (260, -170, 136)-(740, 170, 196) mm with 5 mm on every side and 6 mm below,
-    # and the top 2 mm under the trocar: the arm lags and overshoots its command by millimetres at
-    # PTP speed, and a path is checked at 0.005 rad steps)
+    # and the top 2 mm under the trocar: the arm lags its command (a PTP within 0.8 mrad of its
+    # joint line, docs/trocar.md), and a path is checked at 0.005 rad steps)
     patient_box_min_mm: tuple[float, float, float] = (255.0, -175.0, 130.0)
     patient_box_max_mm: tuple[float, float, float] = (745.0, 175.0, 198.0)
     jog_speed_mm_s: float = 10.0  # mm/s: Cartesian jog, insert/remove and elbow (VIP) jog speed

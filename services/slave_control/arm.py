@@ -183,8 +183,9 @@ class AttachedSource:
 class MotionSource(Protocol):
     """A slave-side motion of one arm (trocar modes with PTP, jog, teach/playback, ...).
 
-    The core calls every method with its lock held except :meth:`next`, :meth:`measure` and
-    :meth:`command` (which take :attr:`ArmCore.lock` themselves where they need it).
+    The core calls every method with its lock held except :meth:`next`, :meth:`braking`,
+    :meth:`measure` and :meth:`command` (which take :attr:`ArmCore.lock` themselves where they
+    need it).
     """
 
     def attach(self, core: ArmCore) -> None:
@@ -210,6 +211,12 @@ class MotionSource(Protocol):
 
     def stop(self, reason: str) -> None:
         """Cancel the motion (lease lost, e-stop, fault); the operator must command it again."""
+        ...
+
+    def braking(self, q_cmd: np.ndarray, dt: float, allowed: bool) -> np.ndarray | None:
+        """After a stop: this period's target of the stopped motion's controlled stop (a joint PTP
+        ramps its speed down along its checked path), or None: stand still. ``allowed`` False
+        (e-stop, fault) drops it."""
         ...
 
     def measure(self, reading: ArmReading, q_cmd: np.ndarray) -> None:
@@ -569,10 +576,17 @@ class ArmCore:
         if reading.fault or self.held.active:
             if reading.fault and internal and motion is not None:
                 motion.stop(f"fault: {reading.fault}")
+            if motion is not None:
+                motion.braking(q_cmd, self.dt, False)  # a fault: stand still, no controlled stop
             ctl.lease_valid = ctl.lease_ok(lease, now, self.cycle)
             out = self.held.update(ctl, reading.fault, q_meas)
         elif internal and motion is not None:
             out = self._internal(motion, lease, now, reading)
+            self.commanding = True
+        elif motion is not None and (brake := motion.braking(q_cmd, self.dt, not self.estop)) is not None:
+            # a stopped joint PTP ramps down along its path (any lease: the arm would coast anyway)
+            out = q_cmd + limit_step(brake - q_cmd, self._vmax * self.dt)
+            ctl.track(out)
             self.commanding = True
         else:
             if blocked:

@@ -104,6 +104,9 @@ class ElbowJog(AttachedSource):
     def stop(self, reason: str) -> None:
         self.jog = None
 
+    def braking(self, q_cmd: np.ndarray, dt: float, allowed: bool) -> np.ndarray | None:
+        return None  # an elbow jog stops where it is
+
     def measure(self, reading: ArmReading, q_cmd: np.ndarray) -> None:
         return None
 

@@ -5,7 +5,8 @@ period; slave_control rate-limits it to the joint speed limits and runs it only 
 lease. Pure (kinematics only), so it can be tested on its own.
 
 * :class:`PtpMotion` — point-to-point synchronous joint motion (posture adjustment of J4/J5):
-  every joint arrives at the same time, linear in joint space.
+  every joint arrives at the same time, on the straight joint-space line, with a smooth (cosine)
+  start and stop; :class:`JointBrake` — its controlled stop along the same line.
 * :func:`jog_step` — one period of a jog: translation of the tip along an axis of the base
   (``world``, ``base``), the work frame (the laparoscope view, :mod:`.work_frame`) or the
   forceps frame at ``speed_m_s``, orientation kept;
@@ -17,6 +18,7 @@ lease. Pure (kinematics only), so it can be tested on its own.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -30,21 +32,78 @@ _AXES = {"x": 0, "y": 1, "z": 2, "rx": 0, "ry": 1, "rz": 2}
 SUPPORTED_JOG_AXES = ("x", "y", "z", "rx", "ry", "rz", "j1", "j2", "j3", "j4", "j5", "j6")
 
 
+def smooth(s: float) -> float:
+    """The PTP's time profile: the fraction of the path at the fraction ``s`` of its duration
+    (cosine: zero speed at both ends, peak speed π/2 × the mean)."""
+    return 0.5 - 0.5 * math.cos(math.pi * min(max(s, 0.0), 1.0))
+
+
+def smooth_rate(s: float) -> float:
+    """d smooth / d s at ``s`` (π/2 at mid-path, 0 at both ends)."""
+    return 0.5 * math.pi * math.sin(math.pi * min(max(s, 0.0), 1.0))
+
+
+#: peak speed of the :func:`smooth` profile over its mean speed
+SMOOTH_PEAK = math.pi / 2
+
+
+@dataclass
+class JointBrake:
+    """A controlled stop of a straight joint-space motion ``q_from → q_to``: from the fraction
+    ``s`` of the path, moving at ``rate`` (fraction of the path per second), the speed ramps down
+    linearly to zero over ``ramp_s`` — on the same line, never past ``q_to``.
+
+    A joint PTP whose command simply froze left its (checked) path: the MuJoCo arm at 0.8 × the
+    joint limits, stopped at once, strayed up to 15 mrad off the line (J5 at its force limit while
+    the other joints stopped sooner); ramped down over 30 ms, within 0.8 mrad (docs/trocar.md).
+    """
+
+    q_from: np.ndarray
+    q_to: np.ndarray
+    s: float
+    rate: float
+    ramp_s: float
+    elapsed_s: float = 0.0
+
+    def next(self, dt: float) -> np.ndarray:
+        """Joint target after another ``dt`` seconds of the stop."""
+        t0 = self.elapsed_s
+        t1 = self.elapsed_s = min(t0 + dt, self.ramp_s)
+        r = self.rate / self.ramp_s if self.ramp_s > 0 else 0.0
+        self.s = min(1.0, self.s + self.rate * (t1 - t0) - 0.5 * r * (t1 * t1 - t0 * t0))
+        out: np.ndarray = self.q_from + self.s * (self.q_to - self.q_from)
+        return out
+
+    @property
+    def done(self) -> bool:
+        """The speed is down to zero (or the path's end is reached)."""
+        return self.elapsed_s >= self.ramp_s or self.s >= 1.0
+
+
 @dataclass
 class PtpMotion:
-    """Synchronous joint motion from ``q_from`` to ``q_to`` over ``duration_s``."""
+    """Synchronous joint motion from ``q_from`` to ``q_to`` over ``duration_s`` (:func:`smooth`
+    profile: the servos of the MuJoCo arm follow it within 0.6 mrad of the line at 0.8 × the joint
+    limits; a constant-speed PTP that stopped at once at its end overshot by 20 mrad)."""
 
     q_from: np.ndarray
     q_to: np.ndarray
     duration_s: float
     elapsed_s: float = 0.0
 
+    def _s(self) -> float:
+        return 1.0 if self.duration_s <= 0 else self.elapsed_s / self.duration_s
+
     def next(self, dt: float) -> np.ndarray:
         """Joint target after another ``dt`` seconds."""
         self.elapsed_s = min(self.elapsed_s + dt, self.duration_s)
-        s = 1.0 if self.duration_s <= 0 else self.elapsed_s / self.duration_s
-        out: np.ndarray = self.q_from + s * (self.q_to - self.q_from)
+        out: np.ndarray = self.q_from + smooth(self._s()) * (self.q_to - self.q_from)
         return out
+
+    def brake(self, ramp_s: float) -> JointBrake:
+        """Its controlled stop from where it is now (see :class:`JointBrake`)."""
+        rate = 0.0 if self.duration_s <= 0 else smooth_rate(self._s()) / self.duration_s
+        return JointBrake(self.q_from, self.q_to, smooth(self._s()), rate, ramp_s)
 
     @property
     def done(self) -> bool:
@@ -53,9 +112,10 @@ class PtpMotion:
 
 
 def ptp_duration(q_from: np.ndarray, q_to: np.ndarray, speed_fraction: float = 0.2) -> float:
-    """Duration (s) of a synchronous PTP at ``speed_fraction`` of the slowest joint's limit."""
+    """Duration (s) of a synchronous PTP whose fastest joint peaks at ``speed_fraction`` of its
+    limit (the :func:`smooth` profile: π/2 × the constant-speed duration)."""
     vmax = np.array(MH3F.max_velocity) * speed_fraction
-    return float(np.max(np.abs(q_to - q_from) / vmax))
+    return SMOOTH_PEAK * float(np.max(np.abs(q_to - q_from) / vmax))
 
 
 def jog_step(

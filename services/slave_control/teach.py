@@ -38,6 +38,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
+from telesurg.services.slave_control.motion import SMOOTH_PEAK, JointBrake, smooth, smooth_rate
 from telesurg.shared import jsonio
 from telesurg.shared.errors import ConfigError, IKError
 from telesurg.shared.kinematics.mh3f import MH3F, fk
@@ -205,7 +206,8 @@ class Playback:
             self._tip_from = fk(q_cmd, MH3F)[:3, 3]
             self._duration = float(np.linalg.norm(np.array(p.tip) - self._tip_from)) / self.tip_speed
         else:
-            self._duration = float(np.max(np.abs(np.array(p.q) - q_cmd) / self.joint_speed))
+            # the smooth profile peaks at π/2 × its mean speed: the fastest joint peaks at joint_speed
+            self._duration = SMOOTH_PEAK * float(np.max(np.abs(np.array(p.q) - q_cmd) / self.joint_speed))
 
     @property
     def done(self) -> bool:
@@ -228,7 +230,7 @@ class Playback:
         p = self.points[self.index]
         self._elapsed = min(self._elapsed + dt, self._duration)
         s = 1.0 if self._duration <= 0 else self._elapsed / self._duration
-        s = 0.5 - 0.5 * math.cos(math.pi * s)  # smooth start and stop
+        s = smooth(s)  # smooth start and stop
         if self.mode == "trocar":
             assert self.trocar is not None and self._tip_from is not None
             tip = self._tip_from + s * (np.array(p.tip) - self._tip_from)
@@ -238,6 +240,15 @@ class Playback:
         if self._elapsed >= self._duration:
             self._dwell = self.dwell_s
         return target
+
+    def brake(self, ramp_s: float) -> JointBrake | None:
+        """The controlled stop of a joint PTP segment under way (:class:`JointBrake`), or None
+        (trocar mode: the tip line through the trocar IK is no joint-space line; at rest)."""
+        if self.mode == "trocar" or self.done or self._q_from is None or self._dwell >= 0.0:
+            return None
+        s = 1.0 if self._duration <= 0 else self._elapsed / self._duration
+        rate = 0.0 if self._duration <= 0 else smooth_rate(s) / self._duration
+        return JointBrake(self._q_from, np.array(self.points[self.index].q), smooth(s), rate, ramp_s)
 
 
 class TeachStore:

@@ -22,7 +22,13 @@ import numpy as np
 from telesurg.services.slave_control.arm import ArmCore, ArmReading, AttachedSource, MotionError
 from telesurg.services.slave_control.backends import PUSH_POINTS
 from telesurg.services.slave_control.modes import ControlMode, ControlModes, Jog, MotionMode, Phase
-from telesurg.services.slave_control.motion import SUPPORTED_JOG_AXES, PtpMotion, jog_step, ptp_duration
+from telesurg.services.slave_control.motion import (
+    SUPPORTED_JOG_AXES,
+    JointBrake,
+    PtpMotion,
+    jog_step,
+    ptp_duration,
+)
 from telesurg.services.slave_control.teach import (
     NAME_RE,
     Playback,
@@ -68,6 +74,8 @@ class TrocarMotions(AttachedSource):
         self.trocar_taught = cfg.trocar_taught
         self.ptp: PtpMotion | None = None
         self.playback: Playback | None = None
+        # the controlled stop of a stopped joint PTP (posture PTP, playback outside trocar mode)
+        self.brake: JointBrake | None = None
         self.playback_name = ""
         self.posture_target: np.ndarray | None = None  # joints after the posture adjustment
         self.store = TeachStore(cfg.state_file or None, profile.arm)
@@ -152,6 +160,7 @@ class TrocarMotions(AttachedSource):
         """The joint target of this period's slave-side motion (PTP, jog, playback, direct teach)."""
         cfg = self.cfg
         with self._core.lock:
+            self.brake = None  # a motion drives the arm: no stop of an earlier one goes on
             motion = self.modes.motion
             job = Internal(
                 self.modes.jog_command,
@@ -342,6 +351,11 @@ class TrocarMotions(AttachedSource):
         estop = self._core.estop
         if estop and cmd.name not in ("state", "stop", "abort"):
             return False, f"{cmd.name} refused: {estop} (reset first)"
+        if cmd.name in STARTS_MOTION and self.brake is not None and not self.brake.done:
+            return False, (
+                f"{cmd.name} refused: the arm is still stopping (a stopped PTP ramps down over "
+                f"{PTP_STOP_RAMP_S * 1e3:.0f} ms along its path); send it again"
+            )
         if cmd.name == "state":
             allowed = "; ".join(f"{k}: {', '.join(v)}" for k, v in m.allowed().items() if v)
             return True, f"{m.label}, motion {m.motion or 'none'}; allowed: {allowed}"[:500]
@@ -384,12 +398,12 @@ class TrocarMotions(AttachedSource):
             self.remove_pending_until = 0.0
         if cmd.name == "stop":
             if self.playback is not None:
-                self.playback = None
+                self._halt_joint_ptp()
                 return True, f"playback of {self.playback_name!r} stopped"
             r = m.stop()
             return r.accepted, r.reason
         if cmd.name == "abort":
-            self.ptp = self.playback = None
+            self._halt_joint_ptp()
             r = m.abort(a.get("reason", "operator abort"))
             if m.phase is None:
                 self.posture_target = None
@@ -398,7 +412,7 @@ class TrocarMotions(AttachedSource):
             before = m.motion
             r = m.set_motion_mode(a.get("mode", ""))
             if r.accepted and m.motion is not before:
-                self.playback = None  # a new motion mode ends a running playback
+                self._halt_joint_ptp()  # a new motion mode ends a running playback
             return r.accepted, r.reason
         if cmd.name in ("teach_point", "clear_program", "play"):
             return self._program_command(cmd.name, a.get("program", ""))
@@ -558,14 +572,43 @@ class TrocarMotions(AttachedSource):
 
     def stop(self, reason: str = "stopped") -> None:
         """Cancel the slave-side motion (PTP, jog, playback, direct teach); the operator must
-        command it again (the core's lock held)."""
-        self.ptp = self.playback = None
+        command it again (the core's lock held). A joint PTP ramps down along its path
+        (:meth:`braking`)."""
+        self._halt_joint_ptp()
         if self.modes.jog_command is not None:
             self.modes.stop()
         if self.modes.motion is MotionMode.DIRECT_TEACH:
             self.modes.abort(reason)
             if self.modes.phase is None:
                 self.posture_target = None
+
+    def _halt_joint_ptp(self) -> None:
+        """End the PTP and the playback (lock held); a joint PTP under way gets its controlled
+        stop (:data:`PTP_STOP_RAMP_S`) along its path, checked before it started."""
+        brake = self.ptp.brake(PTP_STOP_RAMP_S) if self.ptp is not None else None
+        if brake is None and self.playback is not None:
+            brake = self.playback.brake(PTP_STOP_RAMP_S)
+        if brake is not None and self.brake is None:
+            self.brake = brake
+        self.ptp = self.playback = None
+
+    def braking(self, q_cmd: np.ndarray, dt: float, allowed: bool) -> np.ndarray | None:
+        """This period's target of a stopped joint PTP's controlled stop, or None (see
+        :meth:`~telesurg.services.slave_control.arm.MotionSource.braking`). Every target is
+        checked against the patient keep-out like a motion's: a crossing ends the stop at once."""
+        with self._core.lock:
+            brake = self.brake
+            if brake is None:
+                return None
+            if not allowed or brake.done:
+                self.brake = None
+                return None
+            target = brake.next(dt)
+            box = self.patient_box()
+            if pose_problem(target, box) and pose_problem(q_cmd, box) is None:
+                self.brake = None
+                return None
+            return target
 
     def active(self) -> bool:
         """A slave-side motion is commanded (lock held by the caller): PTP, jog, playback, or
@@ -620,6 +663,11 @@ COMMANDS = (
 )
 
 
+#: Commands that start a motion: refused while a stopped joint PTP still ramps down (its stop
+#: runs from the command it had reached, not from where a new motion's path would be checked)
+STARTS_MOTION = ("begin_posture_adjust", "finish_posture_adjust", "insert", "remove", "jog", "play", "push")
+
+
 @dataclass
 class Internal:
     """The slave-side motion of one control period (a snapshot taken under the lock)."""
@@ -646,6 +694,11 @@ RCM_STOP_MM = 1.5
 #: mm: ... or grows this much above the smallest error measured since the motion started (a
 #: removal starting off the trocar may run while it does not stray further)
 RCM_STOP_SLACK_MM = 0.25
+#: s: a stopped joint PTP (posture PTP, playback outside trocar mode: stop, abort, a hold) ramps
+#: its speed down to zero along its planned — checked — path over this time: the MuJoCo arm at 0.8
+#: × the joint limits, its command frozen at once, left the path by up to 15 mrad (J5 at its force
+#: limit); ramped over 30 ms, by at most 0.8 mrad (tests/test_ptp_tracking.py)
+PTP_STOP_RAMP_S = 0.03
 #: s: a `remove` commanded while the watchdog holds starts when the lease is back within this time
 REMOVE_LEASE_WAIT_S = 5.0
 
