@@ -130,6 +130,10 @@ class MirrorConfig:
     # recorder keeps every sample); 0 = draw every sample
     plot_hz: float = 0.0
     plot_window_s: float = 20.0  # s: time series show this much history before the time cursor
+    # messages the mirror buffers between its draw passes, at most: while it is starved of CPU (it
+    # runs below the control path) the oldest are dropped and counted instead of the buffer
+    # growing without bound (~2 s of the local site's streams); the recorder keeps every message
+    inbox_max: int = 10_000
     # Hz: camera frames drawn per camera (the newest, as its JPEG; camera/*/image), 0 = none
     image_hz: float = 2.0
     layout_wait_s: float = 0.5  # s after the first slave arm is seen before the layout is sent
@@ -165,6 +169,7 @@ class MirrorConfig:
             ("layout_wait_s", self.layout_wait_s, 0.0, 60.0),
             ("history_mb", self.history_mb, 0.0, 1_000_000.0),
             ("flush_s", self.flush_s, 0.0, 10.0),
+            ("inbox_max", self.inbox_max, 100, 10_000_000),
         ):
             if not lo <= value <= hi:
                 raise ConfigError(f"{name}={value} outside [{lo:g}, {hi:g}]")
@@ -186,25 +191,31 @@ class Inbox:
     :meth:`on_message` runs on zenoh threads for every message that passed the strict decoder
     and the per-key sequence check of :meth:`telesurg.shared.bus.Node.subscribe` (which also counts the
     rejects); it stamps the receive time and appends ``(key, receive_ns, message)``;
-    :meth:`take` hands the whole buffer to the draw loop.
+    :meth:`take` hands the whole buffer to the draw loop. The buffer holds at most ``max_items``:
+    when the draw loop falls behind (a starved mirror), the oldest are dropped and counted in
+    :attr:`dropped`, so its memory stays bounded.
     """
 
-    def __init__(self) -> None:
+    def __init__(self, max_items: int = 10_000) -> None:
         self._lock = threading.Lock()
-        self._items: list[tuple[str, int, AnyMessage]] = []
+        self._items: deque[tuple[str, int, AnyMessage]] = deque(maxlen=max_items)
         self.received = 0
+        self.dropped = 0
 
     def on_message(self, msg: Message, key: str) -> None:
         """Node.subscribe callback: buffer the decoded message."""
         rx = time.time_ns()
         with self._lock:
+            if len(self._items) == self._items.maxlen:
+                self.dropped += 1
             self._items.append((key, rx, cast(AnyMessage, msg)))  # decode returns AnyMessage
             self.received += 1
 
     def take(self) -> list[tuple[str, int, AnyMessage]]:
         """Everything buffered since the last call, in arrival order."""
         with self._lock:
-            items, self._items = self._items, []
+            items = list(self._items)
+            self._items.clear()
         return items
 
 
@@ -755,7 +766,7 @@ def run(cfg: MirrorConfig, stop: threading.Event) -> None:
             log.info("rerun web viewer: %s", view.url)
         if cfg.save:
             log.info("recording to %s", cfg.save)
-        inbox = Inbox()
+        inbox = Inbox(cfg.inbox_max)
         with Node(cfg.bus, cfg.site, cfg.service) as node:
             mirror = Mirror(
                 view,
@@ -807,9 +818,11 @@ def run(cfg: MirrorConfig, stop: threading.Event) -> None:
         view.close()  # sends what is still buffered first (Mirror.flush)
     wall, cpu = time.monotonic() - wall0, _cpu_s() - cpu0
     log.info(
-        "received %d, rejected %d, drew %d joint samples, %d draw overruns; "
+        "received %d (%d dropped while the mirror was behind), rejected %d, drew %d joint samples, "
+        "%d draw overruns; "
         "CPU %.2f s in %.1f s (%.3f of a core, rerun's threads included)",
         inbox.received,
+        inbox.dropped,
         rejected,
         mirror.drawn,
         timer.overruns,
