@@ -109,6 +109,27 @@ class GoalMaster(MasterHand):
         return (float(self.p[0]), float(self.p[1]), float(self.p[2]))
 
 
+class SwingingArm(threading.Thread):
+    """The slave's ``measured_js`` at 100 Hz, j1 swinging ±0.4 rad about the home pose (the
+    browser viewer tests' live stream); ``stop`` ends it."""
+
+    def __init__(self, node: Any, profile: Any) -> None:
+        super().__init__(daemon=True)
+        self.stop = threading.Event()
+        self.js = node.outlet(node.keys.slave("arm1", "measured_js"), control=False)
+        self.names, self.home = profile.joint_names, np.asarray(profile.home, np.float64)
+
+    def run(self) -> None:
+        from telesurg.shared.messages import JointState
+
+        t0 = time.monotonic()
+        while not self.stop.is_set():
+            q = self.home.copy()
+            q[0] += 0.4 * np.sin(0.5 * (time.monotonic() - t0))
+            self.js.put(JointState(self.js.header(), self.names, tuple(q)))
+            time.sleep(0.01)
+
+
 def settled_tip(
     lock: threading.Lock, tips: list[tuple[float, Any]], quiet_mm: float = 0.02, timeout: float = 8.0
 ) -> Any:

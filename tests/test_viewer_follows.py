@@ -22,7 +22,6 @@ skipped without it.
 
 from __future__ import annotations
 
-import math
 import signal
 import subprocess
 import sys
@@ -33,7 +32,7 @@ from typing import Any
 
 import numpy as np
 import pytest
-from helpers import CHROMIUM, chromium
+from helpers import CHROMIUM, SwingingArm, chromium
 
 pytestmark = pytest.mark.process
 
@@ -57,7 +56,6 @@ def test_the_web_viewer_follows_the_live_end_of_the_stream(tmp_path: Path) -> No
     from telesurg.services.launcher import free_port, wait_port
     from telesurg.shared import robots
     from telesurg.shared.bus import BusConfig, Node, open_session
-    from telesurg.shared.messages import JointState
     from telesurg.shared.viewer import viewer_url
 
     profile = robots.get("mh3f").arm("arm1")
@@ -76,18 +74,8 @@ def test_the_web_viewer_follows_the_live_end_of_the_stream(tmp_path: Path) -> No
     try:
         assert wait_port("127.0.0.1", web, 60.0), (tmp_path / "mirror.out").read_text()[-2000:]
         with Node(BusConfig(connect=[ep]), "local", "slave_control") as node:
-            js = node.outlet(node.keys.slave("arm1", "measured_js"), control=False)
-            home = np.asarray(profile.home, np.float64)
-
-            def publish() -> None:  # the slave's measured joints at 100 Hz, j1 swinging
-                t0 = time.monotonic()
-                while not stop.is_set():
-                    q = home.copy()
-                    q[0] += 0.4 * math.sin(0.5 * (time.monotonic() - t0))
-                    js.put(JointState(js.header(), profile.joint_names, tuple(q)))
-                    time.sleep(0.01)
-
-            thread = threading.Thread(target=publish, daemon=True)
+            thread = SwingingArm(node, profile)  # the slave's measured joints at 100 Hz
+            thread.stop = stop
             thread.start()
             time.sleep(PREROLL_S)
             url = viewer_url(f"rerun+http://127.0.0.1:{grpc}/proxy", web)

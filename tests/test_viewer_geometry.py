@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import colorsys
 import io
-import math
 import os
 import signal
 import subprocess
@@ -26,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from helpers import CHROMIUM, chromium, screenshot
+from helpers import CHROMIUM, SwingingArm, chromium, screenshot
 from telesurg.shared import robots
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -169,7 +168,6 @@ def test_web_viewer_shows_the_robot_geometry(tmp_path: Path) -> None:
     from telesurg.services.launcher import free_port, wait_port
     from telesurg.services.mirror.geometry import RobotGeometry
     from telesurg.shared.bus import BusConfig, Node, open_session
-    from telesurg.shared.messages import JointState
     from telesurg.shared.viewer import viewer_url
 
     spec = robots.get("mh3f")
@@ -189,18 +187,8 @@ def test_web_viewer_shows_the_robot_geometry(tmp_path: Path) -> None:
     try:
         assert wait_port("127.0.0.1", web, 60.0), (tmp_path / "mirror.out").read_text()[-2000:]
         with Node(BusConfig(connect=[ep]), "local", "slave_control") as node:
-            js = node.outlet(node.keys.slave("arm1", "measured_js"), control=False)
-            home = np.asarray(profile.home, np.float64)
-
-            def publish() -> None:  # the slave's measured joints at 100 Hz, j1 swinging
-                t0 = time.monotonic()
-                while not stop.is_set():
-                    q = home.copy()
-                    q[0] += 0.4 * math.sin(0.5 * (time.monotonic() - t0))
-                    js.put(JointState(js.header(), profile.joint_names, tuple(q)))
-                    time.sleep(0.01)
-
-            thread = threading.Thread(target=publish, daemon=True)
+            thread = SwingingArm(node, profile)  # the slave's measured joints at 100 Hz
+            thread.stop = stop
             thread.start()
             url = viewer_url(f"rerun+http://127.0.0.1:{grpc}/proxy", web)
             shots: list[tuple[int, bool]] = []
