@@ -74,6 +74,16 @@ class JointBrake:
         out: np.ndarray = self.q_from + self.s * (self.q_to - self.q_from)
         return out
 
+    @classmethod
+    def under_way(
+        cls, q_from: np.ndarray, q_to: np.ndarray, elapsed_s: float, duration_s: float, ramp_s: float
+    ) -> JointBrake:
+        """The stop of a :func:`smooth` motion ``q_from → q_to`` of ``duration_s``, ``elapsed_s``
+        into it."""
+        s = 1.0 if duration_s <= 0 else elapsed_s / duration_s
+        rate = 0.0 if duration_s <= 0 else smooth_rate(s) / duration_s
+        return cls(q_from, q_to, smooth(s), rate, ramp_s)
+
     @property
     def done(self) -> bool:
         """The speed is down to zero (or the path's end is reached)."""
@@ -102,8 +112,7 @@ class PtpMotion:
 
     def brake(self, ramp_s: float) -> JointBrake:
         """Its controlled stop from where it is now (see :class:`JointBrake`)."""
-        rate = 0.0 if self.duration_s <= 0 else smooth_rate(self._s()) / self.duration_s
-        return JointBrake(self.q_from, self.q_to, smooth(self._s()), rate, ramp_s)
+        return JointBrake.under_way(self.q_from, self.q_to, self.elapsed_s, self.duration_s, ramp_s)
 
     @property
     def done(self) -> bool:

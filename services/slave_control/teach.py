@@ -38,7 +38,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
-from telesurg.services.slave_control.motion import SMOOTH_PEAK, JointBrake, smooth, smooth_rate
+from telesurg.services.slave_control.motion import SMOOTH_PEAK, JointBrake, smooth
 from telesurg.shared import jsonio
 from telesurg.shared.errors import ConfigError, IKError
 from telesurg.shared.kinematics.mh3f import MH3F, fk
@@ -246,9 +246,8 @@ class Playback:
         (trocar mode: the tip line through the trocar IK is no joint-space line; at rest)."""
         if self.mode == "trocar" or self.done or self._q_from is None or self._dwell >= 0.0:
             return None
-        s = 1.0 if self._duration <= 0 else self._elapsed / self._duration
-        rate = 0.0 if self._duration <= 0 else smooth_rate(s) / self._duration
-        return JointBrake(self._q_from, np.array(self.points[self.index].q), smooth(s), rate, ramp_s)
+        q_to = np.array(self.points[self.index].q)
+        return JointBrake.under_way(self._q_from, q_to, self._elapsed, self._duration, ramp_s)
 
 
 class TeachStore:
