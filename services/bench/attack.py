@@ -583,6 +583,17 @@ def _stranger_reset(a: Attacker) -> dict[str, Any]:
 
 
 def _console_scale_follow(a: Attacker) -> dict[str, Any]:
+    """The case, again (up to 3 tries) when the genuine pair stopped following before the
+    mapping answered (a watchdog HOLD of a busy host disengages it, and then a scale change is
+    allowed): the case judges a request the mapping answered while following throughout."""
+    for _ in range(3):
+        row = _console_scale_follow_once(a)
+        if row["following"] and row["still_following"]:
+            break
+    return row
+
+
+def _console_scale_follow_once(a: Attacker) -> dict[str, Any]:
     pipe = a.pipe
     key = a.k.console_clutch("m1")
     out = a.outlet("console", key)
@@ -600,11 +611,15 @@ def _console_scale_follow(a: Attacker) -> dict[str, Any]:
         scale0 = a.obs.scale()
         ok, reason, _ = a.request(a.k.mapping_command("arm1"), "console", "set_scale", "value=2.0")
         time.sleep(0.3)
+        # a pair that stopped following stays disengaged while the pedal is held (a new engage
+        # needs a release first): still ENABLED now means following when the mapping answered
+        still = a.obs.teleop_state() == "ENABLED"
         row: dict[str, Any] = {
             "sent": 1,
             "accepted": int(ok),
             "forbidden": True,
             "following": following,
+            "still_following": still,
             "reply": reason[:160],
             "scale_before": scale0,
             "scale_after": a.obs.scale(),
