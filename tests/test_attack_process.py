@@ -83,8 +83,8 @@ def test_operator_authority_cases_meet_the_limits(rows: dict[str, dict[str, Any]
         assert rows[case]["confirm_asked"] and "confirm required" in reply, reply
     if case == "console-scale-follow":
         assert rows[case]["following"], "the console's clutch did not engage: the case judged nothing"
-        assert rows[case]["still_following"], (
-            "the pair stopped following in every try: the case judged nothing"
+        assert rows[case]["answered_following"], (
+            "the mapping answered while not following in every try: the case judged nothing"
         )
 
 

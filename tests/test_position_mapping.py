@@ -146,7 +146,7 @@ def test_operator_scale_commands_rescale_the_motion_without_a_jump(
     assert arm.q_cmd is not None
     tip_a = arm.profile.tip(arm.q_cmd)
     r = arm.on_command(Command(H, "arm1", "scale_up", ()))
-    assert r.accepted and r.reason == "scale 0.5 → 0.7"
+    assert r.accepted and r.reason == "scale 0.5 → 0.7 while following (re-anchored)"
     feed_master(arm, (0.004, 0.0, 0.0), clutch=True)  # the same master point: no jump at the new scale
     np.testing.assert_allclose(arm.profile.tip(arm.q_cmd), tip_a, atol=1e-6)
     feed_master(arm, (0.008, 0.0, 0.0), clutch=True)  # +4 mm more → +2.8 mm at 0.7

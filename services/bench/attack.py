@@ -583,14 +583,21 @@ def _stranger_reset(a: Attacker) -> dict[str, Any]:
 
 
 def _console_scale_follow(a: Attacker) -> dict[str, Any]:
-    """The case, again (up to 3 tries) when the genuine pair stopped following before the
-    mapping answered (a watchdog HOLD of a busy host disengages it, and then a scale change is
-    allowed): the case judges a request the mapping answered while following throughout."""
+    """The case, again (up to 3 tries) when the mapping answered while the pair was not following
+    (a watchdog HOLD of a busy host disengages it, and then a scale change is allowed): the case
+    judges a request the mapping answered while following."""
     for _ in range(3):
         row = _console_scale_follow_once(a)
-        if row["following"] and row["still_following"]:
+        if row["answered_following"]:
             break
     return row
+
+
+def answered_following(reply: str) -> bool:
+    """Whether the mapping's answer to a scale change says the pair was following when it was
+    made: an accepted change says ``while following``, a refused one ``refused while following``
+    (the observer's view of the teleop state may lag on a busy host; the answer cannot)."""
+    return "while following" in reply
 
 
 def _console_scale_follow_once(a: Attacker) -> dict[str, Any]:
@@ -610,16 +617,15 @@ def _console_scale_follow_once(a: Attacker) -> dict[str, Any]:
         following = pipe.wait(lambda: a.obs.teleop_state() == "ENABLED", 10.0)
         scale0 = a.obs.scale()
         ok, reason, _ = a.request(a.k.mapping_command("arm1"), "console", "set_scale", "value=2.0")
+        answered = answered_following(reason)
         time.sleep(0.3)
-        # a pair that stopped following stays disengaged while the pedal is held (a new engage
-        # needs a release first): still ENABLED now means following when the mapping answered
-        still = a.obs.teleop_state() == "ENABLED"
         row: dict[str, Any] = {
             "sent": 1,
-            "accepted": int(ok),
+            # a change the mapping made while not following is allowed (the clutch rule)
+            "accepted": int(ok and answered),
             "forbidden": True,
             "following": following,
-            "still_following": still,
+            "answered_following": answered,
             "reply": reason[:160],
             "scale_before": scale0,
             "scale_after": a.obs.scale(),

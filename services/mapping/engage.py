@@ -258,7 +258,11 @@ class EngageGate:
                     self.scale = new
                     self._rescaled()
                     self._publish_state()
-                    reason = f"scale {old:.3g} → {new:.3g}"
+                    # the reply says when the pair follows (re-anchored): the operator, and a
+                    # bench judging the rule, read from the answer itself what held when it was made
+                    reason = f"scale {old:.3g} → {new:.3g}" + (
+                        " while following (re-anchored)" if self.following else ""
+                    )
             else:
                 ok, reason = False, f"unknown command {cmd.name!r}; valid: state, {', '.join(SCALE_COMMANDS)}"
             seq = self.reply_seq.next()
