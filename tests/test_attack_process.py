@@ -82,9 +82,10 @@ def test_operator_authority_cases_meet_the_limits(rows: dict[str, dict[str, Any]
     if case == "console-ptp":
         assert rows[case]["confirm_asked"] and "confirm required" in reply, reply
     if case == "console-scale-follow":
-        assert rows[case]["following"], "the console's clutch did not engage: the case judged nothing"
-        assert rows[case]["answered_following"], (
-            "the mapping answered while not following in every try: the case judged nothing"
+        row = rows[case]
+        assert row["following"], f"the console's clutch did not engage: the case judged nothing: {row}"
+        assert row["answered_following"], (
+            f"the mapping answered while not following in every try: the case judged nothing: {row}"
         )
 
 
