@@ -583,10 +583,10 @@ def _stranger_reset(a: Attacker) -> dict[str, Any]:
 
 
 def _console_scale_follow(a: Attacker) -> dict[str, Any]:
-    """The case, again (up to 3 tries) when the mapping answered while the pair was not following
+    """The case, again (up to 5 tries) when the mapping answered while the pair was not following
     (a watchdog HOLD of a busy host disengages it, and then a scale change is allowed): the case
     judges a request the mapping answered while following."""
-    for _ in range(3):
+    for _ in range(5):
         row = _console_scale_follow_once(a)
         if row["answered_following"]:
             break
