@@ -41,7 +41,7 @@ pytestmark = pytest.mark.process
 TRI3 = Path(__file__).resolve().parent / "robots" / "tri3" / "tri3.py"
 SCALE = 0.5
 #: Workspace box of the watchdog [mm, world]. The tip starts at the home pose (290, 0, 99) mm; the
-#: master engages at 1 s of its 8 s circle (phase π/4), so the slave's 20 mm circle runs from there
+#: master engages at 9 s, 1 s into its 8 s circle (phase π/4), so the slave's 20 mm circle runs from there
 #: down to y = -34 mm: it crosses y = -25 mm about 3.7 s after the engage.
 WS_MIN = (150.0, -25.0, 0.0)
 WS_MAX = (450.0, 100.0, 250.0)
@@ -75,8 +75,10 @@ def run(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[Log, Path, d
         "mapping": [*common, f"mode={_toml('position')}", f"scale={SCALE}"],
         "master_capture": [
             "rate_hz=100.0",
-            "scripted.clutch=[[1.0, 15.0]]",  # one engage at 1 s (again at 17 s if that one was refused)
-            "scripted.clutch_repeat_s=16.0",
+            # one engage at 9 s, when the camera's video is up (before it the watchdog refuses
+            # engages), 1 s into the 8 s circle like every press at 8k + 1 s (again at 33 s)
+            "scripted.clutch=[[9.0, 23.0]]",
+            "scripted.clutch_repeat_s=24.0",
         ],
         "mirror": [f"save={_toml(str(rrd))}"],
     }
