@@ -64,6 +64,7 @@ from typing import Any
 import numpy as np
 from telesurg.services.bench.harness import Pipeline, now_ns
 from telesurg.services.launcher import deploy_dir
+from telesurg.services.mapping.scale import WHILE_FOLLOWING
 from telesurg.shared import jsonio
 from telesurg.shared.bus import BusConfig, Node
 from telesurg.shared.errors import MessageError
@@ -595,9 +596,9 @@ def _console_scale_follow(a: Attacker) -> dict[str, Any]:
 
 def answered_following(reply: str) -> bool:
     """Whether the mapping's answer to a scale change says the pair was following when it was
-    made: an accepted change says ``while following``, a refused one ``refused while following``
-    (the observer's view of the teleop state may lag on a busy host; the answer cannot)."""
-    return "while following" in reply
+    made (:data:`~telesurg.services.mapping.scale.WHILE_FOLLOWING`; the observer's view of the
+    teleop state may lag on a busy host, the answer cannot)."""
+    return WHILE_FOLLOWING in reply
 
 
 def _console_scale_follow_once(a: Attacker) -> dict[str, Any]:

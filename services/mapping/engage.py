@@ -42,7 +42,12 @@ import time
 from typing import TYPE_CHECKING
 
 import numpy as np
-from telesurg.services.mapping.scale import SCALE_COMMANDS, follow_step_problem, new_scale
+from telesurg.services.mapping.scale import (
+    SCALE_COMMANDS,
+    WHILE_FOLLOWING,
+    follow_step_problem,
+    new_scale,
+)
 from telesurg.shared.messages import (
     Command,
     CommandReply,
@@ -258,10 +263,8 @@ class EngageGate:
                     self.scale = new
                     self._rescaled()
                     self._publish_state()
-                    # the reply says when the pair follows (re-anchored): the operator, and a
-                    # bench judging the rule, read from the answer itself what held when it was made
                     reason = f"scale {old:.3g} → {new:.3g}" + (
-                        " while following (re-anchored)" if self.following else ""
+                        f" {WHILE_FOLLOWING} (re-anchored)" if self.following else ""
                     )
             else:
                 ok, reason = False, f"unknown command {cmd.name!r}; valid: state, {', '.join(SCALE_COMMANDS)}"

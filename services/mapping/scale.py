@@ -8,6 +8,8 @@ the scale is left as it was.
 current target so a new scale makes no jump, and the step is bounded: the scale may rise at most
 to the next step of :data:`SCALE_STEPS` above the current scale (``scale_up`` always fits;
 ``set_scale 2.0`` from 0.5 is refused: release the clutch first); lowering it is always allowed.
+Every answer given while following says so (:data:`WHILE_FOLLOWING`): a refusal "… refused while
+following …", an accepted change "scale 0.5 → 0.7 while following (re-anchored)".
 """
 
 from __future__ import annotations
@@ -17,6 +19,9 @@ SCALE_STEPS = (0.1, 0.2, 0.3, 0.5, 0.7, 1.0, 1.5, 2.0)
 #: the largest scale an operator may set
 MAX_SCALE = 2.0
 SCALE_COMMANDS = ("scale_up", "scale_down", "set_scale")
+#: the words of every scale answer given while the pair follows (so a reader of the answer knows
+#: which rule applied without asking the teleop state, which may have changed since)
+WHILE_FOLLOWING = "while following"
 
 
 def new_scale(name: str, args: dict[str, str], current: float) -> tuple[float | None, str]:
@@ -52,6 +57,6 @@ def follow_step_problem(current: float, new: float) -> str:
     if new <= bound + 1e-9:
         return ""
     return (
-        f"scale {current:.3g} → {new:.3g} refused while following: at most one step up "
+        f"scale {current:.3g} → {new:.3g} refused {WHILE_FOLLOWING}: at most one step up "
         f"(to {bound:.3g}); release the clutch for a larger change"
     )
