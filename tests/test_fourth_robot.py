@@ -21,6 +21,7 @@ import threading
 import time
 from collections.abc import Iterator
 from dataclasses import dataclass, field
+from itertools import pairwise
 from pathlib import Path
 
 import numpy as np
@@ -56,6 +57,7 @@ class Log:
     tip: list[tuple[float, np.ndarray]] = field(default_factory=list)  # measured_cp
     js: list[tuple[float, np.ndarray]] = field(default_factory=list)
     safety: list[tuple[float, str, tuple[str, ...]]] = field(default_factory=list)
+    safety_scales: list[float] = field(default_factory=list)  # the watchdog's motion-scale factors, in order
     events: list[tuple[float, str, str, str]] = field(default_factory=list)  # t, source, kind, text
 
 
@@ -117,6 +119,7 @@ def run(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[Log, Path, d
             def on_safety(m: SafetyState, key: str) -> None:
                 with log.lock:
                     log.safety.append((time.monotonic(), m.state, m.causes))
+                    log.safety_scales.append(round(m.scale, 6))
 
             def on_event(m: SafetyEvent, key: str) -> None:
                 with log.lock:
@@ -169,18 +172,28 @@ def test_slave_follows_the_scaled_master_motion(run: tuple[Log, Path, dict[str, 
     arm = robots.get("tri3").arm("arm1")
     follow = [(t, q, o) for t, q, f, o in log.setpoints if f and t < t_hold]
     assert len(follow) > 100, f"only {len(follow)} followed setpoints"
-    # the mapping: every followed setpoint puts the tip at the scaled master increment since the
-    # engage (paired by the master sample's stamp, origin_ns)
-    _, q0, o0 = follow[0]
-    pm0, tip0 = log.master[o0], arm.tip(q0)
-    err = [
-        np.linalg.norm(arm.tip(q) - tip0 - SCALE * (log.master[o] - pm0))
-        for _, q, o in follow
-        if o in log.master
-    ]
-    assert len(err) > 0.9 * len(follow)
-    print(f"setpoint tip vs scaled master: max {max(err) * 1e3:.3f} mm over {len(err)} samples")
-    assert max(err) < 0.5e-3
+    # the mapping: every followed setpoint moves the tip by the scaled master increment since the
+    # one before (paired by the master sample's stamp, origin_ns). The factor is the operator's scale
+    # times the watchdog's (a DEGRADED watchdog on a loaded host halves it, and the mapping
+    # re-anchors there: that sample's increment is zero)
+    factors = sorted({SCALE * s for s in log.safety_scales} | {SCALE})
+    pairs = [(a, b) for a, b in pairwise(follow) if a[2] in log.master and b[2] in log.master]
+    assert len(pairs) > 0.9 * len(follow)
+    err, anchors = [], 0
+    for (_, qa, oa), (_, qb, ob) in pairs:
+        d_tip, d_m = arm.tip(qb) - arm.tip(qa), log.master[ob] - log.master[oa]
+        e = min(float(np.linalg.norm(d_tip - k * d_m)) for k in factors)
+        if e > 5e-5 and np.linalg.norm(d_tip) < 1e-6:
+            anchors += 1  # a re-anchor (or a repeated setpoint): the tip stays where it is
+            continue
+        err.append(e)
+    print(
+        f"setpoint tip vs scaled master increments (factors {factors}): max {max(err) * 1e3:.4f} mm "
+        f"over {len(err)} steps, {anchors} re-anchors"
+    )
+    assert max(err) < 5e-5  # 0.05 mm a step (the solver's residual is ~1e-7 m)
+    changes = sum(a != b for a, b in pairwise(log.safety_scales))
+    assert anchors <= changes + 1, f"{anchors} re-anchors for {changes} changes of the watchdog's scale"
     # the MuJoCo tip follows the commanded path
     path = np.array([arm.tip(q) for _, q, _ in follow])
     t0, t1 = follow[0][0] + 0.3, t_hold

@@ -250,13 +250,22 @@ def test_oversized_messages_are_dropped_at_the_router(locked: tuple[str, LocalPk
         keep = rx.declare_subscriber(
             f"telesurg/{SITE}/master/**", lambda s: sizes.append((str(s.key_expr), len(s.payload.to_bytes())))
         )
-        time.sleep(0.5)
         key = f"telesurg/{SITE}/master/m1/measured_cp"
+
+        # the route rx ← router ← tx is up when a small probe gets through (a loaded host takes
+        # longer than any fixed pause to propagate the subscription)
+        def probe() -> bool:
+            tx.put(key, b"probe")
+            return len(sizes) > 0
+
+        assert wait_until(probe, 20.0), "no probe got through"
+        time.sleep(0.3)
+        sizes.clear()
         cap = RouterConfig().max_message_bytes
         for size in (1 << 20, cap + 1, 1000, cap - 64):
             tx.put(key, b"\x00" * size)
-        wait_until(lambda: len(sizes) >= 2, 2.0)
-        time.sleep(0.3)
+        wait_until(lambda: len(sizes) >= 2, 10.0)
+        time.sleep(0.5)
         assert [n for _, n in sizes] == [1000, cap - 64], sizes
         assert keep
     finally:
