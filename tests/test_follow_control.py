@@ -146,6 +146,39 @@ def test_interpolator_pause_resumes_on_the_path_and_catches_up() -> None:
     assert a[-1] == pytest.approx(1.999 - 0.001 - ip.delay, abs=1e-9)
 
 
+def test_interpolator_thawed_process_never_steps_back_along_the_path() -> None:
+    """A frozen slave process: the setpoints queued through a 117 ms stall all arrive at the thaw
+    and are pushed before the first missed period's reference is sampled (at that period's time,
+    as slave_control.run does). The stall must not be counted twice: the reference resumes where
+    it stopped (it stepped back ~110 ms of motion before: a speed-clipped jump off the RCM)."""
+    from telesurg.services.slave_control.control import SetpointInterpolator
+
+    ip = SetpointInterpolator(catchup=1.25, window=300)
+    period, k, out = 0.004, 0, []
+    for n in range(2, 300):  # 0.3 s of 1 kHz samples of a 1 rad/s ramp sent at 250 Hz
+        t = n * 0.001
+        while k * period + 0.001 <= t:
+            ip.push(np.array([k * period]), k * period, k * period + 0.001)
+            k += 1
+        out.append(float(ip.sample(t)[0]))  # type: ignore[index]
+    t_stop, t_wake = 0.3, 0.417
+    while k * period + 0.001 <= t_wake:  # queued through the stall: all "arrive" at the thaw
+        ip.push(np.array([k * period]), k * period, t_wake)
+        k += 1
+    out.append(float(ip.sample(t_stop)[0]))  # type: ignore[index]  # the first missed period
+    ip.pause(0.117 - 0.020)  # held its command through all but the last 20 periods
+    for n in range(398, 1200):
+        t = n * 0.001
+        while k * period + 0.001 <= t:
+            ip.push(np.array([k * period]), k * period, k * period + 0.001)
+            k += 1
+        out.append(float(ip.sample(t)[0]))  # type: ignore[index]
+    steps = np.diff(np.array(out))
+    assert steps.min() >= -1e-12  # never back
+    assert steps.max() <= 1.25e-3 + 1e-9  # no jump: at most the catch-up speed
+    assert ip.behind == pytest.approx(0.0, abs=1e-9)  # made up by 1.2 s
+
+
 def test_interpolator_without_catchup_keeps_the_shift() -> None:
     from telesurg.services.slave_control.control import SetpointInterpolator
 

@@ -33,7 +33,7 @@ from telesurg.services.record import (
     read_metadata,
     read_summary,
 )
-from telesurg.services.record.replay import EXIT_NEVER_ENGAGED, Response, compare, verdict
+from telesurg.services.record.replay import EXIT_NEVER_ENGAGED, Response, compare, fell_behind, verdict
 from telesurg.shared.messages import (
     MESSAGE_TYPES,
     CartesianPose,
@@ -201,6 +201,27 @@ def test_compare_stops_where_one_run_held() -> None:
     assert r["full"]["max_rad"] > 1.9  # afterwards the runs differ by the motion not made
 
 
+def test_compare_stops_where_the_replay_fell_behind() -> None:
+    # 250 Hz sends: on time, one 80 ms hiccup (a single late message), then a 1.3 s stall at 2 s
+    t = np.arange(0.0, 4.0, 0.004)
+    late = np.full(t.size, 0.2)
+    late[250] = 80.0
+    stall = (t >= 2.0) & (t < 2.5)
+    late[stall] = 1300.0 - (t[stall] - 2.0) * 1e3
+    sends = list(zip(t.tolist(), late.tolist(), strict=True))
+    behind = fell_behind(sends, 50.0)
+    assert behind is not None and behind[0] == pytest.approx(2.0, abs=0.005)
+    assert "1300 ms late" in behind[1] and "could not keep pace" in behind[1]
+    assert fell_behind(sends[:400], 50.0) is None  # the hiccup alone: still comparable
+    tr = np.linspace(0.0, 4.0, 401)
+    q = np.column_stack([tr, -tr])
+    rec = _response(tr, q, [(0.5, True, "")])
+    live = _response(tr + 0.0, q + np.where(tr > 2.0, 0.5, 0.0)[:, None], [(0.5, True, "")])
+    r = compare(rec, live, behind)
+    assert r["diverged_s"] == behind[0] and r["diverged_because"] == behind[1]
+    assert r["max_rad"] < 1e-9 and r["full"]["max_rad"] > 0.4  # compared only while on time
+
+
 # --------------------------------------------------------------------------- process
 
 
@@ -290,8 +311,9 @@ def test_replay_reproduces_the_slave_response(recording: Path, tmp_path: Path) -
     counts = {k: len(_recorded(recording, k)) for k in ("master/m1/measured_cp", "master/m1/buttons")}
     # A CPU stall on this 2-core host can make the watchdog hold one run and not the other (the
     # safe response); the comparison stops there. At least 1 s of following must be compared:
-    # like a user, replay again (into a fresh pipeline) when a hold cut the comparison short.
-    for attempt in range(1, 4):
+    # like a user, replay again (into a fresh pipeline) when a hold, or the replay itself falling
+    # behind the recording's timing, cut the comparison short.
+    for attempt in range(1, 6):
         out = tmp_path / f"attempt{attempt}"
         report_path, live = out / "diff.json", out / "live.mcap"
         argv = [

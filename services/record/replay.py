@@ -96,6 +96,7 @@ class ReplayConfig:
     record: str = ""  # also record the whole live bus during the replay to this .mcap ("" = no)
     release_s: float = 0.3  # s: a synthesized pedal release before a recording that starts held
     preflight: bool = True  # refuse a site where the replay's own service (--as) is already alive
+    max_late_ms: float = 50.0  # ms: later than this for 0.1 s behind the recording's timing = not comparable
     bus: BusConfig = field(default_factory=BusConfig)  # zenoh session
 
     def validate(self) -> None:
@@ -113,6 +114,8 @@ class ReplayConfig:
             raise ConfigError("--lead-in and --settle must be within [0, 60] s")
         if not 0.0 <= self.release_s <= 10.0:
             raise ConfigError(f"--release-s {self.release_s} outside [0, 10]")
+        if not 1.0 <= self.max_late_ms <= 10_000.0:
+            raise ConfigError(f"--max-late-ms {self.max_late_ms} outside [1, 10000]")
         self.bus.validate()
 
 
@@ -234,18 +237,21 @@ def divergence(
     return None, ""
 
 
-def compare(recorded: Response, live: Response) -> dict[str, Any]:
+def compare(recorded: Response, live: Response, behind: tuple[float, str] | None = None) -> dict[str, Any]:
     """Per-joint RMS and max |live − recorded|, live interpolated onto the recorded samples.
 
     The figures (``samples``, ``span_s``, ``joints: {name: {rms_rad, max_rad}}``, ``rms_max_rad``,
     ``max_rad``) cover the time from the first replayed message until the runs diverge
-    (``diverged_s``, ``diverged_because``; None / "" if they never do, see :func:`divergence`);
-    ``full`` holds the same figures over the whole overlap. ``samples`` is 0 (and the maxima None)
-    when there is no overlap or the joints differ.
+    (``diverged_s``, ``diverged_because``; None / "" if they never do, see :func:`divergence`) or
+    the replay itself fell behind the recording's timing (``behind``: recorded time and why, from
+    :func:`fell_behind`); ``full`` holds the same figures over the whole overlap. ``samples`` is 0
+    (and the maxima None) when there is no overlap or the joints differ.
     """
     full = _diff(recorded, live, float("inf"))
     hi = min(recorded.t[-1] if recorded.t else 0.0, live.t[-1] if live.t else 0.0)
     diverged, because = divergence(recorded, live, hi)
+    if behind is not None and (diverged is None or behind[0] < diverged):
+        diverged, because = behind
     part = _diff(recorded, live, diverged) if diverged is not None else full
     return {
         **part,
@@ -255,6 +261,34 @@ def compare(recorded: Response, live: Response) -> dict[str, Any]:
         "live_follow_s": live.follow_s,
         "full": full,
     }
+
+
+def fell_behind(
+    sends: Sequence[tuple[float, float]], max_late_ms: float, window_s: float = 0.1
+) -> tuple[float, str] | None:
+    """When the replay first stayed more than ``max_late_ms`` behind the recording's timing for
+    ``window_s`` of recorded time or longer (recorded time and why), if it did.
+
+    ``sends`` are (recorded time [s since the first message], lateness [ms]). A replay that fell
+    behind (a stall of a busy host) plays the master's motion late or in a burst: the slave then
+    answers another input, and the responses after that point say nothing about the recording. A
+    single late message (one scheduling hiccup) is not counted.
+    """
+    since: float | None = None
+    worst = 0.0
+    for t, late in sends:
+        if late <= max_late_ms:
+            since, worst = None, 0.0
+            continue
+        since = t if since is None else since
+        worst = max(worst, late)
+        if t - since >= window_s:
+            return round(since, 3), (
+                f"the replay fell behind the recording's timing at {since:.2f} s ({worst:.0f} ms late, "
+                f"over {max_late_ms:g} ms for {window_s:g} s: this host could not keep pace); later "
+                "responses are not comparable"
+            )
+    return None
 
 
 def _arm_key(topic: str, prefix: str) -> tuple[str, str] | None:
@@ -436,6 +470,7 @@ def replay(cfg: ReplayConfig, stop: threading.Event) -> dict[str, Any]:
     sent: dict[str, int] = {}
     undecodable = 0
     late_ms: list[float] = []
+    sends: list[tuple[float, float]] = []  # (recorded s since the first message, lateness ms)
     t0_rec = 0
     try:
         with contextlib.ExitStack() as stack:
@@ -497,6 +532,7 @@ def replay(cfg: ReplayConfig, stop: threading.Event) -> dict[str, Any]:
                     with live.lock:
                         live.t0_ns = h.stamp_ns
                 late_ms.append((time.monotonic() - due) * 1e3)
+                sends.append(((pt - t0_rec) / 1e9, late_ms[-1]))
                 sent[rel] = sent.get(rel, 0) + 1
             stop.wait(cfg.settle_s)
             played = live.snapshot()
@@ -507,6 +543,7 @@ def replay(cfg: ReplayConfig, stop: threading.Event) -> dict[str, Any]:
         recorded_response(cfg.file, rec_site, t0_rec, cfg.slave_source, cfg.watchdog_source) if t0_rec else {}
     )
     lat = np.asarray(late_ms) if late_ms and not cfg.step else np.zeros(1)
+    behind = None if cfg.step else fell_behind(sends, cfg.max_late_ms)
     return {
         "file": str(cfg.file),
         "speed": cfg.speed,
@@ -520,7 +557,8 @@ def replay(cfg: ReplayConfig, stop: threading.Event) -> dict[str, Any]:
             "p99": round(float(np.percentile(lat, 99)), 3),
             "max": round(float(lat.max()), 3),
         },
-        "arms": {a: compare(recorded.get(a, Response()), played.get(a, Response())) for a in arms},
+        "fell_behind_s": behind[0] if behind else None,
+        "arms": {a: compare(recorded.get(a, Response()), played.get(a, Response()), behind) for a in arms},
     }
 
 
@@ -671,6 +709,13 @@ def parser() -> argparse.ArgumentParser:
         help="exit 3 if any joint's RMS difference (until the runs diverge) exceeds RAD (0.02; 0 = off)",
     )
     p.add_argument(
+        "--max-late-ms",
+        type=float,
+        default=50.0,
+        metavar="MS",
+        help="compare only until the replay stayed more than MS behind the recording for 0.1 s (50)",
+    )
+    p.add_argument(
         "--release-s",
         type=float,
         default=0.3,
@@ -703,6 +748,10 @@ def verdict(report: dict[str, Any], max_rms: float) -> tuple[int, str]:
         compared = [r for r in arms.values() if r["samples"]]
         worst = max((r["rms_max_rad"] for r in compared), default=0.0)
         if not compared:
+            if report.get("fell_behind_s") is not None:
+                return EXIT_DIVERGED, (
+                    f"the replay fell behind the recording at {report['fell_behind_s']} s: nothing compared"
+                )
             return EXIT_DIVERGED, "no overlap between the recorded and the live response: nothing compared"
         if worst > max_rms:
             return EXIT_DIVERGED, f"RMS difference {worst:.5f} rad exceeds --max-rms {max_rms:g}"
@@ -736,6 +785,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         settle_s=args.settle,
         record=args.record or "",
         release_s=args.release_s,
+        max_late_ms=args.max_late_ms,
         preflight=not args.no_preflight,
     )
     try:

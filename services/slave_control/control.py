@@ -45,6 +45,10 @@ class SetpointInterpolator:
     jumps: if the buffer runs dry (the stream stalled) the reference holds the last setpoint and,
     when setpoints come again, resumes from there (the timeline shifts by the stall).
 
+    The played source time never goes backward (a shift counted from an arrival time ahead of the
+    sampled time, e.g. setpoints queued through a freeze of the whole process and "arriving" at the
+    thaw, resumes where the playback stopped instead of stepping back along the path).
+
     Every output is a convex combination of two consecutive accepted setpoints, so it never leaves
     the box of the joint limits they lie in (no overshoot); its speed is constant between
     setpoints (no steps); it never extrapolates. :meth:`reset` starts a new timeline (engage).
@@ -70,6 +74,7 @@ class SetpointInterpolator:
     _delay: float = 0.0
     _shift: float = 0.0  # s the timeline was shifted back by stalls and has not yet made up
     _t_last: float | None = None  # local time of the last sample, s
+    _tp_last: float | None = None  # source time the last sample played, s (None: none yet)
     played: float = 0.0  # source time (s) of the reference the last sample returned (0: none yet)
 
     def push(self, q: np.ndarray, t_source: float, t_arrival: float) -> None:
@@ -122,6 +127,16 @@ class SetpointInterpolator:
             t = self._t_last  # never played backward
         self._t_last = t
         tp = t - self._offset - self._delay  # the source time being played now
+        if self._tp_last is not None and tp < self._tp_last:
+            # never played backward along the path: a shift counted from an arrival time ahead of
+            # this sample (a frozen process: its queued setpoints all "arrive" at the thaw, after
+            # the stalled period this sample computes) would step the arm back (a speed-clipped
+            # jump that leaves the trocar's RCM); the playback resumes where it stopped instead
+            back = self._tp_last - tp
+            self._offset -= back
+            self._shift = max(0.0, self._shift - back)
+            tp = self._tp_last
+        self._tp_last = tp
         if tp <= pts[0][0]:
             self.played = pts[0][0]
             return pts[0][1]
@@ -141,6 +156,7 @@ class SetpointInterpolator:
         self._delay = 0.0
         self._shift = 0.0
         self._t_last = None
+        self._tp_last = None
 
 
 @dataclass
