@@ -70,6 +70,7 @@ TRACE_LAPS = 2
 MS_RADIUS_M = 0.010  # master circle of the master–slave motion after each Fig. 9/10 insertion
 MS_LAPS = 1
 UNTIL_ATTEMPTS = 40  # a slave-side motion stopped by a hold is commanded again, at most this often
+LAP_PROGRAM = "lap_start"  # taught where each master–slave lap starts (trocar mode)
 
 Progress = Callable[[str, float], None]
 
@@ -190,6 +191,33 @@ class Experiment:
                 return
         raise RuntimeError(f"playback of {start} never finished")
 
+    def mark_lap_start(self) -> None:
+        """Teach where a master–slave lap starts (trocar mode, program ``LAP_PROGRAM``)."""
+        a = self.arm
+        a.send("clear_program", f"program={LAP_PROGRAM}")  # (refused if there is none yet)
+        a.must("teach_point", f"program={LAP_PROGRAM}")
+
+    def back_to_lap_start(self) -> None:
+        """After a lap a hold interrupted: back to where it started, by trocar-mode playback.
+
+        The mapping is incremental: the slave stopped where the hold caught it while the master
+        drew on, and the next lap starts from there. Without this, every interrupted lap moved
+        the start by up to the circle's diameter, and after a few the forceps stood where the
+        removal jog was infeasible ("the jog would move J3 at 12.8× its speed limit": never came
+        back out). An operator brings the tool back before drawing again."""
+        a = self.arm
+        for _ in range(UNTIL_ATTEMPTS):
+            self._lease_back()
+            a.send("set_motion_mode", "mode=playback")
+            t = time.monotonic()
+            if a.send("play", f"program={LAP_PROGRAM}").accepted and self._finished("playback_done", t):
+                break
+        else:
+            raise RuntimeError("the playback back to the lap's start never finished")
+        a.settle()
+        a.must("set_motion_mode", "mode=master_slave")
+        time.sleep(0.3)
+
     def adjust(self, run: Run) -> None:
         """Posture adjustment by ``run.method``, until finish_posture_adjust is accepted."""
         a = self.arm
@@ -289,12 +317,16 @@ class Experiment:
         time.sleep(TRACE_DEPTH_JOG_S)
         a.must("stop")
         a.settle()
+        self.mark_lap_start()
         a.must("set_motion_mode", "mode=master_slave")
         time.sleep(0.3)
         # Like an operator, trace again if the slave stopped following during the lap (a hold on
-        # a starved machine): the trace is judged on a lap the slave followed throughout.
+        # a starved machine), from where the first lap started: the trace is judged on a lap the
+        # slave followed throughout.
         for attempt in range(1, TRACE_ATTEMPTS + 1):
             self.trace_attempts = attempt
+            if attempt > 1:
+                self.back_to_lap_start()
             self._lease_back()
             m.clutch = True  # press the pedal: engage
             if not a.wait(lambda: bool(a.log.states) and a.log.states[-1][4], 5):
@@ -326,15 +358,19 @@ class Experiment:
     def master_slave(self, run: Run) -> None:
         """Master–slave in trocar mode after the insertion: one lap of a small master circle.
 
-        Like the trace, drawn again (at most ``TRACE_ATTEMPTS`` times) if a hold of a starved
-        machine stopped the slave following."""
+        Like the trace, drawn again (at most ``TRACE_ATTEMPTS`` times, from where the first lap
+        started: :meth:`back_to_lap_start`) if a hold of a starved machine stopped the slave
+        following."""
         a, m = self.arm, self.master
+        self.mark_lap_start()
         a.must("set_motion_mode", "mode=master_slave")
         time.sleep(0.3)
         m.radius = MS_RADIUS_M
         try:
             for attempt in range(1, TRACE_ATTEMPTS + 1):
                 run.ms_attempts = attempt
+                if attempt > 1:
+                    self.back_to_lap_start()
                 self._lease_back()
                 m.clutch = True
                 if not a.wait(lambda: bool(a.log.states) and a.log.states[-1][4], 5):
