@@ -62,7 +62,7 @@ class SetpointInterpolator:
 
     Attributes:
         max_period: s; the longest delay.
-        window: setpoints kept.
+        window: setpoints kept (more while the timeline runs behind them, up to 4 windows).
         catchup: playback rate (× the local clock) while the timeline runs behind its start.
     """
 
@@ -88,10 +88,21 @@ class SetpointInterpolator:
                 self._offset += behind
                 self._shift += behind
         pts.append((t_source, q.copy()))
-        del pts[: -self.window]
+        if (excess := len(pts) - self.window) > 0:
+            # never drop a setpoint not yet played (after several stalls the timeline may run
+            # behind by more than the window: dropping its path would make the reference jump
+            # ahead); a hard cap of 4 windows bounds the memory
+            playing = bisect.bisect_right(pts, self.played, key=lambda p: p[0]) - 1
+            del pts[: excess if len(pts) > 4 * self.window else min(excess, max(0, playing))]
         if self._offset is None and len(pts) >= 2:
             self._delay = min(1.5 * (pts[-1][0] - pts[-2][0]), self.max_period)
             self._offset = t_arrival - t_source
+            # the reference has held the first setpoint until now: the timeline starts there
+            # (with a first gap longer than the delay it would start part-way along it: a step)
+            late = t_arrival - self._delay - pts[-2][0] - self._offset
+            if late > 0.0:
+                self._offset += late
+                self._shift += late
 
     @property
     def delay(self) -> float:
@@ -136,7 +147,9 @@ class SetpointInterpolator:
             self._offset -= back
             self._shift = max(0.0, self._shift - back)
             tp = self._tp_last
-        self._tp_last = tp
+        # what is played: a reference holding the newest setpoint (the buffer ran dry) has played
+        # that setpoint's time, not beyond (a later resume from there is no step back)
+        self._tp_last = min(tp, pts[-1][0])
         if tp <= pts[0][0]:
             self.played = pts[0][0]
             return pts[0][1]
