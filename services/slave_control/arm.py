@@ -117,7 +117,8 @@ TROCAR_CATCHUP = 1.25
 #: Accepted setpoints kept between two control periods (the interpolator gets every one of them).
 PENDING_MAX = 256
 #: Setpoints the interpolator keeps: 1.2 s at 250 Hz, longer than the longest stall an arm still
-#: follows through (a lease lives 250 ms), so a paused timeline always resumes on kept setpoints.
+#: follows through (a lease lives 250 ms), so a paused timeline always resumes on kept setpoints
+#: (a timeline behind by more, after several stalls, keeps its unplayed ones: up to 4 windows).
 INTERP_WINDOW = 300
 
 
