@@ -197,8 +197,8 @@ def test_interpolator_without_catchup_keeps_the_shift() -> None:
 def _interpolate_a_rough_stream(seed: int) -> tuple[float, float, float]:
     """A 1 rad/s ramp sampled at 250 Hz with back-to-back samples and source stalls, delivered
     with jittery latency and transport freezes (bursts), sampled at 1 kHz by a loop that stalls
-    (whole-process freezes, ordered as slave_control.run orders them). (largest step per period,
-    most negative step, shift left at the end)."""
+    (whole-process freezes, ordered as slave_control.run orders them) or polls a period late.
+    (largest step per period, most negative step, shift left at the end)."""
     from telesurg.services.slave_control.control import SetpointInterpolator
 
     rng = np.random.default_rng(seed)
@@ -229,7 +229,8 @@ def _interpolate_a_rough_stream(seed: int) -> tuple[float, float, float]:
             got += [ip.sample(t_loc + p * 0.001) for p in range(held + 1, missed + 1)]
             t_loc = t_wake + 0.001
         else:
-            while i < ts.size and arr[i] <= t_loc:
+            late_poll = rng.random() < 0.02  # (a starved loop thread: what arrived waits a period)
+            while not late_poll and i < ts.size and arr[i] <= t_loc:
                 ip.push(np.array([ts[i]]), ts[i], arr[i])
                 i += 1
             got = [ip.sample(t_loc)]
@@ -244,6 +245,7 @@ def _interpolate_a_rough_stream(seed: int) -> tuple[float, float, float]:
 def test_interpolator_never_jumps_on_a_rough_stream(seed: int) -> None:
     """Whatever the arrival pattern and loop stalls, the reference moves along the path at most at
     the catch-up speed and never back (found by this test: a dry buffer resumed ahead, a long first
-    gap started part-way along it, a timeline behind by more than the window skipped ahead)."""
+    gap started part-way along it, a timeline behind by more than the window skipped ahead, a
+    setpoint pushed a period after it arrived resumed a dry buffer part-way)."""
     fastest, back, _ = _interpolate_a_rough_stream(seed)
     assert fastest <= 1.25e-3 + 1e-9 and back >= -1e-12

@@ -83,7 +83,11 @@ class SetpointInterpolator:
         if pts and t_source <= pts[-1][0]:
             return  # duplicate or reordered: the timeline only moves forward
         if self._offset is not None and pts:
-            behind = t_arrival - self._offset - self._delay - pts[-1][0]
+            # the reference held the newest setpoint at least until the last sample: resume there
+            # at the next one (a setpoint that arrived before that sample and is pushed only now,
+            # e.g. while the loop thread was starved, would otherwise resume part-way: a step)
+            t_held = t_arrival if self._t_last is None else max(t_arrival, self._t_last)
+            behind = t_held - self._offset - self._delay - pts[-1][0]
             if behind > 0.0:  # the reference has been holding the last setpoint: resume there
                 self._offset += behind
                 self._shift += behind
@@ -99,7 +103,8 @@ class SetpointInterpolator:
             self._offset = t_arrival - t_source
             # the reference has held the first setpoint until now: the timeline starts there
             # (with a first gap longer than the delay it would start part-way along it: a step)
-            late = t_arrival - self._delay - pts[-2][0] - self._offset
+            t_held = t_arrival if self._t_last is None else max(t_arrival, self._t_last)
+            late = t_held - self._delay - pts[-2][0] - self._offset
             if late > 0.0:
                 self._offset += late
                 self._shift += late
@@ -129,6 +134,7 @@ class SetpointInterpolator:
         if not pts:
             return None
         if self._offset is None:
+            self._t_last = t  # (holding the first setpoint until the timeline starts)
             return pts[0][1]
         if self._t_last is not None and t > self._t_last and self._shift > 0.0 and self.catchup > 1.0:
             gain = min(self._shift, (self.catchup - 1.0) * (t - self._t_last))
