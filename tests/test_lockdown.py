@@ -262,11 +262,23 @@ def test_oversized_messages_are_dropped_at_the_router(locked: tuple[str, LocalPk
         time.sleep(0.3)
         sizes.clear()
         cap = RouterConfig().max_message_bytes
-        for size in (1 << 20, cap + 1, 1000, cap - 64):
+        for size in (1000, cap - 64):  # under the cap: delivered
             tx.put(key, b"\x00" * size)
-        wait_until(lambda: len(sizes) >= 2, 10.0)
+        assert wait_until(lambda: len(sizes) >= 2, 10.0), sizes
+        for size in (1 << 20, cap + 1):  # over it: dropped at the router
+            tx.put(key, b"\x00" * size)
+
+        # the link goes on carrying what is under the cap (a loaded host may take a while to
+        # resume after the dropped fragments: the sender retries, as master_capture's stream does)
+        def after() -> bool:
+            tx.put(key, b"after")
+            return any(n == 5 for _, n in sizes)
+
+        t0 = time.monotonic()
+        assert wait_until(after, 20.0), sizes
+        print(f"a small message got through {time.monotonic() - t0:.2f} s after the oversized ones")
         time.sleep(0.5)
-        assert [n for _, n in sizes] == [1000, cap - 64], sizes
+        assert [n for _, n in sizes if n != 5] == [1000, cap - 64], sizes
         assert keep
     finally:
         tx.close()

@@ -49,7 +49,7 @@ def _source_times(rrd: Path, entity: str) -> np.ndarray:
 def _stop(p: subprocess.Popen[bytes]) -> int:
     p.send_signal(signal.SIGINT)
     try:
-        return p.wait(timeout=30)
+        return p.wait(timeout=60)  # (rerun's CLI flushing its file took over 30 s on a loaded host)
     except subprocess.TimeoutExpired:
         p.kill()
         return p.wait(timeout=10)
@@ -76,6 +76,7 @@ def test_a_late_viewer_gets_the_recent_data_and_the_geometry_not_the_whole_sessi
     log = (tmp_path / "mirror.out").open("wb")
     mirror = subprocess.Popen(argv, cwd=ROOT, stdout=log, stderr=subprocess.STDOUT)
     client: subprocess.Popen[bytes] | None = None
+    client_log = None
     stamps: list[int] = []
     try:
         assert wait_port("127.0.0.1", grpc, 60.0), (tmp_path / "mirror.out").read_text()[-2000:]
@@ -114,6 +115,8 @@ def test_a_late_viewer_gets_the_recent_data_and_the_geometry_not_the_whole_sessi
                 p.kill()
                 p.wait(timeout=10)
         log.close()
+        if client_log is not None:
+            client_log.close()
         router.close()  # type: ignore[no-untyped-call]
 
     j1 = "/slave/arm1/joints/j1/measured"

@@ -333,11 +333,14 @@ def _motion(pipe: Pipeline, t0: int, t1: int) -> float | None:
 
 
 def _lease_lost_ms(pipe: Pipeline, t0: int, t1: int) -> float | None:
-    """ms from ``t0`` to the slave's first operating state with an invalid lease (before ``t1``)."""
+    """ms from ``t0`` to the slave's first operating state with an invalid lease (before ``t1``),
+    by that state's own stamp: when the slave published it (this host's clock, the slave's
+    decision; the probe's receipt would add the host's scheduling of the probe)."""
     rec = pipe.p.first_op_after(t0, lambda r: not r[2])
     if rec is None or rec[0] > t1:
         return None
-    return round((rec[0] - t0) / 1e6, 1)
+    published: int = rec[1][8]
+    return round((max(published, t0) - t0) / 1e6, 1)
 
 
 def _names(pipe: Pipeline) -> tuple[str, ...]:
@@ -584,13 +587,16 @@ def _stranger_reset(a: Attacker) -> dict[str, Any]:
 
 
 def _console_scale_follow(a: Attacker) -> dict[str, Any]:
-    """The case, again (up to 5 tries) when the mapping answered while the pair was not following
-    (a watchdog HOLD of a busy host disengages it, and then a scale change is allowed): the case
-    judges a request the mapping answered while following."""
-    for _ in range(5):
+    """The case, again (up to 8 tries) when the mapping answered while the pair was not following
+    (a watchdog HOLD of a busy host disengages it, and then a scale change is allowed) or did not
+    answer (the site stalled: 2 s pause first): the case judges a request the mapping answered
+    while following."""
+    for _ in range(8):
         row = _console_scale_follow_once(a)
         if row["answered_following"]:
             break
+        if row["reply"].startswith("no reply"):  # the site stalled (a busy host): let it recover
+            time.sleep(2.0)
     return row
 
 
@@ -601,11 +607,19 @@ def answered_following(reply: str) -> bool:
     return WHILE_FOLLOWING in reply
 
 
+#: the site's configured motion scale, the case's premise (set_scale 2.0 from it while following
+#: is more than one step up)
+CONSOLE_SCALE0 = 0.5
+
+
 def _console_scale_follow_once(a: Attacker) -> dict[str, Any]:
     pipe = a.pipe
     key = a.k.console_clutch("m1")
     out = a.outlet("console", key)
     stop = threading.Event()
+    # the premise, before the pedal: the configured scale (an earlier try the mapping answered
+    # while not following may have changed it, which is allowed then)
+    a.request(a.k.mapping_command("arm1"), "console", "set_scale", f"value={CONSOLE_SCALE0:g}")
 
     def pedal(pressed_at: float) -> None:  # the console's clutch pedal, as the console sends it
         while not stop.is_set():
@@ -639,7 +653,7 @@ def _console_scale_follow_once(a: Attacker) -> dict[str, Any]:
             out.put(MasterButtons(out.header(), False, True))
             time.sleep(0.02)
     if ok:
-        a.request(a.k.mapping_command("arm1"), "console", "set_scale", f"value={scale0:g}")
+        a.request(a.k.mapping_command("arm1"), "console", "set_scale", f"value={CONSOLE_SCALE0:g}")
     pipe.wait(lambda: a.obs.teleop_state() != "ENABLED", 5.0)
     return row
 

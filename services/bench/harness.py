@@ -71,7 +71,7 @@ class Probe:
     master: str = "m1"
     lock: threading.Lock = field(default_factory=threading.Lock)
     tip: list[tuple[int, float, float, float]] = field(default_factory=list)
-    op: list[tuple[int, bool, bool, str, str, int, int, int]] = field(default_factory=list)
+    op: list[tuple[int, bool, bool, str, str, int, int, int, int]] = field(default_factory=list)
     safety: list[tuple[int, str, tuple[str, ...], float, float, float]] = field(default_factory=list)
     clutch: list[tuple[int, bool]] = field(default_factory=list)
     events: list[tuple[int, str, str, str]] = field(default_factory=list)
@@ -106,7 +106,18 @@ class Probe:
     def _on_op(self, m: OperatingState, key: str) -> None:
         with self.lock:
             self.op.append(
-                (now_ns(), m.follow, m.lease_ok, m.reason, m.state, m.holds, m.clipped, m.rejected)
+                (
+                    now_ns(),
+                    m.follow,
+                    m.lease_ok,
+                    m.reason,
+                    m.state,
+                    m.holds,
+                    m.clipped,
+                    m.rejected,
+                    # when the slave published it, on the probe's clock (the stamp's age now)
+                    now_ns() - max(0, time.time_ns() - m.header.stamp_ns),
+                )
             )
 
     def _on_safety(self, m: SafetyState, key: str) -> None:
