@@ -216,7 +216,7 @@ def test_compare_stops_where_the_replay_fell_behind() -> None:
     tr = np.linspace(0.0, 4.0, 401)
     q = np.column_stack([tr, -tr])
     rec = _response(tr, q, [(0.5, True, "")])
-    live = _response(tr + 0.0, q + np.where(tr > 2.0, 0.5, 0.0)[:, None], [(0.5, True, "")])
+    live = _response(tr, q + np.where(tr > 2.0, 0.5, 0.0)[:, None], [(0.5, True, "")])
     r = compare(rec, live, behind)
     assert r["diverged_s"] == behind[0] and r["diverged_because"] == behind[1]
     assert r["max_rad"] < 1e-9 and r["full"]["max_rad"] > 0.4  # compared only while on time

@@ -104,10 +104,11 @@ class Probe:
             self.joints.append(m.position)
 
     def _on_op(self, m: OperatingState, key: str) -> None:
+        t = now_ns()
         with self.lock:
             self.op.append(
                 (
-                    now_ns(),
+                    t,
                     m.follow,
                     m.lease_ok,
                     m.reason,
@@ -116,7 +117,7 @@ class Probe:
                     m.clipped,
                     m.rejected,
                     # when the slave published it, on the probe's clock (the stamp's age now)
-                    now_ns() - max(0, time.time_ns() - m.header.stamp_ns),
+                    t - max(0, time.time_ns() - m.header.stamp_ns),
                 )
             )
 

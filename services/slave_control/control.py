@@ -82,11 +82,11 @@ class SetpointInterpolator:
         pts = self._pts
         if pts and t_source <= pts[-1][0]:
             return  # duplicate or reordered: the timeline only moves forward
+        # the reference held what it plays at least until the last sample: a resume or a start
+        # is counted from then (a setpoint that arrived before that sample and is pushed only now,
+        # e.g. while the loop thread was starved, would otherwise resume part-way: a step)
+        t_held = t_arrival if self._t_last is None else max(t_arrival, self._t_last)
         if self._offset is not None and pts:
-            # the reference held the newest setpoint at least until the last sample: resume there
-            # at the next one (a setpoint that arrived before that sample and is pushed only now,
-            # e.g. while the loop thread was starved, would otherwise resume part-way: a step)
-            t_held = t_arrival if self._t_last is None else max(t_arrival, self._t_last)
             behind = t_held - self._offset - self._delay - pts[-1][0]
             if behind > 0.0:  # the reference has been holding the last setpoint: resume there
                 self._offset += behind
@@ -103,7 +103,6 @@ class SetpointInterpolator:
             self._offset = t_arrival - t_source
             # the reference has held the first setpoint until now: the timeline starts there
             # (with a first gap longer than the delay it would start part-way along it: a step)
-            t_held = t_arrival if self._t_last is None else max(t_arrival, self._t_last)
             late = t_held - self._delay - pts[-2][0] - self._offset
             if late > 0.0:
                 self._offset += late
