@@ -172,7 +172,10 @@ def run_fault(pipe: Pipeline, f: Fault, lead_s: float = 1.0, recover_s: float = 
     if t_hold and resumed:
         t_fol = t_followed if t_followed is not None else now_ns()
         row["recovery_s"] = round((t_fol - t_clear) / 1e9, 2)  # < 0: re-engaged during the fault
-        row["reengage_needed"] = p.press_between(t_hold, t_fol)
+        # (by publication times: the follow is the slave's answer to the press, and its state
+        # may reach the probe before the press does)
+        fol = p.first_op_after(t_fol, lambda r: True)
+        row["reengage_needed"] = p.press_between(t_hold, fol[1][8] if fol else t_fol)
         # The slave must stay put from the hold until the new engage.
         tips = p.tips()
         sel = (tips[:, 0] >= t_hold + 0.3e9) & (tips[:, 0] <= t_fol)

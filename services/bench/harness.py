@@ -128,7 +128,11 @@ class Probe:
     def _on_buttons(self, m: MasterButtons, key: str) -> None:
         with self.lock:
             if not self.clutch or self.clutch[-1][1] != m.clutch:
-                self.clutch.append((now_ns(), m.clutch))
+                # when master_capture published it, on the probe's clock (as ``op[8]``): the
+                # press and the follow it causes come on different paths, and the follow's
+                # operating state may reach the probe first
+                t = now_ns()
+                self.clutch.append((t - max(0, time.time_ns() - m.header.stamp_ns), m.clutch))
 
     def _on_event(self, m: SafetyEvent, key: str) -> None:
         with self.lock:
@@ -171,7 +175,7 @@ class Probe:
         return None
 
     def press_between(self, t0: int, t1: int) -> bool:
-        """A clutch press (released → pressed) was seen between t0 and t1."""
+        """A clutch press (released → pressed) was published between t0 and t1."""
         with self.lock:
             return any(t0 <= t <= t1 and pressed for t, pressed in self.clutch)
 
