@@ -9,6 +9,7 @@ from __future__ import annotations
 import threading
 import time
 from collections.abc import Iterator
+from pathlib import Path
 
 import pytest
 from telesurg.services.bench.harness import Pipeline
@@ -73,9 +74,10 @@ class Console:
             return any(k == kind for k, _ in self.events)
 
 
-@pytest.fixture(scope="module")
-def console(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Console]:
-    logs = tmp_path_factory.mktemp("trocar") / "logs"
+@pytest.fixture
+def console(tmp_path: Path) -> Iterator[Console]:
+    # a site per test (and per retry): a failed attempt leaves the arm where it stopped
+    logs = tmp_path / "logs"
     overrides = {
         "master_capture": ["scripted.clutch=[]"],  # nobody engages master–slave in this test
         "slave_control": [f"q_home={START}", "jog_speed_mm_s=40.0"],
