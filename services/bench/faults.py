@@ -175,10 +175,14 @@ def run_fault(pipe: Pipeline, f: Fault, lead_s: float = 1.0, recover_s: float = 
         # (by publication times: the follow is the slave's answer to the press, and its state
         # may reach the probe before the press does)
         fol = p.first_op_after(t_fol, lambda r: True)
-        row["reengage_needed"] = p.press_between(t_hold, fol[1][8] if fol else t_fol)
-        # The slave must stay put from the hold until the new engage.
+        t_fol_pub = fol[1][8] if fol else t_fol
+        row["reengage_needed"] = p.press_between(t_hold, t_fol_pub)
+        # The slave must stay put from the hold until the new engage: until the press (the
+        # follow's state is published at a lower rate than the tip, which may already move)
+        with p.lock:
+            t_press = next((t for t, on in p.clutch if on and t_hold <= t <= t_fol_pub), t_fol)
         tips = p.tips()
-        sel = (tips[:, 0] >= t_hold + 0.3e9) & (tips[:, 0] <= t_fol)
+        sel = (tips[:, 0] >= t_hold + 0.3e9) & (tips[:, 0] <= min(t_fol, t_press))
         p_ref = tips[max(int(np.searchsorted(tips[:, 0], t_hold + 0.3e9, side="right")) - 1, 0), 1:]
         moved = np.linalg.norm(tips[sel, 1:] - p_ref, axis=1).max() * 1e3 if sel.any() else 0.0
         row["motion_before_reengage_mm"] = round(float(moved), 3)
