@@ -152,3 +152,37 @@ def test_mirror_shows_the_teleop_state_of_each_pair(tmp_path: Path) -> None:
     assert lines[-1][0] == "WARN" and "slave holding: lease expired" in lines[-1][1], lines
     assert "was ENABLED" in lines[-1][1] and "scale 0.5 × safety 1" in lines[-1][1], lines
     assert scalar_counts(out).get("/mapping/arm1/engaged") == len(states)
+
+
+def test_the_mirror_file_has_no_footer_and_rerun_can_add_one(tmp_path: Path) -> None:
+    """rerun keeps a footer's chunk manifest in memory for the whole session, so the mirror's
+    .rrd is written without one by default (``rrd_footer``); the file still opens, and rerun's
+    CLI adds the footer afterwards, as docs/recording.md says."""
+    import warnings
+
+    from rerun.chunk import RrdReader
+    from telesurg.services.mirror.view import RerunView
+
+    def chunks(path: Path) -> tuple[int, list[str]]:
+        with warnings.catch_warnings(record=True) as seen:
+            warnings.simplefilter("always")
+            n = sum(1 for _ in RrdReader(str(path)).stream())
+        return n, [str(w.message) for w in seen if "footer" in str(w.message)]
+
+    for footer in (False, True):
+        out = tmp_path / f"footer{int(footer)}.rrd"
+        view = RerunView("test", save=str(out), rrd_footer=footer)
+        t0 = 1_700_000_000_000_000_000
+        for i in range(50):  # 50 blocks of one sample: 50 chunks
+            view.series("/slave/arm1/joints/j1/measured", [t0 + i * 10**6], [t0 + i * 10**6], [0.01 * i])
+        view.close()
+        n, said = chunks(out)
+        assert n > 0 and bool(said) is not footer, (footer, n, said)
+    fixed = tmp_path / "optimized.rrd"
+    rerun_cli = Path(sys.executable).with_name("rerun")
+    cmd = [str(rerun_cli), "rrd", "optimize", str(tmp_path / "footer0.rrd"), "-o", str(fixed)]
+    done = subprocess.run(cmd, capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr[-2000:]
+    n, said = chunks(fixed)
+    assert n > 0 and not said, said
+    assert scalar_counts(fixed)["/slave/arm1/joints/j1/measured"] == 50

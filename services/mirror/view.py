@@ -333,6 +333,8 @@ class RerunView:
             limit holds it: at 0.05 MB a late viewer got none of it, at 0.5 MB all of the MH3F's);
             0: rerun's default (1 GiB: a new viewer gets the whole session, from its start).
         flush_s: s between the batcher's sends to the sinks (0: rerun's default, 200 ms).
+        rrd_footer: write rerun's footer (a manifest of every chunk, kept in memory until the
+            file is closed: memory grows with the session) at the end of ``save``.
     """
 
     def __init__(
@@ -346,6 +348,7 @@ class RerunView:
         grpc_port: int = 9876,
         history_mb: float = 0.0,
         flush_s: float = 0.0,
+        rrd_footer: bool = False,
     ) -> None:
         import rerun as rr
 
@@ -363,7 +366,7 @@ class RerunView:
         sinks: list[Any] = []
         if save:
             Path(save).parent.mkdir(parents=True, exist_ok=True)
-            sinks.append(rr.FileSink(save))
+            sinks.append(rr.FileSink(save, write_footer=rrd_footer))
         if serve:
             _check_port_free("127.0.0.1", grpc_port, "grpc_port")  # rerun only logs this failure
             limit = f"{history_mb:g}MB" if history_mb > 0 else "1GiB"  # rerun's default
