@@ -130,6 +130,7 @@ def test_posture_by_direct_teach_then_teach_in_trocar_mode_keeps_the_rcm(arm: tu
     if c.mode() != "non_trocar":  # a failed earlier attempt (this module's site is shared) left
         c.send("abort")  # the posture adjustment open: the operator's way out of it
         assert c.wait(lambda: c.mode() == "non_trocar", 10), c.mode()
+    assert c.send("set_motion_mode", "mode=playback").accepted  # (a failed attempt left another)
     t0 = time.monotonic()
     assert c.send("play", "program=home").accepted  # return to the start pose (as the paper's playback)
     assert c.wait_event("playback_done", t0, 30)
