@@ -145,6 +145,10 @@ def test_posture_by_direct_teach_then_teach_in_trocar_mode_keeps_the_rcm(arm: tu
     assert not c.send("finish_posture_adjust").accepted  # not aligned yet
     deadline = time.monotonic() + 30
     while time.monotonic() < deadline:
+        if c.mode() == "non_trocar":  # a hold (a stalled host) ends a slave-side motion, direct
+            print("the posture adjustment ended (a hold): begun again")  # teach included: the
+            assert c.send("set_motion_mode", "mode=jog").accepted  # operator begins it again
+            assert c.send("begin_posture_adjust", "method=direct_teach").accepted
         args = [f"f{a}={f:.2f}" for a, f in zip("xyz", push, strict=True)]
         assert c.send("push", *args, "seconds=0.5").accepted
         time.sleep(0.6)
