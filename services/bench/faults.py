@@ -25,7 +25,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from telesurg.services.bench.harness import Pipeline, Probe, now_ns
+from telesurg.services.bench.harness import Pipeline, now_ns
 from telesurg.shared import jsonio
 
 log = logging.getLogger(__name__)
@@ -168,13 +168,13 @@ def run_fault(pipe: Pipeline, f: Fault, lead_s: float = 1.0, recover_s: float = 
     resumed = pipe.wait_following(recover_s)
     row["recovered"] = resumed
     row["recovery_s"] = row["reengage_needed"] = row["motion_before_reengage_mm"] = None
-    t_followed = _t_follow(p, t_hold)  # the first follow after the hold (None: none seen)
+    fol = p.first_op_after(t_hold, lambda r: r[1]) if t_hold else None  # the first follow after the hold
+    t_followed = fol[0] if fol else None  # (None: none seen)
     if t_hold and resumed:
         t_fol = t_followed if t_followed is not None else now_ns()
         row["recovery_s"] = round((t_fol - t_clear) / 1e9, 2)  # < 0: re-engaged during the fault
         # (by publication times: the follow is the slave's answer to the press, and its state
         # may reach the probe before the press does)
-        fol = p.first_op_after(t_fol, lambda r: True)
         t_fol_pub = fol[1][8] if fol else t_fol
         row["reengage_needed"] = p.press_between(t_hold, t_fol_pub)
         # The slave must stay put from the hold until the new engage: until the press (the
@@ -192,13 +192,6 @@ def run_fault(pipe: Pipeline, f: Fault, lead_s: float = 1.0, recover_s: float = 
     row["rejected"] = sum(p.heartbeats.values()) - rej0
     row["ok"] = _judge(row)
     return row
-
-
-def _t_follow(p: Probe, t_hold: int | None) -> int | None:
-    if t_hold is None:
-        return None
-    fol = p.first_op_after(t_hold, lambda r: r[1])
-    return fol[0] if fol else None
 
 
 def _after_press(pipe: Pipeline, lead_s: float, timeout: float) -> bool:

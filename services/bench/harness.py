@@ -62,6 +62,12 @@ def now_ns() -> int:
     return time.monotonic_ns()
 
 
+def _published_ns(received_ns: int, stamp_ns: int) -> int:
+    """A message's publication time on the probe's clock ``now_ns``: its receipt minus the age of
+    its wall-clock stamp (publisher and probe on one host)."""
+    return received_ns - max(0, time.time_ns() - stamp_ns)
+
+
 @dataclass
 class Probe:
     """Everything the probe saw, stamped with the probe's receive time (monotonic ns)."""
@@ -105,6 +111,7 @@ class Probe:
 
     def _on_op(self, m: OperatingState, key: str) -> None:
         t = now_ns()
+        published = _published_ns(t, m.header.stamp_ns)
         with self.lock:
             self.op.append(
                 (
@@ -116,8 +123,7 @@ class Probe:
                     m.holds,
                     m.clipped,
                     m.rejected,
-                    # when the slave published it, on the probe's clock (the stamp's age now)
-                    t - max(0, time.time_ns() - m.header.stamp_ns),
+                    published,  # when the slave published it, on the probe's clock
                 )
             )
 
@@ -128,11 +134,9 @@ class Probe:
     def _on_buttons(self, m: MasterButtons, key: str) -> None:
         with self.lock:
             if not self.clutch or self.clutch[-1][1] != m.clutch:
-                # when master_capture published it, on the probe's clock (as ``op[8]``): the
-                # press and the follow it causes come on different paths, and the follow's
-                # operating state may reach the probe first
-                t = now_ns()
-                self.clutch.append((t - max(0, time.time_ns() - m.header.stamp_ns), m.clutch))
+                # when master_capture published it (as ``op[8]``): the press and the follow it
+                # causes come on different paths, and the follow's state may reach the probe first
+                self.clutch.append((_published_ns(now_ns(), m.header.stamp_ns), m.clutch))
 
     def _on_event(self, m: SafetyEvent, key: str) -> None:
         with self.lock:
