@@ -110,11 +110,12 @@ class VideoWatch:
             state, cause = "DEGRADED", what if never else f"{what} > {p.stale_ms:g} ms)"
         elif not never and state == "OK":
             if self.last_age_ms > p.age_limit_ms:
-                state, cause = "HOLD", f"video {self.last_age_ms:.0f} ms old > limit {p.age_limit_ms:g} ms"
+                state = "HOLD"
+                cause = f"video latency {self.last_age_ms:.0f} ms > limit {p.age_limit_ms:g} ms"
             elif self.last_age_ms > p.age_budget_ms:
                 state, cause = (
                     "DEGRADED",
-                    f"video {self.last_age_ms:.0f} ms old > budget {p.age_budget_ms:g} ms",
+                    f"video latency {self.last_age_ms:.0f} ms > budget {p.age_budget_ms:g} ms",
                 )
         if state == "OK" and self.state != "OK" and self._fresh_run < p.fresh_frames:
             state = "DEGRADED"
