@@ -5,9 +5,11 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+import warnings
 from pathlib import Path
 
 import pytest
+from rerun.chunk import RrdReader
 
 pytestmark = pytest.mark.process
 
@@ -46,3 +48,26 @@ def test_bench_usage_errors() -> None:
         [*BENCH, "faults", "--only", "melt:router"], capture_output=True, text=True, timeout=60
     )
     assert proc.returncode == 2 and "unknown fault 'melt:router'" in proc.stderr
+
+
+def test_bench_memory_smoke(tmp_path: Path) -> None:
+    out = tmp_path / "mem.json"
+    argv = [*BENCH, "memory", "--seconds", "8", "--every", "2", "--warmup", "0", "--json", str(out)]
+    argv += ["--set", "mirror.rrd_footer=true", "--log-dir", str(tmp_path / "logs")]
+    proc = subprocess.run(argv, capture_output=True, text=True, timeout=240)
+    print(proc.stdout[-3000:])
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    r = json.loads(out.read_text())
+    procs = r["processes"]
+    assert set(procs) == {"router", "watchdog", "mapping", "mirror", "slave_control"}, procs
+    # every process sampled from start to end: a slope per process, resident sizes a process has
+    assert all(p["slope_mb_s"] is not None and 10 < p["end_mb"] < 2000 for p in procs.values()), procs
+    assert len(r["samples"]) >= 5 and r["samples"][-1]["t_s"] >= 8
+    # the override reached the mirror: its .rrd was closed with a footer (rerun opens it silently)
+    assert r["set"] == ["mirror.rrd_footer=true"] and "mirror" in proc.stdout
+    with warnings.catch_warnings(record=True) as seen:
+        warnings.simplefilter("always")
+        chunks = sum(1 for _ in RrdReader(str(tmp_path / "logs" / "session.rrd")).stream())
+    assert chunks > 10 and not [w for w in seen if "footer" in str(w.message)], chunks
+    bad = subprocess.run([*BENCH, "memory", "--set", "mirror:geometry=false"], capture_output=True, text=True)
+    assert bad.returncode == 1 and "expected SERVICE.KEY=VALUE" in bad.stdout

@@ -12,6 +12,7 @@ Subcommands::
     telesurg bench decode [--n 20000] [--json FILE]
     telesurg bench flood [--site locked|open] [--no-caps] [--json FILE]
     telesurg bench viewer [--seconds 100] [--json FILE]
+    telesurg bench memory [--seconds 300] [--set SERVICE.KEY=VALUE] [--json FILE]
 """
 
 from __future__ import annotations
@@ -37,6 +38,7 @@ BENCHES = {
     ),
     "decode": ("telesurg.services.bench.decode", "µs per strict decode / encode of the hot messages"),
     "flood": ("telesurg.services.bench.flood", "1 MB messages on a control and a master key: RSS, HOLDs"),
+    "memory": ("telesurg.services.bench.memory", "RSS of each service over a quiet run: growth MB/s"),
     "auth": ("telesurg.services.bench.auth", "µs per sign / verify (HMAC, Ed25519) of the hot messages"),
     "viewer": (
         "telesurg.services.bench.viewer",
