@@ -67,6 +67,18 @@ WATCHED = ("router", "watchdog", "mapping", "mirror", "slave_control")
 KEYS = ("slave/arm1/servo_jp", "master/m1/measured_cp")
 
 
+def parse_sets(items: Sequence[str]) -> dict[str, list[str]]:
+    """``SERVICE.KEY=VALUE`` items as the pipeline's per-service overrides."""
+    out: dict[str, list[str]] = {}
+    for item in items:
+        name, dot, rest = item.partition(".")
+        if not dot or "=" not in rest or name not in WATCHED:
+            names = ", ".join(WATCHED)
+            raise TelesurgError(f"--set {item!r}: expected SERVICE.KEY=VALUE with SERVICE one of {names}")
+        out.setdefault(name, []).append(rest)
+    return out
+
+
 def rss_mb(pipe: Pipeline) -> dict[str, float]:
     """Resident set size of each watched process, MB."""
     psutil: Any = importlib.import_module("psutil")  # (no type stubs)
@@ -389,6 +401,8 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     if args.acl_log is not None:  # (after the harness's acl_log="denied" on the command line)
         overrides.setdefault("router", []).append(f'acl_log="{args.acl_log}"')
     overrides.setdefault("router", []).extend(args.router_set)
+    for name, items in parse_sets(args.set).items():
+        overrides.setdefault(name, []).extend(items)
     acl = deploy_dir() / "slave-site" / "acl.json5" if args.site == "locked" else None
     with Pipeline(out, overrides=overrides, impair=False, acl=acl, mirror=not args.no_mirror) as pipe:
         if not pipe.wait_following(120):
@@ -458,6 +472,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         "cpu": {"quiet_before": cpu_share(cpu_q0, cpu_q1), "flood": cpu_share(cpu_f0, cpu_f1)},
         "followed_after": followed_after,
         "router_set": list(args.router_set),
+        "set": list(args.set),
         "link_cuts_flood": len(cuts_flood),
         "link_cut_mb_flood": cuts_flood,
         "flooder_process": "separate" if args.separate else "a thread of the bench",
@@ -511,6 +526,13 @@ def main(argv: Sequence[str] | None = None) -> int:
         default=[],
         metavar="KEY=VALUE",
         help="a router config override (repeatable), e.g. link_rx_budget_mb_s=0 (the link guard off)",
+    )
+    ap.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="SERVICE.KEY=VALUE",
+        help="a service config override (repeatable), e.g. mirror.malloc_trim_s=0",
     )
     ap.add_argument("--send-only", metavar="BUS_JSON", help=argparse.SUPPRESS)  # (the flooding process)
     ap.add_argument("--site-name", default="local", help=argparse.SUPPRESS)

@@ -26,24 +26,12 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from telesurg.services.bench.flood import WATCHED, memory_detail, rss_mb
+from telesurg.services.bench.flood import WATCHED, memory_detail, parse_sets, rss_mb
 from telesurg.services.bench.harness import Pipeline
 from telesurg.shared import jsonio
 from telesurg.shared.errors import TelesurgError
 
 log = logging.getLogger("telesurg.bench.memory")
-
-
-def parse_sets(items: Sequence[str]) -> dict[str, list[str]]:
-    """``SERVICE.KEY=VALUE`` items as the pipeline's per-service overrides."""
-    out: dict[str, list[str]] = {}
-    for item in items:
-        name, dot, rest = item.partition(".")
-        if not dot or "=" not in rest or name not in WATCHED:
-            names = ", ".join(WATCHED)
-            raise TelesurgError(f"--set {item!r}: expected SERVICE.KEY=VALUE with SERVICE one of {names}")
-        out.setdefault(name, []).append(rest)
-    return out
 
 
 def slope_mb_s(samples: Sequence[dict[str, Any]], name: str, since_s: float) -> float | None:

@@ -60,6 +60,7 @@ from telesurg.services.mirror.view import (
 from telesurg.shared import robots
 from telesurg.shared.bus import BusConfig, Node
 from telesurg.shared.errors import ConfigError, KinematicsError
+from telesurg.shared.malloc import Trimmer
 from telesurg.shared.messages import (
     AnyMessage,
     CameraImage,
@@ -139,6 +140,10 @@ class MirrorConfig:
     # runs below the control path) the oldest are dropped and counted instead of the buffer
     # growing without bound (~2 s of the local site's streams); the recorder keeps every message
     inbox_max: int = 10_000
+    # s between returns of freed memory to the OS (glibc ``malloc_trim``, with a fixed trim
+    # threshold; telesurg.shared.malloc): after a burst — the mirror catching up once it gets CPU
+    # again, e.g. after a flood — its peak would otherwise stay resident; 0 = never
+    malloc_trim_s: float = 30.0
     # Hz: camera frames drawn per camera (the newest, as its JPEG; camera/*/image), 0 = none
     image_hz: float = 2.0
     layout_wait_s: float = 0.5  # s after the first slave arm is seen before the layout is sent
@@ -175,6 +180,7 @@ class MirrorConfig:
             ("history_mb", self.history_mb, 0.0, 1_000_000.0),
             ("flush_s", self.flush_s, 0.0, 10.0),
             ("inbox_max", self.inbox_max, 100, 10_000_000),
+            ("malloc_trim_s", self.malloc_trim_s, 0.0, 3600.0),
         ):
             if not lo <= value <= hi:
                 raise ConfigError(f"{name}={value} outside [{lo:g}, {hi:g}]")
@@ -807,6 +813,7 @@ def run(cfg: MirrorConfig, stop: threading.Event) -> None:
                     f"{node.keys.prefix}/camera/*/image", CameraImage, frames.on_frame, sources=["camera"]
                 )
             draw_errors = 0
+            trimmer = Trimmer(cfg.malloc_trim_s)
             settle_gc()
             while not stop.is_set():
                 try:
@@ -817,6 +824,7 @@ def run(cfg: MirrorConfig, stop: threading.Event) -> None:
                     draw_errors += 1
                     if draw_errors <= 5 or draw_errors % 1000 == 0:
                         log.exception("draw failed (%d so far); continuing", draw_errors)
+                trimmer.maybe_trim()
                 timer.wait()
             rejected = node.rejected
         mirror.feed(inbox.take())  # whatever arrived before the subscriber closed
@@ -825,13 +833,15 @@ def run(cfg: MirrorConfig, stop: threading.Event) -> None:
     wall, cpu = time.monotonic() - wall0, _cpu_s() - cpu0
     log.info(
         "received %d (%d dropped while the mirror was behind), rejected %d, drew %d joint samples, "
-        "%d draw overruns; "
+        "%d draw overruns; %d malloc trims (%.1f ms); "
         "CPU %.2f s in %.1f s (%.3f of a core, rerun's threads included)",
         inbox.received,
         inbox.dropped,
         rejected,
         mirror.drawn,
         timer.overruns,
+        trimmer.trims,
+        trimmer.cpu_s * 1e3,
         cpu,
         wall,
         cpu / wall if wall > 0 else 0.0,
