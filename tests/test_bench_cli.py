@@ -53,7 +53,14 @@ def test_bench_usage_errors() -> None:
 def test_bench_memory_smoke(tmp_path: Path) -> None:
     out = tmp_path / "mem.json"
     argv = [*BENCH, "memory", "--seconds", "8", "--every", "2", "--warmup", "0", "--json", str(out)]
-    argv += ["--set", "mirror.rrd_footer=true", "--log-dir", str(tmp_path / "logs")]
+    argv += [
+        "--set",
+        "mirror.rrd_footer=true",
+        "--log-dir",
+        str(tmp_path / "logs"),
+        "--plot",
+        str(tmp_path / "m.png"),
+    ]
     proc = subprocess.run(argv, capture_output=True, text=True, timeout=240)
     print(proc.stdout[-3000:])
     assert proc.returncode == 0, proc.stderr[-3000:]
@@ -63,6 +70,7 @@ def test_bench_memory_smoke(tmp_path: Path) -> None:
     # every process sampled from start to end: a slope per process, resident sizes a process has
     assert all(p["slope_mb_s"] is not None and 10 < p["end_mb"] < 2000 for p in procs.values()), procs
     assert len(r["samples"]) >= 5 and r["samples"][-1]["t_s"] >= 8
+    assert (tmp_path / "m.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     # the override reached the mirror: its .rrd was closed with a footer (rerun opens it silently)
     assert r["set"] == ["mirror.rrd_footer=true"] and "mirror" in proc.stdout
     with warnings.catch_warnings(record=True) as seen:

@@ -426,6 +426,7 @@ def test_flood_of_large_messages_reaches_no_service(tmp_path: Path) -> None:
         settle=2.0,
         log_dir=str(tmp_path / "logs"),
         router_set=[],
+        set=[],
     )
     res = run(args)
     assert res["sent"] > 10, "the flooding process sent nothing"

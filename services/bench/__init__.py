@@ -12,7 +12,7 @@ Subcommands::
     telesurg bench decode [--n 20000] [--json FILE]
     telesurg bench flood [--site locked|open] [--no-caps] [--json FILE]
     telesurg bench viewer [--seconds 100] [--json FILE]
-    telesurg bench memory [--seconds 300] [--set SERVICE.KEY=VALUE] [--json FILE]
+    telesurg bench memory [--seconds 300] [--set SERVICE.KEY=VALUE] [--json FILE] [--plot FILE]
 """
 
 from __future__ import annotations

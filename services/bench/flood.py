@@ -539,7 +539,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--seconds", type=float, default=10.0, help="flood duration (default 10)")
     ap.add_argument("--size", type=int, default=1 << 20, help="message bytes (default 1 MiB)")
     ap.add_argument("--after", type=float, default=30.0, help="RSS measured this long after (s)")
-    ap.add_argument("--settle", type=float, default=5.0, help="wait after following starts (s)")
+    ap.add_argument(
+        "--settle",
+        type=float,
+        default=240.0,
+        help="wait after following starts (s, default 240: the mirror's RSS rises in steps for its "
+        "first ~200 s, docs/security.md; a shorter settle counts that against the flood)",
+    )
     ap.add_argument("--log-dir", help="service logs (default: a temporary folder)")
     ap.add_argument("--json", type=Path, help="write the result here")
     args = ap.parse_args(argv)

@@ -103,6 +103,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     )
     ap.add_argument("--log-dir", help="service logs and the mirror's .rrd (default: a temporary folder)")
     ap.add_argument("--json", type=Path, help="write the result here")
+    ap.add_argument("--plot", type=Path, help="a PNG of each process's RSS over the run")
     args = ap.parse_args(argv)
     if not (args.every > 0 and 0 <= args.warmup < args.seconds):
         ap.error("need --every > 0 and 0 <= --warmup < --seconds")
@@ -115,6 +116,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         jsonio.write(args.json, res)
+    if args.plot:
+        from telesurg.services.bench.plots import plot_memory
+
+        plot_memory(res, args.plot)
     print(f"memory: {res['seconds']:g} s, sampled every {res['every_s']:g} s; set: {res['set'] or 'none'}")
     at = f"at {res['warmup_s']:g} s"
     print(f"  {'process':<14} {at:>9} {'end':>8} {'MB/s':>8}  anon MB")

@@ -139,3 +139,33 @@ def plot_latency(results: list[dict[str, Any]], out: Path) -> None:
     fig.tight_layout()
     fig.savefig(out, dpi=110)
     plt.close(fig)
+
+
+def plot_memory(res: dict[str, Any], out: Path) -> None:
+    """``telesurg bench memory``: RSS of each process over the run (top) and, per process, its
+    anonymous memory (bottom, dashed), with the warm-up boundary marked."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    samples = res["samples"]
+    t = [s["t_s"] for s in samples]
+    fig, (top, bottom) = plt.subplots(2, 1, figsize=(8.0, 5.6), sharex=True)
+    for name in res["processes"]:
+        rss = [s["rss_mb"].get(name, np.nan) for s in samples]
+        anon = [s["detail_mb"].get(name, {}).get("anon", np.nan) for s in samples]
+        (line,) = top.plot(t, rss, marker=".", label=f"{name} ({res['processes'][name]['slope_mb_s']} MB/s)")
+        bottom.plot(t, anon, "--", marker=".", color=line.get_color(), label=name)
+    for ax in (top, bottom):
+        ax.axvline(res["warmup_s"], color="grey", linewidth=0.8)
+        ax.grid(alpha=0.3)
+    top.set_ylabel("RSS, MB")
+    top.set_title(f"bench memory: {res['seconds']:g} s, set: {', '.join(res['set']) or 'none'}", fontsize=10)
+    top.legend(fontsize=7, title="slope after the warm-up (grey line)", title_fontsize=7)
+    bottom.set_ylabel("anonymous, MB")
+    bottom.set_xlabel("s after the slave follows")
+    fig.tight_layout()
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out, dpi=110)
+    plt.close(fig)
