@@ -67,6 +67,18 @@ WATCHED = ("router", "watchdog", "mapping", "mirror", "slave_control")
 KEYS = ("slave/arm1/servo_jp", "master/m1/measured_cp")
 
 
+def add_set_argument(ap: argparse.ArgumentParser, example: str) -> None:
+    """``--set SERVICE.KEY=VALUE`` (repeatable): a service config override for the bench's pipeline
+    (read with :func:`parse_sets`)."""
+    ap.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="SERVICE.KEY=VALUE",
+        help=f"a service config override (repeatable), e.g. {example}",
+    )
+
+
 def parse_sets(items: Sequence[str]) -> dict[str, list[str]]:
     """``SERVICE.KEY=VALUE`` items as the pipeline's per-service overrides."""
     out: dict[str, list[str]] = {}
@@ -527,13 +539,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         metavar="KEY=VALUE",
         help="a router config override (repeatable), e.g. link_rx_budget_mb_s=0 (the link guard off)",
     )
-    ap.add_argument(
-        "--set",
-        action="append",
-        default=[],
-        metavar="SERVICE.KEY=VALUE",
-        help="a service config override (repeatable), e.g. mirror.malloc_trim_s=0",
-    )
+    add_set_argument(ap, "mirror.malloc_trim_s=0")
     ap.add_argument("--send-only", metavar="BUS_JSON", help=argparse.SUPPRESS)  # (the flooding process)
     ap.add_argument("--site-name", default="local", help=argparse.SUPPRESS)
     ap.add_argument("--seconds", type=float, default=10.0, help="flood duration (default 10)")

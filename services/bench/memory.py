@@ -26,7 +26,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from telesurg.services.bench.flood import WATCHED, memory_detail, parse_sets, rss_mb
+from telesurg.services.bench.flood import WATCHED, add_set_argument, memory_detail, parse_sets, rss_mb
 from telesurg.services.bench.harness import Pipeline
 from telesurg.shared import jsonio
 from telesurg.shared.errors import TelesurgError
@@ -94,13 +94,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--seconds", type=float, default=300.0, help="measured time after following starts (300)")
     ap.add_argument("--every", type=float, default=10.0, help="sampling period (s, default 10)")
     ap.add_argument("--warmup", type=float, default=60.0, help="slopes from this time on (s, default 60)")
-    ap.add_argument(
-        "--set",
-        action="append",
-        default=[],
-        metavar="SERVICE.KEY=VALUE",
-        help="a service config override (repeatable), e.g. mirror.rrd_footer=true",
-    )
+    add_set_argument(ap, "mirror.rrd_footer=true")
     ap.add_argument("--log-dir", help="service logs and the mirror's .rrd (default: a temporary folder)")
     ap.add_argument("--json", type=Path, help="write the result here")
     ap.add_argument("--plot", type=Path, help="a PNG of each process's RSS over the run")
