@@ -41,7 +41,6 @@ class Trimmer:
     def __init__(self, period_s: float, trim_threshold: int = 128 * 1024) -> None:
         self.period_s = period_s
         self.trims = 0
-        self.released = 0  # calls that returned memory (malloc_trim's result 1)
         self.cpu_s = 0.0  # thread CPU time spent in malloc_trim
         self._next = time.monotonic() + period_s
         self._libc = _libc() if period_s > 0 else None
@@ -60,7 +59,7 @@ class Trimmer:
             return False
         self._next = now + self.period_s
         t0 = time.thread_time()
-        self.released += self._libc.malloc_trim(0)
+        self._libc.malloc_trim(0)
         self.cpu_s += time.thread_time() - t0
         self.trims += 1
         return True
