@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from telesurg.services.launcher import SERVICES, Site, SiteSpec, free_port
+from telesurg.services.launcher import CONTROL_SERVICES, Site, SiteSpec, free_port
 from telesurg.shared import robots
 from telesurg.shared.bus import BusConfig, Node
 from telesurg.shared.messages import (
@@ -77,8 +77,8 @@ def run(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[Log, Path, d
         "mapping": [*common, f"mode={_toml('position')}", f"scale={SCALE}"],
         "master_capture": [
             "rate_hz=100.0",
-            # one engage at 9 s, when the camera's video is up (before it the watchdog refuses
-            # engages), 1 s into the 8 s circle like every press at 8k + 1 s (again at 33 s)
+            # one engage at 9 s, when the site is surely up, 1 s into the 8 s circle like every
+            # press at 8k + 1 s (again at 33 s)
             "scripted.clutch=[[9.0, 23.0]]",
             "scripted.clutch_repeat_s=24.0",
         ],
@@ -87,7 +87,7 @@ def run(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[Log, Path, d
     spec = SiteSpec(
         port=free_port(),
         config_dir=None,  # built-in defaults + the overrides above
-        services=SERVICES,
+        services=CONTROL_SERVICES,  # no camera: the video is not what this test is about
         overrides=overrides,
         log_dir=out / "logs",
         plugins=(str(TRI3),),
