@@ -242,6 +242,8 @@ def test_identities_publish_only_their_own_keys(locked: tuple[str, LocalPki, Pat
 
 
 def test_oversized_messages_are_dropped_at_the_router(locked: tuple[str, LocalPki, Path]) -> None:
+    import zenoh
+
     ep, pki, _ = locked
     sizes: list[tuple[str, int]] = []
     rx = open_session(_client(ep, pki, "watchdog"))
@@ -262,8 +264,8 @@ def test_oversized_messages_are_dropped_at_the_router(locked: tuple[str, LocalPk
         time.sleep(0.3)
         sizes.clear()
         cap = RouterConfig().max_message_bytes
-        for size in (1000, cap - 64):  # under the cap: delivered
-            tx.put(key, b"\x00" * size)
+        for size in (1000, cap - 64):  # under the cap: delivered (blocking, as the control streams
+            tx.put(key, b"\x00" * size, congestion_control=zenoh.CongestionControl.BLOCK)  # are sent)
         assert wait_until(lambda: len(sizes) >= 2, 10.0), sizes
         for size in (1 << 20, cap + 1):  # over it: dropped at the router
             tx.put(key, b"\x00" * size)
