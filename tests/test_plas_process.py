@@ -121,13 +121,12 @@ def site(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[Board, Log]
                     with log.lock:
                         log.state[arm].append((time.monotonic(), m.follow, m.lease_ok))
 
-                node.subscribe(k.slave(arm, "measured_js"), JointState, on_js)
-                node.subscribe(k.slave(arm, "servo_jp"), JointSetpoint, on_sp)
-
                 def on_safety(m: SafetyState, key: str, arm: str = arm) -> None:
                     with log.lock:
                         log.scale[arm].append((time.monotonic(), m.scale))
 
+                node.subscribe(k.slave(arm, "measured_js"), JointState, on_js)
+                node.subscribe(k.slave(arm, "servo_jp"), JointSetpoint, on_sp)
                 node.subscribe(k.slave(arm, "operating_state"), OperatingState, on_state)
                 node.subscribe(k.safety(arm, "state"), SafetyState, on_safety)
 
