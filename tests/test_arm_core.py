@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import math
 import os
 import signal
 import subprocess
@@ -233,6 +234,112 @@ def test_lease_estop_and_engage_rules(kind: str) -> None:
     send(q, True)
     run(0.01)
     assert core.ctl.following
+
+
+def _starved_follow(
+    kind: str, stall_s: float, run_s: float, seconds: float = 3.0
+) -> tuple[ArmCore, dict[str, float], list[tuple[str, str]]]:
+    """An interpolating arm core follows a slow 250 Hz ramp (0.1 rad/s on one joint) under a loop
+    that runs ``run_s`` and then sleeps ``stall_s``, replayed as ``slave_control.run`` replays it
+    (the first missed period's command at its time, the arm held through all but the last 20, those
+    replayed at their own times). Returns the core, what a user would see of the command and the
+    arm's events."""
+    from telesurg.services.slave_control.arm import CATCHUP, REPLAY_MAX_PERIODS
+    from telesurg.services.slave_control.control import Setpoint
+
+    model, _ = KINDS[kind]
+    p = arm_profile(model, ARM)
+    core = ArmCore(
+        p,
+        np.arange(len(p.joint_names)),
+        SlaveControlConfig(model=model),
+        0.001,
+        interpolate=True,
+        catchup=CATCHUP,
+    )
+    j, dt, period = _move_joint(p), 0.001, 0.004
+    q0 = np.array(p.home)
+    q = q0.copy()
+    core.start(ArmReading(q, q * 0, q * 0, p))
+    core.lease = Lease(True, math.inf, "")
+    events: list[tuple[str, str]] = []
+    core.event = lambda kind, text, severity="info": events.append((kind, text))  # type: ignore[method-assign]
+    sent: list[tuple[float, np.ndarray, bool]] = []  # (source = arrival - 1 ms, q, follow)
+    for k in range(5):
+        sent.append((k * period, q0.copy(), False))  # clutch up, then pressed at the arm
+    for k in range(5, round(seconds / period)):
+        target = q0.copy()
+        target[j] += 0.1 * max(0.0, (k - 10) * period)
+        sent.append((k * period, target, True))
+    nxt, cmds, behind = 0, [], [0.0]
+
+    def poll(t: float) -> None:
+        nonlocal nxt
+        while nxt < len(sent) and sent[nxt][0] + 0.001 <= t:
+            ts, qs, follow = sent[nxt]
+            sp = Setpoint(qs, follow, ts + 0.001, core.cycle, ts)
+            core.setpoint = sp
+            core._arrived.append(sp)
+            nxt += 1
+
+    def command(t: float) -> None:
+        nonlocal q
+        following = core.ctl.following
+        q = _period(core, t, q)  # (the measured joints are the command: a perfect servo)
+        cmds.append(float(q[j]))
+        if following:  # how far behind the arm followed (after a hold the timeline runs on)
+            behind.append(core.servo.interp.behind)
+
+    n, ran = 0, 0.0
+    while n * dt < seconds:
+        t = n * dt
+        if ran >= run_s and stall_s > 0:  # asleep from this period on: woken stall_s later
+            missed = round(stall_s / dt)
+            poll(t + missed * dt)
+            command(t)
+            held = max(0, missed - REPLAY_MAX_PERIODS)
+            core.stalled(held * dt)
+            for k in range(held + 1, missed + 1):
+                command(t + k * dt)
+            n += 1 + missed
+            ran = 0.0
+            continue
+        poll(t)
+        command(t)
+        n += 1
+        ran += dt
+    steps = np.abs(np.diff(np.array(cmds)))
+    seen = {"max_step": float(steps.max()), "max_behind_s": max(behind), "final": cmds[-1] - float(q0[j])}
+    return core, seen, events
+
+
+@pytest.mark.parametrize("kind", ["mh3f", "plas", "vip"])
+def test_a_stalling_loop_makes_every_stall_up(kind: str) -> None:
+    """A 60 ms stall every 0.4 s: the arm resumes along the master's path where it stopped (never a
+    step beyond its speed limit, never clipped) and makes each stall up before the next."""
+    core, seen, events = _starved_follow(kind, stall_s=0.060, run_s=0.4)
+    vmax = float(np.array(core.profile.max_velocity)[_move_joint(core.profile)])
+    assert core.ctl.following and core.ctl.holds == 0 and [e for e in events if e[0] == "follow"]
+    assert core.ctl.clipped == 0 and seen["max_step"] <= vmax * 0.001
+    assert core.servo.interp.behind < 0.060  # made up (of the last stall at most what it was)
+    assert seen["final"] == pytest.approx(0.1 * (3.0 - 0.04), abs=0.1 * 0.08)  # on the master's ramp
+
+
+@pytest.mark.parametrize("kind", ["mh3f", "plas", "vip"])
+def test_a_starved_loop_holds_once_it_falls_behind_its_limit(kind: str) -> None:
+    """The loop sleeps 200 ms after every 50 ms (more than the catch-up makes up): the arm falls
+    behind, without a step, and holds once the timeline runs ``follow_max_lag_ms`` (250) behind the
+    master, saying why; it does not follow again without a new engage (found by
+    ``experiment jinno-insertion`` under whole-host freezes: a timeline that ran seconds behind
+    dropped unplayed setpoints, the reference jumped, and the speed-clipped step left the RCM)."""
+    core, seen, events = _starved_follow(kind, stall_s=0.200, run_s=0.05)
+    vmax = float(np.array(core.profile.max_velocity)[_move_joint(core.profile)])
+    assert not core.ctl.following and core.ctl.holds == 1
+    assert core.ctl.clipped == 0 and seen["max_step"] <= vmax * 0.001
+    assert 0.25 < seen["max_behind_s"] < 0.25 + 0.2 + 0.01  # held within the stall that passed it
+    holds = [text for kind_, text in events if kind_ == "hold"]
+    assert len(holds) == 1 and "behind the master" in holds[0] and "follow_max_lag_ms = 250" in holds[0]
+    print(holds[0])
 
 
 # --------------------------------------------------------------------------- process layer

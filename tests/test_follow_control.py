@@ -181,6 +181,34 @@ def test_interpolator_thawed_process_never_steps_back_along_the_path() -> None:
     assert ip.behind == pytest.approx(0.0, abs=1e-9)  # made up by 1.2 s
 
 
+@pytest.mark.parametrize("speed", [0.1, 0.8])
+def test_interpolator_catchup_stays_within_the_speed_bound(speed: float) -> None:
+    """With ``max_speed`` the catch-up is as fast as ``catchup`` allows on a slow motion and no
+    faster than the bound on a fast one (the arm's follow controller never clips it)."""
+    from telesurg.services.slave_control.control import SetpointInterpolator
+
+    ip = SetpointInterpolator(0.1, window=300, catchup=2.0, max_speed=np.array([1.0]))
+    period, k, out, made_up, n = 0.004, 0, [], None, 1
+    while n < 3000:
+        t = n * 0.001
+        while k * period + 0.001 <= t:
+            ip.push(np.array([speed * k * period]), k * period, k * period + 0.001)
+            k += 1
+        out.append(float(ip.sample(t)[0]))  # type: ignore[index]
+        if n == 500:
+            ip.pause(0.2)  # the arm held its command through a 200 ms stall
+            n += 200
+        elif n > 700 and made_up is None and ip.behind == 0.0:
+            made_up = (n - 700) * 0.001
+        n += 1
+    steps = np.diff(np.array(out))
+    assert steps.max() <= min(2.0 * speed, 1.0) * 1e-3 + 1e-9 and steps.min() >= -1e-12
+    assert made_up is not None
+    # 200 ms made up at (rate - 1) s/s: 2x on the slow ramp, 1/0.8 = 1.25x on the fast one
+    rate = 2.0 if speed < 0.5 else 1.25
+    assert made_up == pytest.approx(0.2 / (rate - 1.0), abs=0.01)
+
+
 def test_interpolator_without_catchup_keeps_the_shift() -> None:
     from telesurg.services.slave_control.control import SetpointInterpolator
 

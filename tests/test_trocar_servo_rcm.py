@@ -25,7 +25,13 @@ import math
 import numpy as np
 import pytest
 from telesurg.services.experiment.jinno import STARTS, TROCAR
-from telesurg.services.slave_control.arm import INTERP_WINDOW, REPLAY_MAX_PERIODS, TROCAR_CATCHUP, ServoFollow
+from telesurg.services.slave_control.arm import (
+    CATCHUP,
+    CATCHUP_SPEED_FRACTION,
+    INTERP_WINDOW,
+    REPLAY_MAX_PERIODS,
+    ServoFollow,
+)
 from telesurg.services.slave_control.backends import MujocoBackend
 from telesurg.services.slave_control.control import FollowController, Lease, Setpoint, SetpointInterpolator
 from telesurg.shared.kinematics.mh3f import MH3F, fk, ik
@@ -93,7 +99,10 @@ def follow(
     stalls = {round(s / DT): int(rng.uniform(25, 150)) for s in (2.0, 4.2, 6.5, 8.1, 10.3)} if faults else {}
 
     ctl = FollowController(np.array(MH3F.max_velocity))
-    servo = ServoFollow(smooth, SetpointInterpolator(0.1, window=INTERP_WINDOW, catchup=TROCAR_CATCHUP))
+    vmax = CATCHUP_SPEED_FRACTION * np.array(MH3F.max_velocity)
+    servo = ServoFollow(
+        smooth, SetpointInterpolator(0.1, window=INTERP_WINDOW, catchup=CATCHUP, max_speed=vmax)
+    )
     lease = Lease(True, math.inf, "")
     errs: list[float] = []
     with MujocoBackend("mh3f", tuple(q0)) as sim:

@@ -48,7 +48,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from telesurg.services.common import service_main
-from telesurg.services.slave_control.arm import REPLAY_MAX_PERIODS, TROCAR_CATCHUP, ArmCore, MotionSource
+from telesurg.services.slave_control.arm import CATCHUP, REPLAY_MAX_PERIODS, ArmCore, MotionSource
 from telesurg.services.slave_control.backends import SlaveBackend, SlaveReading
 from telesurg.services.slave_control.elbow_jog import ElbowJog
 from telesurg.services.slave_control.factory import make_backend
@@ -98,6 +98,10 @@ class SlaveControlConfig:
     lease_stamp_slack_ms: float = 50.0
     # ms: every arm interpolates its setpoints over their period (delay 1.5 periods), at most this long
     interpolation_max_ms: float = 100.0
+    # ms: while following, the setpoint timeline may run this far behind the master (stalls of the
+    # loop or of the stream not yet made up by the catch-up); further behind, the arm holds (as the
+    # watchdog does at latency_limit_ms); at most 1000 (what the interpolator keeps)
+    follow_max_lag_ms: float = 250.0
     engage_tolerance_rad: float = 0.02  # rad: first followed setpoint must be this close to the arm
     # rad: while following, a setpoint farther than this from the previous one is refused (a jump)
     max_setpoint_step_rad: float = 0.1
@@ -184,9 +188,8 @@ def make_arms(cfg: SlaveControlConfig, backend: SlaveBackend) -> list[ArmCore]:
         contiguous = idx == list(range(idx[0], idx[0] + len(idx)))
         index = slice(idx[0], idx[0] + len(idx)) if contiguous else np.array(idx)
         # every arm interpolates its setpoints (the trocar arm too: its servos must never see a
-        # step, see arm.ServoFollow); the trocar arm makes up stalls (arm.TROCAR_CATCHUP)
-        catchup = TROCAR_CATCHUP if family == "trocar" else 1.0
-        cores.append(ArmCore(p, index, cfg, backend.dt, motion=motion, interpolate=True, catchup=catchup))
+        # step, see arm.ServoFollow) and makes up stalls (arm.CATCHUP)
+        cores.append(ArmCore(p, index, cfg, backend.dt, motion=motion, interpolate=True, catchup=CATCHUP))
     return cores
 
 
@@ -216,6 +219,8 @@ def run(cfg: SlaveControlConfig, stop: threading.Event) -> None:
     check_rt_priority(cfg.rt_priority)
     if not 10.0 <= cfg.setpoint_js_hz <= 1000.0:  # the watchdog needs them at least every 100 ms
         raise ConfigError(f"setpoint_js_hz={cfg.setpoint_js_hz} outside [10, 1000]")
+    if not 0.0 < cfg.follow_max_lag_ms <= 1000.0:  # the interpolator keeps 1.2 s of setpoints
+        raise ConfigError(f"follow_max_lag_ms={cfg.follow_max_lag_ms} outside (0, 1000]")
     profiles = arms_of(cfg.model, cfg.arm)
     home = tuple(v for p in profiles for v in p.home)
     sites = tuple(p.tip_site for p in profiles)

@@ -58,9 +58,11 @@ Motions plug in as :class:`MotionSource`: each period the core asks the arm's sl
 joints; otherwise the arm follows the master through its default source, :class:`ServoFollow`
 (``servo_jp``, through the :class:`~.control.SetpointInterpolator`: the VIP/PLAS consoles at
 25 Hz, the MH3F's mapping at 250 Hz — its servos never see a step, which they would answer each
-at its own pace, off the trocar's RCM). An arm that catches up (the trocar arm,
-:data:`TROCAR_CATCHUP`) pauses its setpoint timeline through the periods it held its command in
-a stall and makes the delay up afterwards, so it resumes along the master's path where it stopped.
+at its own pace, off the trocar's RCM). Every arm pauses its setpoint timeline through the
+periods it held its command in a stall and makes the delay up afterwards (at :data:`CATCHUP`× the
+master's pace, within :data:`CATCHUP_SPEED_FRACTION` of its joint speed limits), so it resumes
+along the master's path where it stopped; an arm that falls further behind than
+``follow_max_lag_ms`` (a host that stalls it more than it makes up) holds until a new engage.
 """
 
 from __future__ import annotations
@@ -109,11 +111,13 @@ FRAME = "base"
 #: Missed periods a simulation replays after a stall (the catch-up rule): 20 ms at 1 kHz, at most
 #: ~2 ms of work (a jog's IK included) before the loop publishes again.
 REPLAY_MAX_PERIODS = 20
-#: Playback rate of the trocar arm's setpoint timeline while it makes up a stall
-#: (:class:`~.control.SetpointInterpolator`): the mapping keeps every trocar-mode step within
-#: 0.7 × the joint speed limits (``shared/kinematics/trocar_limits.py``), so 1.25× stays within
-#: 0.875 × them — the catch-up is never speed-clipped (a clipped step leaves the RCM).
-TROCAR_CATCHUP = 1.25
+#: Playback rate of an arm's setpoint timeline while it makes up a stall, at most
+#: (:class:`~.control.SetpointInterpolator`): a stall of 100 ms is made up within 100 ms.
+CATCHUP = 2.0
+#: ... and no faster than this fraction of the joint speed limits: the catch-up is never
+#: speed-clipped (a clipped step leaves the trocar's RCM). The mapping keeps every trocar-mode step
+#: within 0.7 × them (``shared/kinematics/trocar_limits.py``), so it is always made up at ≥ 1.25×.
+CATCHUP_SPEED_FRACTION = 0.875
 #: Accepted setpoints kept between two control periods (the interpolator gets every one of them).
 PENDING_MAX = 256
 #: Setpoints the interpolator keeps: 1.2 s at 250 Hz, longer than the longest stall an arm still
@@ -348,8 +352,8 @@ class ArmCore:
     lease: Lease = field(default_factory=Lease)
     setpoint: Setpoint | None = None
     fresh_setpoint: bool = False  # a new setpoint arrived since the loop last looked
-    # playback rate of the interpolated timeline while it makes up a stall (1: never; see
-    # TROCAR_CATCHUP and control.SetpointInterpolator)
+    # playback rate of the interpolated timeline while it makes up a stall, at most (1: never; see
+    # CATCHUP and control.SetpointInterpolator)
     catchup: float = 1.0
     _arrived: list[Setpoint] = field(default_factory=list)  # accepted since the loop last looked
     estop: str = ""  # latched e-stop cause ("" = none); only an explicit reset clears it
@@ -382,8 +386,14 @@ class ArmCore:
         )
         self.servo = ServoFollow(
             self.interpolate,
-            SetpointInterpolator(cfg.interpolation_max_ms / 1e3, window=INTERP_WINDOW, catchup=self.catchup),
+            SetpointInterpolator(
+                cfg.interpolation_max_ms / 1e3,
+                window=INTERP_WINDOW,
+                catchup=self.catchup,
+                max_speed=CATCHUP_SPEED_FRACTION * np.array(p.max_velocity),
+            ),
         )
+        self._max_lag = cfg.follow_max_lag_ms / 1e3
         self.q_cmd = np.array(p.home, dtype=float)
         self._lower, self._upper = tuple(p.lower), tuple(p.upper)
         self._vmax = np.array(p.max_velocity)
@@ -594,6 +604,14 @@ class ArmCore:
                 ctl.pause(q_meas, blocked)
                 sp = None
             sp = self.servo.reference(sp, arrived, now)
+            if ctl.following and self.interpolate and (lag := self.servo.interp.behind) > self._max_lag:
+                # the host stalled the slave (or its setpoints) more than the catch-up made up:
+                # hold rather than follow the master ever further behind (a new engage restarts)
+                ctl.hold(
+                    q_meas,
+                    f"the slave fell {lag * 1e3:.0f} ms behind the master (stalls not made up; "
+                    f"limit follow_max_lag_ms = {self._max_lag * 1e3:g})",
+                )
             out = ctl.update(now, q_meas, q_cmd, lease, sp, self.dt, self.cycle)
             if logged and ctl.following and self.interpolate and self._applied is not None:
                 self._applied[self._n_applied - 1, 4] = round(self.servo.interp.played * 1e9)

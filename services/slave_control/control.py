@@ -58,17 +58,26 @@ class SetpointInterpolator:
     setpoints' path from where it stopped instead of cutting across to the newest one. With
     ``catchup`` > 1 the playback clock then runs that much faster than the local clock until the
     shift is made up, so a stall does not add latency for the rest of the engagement (the
-    reference's speed is the source's × ``catchup`` meanwhile; 1 = never catch up).
+    reference's speed is the source's × ``catchup`` meanwhile; 1 = never catch up). With
+    ``max_speed`` the rate is also bounded so that the played speed of every coordinate stays
+    within it (a slow motion is made up at ``catchup``, a fast one no faster than the arm can go:
+    the follow controller never clips it), and never below 1.
+
+    How far the timeline runs behind (:attr:`behind`) is for the caller to bound: the arm holds
+    when it exceeds its limit (``follow_max_lag_ms``; a host that stalls more than the catch-up
+    makes up would otherwise let the slave fall ever further behind the master).
 
     Attributes:
         max_period: s; the longest delay.
         window: setpoints kept (more while the timeline runs behind them, up to 4 windows).
-        catchup: playback rate (× the local clock) while the timeline runs behind its start.
+        catchup: playback rate (× the local clock) while the timeline runs behind its start, at most.
+        max_speed: per-coordinate speed bound of the catch-up playback (units/s; None: none).
     """
 
     max_period: float = 0.1
     window: int = 50
     catchup: float = 1.0
+    max_speed: np.ndarray | None = None
     _pts: list[tuple[float, np.ndarray]] = field(default_factory=list)  # (source time s, q)
     _offset: float | None = None  # local time - source time of the playback clock, s
     _delay: float = 0.0
@@ -136,7 +145,7 @@ class SetpointInterpolator:
             self._t_last = t  # (holding the first setpoint until the timeline starts)
             return pts[0][1]
         if self._t_last is not None and t > self._t_last and self._shift > 0.0 and self.catchup > 1.0:
-            gain = min(self._shift, (self.catchup - 1.0) * (t - self._t_last))
+            gain = min(self._shift, (self._catchup_rate() - 1.0) * (t - self._t_last))
             self._offset -= gain
             self._shift -= gain
         if self._t_last is not None and t < self._t_last:
@@ -166,6 +175,22 @@ class SetpointInterpolator:
         (ta, qa), (tb, qb) = pts[i - 1], pts[i]
         out: np.ndarray = qa + (tp - ta) / (tb - ta) * (qb - qa)
         return out
+
+    def _catchup_rate(self) -> float:
+        """Playback rate while behind: ``catchup``, lowered so that the segments being played (the
+        one at the played time and the next) stay within ``max_speed``; at least 1."""
+        if self.max_speed is None or self._tp_last is None:
+            return self.catchup
+        pts = self._pts
+        i = bisect.bisect_right(pts, self._tp_last, key=lambda p: p[0])
+        ratio = 0.0  # the fastest segment's speed / max_speed
+        for j in (i, i + 1):
+            if 1 <= j < len(pts):
+                (ta, qa), (tb, qb) = pts[j - 1], pts[j]
+                ratio = max(ratio, float(np.max(np.abs(qb - qa) / self.max_speed)) / (tb - ta))
+        if ratio <= 0.0:
+            return self.catchup
+        return max(1.0, min(self.catchup, 1.0 / ratio))
 
     def reset(self) -> None:
         """Forget the history (a new engage starts a new timeline)."""
@@ -339,6 +364,11 @@ class FollowController:
             self._hold(q_meas, cause, fault=False)
         self.armed = False
         self.reason = cause
+
+    def hold(self, q_meas: np.ndarray, cause: str) -> None:
+        """Stop following servo_jp for ``cause`` (a fault: counted, a new engage is needed)."""
+        if self.following:
+            self._hold(q_meas, cause, fault=True)
 
     def track(self, q_cmd: np.ndarray) -> None:
         """Another motion source moved the command to ``q_cmd``: hold there when it stops."""
