@@ -36,6 +36,11 @@ class ArmLog:
     states: list[tuple[float, str, float, bool, bool]] = field(default_factory=list)
     tips: list[tuple[float, float, float, float]] = field(default_factory=list)  # (t, x, y, z) m
     joints: list[tuple[float, tuple[float, ...]]] = field(default_factory=list)  # (t, q) rad
+    # the slave's own stamps (header stamp_ns, its wall clock): of each joints sample (same index)
+    # and of each operating_state with its control mode — the order the slave measured them in,
+    # which a client that was itself stalled receives in bursts, interleaved across the streams
+    joint_stamps: list[int] = field(default_factory=list)
+    mode_stamps: list[tuple[int, str]] = field(default_factory=list)
     forces: list[tuple[float, float, float, float]] = field(default_factory=list)  # (t, fx, fy, fz) N
     events: list[tuple[float, str, str]] = field(default_factory=list)  # (t, kind, text)
     replies: list[tuple[float, str, bool, str]] = field(default_factory=list)  # (t, name, ok, reason)
@@ -65,6 +70,7 @@ class ArmClient:
     def _on_state(self, m: OperatingState, key: str) -> None:
         with self.log.lock:
             self.log.states.append((time.monotonic(), m.control_mode, m.rcm_error_mm, m.lease_ok, m.follow))
+            self.log.mode_stamps.append((m.header.stamp_ns, m.control_mode))
 
     def _on_tip(self, m: CartesianPose, key: str) -> None:
         p = m.position
@@ -78,6 +84,7 @@ class ArmClient:
     def _on_js(self, m: JointState, key: str) -> None:
         with self.log.lock:
             self.log.joints.append((time.monotonic(), tuple(m.position)))
+            self.log.joint_stamps.append(m.header.stamp_ns)
 
     def _on_event(self, m: SafetyEvent, key: str) -> None:
         if m.arm not in ("", self.arm):

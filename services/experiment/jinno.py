@@ -39,7 +39,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from telesurg.services.experiment.client import ArmClient
+from telesurg.services.experiment.client import ArmClient, ArmLog
 from telesurg.services.mapping import MappingConfig
 from telesurg.services.mapping.master import master_point
 from telesurg.shared import jsonio
@@ -459,9 +459,16 @@ def run(out: Path, progress: Progress | None = None, *, keep_logs: bool = True) 
             if not arm.wait(arm.lease_ok, 30):
                 raise RuntimeError("no lease from the watchdog")
             exp = Experiment(arm, master, say)
-            for i, (name, start, method, trace) in enumerate(plan):
-                say(f"{name}: posture by {method} from {start}" + (", trace" if trace else ""), i / len(plan))
-                exp.one(name, start, method, trace=trace)
+            try:
+                for i, (name, start, method, trace) in enumerate(plan):
+                    say(
+                        f"{name}: posture by {method} from {start}" + (", trace" if trace else ""),
+                        i / len(plan),
+                    )
+                    exp.one(name, start, method, trace=trace)
+            except Exception:
+                _save_arm_log(out / "arm_log.npz", arm.log)  # what led there, for a closer look
+                raise
             say("figures", 0.97)
         finally:
             master.stop.set()
@@ -470,6 +477,7 @@ def run(out: Path, progress: Progress | None = None, *, keep_logs: bool = True) 
     _figures(out, exp, master)
     _rcm_figure(out, exp)
     _save_trace(out / "trace.npz", exp, master)
+    _save_arm_log(out / "arm_log.npz", exp.arm.log)
     (out / "metrics.json").write_text(jsonio.dumps(metrics, indent=2) + "\n")
     say("done", 1.0)
     return metrics
@@ -483,12 +491,12 @@ def _metrics(exp: Experiment, master: Master, wall_s: float) -> dict[str, Any]:
         tips = np.array([p for p in log.tips])
         transitions = [(t, text) for t, k, text in log.events if k == "mode_transition"]
         holds = [text for _, k, text in log.events if k == "hold"]
-        joints = list(log.joints)
     trace_rcm = [s[2] for s in states if t0 <= s[0] <= t1 and s[1] == "trocar"]
     trocar_rcm = [s[2] for s in states if s[1] == "trocar"]
-    full = _full_rate_rcm(states, joints)
+    full = _full_rate_rcm(log)
     full_trace = [e for t, e in full if t0 <= t <= t1]
     err = _tracking_error(tips, master, exp.trace)
+    lag, path_rms, path_max = _lag_and_error(tips, master, exp.trace)
 
     def full_max(r: Run) -> float:  # the run's trocar mode, master–slave included
         sel = [e for t, e in full if r.t0 <= t <= r.t_end]
@@ -512,6 +520,9 @@ def _metrics(exp: Experiment, master: Master, wall_s: float) -> dict[str, Any]:
         "holds": len(holds),
         "trace_tracking_error_rms_mm": round(err[0], 3),
         "trace_tracking_error_max_mm": round(err[1], 3),
+        "trace_lag_ms": round(lag * 1e3, 1),
+        "trace_path_error_rms_mm": round(path_rms, 3),
+        "trace_path_error_max_mm": round(path_max, 3),
         "trace_attempts": exp.trace_attempts,
         "runs": [
             {
@@ -533,23 +544,45 @@ def _metrics(exp: Experiment, master: Master, wall_s: float) -> dict[str, Any]:
     }
 
 
-def _full_rate_rcm(
-    states: list[tuple[float, str, float, bool, bool]], joints: list[tuple[float, tuple[float, ...]]]
-) -> list[tuple[float, float]]:
-    """``(t, RCM error mm)`` of every measured_js sample taken while the arm was in trocar mode.
+def _full_rate_rcm(log: ArmLog) -> list[tuple[float, float]]:
+    """``(t, RCM error mm)`` of every measured_js sample taken while the arm was in trocar mode
+    (``t``: when the client received it, monotonic s).
 
     From the measured joints by forward kinematics (slave_control publishes them at its full
-    control rate); the mode at a sample is that of the latest ``operating_state`` before it.
+    control rate); the mode at a sample is that of the latest ``operating_state`` the slave
+    stamped before it (by the slave's stamps: a client stalled by its host receives both streams
+    in bursts, and a sample from before a mode change may reach it after the change's state).
     """
-    if not states:
+    with log.lock:
+        modes = list(log.mode_stamps)
+        joints = list(zip(log.joints, log.joint_stamps, strict=True))
+    if not modes:
         return []
-    ts = np.array([s[0] for s in states])
+    order = sorted(range(len(modes)), key=lambda k: modes[k][0])
+    ts = np.array([modes[k][0] for k in order])
     out = []
-    for t, q in joints:
-        i = int(np.searchsorted(ts, t, side="right")) - 1
-        if i >= 0 and states[i][1] == "trocar":
+    for (t, q), stamp in joints:
+        i = int(np.searchsorted(ts, stamp, side="right")) - 1
+        if i >= 0 and modes[order[i]][1] == "trocar":
             out.append((t, rcm_error(np.array(q), TROCAR, MH3F) * 1e3))
     return out
+
+
+def _save_arm_log(path: Path, log: ArmLog) -> None:
+    """Everything the client saw of the arm (for a closer look at any figure): measured joints
+    (receive time s, slave stamp ns, q), operating states (receive time, slave stamp, mode, RCM mm,
+    lease, follow) and slave_control's events (receive time, kind, text), as ``.npz``."""
+    with log.lock:
+        joints = np.array([(t, st, *q) for (t, q), st in zip(log.joints, log.joint_stamps, strict=True)])
+        states = np.array(
+            [
+                (s[0], st, s[1], s[2], s[3], s[4])
+                for s, (st, _) in zip(log.states, log.mode_stamps, strict=True)
+            ],
+            dtype=object,
+        )
+        events = np.array(log.events, dtype=object)
+    np.savez_compressed(path, joints=joints, states=states.astype(str), events=events.astype(str))
 
 
 def _rcm_figure(out: Path, exp: Experiment) -> None:
@@ -564,8 +597,7 @@ def _rcm_figure(out: Path, exp: Experiment) -> None:
     log = exp.arm.log
     with log.lock:
         states = list(log.states)
-        joints = list(log.joints)
-    full = np.array(_full_rate_rcm(states, joints) or [(0.0, math.nan)])
+    full = np.array(_full_rate_rcm(log) or [(0.0, math.nan)])
     slow = np.array([(s[0], s[2]) for s in states if s[1] == "trocar"] or [(0.0, math.nan)])
     runs = exp.runs
     fig, axes = plt.subplots(1, len(runs), figsize=(3.2 * len(runs), 3.6), sharey=True, squeeze=False)
@@ -603,20 +635,58 @@ def _save_trace(path: Path, exp: Experiment, master: Master) -> None:
     np.savez_compressed(path, window=window, tips=tips, master=m, states=states)
 
 
-def _tracking_error(tips: np.ndarray, master: Master, window: tuple[float, float]) -> tuple[float, float]:
-    """RMS / max distance (mm) of the slave tip from the scaled master path (anchored at the start)."""
+def _tracking_error(
+    tips: np.ndarray, master: Master, window: tuple[float, float], lag: float = 0.0
+) -> tuple[float, float]:
+    """RMS / max distance (mm) of the slave tip from the scaled master path (anchored at the start),
+    each tip sample against the master at the same time (``lag`` = 0: the slave's latency counts
+    as error) or ``lag`` s earlier."""
     t0, t1 = window
-    ml = np.array(master.log)
+    ml = np.array(master.log)  # (every lap drawn: the trace's are those from t0 on)
+    ml = ml[ml[:, 0] >= t0] if len(ml) else ml
     sel = tips[(tips[:, 0] >= t0) & (tips[:, 0] <= t1)]
     if len(ml) < 10 or len(sel) < 10:
         return (math.nan, math.nan)
     scale = 0.5  # mapping scale (the default; deploy/local/site.toml keeps it)
     anchor = sel[0, 1:]
-    handle = np.stack([np.interp(sel[:, 0], ml[:, 0], ml[:, i]) for i in (1, 2, 3)], axis=1)
+    # (before t0 the master stood at the circle's start, where np.interp holds its first sample)
+    handle = np.stack([np.interp(sel[:, 0] - lag, ml[:, 0], ml[:, i]) for i in (1, 2, 3)], axis=1)
     cfg = MappingConfig(master_mode="virtual_trocar")  # the dummy tip is what the slave follows
+    start = master_point(cfg, (float(ml[0, 1]), float(ml[0, 2]), float(ml[0, 3])))
     want = np.array([master_point(cfg, (float(h[0]), float(h[1]), float(h[2]))) for h in handle])
-    d = np.linalg.norm(sel[:, 1:] - (anchor + scale * (want - want[0])), axis=1) * 1e3
+    d = np.linalg.norm(sel[:, 1:] - (anchor + scale * (want - start)), axis=1) * 1e3
     return (float(np.sqrt(np.mean(d**2))), float(d.max()))
+
+
+def _lag_and_error(
+    tips: np.ndarray, master: Master, window: tuple[float, float]
+) -> tuple[float, float, float]:
+    """How late and how well the slave tip traced the master's path over the trace: its lag (s: the
+    constant shift, in 2 ms steps up to 0.5 s, that minimises the RMS of :func:`_tracking_error`)
+    and the RMS / max distance (mm) of each tip sample from the nearest point of the scaled master
+    path (250 Hz samples, ~0.08 mm apart at the slave), however late it got there."""
+    best = (math.inf, 0.0)
+    for lag in np.arange(0.0, 0.5, 0.002):
+        rms, _ = _tracking_error(tips, master, window, float(lag))
+        if rms < best[0]:
+            best = (rms, float(lag))
+    t0, t1 = window
+    ml = np.array(master.log)
+    ml = ml[(ml[:, 0] >= t0) & (ml[:, 0] <= t1)] if len(ml) else ml
+    sel = tips[(tips[:, 0] >= t0) & (tips[:, 0] <= t1)]
+    if len(ml) < 10 or len(sel) < 10:
+        return (math.nan, math.nan, math.nan)
+    cfg = MappingConfig(master_mode="virtual_trocar")
+    want = np.array([master_point(cfg, (float(h[0]), float(h[1]), float(h[2]))) for h in ml[:, 1:]])
+    path = sel[0, 1:] + 0.5 * (want - want[0])  # (the mapping's scale, as in _tracking_error)
+    d = np.concatenate(
+        [
+            np.linalg.norm(c[:, None, :] - path[None, :, :], axis=2).min(axis=1)
+            for c in np.array_split(sel[:, 1:], 20)
+        ]
+    )
+    d *= 1e3
+    return best[1], float(np.sqrt(np.mean(d**2))), float(d.max())
 
 
 def _figures(out: Path, exp: Experiment, master: Master) -> None:
