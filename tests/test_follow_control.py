@@ -277,3 +277,41 @@ def test_interpolator_never_jumps_on_a_rough_stream(seed: int) -> None:
     setpoint pushed a period after it arrived resumed a dry buffer part-way)."""
     fastest, back, _ = _interpolate_a_rough_stream(seed)
     assert fastest <= 1.25e-3 + 1e-9 and back >= -1e-12
+
+
+@given(st.integers(0, 2**32 - 1))
+@settings(max_examples=30, deadline=None)
+def test_interpolator_catchup_never_plays_a_segment_too_fast(seed: int) -> None:
+    """Segments of mixed speeds (0.05 or 0.7 of the bound, as the mapping's clamped trocar steps)
+    at 250 Hz, in bursts (a stalled mapping or master: samples 20 µs apart) and with gaps, sampled
+    at 1 kHz by a loop that stalls and catches up at up to 2×: no period plays faster than
+    ``max_speed`` (the rate is judged on every segment the period may reach, not only the first:
+    a slow segment followed by a burst of fast ones was played at 2 × 0.7)."""
+    from telesurg.services.slave_control.control import SetpointInterpolator
+
+    rng = np.random.default_rng(seed)
+    ip = SetpointInterpolator(0.1, window=300, catchup=2.0, max_speed=np.array([1.0]))
+    ts, qs, t, q = [], [], 0.0, 0.0
+    while t < 4.0:
+        r = rng.random()
+        dt = 2e-5 if r < 0.3 else rng.uniform(0.02, 0.2) if r < 0.33 else 0.004
+        t += dt
+        q += (0.7 if rng.random() < 0.5 else 0.05) * min(dt, 0.012)
+        ts.append(t)
+        qs.append(q)
+    arr = np.maximum.accumulate(np.array(ts) + 0.001)
+    i, t_loc, out = 0, 0.0, []
+    stalls = {round(float(rng.uniform(0.2, 4.0)), 3): float(rng.uniform(0.03, 0.2)) for _ in range(8)}
+    while t_loc < 4.2:
+        while i < len(ts) and arr[i] <= t_loc:
+            ip.push(np.array([qs[i]]), ts[i], arr[i])
+            i += 1
+        v = ip.sample(t_loc)
+        if v is not None:
+            out.append(float(v[0]))
+        if stall := stalls.get(round(t_loc, 3), 0.0):
+            ip.pause(stall)  # (held through the stall: the next period plays 1 ms of motion)
+            t_loc += stall
+        t_loc = round(t_loc + 0.001, 6)
+    steps = np.diff(np.array(out))
+    assert steps.max() <= 1.0e-3 * (1 + 1e-3) and steps.min() >= -1e-12  # (1e-3: the clock's rounding)

@@ -145,7 +145,7 @@ class SetpointInterpolator:
             self._t_last = t  # (holding the first setpoint until the timeline starts)
             return pts[0][1]
         if self._t_last is not None and t > self._t_last and self._shift > 0.0 and self.catchup > 1.0:
-            gain = min(self._shift, (self._catchup_rate() - 1.0) * (t - self._t_last))
+            gain = min(self._shift, (self._catchup_rate(t - self._t_last) - 1.0) * (t - self._t_last))
             self._offset -= gain
             self._shift -= gain
         if self._t_last is not None and t < self._t_last:
@@ -176,18 +176,22 @@ class SetpointInterpolator:
         out: np.ndarray = qa + (tp - ta) / (tb - ta) * (qb - qa)
         return out
 
-    def _catchup_rate(self) -> float:
-        """Playback rate while behind: ``catchup``, lowered so that the segments being played (the
-        one at the played time and the next) stay within ``max_speed``; at least 1."""
+    def _catchup_rate(self, span: float) -> float:
+        """Playback rate while behind for the next ``span`` s of local time: ``catchup``, lowered so
+        that every segment it may play (from the played time up to ``catchup`` × ``span`` of
+        source time further: a burst of closely stamped setpoints is many segments) stays within
+        ``max_speed``; at least 1."""
         if self.max_speed is None or self._tp_last is None:
             return self.catchup
         pts = self._pts
         i = bisect.bisect_right(pts, self._tp_last, key=lambda p: p[0])
+        end = self._tp_last + self.catchup * span
         ratio = 0.0  # the fastest segment's speed / max_speed
-        for j in (i, i + 1):
-            if 1 <= j < len(pts):
-                (ta, qa), (tb, qb) = pts[j - 1], pts[j]
-                ratio = max(ratio, float(np.max(np.abs(qb - qa) / self.max_speed)) / (tb - ta))
+        for j in range(max(i, 1), min(len(pts), max(i, 1) + 256)):
+            (ta, qa), (tb, qb) = pts[j - 1], pts[j]
+            ratio = max(ratio, float(np.max(np.abs(qb - qa) / self.max_speed)) / (tb - ta))
+            if tb >= end:
+                break
         if ratio <= 0.0:
             return self.catchup
         return max(1.0, min(self.catchup, 1.0 / ratio))
