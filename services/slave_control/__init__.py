@@ -99,9 +99,11 @@ class SlaveControlConfig:
     # ms: every arm interpolates its setpoints over their period (delay 1.5 periods), at most this long
     interpolation_max_ms: float = 100.0
     # ms: while following, the setpoint timeline may run this far behind the master (stalls of the
-    # loop or of the stream not yet made up by the catch-up); further behind, the arm holds (as the
-    # watchdog does at latency_limit_ms); at most 1000 (what the interpolator keeps)
-    follow_max_lag_ms: float = 250.0
+    # loop or of the stream not yet made up by the catch-up); further behind, the arm holds. A
+    # backstop against a host that stalls the slave more than it makes up: a single stall of the
+    # whole host (which neither the watchdog nor the slave holds on: docs/safety.md) is made up at
+    # 2x; at most 1000 (what the interpolator keeps)
+    follow_max_lag_ms: float = 1000.0
     engage_tolerance_rad: float = 0.02  # rad: first followed setpoint must be this close to the arm
     # rad: while following, a setpoint farther than this from the previous one is refused (a jump)
     max_setpoint_step_rad: float = 0.1

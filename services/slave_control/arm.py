@@ -115,9 +115,11 @@ REPLAY_MAX_PERIODS = 20
 #: (:class:`~.control.SetpointInterpolator`): a stall of 100 ms is made up within 100 ms.
 CATCHUP = 2.0
 #: ... and no faster than this fraction of the joint speed limits: the catch-up is never
-#: speed-clipped (a clipped step leaves the trocar's RCM). The mapping keeps every trocar-mode step
-#: within 0.7 × them (``shared/kinematics/trocar_limits.py``), so it is always made up at ≥ 1.25×.
-CATCHUP_SPEED_FRACTION = 0.875
+#: speed-clipped (a clipped step leaves the trocar's RCM), and the servos keep the trocar arm's RCM
+#: within 0.3 mm at it (``trocar_limits.TROCAR_SPEED_FRACTION``: 1.4 mm at 0.7 ×, 3.1 mm at
+#: 0.875 ×). The mapping keeps every trocar-mode step within 0.4 × them, so it is always made up
+#: at ≥ 1.25×.
+CATCHUP_SPEED_FRACTION = 0.5
 #: Accepted setpoints kept between two control periods (the interpolator gets every one of them).
 PENDING_MAX = 256
 #: Setpoints the interpolator keeps: 1.2 s at 250 Hz, longer than the longest stall an arm still

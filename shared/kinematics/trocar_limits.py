@@ -25,7 +25,15 @@ from telesurg.shared.kinematics.mh3f import MH3F, ArmGeometry, fk, ik, within_li
 from telesurg.shared.kinematics.transforms import FloatArray
 from telesurg.shared.kinematics.trocar import MIN_TIP_DEPTH, trocar_ik
 
-__all__ = ["ClampedTarget", "clamped_trocar_ik", "remove_step"]
+__all__ = ["TROCAR_SPEED_FRACTION", "ClampedTarget", "clamped_trocar_ik", "remove_step"]
+
+#: Fraction of the joint speed limits a trocar-mode master–slave step may use. The arm's servos
+#: lag a fast command joint by joint, and the lags bend the forceps axis off the trocar: an
+#: RCM-exact pivot that starts and stops abruptly (a master that jumps after a stall of its
+#: console) left the RCM of the MuJoCo MH3F by at most 0.23 mm at 0.4 × the limits, 0.30 mm at
+#: 0.5 ×, 1.4 mm at 0.7 × and 3.1 mm at 0.875 × (3 starts, 60/110 mm deep, two directions;
+#: docs/trocar.md). The slave's catch-up stays within 0.5 × (services/slave_control/arm.py).
+TROCAR_SPEED_FRACTION = 0.4
 
 _PIVOT_MIN_DEPTH = 0.002  # [m] below this depth removal no longer pivots (axis ill defined)
 _BISECT_STEPS = 8  # bisection on the path fraction: 2^-8 of the sample's tip step
@@ -120,7 +128,7 @@ def clamped_trocar_ik(
     *,
     min_depth: float = 0.010,
     max_depth: float | None = None,
-    speed_fraction: float = 0.7,
+    speed_fraction: float = TROCAR_SPEED_FRACTION,
     reach_margin: float = 0.010,
 ) -> ClampedTarget:
     """Trocar IK toward ``tip`` limited to what the arm can reach and do within ``dt``.
@@ -139,9 +147,10 @@ def clamped_trocar_ik(
         dt: time [s] since ``q_last`` was commanded (the master's clock), > 0 for any motion.
         geom: arm geometry (``tool`` = forceps length).
         min_depth, max_depth: insertion depth range [m].
-        speed_fraction: fraction of the joint speed limits (``geom.max_velocity``) allowed; the
-            margin leaves the slave room to follow the setpoints on its own clock without
-            clipping them (clipping a trocar-mode motion bends it off the RCM).
+        speed_fraction: fraction of the joint speed limits (``geom.max_velocity``) allowed
+            (:data:`TROCAR_SPEED_FRACTION`): the servos keep the RCM within tenths of a millimetre
+            at it, and the margin leaves the slave room to follow the setpoints on its own clock,
+            and make up a stall, without clipping them (a clipped step leaves the RCM).
         reach_margin: the wrist centre is kept this far [m] inside the arm's reach (near full
             stretch the elbow is singular and J2/J3 would have to move arbitrarily fast).
 
