@@ -313,7 +313,7 @@ def _starved_follow(
     return core, seen, events
 
 
-@pytest.mark.parametrize("kind", ["mh3f", "plas", "vip"])
+@pytest.mark.parametrize("kind", ["mh3f"])  # the arm that catches up (the trocar family)
 def test_a_stalling_loop_makes_every_stall_up(kind: str) -> None:
     """A 60 ms stall every 0.4 s: the arm resumes along the master's path where it stopped (never a
     step beyond its speed limit, never clipped) and makes each stall up before the next."""
@@ -325,7 +325,7 @@ def test_a_stalling_loop_makes_every_stall_up(kind: str) -> None:
     assert seen["final"] == pytest.approx(0.1 * (3.0 - 0.04), abs=0.1 * 0.08)  # on the master's ramp
 
 
-@pytest.mark.parametrize("kind", ["mh3f", "plas", "vip"])
+@pytest.mark.parametrize("kind", ["mh3f"])  # the arm that catches up (the trocar family)
 def test_a_starved_loop_holds_once_it_falls_behind_its_limit(kind: str) -> None:
     """The loop sleeps 200 ms after every 50 ms (more than the catch-up makes up): the arm falls
     behind, without a step, and holds once the timeline runs ``follow_max_lag_ms`` (1 s) behind the

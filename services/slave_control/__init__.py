@@ -190,8 +190,10 @@ def make_arms(cfg: SlaveControlConfig, backend: SlaveBackend) -> list[ArmCore]:
         contiguous = idx == list(range(idx[0], idx[0] + len(idx)))
         index = slice(idx[0], idx[0] + len(idx)) if contiguous else np.array(idx)
         # every arm interpolates its setpoints (the trocar arm too: its servos must never see a
-        # step, see arm.ServoFollow) and makes up stalls (arm.CATCHUP)
-        cores.append(ArmCore(p, index, cfg, backend.dt, motion=motion, interpolate=True, catchup=CATCHUP))
+        # step, see arm.ServoFollow); the trocar arm makes up stalls (arm.CATCHUP): the joint-space
+        # arms keep their timeline (with the catch-up the PLAS slave left its commanded path)
+        catchup = CATCHUP if family == "trocar" else 1.0
+        cores.append(ArmCore(p, index, cfg, backend.dt, motion=motion, interpolate=True, catchup=catchup))
     return cores
 
 

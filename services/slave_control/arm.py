@@ -58,7 +58,7 @@ Motions plug in as :class:`MotionSource`: each period the core asks the arm's sl
 joints; otherwise the arm follows the master through its default source, :class:`ServoFollow`
 (``servo_jp``, through the :class:`~.control.SetpointInterpolator`: the VIP/PLAS consoles at
 25 Hz, the MH3F's mapping at 250 Hz — its servos never see a step, which they would answer each
-at its own pace, off the trocar's RCM). Every arm pauses its setpoint timeline through the
+at its own pace, off the trocar's RCM). The trocar arm pauses its setpoint timeline through the
 periods it held its command in a stall and makes the delay up afterwards (at :data:`CATCHUP`× the
 master's pace, within :data:`CATCHUP_SPEED_FRACTION` of its joint speed limits), so it resumes
 along the master's path where it stopped; an arm that falls further behind than
@@ -606,7 +606,8 @@ class ArmCore:
                 ctl.pause(q_meas, blocked)
                 sp = None
             sp = self.servo.reference(sp, arrived, now)
-            if ctl.following and self.interpolate and (lag := self.servo.interp.behind) > self._max_lag:
+            lag = self.servo.interp.behind
+            if ctl.following and self.interpolate and self.catchup > 1.0 and lag > self._max_lag:
                 # the host stalled the slave (or its setpoints) more than the catch-up made up:
                 # hold rather than follow the master ever further behind (a new engage restarts)
                 ctl.hold(
