@@ -495,8 +495,9 @@ def _metrics(exp: Experiment, master: Master, wall_s: float) -> dict[str, Any]:
     trocar_rcm = [s[2] for s in states if s[1] == "trocar"]
     full = _full_rate_rcm(log)
     full_trace = [e for t, e in full if t0 <= t <= t1]
-    err = _tracking_error(tips, master, exp.trace)
-    lag, path_rms, path_max = _lag_and_error(tips, master, exp.trace)
+    path = _dummy_path(master, t0)
+    err = _tracking_error(tips, path, exp.trace)
+    lag, path_rms, path_max = _lag_and_error(tips, path, exp.trace)
 
     def full_max(r: Run) -> float:  # the run's trocar mode, master–slave included
         sel = [e for t, e in full if r.t0 <= t <= r.t_end]
@@ -635,31 +636,38 @@ def _save_trace(path: Path, exp: Experiment, master: Master) -> None:
     np.savez_compressed(path, window=window, tips=tips, master=m, states=states)
 
 
-def _tracking_error(
-    tips: np.ndarray, master: Master, window: tuple[float, float], lag: float = 0.0
-) -> tuple[float, float]:
-    """RMS / max distance (mm) of the slave tip from the scaled master path (anchored at the start),
-    each tip sample against the master at the same time (``lag`` = 0: the slave's latency counts
-    as error) or ``lag`` s earlier."""
-    t0, t1 = window
-    ml = np.array(master.log)  # (every lap drawn: the trace's are those from t0 on)
+#: The mapping's motion scale (the default; deploy/local/site.toml keeps it).
+SCALE = 0.5
+
+
+def _dummy_path(master: Master, t0: float) -> np.ndarray:
+    """``(t, x, y, z)`` of every master sample from ``t0`` on (every lap is logged: the trace's are
+    those from its start): the virtual-trocar master's dummy tip, what the slave tip follows,
+    mapped once per sample."""
+    ml = np.array(master.log)
     ml = ml[ml[:, 0] >= t0] if len(ml) else ml
+    cfg = MappingConfig(master_mode="virtual_trocar")
+    return np.array([(h[0], *master_point(cfg, (float(h[1]), float(h[2]), float(h[3])))) for h in ml])
+
+
+def _tracking_error(
+    tips: np.ndarray, path: np.ndarray, window: tuple[float, float], lag: float = 0.0
+) -> tuple[float, float]:
+    """RMS / max distance (mm) of the slave tip from the scaled master path (:func:`_dummy_path`,
+    anchored at the start), each tip sample against the master at the same time (``lag`` = 0: the
+    slave's latency counts as error) or ``lag`` s earlier (interpolated between master samples;
+    before the trace began the master stood at its first)."""
+    t0, t1 = window
     sel = tips[(tips[:, 0] >= t0) & (tips[:, 0] <= t1)]
-    if len(ml) < 10 or len(sel) < 10:
+    if len(path) < 10 or len(sel) < 10:
         return (math.nan, math.nan)
-    scale = 0.5  # mapping scale (the default; deploy/local/site.toml keeps it)
-    anchor = sel[0, 1:]
-    # (before t0 the master stood at the circle's start, where np.interp holds its first sample)
-    handle = np.stack([np.interp(sel[:, 0] - lag, ml[:, 0], ml[:, i]) for i in (1, 2, 3)], axis=1)
-    cfg = MappingConfig(master_mode="virtual_trocar")  # the dummy tip is what the slave follows
-    start = master_point(cfg, (float(ml[0, 1]), float(ml[0, 2]), float(ml[0, 3])))
-    want = np.array([master_point(cfg, (float(h[0]), float(h[1]), float(h[2]))) for h in handle])
-    d = np.linalg.norm(sel[:, 1:] - (anchor + scale * (want - start)), axis=1) * 1e3
+    want = np.stack([np.interp(sel[:, 0] - lag, path[:, 0], path[:, i]) for i in (1, 2, 3)], axis=1)
+    d = np.linalg.norm(sel[:, 1:] - (sel[0, 1:] + SCALE * (want - path[0, 1:])), axis=1) * 1e3
     return (float(np.sqrt(np.mean(d**2))), float(d.max()))
 
 
 def _lag_and_error(
-    tips: np.ndarray, master: Master, window: tuple[float, float]
+    tips: np.ndarray, path: np.ndarray, window: tuple[float, float]
 ) -> tuple[float, float, float]:
     """How late and how well the slave tip traced the master's path over the trace: its lag (s: the
     constant shift, in 2 ms steps up to 0.5 s, that minimises the RMS of :func:`_tracking_error`)
@@ -667,21 +675,18 @@ def _lag_and_error(
     path (250 Hz samples, ~0.08 mm apart at the slave), however late it got there."""
     best = (math.inf, 0.0)
     for lag in np.arange(0.0, 0.5, 0.002):
-        rms, _ = _tracking_error(tips, master, window, float(lag))
+        rms, _ = _tracking_error(tips, path, window, float(lag))
         if rms < best[0]:
             best = (rms, float(lag))
     t0, t1 = window
-    ml = np.array(master.log)
-    ml = ml[(ml[:, 0] >= t0) & (ml[:, 0] <= t1)] if len(ml) else ml
     sel = tips[(tips[:, 0] >= t0) & (tips[:, 0] <= t1)]
-    if len(ml) < 10 or len(sel) < 10:
+    inside = path[path[:, 0] <= t1] if len(path) else path
+    if len(inside) < 10 or len(sel) < 10:
         return (math.nan, math.nan, math.nan)
-    cfg = MappingConfig(master_mode="virtual_trocar")
-    want = np.array([master_point(cfg, (float(h[0]), float(h[1]), float(h[2]))) for h in ml[:, 1:]])
-    path = sel[0, 1:] + 0.5 * (want - want[0])  # (the mapping's scale, as in _tracking_error)
+    points = sel[0, 1:] + SCALE * (inside[:, 1:] - inside[0, 1:])
     d = np.concatenate(
         [
-            np.linalg.norm(c[:, None, :] - path[None, :, :], axis=2).min(axis=1)
+            np.linalg.norm(c[:, None, :] - points[None, :, :], axis=2).min(axis=1)
             for c in np.array_split(sel[:, 1:], 20)
         ]
     )

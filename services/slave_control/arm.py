@@ -606,8 +606,12 @@ class ArmCore:
                 ctl.pause(q_meas, blocked)
                 sp = None
             sp = self.servo.reference(sp, arrived, now)
-            lag = self.servo.interp.behind
-            if ctl.following and self.interpolate and self.catchup > 1.0 and lag > self._max_lag:
+            if (
+                ctl.following
+                and self.interpolate
+                and self.catchup > 1.0
+                and (lag := self.servo.interp.behind) > self._max_lag
+            ):
                 # the host stalled the slave (or its setpoints) more than the catch-up made up:
                 # hold rather than follow the master ever further behind (a new engage restarts)
                 ctl.hold(
