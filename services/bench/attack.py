@@ -588,14 +588,15 @@ def _stranger_reset(a: Attacker) -> dict[str, Any]:
 
 def _console_scale_follow(a: Attacker) -> dict[str, Any]:
     """The case, again (up to 8 tries) when the mapping answered while the pair was not following
-    (a watchdog HOLD of a busy host disengages it, and then a scale change is allowed) or did not
-    answer (the site stalled: 2 s pause first): the case judges a request the mapping answered
-    while following."""
+    (a watchdog HOLD of a busy host disengages it, and then a scale change is allowed), did not
+    answer, or its premise (the configured scale) could not be confirmed (the site stalled: 2 s
+    pause first): the case judges a request the mapping answered while following, from the
+    configured scale."""
     for _ in range(8):
         row = _console_scale_follow_once(a)
         if row["answered_following"]:
             break
-        if row["reply"].startswith("no reply"):  # the site stalled (a busy host): let it recover
+        if row["reply"].startswith(("no reply", "premise not set")):  # a stalled site: let it recover
             time.sleep(2.0)
     return row
 
@@ -612,14 +613,41 @@ def answered_following(reply: str) -> bool:
 CONSOLE_SCALE0 = 0.5
 
 
+def _console_scale_premise(a: Attacker) -> str:
+    """The case's premise, before the pedal: the pair not following and the mapping at the
+    configured scale (an earlier try the mapping answered while not following may have changed
+    it, which is allowed then), confirmed by the mapping's answer and its published state; '' once
+    it holds, else why not (a busy host: the request unanswered, the state not yet seen)."""
+    a.pipe.wait(lambda: a.obs.teleop_state() != "ENABLED", 5.0)
+    why = ""
+    for _ in range(5):
+        ok, reason, _ = a.request(
+            a.k.mapping_command("arm1"), "console", "set_scale", f"value={CONSOLE_SCALE0:g}"
+        )
+        if ok and a.pipe.wait(lambda: a.obs.scale() == CONSOLE_SCALE0, 3.0):
+            return ""
+        seen = a.obs.scale()
+        why = f"premise not set (scale {CONSOLE_SCALE0:g}): {reason or 'accepted'}; the state says {seen:g}"
+        time.sleep(0.5)
+    return why
+
+
 def _console_scale_follow_once(a: Attacker) -> dict[str, Any]:
     pipe = a.pipe
     key = a.k.console_clutch("m1")
     out = a.outlet("console", key)
     stop = threading.Event()
-    # the premise, before the pedal: the configured scale (an earlier try the mapping answered
-    # while not following may have changed it, which is allowed then)
-    a.request(a.k.mapping_command("arm1"), "console", "set_scale", f"value={CONSOLE_SCALE0:g}")
+    premise = _console_scale_premise(a)
+    if premise:
+        return {
+            "sent": 0,
+            "accepted": 0,
+            "forbidden": True,
+            "following": False,
+            "answered_following": False,
+            "reply": premise,
+            "motion_mm": None,
+        }
 
     def pedal(pressed_at: float) -> None:  # the console's clutch pedal, as the console sends it
         while not stop.is_set():
