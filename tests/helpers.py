@@ -50,6 +50,28 @@ def scalar_counts(path: str | Path) -> dict[str, int]:
     return counts
 
 
+def scalar_rows(path: str | Path, entity: str) -> list[list[float]]:
+    """The Scalars rows of one entity of an .rrd (a row: one value per series), in file order."""
+    rows: list[list[float]] = []
+    for c in _chunks(path):
+        if c.entity_path == entity:
+            batch = c.to_record_batch()
+            if "Scalars:scalars" in batch.schema.names:
+                rows += [list(r) for r in batch.column("Scalars:scalars").to_pylist() if r is not None]
+    return rows
+
+
+def series_names(path: str | Path, entity: str) -> list[str]:
+    """The series names (static ``SeriesLines:names``) of one entity of an .rrd, the last logged."""
+    names: list[str] = []
+    for c in _chunks(path):
+        if c.entity_path == entity:
+            batch = c.to_record_batch()
+            if "SeriesLines:names" in batch.schema.names:
+                names = [str(n) for n in batch.column("SeriesLines:names").to_pylist()[-1]]
+    return names
+
+
 def text_logs(path: str | Path) -> list[tuple[str, str, str]]:
     """``(entity_path, level, text)`` of every TextLog row in an .rrd, in file order."""
     out: list[tuple[str, str, str]] = []
@@ -185,3 +207,20 @@ def operator_command(node: Any, key: str, arm: str, name: str, *args: str, confi
             key, Command(seq.next(), arm, name, (*args, f"confirm={r.confirm}")), CommandReply, 5.0
         )
     return r
+
+
+def hue_pixels(png: bytes, rgb: tuple[int, int, int], box: tuple[int, int, int, int]) -> int:
+    """Pixels inside ``box`` (x0, y0, x1, y1) of the hue of ``rgb`` (±6 %), saturated and not dark
+    (shading changes the brightness of a lit surface, not its hue)."""
+    import colorsys
+    import io
+
+    from PIL import Image
+
+    hsv = np.asarray(Image.open(io.BytesIO(png)).convert("HSV"), dtype=np.int32)
+    x0, y0, x1, y1 = box
+    region = hsv[y0:y1, x0:x1]
+    h = colorsys.rgb_to_hsv(*(c / 255 for c in rgb))[0] * 255
+    dh = np.abs(region[..., 0] - h)
+    dh = np.minimum(dh, 256 - dh)
+    return int(((dh <= 16) & (region[..., 1] >= 100) & (region[..., 2] >= 50)).sum())

@@ -11,7 +11,8 @@ one engage) run as real processes:
   MuJoCo tip follows that commanded path within a few mm;
 * it holds on a watchdog veto: the watchdog's workspace box (checked with the plugin's FK) cuts
   the circle; past the edge the watchdog holds, the slave stops while the master moves on;
-* the mirror draws it: the .rrd has the arm's links from the plugin's sketch.
+* the mirror draws it: the .rrd has the arm's own bodies from its MJCF, posed where the slave
+  was (the tip site of the drawn forearm on the slave's measured tip path), not a stick figure.
 """
 
 from __future__ import annotations
@@ -224,25 +225,34 @@ def test_slave_holds_on_the_watchdog_workspace_veto(run: tuple[Log, Path, dict[s
     assert not any(f for t, _, f, _ in log.setpoints if t > t_hold + 0.5)  # and no follow since
 
 
-def test_mirror_draws_the_arm_from_its_registry_sketch(run: tuple[Log, Path, dict[str, int], float]) -> None:
+def test_mirror_draws_the_arm_from_its_own_model(run: tuple[Log, Path, dict[str, int], float]) -> None:
+    from helpers import entity_paths
     from rerun.chunk import RrdReader
+    from telesurg.services.mirror.geometry import quat_matrix
 
     log, rrd, _, _ = run
     assert rrd.is_file()
-    rows: list[np.ndarray] = []
+    paths = entity_paths(rrd)
+    assert "/slave/arm1/links" not in paths, "a stick figure drawn over the robot's bodies"
+    poses: list[tuple[np.ndarray, np.ndarray]] = []
     for c in RrdReader(str(rrd)).stream():
-        if c.entity_path != "/slave/arm1/links":
+        if c.entity_path != "/slave/geometry/fore":
             continue
         batch = c.to_record_batch()
-        if "Points3D:positions" in batch.schema.names:
-            rows += [np.array(r, dtype=float) for r in batch.column("Points3D:positions").to_pylist() if r]
-    assert len(rows) > 20, f"{len(rows)} drawings of the arm"
+        if "Transform3D:translation" in batch.schema.names:
+            ts = batch.column("Transform3D:translation").to_pylist()
+            qs = batch.column("Transform3D:quaternion").to_pylist()
+            poses += [
+                (np.array(t, float).reshape(3), np.array(q, float).reshape(4))
+                for t, q in zip(ts, qs, strict=True)
+                if t
+            ]  # a row: one instance
+    assert len(poses) > 20, f"{len(poses)} poses of the forearm"
+    assert any(p.startswith("/slave/geometry/fore/") for p in paths), "the forearm has no geoms"
+    # the tip site (0.15 m along the forearm body's x, robot.xml) of each drawn pose lies on the
+    # slave's measured tip path
+    site = np.array([0.15, 0.0, 0.0])
+    drawn = np.array([t + quat_matrix(np.roll(q, 1)) @ site for t, q in poses])  # rerun: x y z w
     tips = np.array([p for _, p in log.tip])
-    for pts in rows:
-        assert pts.shape == (4, 3)  # base, shoulder, elbow, tip: the plugin's sketch
-        np.testing.assert_allclose(pts[0], (0.0, 0.0, 0.0), atol=1e-9)
-        np.testing.assert_allclose(pts[1], (0.0, 0.0, 0.1), atol=1e-9)
-    # the drawn tip is where the slave's tip was
-    drawn = np.array([pts[3] for pts in rows])
     d = np.min(np.linalg.norm(drawn[:, None, :] - tips[None, :, :], axis=2), axis=1) * 1e3
     assert d.max() < 1.0, d.max()

@@ -13,7 +13,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from helpers import entity_paths, scalar_counts, text_logs
+from helpers import entity_paths, scalar_counts, scalar_rows, series_names, text_logs
 from telesurg.shared.bus import BusConfig, Node, open_session
 from telesurg.shared.messages import JointState, SafetyEvent
 
@@ -105,13 +105,16 @@ def test_mirror_records_bus_traffic_to_rrd(tmp_path: Path) -> None:
 
         assert out.is_file()
         paths = entity_paths(out)
-        assert "/slave/arm1/joints/j1/measured" in paths
-        assert "/slave/arm1/links" in paths
+        assert "/slave/arm1/joints/measured" in paths
+        # the robot's own bodies, not the stick figure
+        assert "/slave/geometry/link1" in paths and "/slave/arm1/links" not in paths, sorted(paths)
         assert "/events" in paths
-        counts = scalar_counts(out)
-        for j in JOINTS:
-            n = counts.get(f"/slave/arm1/joints/{j}/measured", 0)
-            assert 0.9 * sent <= n <= sent, (j, n, sent)
+        n = scalar_counts(out).get("/slave/arm1/joints/measured", 0)
+        assert 0.9 * sent <= n <= sent, (n, sent)
+        # one row per sample holding every joint, and the genuine values only (not the 3.0s)
+        rows = scalar_rows(out, "/slave/arm1/joints/measured")
+        assert {len(r) for r in rows} == {6} and max(max(abs(v) for v in r) for r in rows) <= 0.3
+        assert series_names(out, "/slave/arm1/joints/measured") == [f"{j} measured" for j in JOINTS]
         logged = [t for p, _lvl, t in text_logs(out) if p == "/events"]
         # the mirror's own report of the unsigned garbage (shared/auth.py) is an event too
         assert [t for t in logged if t.startswith("unauthenticated: rejected message on")]
@@ -151,7 +154,8 @@ def test_mirror_shows_the_teleop_state_of_each_pair(tmp_path: Path) -> None:
     assert [t.split(" (")[0] for _, t in lines] == ["DISABLED", "IDLE", "ENABLED", "HOLDING"], lines
     assert lines[-1][0] == "WARN" and "slave holding: lease expired" in lines[-1][1], lines
     assert "was ENABLED" in lines[-1][1] and "scale 0.5 × safety 1" in lines[-1][1], lines
-    assert scalar_counts(out).get("/mapping/arm1/engaged") == len(states)
+    # the engaged step signal: its changes (0, 1, 0); a repeat within 1/STEP_HZ is not sent again
+    assert scalar_rows(out, "/mapping/arm1/engaged") == [[0.0], [1.0], [0.0]]
 
 
 def test_the_mirror_file_has_no_footer_and_rerun_can_add_one(tmp_path: Path) -> None:
@@ -174,7 +178,7 @@ def test_the_mirror_file_has_no_footer_and_rerun_can_add_one(tmp_path: Path) -> 
         view = RerunView("test", save=str(out), rrd_footer=footer)
         t0 = 1_700_000_000_000_000_000
         for i in range(50):  # 50 blocks of one sample: 50 chunks
-            view.series("/slave/arm1/joints/j1/measured", [t0 + i * 10**6], [t0 + i * 10**6], [0.01 * i])
+            view.series("/slave/arm1/joints/measured", [t0 + i * 10**6], [t0 + i * 10**6], [0.01 * i])
         view.close()
         n, said = chunks(out)
         assert n > 0 and bool(said) is not footer, (footer, n, said)
@@ -185,4 +189,4 @@ def test_the_mirror_file_has_no_footer_and_rerun_can_add_one(tmp_path: Path) -> 
     assert done.returncode == 0, done.stderr[-2000:]
     n, said = chunks(fixed)
     assert n > 0 and not said, said
-    assert scalar_counts(fixed)["/slave/arm1/joints/j1/measured"] == 50
+    assert scalar_counts(fixed)["/slave/arm1/joints/measured"] == 50

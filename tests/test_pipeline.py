@@ -278,4 +278,4 @@ def test_pipeline_follow_kill_restart_shutdown(
 
     assert rrd.exists()
     counts = scalar_counts(rrd)
-    assert counts.get("/slave/arm1/joints/j1/measured", 0) > 1000, sorted(counts)[:20]
+    assert counts.get("/slave/arm1/joints/measured", 0) > 1000, sorted(counts)[:20]

@@ -32,9 +32,12 @@ from typing import Any
 
 import numpy as np
 import pytest
-from helpers import CHROMIUM, WINDOW, DevTools, chromium, clutch_flags, screenshot
+from helpers import CHROMIUM, WINDOW, DevTools, chromium, clutch_flags, hue_pixels, screenshot
 
 pytestmark = pytest.mark.process
+
+#: the MH3F's casting blue (its MJCF material ``mh3f_blue``, rgba 0.11 0.33 0.66)
+ARM_BLUE = (28, 84, 168)
 
 ROOT = Path(__file__).resolve().parents[1]
 # --------------------------------------------------------------------------- pixels
@@ -46,11 +49,12 @@ def _near(img: np.ndarray, color: tuple[int, int, int], tol: int) -> np.ndarray:
 
 def pixel_stats(png: bytes) -> dict[str, float]:
     """Figures of a screenshot: ``std`` (grey level, 0–255), ``colors`` (distinct colours after
-    quantising to 4 bits a channel), ``forceps`` (pixels of the forceps colour: the arm is
-    drawn), ``joints`` (pixels of the joint plot colours: the plots are drawn),
+    quantising to 4 bits a channel), ``arm`` (pixels of the MH3F's casting blue in the lean
+    layout's 3D view, the left three fifths: the robot's bodies are drawn), ``joints`` (pixels of
+    the joint plot colours: the plots are drawn),
     ``width``/``height``."""
     from PIL import Image
-    from telesurg.services.mirror.view import FORCEPS_COLOR, JOINT_COLORS
+    from telesurg.services.mirror.view import JOINT_COLORS
 
     img = np.asarray(Image.open(io.BytesIO(png)).convert("RGB"), dtype=np.int32)
     h, w, _ = img.shape
@@ -61,7 +65,7 @@ def pixel_stats(png: bytes) -> dict[str, float]:
     return {
         "std": float(img.mean(axis=2).std()),
         "colors": float(np.unique(q[:, 0] << 8 | q[:, 1] << 4 | q[:, 2]).size),
-        "forceps": float(_near(img, FORCEPS_COLOR, 40).sum()),
+        "arm": float(hue_pixels(png, ARM_BLUE, (0, 40, w * 3 // 5, h - 20))),
         "joints": float(joints.sum()),
         "width": w,
         "height": h,
@@ -69,11 +73,12 @@ def pixel_stats(png: bytes) -> dict[str, float]:
 
 
 def rendered(stats: dict[str, float]) -> bool:
-    """The viewer has drawn the session: the arm with its forceps, joint plots, a varied picture
-    (the loading page is a near-uniform dark page; an empty viewer has none of these colours)."""
-    # rendered: forceps ~330-1000 px; the joint plots 800-3000+ px, fewer where the plot's legend
-    # covers its lines (an empty viewer, or the loading page, has none of either colour)
-    drawn = stats["forceps"] >= 300 and stats["joints"] >= 500
+    """The viewer has drawn the session: the robot's bodies, joint plots, a varied picture (the
+    loading page is a near-uniform dark page; an empty viewer has none of these colours)."""
+    # rendered: the joint plots 800-3000+ px, fewer where the plot's legend covers its lines; the
+    # arm's blue as in tests/test_viewer_geometry.py (an empty viewer, or the loading page, has
+    # neither colour)
+    drawn = stats["arm"] >= 2000 and stats["joints"] >= 500
     return drawn and stats["colors"] >= 150 and stats["std"] >= 8
 
 
@@ -204,13 +209,14 @@ def test_web_viewer_renders_the_demo_session(tmp_path: Path) -> None:
     assert png.stat().st_size > 20_000
     assert (stats["width"], stats["height"]) == WINDOW
     assert rendered(stats), f"the viewer never drew the session: {history}"
-    # what the viewer was given: the arm from its links, the forceps, the trocar, the errors
+    # what the viewer was given: the robot's bodies, the trocar, the trails, the errors
     paths = entity_paths(rrd)
-    for p in ("links", "forceps", "trocar", "tip", "target", "tip_error_mm", "state"):
+    assert {"/slave/geometry/link1", "/slave/geometry/forceps"} <= paths, sorted(paths)
+    for p in ("trocar", "tip", "target", "tip_error_mm", "state"):
         assert f"/slave/arm1/{p}" in paths, p
-    assert {"/master/m1/tip", "/safety/arm1/state", "/safety/arm1/latency/p99_ms", "/events"} <= paths
+    assert {"/master/m1/tip", "/safety/arm1/state", "/safety/arm1/latency_ms", "/events"} <= paths
     counts = scalar_counts(rrd)
-    assert counts["/slave/arm1/joints/j1/measured"] > 500 and counts["/slave/arm1/tip_error_mm"] > 50
+    assert counts["/slave/arm1/joints/measured"] > 500 and counts["/slave/arm1/tip_error_mm"] > 50
 
 
 def _click(cdp: DevTools, session: str, x: float, y: float) -> None:

@@ -25,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from helpers import CHROMIUM, SwingingArm, chromium, screenshot
+from helpers import CHROMIUM, SwingingArm, chromium, hue_pixels, screenshot
 from telesurg.shared import robots
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -127,23 +127,34 @@ def test_mirror_writes_static_geometry_once_and_poses_per_frame(tmp_path: Path) 
     links = [b for b in bodies if "link" in b]
     assert links and all(transforms.get(f"/slave/geometry/{b}") == frames for b in links), transforms
     assert all(n == 1 for n in statics.values()), statics  # static geometry: once per entity
+    # the bodies replace the stick figure (two entities fewer for the viewer to take in)
+    assert not any(p.endswith(("/links", "/forceps")) for p in paths), sorted(paths)
+
+
+def test_without_geometry_the_mirror_draws_the_sketch(tmp_path: Path) -> None:
+    """``geometry = false`` (or a model the mirror cannot read): the registry's sketch instead."""
+    from helpers import entity_paths
+    from telesurg.services.mirror import Mirror
+    from telesurg.services.mirror.view import RerunView
+    from telesurg.shared.messages import Header, JointState
+
+    p = robots.get("mh3f").arms("arm1")[0]
+    out = tmp_path / "sketch.rrd"
+    view = RerunView("test", save=str(out))
+    mirror = Mirror(view, "telesurg/local", trail_s=1.0, trail_hz=10.0, geometry=False)
+    t0 = 1_700_000_000_000_000_000
+    for i in range(3):
+        stamp = t0 + i * 10_000_000
+        js = JointState(Header("slave_control", i, stamp), p.joint_names, tuple(p.home))
+        mirror.feed([(f"telesurg/local/slave/{p.arm}/measured_js", stamp, js)])  # type: ignore[list-item]
+        mirror.draw()
+    view.close()
+    paths = entity_paths(out)
+    assert {"/slave/arm1/links", "/slave/arm1/forceps"} <= paths, sorted(paths)
+    assert not any(p.startswith("/slave/geometry/") for p in paths), sorted(paths)
 
 
 # --------------------------------------------------------------------------- in the browser
-
-
-def _hue_pixels(png: bytes, rgb: tuple[int, int, int], box: tuple[int, int, int, int]) -> int:
-    """Pixels inside ``box`` (x0, y0, x1, y1) of the hue of ``rgb`` (±6 %), saturated and not dark
-    (shading changes the brightness of a lit surface, not its hue)."""
-    from PIL import Image
-
-    hsv = np.asarray(Image.open(io.BytesIO(png)).convert("HSV"), dtype=np.int32)
-    x0, y0, x1, y1 = box
-    region = hsv[y0:y1, x0:x1]
-    h = colorsys.rgb_to_hsv(*(c / 255 for c in rgb))[0] * 255
-    dh = np.abs(region[..., 0] - h)
-    dh = np.minimum(dh, 256 - dh)
-    return int(((dh <= 16) & (region[..., 1] >= 100) & (region[..., 2] >= 50)).sum())
 
 
 def _loading_page(png: bytes) -> bool:
@@ -204,7 +215,7 @@ def test_web_viewer_shows_the_robot_geometry(tmp_path: Path) -> None:
                         continue
                     (tmp_path / "viewer.png").write_bytes(png)
                     w = 1600 * 3 // 5  # the lean layout's 3D view: the left three fifths
-                    shots.append((_hue_pixels(png, target, (0, 40, w, 880)), _loading_page(png)))
+                    shots.append((hue_pixels(png, target, (0, 40, w, 880)), _loading_page(png)))
                     if shots[-1][0] >= 2000 and not shots[-1][1]:
                         break
                 p = probe(cdp, session)

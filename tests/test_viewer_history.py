@@ -3,7 +3,7 @@
 rerun's gRPC server replays what it buffered to every viewer that connects (by default up to
 1 GiB: the whole session, from its start); a web viewer that ingests at about the rate data
 arrives then stays as far behind live as the session was old when it opened. The real mirror
-(``telesurg mirror --serve --save``, ``history_mb`` small) is fed MH3F joint states over zenoh as
+(``telesurg mirror --serve --save``, its default ``history_mb``) is fed MH3F joint states over zenoh as
 slave_control publishes them; then a late viewer connects — rerun's own CLI
 (``rerun <url> --save late.rrd``), a real client of the same server — and what it received is
 read back: the newest samples and the robot's static geometry, not the session's start. The
@@ -73,7 +73,7 @@ def test_a_late_viewer_gets_the_recent_data_and_the_geometry_not_the_whole_sessi
     router = open_session(BusConfig(mode="router", listen=[ep]))
     argv = [sys.executable, "-m", "telesurg.services.cli", "mirror", "--connect", ep, "--serve"]
     argv += ["--save", str(saved), "--set", f"web_port={web}", "--set", f"grpc_port={grpc}"]
-    argv += ["--set", "history_mb=0.5"]
+    argv += ["--set", "plot_hz=0"]  # every sample, to count them; history_mb: the default
     log = (tmp_path / "mirror.out").open("wb")
     mirror = subprocess.Popen(argv, cwd=ROOT, stdout=log, stderr=subprocess.STDOUT)
     client: subprocess.Popen[bytes] | None = None
@@ -123,7 +123,7 @@ def test_a_late_viewer_gets_the_recent_data_and_the_geometry_not_the_whole_sessi
             client_log.close()
         router.close()  # type: ignore[no-untyped-call]
 
-    j1 = "/slave/arm1/joints/j1/measured"
+    j1 = "/slave/arm1/joints/measured"
     # the recording keeps the whole session
     assert scalar_counts(saved)[j1] >= 0.9 * len(stamps), scalar_counts(saved)
     # (rerun's CLI, stopped by a signal, writes no footer: pyproject's filterwarnings lets its

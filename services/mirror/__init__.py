@@ -44,6 +44,9 @@ from telesurg.services.common import service_main
 from telesurg.services.mirror.geometry import RobotGeometry, moved
 from telesurg.services.mirror.view import (
     EVENTS_PATH,
+    JOINT_COLORS,
+    LATENCY,
+    LATENCY_QUANTILES,
     LAYOUTS,
     MASTER_COLOR,
     RCM_COLOR,
@@ -101,6 +104,11 @@ SUBSCRIBED = (
 LATEST = ("mapping/*/teleop_state",)
 
 
+#: Hz the joint series are thinned to while the mirror serves the live web viewer (``plot_hz = -1``):
+#: 500 points a series in the 20 s plot window
+LIVE_PLOT_HZ = 25.0
+
+
 @dataclass
 class MirrorConfig:
     """mirror config."""
@@ -114,27 +122,29 @@ class MirrorConfig:
     # MB of recent data the gRPC server keeps for a viewer that opens later (oldest dropped
     # first; the static robot geometry stays while it fits: at 0.05 MB it did not): a new viewer starts
     # near live instead of replaying the session from its start; 0 = rerun's default (1 GiB)
-    history_mb: float = 1.0
+    history_mb: float = 0.25
     # write rerun's RRD footer (a manifest of every chunk) when the file is closed: rerun keeps
     # that manifest in memory for the whole session (measured: ~340 bytes a chunk; the mirror
     # writes ~49 chunks/s, ~200 MB an hour); without it the file is a valid .rrd that every rerun
     # reader opens (``rerun rrd optimize`` adds a footer afterwards)
     rrd_footer: bool = False
+    # The rates below are the live web viewer's budget (docs/performance.md, "a viewer within 1 s
+    # of live"): under software WebGL on 2 cores it takes in a few hundred rows a second, and
+    # each entity is one message per send; at rerun's defaults and a 30 Hz scene it fell behind
+    # live by 0.3-0.8 s every second.
     # s between rerun's batcher sends of the logged rows (3D scene, trails, text) to the viewer and
-    # the file: each send is one message per entity, and the web viewer ingests only ~10 ms of
-    # messages a frame (docs/performance.md); 0 = rerun's default (0.2 s)
-    flush_s: float = 0.0
-    draw_hz: float = 30.0  # Hz: how often the 3D scene is redrawn (arm, trails, points)
-    series_hz: float = (
-        5.0  # Hz: how often scalar samples are sent, in blocks (plot lag; rerun batches 3D at 5 Hz)
-    )
+    # the file: each send is one message per entity; 0 = rerun's default (0.2 s)
+    flush_s: float = 0.25
+    draw_hz: float = 10.0  # Hz: how often the 3D scene is redrawn (robot bodies, trails, points)
+    series_hz: float = 4.0  # Hz: how often scalar samples are sent, in blocks (plot lag ≤ 0.25 s)
     trail_s: float = 5.0  # s: length of the tip / target / master trails
-    trail_hz: float = 50.0  # Hz: trail points are thinned to at most this rate (file size)
-    error_hz: float = 50.0  # Hz: tip tracking error samples per arm, at most (two FKs each)
+    trail_hz: float = 10.0  # Hz: trail points are thinned to at most this rate
+    error_hz: float = 10.0  # Hz: tip tracking error samples per arm, at most (two FKs each)
     # Hz: joint series (measured, setpoint) are thinned to at most this rate per stream for
-    # display (a 1 kHz stream at 100 Hz: a tenth of the points for the viewer to plot; the MCAP
-    # recorder keeps every sample); 0 = draw every sample
-    plot_hz: float = 0.0
+    # display (a 1 kHz stream at 25 Hz: a fortieth of the rows for the viewer to take in and
+    # plot; the MCAP recorder keeps every sample); 0 = every sample; -1 (the default) = 25 Hz
+    # (LIVE_PLOT_HZ) while serving the web viewer, every sample when only saving an .rrd
+    plot_hz: float = -1.0
     plot_window_s: float = 20.0  # s: time series show this much history before the time cursor
     # messages the mirror buffers between its draw passes, at most: while it is starved of CPU (it
     # runs below the control path) the oldest are dropped and counted instead of the buffer
@@ -164,6 +174,12 @@ class MirrorConfig:
     )
     bus: BusConfig = field(default_factory=BusConfig)  # zenoh session
 
+    def effective_plot_hz(self) -> float:
+        """``plot_hz``, with -1 resolved: :data:`LIVE_PLOT_HZ` while serving, else 0 (every sample)."""
+        if self.plot_hz >= 0:
+            return self.plot_hz
+        return LIVE_PLOT_HZ if self.serve else 0.0
+
     def validate(self) -> None:
         """Raise ConfigError naming what is wrong."""
         if not self.save and not self.serve:
@@ -174,7 +190,7 @@ class MirrorConfig:
             ("trail_s", self.trail_s, 0.1, 600.0),
             ("trail_hz", self.trail_hz, 1.0, 10_000.0),
             ("error_hz", self.error_hz, 1.0, 1000.0),
-            ("plot_hz", self.plot_hz, 0.0, 100_000.0),
+            ("plot_hz", self.plot_hz, -1.0, 100_000.0),
             ("plot_window_s", self.plot_window_s, 1.0, 3600.0),
             ("layout_wait_s", self.layout_wait_s, 0.0, 60.0),
             ("history_mb", self.history_mb, 0.0, 1_000_000.0),
@@ -184,6 +200,8 @@ class MirrorConfig:
         ):
             if not lo <= value <= hi:
                 raise ConfigError(f"{name}={value} outside [{lo:g}, {hi:g}]")
+        if -1.0 < self.plot_hz < 0.0:
+            raise ConfigError(f"plot_hz={self.plot_hz}: 0 (every sample), -1 (auto) or a rate in Hz")
         if self.layout not in LAYOUTS:
             raise ConfigError(f"layout={self.layout!r}: valid: {', '.join(LAYOUTS)}")
         for name, port in (("web_port", self.web_port), ("grpc_port", self.grpc_port)):
@@ -285,16 +303,22 @@ def parse_vip_mm(text: str) -> tuple[float, float, float] | None:
 # --------------------------------------------------------------------------- drawing state
 
 
+#: Hz: a step signal's samples when it does not change (its changes are all kept)
+STEP_HZ = 5.0
+_STEP_DT_NS = int(1e9 / STEP_HZ)
+
+
 class _Series:
     """Buffered samples of one stream until the next block is sent."""
 
-    __slots__ = ("last_src", "positions", "rx", "src")
+    __slots__ = ("last_src", "last_value", "positions", "rx", "src")
 
     def __init__(self) -> None:
         self.src: list[int] = []
         self.rx: list[int] = []
         self.positions: list[tuple[float, ...]] = []
         self.last_src = -(1 << 62)  # stamp of the last sample kept (for thinning)
+        self.last_value: tuple[float, ...] = ()  # value of the last sample kept (step signals)
 
     def add(self, src: int, rx: int, value: tuple[float, ...]) -> None:
         self.src.append(src)
@@ -452,7 +476,7 @@ class Mirror:
             if stream == "measured_cp" and isinstance(msg, CartesianPose):
                 self._trail("master", arm, "tip").add(src, rx, msg.position)
             elif stream == "buttons" and isinstance(msg, MasterButtons):
-                self._scalar(master_path(arm, "clutch"), src, rx, 1.0 if msg.clutch else 0.0)
+                self._step(master_path(arm, "clutch"), src, rx, 1.0 if msg.clutch else 0.0)
             else:
                 return False
         elif role == "safety" and stream == "state" and isinstance(msg, SafetyState):
@@ -474,10 +498,23 @@ class Mirror:
         s.add(src, rx, m.position)
         self.drawn += 1  # buffered samples are all sent, at the latest by flush()
 
-    def _scalar(self, path: str, src: int, rx: int, value: float) -> None:
+    def _scalar(self, path: str, src: int, rx: int, *values: float) -> None:
+        """One sample of a scalar entity: one value, or one per series of the entity."""
         s = self._scalars.get(path)
         if s is None:
             s = self._scalars[path] = _Series()
+        s.add(src, rx, values)
+
+    def _step(self, path: str, src: int, rx: int, value: float) -> None:
+        """One sample of a 0/1 step signal (clutch, engaged): every change, and otherwise at most
+        :data:`STEP_HZ` samples a second (the buttons come at 50 Hz: rows the viewer would only
+        draw on top of each other)."""
+        s = self._scalars.get(path)
+        if s is None:
+            s = self._scalars[path] = _Series()
+        if s.last_value == (value,) and 0 <= src - s.last_src < _STEP_DT_NS:
+            return
+        s.last_src, s.last_value = src, (value,)
         s.add(src, rx, (value,))
 
     def _arm(self, arm: str, names: tuple[str, ...], rx: int) -> _Arm:
@@ -540,13 +577,12 @@ class Mirror:
         self.view.text(slave_path(arm, "state"), src, rx, text, sev)
 
     def _safety_state(self, arm: str, src: int, rx: int, m: SafetyState) -> None:
-        for leaf, value in (
-            ("latency/p50_ms", m.latency_p50_ms),
-            ("latency/p90_ms", m.latency_p90_ms),
-            ("latency/p99_ms", m.latency_p99_ms),
-            ("scale", m.scale),
-        ):
-            self._scalar(safety_path(arm, leaf), src, rx, value)
+        latency = safety_path(arm, LATENCY)
+        if latency not in self._scalars:
+            colors = [JOINT_COLORS[k % len(JOINT_COLORS)] for k in range(len(LATENCY_QUANTILES))]
+            self.view.series_style(latency, [f"{arm} {q}" for q in LATENCY_QUANTILES], colors, 1.5)
+        self._scalar(latency, src, rx, m.latency_p50_ms, m.latency_p90_ms, m.latency_p99_ms)
+        self._scalar(safety_path(arm, "scale"), src, rx, m.scale)
         now = (m.state, m.causes)
         if self._safety.get(arm) == now:
             return
@@ -556,7 +592,7 @@ class Mirror:
         self.view.text(safety_path(arm), src, rx, text, sev)
 
     def _teleop_state(self, arm: str, src: int, rx: int, m: TeleopState) -> None:
-        self._scalar(mapping_path(arm, "engaged"), src, rx, 1.0 if m.state == "ENABLED" else 0.0)
+        self._step(mapping_path(arm, "engaged"), src, rx, 1.0 if m.state == "ENABLED" else 0.0)
         now = (m.state, m.reason, m.scale, m.safety_scale)
         if self._teleop.get(arm) == now:
             return
@@ -665,7 +701,10 @@ class Mirror:
         except (KinematicsError, ValueError) as exc:
             self._warn_once(f"fk{arm}", f"{arm}: forward kinematics failed: {exc}")
             return
-        self.view.arm(arm, src, rx, s.links, s.forceps)
+        if not (self._geometry_on and self._geometry.get(a.robot.name) is not None):
+            # the stick figure only where the robot's own bodies are not drawn (geometry off, or
+            # its model could not be read): two entities fewer for the viewer to take in
+            self.view.arm(arm, src, rx, s.links, s.forceps)
         rcm = s.rcm
         if rcm is None and s.forceps is not None and a.op is not None and a.op.control_mode == "trocar":
             rcm = nearest_on_line(s.forceps[0], s.forceps[-1], np.asarray(a.op.trocar, np.float64))
@@ -684,7 +723,7 @@ class Mirror:
         for path, s in self._scalars.items():
             if s.src:
                 src, rx, values = s.take()
-                self.view.series(path, src, rx, values[:, 0])
+                self.view.series(path, src, rx, values if values.shape[1] > 1 else values[:, 0])
         for arm, a in self._arms.items():
             self._tip_errors(a)
             for leaf, s in (("tip_error_mm", a.errors), ("rcm_error_mm", a.rcm_errors)):
@@ -787,7 +826,7 @@ def run(cfg: MirrorConfig, stop: threading.Event) -> None:
                 cfg.trail_hz,
                 series_hz=cfg.series_hz,
                 error_hz=cfg.error_hz,
-                plot_hz=cfg.plot_hz,
+                plot_hz=cfg.effective_plot_hz(),
                 plot_window_s=cfg.plot_window_s,
                 layout_wait_s=cfg.layout_wait_s,
                 geometry=cfg.geometry,

@@ -2,17 +2,21 @@
 
 Entity paths (``<arm>`` an arm id, ``<joint>`` a joint name, both escaped for rerun)::
 
-    /slave/<arm>/joints/<joint>/measured   Scalars       rad (m: prismatic), slave/<arm>/measured_js
+    /slave/<arm>/joints/measured           Scalars       rad (m: prismatic), slave/<arm>/measured_js: one
+                                                         row per sample, instance i = joint i (a series
+                                                         each, named and coloured by a static
+                                                         SeriesLines on the entity)
+    /slave/<arm>/joints/setpoint           Scalars       rad (m), slave/<arm>/servo_jp, likewise
     /slave/geometry/<body>                 Transform3D   a body of the robot's MuJoCo model, posed by
                                                          mj_kinematics at the measured joints; its
                                                          geoms (static, body frame) are the children
                                                          box|ellipsoid|capsule|cylinder|mesh<i>
-    /slave/<arm>/joints/<joint>/setpoint   Scalars       rad (m), slave/<arm>/servo_jp
     /slave/<arm>/links                     LineStrips3D + Points3D  the arm's kinematic chain (from
                                                          measured_js: mh3f base→flange, vip R–E–W,
-                                                         plas port→DH chain), m
+                                                         plas port→DH chain), m — only where the
+                                                         robot's geometry is not drawn
     /slave/<arm>/forceps                   LineStrips3D  the instrument (mh3f flange→forceps tip,
-                                                         plas pitch axis→tip), m
+                                                         plas pitch axis→tip), m — likewise
     /slave/<arm>/tip                       LineStrips3D + Points3D  measured_cp trail + current, m
     /slave/<arm>/target                    LineStrips3D + Points3D  setpoint_cp trail + current, m
     /slave/<arm>/trocar                    Points3D      operating_state.trocar (on change), m
@@ -24,7 +28,8 @@ Entity paths (``<arm>`` an arm id, ``<joint>`` a joint name, both escaped for re
     /slave/<arm>/rcm_error_mm              Scalars       operating_state.rcm_error_mm (trocar mode)
     /slave/<arm>/state                     TextLog       operating_state changes (state, mode, follow)
     /safety/<arm>/state                    TextLog       watchdog state changes
-    /safety/<arm>/latency/p50_ms|p90_ms|p99_ms  Scalars  command-path latency (watchdog, 1 s window)
+    /safety/<arm>/latency_ms               Scalars       command-path latency (watchdog, 1 s window):
+                                                         instances p50, p90, p99
     /safety/<arm>/scale                    Scalars       motion-scale factor from the watchdog
     /master/<arm>/tip                      LineStrips3D + Points3D  master measured_cp, master frame
     /master/<arm>/clutch                   Scalars       1 while the clutch pedal is pressed
@@ -44,7 +49,7 @@ mirror's default) keeps the slave 3D view, the joint plots and the text log; ``f
 
     ┌───────────────────────────────┬─────────────────────────────────────────┐
     │ slave 3D (/slave/**)          │ <arm> joints: measured vs setpoint (one │
-    │  links, forceps, trocar/RCM/  │ plot per arm, side by side)             │
+    │  robot bodies, trocar/RCM/    │ plot per arm, side by side)             │
     │  VIP, tip + target trails     ├─────────────────────────────────────────┤
     │                               │ tip / RCM error [mm]                    │
     │                               ├────────────────────┬────────────────────┤
@@ -52,6 +57,11 @@ mirror's default) keeps the slave 3D view, the joint plots and the text log; ``f
     │ slave tip and │ master tip    ├────────────────────┴────────────────────┤
     │ target trails │ (/master/**)  │ modes & safety events (text log)        │
     └───────────────┴───────────────┴─────────────────────────────────────────┘
+
+Every entity is one message per send to the viewer (a block of scalars, or the rows the batcher
+gathered in ``flush_s``), and the web viewer's pace is set by messages a second, not bytes
+(docs/performance.md): hence one entity per arm for all its joints, one for the three latency
+quantiles, and no stick figure where the robot's bodies are drawn.
 
 Time series show the last ``plot_window_s`` before the time cursor. Two timelines:
 ``source_time`` (the header stamp of the message, wall clock at the publisher) and
@@ -111,9 +121,10 @@ def _part(name: str) -> str:
 
 
 @functools.lru_cache(maxsize=4096)
-def joint_path(arm: str, joint: str, kind: str) -> str:
-    """``/slave/<arm>/joints/<joint>/<kind>``, kind ``measured`` or ``setpoint``."""
-    return f"/slave/{_part(arm)}/joints/{_part(joint)}/{kind}"
+def joints_path(arm: str, kind: str) -> str:
+    """``/slave/<arm>/joints/<kind>``, kind ``measured`` or ``setpoint``: every joint of the arm,
+    instance i = joint i."""
+    return f"/slave/{_part(arm)}/joints/{kind}"
 
 
 @functools.lru_cache(maxsize=4096)
@@ -130,7 +141,7 @@ def master_path(arm: str, leaf: str) -> str:
 
 @functools.lru_cache(maxsize=4096)
 def safety_path(arm: str, leaf: str = "state") -> str:
-    """``/safety/<arm>/<leaf>`` (``state``, ``scale``, ``latency/p50_ms``, ...)."""
+    """``/safety/<arm>/<leaf>`` (``state``, ``scale``, ``latency_ms``, ...)."""
     return f"/safety/{_part(arm)}/{leaf}"
 
 
@@ -141,6 +152,9 @@ def mapping_path(arm: str, leaf: str) -> str:
 
 
 EVENTS_PATH = "/events"
+#: Leaf of ``/safety/<arm>/…``: the watchdog's latency quantiles, one entity (instances p50, p90, p99).
+LATENCY = "latency_ms"
+LATENCY_QUANTILES = ("p50", "p90", "p99")
 
 
 @functools.lru_cache(maxsize=4096)
@@ -198,21 +212,14 @@ def blueprint(
 
     arms = dict(slave_arms or {})
     window = _window(plot_window_s)
-    joints = []
-    for arm, names in arms.items():
-        style: _Overrides = {}
-        for j, name in enumerate(names):
-            color = JOINT_COLORS[j % len(JOINT_COLORS)]
-            style[joint_path(arm, name, "measured")] = _lines(f"{name} measured", color, 2.0)
-            style[joint_path(arm, name, "setpoint")] = _lines(f"{name} setpoint", _paler(color), 1.0)
-        joints.append(
-            rrb.TimeSeriesView(
-                name=f"{arm} joints: measured vs setpoint [rad | m]",
-                origin=slave_path(arm, "joints"),
-                time_ranges=window,
-                overrides=style,
-            )
+    joints = [  # series names and colours: static on each entity (RerunView.joints)
+        rrb.TimeSeriesView(
+            name=f"{arm} joints: measured vs setpoint [rad | m]",
+            origin=slave_path(arm, "joints"),
+            time_ranges=window,
         )
+        for arm in arms
+    ]
     if not joints:
         joints.append(rrb.TimeSeriesView(name="slave joints [rad | m]", origin="/slave", time_ranges=window))
     events = rrb.TextLogView(
@@ -232,7 +239,6 @@ def blueprint(
             collapse_panels=True,
         )
     errors: _Overrides = {}
-    latency: _Overrides = {}
     scale: _Overrides = {}
     for i, arm in enumerate(arms):
         errors[slave_path(arm, "tip_error_mm")] = _lines(
@@ -241,9 +247,6 @@ def blueprint(
         errors[slave_path(arm, "rcm_error_mm")] = _lines(
             f"{arm} RCM", JOINT_COLORS[(2 * i + 1) % len(JOINT_COLORS)], 1.5
         )
-        for k, q in enumerate(("p50", "p90", "p99")):
-            color = JOINT_COLORS[(3 * i + k) % len(JOINT_COLORS)]
-            latency[safety_path(arm, f"latency/{q}_ms")] = _lines(f"{arm} {q}", color, 1.5)
         scale[safety_path(arm, "scale")] = _lines(f"{arm} scale", JOINT_COLORS[i % len(JOINT_COLORS)], 1.5)
         scale[mapping_path(arm, "engaged")] = _lines(
             f"{arm} engaged", JOINT_COLORS[(i + 3) % len(JOINT_COLORS)], 1.5
@@ -259,11 +262,10 @@ def blueprint(
             overrides=errors,
         ),
         rrb.Horizontal(
-            rrb.TimeSeriesView(
+            rrb.TimeSeriesView(  # p50 / p90 / p99: instances of one entity, named on it
                 name="latency [ms]",
-                contents=list(latency) or ["/safety/**"],
+                contents=[safety_path(arm, LATENCY) for arm in arms] or ["/safety/**"],
                 time_ranges=window,
-                overrides=latency,
             ),
             rrb.TimeSeriesView(
                 name="motion scale, clutch",
@@ -320,8 +322,9 @@ class RerunView:
     """A rerun recording with typed drawing calls; one instance per process, one thread uses it.
 
     Every call logs one entity once (``send_columns`` for blocks of scalars); colours and radii of
-    3D entities are logged once per entity, static, so per-tick logs carry only positions (series
-    styles are in the blueprint).
+    3D entities and the names and colours of the joint and latency series are logged once per
+    entity, static, so per-tick logs carry only positions and values (the other series' styles are
+    in the blueprint).
 
     Args:
         application_id: rerun application id.
@@ -356,6 +359,7 @@ class RerunView:
         self.url = ""
         self.blueprint_arms: tuple[str, ...] | None = None  # set once the layout is sent
         self._styled: set[str] = set()
+        self._series_styles: dict[str, tuple[tuple[str, ...], tuple[Color, ...], float]] = {}
         self._flushers: list[Callable[[], None]] = []
         batcher = rr.ChunkBatcherConfig(flush_tick=flush_s) if flush_s > 0 else None
         self._rec: Any = rr.RecordingStream(
@@ -413,6 +417,21 @@ class RerunView:
             self._rec.log(path, *parts, static=True)
 
     # -- scalars in blocks: one send_columns per entity and call ---------------------------
+    def series_style(self, path: str, names: Sequence[str], colors: Sequence[Color], width: float) -> None:
+        """Names, colours and width of the series of a scalar entity (instance i: ``names[i]``),
+        static on the entity (so a file opened without the layout shows them too); logged again
+        only when they change."""
+        key = (tuple(names), tuple(colors), width)
+        if self._series_styles.get(path) == key:
+            return
+        self._series_styles[path] = key
+        rr = self._rr
+        self._rec.log(
+            path,
+            rr.SeriesLines.from_fields(names=list(names), colors=list(colors), widths=[width] * len(names)),
+            static=True,
+        )
+
     def series(
         self,
         path: str,
@@ -420,7 +439,8 @@ class RerunView:
         receive_ns: npt.ArrayLike,
         values: npt.ArrayLike,
     ) -> None:
-        """Scalar samples ``values`` (N,) at the given stamps, in one block."""
+        """Scalar samples at the given stamps, in one block: ``values`` (N,) one series, or
+        (N, K) K series of one entity (instance k = column k)."""
         rr = self._rr
         self._rec.send_columns(
             path,
@@ -440,18 +460,14 @@ class RerunView:
         receive_ns: npt.ArrayLike,
         positions: npt.NDArray[np.float64],
     ) -> None:
-        """Joint positions (N, J) [rad, m] → one block per joint entity."""
-        rr = self._rr
-        indexes = [
-            rr.TimeColumn("source_time", timestamp=_ts(source_ns)),
-            rr.TimeColumn("receive_time", timestamp=_ts(receive_ns)),
-        ]
-        for j, name in enumerate(names):
-            self._rec.send_columns(
-                joint_path(arm, name, kind),
-                indexes=indexes,
-                columns=rr.Scalars.columns(scalars=positions[:, j]),
-            )
+        """Joint positions (N, J) [rad, m] → one block on the arm's ``kind`` entity (a series per
+        joint: measured in the joint's colour, setpoints paler and thinner)."""
+        colors = [JOINT_COLORS[j % len(JOINT_COLORS)] for j in range(len(names))]
+        if kind == "setpoint":
+            colors = [_paler(c) for c in colors]
+        path = joints_path(arm, kind)
+        self.series_style(path, [f"{n} {kind}" for n in names], colors, 2.0 if kind == "measured" else 1.0)
+        self.series(path, source_ns, receive_ns, positions)
 
     # -- 3D, drawn at draw_hz (latest state only) -----------------------------------------
     def _at(self, source_ns: int, receive_ns: int) -> None:
