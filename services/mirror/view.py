@@ -107,6 +107,9 @@ JOINT_COLORS: tuple[Color, ...] = (
     (120, 120, 120),
 )
 
+#: Background of the lean layout's 3D view (a flat grey: the robot's blue and the trails stand out).
+PLAIN_BACKGROUND: Color = (236, 236, 236)
+
 _LEVELS = {"info": "INFO", "warning": "WARN", "error": "ERROR"}
 
 
@@ -225,8 +228,16 @@ def blueprint(
     events = rrb.TextLogView(
         name="modes & safety events", contents=["/slave/**", "/mapping/**", "/safety/**", EVENTS_PATH]
     )
-    slave_3d = rrb.Spatial3DView(name="slave (world frame, m)", origin="/", contents=["+ /slave/**"])
     if layout == "lean":
+        # a plain background and no ground grid: both are shaded per pixel every frame, which
+        # under software WebGL is most of a frame's cost (docs/performance.md)
+        slave_3d = rrb.Spatial3DView(
+            name="slave (world frame, m)",
+            origin="/",
+            contents=["+ /slave/**"],
+            background=rrb.Background(kind=rrb.BackgroundKind.SolidColor, color=PLAIN_BACKGROUND),
+            line_grid=rrb.LineGrid3D(visible=False),
+        )
         return rrb.Blueprint(
             rrb.Horizontal(
                 slave_3d,
@@ -238,6 +249,7 @@ def blueprint(
             _time_panel(),
             collapse_panels=True,
         )
+    slave_3d = rrb.Spatial3DView(name="slave (world frame, m)", origin="/", contents=["+ /slave/**"])
     errors: _Overrides = {}
     scale: _Overrides = {}
     for i, arm in enumerate(arms):
