@@ -105,8 +105,13 @@ LATEST = ("mapping/*/teleop_state",)
 
 
 #: Hz the joint series are thinned to while the mirror serves the live web viewer (``plot_hz = -1``):
-#: 500 points a series in the 20 s plot window
-LIVE_PLOT_HZ = 25.0
+#: 200 points a series in the 20 s plot window
+LIVE_PLOT_HZ = 10.0
+#: Hz of the 3D scene while serving the live web viewer / when only saving (``draw_hz = -1``)
+LIVE_DRAW_HZ = 5.0
+FILE_DRAW_HZ = 30.0
+#: Hz of the mirror's loop (taking in messages, sending due series blocks and frames), at least
+LOOP_HZ = 20.0
 
 
 @dataclass
@@ -135,15 +140,18 @@ class MirrorConfig:
     # s between rerun's batcher sends of the logged rows (3D scene, trails, text) to the viewer and
     # the file: each send is one message per entity; 0 = rerun's default (0.2 s)
     flush_s: float = 0.25
-    draw_hz: float = 10.0  # Hz: how often the 3D scene is redrawn (robot bodies, trails, points)
+    # Hz: how often the 3D scene is redrawn (robot bodies, trails, points); -1 (the default) =
+    # LIVE_DRAW_HZ while serving the web viewer (it draws 2-4 frames a second under software
+    # WebGL: faster poses are rows it must take in and never shows), FILE_DRAW_HZ when only saving
+    draw_hz: float = -1.0
     series_hz: float = 4.0  # Hz: how often scalar samples are sent, in blocks (plot lag ≤ 0.25 s)
     trail_s: float = 5.0  # s: length of the tip / target / master trails
     trail_hz: float = 10.0  # Hz: trail points are thinned to at most this rate
     error_hz: float = 10.0  # Hz: tip tracking error samples per arm, at most (two FKs each)
     # Hz: joint series (measured, setpoint) are thinned to at most this rate per stream for
-    # display (a 1 kHz stream at 25 Hz: a fortieth of the rows for the viewer to take in and
-    # plot; the MCAP recorder keeps every sample); 0 = every sample; -1 (the default) = 25 Hz
-    # (LIVE_PLOT_HZ) while serving the web viewer, every sample when only saving an .rrd
+    # display (a 1 kHz stream at 10 Hz: a hundredth of the rows for the viewer to take in and
+    # plot; the MCAP recorder keeps every sample); 0 = every sample; -1 (the default) =
+    # LIVE_PLOT_HZ while serving the web viewer, every sample when only saving an .rrd
     plot_hz: float = -1.0
     plot_window_s: float = 20.0  # s: time series show this much history before the time cursor
     # messages the mirror buffers between its draw passes, at most: while it is starved of CPU (it
@@ -174,6 +182,12 @@ class MirrorConfig:
     )
     bus: BusConfig = field(default_factory=BusConfig)  # zenoh session
 
+    def effective_draw_hz(self) -> float:
+        """``draw_hz``, with -1 resolved: :data:`LIVE_DRAW_HZ` while serving, else :data:`FILE_DRAW_HZ`."""
+        if self.draw_hz > 0:
+            return self.draw_hz
+        return LIVE_DRAW_HZ if self.serve else FILE_DRAW_HZ
+
     def effective_plot_hz(self) -> float:
         """``plot_hz``, with -1 resolved: :data:`LIVE_PLOT_HZ` while serving, else 0 (every sample)."""
         if self.plot_hz >= 0:
@@ -185,7 +199,7 @@ class MirrorConfig:
         if not self.save and not self.serve:
             raise ConfigError("mirror needs an output: --set save=FILE.rrd and/or --set serve=true")
         for name, value, lo, hi in (
-            ("draw_hz", self.draw_hz, 1.0, 240.0),
+            ("draw_hz", self.draw_hz, -1.0, 240.0),
             ("series_hz", self.series_hz, 0.5, 240.0),
             ("trail_s", self.trail_s, 0.1, 600.0),
             ("trail_hz", self.trail_hz, 1.0, 10_000.0),
@@ -200,6 +214,8 @@ class MirrorConfig:
         ):
             if not lo <= value <= hi:
                 raise ConfigError(f"{name}={value} outside [{lo:g}, {hi:g}]")
+        if self.draw_hz != -1.0 and self.draw_hz < 1.0:
+            raise ConfigError(f"draw_hz={self.draw_hz}: -1 (auto) or a rate of at least 1 Hz")
         if -1.0 < self.plot_hz < 0.0:
             raise ConfigError(f"plot_hz={self.plot_hz}: 0 (every sample), -1 (auto) or a rate in Hz")
         if self.layout not in LAYOUTS:
@@ -392,6 +408,7 @@ class Mirror:
         trail_hz: float,
         *,
         series_hz: float = 5.0,
+        draw_hz: float = 0.0,
         error_hz: float = 50.0,
         plot_hz: float = 0.0,
         plot_window_s: float = 20.0,
@@ -409,6 +426,8 @@ class Mirror:
         self._span_ns = int(trail_s * 1e9)
         self._min_dt_ns = int(1e9 / trail_hz)
         self._series_dt_ns = int(1e9 / series_hz)
+        self._draw_dt_ns = int(1e9 / draw_hz) if draw_hz > 0 else 0  # 0: each draw() call
+        self._drawn_rx = 0
         self._error_dt_ns = int(1e9 / error_hz)
         self._plot_dt_ns = int(1e9 / plot_hz) if plot_hz > 0 else 0
         self._plot_window_s = plot_window_s
@@ -617,10 +636,19 @@ class Mirror:
 
     # -- drawing -------------------------------------------------------------------------
     def draw(self) -> None:
-        """Draw the 3D scene; send the scalar blocks when ``1/series_hz`` s have passed."""
+        """Draw the 3D scene (when ``1/draw_hz`` s have passed); send the scalar blocks when
+        ``1/series_hz`` s have."""
         first = self._first_arm_rx
         if self.view.blueprint_arms is None and first and self._now_rx - first >= self._layout_wait_ns:
             self._send_layout()
+        if self._now_rx - self._drawn_rx >= self._draw_dt_ns:
+            self._drawn_rx = self._now_rx
+            self._draw_scene()
+        if self._now_rx - self._series_sent_rx >= self._series_dt_ns:
+            self._series_sent_rx = self._now_rx
+            self._send_series()
+
+    def _draw_scene(self) -> None:
         for (role, arm, leaf), t in self._trails.items():
             if t.dirty:
                 t.dirty = False
@@ -630,13 +658,10 @@ class Mirror:
             self._draw_geometry()
         for arm, a in self._arms.items():
             self._draw_arm(arm, a)
-        if self._now_rx - self._series_sent_rx >= self._series_dt_ns:
-            self._series_sent_rx = self._now_rx
-            self._send_series()
 
     def flush(self) -> None:
         """Send everything buffered, and the layout if it has not been sent yet."""
-        self.draw()
+        self._draw_scene()
         self._send_series()
         if self.view.blueprint_arms is None:
             self._send_layout()
@@ -799,7 +824,8 @@ class FrameTap:
 def run(cfg: MirrorConfig, stop: threading.Event) -> None:
     """Mirror the bus into rerun until ``stop``; the .rrd is complete when this returns."""
     cfg.validate()
-    timer = CycleTimer(cfg.draw_hz)
+    draw_hz = cfg.effective_draw_hz()
+    timer = CycleTimer(max(draw_hz, LOOP_HZ))
     wall0, cpu0 = time.monotonic(), _cpu_s()
     view = RerunView(
         cfg.application_id,
@@ -825,6 +851,7 @@ def run(cfg: MirrorConfig, stop: threading.Event) -> None:
                 cfg.trail_s,
                 cfg.trail_hz,
                 series_hz=cfg.series_hz,
+                draw_hz=draw_hz,
                 error_hz=cfg.error_hz,
                 plot_hz=cfg.effective_plot_hz(),
                 plot_window_s=cfg.plot_window_s,

@@ -642,7 +642,7 @@ def to_rerun(path: str | Path, out: str | Path) -> dict[str, int]:
         with open_mcap(path) as reader:
             prefix = Keys(recording_site(reader)).prefix + "/"
             mirror = Mirror(view, prefix, mc.trail_s, mc.trail_hz)
-            tick_ns = round(1e9 / mc.draw_hz)
+            tick_ns = round(1e9 / mc.effective_draw_hz())  # the file-only rate
             next_tick = 0
             batch: list[tuple[str, int, Any]] = []
             image_ns = round(1e9 / mc.image_hz) if mc.image_hz > 0 else 0
