@@ -127,7 +127,7 @@ class MirrorConfig:
     # MB of recent data the gRPC server keeps for a viewer that opens later (oldest dropped
     # first; the static robot geometry stays while it fits: at 0.05 MB it did not): a new viewer starts
     # near live instead of replaying the session from its start; 0 = rerun's default (1 GiB)
-    history_mb: float = 0.25
+    history_mb: float = 0.15
     # write rerun's RRD footer (a manifest of every chunk) when the file is closed: rerun keeps
     # that manifest in memory for the whole session (measured: ~340 bytes a chunk; the mirror
     # writes ~49 chunks/s, ~200 MB an hour); without it the file is a valid .rrd that every rerun
