@@ -169,3 +169,32 @@ def plot_memory(res: dict[str, Any], out: Path) -> None:
     out.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(out, dpi=110)
     plt.close(fig)
+
+
+def plot_viewer_lag(runs: list[tuple[str, dict[str, Any]]], out: Path) -> None:
+    """``telesurg bench viewer --plot``: each run's lag behind live over the time the page was
+    open (log scale; the 1 s goal and the warm-up marked), one line per ``(label, result)``."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(8.6, 4.2))
+    for label, res in runs:
+        pts = [(s["t_s"], s["lag_s"]) for s in res["samples"] if s.get("lag_s") is not None]
+        if pts:
+            t, lag = zip(*pts, strict=True)
+            ax.plot(t, lag, marker=".", markersize=3, linewidth=1.2, label=label)
+    ax.axhline(1.0, color="black", linewidth=0.8, linestyle="--")
+    ax.text(1.0, 1.05, "1 s", fontsize=8)
+    if runs:
+        ax.axvline(runs[0][1]["warmup_s"], color="grey", linewidth=0.8)
+    ax.set_yscale("log")
+    ax.set_xlabel("s after the page opened (grey: end of the warm-up)")
+    ax.set_ylabel("viewer behind live, s")
+    ax.grid(alpha=0.3, which="both")
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out, dpi=110)
+    plt.close(fig)

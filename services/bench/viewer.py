@@ -25,6 +25,7 @@ Examples::
     telesurg bench viewer --seconds 100 --json docs/data/perf/viewer.json
     telesurg bench viewer --seconds 60 --set mirror.layout=\\"full\\"    # the full layout
     telesurg bench viewer --seconds 100 --window 800x450             # a smaller page
+    telesurg bench viewer --plot lag.png --from before=a.json after=b.json   # saved runs, no run
 """
 
 from __future__ import annotations
@@ -44,6 +45,7 @@ from typing import Any
 
 import numpy as np
 from telesurg.services.bench.browser import CHROMIUM, WINDOW, DevTools, autogroups, chromium, screenshot
+from telesurg.services.bench.plots import plot_viewer_lag
 from telesurg.shared import jsonio
 
 #: s a probe waits for the page to answer.
@@ -285,6 +287,7 @@ def run(
             t_open = time.monotonic()
             load_open = os.getloadavg()[0]
             next_fps = t_open + warmup
+            shot: bytes | None = None  # the screenshot, taken live ~8 s before the demo ends
             while demo.poll() is None:
                 time.sleep(1.0)
                 t = time.monotonic() - t_open
@@ -302,6 +305,9 @@ def run(
                     sample["lag_s"] = lag
                     sample["ingest_lag_s"] = (p["page_ns"] - newest) / 1e9 if newest is not None else None
                 samples.append(sample)
+                if png is not None and shot is None and t >= seconds - 8.0:
+                    with contextlib.suppress(RuntimeError, TimeoutError):  # tried again at the end
+                        shot = screenshot(cdp, session)
                 groups.update(autogroups(profile))  # every Chromium process seen
                 if time.monotonic() >= next_fps and demo.poll() is None:
                     f = frame_rate(cdp, session)
@@ -312,7 +318,7 @@ def run(
             browser_wall = time.monotonic() - t_open
             if png is not None:
                 try:
-                    png.write_bytes(screenshot(cdp, session))
+                    png.write_bytes(shot if shot is not None else screenshot(cdp, session))
                 except (RuntimeError, TimeoutError) as exc:  # a page that no longer answers
                     print(f"no screenshot: {exc}", file=sys.stderr)
     rep = json.loads(report.read_text()) if report.is_file() else {}
@@ -403,8 +409,33 @@ def main(argv: Sequence[str] | None = None) -> int:
         help="extra Chromium flag, e.g. --chromium-flag=--use-angle=swiftshader (repeatable)",
     )
     ap.add_argument("--json", type=Path, help="write the figures here")
-    ap.add_argument("--png", type=Path, help="save the last screenshot here")
+    ap.add_argument("--png", type=Path, help="save a screenshot here (taken ~8 s before the session ends)")
+    ap.add_argument(
+        "--plot",
+        type=Path,
+        help="a PNG of the lag over time: of this run, or with --from of saved runs (no run then)",
+    )
+    ap.add_argument(
+        "--from",
+        dest="runs",
+        nargs="+",
+        default=[],
+        metavar="LABEL=JSON",
+        help="saved runs (--json files) to plot with --plot instead of running",
+    )
     args = ap.parse_args(argv)
+    if args.runs:
+        if args.plot is None:
+            ap.error("--from needs --plot")
+        runs = []
+        for item in args.runs:
+            label, sep, path = item.partition("=")
+            if not sep:
+                ap.error(f"--from {item!r}: LABEL=JSON")
+            runs.append((label, json.loads(Path(path).read_text())))
+        plot_viewer_lag(runs, args.plot)
+        print(f"plot written to {args.plot}")
+        return 0
     if not CHROMIUM.exists():
         print(f"telesurg bench viewer: needs Chromium at {CHROMIUM} (Debian: apt-get install chromium)")
         return 2
@@ -444,4 +475,6 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(jsonio.dumps(res, indent=1) + "\n")
+    if args.plot:
+        plot_viewer_lag([(f"this run, {args.window[0]}x{args.window[1]}", res)], args.plot)
     return 0

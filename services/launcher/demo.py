@@ -105,6 +105,11 @@ def main(argv: Sequence[str] | None = None) -> int:
                 if not args.headless:
                     url = viewer_url(f"rerun+http://127.0.0.1:{args.grpc_port}/proxy", args.web_port)
                     print(f"\nrerun web viewer: {url}", flush=True)
+                    print(
+                        "  (without a GPU the viewer keeps up with live in a small page, about "
+                        "800x450 device pixels: docs/performance.md)",
+                        flush=True,
+                    )
                     if web_url:
                         print(f"web surgeon console: {web_url}", flush=True)
                     print("Ctrl-C stops everything.\n", flush=True)
