@@ -14,11 +14,22 @@ def test_a_batcher_flush_outside_its_range_is_refused(value: float) -> None:
         cfg.validate()
 
 
-def test_the_batcher_flush_defaults_to_rerun_s_own() -> None:
-    cfg = MirrorConfig(save="x.rrd")
-    cfg.validate()
-    assert cfg.flush_s == 0.0  # RerunView: 0 → rerun's default tick (0.2 s)
-    MirrorConfig(save="x.rrd", flush_s=0.5).validate()
+def test_the_rates_are_the_live_viewer_s_while_serving_and_the_file_s_otherwise() -> None:
+    from telesurg.services.mirror import FILE_DRAW_HZ, LIVE_DRAW_HZ, LIVE_PLOT_HZ
+
+    saving = MirrorConfig(save="x.rrd")
+    saving.validate()
+    assert (saving.effective_draw_hz(), saving.effective_plot_hz()) == (FILE_DRAW_HZ, 0.0)  # every sample
+    serving = MirrorConfig(save="x.rrd", serve=True)
+    serving.validate()
+    assert (serving.effective_draw_hz(), serving.effective_plot_hz()) == (LIVE_DRAW_HZ, LIVE_PLOT_HZ)
+    assert LIVE_DRAW_HZ < FILE_DRAW_HZ and serving.flush_s == 0.25
+    chosen = MirrorConfig(serve=True, draw_hz=15.0, plot_hz=0.0)  # a user's rates win
+    chosen.validate()
+    assert (chosen.effective_draw_hz(), chosen.effective_plot_hz()) == (15.0, 0.0)
+    for bad in ({"draw_hz": 0.5}, {"draw_hz": -0.5}, {"plot_hz": -0.5}, {"plot_hz": -2.0}):
+        with pytest.raises(ConfigError, match=rf"{next(iter(bad))}="):
+            MirrorConfig(save="x.rrd", **bad).validate()  # type: ignore[arg-type]
 
 
 def test_the_inbox_of_a_starved_mirror_stays_bounded_and_counts_what_it_dropped() -> None:

@@ -295,6 +295,10 @@ def test_fig9_elbow_jog_and_live_reallocation_reach_the_target(site: tuple[Pipel
             time.sleep(1.0)
             continue
         if not checked_busy:
+            # the mapping knows the slave moves from the slave's operating state (20 Hz and on
+            # change): give it a moment to hear of the jog the slave just accepted (sent at once,
+            # the request overtook it on a busy host: accepted, the jog not yet known there)
+            time.sleep(0.5)
             busy = s.command(mapping_key, "reallocate_vip")
             ended = s.events_since(t_jog, "elbow_jog_done") + s.events_since(t_jog, "hold")
             assert (not busy.accepted and "moving" in busy.reason) or (busy.accepted and ended), busy.reason
