@@ -517,20 +517,21 @@ class Mirror:
         s.add(src, rx, m.position)
         self.drawn += 1  # buffered samples are all sent, at the latest by flush()
 
-    def _scalar(self, path: str, src: int, rx: int, *values: float) -> None:
-        """One sample of a scalar entity: one value, or one per series of the entity."""
+    def _scalar_series(self, path: str) -> _Series:
         s = self._scalars.get(path)
         if s is None:
             s = self._scalars[path] = _Series()
-        s.add(src, rx, values)
+        return s
+
+    def _scalar(self, path: str, src: int, rx: int, *values: float) -> None:
+        """One sample of a scalar entity: one value, or one per series of the entity."""
+        self._scalar_series(path).add(src, rx, values)
 
     def _step(self, path: str, src: int, rx: int, value: float) -> None:
         """One sample of a 0/1 step signal (clutch, engaged): every change, and otherwise at most
         :data:`STEP_HZ` samples a second (the buttons come at 50 Hz: rows the viewer would only
         draw on top of each other)."""
-        s = self._scalars.get(path)
-        if s is None:
-            s = self._scalars[path] = _Series()
+        s = self._scalar_series(path)
         if s.last_value == (value,) and 0 <= src - s.last_src < _STEP_DT_NS:
             return
         s.last_src, s.last_value = src, (value,)
