@@ -61,6 +61,30 @@ def scalar_rows(path: str | Path, entity: str) -> list[list[float]]:
     return rows
 
 
+def body_poses(path: str | Path) -> dict[str, list[tuple[np.ndarray, np.ndarray]]]:
+    """The robot body poses the mirror wrote (``/slave/body_poses``: a Transform3D row per moved
+    body, its ``child_frame`` the body's frame ``tf#/slave/geometry/<body>``), by body entity path:
+    ``[(translation, quaternion x y z w), ...]`` in file order."""
+    from telesurg.services.mirror.view import BODY_POSES
+
+    out: dict[str, list[tuple[np.ndarray, np.ndarray]]] = {}
+    for c in _chunks(path):
+        if c.entity_path != BODY_POSES:
+            continue
+        batch = c.to_record_batch()
+        if "Transform3D:child_frame" not in batch.schema.names:
+            continue
+        frames = batch.column("Transform3D:child_frame").to_pylist()
+        ts = batch.column("Transform3D:translation").to_pylist()
+        qs = batch.column("Transform3D:quaternion").to_pylist()
+        for f, t, q in zip(frames, ts, qs, strict=True):
+            if f and t and q:  # a row: one instance of each
+                body = str(f[0]).removeprefix("tf#")
+                pose = (np.array(t, float).reshape(3), np.array(q, float).reshape(4))
+                out.setdefault(body, []).append(pose)
+    return out
+
+
 def series_names(path: str | Path, entity: str) -> list[str]:
     """The series names (static ``SeriesLines:names``) of one entity of an .rrd, the last logged."""
     names: list[str] = []

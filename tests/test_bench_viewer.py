@@ -8,6 +8,8 @@ field 2 per timeline (name, type, range {min, max}), its field 3 the active time
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import pytest
 from telesurg.services.bench.viewer import fields, viewer_times
 
@@ -66,3 +68,27 @@ def test_bytes_that_are_not_a_message_raise() -> None:
         fields(b"\x0a\x10abc")  # a length-delimited field longer than the bytes
     with pytest.raises(ValueError):
         viewer_times(b"\x1a\x05\x0f\xff\xff\xff\xff")  # a recording whose body has wire type 7
+
+
+def test_an_unknown_rasteriser_is_refused_by_name() -> None:
+    from telesurg.services.bench.browser import _flags
+
+    with pytest.raises(ValueError, match="gl='gpu': one of swiftshader, llvmpipe"):
+        _flags([], "gpu")
+
+
+@pytest.mark.parametrize(("gl", "renderer"), [("swiftshader", "SwiftShader"), ("llvmpipe", "llvmpipe")])
+def test_the_bench_browser_draws_with_the_rasteriser_it_names(tmp_path: Path, gl: str, renderer: str) -> None:
+    """What ``bench viewer --gl`` reports is what the page gets: a real headless Chromium asked for
+    each rasteriser, the WebGL renderer string of a page read back (the figures in
+    docs/performance.md compare the two)."""
+    from telesurg.services.bench.browser import CHROMIUM, chromium
+    from telesurg.services.bench.viewer import webgl_renderer
+
+    if not CHROMIUM.exists():
+        pytest.skip(f"no Chromium at {CHROMIUM}")
+    if gl == "llvmpipe" and not any(Path("/usr/lib").glob("*/dri/swrast_dri.so")):
+        pytest.skip("no Mesa llvmpipe (libgl1-mesa-dri)")
+    with chromium("about:blank", tmp_path, window=(320, 240), gl=gl) as (cdp, session):
+        got = webgl_renderer(cdp, session)
+    assert got is not None and renderer in got, got

@@ -226,27 +226,14 @@ def test_slave_holds_on_the_watchdog_workspace_veto(run: tuple[Log, Path, dict[s
 
 
 def test_mirror_draws_the_arm_from_its_own_model(run: tuple[Log, Path, dict[str, int], float]) -> None:
-    from helpers import entity_paths
-    from rerun.chunk import RrdReader
+    from helpers import body_poses, entity_paths
     from telesurg.services.mirror.geometry import quat_matrix
 
     log, rrd, _, _ = run
     assert rrd.is_file()
     paths = entity_paths(rrd)
     assert "/slave/arm1/links" not in paths, "a stick figure drawn over the robot's bodies"
-    poses: list[tuple[np.ndarray, np.ndarray]] = []
-    for c in RrdReader(str(rrd)).stream():
-        if c.entity_path != "/slave/geometry/fore":
-            continue
-        batch = c.to_record_batch()
-        if "Transform3D:translation" in batch.schema.names:
-            ts = batch.column("Transform3D:translation").to_pylist()
-            qs = batch.column("Transform3D:quaternion").to_pylist()
-            poses += [
-                (np.array(t, float).reshape(3), np.array(q, float).reshape(4))
-                for t, q in zip(ts, qs, strict=True)
-                if t
-            ]  # a row: one instance
+    poses = body_poses(rrd).get("/slave/geometry/fore", [])
     assert len(poses) > 20, f"{len(poses)} poses of the forearm"
     assert any(p.startswith("/slave/geometry/fore/") for p in paths), "the forearm has no geoms"
     # the tip site (0.15 m along the forearm body's x, robot.xml) of each drawn pose lies on the

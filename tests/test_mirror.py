@@ -12,8 +12,10 @@ import time
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
-from helpers import entity_paths, scalar_counts, scalar_rows, series_names, text_logs
+from helpers import body_poses, entity_paths, scalar_counts, scalar_rows, series_names, text_logs
+from telesurg.shared import robots
 from telesurg.shared.bus import BusConfig, Node, open_session
 from telesurg.shared.messages import JointState, SafetyEvent
 
@@ -107,7 +109,7 @@ def test_mirror_records_bus_traffic_to_rrd(tmp_path: Path) -> None:
         paths = entity_paths(out)
         assert "/slave/arm1/joints/measured" in paths
         # the robot's own bodies, not the stick figure
-        assert "/slave/geometry/link1" in paths and "/slave/arm1/links" not in paths, sorted(paths)
+        assert "/slave/geometry/link1" in body_poses(out) and "/slave/arm1/links" not in paths, sorted(paths)
         assert "/events" in paths
         n = scalar_counts(out).get("/slave/arm1/joints/measured", 0)
         assert 0.9 * sent <= n <= sent, (n, sent)
@@ -190,3 +192,69 @@ def test_the_mirror_file_has_no_footer_and_rerun_can_add_one(tmp_path: Path) -> 
     n, said = chunks(fixed)
     assert n > 0 and not said, said
     assert scalar_counts(fixed)["/slave/arm1/joints/measured"] == 50
+
+
+def _lean_live_session(out: Path, offview_hz: float) -> None:
+    """3 s of an MH3F measured at 250 Hz, its master pose and clutch at 50 Hz, fed to a Mirror
+    the way its loop does (a batch, then draw()), as a serving lean mirror would get them."""
+    from telesurg.services.mirror import Mirror
+    from telesurg.services.mirror.view import RerunView
+    from telesurg.shared.messages import CartesianPose, Header, JointState, MasterButtons
+
+    p = robots.get("mh3f").arms("arm1")[0]
+    view = RerunView("test", save=str(out))
+    mirror = Mirror(
+        view, "telesurg/local", trail_s=1.0, trail_hz=10.0, series_hz=4.0, draw_hz=5.0,
+        layout="lean", offview_hz=offview_hz,
+    )  # fmt: skip
+    t0 = 1_700_000_000_000_000_000
+    for i in range(750):
+        stamp = t0 + i * 4_000_000
+        q = tuple(float(v) + 0.1 * np.sin(i / 100) for v in p.home)
+        js = JointState(Header("slave_control", i, stamp), p.joint_names, q)
+        items: list[tuple[str, int, object]] = [("telesurg/local/slave/arm1/measured_js", stamp, js)]
+        if i % 5 == 0:
+            h = Header("master_capture", i, stamp)
+            pose = CartesianPose(h, "master", (0.01 * np.sin(i / 50), 0.0, 0.0), (0.0, 0.0, 0.0, 1.0))
+            items.append(("telesurg/local/master/m1/measured_cp", stamp, pose))
+            buttons = MasterButtons(h, (i // 100) % 2 == 1, True)
+            items.append(("telesurg/local/master/m1/buttons", stamp, buttons))
+        mirror.feed(items)  # type: ignore[arg-type]
+        mirror.draw()
+    view.close()
+
+
+def test_a_live_lean_mirror_sends_what_its_layout_does_not_show_in_1_s_blocks(tmp_path: Path) -> None:
+    """The lean layout shows the slave 3D view, the joint plots and the text log; while serving,
+    the rest (master trail, clutch, …) goes out in 1 s blocks — every sample, fewer chunks for the
+    web viewer to take in — and the joints still every 1/series_hz."""
+    from rerun.chunk import RrdReader
+
+    counts: dict[float, dict[str, int]] = {}  # scalar blocks (one chunk each) or logged rows
+    rows: dict[float, dict[str, list[list[float]]]] = {}
+    for hz in (0.0, 1.0):
+        out = tmp_path / f"offview-{hz}.rrd"
+        _lean_live_session(out, hz)
+        n: dict[str, int] = {}
+        for c in RrdReader(str(out)).stream():
+            # trails and poses are logged row by row (batched into chunks by rerun): count their rows
+            n[c.entity_path] = n.get(c.entity_path, 0) + (
+                c.num_rows if c.entity_path.endswith(("/tip", "body_poses")) else 1
+            )
+        counts[hz] = n
+        rows[hz] = {e: scalar_rows(out, e) for e in ("/master/m1/clutch", "/slave/arm1/joints/measured")}
+    clutch, joints, master, slave = (
+        "/master/m1/clutch",
+        "/slave/arm1/joints/measured",
+        "/master/m1/tip",
+        "/slave/body_poses",
+    )
+    # 3 s at 1 Hz (and the last block at close) against 3 s at 4 Hz
+    assert counts[1.0][clutch] <= 5 < counts[0.0][clutch], counts
+    # the master's trail drawn at 1 Hz, the robot (shown) at the 5 Hz scene rate
+    assert counts[1.0][master] <= 5 < counts[0.0][master], counts
+    assert counts[1.0][slave] == counts[0.0][slave] >= 10, counts
+    assert counts[1.0][joints] == counts[0.0][joints] >= 10, counts
+    # the same samples either way: nothing the viewer is sent later is lost
+    assert rows[1.0] == rows[0.0]
+    assert [r[0] for r in rows[1.0][clutch]].count(1.0) > 0

@@ -82,11 +82,11 @@ def test_body_poses_put_every_tip_where_the_registry_kinematics_do(name: str) ->
 
 
 def test_mirror_writes_static_geometry_once_and_poses_per_frame(tmp_path: Path) -> None:
-    from helpers import entity_paths
+    from helpers import body_poses, entity_paths
     from rerun.chunk import RrdReader
     from telesurg.services.mirror import Mirror
     from telesurg.services.mirror.geometry import RobotGeometry
-    from telesurg.services.mirror.view import RerunView
+    from telesurg.services.mirror.view import BODY_POSES, RerunView
     from telesurg.shared.messages import Header, JointState
 
     spec = robots.get("vip")  # two arms in one model
@@ -113,19 +113,23 @@ def test_mirror_writes_static_geometry_once_and_poses_per_frame(tmp_path: Path) 
     bodies = [b.name for b in RobotGeometry.load(spec).bodies]
     paths = entity_paths(out)
     for b in bodies:
-        assert f"/slave/geometry/{b}" in paths, b
         assert any(p.startswith(f"/slave/geometry/{b}/") for p in paths), f"{b}: no geom"
-    transforms: dict[str, int] = {}
     statics: dict[str, int] = {}
+    transforms: set[str] = set()
     for c in RrdReader(str(out)).stream():
         names = c.to_record_batch().schema.names
         if any(n.startswith("Transform3D:") for n in names):
-            transforms[c.entity_path] = transforms.get(c.entity_path, 0) + c.num_rows
+            transforms.add(c.entity_path)
         if any(n.split(":")[0] in ("Boxes3D", "Capsules3D", "Cylinders3D", "Ellipsoids3D") for n in names):
             statics[c.entity_path] = statics.get(c.entity_path, 0) + c.num_rows
+    # every pose in one entity (one chunk per batch for the viewer, not one per body)
+    assert transforms == {BODY_POSES}, transforms
+    poses = body_poses(out)
     # every link of both arms moved each frame: one pose per frame; the fixed bases once
     links = [b for b in bodies if "link" in b]
-    assert links and all(transforms.get(f"/slave/geometry/{b}") == frames for b in links), transforms
+    assert links and all(len(poses.get(f"/slave/geometry/{b}", [])) == frames for b in links), {
+        b: len(v) for b, v in poses.items()
+    }
     assert all(n == 1 for n in statics.values()), statics  # static geometry: once per entity
     # the bodies replace the stick figure (two entities fewer for the viewer to take in)
     assert not any(p.endswith(("/links", "/forceps")) for p in paths), sorted(paths)
@@ -151,7 +155,7 @@ def test_without_geometry_the_mirror_draws_the_sketch(tmp_path: Path) -> None:
     view.close()
     paths = entity_paths(out)
     assert {"/slave/arm1/links", "/slave/arm1/forceps"} <= paths, sorted(paths)
-    assert not any(p.startswith("/slave/geometry/") for p in paths), sorted(paths)
+    assert not any(p.startswith("/slave/geometry/") or p == "/slave/body_poses" for p in paths), sorted(paths)
 
 
 # --------------------------------------------------------------------------- in the browser

@@ -35,8 +35,6 @@ WINDOW = (1600, 900)  # px: viewport of the screenshot
 CHROMIUM_FLAGS = (
     "--headless",
     "--no-sandbox",
-    "--disable-gpu",
-    "--enable-unsafe-swiftshader",  # software WebGL (no GPU in CI)
     "--disable-quic",
     "--no-first-run",
     "--no-default-browser-check",
@@ -53,6 +51,14 @@ CHROMIUM_FLAGS = (
     f"--window-size={WINDOW[0]},{WINDOW[1]}",
     "--remote-debugging-pipe",
 )
+#: Software WebGL (there is no GPU in CI) by rasteriser: ``swiftshader`` (Chromium's own, what it
+#: falls back to without a usable GPU) or ``llvmpipe`` (Mesa's, through ANGLE on EGL; needs
+#: libegl1 + libgl1-mesa-dri; measured ~1.8× the frames/s of SwiftShader on a 1600×900 page of
+#: the viewer, docs/performance.md).
+GL_FLAGS = {
+    "swiftshader": ("--disable-gpu", "--enable-unsafe-swiftshader"),
+    "llvmpipe": ("--use-angle=gl-egl", "--ignore-gpu-blocklist"),
+}
 
 
 # --------------------------------------------------------------------------- DevTools over a pipe
@@ -123,6 +129,7 @@ def chromium(
     nice: int = 10,
     autogroup_nice: int | None = None,
     flags: Sequence[str] = (),
+    gl: str = "swiftshader",
 ) -> Iterator[tuple[DevTools, str]]:
     """Headless chromium showing ``url``: (DevTools client, page session id); killed on exit.
 
@@ -132,7 +139,8 @@ def chromium(
     session: every chromium process — browser, renderer, GPU process — is in it), None to leave
     it at 0. With autogroups (Linux's default) a process's own nice counts only inside its group;
     19 puts the whole browser below every other session's work, the control path's included
-    (see :func:`autogroups`); ``flags``: extra chromium flags."""
+    (see :func:`autogroups`); ``flags``: extra chromium flags; ``gl``: the software WebGL
+    rasteriser, a key of :data:`GL_FLAGS`."""
     profile = workdir / "chromium-profile"
     profile.mkdir(parents=True, exist_ok=True)
     cmd_r, cmd_w = os.pipe()  # we write commands → chromium's fd 3
@@ -151,7 +159,7 @@ def chromium(
         f'{group}exec 3<&{cmd_r} 4>&{out_w} {cmd_r}<&- {out_w}>&-; exec nice -n {nice} "$@"',
         "chromium",
         str(CHROMIUM),
-        *_flags(flags),
+        *_flags(flags, gl),
         f"--user-data-dir={profile}",
         "about:blank",
     ]
@@ -182,11 +190,14 @@ def chromium(
         log.close()
 
 
-def _flags(extra: Sequence[str]) -> list[str]:
-    """:data:`CHROMIUM_FLAGS` with ``extra`` added (an extra ``--name=value`` replaces the default
-    flag of that name)."""
+def _flags(extra: Sequence[str], gl: str = "swiftshader") -> list[str]:
+    """:data:`CHROMIUM_FLAGS` and the ``gl`` rasteriser's :data:`GL_FLAGS` with ``extra`` added (an
+    extra ``--name=value`` replaces the default flag of that name)."""
+    if gl not in GL_FLAGS:
+        raise ValueError(f"gl={gl!r}: one of {', '.join(GL_FLAGS)}")
     names = {f.split("=", 1)[0] for f in extra}
-    return [*(f for f in CHROMIUM_FLAGS if f.split("=", 1)[0] not in names), *extra]
+    base = (*CHROMIUM_FLAGS, *GL_FLAGS[gl])
+    return [*(f for f in base if f.split("=", 1)[0] not in names), *extra]
 
 
 def lowest_priority() -> None:

@@ -44,7 +44,15 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from telesurg.services.bench.browser import CHROMIUM, WINDOW, DevTools, autogroups, chromium, screenshot
+from telesurg.services.bench.browser import (
+    CHROMIUM,
+    GL_FLAGS,
+    WINDOW,
+    DevTools,
+    autogroups,
+    chromium,
+    screenshot,
+)
 from telesurg.services.bench.plots import plot_viewer_lag
 from telesurg.shared import jsonio
 
@@ -178,6 +186,22 @@ def probe(cdp: DevTools, session: str) -> dict[str, Any] | None:
     return {"page_ns": int(page_ms * 1e6), "viewer": True, **times}
 
 
+#: JS: the WebGL renderer a page of this browser gets (the rasteriser that draws the viewer).
+_RENDERER_JS = (
+    "(() => { const gl = document.createElement('canvas').getContext('webgl2');"
+    " if (!gl) return null; const e = gl.getExtension('WEBGL_debug_renderer_info');"
+    " return e ? gl.getParameter(e.UNMASKED_RENDERER_WEBGL) : gl.getParameter(gl.RENDERER); })()"
+)
+
+
+def webgl_renderer(cdp: DevTools, session: str) -> str | None:
+    """The WebGL renderer string the page reports (e.g. "ANGLE (…SwiftShader…)"), None without
+    WebGL 2."""
+    r = cdp.call("Runtime.evaluate", {"expression": _RENDERER_JS, "returnByValue": True}, session)
+    value = r.get("result", {}).get("value")
+    return str(value) if value else None
+
+
 def frame_rate(cdp: DevTools, session: str) -> float | None:
     """Animation frames a second of the page over 2 s or its first frame after that (None if the
     page does not answer within a minute)."""
@@ -253,10 +277,12 @@ def run(
     window: tuple[int, int] = WINDOW,
     autogroup_nice: int | None = AUTOGROUP_NICE,
     flags: Sequence[str] = (),
+    gl: str = "swiftshader",
 ) -> dict[str, Any]:
     """The demo for ``seconds`` with the viewer open; the figures (module docstring).
     ``window``: the page's viewport (px); ``autogroup_nice``: the nice value of Chromium's
-    scheduler autogroup (None: 0); ``flags``: extra Chromium flags."""
+    scheduler autogroup (None: 0); ``flags``: extra Chromium flags; ``gl``: the software WebGL
+    rasteriser (:data:`~telesurg.services.bench.browser.GL_FLAGS`)."""
     from telesurg.services.launcher import free_port, wait_port
     from telesurg.shared.viewer import viewer_url
 
@@ -283,7 +309,9 @@ def run(
             nice=0,
             autogroup_nice=autogroup_nice,
             flags=[f"--window-size={window[0]},{window[1]}", *flags],
+            gl=gl,
         ) as (cdp, session):
+            renderer = webgl_renderer(cdp, session)
             t_open = time.monotonic()
             load_open = os.getloadavg()[0]
             next_fps = t_open + warmup
@@ -354,6 +382,8 @@ def run(
         "browser_cpu_s": round(browser_cpu, 2),
         "window": list(window),
         "chromium_flags": list(flags),
+        "gl": gl,
+        "webgl_renderer": renderer,
         # /proc/<pid>/autogroup of every Chromium process seen: (group, nice) → processes
         "chromium_autogroups": _count(groups.values()),
         "browser_cpu_share": round(browser_cpu / browser_wall, 3) if browser_wall > 0 else None,
@@ -406,7 +436,13 @@ def main(argv: Sequence[str] | None = None) -> int:
         action="append",
         default=[],
         metavar="FLAG",
-        help="extra Chromium flag, e.g. --chromium-flag=--use-angle=swiftshader (repeatable)",
+        help="extra Chromium flag, e.g. --chromium-flag=--force-device-scale-factor=0.5 (repeatable)",
+    )
+    ap.add_argument(
+        "--gl",
+        choices=sorted(GL_FLAGS),
+        default="swiftshader",
+        help="software WebGL rasteriser: swiftshader (Chromium's fallback, default) or llvmpipe (Mesa)",
     )
     ap.add_argument("--json", type=Path, help="write the figures here")
     ap.add_argument("--png", type=Path, help="save a screenshot here (taken ~8 s before the session ends)")
@@ -449,6 +485,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             window=args.window,
             autogroup_nice=args.autogroup_nice,
             flags=args.chromium_flag,
+            gl=args.gl,
         )
     lag = res["lag_s"]
 
@@ -469,7 +506,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     )
     print(f"demo: {res['summary']}; engagements {res['engagements']}")
     print(
-        f"viewport {res['window'][0]}x{res['window'][1]}; Chromium's processes by autogroup: "
+        f"viewport {res['window'][0]}x{res['window'][1]}; WebGL: {res['webgl_renderer']}; "
+        "Chromium's processes by autogroup: "
         + ", ".join(f"{g}: {n}" for g, n in res["chromium_autogroups"].items())
     )
     if args.json:

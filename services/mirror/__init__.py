@@ -16,7 +16,11 @@ the master tip, mode changes and events. Entity paths and the layout are describ
 zenoh callbacks only decode and append to a buffer. The draw loop takes the whole buffer each tick
 and draws the 3D scene (latest state, trails thinned to ``trail_hz``) at ``draw_hz``; scalar
 samples are sent in blocks (one ``send_columns`` per entity) at ``series_hz``, so a 1 kHz stream
-costs a handful of rerun calls a second, never one per sample.
+costs a handful of rerun calls a second, never one per sample. While it serves the web viewer
+with the ``lean`` layout, what that layout does not show (the master trail, clutch, engaged,
+latency, scale, tip / RCM error) goes out once a second (:data:`LIVE_OFFVIEW_HZ`), every sample
+kept: the viewer takes in a bounded number of chunks (one per entity and block) per frame it
+draws, and under software WebGL a large page draws 1–2 frames a second.
 
 Examples::
 
@@ -110,6 +114,11 @@ LIVE_PLOT_HZ = 10.0
 #: Hz of the 3D scene while serving the live web viewer / when only saving (``draw_hz = -1``)
 LIVE_DRAW_HZ = 5.0
 FILE_DRAW_HZ = 30.0
+#: Hz at which the entities the ``lean`` layout does not show (master trail and clutch, engaged,
+#: latency, scale, tip / RCM error) are sent while serving the live web viewer: the viewer takes
+#: in a bounded number of chunks per frame it draws, one per entity and batch; they stay in the
+#: recording, a view away, with every sample, only sent in 1 s blocks
+LIVE_OFFVIEW_HZ = 1.0
 #: Hz of the mirror's loop (taking in messages, sending due series blocks and frames), at least
 LOOP_HZ = 20.0
 
@@ -193,6 +202,11 @@ class MirrorConfig:
         if self.plot_hz >= 0:
             return self.plot_hz
         return LIVE_PLOT_HZ if self.serve else 0.0
+
+    def effective_offview_hz(self) -> float:
+        """Hz of the entities the layout does not show: :data:`LIVE_OFFVIEW_HZ` while serving the
+        ``lean`` layout, else 0 (with the others)."""
+        return LIVE_OFFVIEW_HZ if self.serve and self.layout == "lean" else 0.0
 
     def validate(self) -> None:
         """Raise ConfigError naming what is wrong."""
@@ -415,6 +429,7 @@ class Mirror:
         layout_wait_s: float = 0.5,
         geometry: bool = True,
         layout: str = "full",
+        offview_hz: float = 0.0,
     ) -> None:
         self.view = view
         self._layout = layout
@@ -442,6 +457,10 @@ class Mirror:
         self._streams: set[tuple[str, str]] = set()
         self._now_rx = 0  # latest receive time fed: the clock of the series blocks and the layout
         self._series_sent_rx = 0
+        # entities the layout does not show: sent every 1/offview_hz s (0: with the others)
+        self._offview_dt_ns = int(1e9 / offview_hz) if offview_hz > 0 else 0
+        self._offview_sent_rx = 0
+        self._offview_drawn_rx = 0
         self._first_arm_rx = 0
         self.ignored = 0  # decoded messages that are not drawn (unknown keys, types or streams)
         self.drawn = 0  # joint samples drawn (after plot_hz thinning)
@@ -647,10 +666,21 @@ class Mirror:
             self._draw_scene()
         if self._now_rx - self._series_sent_rx >= self._series_dt_ns:
             self._series_sent_rx = self._now_rx
-            self._send_series()
+            offview = self._now_rx - self._offview_sent_rx >= self._offview_dt_ns
+            if offview:
+                self._offview_sent_rx = self._now_rx
+            self._send_series(offview)
 
-    def _draw_scene(self) -> None:
+    def _draw_scene(self, offview: bool | None = None) -> None:
+        """The 3D scene; ``offview``: also the trails the layout does not show (the master's; None:
+        when ``1/offview_hz`` s have passed)."""
+        if offview is None:
+            offview = self._now_rx - self._offview_drawn_rx >= self._offview_dt_ns
+        if offview:
+            self._offview_drawn_rx = self._now_rx
         for (role, arm, leaf), t in self._trails.items():
+            if role == "master" and not offview:
+                continue
             if t.dirty:
                 t.dirty = False
                 pts = np.asarray(t.points, np.float64)
@@ -662,8 +692,8 @@ class Mirror:
 
     def flush(self) -> None:
         """Send everything buffered, and the layout if it has not been sent yet."""
-        self._draw_scene()
-        self._send_series()
+        self._draw_scene(offview=True)
+        self._send_series(offview=True)
         if self.view.blueprint_arms is None:
             self._send_layout()
 
@@ -741,17 +771,22 @@ class Mirror:
             self.view.hide_point(slave_path(arm, "rcm"), src, rx)
             a.rcm_drawn = False
 
-    def _send_series(self) -> None:
+    def _send_series(self, offview: bool = True) -> None:
+        """Send the buffered joint blocks; ``offview``: also the other scalars (clutch, engaged,
+        latency, scale, tip / RCM error), which the ``lean`` layout does not show."""
         for (arm, kind, names), s in self._series.items():
             if s.src:
                 src, rx, values = s.take()
                 self.view.joints(arm, kind, names, src, rx, values)
+        for a in self._arms.values():
+            self._tip_errors(a)  # computed as they come (the history they need is bounded)
+        if not offview:
+            return
         for path, s in self._scalars.items():
             if s.src:
                 src, rx, values = s.take()
                 self.view.series(path, src, rx, values if values.shape[1] > 1 else values[:, 0])
         for arm, a in self._arms.items():
-            self._tip_errors(a)
             for leaf, s in (("tip_error_mm", a.errors), ("rcm_error_mm", a.rcm_errors)):
                 if s.src:
                     src, rx, values = s.take()
@@ -859,6 +894,7 @@ def run(cfg: MirrorConfig, stop: threading.Event) -> None:
                 layout_wait_s=cfg.layout_wait_s,
                 geometry=cfg.geometry,
                 layout=cfg.layout,
+                offview_hz=cfg.effective_offview_hz(),
             )
             trusted = frozenset(cfg.trusted_sources)
 

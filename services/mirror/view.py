@@ -7,10 +7,14 @@ Entity paths (``<arm>`` an arm id, ``<joint>`` a joint name, both escaped for re
                                                          each, named and coloured by a static
                                                          SeriesLines on the entity)
     /slave/<arm>/joints/setpoint           Scalars       rad (m), slave/<arm>/servo_jp, likewise
-    /slave/geometry/<body>                 Transform3D   a body of the robot's MuJoCo model, posed by
-                                                         mj_kinematics at the measured joints; its
-                                                         geoms (static, body frame) are the children
-                                                         box|ellipsoid|capsule|cylinder|mesh<i>
+    /slave/geometry/<body>/<kind>          Boxes3D | Ellipsoids3D | Capsules3D | Cylinders3D | Mesh3D
+                                                         a body of the robot's MuJoCo model: its geoms
+                                                         (static, in the body's frame, the implicit
+                                                         frame tf#/slave/geometry/<body>); <kind> box|
+                                                         ellipsoid|capsule|cylinder|mesh<i>
+    /slave/body_poses                      Transform3D   every body's pose (world frame, m), posed by
+                                                         mj_kinematics at the measured joints: a row
+                                                         per moved body, child_frame its body's frame
     /slave/<arm>/links                     LineStrips3D + Points3D  the arm's kinematic chain (from
                                                          measured_js: mh3f base→flange, vip R–E–W,
                                                          plas port→DH chain), m — only where the
@@ -159,6 +163,15 @@ EVENTS_PATH = "/events"
 #: Leaf of ``/safety/<arm>/…``: the watchdog's latency quantiles, one entity (instances p50, p90, p99).
 LATENCY = "latency_ms"
 LATENCY_QUANTILES = ("p50", "p90", "p99")
+
+
+#: Every robot body's pose, in one entity: Transform3D rows, each naming its body's frame as
+#: ``child_frame`` (``tf#/slave/geometry/<body>``, the implicit frame of the body's entity, so its
+#: geoms follow). One entity, not one per body: the web viewer takes in a bounded number of chunks
+#: per frame it draws, and the batcher makes one chunk per entity and flush.
+BODY_POSES = "/slave/body_poses"
+#: The frame body poses are given in: ``/slave/geometry``'s implicit frame (the slave world frame).
+GEOMETRY_FRAME = "tf#/slave/geometry"
 
 
 @functools.lru_cache(maxsize=4096)
@@ -591,12 +604,19 @@ class RerunView:
         position: npt.NDArray[np.float64],
         quat_wxyz: npt.NDArray[np.float64],
     ) -> None:
-        """The pose of robot body ``name`` (world frame, m; quaternion w x y z) from this time on."""
+        """The pose of robot body ``name`` (world frame, m; quaternion w x y z) from this time on: a
+        row of :data:`BODY_POSES` naming the body's frame (every body's rows in one entity, so one
+        chunk per batch reaches the viewer, not one per body)."""
         rr = self._rr
         self._at(source_ns, receive_ns)
         self._rec.log(
-            geometry_path(name),
-            rr.Transform3D(translation=position, quaternion=rr.Quaternion(xyzw=np.roll(quat_wxyz, -1))),
+            BODY_POSES,
+            rr.Transform3D(
+                translation=position,
+                quaternion=rr.Quaternion(xyzw=np.roll(quat_wxyz, -1)),
+                child_frame=f"tf#{geometry_path(name)}",
+                parent_frame=GEOMETRY_FRAME,
+            ),
         )
 
     def point(
