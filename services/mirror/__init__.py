@@ -18,7 +18,7 @@ and draws the 3D scene (latest state, trails thinned to ``trail_hz``) at ``draw_
 samples are sent in blocks (one ``send_columns`` per entity) at ``series_hz``, so a 1 kHz stream
 costs a handful of rerun calls a second, never one per sample. While it serves the web viewer
 with the ``lean`` layout, what that layout does not show (the master trail, clutch, engaged,
-latency, scale, tip / RCM error) goes out once a second (:data:`LIVE_OFFVIEW_HZ`), every sample
+latency, scale, tip / RCM error, camera frames) goes out once a second (:data:`LIVE_OFFVIEW_HZ`), every sample
 kept: the viewer takes in a bounded number of chunks (one per entity and block) per frame it
 draws, and under software WebGL a large page draws 1–2 frames a second.
 
@@ -115,9 +115,9 @@ LIVE_PLOT_HZ = 10.0
 LIVE_DRAW_HZ = 5.0
 FILE_DRAW_HZ = 30.0
 #: Hz at which the entities the ``lean`` layout does not show (master trail and clutch, engaged,
-#: latency, scale, tip / RCM error) are sent while serving the live web viewer: the viewer takes
-#: in a bounded number of chunks per frame it draws, one per entity and batch; they stay in the
-#: recording, a view away, with every sample, only sent in 1 s blocks
+#: latency, scale, tip / RCM error; camera frames at most this often) are sent while serving the
+#: live web viewer: the viewer takes in a bounded number of chunks per frame it draws, one per
+#: entity and batch; they stay in the recording, a view away, with every sample, in 1 s blocks
 LIVE_OFFVIEW_HZ = 1.0
 #: Hz of the mirror's loop (taking in messages, sending due series blocks and frames), at least
 LOOP_HZ = 20.0
@@ -910,8 +910,11 @@ def run(cfg: MirrorConfig, stop: threading.Event) -> None:
                     sources=trust,
                     latest=rel in LATEST,
                 )
-            frames = FrameTap(cfg.image_hz)
-            if cfg.image_hz > 0:
+            # the lean layout shows no camera: a live viewer gets its frames at the off-view rate
+            offview = cfg.effective_offview_hz()
+            image_hz = min(cfg.image_hz, offview) if offview > 0 else cfg.image_hz
+            frames = FrameTap(image_hz)
+            if image_hz > 0:
                 node.subscribe(
                     f"{node.keys.prefix}/camera/*/image", CameraImage, frames.on_frame, sources=["camera"]
                 )
