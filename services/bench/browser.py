@@ -53,8 +53,8 @@ CHROMIUM_FLAGS = (
 )
 #: Software WebGL (there is no GPU in CI) by rasteriser: ``swiftshader`` (Chromium's own, what it
 #: falls back to without a usable GPU) or ``llvmpipe`` (Mesa's, through ANGLE on EGL; needs
-#: libegl1 + libgl1-mesa-dri; measured ~1.8× the frames/s of SwiftShader on a 1600×900 page of
-#: the viewer, docs/performance.md).
+#: libegl1 + libgl1-mesa-dri; 1.7–2.4× the frames/s of SwiftShader on pages of the viewer,
+#: docs/performance.md).
 GL_FLAGS = {
     "swiftshader": ("--disable-gpu", "--enable-unsafe-swiftshader"),
     "llvmpipe": ("--use-angle=gl-egl", "--ignore-gpu-blocklist"),

@@ -24,7 +24,8 @@ Examples::
 
     telesurg bench viewer --seconds 100 --json docs/data/perf/viewer.json
     telesurg bench viewer --seconds 60 --set mirror.layout=\\"full\\"    # the full layout
-    telesurg bench viewer --seconds 100 --window 800x450             # a smaller page
+    telesurg bench viewer --seconds 100 --window 1280x720            # a smaller page
+    telesurg bench viewer --seconds 100 --gl llvmpipe                # Mesa's rasteriser
     telesurg bench viewer --plot lag.png --from before=a.json after=b.json   # saved runs, no run
 """
 
