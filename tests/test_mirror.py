@@ -243,7 +243,7 @@ def test_a_live_lean_mirror_sends_what_its_layout_does_not_show_in_1_s_blocks(tm
             )
         counts[hz] = n
         rows[hz] = {e: scalar_rows(out, e) for e in ("/master/m1/clutch", "/slave/arm1/joints/measured")}
-    clutch, joints, master, slave = (
+    clutch, joints, master, robot = (
         "/master/m1/clutch",
         "/slave/arm1/joints/measured",
         "/master/m1/tip",
@@ -253,7 +253,7 @@ def test_a_live_lean_mirror_sends_what_its_layout_does_not_show_in_1_s_blocks(tm
     assert counts[1.0][clutch] <= 5 < counts[0.0][clutch], counts
     # the master's trail drawn at 1 Hz, the robot (shown) at the 5 Hz scene rate
     assert counts[1.0][master] <= 5 < counts[0.0][master], counts
-    assert counts[1.0][slave] == counts[0.0][slave] >= 10, counts
+    assert counts[1.0][robot] == counts[0.0][robot] >= 10, counts
     assert counts[1.0][joints] == counts[0.0][joints] >= 10, counts
     # the same samples either way: nothing the viewer is sent later is lost
     assert rows[1.0] == rows[0.0]

@@ -27,6 +27,17 @@ def test_the_rates_are_the_live_viewer_s_while_serving_and_the_file_s_otherwise(
     chosen = MirrorConfig(serve=True, draw_hz=15.0, plot_hz=0.0)  # a user's rates win
     chosen.validate()
     assert (chosen.effective_draw_hz(), chosen.effective_plot_hz()) == (15.0, 0.0)
+    # what the lean layout does not show (the camera too): 1 Hz while serving it, else as set
+    from telesurg.services.mirror import LIVE_OFFVIEW_HZ
+
+    assert (serving.layout, serving.effective_offview_hz(), serving.effective_image_hz()) == (
+        "lean",
+        LIVE_OFFVIEW_HZ,
+        min(serving.image_hz, LIVE_OFFVIEW_HZ),
+    )
+    assert (saving.effective_offview_hz(), saving.effective_image_hz()) == (0.0, saving.image_hz)
+    full = MirrorConfig(serve=True, layout="full")
+    assert (full.effective_offview_hz(), full.effective_image_hz()) == (0.0, full.image_hz)
     for bad in ({"draw_hz": 0.5}, {"draw_hz": -0.5}, {"plot_hz": -0.5}, {"plot_hz": -2.0}):
         with pytest.raises(ConfigError, match=rf"{next(iter(bad))}="):
             MirrorConfig(save="x.rrd", **bad).validate()  # type: ignore[arg-type]

@@ -209,6 +209,12 @@ class MirrorConfig:
         ``lean`` layout, else 0 (with the others)."""
         return LIVE_OFFVIEW_HZ if self.serve and self.layout == "lean" else 0.0
 
+    def effective_image_hz(self) -> float:
+        """``image_hz``, at most the off-view rate while serving the ``lean`` layout (it shows no
+        camera)."""
+        offview = self.effective_offview_hz()
+        return min(self.image_hz, offview) if offview > 0 else self.image_hz
+
     def validate(self) -> None:
         """Raise ConfigError naming what is wrong."""
         if not self.save and not self.serve:
@@ -911,9 +917,7 @@ def run(cfg: MirrorConfig, stop: threading.Event) -> None:
                     sources=trust,
                     latest=rel in LATEST,
                 )
-            # the lean layout shows no camera: a live viewer gets its frames at the off-view rate
-            offview = cfg.effective_offview_hz()
-            image_hz = min(cfg.image_hz, offview) if offview > 0 else cfg.image_hz
+            image_hz = cfg.effective_image_hz()
             frames = FrameTap(image_hz)
             if image_hz > 0:
                 node.subscribe(

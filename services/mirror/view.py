@@ -170,15 +170,17 @@ LATENCY_QUANTILES = ("p50", "p90", "p99")
 #: geoms follow). One entity, not one per body: the web viewer takes in a bounded number of chunks
 #: per frame it draws, and the batcher makes one chunk per entity and flush.
 BODY_POSES = "/slave/body_poses"
-#: The frame body poses are given in: ``/slave/geometry``'s implicit frame (the slave world frame).
-GEOMETRY_FRAME = "tf#/slave/geometry"
+#: The parent of every body's entity (:func:`geometry_path`).
+GEOMETRY_ROOT = "/slave/geometry"
+#: The frame body poses are given in: ``GEOMETRY_ROOT``'s implicit frame (the slave world frame).
+GEOMETRY_FRAME = f"tf#{GEOMETRY_ROOT}"
 
 
 @functools.lru_cache(maxsize=4096)
 def geometry_path(body: str) -> str:
     """``/slave/geometry/<body>``: a robot body of the slave's MuJoCo model (its static geoms are
-    children, its pose the entity's Transform3D)."""
-    return f"/slave/geometry/{_part(body)}"
+    children; its pose a row of :data:`BODY_POSES` naming this entity's implicit frame)."""
+    return f"{GEOMETRY_ROOT}/{_part(body)}"
 
 
 def _window(seconds: float) -> list[Any]:
