@@ -118,6 +118,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                         log.error("%s exited with code %d", name, rc)
                         stop.set()
                 report = rec.report()
+                rec.close()
             codes = site.stop()
     except (TelesurgError, ConnectionError) as exc:
         print(f"telesurg demo: {exc}", file=sys.stderr)

@@ -35,6 +35,7 @@ The report is strict JSON: a figure that could not be computed is ``null``, neve
 
 from __future__ import annotations
 
+import functools
 import math
 import re
 import threading
@@ -226,9 +227,15 @@ class WatchdogTransitions:
         return f"{counts} (causes: {why})" if why else counts
 
 
+#: s between the recorder's polls of its streams (zenoh buffers POLL_CAPACITY messages a stream:
+#: 4 s at 1 kHz)
+POLL_S = 0.2
+
+
 @dataclass
 class SessionRecorder:
-    """Subscribes to one master→slave pair and keeps what a report needs."""
+    """Subscribes to one master→slave pair and keeps what a report needs (its node's own: the
+    recorder polls it). :meth:`close` stops the polling thread (the node's end does too)."""
 
     node: Node
     master_arm: str = "m1"
@@ -258,17 +265,44 @@ class SessionRecorder:
         }
         mapping = [self.mapping_source] if self.mapping_source else None
         watchdog = [self.watchdog_source] if self.watchdog_source else None
-        self.node.subscribe(self.keys["master_cp"], CartesianPose, self._ignore)
-        self.node.subscribe(self.keys["measured_cp"], CartesianPose, self._on_slave)
-        self.node.subscribe(self.keys["setpoint_cp"], CartesianPose, self._on_target, sources=mapping)
-        self.node.subscribe(self.keys["servo_jp"], JointSetpoint, self._ignore)
-        self.node.subscribe(self.keys["measured_js"], JointState, self._ignore)
-        self.node.subscribe(self.keys["operating_state"], OperatingState, self._on_state)
+        # the streams (100 Hz – 1 kHz) wait in zenoh's buffer until the recorder's thread polls
+        # them: no thread wake-up per message (Node.subscribe ``polled``), half the demo
+        # launcher's CPU (docs/performance.md), which the browser drawing the viewer gets instead
+        sub = functools.partial(self.node.subscribe, polled=True)
+        sub(self.keys["master_cp"], CartesianPose, self._ignore)
+        sub(self.keys["measured_cp"], CartesianPose, self._on_slave)
+        sub(self.keys["setpoint_cp"], CartesianPose, self._on_target, sources=mapping)
+        sub(self.keys["servo_jp"], JointSetpoint, self._ignore)
+        sub(self.keys["measured_js"], JointState, self._ignore)
+        sub(self.keys["operating_state"], OperatingState, self._on_state)
         self.node.subscribe(
             self.keys["teleop_state"], TeleopState, self._on_teleop, sources=mapping, latest=True
         )
         self.node.subscribe(self.keys["safety_state"], SafetyState, self._on_safety, sources=watchdog)
         self.node.subscribe(k.events(), SafetyEvent, self._on_event)
+        self._poll_lock = threading.Lock()
+        self._stop = threading.Event()
+        self._poller = threading.Thread(target=self._poll_loop, name="report-poll", daemon=True)
+        self._poller.start()
+
+    def poll(self) -> int:
+        """Take in what the streams buffered since the last poll (the thread does every
+        :data:`POLL_S`); returns the count."""
+        with self._poll_lock:
+            return self.node.poll()
+
+    def _poll_loop(self) -> None:
+        while not self._stop.wait(POLL_S):
+            try:
+                self.poll()
+            except Exception:  # the node closed under it: nothing more to take in
+                return
+
+    def close(self) -> None:
+        """Stop polling (what arrives afterwards is not counted); idempotent."""
+        self._stop.set()
+        if self._poller is not threading.current_thread():
+            self._poller.join(timeout=2.0)
 
     def _ignore(self, msg: Message, key: str) -> None:
         pass  # counted by node.streams
@@ -301,7 +335,8 @@ class SessionRecorder:
     def report(self) -> dict[str, Any]:
         """Counts, gaps, tracking error, the mapping's teleop states and scales, the watchdog's
         transitions and the slave's holds, events (strict JSON: ``json.dumps(..., allow_nan=False)``
-        holds)."""
+        holds). Takes in what the streams buffered first (:meth:`poll`)."""
+        self.poll()
         with self.lock:
             slave = np.array(self.slave, dtype=float).reshape(-1, 4)
             target = np.array(sorted(self.target), dtype=float).reshape(-1, 4)

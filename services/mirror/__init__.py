@@ -107,6 +107,18 @@ SUBSCRIBED = (
 )
 #: Of those, the state streams whose current value a starting mirror asks for at once.
 LATEST = ("mapping/*/teleop_state",)
+#: Of those, the continuous streams (100 Hz – 1 kHz): they wait in zenoh's buffer
+#: (:data:`~telesurg.shared.bus.POLL_CAPACITY` messages a subscription, the oldest dropped beyond
+#: it and counted as lost) until the mirror's loop takes them in (Node.subscribe ``polled``): no
+#: thread wake-up and GIL hand-over per message — a quarter less of the mirror's CPU in the demo
+#: (docs/performance.md), which the browser drawing the viewer gets instead.
+CONTINUOUS = (
+    "slave/*/measured_js",
+    "slave/*/servo_jp",
+    "slave/*/measured_cp",
+    "slave/*/setpoint_cp",
+    "master/*/measured_cp",
+)
 
 
 #: Hz the joint series are thinned to while the mirror serves the live web viewer (``plot_hz = -1``):
@@ -916,6 +928,7 @@ def run(cfg: MirrorConfig, stop: threading.Event) -> None:
                     inbox.on_message,
                     sources=trust,
                     latest=rel in LATEST,
+                    polled=rel in CONTINUOUS,
                 )
             image_hz = cfg.effective_image_hz()
             frames = FrameTap(image_hz)
@@ -928,6 +941,7 @@ def run(cfg: MirrorConfig, stop: threading.Event) -> None:
             settle_gc()
             while not stop.is_set():
                 try:
+                    node.poll()
                     mirror.feed(inbox.take())
                     mirror.draw()
                     frames.draw(view)
@@ -937,18 +951,22 @@ def run(cfg: MirrorConfig, stop: threading.Event) -> None:
                         log.exception("draw failed (%d so far); continuing", draw_errors)
                 trimmer.maybe_trim()
                 timer.wait()
+            node.poll()  # what the continuous streams buffered since the last pass
             rejected = node.rejected
+            lost = sum(st.lost for st in node.streams.streams.values())
         mirror.feed(inbox.take())  # whatever arrived before the subscriber closed
     finally:
         view.close()  # sends what is still buffered first (Mirror.flush)
     wall, cpu = time.monotonic() - wall0, _cpu_s() - cpu0
     log.info(
-        "received %d (%d dropped while the mirror was behind), rejected %d, drew %d joint samples, "
+        "received %d (%d dropped while the mirror was behind), rejected %d, lost %d (sequence gaps), "
+        "drew %d joint samples, "
         "%d draw overruns; %d malloc trims (%.1f ms); "
         "CPU %.2f s in %.1f s (%.3f of a core, rerun's threads included)",
         inbox.received,
         inbox.dropped,
         rejected,
+        lost,
         mirror.drawn,
         timer.overruns,
         trimmer.trims,
