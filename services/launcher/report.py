@@ -36,6 +36,7 @@ The report is strict JSON: a figure that could not be computed is ``null``, neve
 from __future__ import annotations
 
 import functools
+import logging
 import math
 import re
 import threading
@@ -227,6 +228,8 @@ class WatchdogTransitions:
         return f"{counts} (causes: {why})" if why else counts
 
 
+log = logging.getLogger(__name__)
+
 #: s between the recorder's polls of its streams (zenoh buffers POLL_CAPACITY messages a stream:
 #: 4 s at 1 kHz)
 POLL_S = 0.2
@@ -295,7 +298,9 @@ class SessionRecorder:
         while not self._stop.wait(POLL_S):
             try:
                 self.poll()
-            except Exception:  # the node closed under it: nothing more to take in
+            except Exception as exc:  # the node closed under it: nothing more to take in
+                if not self._stop.is_set():
+                    log.debug("report: polling ended: %r", exc)
                 return
 
     def close(self) -> None:
