@@ -13,7 +13,8 @@ MuJoCo scene posed by ``mj_kinematics`` at the measured joints
 the master tip, mode changes and events. Entity paths and the layout are described in
 :mod:`telesurg.services.mirror.view`; the layout is sent once, when the slave arms are known.
 
-zenoh callbacks only decode and append to a buffer. The draw loop takes the whole buffer each tick
+zenoh callbacks only decode and append to a buffer (the continuous streams wait in zenoh's own
+buffer until the draw loop polls them, :data:`CONTINUOUS`). The draw loop takes the whole buffer each tick
 and draws the 3D scene (latest state, trails thinned to ``trail_hz``) at ``draw_hz``; scalar
 samples are sent in blocks (one ``send_columns`` per entity) at ``series_hz``, so a 1 kHz stream
 costs a handful of rerun calls a second, never one per sample. While it serves the web viewer
@@ -266,9 +267,10 @@ class MirrorConfig:
 class Inbox:
     """Thread-safe buffer between zenoh callbacks and the draw loop.
 
-    :meth:`on_message` runs on zenoh threads for every message that passed the strict decoder
-    and the per-key sequence check of :meth:`telesurg.shared.bus.Node.subscribe` (which also counts the
-    rejects); it stamps the receive time and appends ``(key, receive_ns, message)``;
+    :meth:`on_message` runs on zenoh threads (on the draw loop's, for the :data:`CONTINUOUS`
+    streams it polls) for every message that passed the strict decoder and the per-key sequence
+    check of :meth:`telesurg.shared.bus.Node.subscribe` (which also counts the rejects); it stamps
+    the receive time (for a polled message: the poll's) and appends ``(key, receive_ns, message)``;
     :meth:`take` hands the whole buffer to the draw loop. The buffer holds at most ``max_items``:
     when the draw loop falls behind (a starved mirror), the oldest are dropped and counted in
     :attr:`dropped`, so its memory stays bounded.
