@@ -281,3 +281,8 @@ class StreamTable:
     def rejected(self) -> int:
         """Total rejected messages over all streams."""
         return sum(s.rejected for s in self.streams.values())
+
+    @property
+    def lost(self) -> int:
+        """Total numbers jumped over and not seen, over all streams."""
+        return sum(s.lost for s in self.streams.values())

@@ -955,7 +955,7 @@ def run(cfg: MirrorConfig, stop: threading.Event) -> None:
                 timer.wait()
             node.poll()  # what the continuous streams buffered since the last pass
             rejected = node.rejected
-            lost = sum(st.lost for st in node.streams.streams.values())
+            lost = node.streams.lost
         mirror.feed(inbox.take())  # whatever arrived before the subscriber closed
     finally:
         view.close()  # sends what is still buffered first (Mirror.flush)
