@@ -13,8 +13,11 @@
   own services. See docs/deploy.md.
 * Control streams are published ``express`` (no batching) with ``Priority.REAL_TIME`` and
   ``CongestionControl.BLOCK``: nothing is dropped on a congested link (receivers check sequence
-  continuity and the watchdog sees a blocked stream as stale). Other streams use
-  ``Priority.DATA_HIGH`` and zenoh's default congestion control.
+  continuity and the watchdog sees a blocked stream as stale). The site's router keeps BLOCK only
+  towards the control services (``BusConfig.zid``, given by the launcher) and sends the control
+  streams to every other subscriber as DROP, so a subscriber that stops reading loses samples
+  instead of holding them up for the slave (services/router ``congestion_rules``). Other streams
+  use ``Priority.DATA_HIGH`` and zenoh's default congestion control.
 * State streams (``outlet(..., latest=True)``, ``subscribe(..., latest=True)``): the publisher
   answers a query on its key with its last message and a subscriber asks once when it
   subscribes, so a late joiner (a console started mid-session) has the current value at once,
@@ -35,6 +38,7 @@ import ipaddress
 import json
 import logging
 import os
+import re
 import threading
 import time
 import tomllib
@@ -100,6 +104,12 @@ class BusConfig:
     # message received is verified with the signer's ("" = the default: $TELESURG_KEYS, else
     # $XDG_STATE_HOME/telesurg/<site>/keys; `telesurg keys init DIR`, made by `telesurg up`/`demo`)
     keys_dir: str = ""
+    # this process's zenoh session id: 1-32 lowercase hex digits, no leading 0 ("" = random).
+    # The launcher gives the control services one each and lists them in the router's
+    # control_zids: the router may hold up a control stream for them (CongestionControl.BLOCK)
+    # but drops it for every other subscriber that does not keep up, so a stalled viewer cannot
+    # stall the control path
+    zid: str = ""
 
     @property
     def secured(self) -> bool:
@@ -112,6 +122,8 @@ class BusConfig:
             raise ConfigError(f"bus mode {self.mode!r} invalid; valid: {', '.join(MODES)}")
         if not 100 <= self.lease_ms <= 60_000:
             raise ConfigError(f"bus lease_ms={self.lease_ms} outside [100, 60000]")
+        if self.zid and not valid_zid(self.zid):
+            raise ConfigError(f"bus zid {self.zid!r} invalid: 1-32 lowercase hex digits, no leading 0")
         if self.mode == "client" and not self.connect:
             raise ConfigError("bus mode 'client' needs at least one --connect endpoint")
         for name in ("tls_root_ca", "tls_cert", "tls_key", "acl_file"):
@@ -139,6 +151,11 @@ class BusConfig:
                         f"plain listen endpoint {ep} on a secured bus (TLS/ACL): bind it to 127.0.0.1, "
                         "or pass --allow-insecure-listen (local development only)"
                     )
+
+
+def valid_zid(zid: str) -> bool:
+    """``zid`` is a zenoh session id as zenoh writes one: 1-32 lowercase hex digits, no leading 0."""
+    return bool(re.fullmatch(r"[1-9a-f][0-9a-f]{0,31}", zid))
 
 
 def protocol_of(endpoint: str) -> str:
@@ -252,6 +269,8 @@ def zenoh_config(cfg: BusConfig) -> zenoh.Config:
     cfg.validate()
     z = zenoh.Config.from_file(cfg.config_file) if cfg.config_file else zenoh.Config()
     z.insert_json5("mode", json.dumps(cfg.mode))
+    if cfg.zid:
+        z.insert_json5("id", json.dumps(cfg.zid))
     if cfg.connect:
         z.insert_json5("connect/endpoints", json.dumps(cfg.connect))
     if cfg.listen:

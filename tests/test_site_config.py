@@ -143,7 +143,7 @@ def test_launcher_gives_each_service_the_site_file_and_its_table() -> None:
     argv = service_argv(spec, "mapping")
     assert argv[argv.index("--config") + 1] == str(DEPLOY / "plas" / SITE_FILE)
     assert argv[argv.index("--table") + 1] == "mapping"
-    assert argv[argv.index("--set") + 1] == "scale=0.3"
+    assert argv[-2:] == ["--set", "scale=0.3"]  # the overrides last: they win
     router = service_argv(spec, "router")
     assert router[router.index("--table") + 1] == "router"
 

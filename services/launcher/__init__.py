@@ -32,6 +32,7 @@ import importlib.resources
 import json
 import logging
 import os
+import secrets
 import signal
 import socket
 import subprocess
@@ -88,6 +89,16 @@ OPTIONAL_OFF = {
 #: nice 0 and the launcher says so. ``$TELESURG_CONTROL_NICE`` overrides (0: leave as is).
 CONTROL_NICE = -10
 CONTROL = ("router", "watchdog", "slave_control", "mapping", "master_capture")
+#: The subscribers a control stream waits for at the router (services/router congestion_rules):
+#: each gets a zenoh session id of the launcher's (:attr:`SiteSpec.zids`), which the router is told.
+#: Every other subscriber (mirror, camera, console, a recorder, anyone) gets control streams as
+#: DROP: when it falls behind it loses samples instead of holding them up for these.
+ZID_SERVICES = ("watchdog", "slave_control", "mapping", "master_capture")
+
+
+def _new_zids() -> dict[str, str]:
+    # 16 hex digits, the first 8-f (zenoh refuses an id written with a leading 0)
+    return {name: f"{secrets.randbits(63) | 1 << 63:x}" for name in ZID_SERVICES}
 
 
 def control_nice() -> int:
@@ -226,6 +237,9 @@ class SiteSpec:
     # the site keyring, passed to every service as --keyring DIR; made if absent (None: the default,
     # shared/auth.py default_keys_dir)
     keys_dir: Path | None = None
+    # zenoh session id of each of ZID_SERVICES (random for each spec, kept over restarts): the
+    # router waits for these sessions alone when a control stream's subscriber falls behind
+    zids: dict[str, str] = field(default_factory=_new_zids)
 
     @property
     def site_file(self) -> Path | None:
@@ -279,6 +293,11 @@ def service_argv(spec: SiteSpec, name: str) -> list[str]:
         argv.append("--web")
     if spec.site_file is not None:
         argv += ["--config", str(spec.site_file), "--table", name]
+    if name == "router":
+        zids = [spec.zids[s] for s in ZID_SERVICES if s in spec.zids and s in spec.services]
+        argv += ["--set", f"control_zids={json.dumps(zids)}"]
+    elif name in spec.zids:
+        argv += ["--set", f"bus.zid={json.dumps(spec.zids[name])}"]
     for item in spec.overrides.get(name, []):
         argv += ["--set", item]
     return argv

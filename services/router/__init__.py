@@ -14,6 +14,15 @@ refused (docs/security.md):
   of a session cut before (a zenoh client reconnects by itself; its session id from the router's
   admin space) are cut at once for ``link_cooldown_s``, doubling per cut. Each cut is logged and
   published as a ``link_cut`` event on ``events/router`` naming the link and the session;
+* **control streams never wait for an observer** (:func:`congestion_rules`): a control stream
+  is published with ``CongestionControl.BLOCK``, so without a rule the router waits — up to 5 s,
+  for every subscriber alike — whenever one subscriber's link cannot take the next sample: a
+  viewer, recorder or console that falls behind (starved at low priority, hung, or hostile) then
+  holds up the samples of every other subscriber too, the mapping's and the slave's, and the
+  watchdog HOLDs. With ``control_zids`` (the launcher fills it: it gives each control service a
+  zenoh session id) the router keeps BLOCK only towards those sessions and sends the control
+  streams to every other subscriber as ``DROP``: a subscriber that does not keep up loses samples
+  (it sees the sequence gaps), the control path does not wait for it;
 * **diagnostics** (services/router/zlog.py): ``acl_log = "denied"`` logs access-control denials
   only (``"all"``: every decision), refused TLS handshakes are always logged with the peer and
   the reason.
@@ -37,7 +46,7 @@ from typing import Any
 from telesurg.services.common import service_main
 from telesurg.services.router.linkguard import LinkCut, LinkGuard
 from telesurg.services.router.zlog import ACL_MODES, ZenohLogRelay
-from telesurg.shared.bus import BusConfig
+from telesurg.shared.bus import BusConfig, valid_zid
 from telesurg.shared.errors import ConfigError
 from telesurg.shared.messages import MAX_PAYLOAD_BYTES
 
@@ -98,6 +107,10 @@ class RouterConfig:
     # each further cut of the same zenoh session up to link_max_cooldown_s. 0 = no cool-down.
     link_cooldown_s: float = 1.0
     link_max_cooldown_s: float = 60.0
+    # zenoh session ids (hex) of the control services — the only subscribers a control stream
+    # waits for (:func:`congestion_rules`); the launcher sets them. [] = every subscriber alike
+    # (zenoh's default: one that stops reading holds up all, the router warns)
+    control_zids: list[str] = field(default_factory=list)
 
     def validate(self) -> None:
         """Raise ConfigError naming the valid options."""
@@ -119,6 +132,12 @@ class RouterConfig:
                 f"router link_cooldown_s={self.link_cooldown_s}, link_max_cooldown_s="
                 f"{self.link_max_cooldown_s}: need 0 <= link_cooldown_s <= link_max_cooldown_s <= 86400"
             )
+        for zid in self.control_zids:
+            if not valid_zid(zid):
+                raise ConfigError(
+                    f"router control_zids: {zid!r} is not a zenoh id "
+                    "(1-32 lowercase hex digits, no leading 0)"
+                )
         if not 0.01 <= self.link_guard_period_s <= 1.0:
             raise ConfigError(f"router link_guard_period_s={self.link_guard_period_s} outside [0.01, 1] s")
 
@@ -143,6 +162,30 @@ def size_caps(cfg: RouterConfig, site: str = "*") -> list[dict[str, Any]]:
     return caps
 
 
+#: batches of the router's REAL_TIME queue per link (zenoh's maximum; default 2): each express
+#: sample is a batch, so this is how many control samples a link may have waiting
+REAL_TIME_QUEUE = 16
+
+
+def congestion_rules(control_zids: Sequence[str]) -> list[dict[str, Any]]:
+    """zenoh ``qos/network`` rules of the router: control streams (``Priority.REAL_TIME`` puts,
+    shared/bus.py ``Node.outlet``) leave the router as ``DROP`` towards every session, then as
+    ``BLOCK`` again towards ``control_zids`` (zenoh applies the rules in this order). [] without
+    control sessions: no rule, every subscriber blocks the stream alike."""
+    if not control_zids:
+        return []
+    match = {"messages": ["put", "delete"], "flows": ["egress"], "qos": {"priority": "real_time"}}
+    return [
+        {"id": "observers-drop", **match, "overwrite": {"congestion_control": "drop"}},
+        {
+            "id": "control-block",
+            "zids": list(control_zids),
+            **match,
+            "overwrite": {"congestion_control": "block"},
+        },
+    ]
+
+
 def run(cfg: RouterConfig, stop: threading.Event) -> None:
     """Serve until ``stop``."""
     import zenoh
@@ -159,6 +202,11 @@ def run(cfg: RouterConfig, stop: threading.Event) -> None:
     if caps:
         z.insert_json5("low_pass_filter", json.dumps(caps))
     z.insert_json5("transport/shared_memory/enabled", json.dumps(cfg.shared_memory))
+    if rules := congestion_rules(cfg.control_zids):
+        z.insert_json5("qos/network", json.dumps(rules))
+        # room for REAL_TIME_QUEUE express samples a link (zenoh's default 2): a router thread a
+        # few ms late drops nothing for a subscriber that keeps up, and blocks no control stream
+        z.insert_json5("transport/link/tx/queue/size/real_time", json.dumps(REAL_TIME_QUEUE))
     if cfg.link_rx_budget_mb_s and cfg.link_cooldown_s:
         # the link guard asks its own session which client session is at a link address; a client
         # reaches the admin space (@/**) only where the ACL lets it query that (the site's: no)
@@ -177,6 +225,17 @@ def run(cfg: RouterConfig, stop: threading.Event) -> None:
         cfg.acl_log,
         "on" if cfg.shared_memory else "off",
     )
+    if cfg.control_zids:
+        log.info(
+            "control streams wait only for the %d control sessions (%s); other subscribers get them as DROP",
+            len(cfg.control_zids),
+            ", ".join(cfg.control_zids),
+        )
+    else:
+        log.warning(
+            "no control_zids: a subscriber of a control stream that stops reading holds it up for "
+            "every other subscriber (the launcher sets them; docs/deploy.md)"
+        )
     guard = None
     if cfg.link_rx_budget_mb_s:
         report = link_cut_reporter(session, cfg)
