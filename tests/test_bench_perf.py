@@ -64,7 +64,7 @@ def test_load_specs() -> None:
 
     assert Load.parse("cpu:2") == Load("cpu", 2) and Load.parse("record").name == "record"
     bad_specs = (
-        ("gpu", "valid: cpu:N, idle:N, record, viewer"),
+        ("gpu", "valid: cpu:N, idle:N, record, stalled, viewer"),
         ("cpu:0", "1..16"),
         ("record:3", "no argument"),
     )
@@ -92,6 +92,8 @@ def test_bench_latency_and_soak(tmp_path: Path) -> None:
     # the same run under one busy process: its own figures beside the idle ones, and the hog gone
     loaded = lat["loaded"]["cpu:1"]
     assert loaded["pipeline"]["end_to_end"]["n"] > 200 and loaded["pipeline_p99_vs_idle"] > 0
+    # each HOLD with the watchdog's causes, so a hold in a latency run can be explained
+    assert len(loaded["pipeline_watchdog_hold_causes"]) == loaded["pipeline_watchdog_holds"]
     assert not _hogs_left()
     soak = bench(tmp_path, "soak", "--rate", "250", "--seconds", "3")
     assert soak["streams"]["master/m1/measured_cp"]["messages"] > 500

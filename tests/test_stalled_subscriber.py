@@ -7,38 +7,25 @@ streams with it: the watchdog HOLDs. The launcher now gives the control services
 the router waits for those alone (services/router ``congestion_rules``).
 
 Real processes on loopback: router, watchdog, slave_control (MuJoCo), mapping, a scripted master
-whose pedal stays pressed; the stalled subscriber is a plain zenoh client on ``**`` whose handler
-is a FIFO of one sample that it never reads, so its zenoh stops taking data off the socket.
+whose pedal stays pressed; the stalled subscriber is the benches' ``--load stalled``: a plain
+zenoh client on ``**`` whose handler is a FIFO of one sample that it never reads, so its zenoh
+stops taking data off the socket.
 """
 
 from __future__ import annotations
 
-import contextlib
 import json
-import subprocess
-import sys
 import time
-from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
 from telesurg.services.bench.harness import Pipeline, now_ns
+from telesurg.services.bench.load import Load
 from telesurg.services.launcher import ZID_SERVICES, SiteSpec, service_argv
 from telesurg.services.router import RouterConfig, congestion_rules
 from telesurg.shared.bus import BusConfig, open_session
 from telesurg.shared.errors import ConfigError
 
-#: the stalled subscriber: connects, subscribes to everything, never reads
-STALLED = """
-import sys, time, zenoh
-c = zenoh.Config()
-c.insert_json5("mode", '"client"')
-c.insert_json5("connect/endpoints", '["' + sys.argv[1] + '"]')
-s = zenoh.open(c)
-sub = s.declare_subscriber("**", zenoh.handlers.FifoChannel(1))
-print("subscribed", flush=True)
-time.sleep(120)
-"""
 #: pedal pressed from 0.5 s on and held: one engage, so any HOLD ends the following for good
 HELD_PEDAL = ["scripted.clutch=[[0.5, 1e9]]", "scripted.clutch_repeat_s=0.0"]
 #: s the stalled subscriber stays on the bus while the slave is watched
@@ -47,28 +34,13 @@ WINDOW_S = 12.0
 KEPT = 0.8
 
 
-@contextlib.contextmanager
-def stalled_subscriber(endpoint: str) -> Iterator[subprocess.Popen[str]]:
-    proc = subprocess.Popen(
-        [sys.executable, "-c", STALLED, endpoint], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True
-    )
-    try:
-        assert proc.stdout is not None and proc.stdout.readline().strip() == "subscribed"
-        yield proc
-    finally:
-        proc.kill()
-        proc.wait(10)
-        if proc.stdout is not None:
-            proc.stdout.close()
-
-
 def watch(tmp: Path, router: list[str]) -> tuple[list[str], int, bool]:
     """Holds seen by the probe, slave joint samples received, and whether the slave still
     follows, over WINDOW_S with a stalled subscriber on the bus."""
     overrides = {"master_capture": HELD_PEDAL, "router": router}
     with Pipeline(tmp / "logs", mirror=False, impair=False, overrides=overrides) as p:
         assert p.wait_following(30), "the slave never followed"
-        with stalled_subscriber(p.spec.endpoint):
+        with Load.parse("stalled").running(p.spec.endpoint, tmp):
             t0 = now_ns()
             n0 = len(p.p.joints)
             time.sleep(WINDOW_S)

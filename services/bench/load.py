@@ -10,6 +10,10 @@ A spec names what else runs on the host while the control path is measured:
   a hypervisor's sibling threads), not the scheduler's choice;
 * ``record`` — the recorder (``telesurg record``) on the site's bus: every message of the site
   decoded and written to an MCAP file;
+* ``stalled`` — a subscriber that stops reading: a plain zenoh client on the site's ``**`` whose
+  handler is a FIFO of one sample it never takes, so its zenoh stops reading its socket — a hung
+  viewer, recorder or console, or a hostile process (the router must not wait for it: services/router
+  ``congestion_rules``);
 * ``viewer`` — the rerun mirror serving the web viewer, and Debian's headless Chromium showing it
   (software WebGL), as a researcher watching the session on the console host; both at the lowest
   priority, each in a scheduler autogroup of nice 19 (as the launcher runs the mirror).
@@ -37,7 +41,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 #: The kinds a ``--load`` spec can name.
-KINDS = ("cpu", "idle", "record", "viewer")
+KINDS = ("cpu", "idle", "record", "stalled", "viewer")
 CHROMIUM = ("chromium", "chromium-browser", "google-chrome")
 
 
@@ -50,10 +54,11 @@ class Load:
 
     @classmethod
     def parse(cls, spec: str) -> Load:
-        """``cpu:2`` / ``idle:1`` / ``record`` / ``viewer``; ValueError naming the valid forms."""
+        """``cpu:2`` / ``idle:1`` / ``record`` / ``stalled`` / ``viewer``; ValueError naming the valid
+        forms."""
         kind, _, arg = spec.partition(":")
         if kind not in KINDS:
-            raise ValueError(f"--load {spec!r}: unknown kind; valid: cpu:N, idle:N, record, viewer")
+            raise ValueError(f"--load {spec!r}: unknown kind; valid: cpu:N, idle:N, record, stalled, viewer")
         if kind in ("cpu", "idle"):
             if not arg.isdigit() or not 1 <= int(arg) <= 16:
                 raise ValueError(f"--load {spec!r}: {kind}:N needs N in 1..16")
@@ -88,6 +93,8 @@ class Load:
                 out = tmp / f"load-record-{time.monotonic_ns()}.mcap"
                 argv = [sys.executable, "-m", "telesurg.services.record", "--out", str(out)]
                 procs.append(_spawn([*argv, "--connect", endpoint]))
+            elif self.kind == "stalled":
+                procs.append(_spawn([sys.executable, "-c", _STALLED, endpoint]))
             elif self.kind == "viewer":
                 procs += _viewer(endpoint, tmp)
             yield [p.pid for p in procs]
@@ -95,7 +102,8 @@ class Load:
             for p in procs:
                 if p.poll() is None:
                     with contextlib.suppress(ProcessLookupError):
-                        p.send_signal(signal.SIGKILL if self.kind in ("cpu", "idle") else signal.SIGINT)
+                        hard = self.kind in ("cpu", "idle", "stalled")
+                    p.send_signal(signal.SIGKILL if hard else signal.SIGINT)
             for p in procs:
                 try:
                     p.wait(10)
@@ -116,6 +124,19 @@ except (AttributeError, OSError):
     os.nice(19)
 while True:
     pass
+"""
+
+
+#: A zenoh client on everything that never reads what it receives (its FIFO of one stays full).
+_STALLED = """
+import sys, time, zenoh
+c = zenoh.Config()
+c.insert_json5("mode", '"client"')
+c.insert_json5("connect/endpoints", '["' + sys.argv[1] + '"]')
+s = zenoh.open(c)
+sub = s.declare_subscriber("**", zenoh.handlers.FifoChannel(1))
+while True:
+    time.sleep(3600)
 """
 
 

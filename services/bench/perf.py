@@ -285,7 +285,7 @@ def latency(a: argparse.Namespace) -> dict[str, Any]:
     # the host shows in all of them alike
     conditions: list[Load | None] = [None, *a.load]
     rows: dict[str, tuple[list[np.ndarray], list[np.ndarray]]] = {_cname(c): ([], []) for c in conditions}
-    holds = dict.fromkeys(rows, 0)
+    holds: dict[str, list[str]] = {name: [] for name in rows}
     blk = 0
     with tempfile.TemporaryDirectory() as d:
         tmp = Path(d)
@@ -302,12 +302,13 @@ def latency(a: argparse.Namespace) -> dict[str, Any]:
                     router.close()  # type: ignore[no-untyped-call]
                 prow, info = _pipeline_block(rate, a.seconds, tmp, blk, a.rt_priority, c)
                 rows[name][1].append(prow)
-                holds[name] += info["holds"]
+                holds[name] += info["hold_causes"]
                 if c is None:
                     res["pipeline_fifo_threads"] = info["fifo_threads"]
     for name, (relay_rows, pipe_rows) in rows.items():
         figs = _latency_figures(relay_rows, pipe_rows)
-        figs["pipeline_watchdog_holds"] = holds[name]
+        figs["pipeline_watchdog_holds"] = len(holds[name])
+        figs["pipeline_watchdog_hold_causes"] = holds[name]
         if name == "idle":
             res.update(figs)
         else:
@@ -338,6 +339,7 @@ def latency(a: argparse.Namespace) -> dict[str, Any]:
         print(
             f"{name}: pipeline / relay: p50 × {figs['ratio_p50']}, p99 × {figs['ratio_p99']}{vs_idle}; "
             f"watchdog holds {figs['pipeline_watchdog_holds']}"
+            + "".join(f"\n  HOLD: {c}" for c in figs["pipeline_watchdog_hold_causes"])
         )
     print(f"SCHED_FIFO threads of the pipeline: {res['pipeline_fifo_threads']}")
     if a.plot:
@@ -790,7 +792,8 @@ def main(argv: Sequence[str] | None = None, name: str = "latency") -> int:
             type=_load_arg,
             help="also measure under this background load, repeatable: cpu:N (N busy processes at "
             "normal priority), idle:N (N busy processes under SCHED_IDLE, the camera's and mirror's "
-            "class), record (the recorder on the bus), viewer (the rerun web viewer in "
+            "class), record (the recorder on the bus), stalled (a subscriber on everything that "
+            "stops reading), viewer (the rerun web viewer in "
             "headless Chromium); the table shows idle and each load of the same run",
         )
     if name == "soak":
