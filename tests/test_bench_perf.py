@@ -94,6 +94,9 @@ def test_bench_latency_and_soak(tmp_path: Path) -> None:
     assert loaded["pipeline"]["end_to_end"]["n"] > 200 and loaded["pipeline_p99_vs_idle"] > 0
     # each HOLD with the watchdog's causes, so a hold in a latency run can be explained
     assert len(loaded["pipeline_watchdog_hold_causes"]) == loaded["pipeline_watchdog_holds"]
+    # and the ratio block by block (one block each here), beside the whole run's
+    (block,) = loaded["pipeline_block_p99_vs_idle"]
+    assert block == pytest.approx(loaded["pipeline_p99_vs_idle"], rel=0.05)
     assert not _hogs_left()
     soak = bench(tmp_path, "soak", "--rate", "250", "--seconds", "3")
     assert soak["streams"]["master/m1/measured_cp"]["messages"] > 500

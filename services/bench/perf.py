@@ -244,6 +244,16 @@ def _latency_figures(relay_rows: list[np.ndarray], pipe_rows: list[np.ndarray]) 
     return res
 
 
+def _block_p99(blocks: list[np.ndarray]) -> list[float]:
+    """End-to-end p99 (ms) of each pipeline block, its start-up transient (first 5 %) dropped."""
+    out = []
+    for pl in blocks:
+        pl = pl[(pl[:, 0] > 0) & (pl[:, 3] > 0)]  # as the whole run's figures
+        pl = pl[len(pl) // 20 :]
+        out.append(round(float(np.percentile(pl[:, 5] - pl[:, 0], 99)) / 1e6, 4) if len(pl) else float("nan"))
+    return out
+
+
 #: The stages of :func:`_stage_figures`: (name, label, from column, to column of STAGE_COLUMNS).
 STAGES = (
     ("master_to_mapping_callback", "master sent → mapping callback", "master_sent", "mapping_received"),
@@ -314,8 +324,16 @@ def latency(a: argparse.Namespace) -> dict[str, Any]:
         else:
             res.setdefault("loaded", {})[name] = figs
     idle_p99 = res["pipeline"]["end_to_end"]["p99"]
-    for figs in res.get("loaded", {}).values():
+    res["pipeline_block_p99_ms"] = _block_p99(rows["idle"][1])
+    for name, figs in res.get("loaded", {}).items():
         figs["pipeline_p99_vs_idle"] = round(figs["pipeline"]["end_to_end"]["p99"] / idle_p99, 3)
+        # block by block (each loaded block against the idle block just before it): how far one
+        # block's tail, i.e. one burst of the host, moves the ratio of the whole run
+        figs["pipeline_block_p99_ms"] = _block_p99(rows[name][1])
+        figs["pipeline_block_p99_vs_idle"] = [
+            round(b / i, 3)
+            for b, i in zip(figs["pipeline_block_p99_ms"], res["pipeline_block_p99_ms"], strict=True)
+        ]
     for name in rows:
         figs = res if name == "idle" else res["loaded"][name]
         e_r, e_p = figs["relay"]["end_to_end"], figs["pipeline"]["end_to_end"]
@@ -335,7 +353,10 @@ def latency(a: argparse.Namespace) -> dict[str, Any]:
             f"the pipeline's stages, {name} (one row per setpoint the slave used; wall clock)",
             [(f"{label}", figs["stages"][n]) for n, label, _a, _b in STAGES],
         )
-        vs_idle = f"; pipeline p99 × {figs['pipeline_p99_vs_idle']} of idle" if name != "idle" else ""
+        vs_idle = ""
+        if name != "idle":
+            blocks = ", ".join(f"× {r}" for r in figs["pipeline_block_p99_vs_idle"])
+            vs_idle = f"; pipeline p99 × {figs['pipeline_p99_vs_idle']} of idle (block by block: {blocks})"
         print(
             f"{name}: pipeline / relay: p50 × {figs['ratio_p50']}, p99 × {figs['ratio_p99']}{vs_idle}; "
             f"watchdog holds {figs['pipeline_watchdog_holds']}"
