@@ -99,11 +99,11 @@ class Load:
                 procs += _viewer(endpoint, tmp)
             yield [p.pid for p in procs]
         finally:
+            hard = self.kind in ("cpu", "idle", "stalled")  # nothing of theirs to save
             for p in procs:
                 if p.poll() is None:
                     with contextlib.suppress(ProcessLookupError):
-                        hard = self.kind in ("cpu", "idle", "stalled")
-                    p.send_signal(signal.SIGKILL if hard else signal.SIGINT)
+                        p.send_signal(signal.SIGKILL if hard else signal.SIGINT)
             for p in procs:
                 try:
                     p.wait(10)
