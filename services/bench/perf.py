@@ -219,12 +219,17 @@ def _loaded(load: Load | None, endpoint: str, tmp: Path) -> contextlib.AbstractC
     return load.running(endpoint, tmp) if load is not None else contextlib.nullcontext()
 
 
+def _steady(pl: np.ndarray) -> np.ndarray:
+    """The pipeline rows (:data:`STAGE_COLUMNS`) with a master stamp and a servo_jp, the start-up
+    transient (the first 5 %) dropped."""
+    pl = pl[(pl[:, 0] > 0) & (pl[:, 3] > 0)]
+    return pl[len(pl) // 20 :]
+
+
 def _latency_figures(relay_rows: list[np.ndarray], pipe_rows: list[np.ndarray]) -> dict[str, Any]:
     """Per-hop and end-to-end percentiles of the relay and the pipeline, and their ratios."""
     r = np.concatenate(relay_rows)
-    pl = np.concatenate(pipe_rows)
-    pl = pl[(pl[:, 0] > 0) & (pl[:, 3] > 0)]
-    pl = pl[len(pl) // 20 :]  # drop the start-up transient
+    pl = _steady(np.concatenate(pipe_rows))
     res: dict[str, Any] = {
         "relay": {
             "hop1": _stats_ms(r[:, 1] - r[:, 0]),
@@ -247,9 +252,7 @@ def _latency_figures(relay_rows: list[np.ndarray], pipe_rows: list[np.ndarray]) 
 def _block_p99(blocks: list[np.ndarray]) -> list[float]:
     """End-to-end p99 (ms) of each pipeline block, its start-up transient (first 5 %) dropped."""
     out = []
-    for pl in blocks:
-        pl = pl[(pl[:, 0] > 0) & (pl[:, 3] > 0)]  # as the whole run's figures
-        pl = pl[len(pl) // 20 :]
+    for pl in map(_steady, blocks):
         out.append(round(float(np.percentile(pl[:, 5] - pl[:, 0], 99)) / 1e6, 4) if len(pl) else float("nan"))
     return out
 

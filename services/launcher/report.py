@@ -56,6 +56,8 @@ from telesurg.shared.messages import (
     TeleopState,
 )
 
+log = logging.getLogger(__name__)
+
 
 @dataclass
 class TrackingError:
@@ -227,8 +229,6 @@ class WatchdogTransitions:
         )
         return f"{counts} (causes: {why})" if why else counts
 
-
-log = logging.getLogger(__name__)
 
 #: s between the recorder's polls of its streams (zenoh buffers POLL_CAPACITY messages a stream:
 #: 4 s at 1 kHz)
