@@ -94,6 +94,11 @@ def test_bench_latency_and_soak(tmp_path: Path) -> None:
     assert loaded["pipeline"]["end_to_end"]["n"] > 200 and loaded["pipeline_p99_vs_idle"] > 0
     # each HOLD with the watchdog's causes, so a hold in a latency run can be explained
     assert len(loaded["pipeline_watchdog_hold_causes"]) == loaded["pipeline_watchdog_holds"]
+    assert isinstance(loaded["pipeline_startup_hold_causes"], list)  # (reported apart)
+    # every fair-scheduled thread of the control processes has the control slice (Linux ≥ 6.12)
+    for name, ratio in lat["pipeline_slice_threads"].items():
+        k, n = ratio.split("/") if ratio != "-" else ("-", "-")
+        assert ratio == "-" or (k == n and int(n) > 3), (name, ratio)
     # and the ratio block by block (one block each here), beside the whole run's
     (block,) = loaded["pipeline_block_p99_vs_idle"]
     assert block == pytest.approx(loaded["pipeline_p99_vs_idle"], rel=0.05)
@@ -132,6 +137,10 @@ def test_watchdog_holds_counts_the_runs_holds_not_the_stop_sequences() -> None:
     stop = time.mktime(time.strptime("2026-12-02 04:45:52", "%Y-%m-%d %H:%M:%S"))
     assert watchdog_holds(log) == ["master measured_cp stale (93 ms)", "master_capture not alive"]
     assert watchdog_holds(log, until=stop) == ["master measured_cp stale (93 ms)"]
+    # a HOLD before the measured window (the services still starting) is not the window's
+    begin = time.mktime(time.strptime("2026-12-02 04:45:51", "%Y-%m-%d %H:%M:%S"))
+    assert watchdog_holds(log, until=stop, since=begin) == []
+    assert watchdog_holds(log, since=begin) == ["master_capture not alive"]
 
 
 def test_the_stages_join_each_setpoint_across_the_logs() -> None:
@@ -153,3 +162,64 @@ def test_the_stages_join_each_setpoint_across_the_logs() -> None:
     assert figs["servo_jp_to_tap"]["n"] == 1 and figs["servo_jp_to_tap"]["p50"] == 300 / 1e6
     assert figs["reference_lag"]["n"] == 1 and figs["reference_lag"]["p50"] == 900 / 1e6
     assert figs["end_to_end_used"]["n"] == 2
+
+
+def test_bench_wakeup(tmp_path: Path) -> None:
+    from telesurg.services.launcher import CONTROL_SLICE_US
+    from telesurg.shared.timing import fair_slice_us
+
+    res = bench(tmp_path, "wakeup", "--seconds", "0.5", "--blocks", "1", "--load", "cpu:1")
+    for load in ("idle", "cpu:1"):
+        kernel, control = res["lateness_us"][load]["kernel"], res["lateness_us"][load]["control"]
+        assert kernel["n"] > 100 and control["n"] > 100  # ~one wake-up a ms for 0.5 s each
+        assert control["p99"] >= control["p50"] >= 0
+        # the probe read its own slice back: the kernel's in one block, the control slice in the
+        # other where the kernel takes one (else both the kernel's)
+        assert kernel["slice_us"] == fair_slice_us()
+        assert control["slice_us"] in (CONTROL_SLICE_US, fair_slice_us())
+    assert not _hogs_left()
+
+
+@pytest.mark.parametrize(
+    ("args", "why"),
+    [
+        (["--slice-us", "50"], "100..100000"),
+        (["--load", "record"], "cpu:N or idle:N"),
+        (["--slice-us", "0"], "kernel"),
+    ],
+)
+def test_bench_wakeup_refuses_what_it_cannot_measure(args: list[str], why: str) -> None:
+    r = subprocess.run(
+        [sys.executable, "-m", "telesurg.services.cli", "bench", "wakeup", *args],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert r.returncode == 2 and why in r.stderr, r.stderr
+
+
+def test_busy_processes_end_with_a_bench_that_is_killed(tmp_path: Path) -> None:
+    import psutil
+
+    code = (
+        "import sys, time\n"
+        "from pathlib import Path\n"
+        "from telesurg.services.bench.load import Load\n"
+        "with Load.parse('cpu:2').running('', Path(sys.argv[1])) as pids:\n"
+        "    print(*pids, flush=True)\n"
+        "    time.sleep(60)\n"
+    )
+    bench_proc = subprocess.Popen(
+        [sys.executable, "-c", code, str(tmp_path)], stdout=subprocess.PIPE, text=True
+    )
+    assert bench_proc.stdout is not None
+    pids = [int(p) for p in bench_proc.stdout.readline().split()]
+    assert len(pids) == 2 and all(psutil.pid_exists(p) for p in pids)
+    bench_proc.terminate()  # SIGTERM: no clean-up of its own runs
+    bench_proc.wait(10)
+    bench_proc.stdout.close()
+    _gone, alive = psutil.wait_procs([psutil.Process(p) for p in pids if psutil.pid_exists(p)], timeout=10)
+    for p in alive:  # (the test's own processes: ended, and then the failure reported)
+        p.kill()
+    assert not alive, f"busy processes left after the bench ended: {alive}"
+    assert not _hogs_left()

@@ -13,6 +13,7 @@ Subcommands::
     telesurg bench flood [--site locked|open] [--no-caps] [--json FILE]
     telesurg bench viewer [--seconds 100] [--json FILE]
     telesurg bench memory [--seconds 300] [--set SERVICE.KEY=VALUE] [--json FILE] [--plot FILE]
+    telesurg bench wakeup [--seconds 10] [--blocks 2] [--slice-us 100] [--load cpu:2] [--json FILE]
 """
 
 from __future__ import annotations
@@ -43,6 +44,10 @@ BENCHES = {
     "viewer": (
         "telesurg.services.bench.viewer",
         "the rerun web viewer in Chromium during the demo: lag behind live, frames/s, HOLDs",
+    ),
+    "wakeup": (
+        "telesurg.services.bench.wakeup",
+        "how late a control process's thread wakes up: the kernel's slice vs the control slice",
     ),
     "transport": (
         "telesurg.services.bench.transport",

@@ -140,19 +140,36 @@ while True:
 """
 
 
+def _die_with_parent() -> None:
+    """preexec_fn: SIGKILL this process when the bench that started it ends, however it ends (a
+    bench killed by SIGTERM runs none of its clean-up, and a busy loop left behind would load
+    every later run). Linux only; harmless elsewhere."""
+    with contextlib.suppress(OSError, AttributeError):
+        import ctypes
+
+        ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
+
+
 def _spawn(argv: list[str], lowest: bool = False) -> subprocess.Popen[bytes]:
-    """``argv`` with its output discarded; ``lowest``: in a session of its own at the lowest
-    priority (:func:`telesurg.services.bench.browser.lowest_priority`)."""
+    """``argv`` with its output discarded, ended with the bench (:func:`_die_with_parent`);
+    ``lowest``: in a session of its own at the lowest priority
+    (:func:`telesurg.services.bench.browser.lowest_priority`)."""
     if not lowest:
-        return subprocess.Popen(argv, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        return subprocess.Popen(
+            argv, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, preexec_fn=_die_with_parent
+        )
     from telesurg.services.bench.browser import lowest_priority
+
+    def pre() -> None:
+        _die_with_parent()
+        lowest_priority()
 
     return subprocess.Popen(
         argv,
         stdout=subprocess.DEVNULL,
         stderr=subprocess.DEVNULL,
         start_new_session=True,
-        preexec_fn=lowest_priority,
+        preexec_fn=pre,
     )
 
 

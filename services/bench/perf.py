@@ -127,10 +127,34 @@ def fifo_threads(pid: int) -> int:
     return n
 
 
+def slice_threads(pid: int) -> str:
+    """``"k/n"``: of the ``n`` threads of process ``pid`` under the fair scheduler, ``k`` run with
+    the control slice (:func:`telesurg.services.launcher.control_slice_us`); ``"-"`` when the
+    kernel's default slice is asked for or the slice cannot be read."""
+    from telesurg.services.launcher import control_slice_us
+    from telesurg.shared.timing import fair_slice_us
+
+    us, k, n = control_slice_us(), 0, 0
+    if not us:
+        return "-"
+    for tid in os.listdir(f"/proc/{pid}/task"):
+        try:
+            got = fair_slice_us(int(tid))
+        except ProcessLookupError:  # the thread ended meanwhile
+            continue
+        except OSError:
+            return "-"
+        if got is not None:
+            n += 1
+            k += abs(got - us) <= 1
+    return f"{k}/{n}"
+
+
 def _pipeline_block(
     rate: float, seconds: float, tmp: Path, k: int, rt_priority: int | None = None, load: Load | None = None
 ) -> tuple[np.ndarray, dict[str, Any]]:
     from telesurg.services.bench.harness import Pipeline
+    from telesurg.services.launcher import CONTROL
 
     npy, mapping_npy = tmp / f"applied{k}.npy", tmp / f"mapped{k}.npy"
     overrides = _overrides(
@@ -141,16 +165,25 @@ def _pipeline_block(
     )
     with Pipeline(tmp / f"logs{k}", mirror=False, impair=False, probe=False, overrides=overrides) as p:
         tap = _ServoTap(p.node)
+        t_start = time.time()  # the site is up (every service on the bus): the block begins
         with _loaded(load, p.spec.endpoint, tmp):
             time.sleep(seconds + 1.0)
             fifo = {n: fifo_threads(pr.pid) for n, pr in p.site.procs.items() if n in RT_SERVICES}
+            sliced = {n: slice_threads(pr.pid) for n, pr in p.site.procs.items() if n in CONTROL}
         tap.close()
         t_stop = time.time()
         p.close()
     rows = _stages(np.load(npy), np.load(mapping_npy), tap.rows())
     logs = {f.stem: f.read_text() for f in (tmp / f"logs{k}").glob("*.log")}
-    holds = watchdog_holds(logs.get("watchdog", ""), t_stop)
-    return rows, {"holds": len(holds), "hold_causes": holds, "fifo_threads": fifo}
+    holds = watchdog_holds(logs.get("watchdog", ""), t_stop, since=t_start)
+    startup = watchdog_holds(logs.get("watchdog", ""), t_start)
+    return rows, {
+        "holds": len(holds),
+        "hold_causes": holds,
+        "startup_hold_causes": startup,
+        "fifo_threads": fifo,
+        "slice_threads": sliced,
+    }
 
 
 class _ServoTap:
@@ -299,6 +332,7 @@ def latency(a: argparse.Namespace) -> dict[str, Any]:
     conditions: list[Load | None] = [None, *a.load]
     rows: dict[str, tuple[list[np.ndarray], list[np.ndarray]]] = {_cname(c): ([], []) for c in conditions}
     holds: dict[str, list[str]] = {name: [] for name in rows}
+    startup: dict[str, list[str]] = {name: [] for name in rows}
     blk = 0
     with tempfile.TemporaryDirectory() as d:
         tmp = Path(d)
@@ -316,12 +350,15 @@ def latency(a: argparse.Namespace) -> dict[str, Any]:
                 prow, info = _pipeline_block(rate, a.seconds, tmp, blk, a.rt_priority, c)
                 rows[name][1].append(prow)
                 holds[name] += info["hold_causes"]
+                startup[name] += info["startup_hold_causes"]
                 if c is None:
                     res["pipeline_fifo_threads"] = info["fifo_threads"]
+                    res["pipeline_slice_threads"] = info["slice_threads"]
     for name, (relay_rows, pipe_rows) in rows.items():
         figs = _latency_figures(relay_rows, pipe_rows)
         figs["pipeline_watchdog_holds"] = len(holds[name])
         figs["pipeline_watchdog_hold_causes"] = holds[name]
+        figs["pipeline_startup_hold_causes"] = startup[name]
         if name == "idle":
             res.update(figs)
         else:
@@ -364,8 +401,10 @@ def latency(a: argparse.Namespace) -> dict[str, Any]:
             f"{name}: pipeline / relay: p50 × {figs['ratio_p50']}, p99 × {figs['ratio_p99']}{vs_idle}; "
             f"watchdog holds {figs['pipeline_watchdog_holds']}"
             + "".join(f"\n  HOLD: {c}" for c in figs["pipeline_watchdog_hold_causes"])
+            + "".join(f"\n  HOLD while the site started: {c}" for c in figs["pipeline_startup_hold_causes"])
         )
     print(f"SCHED_FIFO threads of the pipeline: {res['pipeline_fifo_threads']}")
+    print(f"threads with the control slice (of the fair-scheduled ones): {res['pipeline_slice_threads']}")
     if a.plot:
         from telesurg.services.bench.plots import plot_latency
 
@@ -391,18 +430,19 @@ _TRANSITION = re.compile(
 )
 
 
-def watchdog_holds(log: str, until: float | None = None) -> list[str]:
+def watchdog_holds(log: str, until: float | None = None, since: float | None = None) -> list[str]:
     """The watchdog's transitions into HOLD in its log (``→ HOLD`` with its causes), those logged
     before the wall-clock time ``until`` (s since the epoch) when given: a bench passes the moment
     it began to stop the pipeline, whose stop sequence (master_capture first) makes a HOLD of its
-    own that is not the run's."""
+    own that is not the run's; and from ``since`` on when given: the measured window, apart from a
+    HOLD while the services were still starting (the benches report those on their own)."""
     out = []
     for line in log.splitlines():
         m = _TRANSITION.match(line)
         if m is None:
             continue
         t = time.mktime(time.strptime(m.group(1), "%Y-%m-%d %H:%M:%S")) + int(m.group(2)) / 1e3
-        if until is None or t < until:
+        if (until is None or t < until) and (since is None or t >= since):
             out.append(m.group(3).lstrip(": ").strip())
     return out
 
@@ -460,12 +500,14 @@ def _soak_run(a: argparse.Namespace, load: Load | None) -> dict[str, Any]:
             watched = dict(procs) if rec is None else {**procs, "recorder": psutil.Process(rec.pid)}
             for pr in watched.values():
                 pr.cpu_percent(None)
+            t_start = time.time()  # the site is up: the soak begins
             with _loaded(load, p.spec.endpoint, tmp):
                 lat.start()
                 time.sleep(a.seconds)
                 lat.stop()
             cpu_all = {n: round(pr.cpu_percent(None), 1) for n, pr in watched.items()}
             fifo = {n: fifo_threads(pr.pid) for n, pr in watched.items()}
+            sliced = {n: slice_threads(pr.pid) for n, pr in watched.items()}
             rss = {n: round(pr.memory_info().rss / 2**20, 1) for n, pr in watched.items()}
             if rec is not None:
                 rec.wait(60)
@@ -482,9 +524,11 @@ def _soak_run(a: argparse.Namespace, load: Load | None) -> dict[str, Any]:
     res["recorder"] = {"cpu_pct": cpu_all["recorder"], "rss_mb": rss["recorder"]} if a.record else None
     res["rss_mb"] = rss
     res["fifo_threads"] = fifo
-    holds = watchdog_holds(logs.get("watchdog", ""), t_stop)
+    res["slice_threads"] = sliced
+    holds = watchdog_holds(logs.get("watchdog", ""), t_stop, since=t_start)
     res["watchdog_holds"] = len(holds)
     res["watchdog_hold_causes"] = holds
+    res["startup_hold_causes"] = watchdog_holds(logs.get("watchdog", ""), t_start)
     res["watchdog_latency_ms"] = lat.figures()
     from rich.console import Console
     from rich.table import Table
@@ -492,7 +536,7 @@ def _soak_run(a: argparse.Namespace, load: Load | None) -> dict[str, Any]:
     res["load"] = _cname(load)
     title = f"soak: {a.seconds:g} s at {a.rate:g} Hz" + ("" if a.record else ", no recorder")
     t = Table(title=f"{title}, {_cname(load)}")
-    for c in ("service", "CPU %", "RSS MB", "FIFO threads", "cycles", "overruns", "miss %"):
+    for c in ("service", "CPU %", "RSS MB", "FIFO threads", "slice threads", "cycles", "overruns", "miss %"):
         t.add_column(c, justify="right")
     for n in cpu_all:
         mi = misses.get(n, {})
@@ -501,6 +545,7 @@ def _soak_run(a: argparse.Namespace, load: Load | None) -> dict[str, Any]:
             f"{cpu_all[n]:.1f}",
             f"{rss[n]:.1f}",
             str(fifo[n]),
+            sliced[n],
             str(mi.get("cycles", "")),
             str(mi.get("overruns", "")),
             str(mi.get("miss_pct", "")),
@@ -511,6 +556,7 @@ def _soak_run(a: argparse.Namespace, load: Load | None) -> dict[str, Any]:
     print(
         f"total CPU of the pipeline {total} % of one core (2 cores = 200 %); watchdog holds {holds}"
         + (f" ({causes})" if causes else "")
+        + "".join(f"\n  HOLD while the site started: {c}" for c in res["startup_hold_causes"])
     )
     wl = res["watchdog_latency_ms"]
     if wl["windows"]:

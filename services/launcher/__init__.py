@@ -50,6 +50,7 @@ from telesurg.shared.auth import default_keys_dir, ensure_keyring
 from telesurg.shared.bus import BusConfig, add_bus_args, bus_from_args
 from telesurg.shared.config import SITE_FILE, load_config, read_site, site_plugins
 from telesurg.shared.errors import ConfigError
+from telesurg.shared.timing import check_slice_us, fair_slice_us, set_fair_slice
 
 log = logging.getLogger("telesurg.launcher")
 
@@ -88,6 +89,11 @@ OPTIONAL_OFF = {
 #: Lowering nice needs root or CAP_SYS_NICE (docs/deploy.md); where refused the process runs at
 #: nice 0 and the launcher says so. ``$TELESURG_CONTROL_NICE`` overrides (0: leave as is).
 CONTROL_NICE = -10
+#: ... and ask the fair scheduler for this slice (µs) for every thread of theirs (Linux ≥ 6.12,
+#: no privilege needed; :func:`telesurg.shared.timing.set_fair_slice`): a control thread that
+#: wakes up preempts a CPU hog at once instead of waiting out the hog's slice (~1.4 ms here).
+#: ``$TELESURG_CONTROL_SLICE_US`` overrides (0: the kernel's default).
+CONTROL_SLICE_US = 100
 CONTROL = ("router", "watchdog", "slave_control", "mapping", "master_capture")
 #: The subscribers a control stream waits for at the router (services/router congestion_rules):
 #: each gets a zenoh session id of the launcher's (:attr:`SiteSpec.zids`), which the router is told.
@@ -110,13 +116,30 @@ def control_nice() -> int:
         return CONTROL_NICE
 
 
-def _foreground() -> None:
-    """preexec_fn of a control process: :func:`control_nice`, if permitted (else nice 0)."""
+def control_slice_us() -> float:
+    """The fair-scheduler slice for the control processes, µs (``$TELESURG_CONTROL_SLICE_US``
+    or :data:`CONTROL_SLICE_US`; 0: the kernel's default). ConfigError when out of bounds."""
+    raw = os.environ.get("TELESURG_CONTROL_SLICE_US", "").strip()
+    try:
+        us = float(raw) if raw else float(CONTROL_SLICE_US)
+    except ValueError:
+        raise ConfigError(f"TELESURG_CONTROL_SLICE_US={raw!r}: a number of µs") from None
+    check_slice_us(us)
+    return us
+
+
+def _foreground(slice_us: float | None = None) -> None:
+    """preexec_fn of a control process: :func:`control_nice`, if permitted (else nice 0), and
+    the scheduler slice ``slice_us`` (None: :func:`control_slice_us` — of the parent's
+    environment, which is what a preexec_fn sees), inherited by every thread the process starts."""
     n = control_nice()
     if n:
         with contextlib.suppress(AttributeError, OSError):
             os.setpriority(os.PRIO_PROCESS, 0, n)
         _autogroup_nice(n)
+    with contextlib.suppress(ConfigError):  # (checked by the launcher before the fork)
+        # a refusal is read back and reported by the launcher
+        set_fair_slice(control_slice_us() if slice_us is None else slice_us)
 
 
 def _autogroup_nice(n: int) -> None:
@@ -443,6 +466,7 @@ class Site:
             out = (self.spec.log_dir / f"{name}.log").open("ab")
             self._logs.append(out)
         argv = service_argv(self.spec, name)
+        slice_us = control_slice_us() if name in CONTROL else 0.0
         log.debug("starting %s: %s", name, " ".join(argv))
         self.procs[name] = subprocess.Popen(
             argv,
@@ -465,6 +489,19 @@ class Site:
                     name,
                     got,
                     control_nice(),
+                )
+        if slice_us:
+            try:
+                now = fair_slice_us(pid)
+            except OSError:  # gone already (reported), or no sched_getattr on this system
+                now = slice_us
+            if now is not None and abs(now - slice_us) > 1:
+                log.warning(
+                    "%s has the kernel's %g µs scheduler slice, not %g µs (Linux ≥ 6.12 takes a "
+                    "requested slice): a CPU hog can delay its threads' wake-ups by up to that",
+                    name,
+                    now,
+                    slice_us,
                 )
         log.info("started %-15s pid %d", name, pid)
 

@@ -1,0 +1,129 @@
+"""The control processes' threads ask the fair scheduler for a short slice (Linux ≥ 6.12).
+
+Under two CPU hogs a thread that wakes up waits for the running hog's slice to end (~1.4 ms
+here, several ms at worst); with a 0.1 ms slice of its own it preempts it at once. The launcher
+asks for it in each control process before it starts, so every thread it makes (zenoh's runtime
+threads, the Python threads that take samples) inherits it. What a wake-up gains is measured by
+the benches (docs/performance.md), not here: these tests check the slice reaches every thread
+of the control path and nothing else, and that it needs no privilege.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import threading
+from pathlib import Path
+
+import pytest
+from telesurg.services.bench.perf import slice_threads
+from telesurg.services.launcher import CONTROL_SLICE_US, Site, SiteSpec, control_slice_us, free_port
+from telesurg.shared.errors import ConfigError
+from telesurg.shared.timing import check_slice_us, fair_slice_us, set_fair_slice, set_realtime
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _supported() -> bool:
+    out: list[str] = []
+    th = threading.Thread(target=lambda: out.append(set_fair_slice(300)))
+    th.start()
+    th.join()
+    return out[0] == ""
+
+
+needs_slices = pytest.mark.skipif(not _supported(), reason="this kernel takes no fair slice (Linux < 6.12)")
+
+
+def _in_thread(fn):  # type: ignore[no-untyped-def]
+    out: list[object] = []
+    th = threading.Thread(target=lambda: out.append(fn()))
+    th.start()
+    th.join()
+    return out[0]
+
+
+def test_slice_bounds_are_checked() -> None:
+    for bad in (-1, 50, 100_001, True, "100", float("nan")):
+        with pytest.raises(ConfigError, match=r"0 \(the kernel's default\) or 100\.\.100000 µs"):
+            check_slice_us(bad)  # type: ignore[arg-type]
+    for good in (0, 100, 2500.0, 100_000):
+        check_slice_us(good)
+
+
+def test_the_environment_sets_the_control_slice(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.delenv("TELESURG_CONTROL_SLICE_US", raising=False)
+    assert control_slice_us() == CONTROL_SLICE_US == 100
+    monkeypatch.setenv("TELESURG_CONTROL_SLICE_US", "0")
+    assert control_slice_us() == 0
+    for bad in ("fast", "20"):
+        monkeypatch.setenv("TELESURG_CONTROL_SLICE_US", bad)
+        with pytest.raises(ConfigError, match=r"TELESURG_CONTROL_SLICE_US|100\.\.100000"):
+            control_slice_us()
+
+
+@needs_slices
+def test_a_slice_is_set_read_back_and_inherited_by_new_threads() -> None:
+    before = fair_slice_us()
+
+    def body() -> tuple[str, float | None, float | None, float | None]:
+        untouched = _in_thread(lambda: (set_fair_slice(0), fair_slice_us()))
+        why = set_fair_slice(250)
+        return why, untouched[1], fair_slice_us(), _in_thread(fair_slice_us)
+
+    why, after_zero, mine, child = _in_thread(body)
+    assert why == "" and mine == 250.0 and child == 250.0  # later threads inherit it
+    assert after_zero == before  # 0 leaves the kernel's slice
+    assert fair_slice_us() == before  # the calling thread only
+
+
+@needs_slices
+def test_a_realtime_thread_is_left_alone() -> None:
+    def body() -> tuple[str, str, float | None, int]:
+        rt = set_realtime(7)
+        return rt, set_fair_slice(100), fair_slice_us(), os.sched_getscheduler(0)
+
+    rt, why, got, policy = _in_thread(body)
+    if rt:
+        pytest.skip(f"no SCHED_FIFO here: {rt}")
+    assert why == "" and got is None  # not under the fair scheduler: nothing to read or set
+    assert policy & ~getattr(os, "SCHED_RESET_ON_FORK", 0) == os.SCHED_FIFO
+
+
+@needs_slices
+def test_no_privilege_is_needed() -> None:
+    code = (  # (root drops to "nobody", and with it every capability)
+        "import os, sys\n"
+        "from telesurg.shared.timing import fair_slice_us, set_fair_slice\n"
+        "os.setuid(65534) if os.getuid() == 0 else None\n"
+        "why = set_fair_slice(100)\n"
+        "print(repr(why), fair_slice_us()); sys.exit(0 if not why and fair_slice_us() == 100 else 1)\n"
+    )
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60, cwd=ROOT)
+    assert r.returncode == 0, r.stdout + r.stderr
+
+
+@pytest.mark.process
+@needs_slices
+def test_every_thread_of_the_control_processes_has_the_slice_and_the_mirror_none(tmp_path: Path) -> None:
+    spec = SiteSpec(
+        site="slice",
+        port=free_port(),
+        services=("watchdog", "slave_control", "mirror"),
+        overrides={"mirror": [f"save={json.dumps(str(tmp_path / 'run.rrd'))}"]},
+        log_dir=tmp_path,
+    )
+    with Site(spec) as site:
+        got = {name: slice_threads(p.pid) for name, p in site.procs.items()}
+        mirror = [fair_slice_us(int(t)) for t in os.listdir(f"/proc/{site.pid('mirror')}/task")]
+        zenoh = {  # zenoh's runtime threads (named by tokio) of the watchdog, with their slice
+            (Path(f"/proc/{site.pid('watchdog')}/task/{t}/comm").read_text().strip(), fair_slice_us(int(t)))
+            for t in os.listdir(f"/proc/{site.pid('watchdog')}/task")
+        }
+    for name in ("router", "watchdog", "slave_control"):
+        k, n = map(int, got[name].split("/"))
+        assert k == n >= 5, f"{name}: {got[name]} threads with the control slice"
+    assert any(c.startswith(("rx-", "tx-", "app-", "net-")) and s == 100.0 for c, s in zenoh), zenoh
+    assert got["mirror"] == "0/0" and set(mirror) == {None}, mirror  # SCHED_IDLE: below every slice
