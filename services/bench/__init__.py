@@ -47,7 +47,7 @@ BENCHES = {
     ),
     "wakeup": (
         "telesurg.services.bench.wakeup",
-        "how late a control process's thread wakes up: the kernel's slice vs the control slice",
+        "how late a control process's thread wakes up: the kernel's scheduler slice vs a shorter one",
     ),
     "transport": (
         "telesurg.services.bench.transport",

@@ -1,5 +1,6 @@
 """``telesurg bench wakeup``: how late a control process's thread wakes up, with the kernel's
-default scheduler slice and with the control slice the launcher asks for.
+default scheduler slice and with a shorter one (what ``$TELESURG_CONTROL_SLICE_US`` makes the
+launcher ask for).
 
 Every hop of the control path is a thread waking up: zenoh's rx thread on a socket, the Python
 thread that takes the sample, the loop on its timer. Under other programs' CPU hogs such a wake-up
@@ -90,7 +91,7 @@ def run(a: argparse.Namespace) -> dict[str, Any]:
         for load in (None, *a.load):
             name = "idle" if load is None else load.name
             for blk in range(a.blocks):
-                for which, us in (("kernel", 0.0), ("control", a.slice_us)):
+                for which, us in (("kernel", 0.0), ("asked", a.slice_us)):
                     out = tmp / f"{name}-{which}-{blk}.npy"
                     if load is None:
                         late, got = _block(a.seconds, us, out)
@@ -108,7 +109,7 @@ def run(a: argparse.Namespace) -> dict[str, Any]:
         s["slice_us"] = slices[(name, which)]
         s["block_max"] = [round(float(b.max()), 1) for b in blocks]
         figs.setdefault(name, {})[which] = s
-        label = f"{s['slice_us']:g} µs ({'kernel' if which == 'kernel' else 'control'})"
+        label = f"{s['slice_us']:g} µs ({'kernel' if which == 'kernel' else 'asked'})"
         t.add_row(name, label, str(s["n"]), *(f"{s[k]:.0f}" for k in ("p50", "p90", "p99", "p99.9", "max")))
     Console().print(t)
     res["lateness_us"] = figs
@@ -141,7 +142,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         type=float,
         default=None,
         help=f"the slice to compare with the kernel's, {SLICE_MIN_US}..{SLICE_MAX_US} µs "
-        "(default: the launcher's control slice)",
+        "(default: $TELESURG_CONTROL_SLICE_US where set, else 100)",
     )
     ap.add_argument(
         "--load", action="append", default=[], metavar="SPEC", type=_load_arg, help="cpu:N or idle:N"
@@ -150,7 +151,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     a = ap.parse_args(args)
     if not a.seconds > 0 or a.blocks < 1:
         ap.error("--seconds must be > 0 and --blocks ≥ 1")
-    a.slice_us = control_slice_us() if a.slice_us is None else a.slice_us
+    a.slice_us = (control_slice_us() or 100.0) if a.slice_us is None else a.slice_us
     if a.slice_us == 0:
         ap.error("--slice-us 0 is the kernel's slice: name one to compare with it")
     try:

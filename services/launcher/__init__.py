@@ -89,11 +89,12 @@ OPTIONAL_OFF = {
 #: Lowering nice needs root or CAP_SYS_NICE (docs/deploy.md); where refused the process runs at
 #: nice 0 and the launcher says so. ``$TELESURG_CONTROL_NICE`` overrides (0: leave as is).
 CONTROL_NICE = -10
-#: ... and ask the fair scheduler for this slice (µs) for every thread of theirs (Linux ≥ 6.12,
-#: no privilege needed; :func:`telesurg.shared.timing.set_fair_slice`): a control thread that
-#: wakes up preempts a CPU hog at once instead of waiting out the hog's slice (~1.4 ms here).
-#: ``$TELESURG_CONTROL_SLICE_US`` overrides (0: the kernel's default).
-CONTROL_SLICE_US = 100
+#: A fair-scheduler slice (µs) to ask for every thread of theirs (Linux ≥ 6.12, no privilege
+#: needed; :func:`telesurg.shared.timing.set_fair_slice`), so a waking control thread preempts a
+#: CPU hog instead of waiting out the hog's slice. 0: the kernel's (~1.4 ms here). Off by default:
+#: on this project's VM 100 µs changed neither the pipeline's latency under two hogs nor a thread's
+#: wake-up (docs/performance.md, "Tried and not kept"); ``$TELESURG_CONTROL_SLICE_US`` asks for one.
+CONTROL_SLICE_US = 0
 CONTROL = ("router", "watchdog", "slave_control", "mapping", "master_capture")
 #: The subscribers a control stream waits for at the router (services/router congestion_rules):
 #: each gets a zenoh session id of the launcher's (:attr:`SiteSpec.zids`), which the router is told.
