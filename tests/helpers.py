@@ -10,6 +10,8 @@
 
 from __future__ import annotations
 
+import subprocess
+import sys
 import threading
 import time
 from pathlib import Path
@@ -21,6 +23,15 @@ from telesurg.shared.messages import CartesianPose, Header, MasterButtons
 
 #: header of the messages the tests hand to a mapping's callbacks
 TEST_HEADER = Header("test", 0, 0)
+
+
+def run_unprivileged(imports: str, body: str) -> subprocess.CompletedProcess[str]:
+    """Run the Python lines ``imports`` (as root: the interpreter may live in root's home), then
+    ``body`` as "nobody" when the tests run as root (dropping every capability with it), else as
+    this user, in a new interpreter; exit code and output returned."""
+    code = f"import os, sys\n{imports}\nos.setuid(65534) if os.getuid() == 0 else None\n{body}"
+    root = Path(__file__).resolve().parents[1]
+    return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60, cwd=root)
 
 
 def clutch_flags() -> list[str]:

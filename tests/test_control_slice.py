@@ -13,18 +13,15 @@ from __future__ import annotations
 
 import json
 import os
-import subprocess
-import sys
 import threading
 from pathlib import Path
 
 import pytest
+from helpers import run_unprivileged
 from telesurg.services.bench.perf import slice_threads
 from telesurg.services.launcher import CONTROL_SLICE_US, Site, SiteSpec, control_slice_us, free_port
 from telesurg.shared.errors import ConfigError
 from telesurg.shared.timing import check_slice_us, fair_slice_us, set_fair_slice, set_realtime
-
-ROOT = Path(__file__).resolve().parents[1]
 
 
 def _supported() -> bool:
@@ -95,14 +92,11 @@ def test_a_realtime_thread_is_left_alone() -> None:
 
 @needs_slices
 def test_no_privilege_is_needed() -> None:
-    code = (  # (root drops to "nobody", and with it every capability)
-        "import os, sys\n"
-        "from telesurg.shared.timing import fair_slice_us, set_fair_slice\n"
-        "os.setuid(65534) if os.getuid() == 0 else None\n"
+    r = run_unprivileged(  # (root drops to "nobody", and with it every capability)
+        "from telesurg.shared.timing import fair_slice_us, set_fair_slice",
         "why = set_fair_slice(100)\n"
-        "print(repr(why), fair_slice_us()); sys.exit(0 if not why and fair_slice_us() == 100 else 1)\n"
+        "print(repr(why), fair_slice_us()); sys.exit(0 if not why and fair_slice_us() == 100 else 1)\n",
     )
-    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60, cwd=ROOT)
     assert r.returncode == 0, r.stdout + r.stderr
 
 

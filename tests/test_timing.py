@@ -3,21 +3,17 @@
 from __future__ import annotations
 
 import os
-import subprocess
-import sys
 import threading
 from collections.abc import Callable
-from pathlib import Path
 
 import pytest
 import telesurg.shared.timing
+from helpers import run_unprivileged
 from telesurg.services.mapping import MappingConfig
 from telesurg.services.slave_control import SlaveControlConfig
 from telesurg.services.slave_control import run as run_slave
 from telesurg.shared.errors import ConfigError
 from telesurg.shared.timing import CycleTimer, check_rt_priority, set_realtime
-
-ROOT = Path(__file__).resolve().parents[1]
 
 
 class FakeClock:
@@ -128,13 +124,10 @@ def test_set_realtime_changes_only_the_calling_thread() -> None:
 
 
 def test_set_realtime_refused_without_the_privilege() -> None:
-    code = (  # (root drops to "nobody", and with it CAP_SYS_NICE)
-        "import os, sys\n"
-        "from telesurg.shared.timing import set_realtime\n"
-        "os.setuid(65534) if os.getuid() == 0 else None\n"
+    r = run_unprivileged(  # (root drops to "nobody", and with it CAP_SYS_NICE)
+        "from telesurg.shared.timing import set_realtime",
         "why = set_realtime(7)\n"
-        "print(repr(why)); sys.exit(0 if why and os.sched_getscheduler(0) == os.SCHED_OTHER else 1)\n"
+        "print(repr(why)); sys.exit(0 if why and os.sched_getscheduler(0) == os.SCHED_OTHER else 1)\n",
     )
-    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60, cwd=ROOT)
     assert r.returncode == 0, r.stdout + r.stderr
     assert "needs root, CAP_SYS_NICE or an rtprio" in r.stdout
