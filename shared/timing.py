@@ -195,10 +195,11 @@ def set_fair_slice(us: float, tid: int = 0) -> str:
     """Ask Linux's fair scheduler (EEVDF, Linux ≥ 6.12) for a ``us`` µs slice for thread ``tid``
     (0: the calling one); 0 leaves it as it is. Threads and processes it starts later inherit it.
 
-    A short slice gives a thread that wakes up an earlier virtual deadline, so it preempts a
+    A short slice gives a thread that wakes up an earlier virtual deadline, so it may preempt a
     thread of another program that is using up its own (longer) slice instead of waiting for it
-    to end: a wake-up waits ~0.1 ms instead of up to a few ms behind a CPU hog. It changes no
-    share of the CPU (nice does that), and it needs no privilege. The policy and nice value stay;
+    to end. (On this project's VM, with the control processes' autogroups at nice −10, it made no
+    measurable difference: docs/performance.md.) It changes no share of the CPU (nice does that),
+    and it needs no privilege. The policy and nice value stay;
     a thread not under the fair scheduler (SCHED_FIFO) is left alone.
 
     Returns:
