@@ -82,7 +82,23 @@ def test_load_specs() -> None:
 
 @pytest.mark.process
 def test_bench_latency_and_soak(tmp_path: Path) -> None:
-    lat = bench(tmp_path, "latency", "--rate", "250", "--seconds", "2", "--blocks", "1", "--load", "cpu:1")
+    keep = tmp_path / "kept"
+    lat = bench(
+        tmp_path,
+        "latency",
+        "--rate",
+        "250",
+        "--seconds",
+        "2",
+        "--blocks",
+        "1",
+        "--load",
+        "cpu:1",
+        "--keep-logs",
+        str(keep),
+    )
+    # --keep-logs: every block's service logs stay, e.g. the watchdog's transitions of the idle one
+    assert "safety_transition" in (keep / "logs1" / "watchdog.log").read_text()
     assert lat["relay"]["end_to_end"]["n"] > 300 and lat["pipeline"]["end_to_end"]["n"] > 200
     assert lat["ratio_p50"] > 0
     # every stage of the setpoints the slave used, from the mapping's and the slave's logs
@@ -117,6 +133,13 @@ def test_bench_latency_and_soak(tmp_path: Path) -> None:
     assert bare["recorder"] is None and bare["streams"] == {}
     assert set(bare["deadline_misses"]) == {"slave_control", "master_capture"}
     assert sum(bare["fifo_threads"].values()) == 0  # --rt-priority 0: the normal scheduler
+    r = subprocess.run(  # a kept directory is never mixed with another run's
+        [sys.executable, "-m", "telesurg.services.cli", "bench", "soak", "--keep-logs", str(keep)],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert r.returncode == 2 and "new or empty directory" in r.stderr, r.stderr
 
 
 def test_watchdog_holds_counts_the_runs_holds_not_the_stop_sequences() -> None:

@@ -53,6 +53,17 @@ PCTS = (50, 90, 99)
 UNPACED_MASTER_HZ = 5000.0
 
 
+def _workdir(keep: Path | None, sub: str = "") -> contextlib.AbstractContextManager[str]:
+    """The bench's working directory: a temporary one, or ``keep/sub`` (made, and left with the
+    services' logs and the rows of every block: ``--keep-logs``, to read what the watchdog and the
+    router logged around a HOLD)."""
+    if keep is None:
+        return tempfile.TemporaryDirectory()
+    d = keep / sub
+    d.mkdir(parents=True, exist_ok=True)
+    return contextlib.nullcontext(str(d))
+
+
 def _stats_ms(ns: np.ndarray) -> dict[str, float]:
     ms = np.asarray(ns, dtype=float) / 1e6
     if len(ms) == 0:
@@ -334,7 +345,7 @@ def latency(a: argparse.Namespace) -> dict[str, Any]:
     holds: dict[str, list[str]] = {name: [] for name in rows}
     startup: dict[str, list[str]] = {name: [] for name in rows}
     blk = 0
-    with tempfile.TemporaryDirectory() as d:
+    with _workdir(a.keep_logs) as d:
         tmp = Path(d)
         for _ in range(a.blocks):
             for c in conditions:
@@ -470,7 +481,7 @@ def _soak_run(a: argparse.Namespace, load: Load | None) -> dict[str, Any]:
     from telesurg.services.bench.harness import Pipeline
 
     res: dict[str, Any] = {"rate_hz": a.rate, "seconds": a.seconds}
-    with tempfile.TemporaryDirectory() as d:
+    with _workdir(a.keep_logs, _cname(load).replace(":", "-")) as d:
         tmp = Path(d)
         overrides = _overrides(a.rate, a.rt_priority)
         with Pipeline(tmp / "logs", mirror=False, impair=False, probe=False, overrides=overrides) as p:
@@ -866,6 +877,14 @@ def main(argv: Sequence[str] | None = None, name: str = "latency") -> int:
             "stops reading), viewer (the rerun web viewer in "
             "headless Chromium); the table shows idle and each load of the same run",
         )
+    if name in ("latency", "soak"):
+        ap.add_argument(
+            "--keep-logs",
+            type=Path,
+            metavar="DIR",
+            help="keep the services' logs (and the measured rows) of every block in DIR instead of "
+            "a temporary directory: what the watchdog and the router logged around a HOLD",
+        )
     if name == "soak":
         ap.add_argument(
             "--no-record",
@@ -883,6 +902,11 @@ def main(argv: Sequence[str] | None = None, name: str = "latency") -> int:
     a = ap.parse_args(argv)
     if getattr(a, "rt_priority", None) is not None and not 0 <= a.rt_priority <= 99:
         ap.error(f"--rt-priority {a.rt_priority}: 0 (normal scheduling) or 1..99 (SCHED_FIFO)")
+    keep = getattr(a, "keep_logs", None)
+    if keep is not None and keep.exists() and (not keep.is_dir() or any(keep.iterdir())):
+        ap.error(
+            f"--keep-logs {keep}: name a new or empty directory (a run's logs are not mixed with another's)"
+        )
     if name == "soak" and not 1.0 <= a.rate <= 5000.0:
         ap.error(f"--rate {a.rate:g}: the soak runs the master at a fixed rate in [1, 5000] Hz")
     res = BENCHES[name](a)
