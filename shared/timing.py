@@ -12,6 +12,7 @@ Example::
 from __future__ import annotations
 
 import ctypes
+import functools
 import gc
 import logging
 import os
@@ -159,11 +160,20 @@ class _SchedAttr(ctypes.Structure):
     ]
 
 
+#: The fair scheduler's policies (the ones a slice belongs to).
+_FAIR_POLICIES = (os.SCHED_OTHER, getattr(os, "SCHED_BATCH", 3))
+
+
+@functools.cache
+def _libc() -> ctypes.CDLL:
+    return ctypes.CDLL(None, use_errno=True)
+
+
 def _sched_attr_call(setting: bool, tid: int, attr: _SchedAttr) -> None:
     nrs = _SCHED_ATTR_SYSCALLS.get(platform.machine())
     if nrs is None or not hasattr(os, "sched_getscheduler"):
         raise OSError(f"sched_setattr: not available on {platform.system()} {platform.machine()}")
-    libc = ctypes.CDLL(None, use_errno=True)
+    libc = _libc()
     if setting:
         rc = libc.syscall(nrs[0], tid, ctypes.byref(attr), 0)
     else:
@@ -173,14 +183,17 @@ def _sched_attr_call(setting: bool, tid: int, attr: _SchedAttr) -> None:
         raise OSError(err, f"sched_{'set' if setting else 'get'}attr: {os.strerror(err)}")
 
 
+def _sched_attr(tid: int) -> _SchedAttr:
+    attr = _SchedAttr(size=ctypes.sizeof(_SchedAttr))
+    _sched_attr_call(False, tid, attr)
+    return attr
+
+
 def fair_slice_us(tid: int = 0) -> float | None:
     """The EEVDF slice of thread ``tid`` (0: the calling one) in µs, or None when the thread is
     not under the fair scheduler (e.g. SCHED_FIFO). Raises OSError where Linux cannot say."""
-    attr = _SchedAttr(size=ctypes.sizeof(_SchedAttr))
-    _sched_attr_call(False, tid, attr)
-    if attr.policy not in (os.SCHED_OTHER, getattr(os, "SCHED_BATCH", 3)):
-        return None
-    return float(attr.runtime) / 1e3
+    attr = _sched_attr(tid)
+    return float(attr.runtime) / 1e3 if attr.policy in _FAIR_POLICIES else None
 
 
 def check_slice_us(us: float) -> None:
@@ -209,9 +222,8 @@ def set_fair_slice(us: float, tid: int = 0) -> str:
     if us == 0:
         return ""
     try:
-        attr = _SchedAttr(size=ctypes.sizeof(_SchedAttr))
-        _sched_attr_call(False, tid, attr)
-        if attr.policy not in (os.SCHED_OTHER, getattr(os, "SCHED_BATCH", 3)):
+        attr = _sched_attr(tid)
+        if attr.policy not in _FAIR_POLICIES:
             return ""
         attr.size, attr.flags, attr.runtime = ctypes.sizeof(_SchedAttr), 0, int(us * 1e3)
         _sched_attr_call(True, tid, attr)

@@ -24,23 +24,17 @@ from telesurg.shared.errors import ConfigError
 from telesurg.shared.timing import check_slice_us, fair_slice_us, set_fair_slice, set_realtime
 
 
-def _supported() -> bool:
-    out: list[str] = []
-    th = threading.Thread(target=lambda: out.append(set_fair_slice(300)))
-    th.start()
-    th.join()
-    return out[0] == ""
-
-
-needs_slices = pytest.mark.skipif(not _supported(), reason="this kernel takes no fair slice (Linux < 6.12)")
-
-
 def _in_thread(fn):  # type: ignore[no-untyped-def]
     out: list[object] = []
     th = threading.Thread(target=lambda: out.append(fn()))
     th.start()
     th.join()
     return out[0]
+
+
+needs_slices = pytest.mark.skipif(
+    _in_thread(lambda: set_fair_slice(300)) != "", reason="this kernel takes no fair slice (Linux < 6.12)"
+)
 
 
 def test_slice_bounds_are_checked() -> None:

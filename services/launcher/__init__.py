@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import functools
 import importlib
 import importlib.resources
 import json
@@ -39,7 +40,7 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from types import TracebackType
@@ -129,18 +130,16 @@ def control_slice_us() -> float:
     return us
 
 
-def _foreground(slice_us: float | None = None) -> None:
+def _foreground(slice_us: float = 0.0) -> None:
     """preexec_fn of a control process: :func:`control_nice`, if permitted (else nice 0), and
-    the scheduler slice ``slice_us`` (None: :func:`control_slice_us` — of the parent's
-    environment, which is what a preexec_fn sees), inherited by every thread the process starts."""
+    the scheduler slice ``slice_us`` (0: the kernel's; :func:`control_slice_us`, read and checked
+    by the launcher before the fork), inherited by every thread the process starts."""
     n = control_nice()
     if n:
         with contextlib.suppress(AttributeError, OSError):
             os.setpriority(os.PRIO_PROCESS, 0, n)
         _autogroup_nice(n)
-    with contextlib.suppress(ConfigError):  # (checked by the launcher before the fork)
-        # a refusal is read back and reported by the launcher
-        set_fair_slice(control_slice_us() if slice_us is None else slice_us)
+    set_fair_slice(slice_us)  # a refusal is read back and reported by the launcher
 
 
 def _autogroup_nice(n: int) -> None:
@@ -468,14 +467,18 @@ class Site:
             self._logs.append(out)
         argv = service_argv(self.spec, name)
         slice_us = control_slice_us() if name in CONTROL else 0.0
+        preexec: Callable[[], None] | None = None
+        if name in NICE:  # the mirror only watches: it yields the CPU to the control processes
+            preexec = _background
+        elif name in CONTROL:
+            preexec = functools.partial(_foreground, slice_us)
         log.debug("starting %s: %s", name, " ".join(argv))
         self.procs[name] = subprocess.Popen(
             argv,
             stdout=out,
             stderr=subprocess.STDOUT if out else None,
             start_new_session=True,
-            # The mirror only watches: it yields the CPU to the control processes.
-            preexec_fn=_background if name in NICE else _foreground if name in CONTROL else None,
+            preexec_fn=preexec,
         )
         pid = self.procs[name].pid
         if name in CONTROL and control_nice():
