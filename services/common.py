@@ -5,6 +5,8 @@ Each service provides a config dataclass (with ``site``, ``service`` and ``bus``
 ``--config FILE`` (a site file, of which it reads the service's table — ``--table NAME``,
 default the service's name — and the ``[site]`` facts; or the service's own TOML file),
 ``--set key=value`` and the zenoh flags, installs SIGINT/SIGTERM handlers and calls ``run``.
+``SIGUSR1`` writes every thread's Python stack to stderr (the service's log) and the process
+goes on: what a hung service is doing (the launcher asks for it before it kills a straggler).
 ``--help`` lists every config key with its type, default, unit and meaning (from the config
 dataclass). Exit code 0 on a requested stop, 2 on a config error.
 """
@@ -12,6 +14,7 @@ dataclass). Exit code 0 on a requested stop, 2 on a config error.
 from __future__ import annotations
 
 import argparse
+import faulthandler
 import gc
 import logging
 import os
@@ -48,8 +51,21 @@ def setup_logging(level: str, service: str) -> None:
     )
 
 
+STACKS_SIGNAL = signal.SIGUSR1  # a service writes every thread's stack to its log on this signal
+
+
+def install_stack_dump() -> None:
+    """On :data:`STACKS_SIGNAL`, write every thread's Python stack to stderr and go on.
+
+    ``faulthandler`` writes from the signal handler in C, without the GIL: it answers even when
+    a thread is stuck holding the GIL or a lock, where a Python-level handler would never run.
+    """
+    faulthandler.register(STACKS_SIGNAL, file=sys.stderr, all_threads=True, chain=False)
+
+
 def install_stop_handlers(stop: threading.Event) -> None:
-    """SIGINT and SIGTERM set ``stop`` (a second signal exits at once)."""
+    """SIGINT and SIGTERM set ``stop`` (a second signal exits at once); :data:`STACKS_SIGNAL`
+    writes every thread's stack (:func:`install_stack_dump`)."""
 
     def handler(signum: int, frame: Any) -> None:
         if stop.is_set():
@@ -58,6 +74,7 @@ def install_stop_handlers(stop: threading.Event) -> None:
 
     signal.signal(signal.SIGINT, handler)
     signal.signal(signal.SIGTERM, handler)
+    install_stack_dump()
 
 
 def watch_parent(parent_pid: int, stop: threading.Event) -> None:

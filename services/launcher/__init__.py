@@ -46,7 +46,7 @@ from pathlib import Path
 from types import TracebackType
 from typing import IO, Any
 
-from telesurg.services.common import install_stop_handlers, setup_logging
+from telesurg.services.common import STACKS_SIGNAL, install_stop_handlers, setup_logging
 from telesurg.shared.auth import default_keys_dir, ensure_keyring
 from telesurg.shared.bus import BusConfig, add_bus_args, bus_from_args
 from telesurg.shared.config import SITE_FILE, load_config, read_site, site_plugins
@@ -524,6 +524,17 @@ class Site:
         """Services that exited on their own: name → exit code."""
         return {n: rc for n, p in self.procs.items() if (rc := p.poll()) is not None}
 
+    def _stacks(self, name: str, p: subprocess.Popen[bytes]) -> str:
+        """Ask a hung service for its threads' stacks (written to its log); where to read them."""
+        try:
+            p.send_signal(STACKS_SIGNAL)
+        except OSError:
+            return ""
+        time.sleep(0.5)  # the dump is written from the signal handler: a few ms
+        if not self.spec.log_dir:
+            return " (its threads' stacks are on the launcher's stderr)"
+        return f" (its threads' stacks are in {self.spec.log_dir / f'{name}.log'})"
+
     def stop(self, timeout: float = 10.0) -> dict[str, int]:
         """SIGINT each running process in :data:`STOP_ORDER`, wait, SIGKILL stragglers.
 
@@ -539,7 +550,8 @@ class Site:
             try:
                 codes[name] = p.wait(timeout)
             except subprocess.TimeoutExpired:
-                log.error("%s did not stop within %.0f s; killing pid %d", name, timeout, p.pid)
+                where = self._stacks(name, p)
+                log.error("%s did not stop within %.0f s; killing pid %d%s", name, timeout, p.pid, where)
                 p.kill()
                 codes[name] = p.wait()
         for f in self._logs:
