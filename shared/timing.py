@@ -11,6 +11,7 @@ Example::
 
 from __future__ import annotations
 
+import contextlib
 import ctypes
 import functools
 import gc
@@ -18,7 +19,9 @@ import logging
 import os
 import platform
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
+from pathlib import Path
 
 from telesurg.shared.errors import ConfigError
 
@@ -245,3 +248,106 @@ def _fine_timer_slack() -> None:
         libc.prctl(29, 1000, 0, 0, 0)  # PR_SET_TIMERSLACK, ns
     except (OSError, AttributeError):
         pass
+
+
+#: The launcher sets this in a best-effort service's environment (mirror, camera): the nice
+#: value its process steps down to once it is up (:func:`step_down`).
+BEST_EFFORT_ENV = "TELESURG_BEST_EFFORT_NICE"
+
+
+def parse_best_effort_nice(raw: str, default: int = 19) -> int:
+    """The best-effort nice value written in ``raw`` (:data:`BEST_EFFORT_ENV`; "" → ``default``).
+    ConfigError unless 0..19."""
+    try:
+        n = int(raw) if raw.strip() else default
+    except ValueError:
+        n = -1
+    if not 0 <= n <= 19:
+        raise ConfigError(f"{BEST_EFFORT_ENV}={raw!r}: a nice value 0..19 (0: normal priority)")
+    return n
+
+
+def _tids(pid: int) -> set[int]:
+    try:
+        return {int(t) for t in os.listdir(f"/proc/{pid or 'self'}/task")}
+    except OSError:  # gone, or no /proc
+        return set()
+
+
+def _each_thread(pid: int, set_one: Callable[[int], None]) -> int:
+    """Apply ``set_one`` to every thread of process ``pid`` (0: this one), again to any thread
+    started meanwhile (a thread inherits its policy from the one that starts it); the count."""
+    done: set[int] = set()
+    for _ in range(3):
+        new = _tids(pid) - done
+        if not new:
+            break
+        for tid in new:
+            with contextlib.suppress(OSError):  # a thread that just ended
+                set_one(tid)
+        done |= new
+    return len(done)
+
+
+def _set_autogroup_nice(pid: int, nice: int) -> bool:
+    """The nice value of the scheduler autogroup of ``pid`` (0: this process), where Linux has
+    autogroups; any value ≥ 0 needs no privilege."""
+    try:
+        Path(f"/proc/{pid or 'self'}/autogroup").write_text(f"{nice}\n")
+    except OSError:
+        return False
+    return True
+
+
+def set_best_effort(pid: int = 0, nice: int = 19) -> str:
+    """Put process ``pid`` (0: this one) below every normal program: each of its threads under
+    ``SCHED_IDLE`` (nice ``nice`` where that is refused) and its autogroup at nice ``nice``.
+
+    With autogroups (Linux's default) the CPU is shared between sessions first, so the autogroup's
+    nice is what puts a service started in a session of its own below the others; ``SCHED_IDLE``
+    does it where autogroups are off. Returns what was done, for the log."""
+
+    def one(tid: int) -> None:
+        try:
+            os.sched_setscheduler(tid, os.SCHED_IDLE, os.sched_param(0))
+        except (AttributeError, OSError):
+            os.setpriority(os.PRIO_PROCESS, tid, nice)
+
+    n = _each_thread(pid, one)
+    group = _set_autogroup_nice(pid, nice)
+    return f"{n} threads under SCHED_IDLE" + (f", its autogroup at nice {nice}" if group else "")
+
+
+def set_normal_priority(pid: int) -> None:
+    """Undo :func:`set_best_effort` for process ``pid`` as far as permitted (leaving
+    ``SCHED_IDLE`` and lowering nice may need privilege; the autogroup's nice 0 does not)."""
+
+    def one(tid: int) -> None:
+        os.sched_setscheduler(tid, os.SCHED_OTHER, os.sched_param(0))
+        with contextlib.suppress(OSError):
+            os.setpriority(os.PRIO_PROCESS, tid, 0)
+
+    _each_thread(pid, one)
+    _set_autogroup_nice(pid, 0)
+
+
+def step_down() -> None:
+    """Called by a best-effort service once it is up: if the launcher asked for it
+    (:data:`BEST_EFFORT_ENV` 1..19; 0: stay), go below every normal program
+    (:func:`set_best_effort`).
+
+    A best-effort service starts at normal priority and steps down only now: at the lowest
+    priority from the start, its imports and set-up got ~2 % of a CPU on a host where two
+    programs keep both cores busy, and it did not come up within the launcher's 30 s."""
+    raw = os.environ.get(BEST_EFFORT_ENV, "").strip()
+    if not raw:
+        return
+    try:
+        nice = parse_best_effort_nice(raw)
+    except ConfigError as exc:
+        log.warning("%s; staying at normal priority", exc)
+        return
+    if nice == 0:
+        log.info("set up; at normal priority (%s=0)", BEST_EFFORT_ENV)
+        return
+    log.info("set up; best-effort from now on: %s", set_best_effort(0, nice))

@@ -14,6 +14,7 @@ from __future__ import annotations
 import json
 import os
 import threading
+import time
 from pathlib import Path
 
 import pytest
@@ -108,8 +109,12 @@ def test_every_thread_of_the_control_processes_has_the_slice_and_the_mirror_none
         log_dir=tmp_path,
     )
     with Site(spec) as site:
+        mirror_pid = site.pid("mirror")
+        deadline = time.monotonic() + 20  # the mirror steps down once it is set up
+        while time.monotonic() < deadline and os.sched_getscheduler(mirror_pid) != os.SCHED_IDLE:
+            time.sleep(0.1)
         got = {name: slice_threads(p.pid) for name, p in site.procs.items()}
-        mirror = [fair_slice_us(int(t)) for t in os.listdir(f"/proc/{site.pid('mirror')}/task")]
+        mirror = [fair_slice_us(int(t)) for t in os.listdir(f"/proc/{mirror_pid}/task")]
         zenoh = {  # zenoh's runtime threads (named by tokio) of the watchdog, with their slice
             (Path(f"/proc/{site.pid('watchdog')}/task/{t}/comm").read_text().strip(), fair_slice_us(int(t)))
             for t in os.listdir(f"/proc/{site.pid('watchdog')}/task")

@@ -36,7 +36,7 @@ from telesurg.shared.bus import BusConfig, Node, Outlet
 from telesurg.shared.errors import ConfigError
 from telesurg.shared.kinematics import matrix_from_quat, quat_from_matrix
 from telesurg.shared.messages import CameraImage, CartesianPose, JointState
-from telesurg.shared.timing import CycleTimer
+from telesurg.shared.timing import CycleTimer, step_down
 
 log = logging.getLogger("telesurg.camera")
 
@@ -282,6 +282,7 @@ def run(cfg: CameraConfig, stop: threading.Event) -> None:
                 cfg.fps,
                 node.keys.camera(cfg.camera, "image"),
             )
+            step_down()  # set up: below the control path from now on, if the launcher asked
             timer = CycleTimer(cfg.fps)
             every = max(1, round(cfg.fps / cfg.pose_hz))
             while not stop.is_set():

@@ -51,7 +51,14 @@ from telesurg.shared.auth import default_keys_dir, ensure_keyring
 from telesurg.shared.bus import BusConfig, add_bus_args, bus_from_args
 from telesurg.shared.config import SITE_FILE, load_config, read_site, site_plugins
 from telesurg.shared.errors import ConfigError
-from telesurg.shared.timing import check_slice_us, fair_slice_us, set_fair_slice
+from telesurg.shared.timing import (
+    BEST_EFFORT_ENV,
+    check_slice_us,
+    fair_slice_us,
+    parse_best_effort_nice,
+    set_fair_slice,
+    set_normal_priority,
+)
 
 log = logging.getLogger("telesurg.launcher")
 
@@ -71,8 +78,14 @@ STOP_ORDER = (
 #: Started only when asked (``--master web`` / ``--console``), after the others: the web console
 #: (``telesurg console --web``), which with ``--master web`` is also the site's master.
 ON_REQUEST = ("console",)
-# started under SCHED_IDLE (or nice +19): they only get the CPU the control loops leave
+#: Best-effort services: started at normal priority, they step down to :func:`best_effort_nice`
+#: once they are up (``SCHED_IDLE`` and their autogroup's nice; shared/timing.py ``step_down``),
+#: so they only get the CPU the control loops and the host's other programs leave; the launcher
+#: lifts them back before it asks them to stop, so they can save what they hold.
 NICE = ("mirror", "camera")
+#: The nice value the best-effort services step down to once up (1..19; 0: they stay at normal
+#: priority, level with the host's other programs). ``$TELESURG_BEST_EFFORT_NICE`` overrides.
+BEST_EFFORT_NICE = 19
 #: Services a site runs without when they cannot start (the camera without OpenGL): the launcher
 #: says so and turns the video off for the others (:data:`OPTIONAL_OFF` overrides).
 OPTIONAL = ("camera",)
@@ -130,6 +143,12 @@ def control_slice_us() -> float:
     return us
 
 
+def best_effort_nice() -> int:
+    """The nice value for the best-effort services (``$TELESURG_BEST_EFFORT_NICE`` or
+    :data:`BEST_EFFORT_NICE`). ConfigError unless 0..19."""
+    return parse_best_effort_nice(os.environ.get(BEST_EFFORT_ENV, ""), BEST_EFFORT_NICE)
+
+
 def _foreground(slice_us: float = 0.0) -> None:
     """preexec_fn of a control process: :func:`control_nice`, if permitted (else nice 0), and
     the scheduler slice ``slice_us`` (0: the kernel's; :func:`control_slice_us`, read and checked
@@ -150,15 +169,6 @@ def _autogroup_nice(n: int) -> None:
     threads of its own group, not against a CPU hog in another session. Harmless elsewhere."""
     with contextlib.suppress(OSError):
         Path("/proc/self/autogroup").write_text(f"{n}\n")
-
-
-def _background() -> None:
-    """preexec_fn: lowest CPU priority, inherited by every thread the process starts."""
-    try:
-        os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
-    except (AttributeError, OSError):  # not Linux, or not permitted
-        os.nice(19)
-    _autogroup_nice(19)  # (its session's autogroup too: see _autogroup_nice)
 
 
 CLI_NAME = {
@@ -342,6 +352,7 @@ class Site:
         seen): six Python processes importing at once saturate a 2-core host for seconds, long
         enough for the watchdog's deadlines to fire before the first engage.
         """
+        control_slice_us(), best_effort_nice()  # a bad environment stops here, before any start
         if self.spec.keys_dir is None:
             self.spec.keys_dir = default_keys_dir(self.spec.site).resolve()
         keys_dir, made = ensure_keyring(self.spec.keys_dir)
@@ -468,8 +479,9 @@ class Site:
         argv = service_argv(self.spec, name)
         slice_us = control_slice_us() if name in CONTROL else 0.0
         preexec: Callable[[], None] | None = None
-        if name in NICE:  # the mirror only watches: it yields the CPU to the control processes
-            preexec = _background
+        env: dict[str, str] | None = None
+        if name in NICE:  # it only watches: it steps down below the control path once up
+            env = {**os.environ, BEST_EFFORT_ENV: str(best_effort_nice())}
         elif name in CONTROL:
             preexec = functools.partial(_foreground, slice_us)
         log.debug("starting %s: %s", name, " ".join(argv))
@@ -479,6 +491,7 @@ class Site:
             stderr=subprocess.STDOUT if out else None,
             start_new_session=True,
             preexec_fn=preexec,
+            env=env,
         )
         pid = self.procs[name].pid
         if name in CONTROL and control_nice():
@@ -546,6 +559,8 @@ class Site:
             p = self.procs.get(name)
             if p is None or p.poll() is not None:
                 continue
+            if name in NICE:  # a starved mirror could not save its recording in time
+                set_normal_priority(p.pid)
             p.send_signal(signal.SIGINT)
             try:
                 codes[name] = p.wait(timeout)

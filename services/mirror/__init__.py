@@ -84,7 +84,7 @@ from telesurg.shared.messages import (
     TeleopState,
 )
 from telesurg.shared.robots import ArmProfile, RobotSpec, Sketch
-from telesurg.shared.timing import CycleTimer, settle_gc
+from telesurg.shared.timing import CycleTimer, settle_gc, step_down
 
 log = logging.getLogger(__name__)
 
@@ -940,6 +940,7 @@ def run(cfg: MirrorConfig, stop: threading.Event) -> None:
                 )
             draw_errors = 0
             trimmer = Trimmer(cfg.malloc_trim_s)
+            step_down()  # set up: below the control path from now on, if the launcher asked
             settle_gc()
             while not stop.is_set():
                 try:
