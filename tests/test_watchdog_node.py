@@ -1,4 +1,5 @@
-"""The watchdog service object on a real (in-process) zenoh router: e-stop and echo latency."""
+"""The watchdog service object on a real (in-process) zenoh router: e-stop, echo latency, and
+inputs that never wait for the loop."""
 
 from __future__ import annotations
 
@@ -26,6 +27,8 @@ def test_echo_latency_source_and_estop(endpoint: str) -> None:
         master.subscribe(master.keys.safety("arm1", "lease"), SafetyLease, lambda m, k: leases.append(m))
         echo = threading.Thread(target=_echo_loop, args=(wd, cfg, stop), daemon=True)
         echo.start()
+        loop = threading.Thread(target=wd.serve, args=(stop,), daemon=True)
+        loop.start()
         try:
             # RTT/2 to master_capture's echo queryable becomes the arm's latency figure
             assert wait_until(lambda: wd.arms[0].safety.latency(time.monotonic())[3] >= 10, 5.0)
@@ -37,7 +40,7 @@ def test_echo_latency_source_and_estop(endpoint: str) -> None:
             time.sleep(0.2)
             out.put(EStop(out.header(), "*", "estop", "test"))
             assert wait_until(lambda: bool(leases) and leases[-1].reason.startswith("ESTOP"), 2.0)
-            # (the lease is put before the e-stop callback's tick records the verdict)
+            # (the lease is put before the loop's urgent tick records the verdict)
             assert not leases[-1].allow
             assert wait_until(lambda: wd.arms[0].verdict.state == "ESTOP", 2.0)
             wd.tick()
@@ -55,3 +58,36 @@ def test_echo_latency_source_and_estop(endpoint: str) -> None:
         finally:
             stop.set()
             echo.join(2.0)
+            loop.join(2.0)
+
+
+def test_an_estop_never_waits_for_the_loop(endpoint: str) -> None:
+    """While the loop is in a tick (its lease put held up by the transport, say), an e-stop is
+    taken and the zenoh thread that delivered it goes on delivering: the loop revokes the lease
+    as soon as it can. (A callback that ticked itself waited for the loop here, and the thread
+    it blocked was one the loop's put could need: the watchdog did not stop once, 2026-12-04.)"""
+    bus = BusConfig(connect=[endpoint])
+    cfg = WatchdogConfig(site="t", bus=bus)
+    cfg.validate()
+    leases: list[SafetyLease] = []
+    stop = threading.Event()
+    with Node(bus, "t", "watchdog") as node, Node(bus, "t", "master_capture") as master:
+        wd = Watchdog(cfg, node)
+        master.subscribe(master.keys.safety("arm1", "lease"), SafetyLease, lambda m, k: leases.append(m))
+        out = master.outlet(master.keys.estop)
+        time.sleep(0.2)
+        loop = threading.Thread(target=wd.serve, args=(stop,), daemon=True)
+        with wd.tick_lock:  # the loop is stuck in a tick
+            loop.start()
+            out.put(EStop(out.header(), "*", "estop", "test"))
+            out.put(EStop(out.header(), "arm1", "reset", "test"))  # refused: not the console's
+            # both delivered and handled on zenoh's thread, though no tick can run
+            assert wait_until(lambda: wd.authority.refused == 1, 2.0), "the e-stop callback is blocked"
+            assert wd.arms[0].safety.estop and wd.urgent.is_set()
+            assert not any(m.reason.startswith("ESTOP") for m in leases)
+        try:  # the loop is free again: the urgent tick revokes the lease at once
+            assert wait_until(lambda: any(m.reason.startswith("ESTOP") for m in leases), 2.0)
+            assert wd.arms[0].verdict.state == "ESTOP"
+        finally:
+            stop.set()
+            loop.join(2.0)

@@ -261,6 +261,13 @@ class Watchdog:
         # (descheduled), queued messages get a chance to arrive before anything is judged stale.
         self.ticks = 0
         self.tick_lock = threading.Lock()
+        # Set by an input that must revoke a lease now (liveliness loss, e-stop, a commanded
+        # fault): the loop (:meth:`serve`) wakes and ticks at once. The callbacks never tick
+        # themselves: a tick puts the leases (CongestionControl.BLOCK), and a zenoh delivery
+        # thread blocked in a put — or waiting for ``tick_lock`` while the loop is in one — stops
+        # reading from the router, whose queue towards this process then holds up the very
+        # transport the loop's put needs (a deadlock; zenoh advises no blocking call in a callback).
+        self.urgent = threading.Event()
         self.last_tick: dict[str, int] = {}
         self.arms = [ArmWatch(node, cfg, *parse_pair(p)) for p in cfg.pairs]
         k = node.keys
@@ -324,7 +331,7 @@ class Watchdog:
         with self.lock:
             fault = a.commanded.on_setpoint_js(msg, time.monotonic())
         if fault:
-            self.tick(force_state=True)  # revoke the lease now, not at the next period
+            self.urgent.set()  # revoke the lease now, not at the next period
 
     def _on_frame(self, msg: CameraImage, key: str) -> None:
         now = time.monotonic()
@@ -347,7 +354,7 @@ class Watchdog:
         with self.lock:
             changed = [a.safety.on_estop(msg) for a in self.arms]
         if any(changed):
-            self.tick(force_state=True)
+            self.urgent.set()
 
     def _on_alive(self, service: str, alive: bool) -> None:
         with self.lock:
@@ -361,7 +368,7 @@ class Watchdog:
             service in self.cfg.required_services
             or (self.video is not None and service == self.cfg.video_service)
         ):
-            self.tick(force_state=True)  # do not wait for the next period
+            self.urgent.set()  # do not wait for the next period
 
     def add_echo_latency(self, rtt_s: float | None) -> None:
         """Account one echo round trip (None: no reply) as a latency sample of every arm."""
@@ -411,7 +418,7 @@ class Watchdog:
 
     def tick(self, *, force_state: bool = False) -> None:
         """Evaluate every arm, publish leases (and states on change or when forced)."""
-        with self.tick_lock:  # the main loop and the liveliness/e-stop callbacks all tick
+        with self.tick_lock:  # the loop's periodic and urgent ticks, and a test's
             self._tick(force_state)
 
     def _tick(self, force_state: bool) -> None:
@@ -452,6 +459,29 @@ class Watchdog:
                 )
             if changed or force_state or v.causes != old.causes:
                 self.publish_state(a)
+
+    def serve(self, stop: threading.Event) -> None:
+        """Tick every ``1/lease_hz`` s, and at once when an input asks (:attr:`urgent`), until
+        ``stop``. The only thread that ticks, so the only one that puts leases and states."""
+        period = 1.0 / self.cfg.lease_hz
+        state_every = max(1, round(self.cfg.lease_hz / self.cfg.state_hz))
+        n = 0
+        next_t = time.monotonic()
+        while not stop.is_set():
+            if self.urgent.wait(max(0.0, next_t - time.monotonic())):
+                self.urgent.clear()  # (an input's state is set before it asks: this tick sees it)
+                self.tick(force_state=True)
+                continue
+            self.tick()
+            n += 1
+            if n % state_every == 0:
+                with self.tick_lock:
+                    for a in self.arms:
+                        self.publish_state(a)
+            next_t += period
+            now = time.monotonic()
+            if next_t < now:  # we were descheduled: skip the missed ticks instead of bursting
+                next_t = now + period  # through them (a burst would age every stream in ticks too)
 
     def publish_state(self, a: ArmWatch) -> None:
         """Send the current safety state of ``a``."""
@@ -512,24 +542,9 @@ def run(cfg: WatchdogConfig, stop: threading.Event) -> None:
         wd = Watchdog(cfg, node)
         if cfg.latency_source == "echo":
             threading.Thread(target=_echo_loop, args=(wd, cfg, stop), daemon=True).start()
-        period = 1.0 / cfg.lease_hz
-        state_every = max(1, round(cfg.lease_hz / cfg.state_hz))
-        n = 0
-        next_t = time.monotonic()
         log.info("watching %s; required services: %s", cfg.pairs, cfg.required_services)
         settle_gc()
-        while not stop.is_set():
-            wd.tick()
-            n += 1
-            if n % state_every == 0:
-                with wd.tick_lock:
-                    for a in wd.arms:
-                        wd.publish_state(a)
-            next_t += period
-            now = time.monotonic()
-            if next_t < now:  # we were descheduled: skip the missed ticks instead of bursting
-                next_t = now + period  # through them (a burst would age every stream in ticks too)
-            stop.wait(max(0.0, next_t - now))
+        wd.serve(stop)
         # Last word: revoke every lease explicitly before going away.
         for a in wd.arms:
             a.lease_out.put(
