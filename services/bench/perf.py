@@ -44,6 +44,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from telesurg.services.bench import schedtrace
 from telesurg.services.bench.load import Load
 from telesurg.shared import jsonio
 
@@ -162,7 +163,14 @@ def slice_threads(pid: int) -> str:
 
 
 def _pipeline_block(
-    rate: float, seconds: float, tmp: Path, k: int, rt_priority: int | None = None, load: Load | None = None
+    rate: float,
+    seconds: float,
+    tmp: Path,
+    k: int,
+    rt_priority: int | None = None,
+    load: Load | None = None,
+    trace: bool = False,
+    keep: bool = False,
 ) -> tuple[np.ndarray, dict[str, Any]]:
     from telesurg.services.bench.harness import Pipeline
     from telesurg.services.launcher import CONTROL
@@ -178,9 +186,15 @@ def _pipeline_block(
         tap = _ServoTap(p.node)
         t_start = time.time()  # the site is up (every service on the bus): the block begins
         with _loaded(load, p.spec.endpoint, tmp):
+            tracer = schedtrace.SchedTrace(tmp / f"sched{k}.data", seconds) if trace else None
             time.sleep(seconds + 1.0)
             fifo = {n: fifo_threads(pr.pid) for n, pr in p.site.procs.items() if n in RT_SERVICES}
             sliced = {n: slice_threads(pr.pid) for n, pr in p.site.procs.items() if n in CONTROL}
+            threads = schedtrace.thread_services(
+                {n: pr.pid for n, pr in p.site.procs.items() if n in CONTROL}
+            )
+            if tracer is not None:
+                tracer.wait()
         tap.close()
         t_stop = time.time()
         p.close()
@@ -188,7 +202,13 @@ def _pipeline_block(
     logs = {f.stem: f.read_text() for f in (tmp / f"logs{k}").glob("*.log")}
     holds = watchdog_holds(logs.get("watchdog", ""), t_stop, since=t_start)
     startup = watchdog_holds(logs.get("watchdog", ""), t_start)
+    sched: dict[str, Any] = {}
+    if tracer is not None:
+        sched = schedtrace.delays(tracer.out, threads)
+        if not keep:
+            tracer.out.unlink()
     return rows, {
+        "sched_delay_ms": sched,
         "holds": len(holds),
         "hold_causes": holds,
         "startup_hold_causes": startup,
@@ -344,6 +364,7 @@ def latency(a: argparse.Namespace) -> dict[str, Any]:
     rows: dict[str, tuple[list[np.ndarray], list[np.ndarray]]] = {_cname(c): ([], []) for c in conditions}
     holds: dict[str, list[str]] = {name: [] for name in rows}
     startup: dict[str, list[str]] = {name: [] for name in rows}
+    sched: dict[str, dict[str, Any]] = {}
     blk = 0
     with _workdir(a.keep_logs) as d:
         tmp = Path(d)
@@ -358,10 +379,22 @@ def latency(a: argparse.Namespace) -> dict[str, Any]:
                         rows[name][0].append(_relay_block(ep, rate, a.seconds, tmp, blk))
                 finally:
                     router.close()  # type: ignore[no-untyped-call]
-                prow, info = _pipeline_block(rate, a.seconds, tmp, blk, a.rt_priority, c)
+                first = len(rows[name][1]) == 0  # the scheduler is traced in each one's first block
+                prow, info = _pipeline_block(
+                    rate,
+                    a.seconds,
+                    tmp,
+                    blk,
+                    a.rt_priority,
+                    c,
+                    trace=a.sched_trace and first,
+                    keep=a.keep_logs is not None,
+                )
                 rows[name][1].append(prow)
                 holds[name] += info["hold_causes"]
                 startup[name] += info["startup_hold_causes"]
+                if info["sched_delay_ms"]:
+                    sched[name] = info["sched_delay_ms"]
                 if c is None:
                     res["pipeline_fifo_threads"] = info["fifo_threads"]
                     res["pipeline_slice_threads"] = info["slice_threads"]
@@ -370,6 +403,8 @@ def latency(a: argparse.Namespace) -> dict[str, Any]:
         figs["pipeline_watchdog_holds"] = len(holds[name])
         figs["pipeline_watchdog_hold_causes"] = holds[name]
         figs["pipeline_startup_hold_causes"] = startup[name]
+        if name in sched:
+            figs["pipeline_sched_delay_ms"] = sched[name]
         if name == "idle":
             res.update(figs)
         else:
@@ -404,6 +439,8 @@ def latency(a: argparse.Namespace) -> dict[str, Any]:
             f"the pipeline's stages, {name} (one row per setpoint the slave used; wall clock)",
             [(f"{label}", figs["stages"][n]) for n, label, _a, _b in STAGES],
         )
+        if name in sched:
+            _sched_table(name, sched[name])
         vs_idle = ""
         if name != "idle":
             blocks = ", ".join(f"× {r}" for r in figs["pipeline_block_p99_vs_idle"])
@@ -847,6 +884,19 @@ def _load_arg(spec: str) -> Load:
     return load
 
 
+def _sched_table(name: str, figs: dict[str, dict[str, float]]) -> None:
+    from rich.console import Console
+    from rich.table import Table
+
+    t = Table(title=f"the control threads' wait for a CPU once runnable, {name} (perf sched; first block)")
+    for col in ("service", "switch-ins", "p50 ms", "p99 ms", "p99.9 ms", "max ms", "CPU ms"):
+        t.add_column(col, justify="left" if col == "service" else "right")
+    for svc, f in figs.items():
+        quantiles = (f"{f[k]:.3f}" for k in ("p50", "p99", "p99_9", "max"))
+        t.add_row(svc, str(f["n"]), *quantiles, f"{f['cpu_ms']:.0f}")
+    Console().print(t)
+
+
 def main(argv: Sequence[str] | None = None, name: str = "latency") -> int:
     ap = argparse.ArgumentParser(prog=f"telesurg bench {name}", description=__doc__)
     ap.add_argument("--json", type=Path, help="write the figures here")
@@ -895,6 +945,12 @@ def main(argv: Sequence[str] | None = None, name: str = "latency") -> int:
     if name == "latency":
         ap.add_argument("--blocks", type=int, default=2, help="alternating relay/pipeline blocks each")
         ap.add_argument("--plot", type=Path, help="write a PNG of the percentiles here")
+        ap.add_argument(
+            "--sched-trace",
+            action="store_true",
+            help="trace the scheduler (perf sched, needs perf and root) through the first pipeline "
+            "block of each condition: how long each control service's threads waited for a CPU",
+        )
     if name == "ik":
         ap.add_argument("--n", type=int, default=1000, help="targets")
     if name == "sim":
@@ -907,6 +963,8 @@ def main(argv: Sequence[str] | None = None, name: str = "latency") -> int:
         ap.error(
             f"--keep-logs {keep}: name a new or empty directory (a run's logs are not mixed with another's)"
         )
+    if getattr(a, "sched_trace", False) and (why := schedtrace.unavailable()):
+        ap.error(f"--sched-trace: {why}")
     if name == "soak" and not 1.0 <= a.rate <= 5000.0:
         ap.error(f"--rate {a.rate:g}: the soak runs the master at a fixed rate in [1, 5000] Hz")
     res = BENCHES[name](a)
