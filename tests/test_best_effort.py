@@ -15,12 +15,12 @@ import json
 import os
 import subprocess
 import sys
-import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
 import pytest
+from conftest import wait_until
 from telesurg.services.launcher import BEST_EFFORT_NICE, Site, SiteSpec, best_effort_nice, free_port
 from telesurg.shared.errors import ConfigError
 from telesurg.shared.timing import BEST_EFFORT_ENV
@@ -40,15 +40,6 @@ def _policies(pid: int) -> set[int]:
         with contextlib.suppress(OSError):  # a thread that just ended
             out.add(os.sched_getscheduler(int(t)))
     return out
-
-
-def _wait(cond, timeout: float) -> bool:  # type: ignore[no-untyped-def]
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if cond():
-            return True
-        time.sleep(0.1)
-    return bool(cond())
 
 
 @contextmanager
@@ -95,7 +86,7 @@ def test_the_mirror_comes_up_on_a_busy_host_and_then_steps_down(
     monkeypatch.delenv(BEST_EFFORT_ENV, raising=False)
     with _hogs(2) as hogs, Site(_mirror_site(tmp_path)) as site:  # raised before: not up in 30 s
         pid = site.pid("mirror")
-        stepped = _wait(lambda: _policies(pid) == {os.SCHED_IDLE}, 20)
+        stepped = wait_until(lambda: _policies(pid) == {os.SCHED_IDLE}, 20)
         policies, group = _policies(pid), _autogroup_nice(pid)
         assert all(h.poll() is None for h in hogs)
         codes = site.stop()
@@ -112,7 +103,7 @@ def test_nice_0_keeps_the_mirror_at_normal_priority(tmp_path: Path, monkeypatch:
     monkeypatch.setenv(BEST_EFFORT_ENV, "0")
     with Site(_mirror_site(tmp_path)) as site:
         pid = site.pid("mirror")
-        said = _wait(lambda: "at normal priority" in (tmp_path / "mirror.log").read_text(), 20)
+        said = wait_until(lambda: "at normal priority" in (tmp_path / "mirror.log").read_text(), 20)
         policies, group = _policies(pid), _autogroup_nice(pid)
     assert said, (tmp_path / "mirror.log").read_text()[-2000:]
     assert policies == {os.SCHED_OTHER}, policies
