@@ -289,9 +289,14 @@ def _each_thread(pid: int, set_one: Callable[[int], None]) -> int:
     return len(done)
 
 
-def _set_autogroup_nice(pid: int, nice: int) -> bool:
-    """The nice value of the scheduler autogroup of ``pid`` (0: this process), where Linux has
-    autogroups; any value ≥ 0 needs no privilege."""
+def set_autogroup_nice(pid: int, nice: int) -> bool:
+    """Give the scheduler autogroup of ``pid`` (0: this process) the nice value ``nice``, where
+    Linux has autogroups (``kernel.sched_autogroup_enabled``); False where it cannot.
+
+    A session is an autogroup, and the scheduler shares the CPU between autogroups first: a
+    process's own nice value or ``SCHED_IDLE`` counts only against the threads of its own group,
+    not against a CPU hog in another session. A value ≥ 0 needs no privilege, < 0 root or
+    ``CAP_SYS_NICE``."""
     try:
         Path(f"/proc/{pid or 'self'}/autogroup").write_text(f"{nice}\n")
     except OSError:
@@ -314,7 +319,7 @@ def set_best_effort(pid: int = 0, nice: int = 19) -> str:
             os.setpriority(os.PRIO_PROCESS, tid, nice)
 
     n = _each_thread(pid, one)
-    group = _set_autogroup_nice(pid, nice)
+    group = set_autogroup_nice(pid, nice)
     return f"{n} threads under SCHED_IDLE" + (f", its autogroup at nice {nice}" if group else "")
 
 
@@ -328,7 +333,7 @@ def set_normal_priority(pid: int) -> None:
             os.setpriority(os.PRIO_PROCESS, tid, 0)
 
     _each_thread(pid, one)
-    _set_autogroup_nice(pid, 0)
+    set_autogroup_nice(pid, 0)
 
 
 def step_down() -> None:

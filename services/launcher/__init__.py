@@ -56,6 +56,7 @@ from telesurg.shared.timing import (
     check_slice_us,
     fair_slice_us,
     parse_best_effort_nice,
+    set_autogroup_nice,
     set_fair_slice,
     set_normal_priority,
 )
@@ -157,18 +158,10 @@ def _foreground(slice_us: float = 0.0) -> None:
     if n:
         with contextlib.suppress(AttributeError, OSError):
             os.setpriority(os.PRIO_PROCESS, 0, n)
-        _autogroup_nice(n)
+        # (its session's autogroup too: each service runs in a session, so an autogroup, of its
+        # own, and the CPU is shared between autogroups first — see set_autogroup_nice)
+        set_autogroup_nice(0, n)
     set_fair_slice(slice_us)  # a refusal is read back and reported by the launcher
-
-
-def _autogroup_nice(n: int) -> None:
-    """Give this process's scheduler autogroup the nice value ``n``, where Linux has autogroups
-    (``kernel.sched_autogroup_enabled``). Each service is started in a session of its own
-    (``start_new_session``), and a session is an autogroup: the scheduler shares the CPU between
-    autogroups first, so a process's own nice value or ``SCHED_IDLE`` counts only against the
-    threads of its own group, not against a CPU hog in another session. Harmless elsewhere."""
-    with contextlib.suppress(OSError):
-        Path("/proc/self/autogroup").write_text(f"{n}\n")
 
 
 CLI_NAME = {
