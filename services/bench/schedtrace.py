@@ -14,10 +14,12 @@ once read unless ``--keep-logs`` keeps it.
 
 from __future__ import annotations
 
+import functools
 import os
 import re
 import shutil
 import subprocess
+import tempfile
 from collections import defaultdict
 from pathlib import Path
 
@@ -37,6 +39,19 @@ def unavailable() -> str:
         return "no /proc/sys/kernel/perf_event_paranoid: not Linux, or no perf events"
     if os.geteuid() != 0 and paranoid > -1:
         return f"tracing every CPU needs root or kernel.perf_event_paranoid = -1 (it is {paranoid})"
+    return _probe()
+
+
+@functools.cache
+def _probe() -> str:
+    """Record the scheduler for no time at all: a kernel without the tracepoints, or a container
+    without tracefs, says so here (~1 s), not after a bench block."""
+    with tempfile.TemporaryDirectory() as d:
+        argv = ["perf", "record", "-q", "-a", "-e", "sched:sched_switch", "-o", f"{d}/probe.data"]
+        argv += ["--", "true"]
+        r = subprocess.run(argv, capture_output=True, text=True, timeout=30)
+    if r.returncode != 0:
+        return f"perf cannot trace the scheduler here: {r.stderr.strip()[-200:] or r.returncode}"
     return ""
 
 
