@@ -267,7 +267,8 @@ def parse_best_effort_nice(raw: str, default: int = 19) -> int:
     return n
 
 
-def _tids(pid: int) -> set[int]:
+def thread_ids(pid: int = 0) -> set[int]:
+    """The thread ids of process ``pid`` (0: this one); empty when it is gone (or no /proc)."""
     try:
         return {int(t) for t in os.listdir(f"/proc/{pid or 'self'}/task")}
     except OSError:  # gone, or no /proc
@@ -279,7 +280,7 @@ def _each_thread(pid: int, set_one: Callable[[int], None]) -> int:
     started meanwhile (a thread inherits its policy from the one that starts it); the count."""
     done: set[int] = set()
     for _ in range(3):
-        new = _tids(pid) - done
+        new = thread_ids(pid) - done
         if not new:
             break
         for tid in new:

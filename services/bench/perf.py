@@ -190,10 +190,10 @@ def _pipeline_block(
             time.sleep(seconds + 1.0)
             fifo = {n: fifo_threads(pr.pid) for n, pr in p.site.procs.items() if n in RT_SERVICES}
             sliced = {n: slice_threads(pr.pid) for n, pr in p.site.procs.items() if n in CONTROL}
-            threads = schedtrace.thread_services(
-                {n: pr.pid for n, pr in p.site.procs.items() if n in CONTROL}
-            )
-            if tracer is not None:
+            if tracer is not None:  # (the threads named while they all still run)
+                threads = schedtrace.thread_services(
+                    {n: pr.pid for n, pr in p.site.procs.items() if n in CONTROL}
+                )
                 tracer.wait()
         tap.close()
         t_stop = time.time()

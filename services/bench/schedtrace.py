@@ -24,6 +24,7 @@ from collections import defaultdict
 from pathlib import Path
 
 import numpy as np
+from telesurg.shared.timing import thread_ids
 
 #: A ``perf sched timehist`` row ends in ``comm[tid/pid]  wait  sch-delay  run-time`` (ms).
 _ROW = re.compile(r"\[(\d+)(?:/\d+)?\]\s+([\d.]+)\s+([\d.]+)\s+([\d.]+)\s*$")
@@ -73,13 +74,7 @@ class SchedTrace:
 
 def thread_services(pids: dict[str, int]) -> dict[int, str]:
     """Every thread of each service process: thread id → service name."""
-    out: dict[int, str] = {}
-    for name, pid in pids.items():
-        try:
-            out.update({int(t): name for t in os.listdir(f"/proc/{pid}/task")})
-        except OSError:  # gone: its threads are not counted
-            continue
-    return out
+    return {tid: name for name, pid in pids.items() for tid in thread_ids(pid)}  # (gone: none)
 
 
 def delays(data: Path, threads: dict[int, str]) -> dict[str, dict[str, float]]:
