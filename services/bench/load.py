@@ -3,7 +3,10 @@
 A spec names what else runs on the host while the control path is measured:
 
 * ``cpu:N`` — N busy-loop processes at normal priority (nice 0, SCHED_OTHER): other programs
-  on the same cores, e.g. a package install or a compiler;
+  on the same cores, e.g. a package install or a compiler, each in a session (so a scheduler
+  autogroup) of its own as a program started elsewhere on the host is — not in the bench's, whose
+  CPU share they would otherwise split (the bench, like the launcher, runs in a session of its
+  own: telesurg.shared.session);
 * ``idle:N`` — N busy-loop processes under ``SCHED_IDLE``, the class the launcher gives the
   camera and the mirror: best-effort work that gets only the CPU the control path leaves. What it
   still costs the control path is what the host's shared cores cost (caches, memory bandwidth,
@@ -85,10 +88,10 @@ class Load:
         try:
             if self.kind == "cpu":
                 for _ in range(self.n):
-                    procs.append(_spawn([sys.executable, "-c", "while True: pass"]))
+                    procs.append(_spawn([sys.executable, "-c", "while True: pass"], session=True))
             elif self.kind == "idle":
                 for _ in range(self.n):
-                    procs.append(_spawn([sys.executable, "-c", _IDLE_HOG]))
+                    procs.append(_spawn([sys.executable, "-c", _IDLE_HOG], session=True))
             elif self.kind == "record":
                 out = tmp / f"load-record-{time.monotonic_ns()}.mcap"
                 argv = [sys.executable, "-m", "telesurg.services.record", "--out", str(out)]
@@ -150,13 +153,17 @@ def _die_with_parent() -> None:
         ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
 
 
-def _spawn(argv: list[str], lowest: bool = False) -> subprocess.Popen[bytes]:
+def _spawn(argv: list[str], lowest: bool = False, session: bool = False) -> subprocess.Popen[bytes]:
     """``argv`` with its output discarded, ended with the bench (:func:`_die_with_parent`);
-    ``lowest``: in a session of its own at the lowest priority
+    ``session``: in a session of its own; ``lowest``: that, at the lowest priority
     (:func:`telesurg.services.bench.browser.lowest_priority`)."""
     if not lowest:
         return subprocess.Popen(
-            argv, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, preexec_fn=_die_with_parent
+            argv,
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL,
+            start_new_session=session,
+            preexec_fn=_die_with_parent,
         )
     from telesurg.services.bench.browser import lowest_priority
 
