@@ -13,7 +13,7 @@ Examples::
     telesurg cmd stop
     telesurg cmd remove --yes      # confirm a motion-starting command without asking
 
-Operator authority (docs/security.md#operator-authority): commands are sent as the operator
+Operator authority (docs/security.md#10-operator-authority): commands are sent as the operator
 console identity (``--as``, default ``console``); a stranger may only ask ``state`` / ``programs``
 and stop. A motion-starting command (PTP, jog, insert / remove, playback, mode changes, VIP) is
 answered ``confirm required`` with a summary and a token: ``telesurg cmd`` shows it and asks
