@@ -48,9 +48,8 @@ def broken_links() -> list[str]:
             where = f"{page.relative_to(ROOT)}: ({target})"
             if not dest.exists():
                 bad.append(f"{where}: no such file")
-            elif anchor and dest.suffix == ".md":
-                if anchor not in cache.setdefault(dest, anchors(dest)):
-                    bad.append(f"{where}: no heading with that anchor in {dest.relative_to(ROOT)}")
+            elif anchor and dest.suffix == ".md" and anchor not in cache.setdefault(dest, anchors(dest)):
+                bad.append(f"{where}: no heading with that anchor in {dest.relative_to(ROOT)}")
     return bad
 
 
