@@ -59,8 +59,9 @@ COMMANDS = {
     "view": ("telesurg.services.camera.view", "show a site's live camera picture in a small web page"),
     "bridge": ("telesurg.services.bridge", "bridge ros2: an arm's CRTK topics for ROS 2 (rmw_zenoh)"),
 }
-#: Commands that start a site (or a bench's) and watch it: each runs in a session, so a scheduler
-#: autogroup, of its own (:mod:`telesurg.shared.session`), not in the busy jobs' of its shell.
+#: Commands that start a site (or a bench's) and watch it: run from the command line, each runs in
+#: a session, so a scheduler autogroup, of its own (:mod:`telesurg.shared.session`), not in the
+#: busy jobs' of its shell.
 OWN_SESSION = ("up", "demo", "bench")
 
 
@@ -81,7 +82,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     if cmd not in COMMANDS:
         print(f"telesurg: unknown command {cmd!r}\n\n{usage()}", file=sys.stderr)
         return 2
-    if cmd in OWN_SESSION:
+    if cmd in OWN_SESSION and argv is None:  # from the command line (a caller's main(argv) runs here)
         from telesurg.shared.session import run_in_own_session
 
         if (rc := run_in_own_session(args)) is not None:
