@@ -2,9 +2,11 @@
 
 Linux shares the CPU between autogroups (one per session) before it shares it between the
 threads of a group. A launcher started from a shell that also runs busy jobs (``make -j2 &``)
-would share their autogroup, and with it their CPU share: on this project's VM the demo
-launcher in its busy loops' session left a watchdog thread ~120 ms runnable without a CPU in 7 of
-12 runs, in a session of its own in none of 18 (docs/performance.md). ``setsid`` itself would
+would share their autogroup, and with it their CPU share: on this project's VM, with the demo
+launcher in its busy loops' session a watchdog thread was left ~120 ms runnable without a CPU and
+the watchdog held the slave on a stale control stream in about half the demos; in a session of
+its own, in none (docs/performance.md, "The launcher in a session of its own by default").
+``setsid`` itself would
 cut the process off from the terminal's Ctrl-C and from a kill of its process group, so
 :func:`run_in_own_session` keeps the caller as a parent that forwards those signals to a child
 in a new session and passes its exit code back.
