@@ -8,6 +8,7 @@ field 2 per timeline (name, type, range {min, max}), its field 3 the active time
 
 from __future__ import annotations
 
+import subprocess
 from pathlib import Path
 
 import pytest
@@ -83,7 +84,7 @@ def test_the_bench_browser_draws_with_the_rasteriser_it_names(tmp_path: Path, gl
     each rasteriser, the WebGL renderer string of a page read back (the figures in
     docs/performance.md compare the two)."""
     from telesurg.services.bench.browser import CHROMIUM, chromium
-    from telesurg.services.bench.viewer import webgl_renderer
+    from telesurg.services.bench.viewer import browser_version, webgl_renderer
 
     if not CHROMIUM.exists():
         pytest.skip(f"no Chromium at {CHROMIUM}")
@@ -91,4 +92,11 @@ def test_the_bench_browser_draws_with_the_rasteriser_it_names(tmp_path: Path, gl
         pytest.skip("no Mesa llvmpipe (libgl1-mesa-dri)")
     with chromium("about:blank", tmp_path, window=(320, 240), gl=gl) as (cdp, session):
         got = webgl_renderer(cdp, session)
+        version = browser_version(cdp)
     assert got is not None and renderer in got, got
+    # the build is named in every report: the same figures from another Chromium are not comparable
+    installed = subprocess.run([str(CHROMIUM), "--version"], capture_output=True, text=True).stdout
+    assert version.startswith("Chrome/") and version.removeprefix("Chrome/") in installed, (
+        version,
+        installed,
+    )

@@ -203,6 +203,12 @@ def webgl_renderer(cdp: DevTools, session: str) -> str | None:
     return str(value) if value else None
 
 
+def browser_version(cdp: DevTools) -> str:
+    """The browser's product and version (``Chrome/156.0.8078.114``): a figure of the viewer is
+    a figure of one build of its rasteriser and compositor."""
+    return str(cdp.call("Browser.getVersion").get("product", ""))
+
+
 def frame_rate(cdp: DevTools, session: str) -> float | None:
     """Animation frames a second of the page over 2 s or its first frame after that (None if the
     page does not answer within a minute)."""
@@ -313,6 +319,7 @@ def run(
             gl=gl,
         ) as (cdp, session):
             renderer = webgl_renderer(cdp, session)
+            version = browser_version(cdp)
             t_open = time.monotonic()
             load_open = os.getloadavg()[0]
             next_fps = t_open + warmup
@@ -385,6 +392,7 @@ def run(
         "chromium_flags": list(flags),
         "gl": gl,
         "webgl_renderer": renderer,
+        "browser_version": version,
         # /proc/<pid>/autogroup of every Chromium process seen: (group, nice) → processes
         "chromium_autogroups": _count(groups.values()),
         "browser_cpu_share": round(browser_cpu / browser_wall, 3) if browser_wall > 0 else None,
@@ -507,7 +515,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     )
     print(f"demo: {res['summary']}; engagements {res['engagements']}")
     print(
-        f"viewport {res['window'][0]}x{res['window'][1]}; WebGL: {res['webgl_renderer']}; "
+        f"viewport {res['window'][0]}x{res['window'][1]}; {res['browser_version']}; "
+        f"WebGL: {res['webgl_renderer']}; "
         "Chromium's processes by autogroup: "
         + ", ".join(f"{g}: {n}" for g, n in res["chromium_autogroups"].items())
     )
