@@ -6,10 +6,9 @@ would share their autogroup, and with it their CPU share: on this project's VM, 
 launcher in its busy loops' session a watchdog thread was left ~120 ms runnable without a CPU and
 the watchdog held the slave on a stale control stream in about half the demos; in a session of
 its own, in none (docs/performance.md, "The launcher in a session of its own by default").
-``setsid`` itself would
-cut the process off from the terminal's Ctrl-C and from a kill of its process group, so
-:func:`run_in_own_session` keeps the caller as a parent that forwards those signals to a child
-in a new session and passes its exit code back.
+``setsid`` itself would cut the process off from the terminal's Ctrl-C and from a kill of its
+process group, so :func:`run_in_own_session` keeps the caller as a parent that forwards those
+signals to a child in a new session and passes its exit code back.
 
 Example::
 
@@ -23,6 +22,7 @@ from __future__ import annotations
 
 import contextlib
 import ctypes
+import functools
 import os
 import signal
 import subprocess
@@ -53,11 +53,12 @@ def needs_own_session() -> bool:
     return os.getsid(0) != os.getpid() and autogroups_on()
 
 
-def _child_setup() -> None:
-    # ended with its parent even when the parent is killed with SIGKILL (PR_SET_PDEATHSIG = 1):
-    # SIGTERM, so the child still stops the services it started
+def die_with_parent(sig: int) -> None:
+    """``preexec_fn``: have the kernel send this process ``sig`` when its parent ends, however it
+    ends (``PR_SET_PDEATHSIG``; a parent killed with SIGKILL forwards nothing). Linux only;
+    harmless elsewhere."""
     with contextlib.suppress(OSError, AttributeError):
-        ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGTERM)
+        ctypes.CDLL(None, use_errno=True).prctl(1, sig)  # PR_SET_PDEATHSIG
 
 
 def run_in_own_session(argv: Sequence[str]) -> int | None:
@@ -79,7 +80,9 @@ def run_in_own_session(argv: Sequence[str]) -> int | None:
 
     for sig in FORWARDED:  # (a child's exec puts them back to their defaults)
         signal.signal(sig, forward)
-    child = subprocess.Popen(cmd, start_new_session=True, preexec_fn=_child_setup)
+    # SIGTERM when the parent dies: the child still stops the services it started, in order
+    stop_with_parent = functools.partial(die_with_parent, signal.SIGTERM)
+    child = subprocess.Popen(cmd, start_new_session=True, preexec_fn=stop_with_parent)
     for signum in pending:
         child.send_signal(signum)
     rc = child.wait()

@@ -43,6 +43,8 @@ from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
+from telesurg.shared.session import die_with_parent
+
 #: The kinds a ``--load`` spec can name.
 KINDS = ("cpu", "idle", "record", "stalled", "viewer")
 CHROMIUM = ("chromium", "chromium-browser", "google-chrome")
@@ -146,11 +148,8 @@ while True:
 def _die_with_parent() -> None:
     """preexec_fn: SIGKILL this process when the bench that started it ends, however it ends (a
     bench killed by SIGTERM runs none of its clean-up, and a busy loop left behind would load
-    every later run). Linux only; harmless elsewhere."""
-    with contextlib.suppress(OSError, AttributeError):
-        import ctypes
-
-        ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
+    every later run; nothing of a load's needs saving). Linux only; harmless elsewhere."""
+    die_with_parent(signal.SIGKILL)
 
 
 def _spawn(argv: list[str], lowest: bool = False, session: bool = False) -> subprocess.Popen[bytes]:
