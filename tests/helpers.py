@@ -34,6 +34,12 @@ def run_unprivileged(imports: str, body: str) -> subprocess.CompletedProcess[str
     return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60, cwd=root)
 
 
+def autogroup(pid: int | str) -> str:
+    """The name of ``pid``'s scheduler autogroup (``/autogroup-123``). The file is empty for a
+    process in the root autogroup (no new session since boot, as under some CI runners' init)."""
+    return (Path(f"/proc/{pid}/autogroup").read_text().split() or ["(root autogroup)"])[0]
+
+
 def clutch_flags() -> list[str]:
     """``--set`` flags for ``telesurg up`` / ``demo`` / ``deploy/console.sh`` that give the
     site's scripted master the bench's clutch schedule (a hold ends one engagement, not a run)."""

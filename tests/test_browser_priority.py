@@ -16,6 +16,7 @@ import sys
 from pathlib import Path
 
 import pytest
+from helpers import autogroup
 from telesurg.services.bench.browser import CHROMIUM, autogroups, chromium, lowest_priority
 
 pytestmark = pytest.mark.process
@@ -29,9 +30,7 @@ def test_every_chromium_process_runs_in_one_autogroup_at_nice_19(tmp_path: Path)
     if not CHROMIUM.exists():
         pytest.skip("needs Debian chromium at /usr/bin/chromium: apt-get install -y chromium")
     profile = str(tmp_path / "chromium-profile")
-    # empty when this process is in the root autogroup (no session since boot, as under some CI
-    # runners' init): then any group chromium's processes are in is not this one
-    mine = (Path("/proc/self/autogroup").read_text().split() or ["(root autogroup)"])[0]
+    mine = autogroup("self")
     with chromium("about:blank", tmp_path, autogroup_nice=19) as (cdp, session):
         assert cdp.call("Runtime.evaluate", {"expression": "1 + 1", "returnByValue": True}, session)
         groups = autogroups(profile)

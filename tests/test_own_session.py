@@ -13,6 +13,7 @@ from pathlib import Path
 
 import pytest
 from conftest import wait_until
+from helpers import autogroup
 from telesurg.services.launcher import free_port, wait_port
 from telesurg.shared.session import OWN_SESSION_ENV, autogroups_on
 
@@ -34,10 +35,6 @@ def _alive(pid: int) -> bool:
         return Path(f"/proc/{pid}/stat").read_text().split(")")[-1].split()[0] != "Z"
     except OSError:
         return False
-
-
-def _autogroup(pid: int | str) -> str:
-    return Path(f"/proc/{pid}/autogroup").read_text().split()[0]  # "/autogroup-123"
 
 
 @pytest.fixture
@@ -66,7 +63,7 @@ def test_the_launcher_runs_in_a_session_of_its_own_and_ctrl_c_stops_it(
     assert wait_until(lambda: "site 'local' up" in log.read_text(), 30), log.read_text()
     (launcher,) = _children(proc.pid)
     assert os.getsid(launcher) == launcher, "the launcher is not a session leader"
-    assert _autogroup(launcher) != _autogroup("self"), "the launcher shares the shell's autogroup"
+    assert autogroup(launcher) != autogroup("self"), "the launcher shares the shell's autogroup"
     services = _children(launcher)
     assert len(services) == 2, services  # router + watchdog, the launcher's own children
     proc.send_signal(signal.SIGINT)  # Ctrl-C reaches the shell's foreground group: the parent
