@@ -100,3 +100,25 @@ def test_the_bench_browser_draws_with_the_rasteriser_it_names(tmp_path: Path, gl
         version,
         installed,
     )
+
+
+def test_the_bench_browser_runs_the_executable_it_is_given(tmp_path: Path) -> None:
+    """``bench viewer --browser PATH`` (another Chromium build) is the executable that draws: a
+    wrapper given as the browser leaves its mark and the page answers through it; a path with no
+    executable is refused with exit code 2 before anything starts."""
+    from telesurg.services.bench.browser import CHROMIUM, chromium
+    from telesurg.services.bench.viewer import browser_version
+    from telesurg.services.bench.viewer import main as viewer_main
+
+    missing = tmp_path / "no-such-chromium"
+    assert viewer_main(["--seconds", "5", "--browser", str(missing)]) == 2
+    if not CHROMIUM.exists():
+        pytest.skip(f"no Chromium at {CHROMIUM}")
+    mark = tmp_path / "ran"
+    wrapper = tmp_path / "my-chromium"
+    wrapper.write_text(f'#!/bin/sh\necho "$@" > {mark}\nexec {CHROMIUM} "$@"\n')
+    wrapper.chmod(0o755)
+    with chromium("about:blank", tmp_path, window=(320, 240), browser=wrapper) as (cdp, _):
+        version = browser_version(cdp)
+    assert version.startswith("Chrome/"), version
+    assert "--remote-debugging-pipe" in mark.read_text()

@@ -130,6 +130,7 @@ def chromium(
     autogroup_nice: int | None = None,
     flags: Sequence[str] = (),
     gl: str = "swiftshader",
+    browser: Path = CHROMIUM,
 ) -> Iterator[tuple[DevTools, str]]:
     """Headless chromium showing ``url``: (DevTools client, page session id); killed on exit.
 
@@ -140,7 +141,8 @@ def chromium(
     it at 0. With autogroups (Linux's default) a process's own nice counts only inside its group;
     19 puts the whole browser below every other session's work, the control path's included
     (see :func:`autogroups`); ``flags``: extra chromium flags; ``gl``: the software WebGL
-    rasteriser, a key of :data:`GL_FLAGS`."""
+    rasteriser, a key of :data:`GL_FLAGS`; ``browser``: the Chromium executable (another build, e.g.
+    one unpacked from an older package, to compare builds)."""
     profile = workdir / "chromium-profile"
     profile.mkdir(parents=True, exist_ok=True)
     cmd_r, cmd_w = os.pipe()  # we write commands → chromium's fd 3
@@ -158,7 +160,7 @@ def chromium(
         "-c",
         f'{group}exec 3<&{cmd_r} 4>&{out_w} {cmd_r}<&- {out_w}>&-; exec nice -n {nice} "$@"',
         "chromium",
-        str(CHROMIUM),
+        str(browser),
         *_flags(flags, gl),
         f"--user-data-dir={profile}",
         "about:blank",

@@ -26,6 +26,7 @@ Examples::
     telesurg bench viewer --seconds 60 --set mirror.layout=\\"full\\"    # the full layout
     telesurg bench viewer --seconds 100 --window 1280x720            # a smaller page
     telesurg bench viewer --seconds 100 --gl llvmpipe                # Mesa's rasteriser
+    telesurg bench viewer --seconds 100 --browser /opt/chromium-155/usr/lib/chromium/chromium
     telesurg bench viewer --plot lag.png --from before=a.json after=b.json   # saved runs, no run
 """
 
@@ -285,11 +286,13 @@ def run(
     autogroup_nice: int | None = AUTOGROUP_NICE,
     flags: Sequence[str] = (),
     gl: str = "swiftshader",
+    browser: Path = CHROMIUM,
 ) -> dict[str, Any]:
     """The demo for ``seconds`` with the viewer open; the figures (module docstring).
     ``window``: the page's viewport (px); ``autogroup_nice``: the nice value of Chromium's
     scheduler autogroup (None: 0); ``flags``: extra Chromium flags; ``gl``: the software WebGL
-    rasteriser (:data:`~telesurg.services.bench.browser.GL_FLAGS`)."""
+    rasteriser (:data:`~telesurg.services.bench.browser.GL_FLAGS`); ``browser``: the Chromium
+    executable."""
     from telesurg.services.launcher import free_port, wait_port
     from telesurg.shared.viewer import viewer_url
 
@@ -317,6 +320,7 @@ def run(
             autogroup_nice=autogroup_nice,
             flags=[f"--window-size={window[0]},{window[1]}", *flags],
             gl=gl,
+            browser=browser,
         ) as (cdp, session):
             renderer = webgl_renderer(cdp, session)
             version = browser_version(cdp)
@@ -393,6 +397,7 @@ def run(
         "gl": gl,
         "webgl_renderer": renderer,
         "browser_version": version,
+        "browser": str(browser),
         # /proc/<pid>/autogroup of every Chromium process seen: (group, nice) → processes
         "chromium_autogroups": _count(groups.values()),
         "browser_cpu_share": round(browser_cpu / browser_wall, 3) if browser_wall > 0 else None,
@@ -453,6 +458,13 @@ def main(argv: Sequence[str] | None = None) -> int:
         default="swiftshader",
         help="software WebGL rasteriser: swiftshader (Chromium's fallback, default) or llvmpipe (Mesa)",
     )
+    ap.add_argument(
+        "--browser",
+        type=Path,
+        default=CHROMIUM,
+        metavar="PATH",
+        help=f"the Chromium executable (default {CHROMIUM}); e.g. an older build unpacked with dpkg-deb -x",
+    )
     ap.add_argument("--json", type=Path, help="write the figures here")
     ap.add_argument("--png", type=Path, help="save a screenshot here (taken ~8 s before the session ends)")
     ap.add_argument(
@@ -481,8 +493,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         plot_viewer_lag(runs, args.plot)
         print(f"plot written to {args.plot}")
         return 0
-    if not CHROMIUM.exists():
-        print(f"telesurg bench viewer: needs Chromium at {CHROMIUM} (Debian: apt-get install chromium)")
+    if not args.browser.is_file() or not os.access(args.browser, os.X_OK):
+        if args.browser == CHROMIUM:
+            print(f"telesurg bench viewer: needs Chromium at {CHROMIUM} (Debian: apt-get install chromium)")
+        else:
+            print(f"telesurg bench viewer: --browser {args.browser}: no executable there")
         return 2
     with tempfile.TemporaryDirectory(prefix="bench-viewer-") as tmp:
         res = run(
@@ -495,6 +510,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             autogroup_nice=args.autogroup_nice,
             flags=args.chromium_flag,
             gl=args.gl,
+            browser=args.browser,
         )
     lag = res["lag_s"]
 
