@@ -3,6 +3,7 @@ No time is asserted here — the figures and the goals are in docs/performance.m
 
 from __future__ import annotations
 
+import calendar
 import json
 import os
 import subprocess
@@ -48,6 +49,13 @@ def test_bench_decode(tmp_path: Path) -> None:
     rows = dec["messages"]
     assert {r["type"] for r in rows.values()} >= {"servo_jp", "pose", "lease", "joint_state"}
     assert all(r["decode_us"] > 0 and r["encode_us"] > 0 and r["bytes"] > 0 for r in rows.values())
+    # the machine it ran on, booted when /proc/uptime says: figures from another boot (another
+    # host, however alike) are told apart by it
+    uptime_s = float(Path("/proc/uptime").read_text().split()[0])
+    booted = calendar.timegm(time.strptime(dec["machine"]["booted"], "%Y-%m-%d %H:%M:%S UTC"))
+    assert abs(time.time() - uptime_s - booted) < 5, (dec["machine"], uptime_s)
+    assert dec["machine"]["cpus"] == os.cpu_count() and dec["machine"]["kernel"] == os.uname().release
+    assert dec["machine"]["cpu_model"] and dec["date"].endswith(" UTC")
 
 
 def _hogs_left() -> list[int]:

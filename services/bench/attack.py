@@ -63,6 +63,7 @@ from typing import Any
 
 import numpy as np
 from telesurg.services.bench.harness import Pipeline, now_ns
+from telesurg.services.bench.machine import machine, now
 from telesurg.services.launcher import deploy_dir
 from telesurg.services.mapping.scale import WHILE_FOLLOWING
 from telesurg.shared import jsonio
@@ -945,7 +946,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     print_table(rows)
     result = jsonio.finite(
         {
-            "date": time.strftime("%Y-%m-%d %H:%M:%S %Z"),
+            "date": now(),
+            "machine": machine(),
             "command": "telesurg bench attack " + " ".join(argv if argv is not None else sys.argv[2:]),
             "cpus": os.cpu_count(),
             "limits": {

@@ -17,16 +17,14 @@ from __future__ import annotations
 import argparse
 import functools
 import json
-import os
-import sys
 import tempfile
-import time
 import timeit
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
 from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey
+from telesurg.services.bench.machine import machine, now
 from telesurg.shared import auth
 from telesurg.shared import messages as m
 from telesurg.shared.keys import Keys
@@ -121,12 +119,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         "n": a.n,
         "repeat": a.repeat,
         "messages": rows,
-        "date": time.strftime("%Y-%m-%d %H:%M:%S"),
-        "machine": {
-            "cpus": os.cpu_count(),
-            "python": sys.version.split()[0],
-            "loadavg_1min": round(os.getloadavg()[0], 2),  # a shared machine: the load it ran under
-        },
+        "date": now(),
+        "machine": machine(),  # with the 1-minute load average: a shared machine's load
     }
     if a.json:
         a.json.write_text(json.dumps(res, indent=2) + "\n")

@@ -16,14 +16,12 @@ from __future__ import annotations
 
 import argparse
 import functools
-import os
-import sys
-import time
 import timeit
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+from telesurg.services.bench.machine import machine, now
 from telesurg.shared import jsonio
 from telesurg.shared import messages as m
 
@@ -89,8 +87,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         "n": a.n,
         "repeat": a.repeat,
         "messages": rows,
-        "date": time.strftime("%Y-%m-%d %H:%M:%S"),
-        "machine": {"cpus": os.cpu_count(), "python": sys.version.split()[0]},
+        "date": now(),
+        "machine": machine(),
     }
     if a.json:
         a.json.write_text(jsonio.dumps(res, indent=2) + "\n")

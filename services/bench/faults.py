@@ -26,6 +26,7 @@ from typing import Any
 
 import numpy as np
 from telesurg.services.bench.harness import Pipeline, now_ns
+from telesurg.services.bench.machine import machine, now
 from telesurg.shared import jsonio
 
 log = logging.getLogger(__name__)
@@ -309,7 +310,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         r.pop("_times_ns", None)
     print_table(rows)
     result = {
-        "date": time.strftime("%Y-%m-%d %H:%M:%S %Z"),
+        "date": now(),
+        "machine": machine(),
         "command": "telesurg bench faults " + " ".join(argv if argv is not None else sys.argv[2:]),
         "cpus": os.cpu_count(),
         "rows": rows,

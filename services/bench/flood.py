@@ -56,6 +56,7 @@ from pathlib import Path
 from typing import Any
 
 from telesurg.services.bench.harness import Pipeline, now_ns
+from telesurg.services.bench.machine import machine, now
 from telesurg.services.launcher import deploy_dir
 from telesurg.shared import jsonio
 from telesurg.shared.bus import BusConfig, open_session
@@ -597,7 +598,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             print(f"    HOLD ({window}): {'; '.join(c)}")
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
-        jsonio.write(args.json, res)
+        jsonio.write(args.json, {**res, "date": now(), "machine": machine()})
     return 0
 
 

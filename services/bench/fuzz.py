@@ -29,6 +29,7 @@ from typing import Any
 import numpy as np
 from telesurg.services.bench.fuzzgen import FUZZ_KINDS, always_invalid, fuzz_cases, valid_template
 from telesurg.services.bench.harness import Pipeline
+from telesurg.services.bench.machine import machine, now
 from telesurg.services.mirror import SUBSCRIBED
 from telesurg.services.router import RouterConfig
 from telesurg.shared import jsonio
@@ -206,7 +207,8 @@ def run(count: int, rate: float, seed: int, log_dir: Path) -> dict[str, Any]:
     outside = int(((joints < lo) | (joints > hi)).any(axis=1).sum()) if joints.size else 0
     sent = sum(kinds_sent.values())
     result: dict[str, Any] = {
-        "date": time.strftime("%Y-%m-%d %H:%M:%S %Z"),
+        "date": now(),
+        "machine": machine(),
         "cpus": os.cpu_count(),
         "sent": sent,
         "seconds": round(duration, 1),

@@ -28,6 +28,7 @@ from typing import Any
 import numpy as np
 from telesurg.services.bench.flood import WATCHED, add_set_argument, memory_detail, parse_sets, rss_mb
 from telesurg.services.bench.harness import Pipeline
+from telesurg.services.bench.machine import machine, now
 from telesurg.shared import jsonio
 from telesurg.shared.errors import TelesurgError
 
@@ -109,7 +110,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 1
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
-        jsonio.write(args.json, res)
+        jsonio.write(args.json, {**res, "date": now(), "machine": machine()})
     if args.plot:
         from telesurg.services.bench.plots import plot_memory
 

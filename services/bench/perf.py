@@ -46,6 +46,7 @@ from typing import Any
 import numpy as np
 from telesurg.services.bench import schedtrace
 from telesurg.services.bench.load import Load
+from telesurg.services.bench.machine import machine, now
 from telesurg.shared import jsonio
 
 PCTS = (50, 90, 99)
@@ -968,8 +969,7 @@ def main(argv: Sequence[str] | None = None, name: str = "latency") -> int:
     if name == "soak" and not 1.0 <= a.rate <= 5000.0:
         ap.error(f"--rate {a.rate:g}: the soak runs the master at a fixed rate in [1, 5000] Hz")
     res = BENCHES[name](a)
-    res["date"] = time.strftime("%Y-%m-%d %H:%M:%S")
-    res["machine"] = {"cpus": os.cpu_count(), "python": sys.version.split()[0]}
+    res["date"], res["machine"] = now(), machine()
     if a.json:
         a.json.write_text(jsonio.dumps(res, indent=2) + "\n")
     return 0

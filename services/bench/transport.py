@@ -43,6 +43,7 @@ from typing import IO, Any
 
 import numpy as np
 from telesurg.services.bench.impair import NetNamespace, PacketLink, netns_available
+from telesurg.services.bench.machine import machine, now
 from telesurg.shared import jsonio
 from telesurg.shared.bus import BusConfig, open_session
 from telesurg.shared.timing import CycleTimer
@@ -383,7 +384,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         data = {
-            "when": time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime()),
+            "when": now(),
+            "machine": machine(),
             "setup": header,
             "stall_ms": args.stall_ms,
             "runs": [asdict(r) | {"delivered_pct": round(r.delivered_pct, 3)} for r in results],

@@ -26,7 +26,6 @@ import argparse
 import importlib
 import json
 import os
-import sys
 import tempfile
 import threading
 import time
@@ -35,6 +34,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from telesurg.services.bench.machine import machine, now
 from telesurg.services.bench.perf import _overrides, _stats_ms, deadline_misses, watchdog_holds
 
 
@@ -226,8 +226,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--height", type=int, default=240, help="px")
     a = ap.parse_args(argv)
     res = run(a)
-    res["date"] = time.strftime("%Y-%m-%d %H:%M:%S")
-    res["machine"] = {"cpus": os.cpu_count(), "python": sys.version.split()[0]}
+    res["date"], res["machine"] = now(), machine()
     if a.json:
         a.json.parent.mkdir(parents=True, exist_ok=True)
         a.json.write_text(json.dumps(res, indent=2) + "\n")

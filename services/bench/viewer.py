@@ -55,6 +55,7 @@ from telesurg.services.bench.browser import (
     chromium,
     screenshot,
 )
+from telesurg.services.bench.machine import machine, now
 from telesurg.services.bench.plots import plot_viewer_lag
 from telesurg.shared import jsonio
 
@@ -404,6 +405,8 @@ def run(
         "load_average_at_open": load_open,
         "load_average": list(os.getloadavg()),
         "cpus": os.cpu_count(),
+        "date": now(),
+        "machine": machine(),
         "samples": samples,
     }
 

@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import argparse
 import functools
-import os
 import subprocess
 import sys
 import tempfile
@@ -35,6 +34,7 @@ from typing import Any
 
 import numpy as np
 from telesurg.services.bench.load import Load
+from telesurg.services.bench.machine import machine, now
 from telesurg.shared import jsonio
 
 PCTS = (50, 90, 99, 99.9)
@@ -161,8 +161,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     except ValueError as exc:
         ap.error(str(exc))
     res = run(a)
-    res["date"] = time.strftime("%Y-%m-%d %H:%M:%S")
-    res["machine"] = {"cpus": os.cpu_count(), "python": sys.version.split()[0]}
+    res["date"], res["machine"] = now(), machine()
     if a.json:
         a.json.write_text(jsonio.dumps(res, indent=2) + "\n")
     return 0
