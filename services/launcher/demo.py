@@ -106,9 +106,9 @@ def main(argv: Sequence[str] | None = None) -> int:
                     url = viewer_url(f"rerun+http://127.0.0.1:{args.grpc_port}/proxy", args.web_port)
                     print(f"\nrerun web viewer: {url}", flush=True)
                     print(
-                        "  (without a GPU the viewer keeps up with live in a page of up to about "
-                        "1280x720 device pixels; a larger one with Chromium's llvmpipe: "
-                        "--use-angle=gl-egl --ignore-gpu-blocklist; docs/performance.md)",
+                        "  (without a GPU, the browser draws it with the CPU the demo leaves: start "
+                        "Chromium with Mesa's llvmpipe, --use-angle=gl-egl --ignore-gpu-blocklist, "
+                        "or --force-device-scale-factor=0.5 to keep near live; docs/performance.md)",
                         flush=True,
                     )
                     if web_url:
