@@ -3,9 +3,10 @@
 A figure is only comparable with another from the same machine in the same state. On the
 project's VM the same ``bench viewer`` command kept up one day and fell 30–40 s behind the next;
 the cause was the VM itself — restarted at 20:06 UTC on 2026-12-04, after which the bare zenoh
-relay hop took ~1.34× as long (docs/performance.md) — which no JSON said. So each bench writes the CPU model, the
-kernel and the time the host booted (``/proc/stat`` ``btime``): a new boot time between two
-series of figures says they came from different machines, however alike their names.
+relay hop took ~1.34× as long (docs/performance.md) — which no JSON said. So each bench writes
+the CPU model, the kernel and the time the host booted (``/proc/stat`` ``btime``): a new boot
+time between two series of figures says they came from different machines, however alike their
+names.
 
     res["date"], res["machine"] = now(), machine()
 """
