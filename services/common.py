@@ -19,6 +19,7 @@ import gc
 import logging
 import os
 import signal
+import socket
 import sys
 import threading
 from collections.abc import Callable, Sequence
@@ -169,3 +170,14 @@ def gl_backend() -> str:
         if ctypes.util.find_library(lib):
             return backend
     return ""
+
+
+def check_port_free(host: str, port: int, what: str) -> None:
+    """ConnectionError naming ``what`` if nothing can listen on ``host:port`` now (a port in
+    TIME_WAIT counts as free, as for the servers, which set ``SO_REUSEADDR``). Port 0 is free."""
+    with socket.socket() as s:
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            s.bind((host, port))
+        except OSError as exc:
+            raise ConnectionError(f"{what} {host}:{port} is not available: {exc.strerror or exc}") from exc

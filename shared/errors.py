@@ -23,6 +23,11 @@ class IKError(KinematicsError):
     """Inverse kinematics failed: target unreachable, singular, or every branch violates a limit."""
 
 
+class SiteStartError(TelesurgError, RuntimeError):
+    """A local site (``telesurg up`` / ``demo``) could not start: its router's port is taken, a
+    service did not come up; nothing of it is left running."""
+
+
 class DeviceConnectionError(TelesurgError, ConnectionError):
     """A device (serial port, simulator) could not be reached or stopped answering."""
 

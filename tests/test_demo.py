@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import socket
 import subprocess
 import sys
 from pathlib import Path
@@ -60,3 +61,22 @@ def test_demo_headless_needs_seconds() -> None:
         [sys.executable, "-m", "telesurg.services.cli", "demo", "--headless"], capture_output=True, text=True
     )
     assert proc.returncode == 2 and "--seconds" in proc.stderr
+
+
+@pytest.mark.parametrize("command", ["demo", "up"])
+def test_a_site_does_not_start_on_a_port_another_holds(command: str, tmp_path: Path) -> None:
+    """A second demo on the first one's port used to join the first site: its readiness probe
+    found the first router, its own router failed, and its services (same site id, same
+    keyring) connected there. Now it refuses at once, says why, and starts nothing."""
+    with socket.socket() as holder:
+        holder.bind(("127.0.0.1", 0))
+        holder.listen()
+        port = holder.getsockname()[1]
+        argv = [sys.executable, "-m", "telesurg.services.cli", command, "--seconds", "5", "--port", str(port)]
+        argv += ["--log-dir", str(tmp_path / "logs"), *(["--headless"] if command == "demo" else [])]
+        proc = subprocess.run(argv, capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 1, proc.stderr[-2000:]
+    last = proc.stderr.strip().splitlines()[-1]
+    assert last.startswith(f"telesurg {command}: the router's port 127.0.0.1:{port} is not available"), last
+    assert "--port 0" in last and "Traceback" not in proc.stderr
+    assert not list((tmp_path / "logs").glob("*.log")), "a process was started"

@@ -1,10 +1,13 @@
 """The small helpers several services share: arm pairs, the joint-step limit, the master→slave
-rotation from roll/pitch/yaw, and the web viewer's address."""
+rotation from roll/pitch/yaw, the web viewer's address, and the free-port check of the servers."""
 
 from __future__ import annotations
 
+import socket
+
 import numpy as np
 import pytest
+from telesurg.services.common import check_port_free
 from telesurg.shared.errors import ConfigError
 from telesurg.shared.kinematics.transforms import rot_x, rot_z, rpy_matrix
 from telesurg.shared.limits import limit_step
@@ -43,3 +46,13 @@ def test_rpy_matrix_is_yaw_pitch_roll_in_degrees() -> None:
 def test_viewer_url_quotes_the_grpc_address() -> None:
     url = viewer_url("rerun+http://127.0.0.1:9876/proxy", 9090)
     assert url == "http://localhost:9090/?url=rerun%2Bhttp://127.0.0.1:9876/proxy"
+
+
+def test_check_port_free_names_what_a_taken_port_was_for() -> None:
+    with socket.socket() as holder:
+        holder.bind(("127.0.0.1", 0))
+        holder.listen()
+        port = holder.getsockname()[1]
+        with pytest.raises(ConnectionError, match=f"grpc_port 127.0.0.1:{port} is not available: Address"):
+            check_port_free("127.0.0.1", port, "grpc_port")
+    check_port_free("127.0.0.1", port, "grpc_port")  # closed: free again (TIME_WAIT or not)

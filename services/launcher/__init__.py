@@ -46,11 +46,11 @@ from pathlib import Path
 from types import TracebackType
 from typing import IO, Any
 
-from telesurg.services.common import STACKS_SIGNAL, install_stop_handlers, setup_logging
+from telesurg.services.common import STACKS_SIGNAL, check_port_free, install_stop_handlers, setup_logging
 from telesurg.shared.auth import default_keys_dir, ensure_keyring
 from telesurg.shared.bus import BusConfig, add_bus_args, bus_from_args
 from telesurg.shared.config import SITE_FILE, load_config, read_site, site_plugins
-from telesurg.shared.errors import ConfigError
+from telesurg.shared.errors import ConfigError, SiteStartError, TelesurgError
 from telesurg.shared.timing import (
     BEST_EFFORT_ENV,
     check_slice_us,
@@ -351,6 +351,15 @@ class Site:
         keys_dir, made = ensure_keyring(self.spec.keys_dir)
         if made:
             log.info("made the site keyring %s (telesurg keys list shows its identities)", keys_dir)
+        # another site's router on the port would answer the readiness probe below, and every
+        # service would join that site instead (same site id, same keyring): refuse to start
+        try:
+            check_port_free(self.spec.host, self.spec.port, "the router's port")
+        except ConnectionError as exc:
+            raise SiteStartError(
+                f"{exc} (another site's router, from telesurg up or demo?); stop what holds it, "
+                "or start this site on another port (--port 0 picks a free one)"
+            ) from None
         self._spawn("router")
         router = self.procs["router"]
         deadline = time.monotonic() + 15.0
@@ -359,6 +368,8 @@ class Site:
                 raise ConnectionError(f"router exited with code {router.returncode} (see its log)")
             if time.monotonic() > deadline:
                 raise ConnectionError(f"router did not open {self.spec.endpoint} within 15 s")
+        if router.poll() is not None:  # what answered was not this site's router
+            raise ConnectionError(f"router exited with code {router.returncode} (see its log)")
         from telesurg.shared.bus import open_session
         from telesurg.shared.keys import Keys
 
@@ -376,7 +387,7 @@ class Site:
                     if name in OPTIONAL:
                         self._without(name, rc)
                         continue
-                    raise RuntimeError(
+                    raise SiteStartError(
                         f"{name} did not come up within 30 s"
                         + (f" (exit code {rc})" if rc is not None else "")
                     )
@@ -845,4 +856,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         log.info("web surgeon console: %s", url)
     stop = threading.Event()
     install_stop_handlers(stop)
-    return run_site(spec, args.seconds, stop)
+    try:
+        return run_site(spec, args.seconds, stop)
+    except (TelesurgError, ConnectionError) as exc:  # (what had started is stopped: Site.__enter__)
+        print(f"telesurg up: {exc}", file=sys.stderr)
+        return 1

@@ -78,13 +78,13 @@ from __future__ import annotations
 
 import functools
 import logging
-import socket
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import numpy.typing as npt
+from telesurg.services.common import check_port_free
 from telesurg.services.mirror.geometry import KINDS, Body, quat_matrix
 from telesurg.shared.viewer import viewer_url
 
@@ -323,15 +323,6 @@ def blueprint(
     )
 
 
-def _check_port_free(host: str, port: int, name: str) -> None:
-    with socket.socket() as s:
-        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # like the server; TIME_WAIT ok
-        try:
-            s.bind((host, port))
-        except OSError as exc:
-            raise ConnectionError(f"{name} {host}:{port} is not available: {exc}") from exc
-
-
 def _ts(ns: npt.ArrayLike) -> npt.NDArray[np.datetime64]:
     return np.asarray(ns, dtype=np.int64).astype("datetime64[ns]")
 
@@ -400,7 +391,7 @@ class RerunView:
             Path(save).parent.mkdir(parents=True, exist_ok=True)
             sinks.append(rr.FileSink(save, write_footer=rrd_footer))
         if serve:
-            _check_port_free("127.0.0.1", grpc_port, "grpc_port")  # rerun only logs this failure
+            check_port_free("127.0.0.1", grpc_port, "grpc_port")  # rerun only logs this failure
             limit = f"{history_mb:g}MB" if history_mb > 0 else "1GiB"  # rerun's default
             server = rr.GrpcServerSink(bind_ip="127.0.0.1", port=grpc_port, server_memory_limit=limit)
             sinks.append(server)
