@@ -389,7 +389,8 @@ class Site:
                         continue
                     raise SiteStartError(
                         f"{name} did not come up within 30 s"
-                        + (f" (exit code {rc})" if rc is not None else "")
+                        if rc is None
+                        else f"{name} exited with code {rc} before it came up (its log says why)"
                     )
         finally:
             session.close()  # type: ignore[no-untyped-call]
