@@ -43,6 +43,27 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
             item.add_marker(pytest.mark.flaky(reruns=PROCESS_RERUNS, reruns_delay=1))
 
 
+_RERUNS: list[pytest.TestReport] = []
+
+
+def pytest_runtest_logreport(report: pytest.TestReport) -> None:
+    if report.outcome == "rerun":  # (pytest-rerunfailures' outcome for a first failure)
+        _RERUNS.append(report)
+
+
+def pytest_terminal_summary(terminalreporter: pytest.TerminalReporter) -> None:
+    """Why each rerun test failed the first time (pytest-rerunfailures names it, not why): the
+    end of its failure text, so a flake can be told from a defect that a rerun hid."""
+    if not _RERUNS:
+        return
+    terminalreporter.section("first failures of the rerun tests")
+    for r in _RERUNS:
+        lines = r.longreprtext.strip().splitlines()
+        terminalreporter.write_line(f"{r.nodeid} ({r.when}):")
+        for line in lines[-25:]:
+            terminalreporter.write_line(f"    {line}")
+
+
 def pytest_unconfigure(config: pytest.Config) -> None:
     for d in _KEYRING:
         shutil.rmtree(d, ignore_errors=True)
