@@ -181,3 +181,25 @@ def check_port_free(host: str, port: int, what: str) -> None:
             s.bind((host, port))
         except OSError as exc:
             raise ConnectionError(f"{what} {host}:{port} is not available: {exc.strerror or exc}") from exc
+
+
+def tcp_port(text: str) -> int:
+    """argparse type: a TCP port, 0–65535 (0: a free one is picked)."""
+    try:
+        port = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a port number") from None
+    if not 0 <= port <= 65535:
+        raise argparse.ArgumentTypeError(f"port {port} outside 0..65535")
+    return port
+
+
+def duration_s(text: str) -> float:
+    """argparse type: a duration in seconds, finite and ≥ 0."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number of seconds") from None
+    if not 0.0 <= value < float("inf"):
+        raise argparse.ArgumentTypeError(f"{text} s: must be finite and >= 0")
+    return value

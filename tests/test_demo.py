@@ -80,3 +80,21 @@ def test_a_site_does_not_start_on_a_port_another_holds(command: str, tmp_path: P
     assert last.startswith(f"telesurg {command}: the router's port 127.0.0.1:{port} is not available"), last
     assert "--port 0" in last and "Traceback" not in proc.stderr
     assert not list((tmp_path / "logs").glob("*.log")), "a process was started"
+
+
+@pytest.mark.parametrize(
+    ("args", "said"),
+    [
+        (["--port", "70000"], "argument --port: port 70000 outside 0..65535"),
+        (["--web-port", "http"], "argument --web-port: 'http' is not a port number"),
+        (["--seconds", "-5"], "argument --seconds: -5 s: must be finite and >= 0"),
+    ],
+)
+def test_bad_site_arguments_are_refused_before_anything_starts(args: list[str], said: str) -> None:
+    proc = subprocess.run(
+        [sys.executable, "-m", "telesurg.services.cli", "demo", "--headless", "--seconds", "5", *args],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert proc.returncode == 2 and said in proc.stderr and "Traceback" not in proc.stderr, proc.stderr

@@ -238,8 +238,11 @@ class WebConsole:
                 h = dataclasses.replace(po.header(), stamp_ns=p.stamp_ns)
                 po.put(CartesianPose(h, "master", p.position, p.orientation))
                 self.published[m] += 1
-            # the next cycle, or at once when a new browser sample arrives
-            self._wake.wait(max(0.0, timer.period_s - (time.monotonic() - now)))
+            # the next cycle, or at once when a new browser sample arrives; with no page
+            # driving a master (each already invalidated) nothing is due until one does: no
+            # 200 Hz wake-ups for nothing on a host that shares its CPU with the control path
+            idle = all(p is None for p in pubs.values())
+            self._wake.wait(None if idle else max(0.0, timer.period_s - (time.monotonic() - now)))
             self._wake.clear()
 
     # -- what the page shows -----------------------------------------------------------------

@@ -46,7 +46,14 @@ from pathlib import Path
 from types import TracebackType
 from typing import IO, Any
 
-from telesurg.services.common import STACKS_SIGNAL, check_port_free, install_stop_handlers, setup_logging
+from telesurg.services.common import (
+    STACKS_SIGNAL,
+    check_port_free,
+    duration_s,
+    install_stop_handlers,
+    setup_logging,
+    tcp_port,
+)
 from telesurg.shared.auth import default_keys_dir, ensure_keyring
 from telesurg.shared.bus import BusConfig, add_bus_args, bus_from_args
 from telesurg.shared.config import SITE_FILE, load_config, read_site, site_plugins
@@ -600,7 +607,7 @@ def add_site_args(parser: argparse.ArgumentParser) -> None:
     """Flags shared by ``up`` and ``demo``."""
     parser.add_argument("--site", default="local", help="site id (default: local)")
     parser.add_argument("--host", default="127.0.0.1", help="router address (default: 127.0.0.1)")
-    parser.add_argument("--port", type=int, default=7447, help="router TCP port (0: pick a free one)")
+    parser.add_argument("--port", type=tcp_port, default=7447, help="router TCP port (0: pick a free one)")
     parser.add_argument(
         "--config-dir",
         type=Path,
@@ -619,7 +626,7 @@ def add_site_args(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--seconds",
-        type=float,
+        type=duration_s,
         default=0.0,
         help="stop after this many seconds (default: run until Ctrl-C)",
     )
@@ -648,7 +655,10 @@ def add_site_args(parser: argparse.ArgumentParser) -> None:
         "--console", action="store_true", help="also start the web surgeon console (telesurg console --web)"
     )
     parser.add_argument(
-        "--console-port", type=int, default=8470, help="the web console's port (default 8470; 0: a free one)"
+        "--console-port",
+        type=tcp_port,
+        default=8470,
+        help="the web console's port (default 8470; 0: a free one)",
     )
 
 

@@ -27,7 +27,7 @@ import time
 from collections.abc import Sequence
 from pathlib import Path
 
-from telesurg.services.common import install_stop_handlers, setup_logging
+from telesurg.services.common import install_stop_handlers, setup_logging, tcp_port
 from telesurg.services.launcher import (
     Site,
     add_site_args,
@@ -58,8 +58,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--headless", action="store_true", help="no viewer; needs --seconds")
     parser.add_argument("--save", metavar="FILE.rrd", help="also record the session to an .rrd")
     parser.add_argument("--report", metavar="FILE.json", help="write the session report here")
-    parser.add_argument("--web-port", type=int, default=9090, help="rerun web viewer port")
-    parser.add_argument("--grpc-port", type=int, default=9876, help="rerun gRPC port")
+    parser.add_argument("--web-port", type=tcp_port, default=9090, help="rerun web viewer port")
+    parser.add_argument("--grpc-port", type=tcp_port, default=9876, help="rerun gRPC port")
     parser.add_argument("--no-camera", action="store_true", help="run without the camera service (no video)")
     args = parser.parse_args(argv)
     setup_logging("INFO", "demo")
