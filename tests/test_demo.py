@@ -98,3 +98,23 @@ def test_bad_site_arguments_are_refused_before_anything_starts(args: list[str], 
         timeout=60,
     )
     assert proc.returncode == 2 and said in proc.stderr and "Traceback" not in proc.stderr, proc.stderr
+
+
+def test_a_second_demo_names_every_port_it_would_clash_on(tmp_path: Path) -> None:
+    """The viewer's and the console's ports are checked before anything starts too (a mirror
+    that cannot serve used to leave its log line and a site that stopped)."""
+    with socket.socket() as viewer, socket.socket() as console:
+        for s in (viewer, console):
+            s.bind(("127.0.0.1", 0))
+            s.listen()
+        vport, cport = viewer.getsockname()[1], console.getsockname()[1]
+        argv = [sys.executable, "-m", "telesurg.services.cli", "demo", "--seconds", "5", "--port", "0"]
+        argv += ["--web-port", str(vport), "--grpc-port", "0", "--console-port", str(cport)]
+        argv += ["--log-dir", str(tmp_path / "logs")]
+        proc = subprocess.run(argv, capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 1, proc.stderr[-2000:]
+    last = proc.stderr.strip().splitlines()[-1]
+    assert f"the web console's port 127.0.0.1:{cport} is not available" in last, last
+    assert f"the rerun web viewer's port 127.0.0.1:{vport} is not available" in last, last
+    assert "--web-port picks another" in last and "--console-port picks another" in last, last
+    assert not list((tmp_path / "logs").glob("*.log")), "a process was started"

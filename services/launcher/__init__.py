@@ -684,6 +684,21 @@ def console_url(args: argparse.Namespace, spec: SiteSpec) -> str:
     return f"http://{args.host}:{port}/"
 
 
+def check_ports(host: str, ports: Sequence[tuple[str, int, str]]) -> None:
+    """SiteStartError naming every ``(what, port, flag)`` that something already listens on at
+    ``host`` (a second demo on this machine: each port a flag of its own), before anything starts;
+    port 0 (a free one, picked later) is skipped."""
+    taken = []
+    for what, port, flag in ports:
+        if port:
+            try:
+                check_port_free(host, port, what)
+            except ConnectionError as exc:
+                taken.append(f"{exc} ({flag} picks another)")
+    if taken:
+        raise SiteStartError("; ".join(taken) + " — is another telesurg demo or up running?")
+
+
 def spec_from_args(args: argparse.Namespace, services: Sequence[str]) -> SiteSpec:
     """SiteSpec from the shared flags (loads the ``--plugin`` files, so a bad one fails here)."""
     overrides: dict[str, list[str]] = {}
@@ -868,6 +883,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     stop = threading.Event()
     install_stop_handlers(stop)
     try:
+        if "console" in spec.services:
+            check_ports(args.host, [("the web console's port", args.console_port, "--console-port")])
         return run_site(spec, args.seconds, stop)
     except (TelesurgError, ConnectionError) as exc:  # (what had started is stopped: Site.__enter__)
         print(f"telesurg up: {exc}", file=sys.stderr)

@@ -31,6 +31,7 @@ from telesurg.services.common import install_stop_handlers, setup_logging, tcp_p
 from telesurg.services.launcher import (
     Site,
     add_site_args,
+    check_ports,
     config_class,
     console_url,
     spec_from_args,
@@ -95,7 +96,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     stop = threading.Event()
     install_stop_handlers(stop)
     master_arm, slave_arm = parse_pair(mapping.pairs[0])
+    ports = [("the web console's port", args.console_port, "--console-port")] if web_url else []
+    if not args.headless:
+        ports += [
+            ("the rerun web viewer's port", args.web_port, "--web-port"),
+            ("rerun's gRPC port", args.grpc_port, "--grpc-port"),
+        ]
     try:
+        check_ports(args.host, ports)
         with Site(spec) as site:
             bus = BusConfig(mode="client", connect=[spec.endpoint])
             with Node(bus, spec.site, "demo_report") as node:
