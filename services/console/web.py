@@ -126,14 +126,17 @@ class WebConsole:
         k = node.keys
         s_src = only(cfg.slave_source)
         for arm in self.model.arms:
-            # (polled: 250 Hz streams only drawn at state_hz; no thread wake-up per message in the
-            # process that also relays the browser's samples)
+            # (polled: 250 Hz and 100 Hz streams only drawn at state_hz; no thread wake-up per
+            # message in the process that also relays the browser's samples, none at all while
+            # no page is open)
             node.subscribe(k.slave(arm, "measured_js"), JointState, self._on_js, sources=s_src, polled=True)
             node.subscribe(
                 k.slave(arm, "measured_cp"), CartesianPose, self._on_cp, sources=s_src, polled=True
             )
             m_src = only(cfg.mapping_source)
-            node.subscribe(k.slave(arm, "setpoint_cp"), CartesianPose, self._on_setpoint, sources=m_src)
+            node.subscribe(
+                k.slave(arm, "setpoint_cp"), CartesianPose, self._on_setpoint, sources=m_src, polled=True
+            )
         # the endoscope picture (camera service, docs/video.md): the newest frame of each camera,
         # served to the page as an MJPEG stream (/video.mjpg); nothing is queued behind it
         self.frames: dict[str, tuple[CameraImage, int]] = {}  # camera → (frame, receive time ns)
