@@ -14,6 +14,7 @@ Subcommands::
     telesurg bench viewer [--seconds 100] [--json FILE]
     telesurg bench memory [--seconds 300] [--set SERVICE.KEY=VALUE] [--json FILE] [--plot FILE]
     telesurg bench wakeup [--seconds 10] [--blocks 2] [--slice-us 100] [--load cpu:2] [--json FILE]
+    telesurg bench links [--pairs 4] [--seconds 20] [--rate 1000] [--json FILE]
 """
 
 from __future__ import annotations
@@ -48,6 +49,10 @@ BENCHES = {
     "wakeup": (
         "telesurg.services.bench.wakeup",
         "how late a control process's thread wakes up: the kernel's scheduler slice vs a shorter one",
+    ),
+    "links": (
+        "telesurg.services.bench.links",
+        "the bare relay over a TCP loopback link vs a Unix socket: CPU and latency",
     ),
     "transport": (
         "telesurg.services.bench.transport",
