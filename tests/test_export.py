@@ -380,3 +380,19 @@ def test_exported_frames_and_urdf_of_every_robot(name: str) -> None:
     assert sum(1 for _ in root.iter("visual")) > 5
     kinds = {j.get("type") for j in root.iter("joint")}
     assert kinds & {"revolute", "prismatic"}, kinds
+
+
+@pytest.mark.parametrize("to", ["rerun", "foxglove"])
+def test_a_damaged_recording_writes_nothing_and_keeps_an_existing_output(
+    to: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    bad = tmp_path / "cut.mcap"
+    bad.write_bytes(b"\x89MCAP0\r\n" + os.urandom(200))  # the magic, then no valid record
+    fresh, kept = tmp_path / "fresh.out", tmp_path / "kept.out"
+    kept.write_text("an earlier export")
+    assert main([str(bad), str(fresh), "--to", to]) == 1
+    assert main([str(bad), str(kept), "--to", to]) == 1
+    err = capsys.readouterr().err
+    assert f"cannot export {bad}" in err and f"({fresh} not written)" in err
+    assert not fresh.exists() and kept.read_text() == "an earlier export"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["cut.mcap", "kept.out"]  # no .part left

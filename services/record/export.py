@@ -31,6 +31,7 @@ from __future__ import annotations
 import argparse
 import logging
 import math
+import os
 import sys
 import xml.etree.ElementTree as ET
 from collections.abc import Sequence
@@ -492,15 +493,24 @@ def main(argv: Sequence[str] | None = None) -> int:
     if not src.is_file():
         print(f"telesurg export: no such recording: {src}", file=sys.stderr)
         return 1
+    # written beside OUT and renamed when complete: a damaged recording leaves no partial OUT
+    # (and an OUT that was there already as it was)
+    out = Path(args.out)
+    part = out.with_name(out.name + ".part")
     try:
         if args.to == "foxglove":
-            counts: dict[str, Any] = to_foxglove(src, args.out)
+            counts: dict[str, Any] = to_foxglove(src, str(part))
         else:
             from telesurg.services.record.replay import to_rerun
 
-            counts = dict(to_rerun(src, args.out))
+            counts = dict(to_rerun(src, str(part)))
+        os.replace(part, out)
     except Exception as e:  # a damaged file: say which and why
-        print(f"telesurg export: cannot export {src}: {type(e).__name__}: {e}", file=sys.stderr)
+        part.unlink(missing_ok=True)
+        print(
+            f"telesurg export: cannot export {src}: {type(e).__name__}: {e} ({out} not written)",
+            file=sys.stderr,
+        )
         return 1
     if args.json:
         from telesurg.shared import jsonio
