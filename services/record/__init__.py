@@ -511,6 +511,20 @@ class Recorder:
                 self.close()
 
 
+@contextlib.contextmanager
+def written_whole(out: str | Path) -> Iterator[Path]:
+    """The path to write ``out`` at: its sibling ``<out>.part``, renamed to ``out`` when the block
+    ends and removed if it raises. A conversion that fails half-way (a damaged recording) leaves
+    no partial file, and an ``out`` that was there already stays as it was."""
+    out = Path(out)
+    part = out.with_name(out.name + ".part")
+    try:
+        yield part
+        os.replace(part, out)
+    finally:
+        part.unlink(missing_ok=True)
+
+
 # --------------------------------------------------------------------------- reading
 
 

@@ -31,7 +31,6 @@ from __future__ import annotations
 import argparse
 import logging
 import math
-import os
 import sys
 import xml.etree.ElementTree as ET
 from collections.abc import Sequence
@@ -40,7 +39,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from telesurg.services.record import iter_decoded, open_mcap, read_metadata, recording_site
+from telesurg.services.record import iter_decoded, open_mcap, read_metadata, recording_site, written_whole
 from telesurg.shared import robots
 from telesurg.shared.errors import ConfigError
 from telesurg.shared.keys import Keys
@@ -320,7 +319,9 @@ def to_foxglove(path: str | Path, out: str | Path, *, overwrite: bool = True) ->
 
     last_state: dict[str, tuple[Any, ...]] = {}
     level = {"info": fm.LogLevel.Info, "warning": fm.LogLevel.Warning, "error": fm.LogLevel.Error}
-    with foxglove.open_mcap(out, allow_overwrite=overwrite, context=ctx) as writer:
+    if out.exists() and not overwrite:
+        raise FileExistsError(f"{out} exists")
+    with written_whole(out) as part, foxglove.open_mcap(part, allow_overwrite=True, context=ctx) as writer:
         writer.write_metadata("telesurg.export", {"source": str(path), "site": site, "robot": counts.robot})
         if meta:
             writer.write_metadata("telesurg.recording", meta)
@@ -493,20 +494,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     if not src.is_file():
         print(f"telesurg export: no such recording: {src}", file=sys.stderr)
         return 1
-    # written beside OUT and renamed when complete: a damaged recording leaves no partial OUT
-    # (and an OUT that was there already as it was)
     out = Path(args.out)
-    part = out.with_name(out.name + ".part")
-    try:
+    try:  # (both write OUT whole or not at all: written_whole)
         if args.to == "foxglove":
-            counts: dict[str, Any] = to_foxglove(src, str(part))
+            counts: dict[str, Any] = to_foxglove(src, out)
         else:
             from telesurg.services.record.replay import to_rerun
 
-            counts = dict(to_rerun(src, str(part)))
-        os.replace(part, out)
+            counts = dict(to_rerun(src, out))
     except Exception as e:  # a damaged file: say which and why
-        part.unlink(missing_ok=True)
         print(
             f"telesurg export: cannot export {src}: {type(e).__name__}: {e} ({out} not written)",
             file=sys.stderr,
