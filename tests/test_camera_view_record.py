@@ -5,6 +5,7 @@ rerun shows them as images."""
 from __future__ import annotations
 
 import json
+import socket
 import subprocess
 import sys
 import urllib.request
@@ -93,3 +94,20 @@ def test_view_page_recording_and_replay(tmp_path: Path) -> None:
     print(f"{len(frames)} frames recorded; replay into rerun: {counts}")
     assert counts.get("images", 0) >= 3
     assert "/camera/endo/image" in entity_paths(tmp_path / "run.rrd")
+
+
+def test_view_says_why_it_cannot_start() -> None:
+    """A taken port or no router: one line saying so, exit 1, no traceback."""
+    view = [sys.executable, "-m", "telesurg.services.cli", "view", "--seconds", "1"]
+    with socket.socket() as holder:
+        holder.bind(("127.0.0.1", 0))
+        holder.listen()
+        port = holder.getsockname()[1]
+        taken = subprocess.run([*view, "--port", str(port)], capture_output=True, text=True, timeout=60)
+    dead = free_port()  # nothing listens there
+    alone = [*view, "--port", str(free_port()), "--connect", f"tcp/127.0.0.1:{dead}"]
+    no_router = subprocess.run(alone, capture_output=True, text=True, timeout=60)
+    assert taken.returncode == 1 and "Traceback" not in taken.stderr, taken.stderr
+    assert f"telesurg view: port {port} on 127.0.0.1: Address already in use" in taken.stderr
+    assert no_router.returncode == 1 and "Traceback" not in no_router.stderr, no_router.stderr
+    assert "telesurg view: zenoh session failed" in no_router.stderr

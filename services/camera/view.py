@@ -14,14 +14,16 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import sys
 import threading
 import time
 from collections.abc import Sequence
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from typing import Any
 
-from telesurg.services.common import install_stop_handlers, setup_logging
+from telesurg.services.common import duration_s, install_stop_handlers, setup_logging, tcp_port
 from telesurg.shared.bus import Node, add_bus_args, bus_from_args
+from telesurg.shared.errors import TelesurgError
 from telesurg.shared.messages import CameraImage
 
 log = logging.getLogger("telesurg.view")
@@ -133,8 +135,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="telesurg view", description=__doc__)
     ap.add_argument("--site", default="local", help="site id (default: local)")
     ap.add_argument("--camera", default="endo", help="camera id (default: endo)")
-    ap.add_argument("--port", type=int, default=8088, help="HTTP port on 127.0.0.1 (default 8088)")
-    ap.add_argument("--seconds", type=float, default=0.0, help="stop after this long (0: Ctrl-C)")
+    ap.add_argument("--port", type=tcp_port, default=8088, help="HTTP port on 127.0.0.1 (default 8088)")
+    ap.add_argument("--seconds", type=duration_s, default=0.0, help="stop after this long (0: Ctrl-C)")
     add_bus_args(ap)
     a = ap.parse_args(argv)
     bus = bus_from_args(a)
@@ -144,15 +146,29 @@ def main(argv: Sequence[str] | None = None) -> int:
     stop = threading.Event()
     install_stop_handlers(stop)
     latest = Latest()
-    with Node(bus, a.site, f"view_{a.port}") as node:
-        node.subscribe(node.keys.camera(a.camera, "image"), CameraImage, latest.on_frame, sources=["camera"])
+    try:  # the page's port first: a taken one is said before anything joins the site
         server = make_server(latest, a.port, stop)
-        threading.Thread(target=server.serve_forever, daemon=True).start()
-        log.info("endoscope view: http://127.0.0.1:%d/", a.port)
-        stop.wait(a.seconds or None)
-        stop.set()
-        with latest.cond:
-            latest.cond.notify_all()
-        server.shutdown()
+    except OSError as exc:
+        print(
+            f"telesurg view: port {a.port} on 127.0.0.1: {exc.strerror or exc} (--port picks another)",
+            file=sys.stderr,
+        )
+        return 1
+    try:
+        with Node(bus, a.site, f"view_{a.port}") as node:
+            node.subscribe(
+                node.keys.camera(a.camera, "image"), CameraImage, latest.on_frame, sources=["camera"]
+            )
+            threading.Thread(target=server.serve_forever, daemon=True).start()
+            log.info("endoscope view: http://127.0.0.1:%d/", a.port)
+            stop.wait(a.seconds or None)
+            stop.set()
+            with latest.cond:
+                latest.cond.notify_all()
+            server.shutdown()
+    except (ConnectionError, TelesurgError) as exc:  # no router there, a bad keyring
+        print(f"telesurg view: {exc}", file=sys.stderr)
+        return 1
+    finally:
         server.server_close()
     return 0
