@@ -685,16 +685,16 @@ def console_url(args: argparse.Namespace, spec: SiteSpec) -> str:
 
 
 def check_ports(host: str, ports: Sequence[tuple[str, int, str]]) -> None:
-    """SiteStartError naming every ``(what, port, flag)`` that something already listens on at
+    """SiteStartError naming every ``(what, port, hint)`` that something already listens on at
     ``host`` (a second demo on this machine: each port a flag of its own), before anything starts;
     port 0 (a free one, picked later) is skipped."""
     taken = []
-    for what, port, flag in ports:
+    for what, port, hint in ports:
         if port:
             try:
                 check_port_free(host, port, what)
             except ConnectionError as exc:
-                taken.append(f"{exc} ({flag} picks another)")
+                taken.append(f"{exc} ({hint})")
     if taken:
         raise SiteStartError("; ".join(taken) + " — is another telesurg demo or up running?")
 
@@ -883,8 +883,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     stop = threading.Event()
     install_stop_handlers(stop)
     try:
+        ports = [("the router's port", spec.port, "--port 0 picks a free one")]
         if "console" in spec.services:
-            check_ports(args.host, [("the web console's port", args.console_port, "--console-port")])
+            ports.append(("the web console's port", args.console_port, "--console-port 0 picks a free one"))
+        check_ports(args.host, ports)
         return run_site(spec, args.seconds, stop)
     except (TelesurgError, ConnectionError) as exc:  # (what had started is stopped: Site.__enter__)
         print(f"telesurg up: {exc}", file=sys.stderr)

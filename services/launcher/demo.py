@@ -96,11 +96,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     stop = threading.Event()
     install_stop_handlers(stop)
     master_arm, slave_arm = parse_pair(mapping.pairs[0])
-    ports = [("the web console's port", args.console_port, "--console-port")] if web_url else []
+    ports = [("the router's port", spec.port, "--port 0 picks a free one")]
+    if web_url:
+        ports.append(("the web console's port", args.console_port, "--console-port 0 picks a free one"))
     if not args.headless:
         ports += [
-            ("the rerun web viewer's port", args.web_port, "--web-port"),
-            ("rerun's gRPC port", args.grpc_port, "--grpc-port"),
+            ("the rerun web viewer's port", args.web_port, "--web-port picks another"),
+            ("rerun's gRPC port", args.grpc_port, "--grpc-port picks another"),
         ]
     try:
         check_ports(args.host, ports)
