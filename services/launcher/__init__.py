@@ -273,6 +273,9 @@ class SiteSpec:
     # zenoh session id of each of ZID_SERVICES (random for each spec, kept over restarts): the
     # router waits for these sessions alone when a control stream's subscriber falls behind
     zids: dict[str, str] = field(default_factory=_new_zids)
+    # other ports its services will listen on, as (what, port, hint): checked with the router's
+    # before anything starts (check_ports); 0 = a free one, not checked
+    ports: tuple[tuple[str, int, str], ...] = ()
 
     @property
     def site_file(self) -> Path | None:
@@ -360,22 +363,15 @@ class Site:
             log.info("made the site keyring %s (telesurg keys list shows its identities)", keys_dir)
         # another site's router on the port would answer the readiness probe below, and every
         # service would join that site instead (same site id, same keyring): refuse to start
-        try:
-            check_port_free(self.spec.host, self.spec.port, "the router's port")
-        except ConnectionError as exc:
-            raise SiteStartError(
-                f"{exc} (another site's router, from telesurg up or demo?); stop what holds it, "
-                "or start this site on another port (--port 0 picks a free one)"
-            ) from None
+        router_port = ("the router's port", self.spec.port, "--port 0 picks a free one")
+        check_ports(self.spec.host, [router_port, *self.spec.ports])
         self._spawn("router")
         router = self.procs["router"]
         deadline = time.monotonic() + 15.0
-        while not self._router_ready():
-            if router.poll() is not None:
-                raise ConnectionError(f"router exited with code {router.returncode} (see its log)")
+        while router.poll() is None and not self._router_ready():
             if time.monotonic() > deadline:
                 raise ConnectionError(f"router did not open {self.spec.endpoint} within 15 s")
-        if router.poll() is not None:  # what answered was not this site's router
+        if router.poll() is not None:  # (also when what answered was not this site's router)
             raise ConnectionError(f"router exited with code {router.returncode} (see its log)")
         from telesurg.shared.bus import open_session
         from telesurg.shared.keys import Keys
@@ -686,8 +682,9 @@ def console_url(args: argparse.Namespace, spec: SiteSpec) -> str:
 
 def check_ports(host: str, ports: Sequence[tuple[str, int, str]]) -> None:
     """SiteStartError naming every ``(what, port, hint)`` that something already listens on at
-    ``host`` (a second demo on this machine: each port a flag of its own), before anything starts;
-    port 0 (a free one, picked later) is skipped."""
+    ``host`` (a second demo on this machine: each port a flag of its own); :meth:`Site.start`
+    checks the router's and ``SiteSpec.ports`` before anything starts. Port 0 (a free one, picked
+    later) is skipped."""
     taken = []
     for what, port, hint in ports:
         if port:
@@ -882,11 +879,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         log.info("web surgeon console: %s", url)
     stop = threading.Event()
     install_stop_handlers(stop)
+    if "console" in spec.services:
+        spec.ports = (("the web console's port", args.console_port, "--console-port 0 picks a free one"),)
     try:
-        ports = [("the router's port", spec.port, "--port 0 picks a free one")]
-        if "console" in spec.services:
-            ports.append(("the web console's port", args.console_port, "--console-port 0 picks a free one"))
-        check_ports(args.host, ports)
         return run_site(spec, args.seconds, stop)
     except (TelesurgError, ConnectionError) as exc:  # (what had started is stopped: Site.__enter__)
         print(f"telesurg up: {exc}", file=sys.stderr)

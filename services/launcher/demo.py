@@ -31,7 +31,6 @@ from telesurg.services.common import install_stop_handlers, setup_logging, tcp_p
 from telesurg.services.launcher import (
     Site,
     add_site_args,
-    check_ports,
     config_class,
     console_url,
     spec_from_args,
@@ -96,16 +95,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     stop = threading.Event()
     install_stop_handlers(stop)
     master_arm, slave_arm = parse_pair(mapping.pairs[0])
-    ports = [("the router's port", spec.port, "--port 0 picks a free one")]
+    # checked with the router's before anything starts (Site.start)
     if web_url:
-        ports.append(("the web console's port", args.console_port, "--console-port 0 picks a free one"))
+        spec.ports += (("the web console's port", args.console_port, "--console-port 0 picks a free one"),)
     if not args.headless:
-        ports += [
+        spec.ports += (
             ("the rerun web viewer's port", args.web_port, "--web-port picks another"),
             ("rerun's gRPC port", args.grpc_port, "--grpc-port picks another"),
-        ]
+        )
     try:
-        check_ports(args.host, ports)
         with Site(spec) as site:
             bus = BusConfig(mode="client", connect=[spec.endpoint])
             with Node(bus, spec.site, "demo_report") as node:
