@@ -637,45 +637,45 @@ def to_rerun(path: str | Path, out: str | Path) -> dict[str, int]:
     mc = MirrorConfig()
     trusted = frozenset(mc.trusted_sources)
     counts = {"messages": 0, "undecodable": 0, "untrusted": 0, "drawn": 0}
-    with written_whole(out) as part:  # the file whole or not at all
-        view = RerunView(mc.application_id, save=str(part))
-        try:
-            with open_mcap(path) as reader:
-                prefix = Keys(recording_site(reader)).prefix + "/"
-                mirror = Mirror(view, prefix, mc.trail_s, mc.trail_hz)
-                tick_ns = round(1e9 / mc.effective_draw_hz())  # the file-only rate
-                next_tick = 0
-                batch: list[tuple[str, int, Any]] = []
-                image_ns = round(1e9 / mc.image_hz) if mc.image_hz > 0 else 0
-                next_image: dict[str, int] = {}
-                for topic, lt, _pt, _data, msg in iter_decoded(reader):
-                    counts["messages"] += 1
-                    if msg is None:
-                        counts["undecodable"] += 1
-                        continue
-                    if isinstance(msg, CameraImage):  # decimated, as the live mirror draws them
-                        if image_ns and msg.header.source == "camera" and lt >= next_image.get(msg.camera, 0):
-                            next_image[msg.camera] = lt + image_ns
-                            view.image(msg.camera, msg.capture_ns, lt, msg.data)
-                            counts["images"] = counts.get("images", 0) + 1
-                        continue
-                    role = topic[len(prefix) :].split("/", 1)[0] if topic.startswith(prefix) else ""
-                    if role in ("master", "slave", "safety") and msg.header.source not in trusted:
-                        counts["untrusted"] += 1
-                        continue
-                    if not next_tick:
-                        next_tick = lt + tick_ns
-                    if lt >= next_tick:
-                        mirror.feed(batch)
-                        mirror.draw()
-                        batch = []
-                        next_tick += ((lt - next_tick) // tick_ns + 1) * tick_ns
-                    batch.append((topic, lt, msg))
+    # the file whole or not at all; the view closed (flushed) before it is renamed
+    with (
+        written_whole(out) as part,
+        contextlib.closing(RerunView(mc.application_id, save=str(part))) as view,
+        open_mcap(path) as reader,
+    ):
+        prefix = Keys(recording_site(reader)).prefix + "/"
+        mirror = Mirror(view, prefix, mc.trail_s, mc.trail_hz)
+        tick_ns = round(1e9 / mc.effective_draw_hz())  # the file-only rate
+        next_tick = 0
+        batch: list[tuple[str, int, Any]] = []
+        image_ns = round(1e9 / mc.image_hz) if mc.image_hz > 0 else 0
+        next_image: dict[str, int] = {}
+        for topic, lt, _pt, _data, msg in iter_decoded(reader):
+            counts["messages"] += 1
+            if msg is None:
+                counts["undecodable"] += 1
+                continue
+            if isinstance(msg, CameraImage):  # decimated, as the live mirror draws them
+                if image_ns and msg.header.source == "camera" and lt >= next_image.get(msg.camera, 0):
+                    next_image[msg.camera] = lt + image_ns
+                    view.image(msg.camera, msg.capture_ns, lt, msg.data)
+                    counts["images"] = counts.get("images", 0) + 1
+                continue
+            role = topic[len(prefix) :].split("/", 1)[0] if topic.startswith(prefix) else ""
+            if role in ("master", "slave", "safety") and msg.header.source not in trusted:
+                counts["untrusted"] += 1
+                continue
+            if not next_tick:
+                next_tick = lt + tick_ns
+            if lt >= next_tick:
                 mirror.feed(batch)
                 mirror.draw()
-                counts["drawn"] = mirror.drawn
-        finally:
-            view.close()
+                batch = []
+                next_tick += ((lt - next_tick) // tick_ns + 1) * tick_ns
+            batch.append((topic, lt, msg))
+        mirror.feed(batch)
+        mirror.draw()
+        counts["drawn"] = mirror.drawn
     return counts
 
 
