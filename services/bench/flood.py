@@ -56,7 +56,7 @@ from pathlib import Path
 from typing import Any
 
 from telesurg.services.bench.harness import Pipeline, now_ns
-from telesurg.services.bench.machine import machine, now
+from telesurg.services.bench.machine import machine, now, stat_cpu_s
 from telesurg.services.launcher import deploy_dir
 from telesurg.shared import jsonio
 from telesurg.shared.bus import BusConfig, open_session
@@ -155,11 +155,9 @@ def hold_causes(pipe: Pipeline, t0: int, t1: int) -> list[list[str]]:
 def _ticks(path: str) -> float:
     """utime + stime (s) of a ``/proc/.../stat`` file (0 if gone)."""
     try:
-        with open(path) as f:
-            fields = f.read().rsplit(")", 1)[1].split()
+        return sum(stat_cpu_s(path))
     except (OSError, IndexError):
         return 0.0
-    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
 def _comm(path: str) -> str:

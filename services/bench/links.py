@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import subprocess
 import sys
 import tempfile
@@ -28,23 +27,17 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from telesurg.services.bench.machine import machine, now
+from telesurg.services.bench.machine import machine, now, stat_cpu_s
 from telesurg.shared import jsonio
 
 LINKS = ("tcp", "unixsock")
-_TICK = os.sysconf("SC_CLK_TCK")
 _WARM_S = 4.0  # s before the CPU window opens: the sessions are up and the stream flows
 
 
 def _cpu_s(pids: Sequence[int]) -> tuple[float, float]:
     """(user, system) CPU seconds of ``pids`` so far."""
-    user = system = 0
-    for pid in pids:
-        with open(f"/proc/{pid}/stat") as f:
-            fields = f.read().rsplit(")", 1)[1].split()
-        user += int(fields[11])
-        system += int(fields[12])
-    return user / _TICK, system / _TICK
+    times = [stat_cpu_s(f"/proc/{pid}/stat") for pid in pids]
+    return sum(u for u, _ in times), sum(s for _, s in times)
 
 
 def _router(endpoint: str) -> int:

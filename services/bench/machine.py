@@ -57,3 +57,12 @@ def machine() -> dict[str, Any]:
         "python": sys.version.split()[0],
         "loadavg_1min": round(os.getloadavg()[0], 2),
     }
+
+
+def stat_cpu_s(path: str) -> tuple[float, float]:
+    """(user, system) CPU seconds so far of a process or thread, from its ``/proc/.../stat``
+    (``utime``, ``stime``); OSError if it is gone."""
+    with open(path) as f:
+        fields = f.read().rsplit(")", 1)[1].split()  # (after the command name, which may hold spaces)
+    tick = os.sysconf("SC_CLK_TCK")
+    return int(fields[11]) / tick, int(fields[12]) / tick
