@@ -10,10 +10,13 @@
 
 from __future__ import annotations
 
+import contextlib
+import socket
 import subprocess
 import sys
 import threading
 import time
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -38,6 +41,15 @@ def autogroup(pid: int | str) -> str:
     """The name of ``pid``'s scheduler autogroup (``/autogroup-123``). The file is empty for a
     process in the root autogroup (no new session since boot, as under some CI runners' init)."""
     return (Path(f"/proc/{pid}/autogroup").read_text().split() or ["(root autogroup)"])[0]
+
+
+@contextlib.contextmanager
+def held_port() -> Iterator[int]:
+    """A loopback TCP port something listens on for the block (what a second site meets)."""
+    with socket.socket() as holder:
+        holder.bind(("127.0.0.1", 0))
+        holder.listen()
+        yield holder.getsockname()[1]
 
 
 def clutch_flags() -> list[str]:

@@ -5,7 +5,6 @@ rerun shows them as images."""
 from __future__ import annotations
 
 import json
-import socket
 import subprocess
 import sys
 import urllib.request
@@ -13,7 +12,7 @@ from pathlib import Path
 
 import pytest
 from conftest import wait_until
-from helpers import entity_paths
+from helpers import entity_paths, held_port
 from telesurg.services.launcher import Site, SiteSpec, free_port
 from telesurg.services.record import iter_decoded, open_mcap
 from telesurg.services.record.replay import to_rerun
@@ -99,10 +98,7 @@ def test_view_page_recording_and_replay(tmp_path: Path) -> None:
 def test_view_says_why_it_cannot_start() -> None:
     """A taken port or no router: one line saying so, exit 1, no traceback."""
     view = [sys.executable, "-m", "telesurg.services.cli", "view", "--seconds", "1"]
-    with socket.socket() as holder:
-        holder.bind(("127.0.0.1", 0))
-        holder.listen()
-        port = holder.getsockname()[1]
+    with held_port() as port:
         taken = subprocess.run([*view, "--port", str(port)], capture_output=True, text=True, timeout=60)
     dead = free_port()  # nothing listens there
     alone = [*view, "--port", str(free_port()), "--connect", f"tcp/127.0.0.1:{dead}"]

@@ -3,13 +3,12 @@
 from __future__ import annotations
 
 import json
-import socket
 import subprocess
 import sys
 from pathlib import Path
 
 import pytest
-from helpers import clutch_flags, scalar_counts
+from helpers import clutch_flags, held_port, scalar_counts
 
 pytestmark = pytest.mark.process
 
@@ -68,10 +67,7 @@ def test_a_site_does_not_start_on_a_port_another_holds(command: str, tmp_path: P
     """A second demo on the first one's port used to join the first site: its readiness probe
     found the first router, its own router failed, and its services (same site id, same
     keyring) connected there. Now it refuses at once, says why, and starts nothing."""
-    with socket.socket() as holder:
-        holder.bind(("127.0.0.1", 0))
-        holder.listen()
-        port = holder.getsockname()[1]
+    with held_port() as port:
         argv = [sys.executable, "-m", "telesurg.services.cli", command, "--seconds", "5", "--port", str(port)]
         argv += ["--log-dir", str(tmp_path / "logs"), *(["--headless"] if command == "demo" else [])]
         proc = subprocess.run(argv, capture_output=True, text=True, timeout=60)
@@ -103,11 +99,7 @@ def test_bad_site_arguments_are_refused_before_anything_starts(args: list[str], 
 def test_a_second_demo_names_every_port_it_would_clash_on(tmp_path: Path) -> None:
     """The viewer's and the console's ports are checked before anything starts too (a mirror
     that cannot serve used to leave its log line and a site that stopped)."""
-    with socket.socket() as viewer, socket.socket() as console:
-        for s in (viewer, console):
-            s.bind(("127.0.0.1", 0))
-            s.listen()
-        vport, cport = viewer.getsockname()[1], console.getsockname()[1]
+    with held_port() as vport, held_port() as cport:
         argv = [sys.executable, "-m", "telesurg.services.cli", "demo", "--seconds", "5", "--port", "0"]
         argv += ["--web-port", str(vport), "--grpc-port", "0", "--console-port", str(cport)]
         argv += ["--log-dir", str(tmp_path / "logs")]

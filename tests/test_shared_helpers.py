@@ -3,10 +3,9 @@ rotation from roll/pitch/yaw, the web viewer's address, and the free-port check 
 
 from __future__ import annotations
 
-import socket
-
 import numpy as np
 import pytest
+from helpers import held_port
 from telesurg.services.common import check_port_free
 from telesurg.shared.errors import ConfigError
 from telesurg.shared.kinematics.transforms import rot_x, rot_z, rpy_matrix
@@ -49,10 +48,9 @@ def test_viewer_url_quotes_the_grpc_address() -> None:
 
 
 def test_check_port_free_names_what_a_taken_port_was_for() -> None:
-    with socket.socket() as holder:
-        holder.bind(("127.0.0.1", 0))
-        holder.listen()
-        port = holder.getsockname()[1]
-        with pytest.raises(ConnectionError, match=f"grpc_port 127.0.0.1:{port} is not available: Address"):
-            check_port_free("127.0.0.1", port, "grpc_port")
+    with (
+        held_port() as port,
+        pytest.raises(ConnectionError, match=f"grpc_port 127.0.0.1:{port} is not available: Address"),
+    ):
+        check_port_free("127.0.0.1", port, "grpc_port")
     check_port_free("127.0.0.1", port, "grpc_port")  # closed: free again (TIME_WAIT or not)
