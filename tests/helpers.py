@@ -90,27 +90,51 @@ def scalar_rows(path: str | Path, entity: str) -> list[list[float]]:
     return rows
 
 
-def body_poses(path: str | Path) -> dict[str, list[tuple[np.ndarray, np.ndarray]]]:
-    """The robot body poses the mirror wrote (``/slave/body_poses``: a Transform3D row per moved
-    body, its ``child_frame`` the body's frame ``tf#/slave/geometry/<body>``), by body entity path:
-    ``[(translation, quaternion x y z w), ...]`` in file order."""
-    from telesurg.services.mirror.view import BODY_POSES
+def drawn_body_poses(path: str | Path, spec: Any) -> dict[str, list[tuple[np.ndarray, np.ndarray]]]:
+    """Where the mirror drew each body of robot ``spec`` (a registry entry): per drawn frame (a row of
+    ``/slave/geometry/<robot>``, every primitive posed in the world frame) the body's pose worked
+    back from its first primitive, by body name: ``[(position (3,), rotation matrix (3, 3)), ...]`` in
+    file order."""
+    from telesurg.services.mirror.geometry import RobotGeometry, quat_matrix
+    from telesurg.services.mirror.view import geometry_path
 
+    geo = RobotGeometry.load(spec)
+    columns = {  # kind → (archetype, the column of its placement)
+        "box": ("Boxes3D", "centers"),
+        "ellipsoid": ("Ellipsoids3D", "centers"),
+        "cylinder": ("Cylinders3D", "centers"),
+        "capsule": ("Capsules3D", "translations"),  # rerun's: an end, not the centre
+    }
+    first: dict[str, tuple[str, int]] = {}  # body → (kind, index in geo.primitives[kind])
+    for kind, prims in geo.primitives.items():
+        for i, prim in enumerate(prims):
+            body = next(b.name for b in geo.bodies if b.index == int(geo.model.geom_bodyid[prim.geom]))
+            first.setdefault(body, (kind, i))
     out: dict[str, list[tuple[np.ndarray, np.ndarray]]] = {}
     for c in _chunks(path):
-        if c.entity_path != BODY_POSES:
+        if c.entity_path != geometry_path(spec.name):
             continue
         batch = c.to_record_batch()
-        if "Transform3D:child_frame" not in batch.schema.names:
-            continue
-        frames = batch.column("Transform3D:child_frame").to_pylist()
-        ts = batch.column("Transform3D:translation").to_pylist()
-        qs = batch.column("Transform3D:quaternion").to_pylist()
-        for f, t, q in zip(frames, ts, qs, strict=True):
-            if f and t and q:  # a row: one instance of each
-                body = str(f[0]).removeprefix("tf#")
-                pose = (np.array(t, float).reshape(3), np.array(q, float).reshape(4))
-                out.setdefault(body, []).append(pose)
+        names = batch.schema.names
+        got = {
+            kind: (
+                batch.column(f"{arch}:{field}").to_pylist(),
+                batch.column(f"{arch}:quaternions").to_pylist(),
+            )
+            for kind, (arch, field) in columns.items()
+            if f"{arch}:{field}" in names and f"{arch}:quaternions" in names
+        }
+        for row in range(batch.num_rows):
+            for body, (kind, i) in first.items():
+                if kind not in got or got[kind][0][row] is None:
+                    continue
+                prim = geo.primitives[kind][i]
+                rot = quat_matrix(np.roll(np.array(got[kind][1][row][i], float), 1))  # rerun: x y z w
+                at = np.array(got[kind][0][row][i], float)
+                if kind == "capsule":
+                    at = at + 0.5 * prim.size[1] * rot[:, 2]
+                body_rot = rot @ quat_matrix(prim.quat).T
+                out.setdefault(body, []).append((at - body_rot @ prim.center, body_rot))
     return out
 
 

@@ -226,20 +226,19 @@ def test_slave_holds_on_the_watchdog_workspace_veto(run: tuple[Log, Path, dict[s
 
 
 def test_mirror_draws_the_arm_from_its_own_model(run: tuple[Log, Path, dict[str, int], float]) -> None:
-    from helpers import body_poses, entity_paths
-    from telesurg.services.mirror.geometry import quat_matrix
+    from helpers import drawn_body_poses, entity_paths
 
     log, rrd, _, _ = run
     assert rrd.is_file()
     paths = entity_paths(rrd)
     assert "/slave/arm1/links" not in paths, "a stick figure drawn over the robot's bodies"
-    poses = body_poses(rrd).get("/slave/geometry/fore", [])
+    assert "/slave/geometry/tri3" in paths, "the robot has no geoms"
+    poses = drawn_body_poses(rrd, robots.get("tri3")).get("fore", [])
     assert len(poses) > 20, f"{len(poses)} poses of the forearm"
-    assert any(p.startswith("/slave/geometry/fore/") for p in paths), "the forearm has no geoms"
     # the tip site (0.15 m along the forearm body's x, robot.xml) of each drawn pose lies on the
     # slave's measured tip path
     site = np.array([0.15, 0.0, 0.0])
-    drawn = np.array([t + quat_matrix(np.roll(q, 1)) @ site for t, q in poses])  # rerun: x y z w
+    drawn = np.array([t + rot @ site for t, rot in poses])
     tips = np.array([p for _, p in log.tip])
     d = np.min(np.linalg.norm(drawn[:, None, :] - tips[None, :, :], axis=2), axis=1) * 1e3
     assert d.max() < 1.0, d.max()

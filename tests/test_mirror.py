@@ -14,7 +14,7 @@ from typing import Any
 
 import numpy as np
 import pytest
-from helpers import body_poses, entity_paths, scalar_counts, scalar_rows, series_names, text_logs
+from helpers import drawn_body_poses, entity_paths, scalar_counts, scalar_rows, series_names, text_logs
 from telesurg.shared import robots
 from telesurg.shared.bus import BusConfig, Node, open_session
 from telesurg.shared.messages import JointState, SafetyEvent
@@ -109,7 +109,8 @@ def test_mirror_records_bus_traffic_to_rrd(tmp_path: Path) -> None:
         paths = entity_paths(out)
         assert "/slave/arm1/joints/measured" in paths
         # the robot's own bodies, not the stick figure
-        assert "/slave/geometry/link1" in body_poses(out) and "/slave/arm1/links" not in paths, sorted(paths)
+        assert "link1" in drawn_body_poses(out, robots.get("mh3f")), sorted(paths)
+        assert "/slave/arm1/links" not in paths, sorted(paths)
         assert "/events" in paths
         n = scalar_counts(out).get("/slave/arm1/joints/measured", 0)
         assert 0.9 * sent <= n <= sent, (n, sent)
@@ -239,7 +240,7 @@ def test_a_live_lean_mirror_sends_what_its_layout_does_not_show_in_1_s_blocks(tm
         for c in RrdReader(str(out)).stream():
             # trails and poses are logged row by row (batched into chunks by rerun): count their rows
             n[c.entity_path] = n.get(c.entity_path, 0) + (
-                c.num_rows if c.entity_path.endswith(("/tip", "body_poses")) else 1
+                c.num_rows if c.entity_path.endswith(("/tip", "/mh3f")) else 1
             )
         counts[hz] = n
         rows[hz] = {e: scalar_rows(out, e) for e in ("/master/m1/clutch", "/slave/arm1/joints/measured")}
@@ -247,7 +248,7 @@ def test_a_live_lean_mirror_sends_what_its_layout_does_not_show_in_1_s_blocks(tm
         "/master/m1/clutch",
         "/slave/arm1/joints/measured",
         "/master/m1/tip",
-        "/slave/body_poses",
+        "/slave/geometry/mh3f",
     )
     # 3 s at 1 Hz (and the last block at close) against 3 s at 4 Hz
     assert counts[1.0][clutch] <= 5 < counts[0.0][clutch], counts
@@ -258,3 +259,40 @@ def test_a_live_lean_mirror_sends_what_its_layout_does_not_show_in_1_s_blocks(tm
     # the same samples either way: nothing the viewer is sent later is lost
     assert rows[1.0] == rows[0.0]
     assert [r[0] for r in rows[1.0][clutch]].count(1.0) > 0
+
+
+def test_a_live_mirror_redraws_the_trails_at_their_own_rate(tmp_path: Path) -> None:
+    """``trail_draw_hz``: the whole tip trail is one message per redraw; a serving mirror redraws
+    it once a second while the robot's bodies follow at the scene rate."""
+    from rerun.chunk import RrdReader
+    from telesurg.services.mirror import Mirror
+    from telesurg.services.mirror.view import RerunView
+    from telesurg.shared.messages import CartesianPose, Header, JointState
+
+    p = robots.get("mh3f").arms("arm1")[0]
+    rows: dict[float, dict[str, int]] = {}
+    for hz in (0.0, 1.0):
+        out = tmp_path / f"trail-{hz}.rrd"
+        view = RerunView("test", save=str(out))
+        mirror = Mirror(view, "telesurg/local", trail_s=1.0, trail_hz=10.0, draw_hz=5.0, trail_draw_hz=hz)
+        t0 = 1_700_000_000_000_000_000
+        for i in range(750):  # 3 s at 250 Hz
+            stamp = t0 + i * 4_000_000
+            h = Header("slave_control", i, stamp)
+            q = tuple(float(v) + 0.1 * np.sin(i / 100) for v in p.home)
+            tip = CartesianPose(h, "world", (0.3 + 0.01 * np.sin(i / 50), 0.0, 0.3), (0.0, 0.0, 0.0, 1.0))
+            mirror.feed(
+                [
+                    ("telesurg/local/slave/arm1/measured_js", stamp, JointState(h, p.joint_names, q)),
+                    ("telesurg/local/slave/arm1/measured_cp", stamp, tip),
+                ]  # type: ignore[list-item]
+            )
+            mirror.draw()
+        view.close()
+        n: dict[str, int] = {}
+        for c in RrdReader(str(out)).stream():
+            n[c.entity_path] = n.get(c.entity_path, 0) + c.num_rows
+        rows[hz] = n
+    tip, robot = "/slave/arm1/tip", "/slave/geometry/mh3f"
+    assert rows[1.0][tip] <= 5 and rows[0.0][tip] >= 14, rows  # 3 s at 1 Hz (+ the last at close) / 5 Hz
+    assert rows[1.0][robot] == rows[0.0][robot] >= 14, rows  # the bodies at the scene rate either way

@@ -27,7 +27,7 @@ def test_the_rates_are_the_live_viewer_s_while_serving_and_the_file_s_otherwise(
     chosen = MirrorConfig(serve=True, draw_hz=15.0, plot_hz=0.0)  # a user's rates win
     chosen.validate()
     assert (chosen.effective_draw_hz(), chosen.effective_plot_hz()) == (15.0, 0.0)
-    # what the lean layout does not show (the camera too): 1 Hz while serving it, else as set
+    # what the lean layout does not show (the camera too): LIVE_OFFVIEW_HZ while serving it, else as set
     from telesurg.services.mirror import LIVE_OFFVIEW_HZ
 
     assert (serving.layout, serving.effective_offview_hz(), serving.effective_image_hz()) == (
@@ -38,7 +38,18 @@ def test_the_rates_are_the_live_viewer_s_while_serving_and_the_file_s_otherwise(
     assert (saving.effective_offview_hz(), saving.effective_image_hz()) == (0.0, saving.image_hz)
     full = MirrorConfig(serve=True, layout="full")
     assert (full.effective_offview_hz(), full.effective_image_hz()) == (0.0, full.image_hz)
-    for bad in ({"draw_hz": 0.5}, {"draw_hz": -0.5}, {"plot_hz": -0.5}, {"plot_hz": -2.0}):
+    # the joint blocks and the trails: the live viewer's rates while serving, the file's otherwise
+    from telesurg.services.mirror import FILE_SERIES_HZ, LIVE_SERIES_HZ, LIVE_TRAIL_DRAW_HZ
+
+    assert (serving.effective_series_hz(), serving.effective_trail_draw_hz()) == (
+        LIVE_SERIES_HZ,
+        LIVE_TRAIL_DRAW_HZ,
+    )
+    assert (saving.effective_series_hz(), saving.effective_trail_draw_hz()) == (FILE_SERIES_HZ, FILE_DRAW_HZ)
+    mine = MirrorConfig(serve=True, series_hz=4.0, trail_draw_hz=10.0)
+    assert (mine.effective_series_hz(), mine.effective_trail_draw_hz()) == (4.0, 10.0)
+    bads = ({"draw_hz": 0.5}, {"draw_hz": -0.5}, {"plot_hz": -0.5}, {"plot_hz": -2.0}, {"series_hz": 0.0})
+    for bad in (*bads, {"trail_draw_hz": 0.2}, {"series_hz": -2.0}):
         with pytest.raises(ConfigError, match=rf"{next(iter(bad))}="):
             MirrorConfig(save="x.rrd", **bad).validate()  # type: ignore[arg-type]
 

@@ -454,8 +454,7 @@ def test_to_rerun_without_network(recording: Path, tmp_path: Path) -> None:
         "/master/m1/tip",
         "/master/m1/clutch",
         "/slave/arm1/tip",
-        "/slave/geometry/link1/cylinder",
-        "/slave/body_poses",
+        "/slave/geometry/mh3f",
     } <= entity_paths(rrd)
     logs = text_logs(rrd)
     assert any(p == "/events" and "engage" in text for p, _, text in logs)

@@ -33,6 +33,7 @@ from typing import Any
 import numpy as np
 import pytest
 from helpers import CHROMIUM, WINDOW, DevTools, chromium, clutch_flags, hue_pixels, screenshot
+from telesurg.shared import robots
 
 pytestmark = pytest.mark.process
 
@@ -196,7 +197,7 @@ def test_web_viewer_renders_the_demo_session(tmp_path: Path) -> None:
         pytest.skip("needs Debian chromium at /usr/bin/chromium: apt-get install -y chromium")
     if shutil.which("bash") is None:
         pytest.skip("needs bash to hand chromium its DevTools pipe")
-    from helpers import body_poses, entity_paths, scalar_counts
+    from helpers import drawn_body_poses, entity_paths, scalar_counts
 
     png = tmp_path / "viewer.png"
     with served_demo(tmp_path, session_s=15.0) as (url, rrd, mirror):
@@ -213,7 +214,7 @@ def test_web_viewer_renders_the_demo_session(tmp_path: Path) -> None:
     assert rendered(stats), f"the viewer never drew the session: {history}"
     # what the viewer was given: the robot's bodies, the trocar, the trails, the errors
     paths = entity_paths(rrd)
-    assert {"/slave/geometry/link1", "/slave/geometry/forceps"} <= set(body_poses(rrd)), sorted(paths)
+    assert {"link1", "forceps"} <= set(drawn_body_poses(rrd, robots.get("mh3f"))), sorted(paths)
     for p in ("trocar", "tip", "target", "tip_error_mm", "state"):
         assert f"/slave/arm1/{p}" in paths, p
     assert {"/master/m1/tip", "/safety/arm1/state", "/safety/arm1/latency_ms", "/events"} <= paths

@@ -82,23 +82,25 @@ def test_body_poses_put_every_tip_where_the_registry_kinematics_do(name: str) ->
 
 
 def test_mirror_writes_static_geometry_once_and_poses_per_frame(tmp_path: Path) -> None:
-    from helpers import body_poses, entity_paths
+    from helpers import drawn_body_poses, entity_paths
     from rerun.chunk import RrdReader
     from telesurg.services.mirror import Mirror
     from telesurg.services.mirror.geometry import RobotGeometry
-    from telesurg.services.mirror.view import BODY_POSES, RerunView
+    from telesurg.services.mirror.view import RerunView, geometry_path
     from telesurg.shared.messages import Header, JointState
 
-    spec = robots.get("vip")  # two arms in one model
+    spec = robots.get("vip")  # two arms in one model; every primitive kind
     out = tmp_path / "geo.rrd"
     view = RerunView("test", save=str(out))
     mirror = Mirror(view, "telesurg/local", trail_s=1.0, trail_hz=10.0)
     t0 = 1_700_000_000_000_000_000
     frames = 6
+    arms = {}
     for i in range(frames):
         items = []
         for p in spec.arms("arm1"):
             q = tuple(float(v) + 0.02 * i for v in p.home)
+            arms[p.arm] = (p, np.array(q))
             stamp = t0 + i * 10_000_000
             items.append(
                 (
@@ -110,29 +112,71 @@ def test_mirror_writes_static_geometry_once_and_poses_per_frame(tmp_path: Path) 
         mirror.feed(items)  # type: ignore[arg-type]
         mirror.draw()
     view.close()
-    bodies = [b.name for b in RobotGeometry.load(spec).bodies]
-    paths = entity_paths(out)
-    for b in bodies:
-        assert any(p.startswith(f"/slave/geometry/{b}/") for p in paths), f"{b}: no geom"
+    geo = RobotGeometry.load(spec)
+    assert set(geo.primitives) == {"box", "ellipsoid", "capsule", "cylinder"}, geo.primitives
+    robot = geometry_path("vip")
     statics: dict[str, int] = {}
+    posed: dict[str, int] = {}
     transforms: set[str] = set()
     for c in RrdReader(str(out)).stream():
         names = c.to_record_batch().schema.names
         if any(n.startswith("Transform3D:") for n in names):
             transforms.add(c.entity_path)
-        if any(n.split(":")[0] in ("Boxes3D", "Capsules3D", "Cylinders3D", "Ellipsoids3D") for n in names):
+        if not c.entity_path.startswith("/slave/geometry"):
+            continue
+        if any(n.endswith((":half_sizes", ":radii")) for n in names):
             statics[c.entity_path] = statics.get(c.entity_path, 0) + c.num_rows
-    # every pose in one entity (one chunk per batch for the viewer, not one per body)
-    assert transforms == {BODY_POSES}, transforms
-    poses = body_poses(out)
-    # every link of both arms moved each frame: one pose per frame; the fixed bases once
-    links = [b for b in bodies if "link" in b]
-    assert links and all(len(poses.get(f"/slave/geometry/{b}", [])) == frames for b in links), {
-        b: len(v) for b, v in poses.items()
-    }
-    assert all(n == 1 for n in statics.values()), statics  # static geometry: once per entity
+        if any(n.endswith((":centers", ":translations")) for n in names):
+            posed[c.entity_path] = posed.get(c.entity_path, 0) + c.num_rows
+    # the robot: one entity, its sizes and colours once, every primitive posed once a frame (one
+    # message a frame for the viewer); no Transform3D (no meshes in this model)
+    assert statics == {robot: 1}, statics
+    assert posed == {robot: frames}, posed
+    assert not transforms, transforms
+    # drawn where MuJoCo's kinematics put each body at the last frame's joints, capsules included
+    drawn = drawn_body_poses(out, spec)
+    want = geo.pose(arms)
+    assert set(drawn) == {b.name for b in geo.bodies}
+    for body, poses in drawn.items():
+        assert len(poses) == frames, (body, len(poses))
+        x, rot = poses[-1]
+        np.testing.assert_allclose(x, want[body][0], atol=1e-6, err_msg=body)  # rerun: float32
+        np.testing.assert_allclose(rot, _quat_matrix(want[body][1]), atol=1e-6, err_msg=body)
+    paths = entity_paths(out)
     # the bodies replace the stick figure (two entities fewer for the viewer to take in)
     assert not any(p.endswith(("/links", "/forceps")) for p in paths), sorted(paths)
+
+
+def test_a_robot_with_meshes_gets_its_meshes_posed_by_body(tmp_path: Path) -> None:
+    """A plugin robot's mesh geoms: static in their body's frame, each moved body's pose a
+    Transform3D row naming that frame; its primitives posed like every robot's."""
+    import mujoco
+    from helpers import entity_paths
+    from rerun.chunk import RrdReader
+    from telesurg.services.mirror.geometry import RobotGeometry
+    from telesurg.services.mirror.view import BODY_POSES, RerunView, geometry_path, mesh_path
+
+    xml = """<mujoco><asset><mesh name="tet" vertex="0 0 0 0.1 0 0 0 0.1 0 0 0 0.1"/></asset>
+      <worldbody><body name="link" pos="0 0 0.2"><joint name="j" type="hinge" axis="0 0 1"/>
+        <geom type="mesh" mesh="tet"/><geom type="box" size="0.01 0.02 0.03" pos="0.1 0 0"/>
+      </body></worldbody></mujoco>"""
+    geo = RobotGeometry(robots.get("mh3f"), mujoco.MjModel.from_xml_string(xml))
+    assert [b.name for b in geo.mesh_bodies] == ["link"] and list(geo.primitives) == ["box"]
+    out = tmp_path / "mesh.rrd"
+    view = RerunView("test", save=str(out))
+    view.robot("toy", geo.primitives, geo.mesh_bodies)
+    geo.data.qpos[0] = 0.3
+    poses = geo.pose({})
+    view.body_pose("toy", "link", 1, 1, *poses["link"])
+    view.primitive_poses("toy", 1, 1, geo.primitive_poses({}))
+    view.close()
+    paths = entity_paths(out)
+    assert {f"{mesh_path('toy', 'link')}/0", geometry_path("toy")} <= paths, sorted(paths)
+    frames = []
+    for c in RrdReader(str(out)).stream():
+        if c.entity_path == BODY_POSES:
+            frames += c.to_record_batch().column("Transform3D:child_frame").to_pylist()
+    assert frames == [[f"tf#{mesh_path('toy', 'link')}"]], frames
 
 
 def test_without_geometry_the_mirror_draws_the_sketch(tmp_path: Path) -> None:
@@ -155,7 +199,7 @@ def test_without_geometry_the_mirror_draws_the_sketch(tmp_path: Path) -> None:
     view.close()
     paths = entity_paths(out)
     assert {"/slave/arm1/links", "/slave/arm1/forceps"} <= paths, sorted(paths)
-    assert not any(p.startswith("/slave/geometry/") or p == "/slave/body_poses" for p in paths), sorted(paths)
+    assert not any(p.startswith("/slave/geometry") or p == "/slave/body_poses" for p in paths), sorted(paths)
 
 
 # --------------------------------------------------------------------------- in the browser

@@ -139,12 +139,9 @@ def test_a_late_viewer_gets_the_recent_data_and_the_geometry_not_the_whole_sessi
         f"late viewer: {got.size} of {len(stamps)} samples of j1, from {(got[0] - first) / 1e9:.2f} s "
         f"to {(got[-1] - first) / 1e9:.2f} s of the {(last - first) / 1e9:.2f} s session"
     )
-    # the newest samples (the mirror sends joint series in blocks of 1/series_hz = 0.2 s; the
-    # last block goes out with the next sample or at shutdown), not the session's start
-    assert got[-1] >= last - 0.5e9
+    # the newest samples (a serving mirror sends joint series in blocks of 1/LIVE_SERIES_HZ = 1 s;
+    # the last block goes out with the next sample or at shutdown), not the session's start
+    assert got[-1] >= last - 1.2e9
     assert got[0] > first + 0.5 * (last - first), "the late viewer was replayed the session's first half"
     # the robot's own geometry (static) is kept for a new viewer (at 0.05 MB it was not)
-    geometry = {p for p in late_paths if p.startswith("/slave/geometry/")}
-    assert any(p.endswith(("/box", "/capsule", "/cylinder", "/ellipsoid", "/mesh0")) for p in geometry), (
-        geometry
-    )
+    assert "/slave/geometry/mh3f" in late_paths, sorted(late_paths)

@@ -47,7 +47,7 @@ from typing import cast
 import numpy as np
 import numpy.typing as npt
 from telesurg.services.common import service_main
-from telesurg.services.mirror.geometry import RobotGeometry, moved
+from telesurg.services.mirror.geometry import POSE_EPS, RobotGeometry, moved
 from telesurg.services.mirror.view import (
     EVENTS_PATH,
     JOINT_COLORS,
@@ -128,11 +128,21 @@ LIVE_PLOT_HZ = 10.0
 #: Hz of the 3D scene while serving the live web viewer / when only saving (``draw_hz = -1``)
 LIVE_DRAW_HZ = 5.0
 FILE_DRAW_HZ = 30.0
+#: Hz of the joint series blocks while serving the live web viewer / when only saving
+#: (``series_hz = -1``): each block is one message per series for the viewer to take in
+LIVE_SERIES_HZ = 1.0
+FILE_SERIES_HZ = 4.0
+#: Hz the trails (tip, target) are redrawn at while serving the live web viewer (``trail_draw_hz
+#: = -1``; when only saving, with every scene): each redraw is the whole trail, one message each
+LIVE_TRAIL_DRAW_HZ = 1.0
 #: Hz at which the entities the ``lean`` layout does not show (master trail and clutch, engaged,
 #: latency, scale, tip / RCM error; camera frames at most this often) are sent while serving the
-#: live web viewer: the viewer takes in a bounded number of chunks per frame it draws, one per
-#: entity and batch; they stay in the recording, a view away, with every sample, in 1 s blocks
-LIVE_OFFVIEW_HZ = 1.0
+#: live web viewer: the viewer takes in ~10 messages (one per entity and batch) per frame it
+#: draws, and under software WebGL a 1280x720 page draws 1-1.5 frames a second; they stay in the
+#: recording, a view away, with every sample, in 5 s blocks
+LIVE_OFFVIEW_HZ = 0.2
+#: m the drawn RCM point must move before it is sent again
+RCM_MOVED_M = 0.2e-3
 #: Hz of the mirror's loop (taking in messages, sending due series blocks and frames), at least
 LOOP_HZ = 20.0
 
@@ -167,7 +177,12 @@ class MirrorConfig:
     # LIVE_DRAW_HZ while serving the web viewer (it draws 2-4 frames a second under software
     # WebGL: faster poses are rows it must take in and never shows), FILE_DRAW_HZ when only saving
     draw_hz: float = -1.0
-    series_hz: float = 4.0  # Hz: how often scalar samples are sent, in blocks (plot lag ≤ 0.25 s)
+    # Hz: how often scalar samples are sent, in blocks (a plot lags live by up to 1/series_hz);
+    # -1 (the default) = LIVE_SERIES_HZ while serving the web viewer, FILE_SERIES_HZ when saving
+    series_hz: float = -1.0
+    # Hz: how often the tip / target trails are redrawn (each time the whole trail); -1 (the
+    # default) = LIVE_TRAIL_DRAW_HZ while serving the web viewer, with every scene when saving
+    trail_draw_hz: float = -1.0
     trail_s: float = 5.0  # s: length of the tip / target / master trails
     trail_hz: float = 10.0  # Hz: trail points are thinned to at most this rate
     error_hz: float = 10.0  # Hz: tip tracking error samples per arm, at most (two FKs each)
@@ -211,6 +226,20 @@ class MirrorConfig:
             return self.draw_hz
         return LIVE_DRAW_HZ if self.serve else FILE_DRAW_HZ
 
+    def effective_series_hz(self) -> float:
+        """``series_hz``, with -1 resolved: :data:`LIVE_SERIES_HZ` while serving, else
+        :data:`FILE_SERIES_HZ`."""
+        if self.series_hz > 0:
+            return self.series_hz
+        return LIVE_SERIES_HZ if self.serve else FILE_SERIES_HZ
+
+    def effective_trail_draw_hz(self) -> float:
+        """``trail_draw_hz``, with -1 resolved: :data:`LIVE_TRAIL_DRAW_HZ` while serving, else the
+        scene's rate."""
+        if self.trail_draw_hz > 0:
+            return self.trail_draw_hz
+        return LIVE_TRAIL_DRAW_HZ if self.serve else self.effective_draw_hz()
+
     def effective_plot_hz(self) -> float:
         """``plot_hz``, with -1 resolved: :data:`LIVE_PLOT_HZ` while serving, else 0 (every sample)."""
         if self.plot_hz >= 0:
@@ -234,7 +263,8 @@ class MirrorConfig:
             raise ConfigError("mirror needs an output: --set save=FILE.rrd and/or --set serve=true")
         for name, value, lo, hi in (
             ("draw_hz", self.draw_hz, -1.0, 240.0),
-            ("series_hz", self.series_hz, 0.5, 240.0),
+            ("series_hz", self.series_hz, -1.0, 240.0),
+            ("trail_draw_hz", self.trail_draw_hz, -1.0, 240.0),
             ("trail_s", self.trail_s, 0.1, 600.0),
             ("trail_hz", self.trail_hz, 1.0, 10_000.0),
             ("error_hz", self.error_hz, 1.0, 1000.0),
@@ -250,6 +280,9 @@ class MirrorConfig:
                 raise ConfigError(f"{name}={value} outside [{lo:g}, {hi:g}]")
         if self.draw_hz != -1.0 and self.draw_hz < 1.0:
             raise ConfigError(f"draw_hz={self.draw_hz}: -1 (auto) or a rate of at least 1 Hz")
+        for name, value in (("series_hz", self.series_hz), ("trail_draw_hz", self.trail_draw_hz)):
+            if value != -1.0 and value < 0.5:
+                raise ConfigError(f"{name}={value}: -1 (auto) or a rate of at least 0.5 Hz")
         if -1.0 < self.plot_hz < 0.0:
             raise ConfigError(f"plot_hz={self.plot_hz}: 0 (every sample), -1 (auto) or a rate in Hz")
         if self.layout not in LAYOUTS:
@@ -424,7 +457,7 @@ class _Arm:
         self.errors = _Series()
         self.rcm_errors = _Series()
         self.op: OperatingState | None = None
-        self.rcm_drawn = False
+        self.rcm_drawn: npt.NDArray[np.float64] | None = None  # the RCM point last sent
 
 
 class Mirror:
@@ -451,13 +484,16 @@ class Mirror:
         geometry: bool = True,
         layout: str = "full",
         offview_hz: float = 0.0,
+        trail_draw_hz: float = 0.0,
     ) -> None:
         self.view = view
         self._layout = layout
         self._geometry_on = geometry
         # robot (registry entry) → its MuJoCo geometry, None where it failed to load
         self._geometry: dict[str, RobotGeometry | None] = {}
-        self._body_sent: dict[str, tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]] = {}
+        # (robot, body with meshes) → its pose last sent; robot → its primitives' poses last sent
+        self._body_sent: dict[tuple[str, str], tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]] = {}
+        self._prims_sent: dict[str, npt.NDArray[np.float64]] = {}
         self._prefix = prefix.rstrip("/") + "/"
         self._span_ns = int(trail_s * 1e9)
         self._min_dt_ns = int(1e9 / trail_hz)
@@ -482,6 +518,9 @@ class Mirror:
         self._offview_dt_ns = int(1e9 / offview_hz) if offview_hz > 0 else 0
         self._offview_sent_rx = 0
         self._offview_drawn_rx = 0
+        # the tip / target trails: redrawn every 1/trail_draw_hz s (0: with each scene)
+        self._trail_dt_ns = int(1e9 / trail_draw_hz) if trail_draw_hz > 0 else 0
+        self._trails_drawn_rx = 0
         self._first_arm_rx = 0
         self.ignored = 0  # decoded messages that are not drawn (unknown keys, types or streams)
         self.drawn = 0  # joint samples drawn (after plot_hz thinning)
@@ -685,6 +724,7 @@ class Mirror:
         if self._now_rx - self._drawn_rx >= self._draw_dt_ns:
             self._drawn_rx = self._now_rx
             self._draw_scene()
+            self.view.send_now()  # not at the batcher's next tick: the scene reaches the viewer sooner
         if self._now_rx - self._series_sent_rx >= self._series_dt_ns:
             self._series_sent_rx = self._now_rx
             offview = self._now_rx - self._offview_sent_rx >= self._offview_dt_ns
@@ -692,15 +732,18 @@ class Mirror:
                 self._offview_sent_rx = self._now_rx
             self._send_series(offview)
 
-    def _draw_scene(self, offview: bool | None = None) -> None:
-        """The 3D scene; ``offview``: also the trails the layout does not show (the master's; None:
-        when ``1/offview_hz`` s have passed)."""
-        if offview is None:
-            offview = self._now_rx - self._offview_drawn_rx >= self._offview_dt_ns
+    def _draw_scene(self, everything: bool = False) -> None:
+        """The 3D scene: the robots at each call; the trails when ``1/trail_draw_hz`` s have passed
+        (the master's, which the lean layout does not show, at most every ``1/offview_hz`` s);
+        ``everything``: every trail now (the last frame, at close)."""
+        trails = everything or self._now_rx - self._trails_drawn_rx >= self._trail_dt_ns
+        offview = trails and (everything or self._now_rx - self._offview_drawn_rx >= self._offview_dt_ns)
+        if trails:
+            self._trails_drawn_rx = self._now_rx
         if offview:
             self._offview_drawn_rx = self._now_rx
         for (role, arm, leaf), t in self._trails.items():
-            if role == "master" and not offview:
+            if not (offview if role == "master" else trails):
                 continue
             if t.dirty:
                 t.dirty = False
@@ -713,7 +756,7 @@ class Mirror:
 
     def flush(self) -> None:
         """Send everything buffered, and the layout if it has not been sent yet."""
-        self._draw_scene(offview=True)
+        self._draw_scene(everything=True)
         self._send_series(offview=True)
         if self.view.blueprint_arms is None:
             self._send_layout()
@@ -724,8 +767,8 @@ class Mirror:
         )
 
     def _draw_geometry(self) -> None:
-        """Pose every robot body of each robot with an arm measured since the last frame (one
-        forward kinematics per robot and frame; a body is sent only when it moved)."""
+        """Pose the geometry of each robot with an arm measured since the last frame (one forward
+        kinematics per robot and frame): its primitives, and each moved body with meshes."""
         robots_now: dict[str, tuple[RobotSpec, dict[str, _ArmQ], int, int]] = {}
         fresh: set[str] = set()
         for arm, a in self._arms.items():
@@ -743,15 +786,28 @@ class Mirror:
             if geo is None:
                 continue
             try:
-                poses = geo.pose(arms)
+                prims = geo.primitive_poses(arms)
+                poses = geo.pose(arms) if geo.mesh_bodies else {}
             except (ConfigError, ValueError) as exc:
                 self._warn_once(f"geo-pose{key}", f"robot {key}: no geometry drawn: {exc}")
                 self._geometry[key] = None
                 continue
-            for name, pose in poses.items():
-                if moved(self._body_sent.get(name), pose):
-                    self._body_sent[name] = pose
-                    self.view.body_pose(name, src, rx, pose[0], pose[1])
+            flat = np.concatenate(
+                [np.concatenate([c.ravel(), q.ravel()]) for c, q in prims.values()] or [np.zeros(0)]
+            )
+            last = self._prims_sent.get(key)
+            if (
+                last is None
+                or last.shape != flat.shape
+                or float(np.abs(flat - last).max(initial=0.0)) > POSE_EPS
+            ):
+                self._prims_sent[key] = flat
+                self.view.primitive_poses(key, src, rx, prims)
+            for body in geo.mesh_bodies:
+                pose = poses[body.name]
+                if moved(self._body_sent.get((key, body.name)), pose):
+                    self._body_sent[(key, body.name)] = pose
+                    self.view.body_pose(key, body.name, src, rx, pose[0], pose[1])
 
     def _robot_geometry(self, key: str, spec: RobotSpec) -> RobotGeometry | None:
         if key in self._geometry:
@@ -762,8 +818,7 @@ class Mirror:
         except Exception as exc:  # a model the mirror cannot read: the sketch still shows the arm
             self._warn_once(f"geo{key}", f"robot {key}: no geometry drawn: {exc}")
         else:
-            for body in geo.bodies:
-                self.view.body(body)
+            self.view.robot(key, geo.primitives, geo.mesh_bodies)
             log.info("robot %s: %d bodies drawn from %s", key, len(geo.bodies), spec.scene)
         self._geometry[key] = geo
         return geo
@@ -786,11 +841,15 @@ class Mirror:
         if rcm is None and s.forceps is not None and a.op is not None and a.op.control_mode == "trocar":
             rcm = nearest_on_line(s.forceps[0], s.forceps[-1], np.asarray(a.op.trocar, np.float64))
         if rcm is not None:
-            self.view.point(slave_path(arm, "rcm"), src, rx, rcm, RCM_COLOR, "RCM")
-            a.rcm_drawn = True
-        elif a.rcm_drawn:
+            rcm = np.asarray(rcm, np.float64)
+            # sent when it moved (it stays at the trocar / VIP within a fraction of a millimetre):
+            # not a message a scene for the web viewer to take in
+            if a.rcm_drawn is None or float(np.max(np.abs(rcm - a.rcm_drawn))) > RCM_MOVED_M:
+                self.view.point(slave_path(arm, "rcm"), src, rx, rcm, RCM_COLOR, "RCM")
+                a.rcm_drawn = rcm
+        elif a.rcm_drawn is not None:
             self.view.hide_point(slave_path(arm, "rcm"), src, rx)
-            a.rcm_drawn = False
+            a.rcm_drawn = None
 
     def _send_series(self, offview: bool = True) -> None:
         """Send the buffered joint blocks; ``offview``: also the other scalars (clutch, engaged,
@@ -907,7 +966,7 @@ def run(cfg: MirrorConfig, stop: threading.Event) -> None:
                 node.keys.prefix,
                 cfg.trail_s,
                 cfg.trail_hz,
-                series_hz=cfg.series_hz,
+                series_hz=cfg.effective_series_hz(),
                 draw_hz=draw_hz,
                 error_hz=cfg.error_hz,
                 plot_hz=cfg.effective_plot_hz(),
@@ -916,6 +975,7 @@ def run(cfg: MirrorConfig, stop: threading.Event) -> None:
                 geometry=cfg.geometry,
                 layout=cfg.layout,
                 offview_hz=cfg.effective_offview_hz(),
+                trail_draw_hz=cfg.effective_trail_draw_hz(),
             )
             trusted = frozenset(cfg.trusted_sources)
 

@@ -58,6 +58,7 @@ class Primitive:
     center: FloatArray
     quat: FloatArray
     rgba: Rgba
+    geom: int = -1  # the geom's index in the model (-1: not from a model)
 
 
 @dataclass(frozen=True)
@@ -113,6 +114,16 @@ class RobotGeometry:
         self.model = model
         self.data = mujoco.MjData(model)
         self.bodies = self._bodies()
+        #: kind → every drawn primitive of that kind, of every body (the order of
+        #: :meth:`primitive_poses`)
+        self.primitives: dict[str, tuple[Primitive, ...]] = {
+            k: ps for k in KINDS if (ps := tuple(p for b in self.bodies for p in b.primitives if p.kind == k))
+        }
+        #: the bodies with meshes (posed one by one: :meth:`pose`)
+        self.mesh_bodies = tuple(b for b in self.bodies if b.meshes)
+        self._geoms = {k: np.asarray([p.geom for p in ps], np.int64) for k, ps in self.primitives.items()}
+        self._geom_body = {k: np.asarray(self.model.geom_bodyid[g], np.int64) for k, g in self._geoms.items()}
+        self._geom_quat = {k: np.asarray(self.model.geom_quat[g], np.float64) for k, g in self._geoms.items()}
         self._qpos_of: dict[tuple[str, ...], npt.NDArray[np.int64]] = {}
 
     @classmethod
@@ -161,7 +172,7 @@ class RobotGeometry:
                         size = np.full(3, size[0])
                     elif kind in ("capsule", "cylinder"):
                         size = np.array([size[0], 2.0 * size[1]])
-                    prims.append(Primitive(kind, size, pos, quat, rgba))
+                    prims.append(Primitive(kind, size, pos, quat, rgba, g))
                 elif t == mesh_type:
                     mid = int(m.geom_dataid[g])
                     va, vn = int(m.mesh_vertadr[mid]), int(m.mesh_vertnum[mid])
@@ -200,6 +211,23 @@ class RobotGeometry:
             ConfigError: an arm's joint is not in the model.
             ValueError: a ``q`` has the wrong length.
         """
+        d = self._kinematics(arms)
+        return {b.name: (d.xpos[b.index].copy(), d.xquat[b.index].copy()) for b in self.bodies}
+
+    def primitive_poses(
+        self, arms: Mapping[str, tuple[ArmProfile, Sequence[float] | FloatArray]]
+    ) -> dict[str, tuple[FloatArray, FloatArray]]:
+        """Primitive kind → (centres (N, 3) [m], orientations as quaternions w x y z (N, 4)) in the
+        scene's world frame of every primitive of :attr:`primitives` of that kind, in that order,
+        with each arm's joints set (as :meth:`pose`; the same errors).
+        """
+        d = self._kinematics(arms)
+        return {
+            k: (d.geom_xpos[g].copy(), quat_mul(d.xquat[self._geom_body[k]], self._geom_quat[k]))
+            for k, g in self._geoms.items()
+        }
+
+    def _kinematics(self, arms: Mapping[str, tuple[ArmProfile, Sequence[float] | FloatArray]]) -> Any:
         d = self.data
         for profile, q in arms.values():
             idx = self._qpos_indices(profile)
@@ -208,7 +236,22 @@ class RobotGeometry:
                 raise ValueError(f"arm {profile.arm!r}: {qa.size} joints, the model has {idx.size}")
             d.qpos[idx] = qa
         self._mj.mj_kinematics(self.model, d)
-        return {b.name: (d.xpos[b.index].copy(), d.xquat[b.index].copy()) for b in self.bodies}
+        return d
+
+
+def quat_mul(a: FloatArray, b: FloatArray) -> FloatArray:
+    """Hamilton products ``a ⊗ b`` of quaternions w x y z, row by row ((N, 4) each)."""
+    aw, ax, ay, az = np.moveaxis(np.asarray(a, np.float64), -1, 0)
+    bw, bx, by, bz = np.moveaxis(np.asarray(b, np.float64), -1, 0)
+    return np.stack(
+        [
+            aw * bw - ax * bx - ay * by - az * bz,
+            aw * bx + ax * bw + ay * bz - az * by,
+            aw * by - ax * bz + ay * bw + az * bx,
+            aw * bz + ax * by - ay * bx + az * bw,
+        ],
+        axis=-1,
+    )
 
 
 def moved(

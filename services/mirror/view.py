@@ -7,14 +7,17 @@ Entity paths (``<arm>`` an arm id, ``<joint>`` a joint name, both escaped for re
                                                          each, named and coloured by a static
                                                          SeriesLines on the entity)
     /slave/<arm>/joints/setpoint           Scalars       rad (m), slave/<arm>/servo_jp, likewise
-    /slave/geometry/<body>/<kind>          Boxes3D | Ellipsoids3D | Capsules3D | Cylinders3D | Mesh3D
-                                                         a body of the robot's MuJoCo model: its geoms
-                                                         (static, in the body's frame, the implicit
-                                                         frame tf#/slave/geometry/<body>); <kind> box|
-                                                         ellipsoid|capsule|cylinder|mesh<i>
-    /slave/body_poses                      Transform3D   every body's pose (world frame, m), posed by
-                                                         mj_kinematics at the measured joints: a row
-                                                         per moved body, child_frame its body's frame
+    /slave/geometry/<robot>                Boxes3D + Ellipsoids3D + Capsules3D + Cylinders3D
+                                                         every primitive geom of the robot's MuJoCo
+                                                         model, one archetype per kind on one entity:
+                                                         sizes and colours static, world poses (m)
+                                                         per drawn frame, posed by mj_kinematics at
+                                                         the measured joints
+    /slave/geometry/<robot>/mesh/<body>/<i>  Mesh3D      a mesh geom (static, in its body's frame, the
+                                                         implicit frame of .../mesh/<body>)
+    /slave/body_poses                      Transform3D   the pose (world frame, m) of each body with
+                                                         meshes: a row per moved body, child_frame its
+                                                         frame (none for the built-in robots)
     /slave/<arm>/links                     LineStrips3D + Points3D  the arm's kinematic chain (from
                                                          measured_js: mh3f base→flange, vip R–E–W,
                                                          plas port→DH chain), m — only where the
@@ -85,7 +88,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 from telesurg.services.common import check_port_free
-from telesurg.services.mirror.geometry import KINDS, Body, quat_matrix
+from telesurg.services.mirror.geometry import KINDS, Body, Primitive, quat_matrix
 from telesurg.shared.viewer import viewer_url
 
 log = logging.getLogger(__name__)
@@ -165,22 +168,31 @@ LATENCY = "latency_ms"
 LATENCY_QUANTILES = ("p50", "p90", "p99")
 
 
-#: Every robot body's pose, in one entity: Transform3D rows, each naming its body's frame as
-#: ``child_frame`` (``tf#/slave/geometry/<body>``, the implicit frame of the body's entity, so its
-#: geoms follow). One entity, not one per body: the web viewer takes in a bounded number of chunks
-#: per frame it draws, and the batcher makes one chunk per entity and flush.
+#: The pose of each robot body with meshes, in one entity: Transform3D rows, each naming its body's
+#: frame as ``child_frame`` (the implicit frame of :func:`mesh_path`, so its meshes follow). The
+#: primitive geoms are not posed this way: they are sent posed in the world frame, a few entities a
+#: frame (:meth:`RerunView.primitive_poses`) — the web viewer takes in a Transform3D row naming a
+#: frame at a cost that kept it from live at 10 frames a second of 7 bodies, where the same scene as
+#: posed primitives, 30 messages a second, kept up (docs/performance.md).
 BODY_POSES = "/slave/body_poses"
-#: The parent of every body's entity (:func:`geometry_path`).
+#: The parent of every robot's geometry entities (:func:`geometry_path`).
 GEOMETRY_ROOT = "/slave/geometry"
 #: The frame body poses are given in: ``GEOMETRY_ROOT``'s implicit frame (the slave world frame).
 GEOMETRY_FRAME = f"tf#{GEOMETRY_ROOT}"
 
 
 @functools.lru_cache(maxsize=4096)
-def geometry_path(body: str) -> str:
-    """``/slave/geometry/<body>``: a robot body of the slave's MuJoCo model (its static geoms are
-    children; its pose a row of :data:`BODY_POSES` naming this entity's implicit frame)."""
-    return f"{GEOMETRY_ROOT}/{_part(body)}"
+def geometry_path(robot: str) -> str:
+    """``/slave/geometry/<robot>``: every primitive geom of a robot's MuJoCo model, one archetype
+    per kind on this one entity (one message a drawn frame for the viewer to take in)."""
+    return f"{GEOMETRY_ROOT}/{_part(robot)}"
+
+
+@functools.lru_cache(maxsize=4096)
+def mesh_path(robot: str, body: str) -> str:
+    """``/slave/geometry/<robot>/mesh/<body>``: a robot body with meshes (children ``<i>``, static in
+    its frame; its pose a row of :data:`BODY_POSES` naming this entity's implicit frame)."""
+    return f"{GEOMETRY_ROOT}/{_part(robot)}/mesh/{_part(body)}"
 
 
 def _window(seconds: float) -> list[Any]:
@@ -379,6 +391,7 @@ class RerunView:
         self.blueprint_arms: tuple[str, ...] | None = None  # set once the layout is sent
         self._styled: set[str] = set()
         self._series_styles: dict[str, tuple[tuple[str, ...], tuple[Color, ...], float]] = {}
+        self._capsule_lengths: dict[str, npt.NDArray[np.float64]] = {}  # robot → its capsules' (m)
         self._flushers: list[Callable[[], None]] = []
         batcher = rr.ChunkBatcherConfig(flush_tick=flush_s) if flush_s > 0 else None
         self._rec: Any = rr.RecordingStream(
@@ -533,73 +546,90 @@ class RerunView:
             self._style_3d(fpath, FORCEPS_COLOR, _THICK, None)
             self._rec.log(fpath, rr.LineStrips3D.from_fields(strips=forceps))
 
-    def body(self, body: Body) -> None:
-        """The static geometry of one robot body at ``/slave/geometry/<body>``, in its own frame
-        (one child entity per primitive kind, all its geoms of that kind in one batch; meshes
-        each their own child); its pose comes with :meth:`body_pose`. Once per body."""
+    def robot(
+        self, robot: str, primitives: Mapping[str, Sequence[Primitive]], mesh_bodies: Sequence[Body]
+    ) -> None:
+        """The static geometry of robot ``robot``: on one entity (:func:`geometry_path`), per
+        primitive kind (:data:`KINDS`) its archetype with the sizes and colours of all its geoms
+        of that kind (their poses come with :meth:`primitive_poses`, in the same order); each body
+        with meshes at :func:`mesh_path` in its own frame (its pose with :meth:`body_pose`). Once
+        per robot."""
         rr = self._rr
-        path = geometry_path(body.name)
-        if not self._once(path):
+        if not self._once(geometry_path(robot)):
             return
+        parts: list[Any] = []
         solid = rr.components.FillMode.Solid
-        for kind in KINDS:
-            prims = [p for p in body.primitives if p.kind == kind]
-            if not prims:
-                continue
+        for kind, prims in primitives.items():
             size = np.asarray([p.size for p in prims])
-            center = np.asarray([p.center for p in prims])
-            quats = [rr.Quaternion(xyzw=np.roll(p.quat, -1)) for p in prims]
             colors = [p.rgba for p in prims]
             part: Any
             if kind == "box":
-                part = rr.Boxes3D(
-                    half_sizes=size, centers=center, quaternions=quats, colors=colors, fill_mode=solid
-                )
+                part = rr.Boxes3D(half_sizes=size, colors=colors, fill_mode=solid)
             elif kind == "ellipsoid":
-                part = rr.Ellipsoids3D(
-                    half_sizes=size, centers=center, quaternions=quats, colors=colors, fill_mode=solid
-                )
+                part = rr.Ellipsoids3D(half_sizes=size, colors=colors, fill_mode=solid)
             elif kind == "cylinder":
-                part = rr.Cylinders3D(
-                    radii=size[:, 0],
-                    lengths=size[:, 1],
-                    centers=center,
-                    quaternions=quats,
-                    colors=colors,
-                    fill_mode=solid,
+                part = rr.Cylinders3D(radii=size[:, 0], lengths=size[:, 1], colors=colors, fill_mode=solid)
+            elif kind == "capsule":
+                self._capsule_lengths[robot] = size[:, 1].copy()
+                part = rr.Capsules3D(radii=size[:, 0], lengths=size[:, 1], colors=colors, fill_mode=solid)
+            else:
+                raise ValueError(f"primitive kind {kind!r}: valid: {', '.join(KINDS)}")
+            parts.append(part)
+        if parts:
+            self._rec.log(geometry_path(robot), *parts, static=True)
+        for body in mesh_bodies:
+            for i, mesh in enumerate(body.meshes):
+                self._rec.log(
+                    f"{mesh_path(robot, body.name)}/{i}",
+                    rr.Mesh3D(
+                        vertex_positions=mesh.vertices, triangle_indices=mesh.faces, albedo_factor=mesh.rgba
+                    ),
+                    static=True,
                 )
-            else:  # capsule: rerun's starts at its translation and runs along +z
-                axis = np.asarray([quat_matrix(p.quat)[:, 2] for p in prims])
-                start = center - 0.5 * size[:, 1:2] * axis
-                part = rr.Capsules3D(
-                    radii=size[:, 0],
-                    lengths=size[:, 1],
-                    translations=start,
-                    quaternions=quats,
-                    colors=colors,
-                    fill_mode=solid,
-                )
-            self._rec.log(f"{path}/{kind}", part, static=True)
-        for i, mesh in enumerate(body.meshes):
-            self._rec.log(
-                f"{path}/mesh{i}",
-                rr.Mesh3D(
-                    vertex_positions=mesh.vertices, triangle_indices=mesh.faces, albedo_factor=mesh.rgba
-                ),
-                static=True,
-            )
+
+    def primitive_poses(
+        self,
+        robot: str,
+        source_ns: int,
+        receive_ns: int,
+        poses: Mapping[str, tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]],
+    ) -> None:
+        """Where every primitive geom of ``robot`` is from this time on: kind → (centres (N, 3) [m],
+        quaternions w x y z (N, 4)) in the world frame, in the order :meth:`robot` was given them
+        (one row of the robot's entity)."""
+        rr = self._rr
+        self._at(source_ns, receive_ns)
+        parts: list[Any] = []
+        for kind, (centers, quats_wxyz) in poses.items():
+            xyzw = np.roll(np.asarray(quats_wxyz, np.float64), -1, axis=-1)
+            part: Any
+            if kind == "box":
+                part = rr.Boxes3D.from_fields(centers=centers, quaternions=xyzw)
+            elif kind == "ellipsoid":
+                part = rr.Ellipsoids3D.from_fields(centers=centers, quaternions=xyzw)
+            elif kind == "cylinder":
+                part = rr.Cylinders3D.from_fields(centers=centers, quaternions=xyzw)
+            elif kind == "capsule":  # rerun's starts at its translation and runs along its +z
+                axis = np.stack([quat_matrix(q)[:, 2] for q in np.asarray(quats_wxyz, np.float64)])
+                start = centers - 0.5 * self._capsule_lengths[robot][:, None] * axis
+                part = rr.Capsules3D.from_fields(translations=start, quaternions=xyzw)
+            else:
+                raise ValueError(f"primitive kind {kind!r}: valid: {', '.join(KINDS)}")
+            parts.append(part)
+        if parts:
+            self._rec.log(geometry_path(robot), *parts)
 
     def body_pose(
         self,
-        name: str,
+        robot: str,
+        body: str,
         source_ns: int,
         receive_ns: int,
         position: npt.NDArray[np.float64],
         quat_wxyz: npt.NDArray[np.float64],
     ) -> None:
-        """The pose of robot body ``name`` (world frame, m; quaternion w x y z) from this time on: a
-        row of :data:`BODY_POSES` naming the body's frame (every body's rows in one entity, so one
-        chunk per batch reaches the viewer, not one per body)."""
+        """The pose of robot body ``body`` with meshes (world frame, m; quaternion w x y z) from this
+        time on: a row of :data:`BODY_POSES` naming the body's frame."""
         rr = self._rr
         self._at(source_ns, receive_ns)
         self._rec.log(
@@ -607,7 +637,7 @@ class RerunView:
             rr.Transform3D(
                 translation=position,
                 quaternion=rr.Quaternion(xyzw=np.roll(quat_wxyz, -1)),
-                child_frame=f"tf#{geometry_path(name)}",
+                child_frame=f"tf#{mesh_path(robot, body)}",
                 parent_frame=GEOMETRY_FRAME,
             ),
         )
@@ -649,6 +679,11 @@ class RerunView:
         self._rec.log(
             f"/camera/{_part(camera)}/image", self._rr.EncodedImage(contents=jpeg, media_type="image/jpeg")
         )
+
+    def send_now(self) -> None:
+        """Hand what was logged since the batcher's last send to the sinks now, without waiting
+        for it (the same messages as at the batcher's next tick, up to ``flush_s`` sooner)."""
+        self._rec.flush(timeout_sec=0.0)
 
     def add_flusher(self, flush: Callable[[], None]) -> None:
         """Have :meth:`close` call ``flush()`` first (a drawer's buffered samples reach the sinks)."""
