@@ -19,10 +19,10 @@ and draws the 3D scene (latest state, trails thinned to ``trail_hz``) at ``draw_
 samples are sent in blocks (one ``send_columns`` per entity) at ``series_hz``, so a 1 kHz stream
 costs a handful of rerun calls a second, never one per sample. While it serves the web viewer
 with the ``lean`` layout, what that layout does not show (the master trail, clutch, engaged,
-latency, scale, tip / RCM error, camera frames) goes out once a second
-(:data:`LIVE_OFFVIEW_HZ`), every sample kept: the viewer takes in a bounded number of chunks (one
-per entity and block) per frame it draws, and under software WebGL a large page draws 1–2
-frames a second.
+latency, scale, tip / RCM error, camera frames) goes out every 5 s
+(:data:`LIVE_OFFVIEW_HZ`), every sample kept, the joint blocks once a second and the trails are
+redrawn once a second: the viewer takes in a bounded number of messages (one per entity and
+block) per frame it draws, and under software WebGL a large page draws 1–2 frames a second.
 
 Examples::
 

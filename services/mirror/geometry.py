@@ -2,8 +2,10 @@
 
 The mirror draws each slave robot as MuJoCo models it: every visible geom of every robot body
 (boxes, spheres/ellipsoids, capsules, cylinders as rerun primitives; mesh geoms as triangle
-meshes), sent **once** per body as static geometry in the body's own frame; per drawn frame only
-each moved body's pose (one ``Transform3D``) goes out. The poses come from MuJoCo's forward
+meshes). The primitives' sizes and colours are sent once; per drawn frame their world poses
+(:meth:`RobotGeometry.primitive_poses`) go out together, one row of one entity per robot. Meshes
+are sent once per body in the body's own frame and posed per frame by each moved body's pose
+(:meth:`RobotGeometry.pose`, one ``Transform3D``). The poses come from MuJoCo's forward
 kinematics (``mj_kinematics``) on the mirror's own copy of the robot's scene, with the arms'
 joints set from their latest ``measured_js`` — the same kinematics the slave simulation runs.
 
@@ -19,6 +21,7 @@ Example::
 
     geo = RobotGeometry.load(robots.get("mh3f"))
     poses = geo.pose({"arm1": (profile, q)})   # body name → (position (3,), quaternion wxyz (4,))
+    prims = geo.primitive_poses({"arm1": (profile, q)})  # kind → (centres (N, 3), quaternions (N, 4))
 """
 
 from __future__ import annotations
