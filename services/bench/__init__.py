@@ -12,6 +12,7 @@ Subcommands::
     telesurg bench decode [--n 20000] [--json FILE]
     telesurg bench flood [--site locked|open] [--no-caps] [--json FILE]
     telesurg bench viewer [--seconds 100] [--json FILE]
+    telesurg bench ingest --kind poses|primitives|series|trail [--rate 10] [--json FILE]
     telesurg bench memory [--seconds 300] [--set SERVICE.KEY=VALUE] [--json FILE] [--plot FILE]
     telesurg bench wakeup [--seconds 10] [--blocks 2] [--slice-us 100] [--load cpu:2] [--json FILE]
     telesurg bench links [--pairs 4] [--seconds 20] [--rate 1000] [--json FILE]
@@ -45,6 +46,10 @@ BENCHES = {
     "viewer": (
         "telesurg.services.bench.viewer",
         "the rerun web viewer in Chromium during the demo: lag behind live, frames/s, HOLDs",
+    ),
+    "ingest": (
+        "telesurg.services.bench.ingest",
+        "messages of one kind a second the rerun web viewer takes in (software WebGL)",
     ),
     "wakeup": (
         "telesurg.services.bench.wakeup",

@@ -411,7 +411,8 @@ def run(
     }
 
 
-def _size(text: str) -> tuple[int, int]:
+def window_size(text: str) -> tuple[int, int]:
+    """argparse type of a page size ``WxH`` (px, 100..8000 each)."""
     try:
         w, h = (int(v) for v in text.lower().split("x"))
     except ValueError:
@@ -437,7 +438,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     )
     ap.add_argument(
         "--window",
-        type=_size,
+        type=window_size,
         default=WINDOW,
         metavar="WxH",
         help=f"the page's viewport, px (default {WINDOW[0]}x{WINDOW[1]})",
