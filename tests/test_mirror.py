@@ -296,3 +296,35 @@ def test_a_live_mirror_redraws_the_trails_at_their_own_rate(tmp_path: Path) -> N
     tip, robot = "/slave/arm1/tip", "/slave/geometry/mh3f"
     assert rows[1.0][tip] <= 5 and rows[0.0][tip] >= 14, rows  # 3 s at 1 Hz (+ the last at close) / 5 Hz
     assert rows[1.0][robot] == rows[0.0][robot] >= 14, rows  # the bodies at the scene rate either way
+
+
+def test_a_serving_mirror_hands_each_scene_over_at_once_and_a_file_gets_batches(tmp_path: Path) -> None:
+    """``send_at_once`` (a mirror serving the web viewer): each drawn scene is its own message, sent
+    as drawn; without it (a file) rerun's batcher gathers the rows of its tick into one chunk."""
+    from rerun.chunk import RrdReader
+    from telesurg.services.mirror import Mirror
+    from telesurg.services.mirror.view import RerunView
+    from telesurg.shared.messages import Header, JointState
+
+    p = robots.get("mh3f").arms("arm1")[0]
+    chunks: dict[bool, tuple[int, int]] = {}
+    for at_once in (False, True):
+        out = tmp_path / f"at-once-{at_once}.rrd"
+        view = RerunView("test", save=str(out), flush_s=5.0)  # no tick within the test
+        mirror = Mirror(
+            view, "telesurg/local", trail_s=1.0, trail_hz=10.0, draw_hz=30.0, send_at_once=at_once
+        )
+        t0 = 1_700_000_000_000_000_000
+        for i in range(250):  # 1 s at 250 Hz: 30 scenes
+            stamp = t0 + i * 4_000_000
+            q = tuple(float(v) + 0.1 * np.sin(i / 20) for v in p.home)
+            js = JointState(Header("slave_control", i, stamp), p.joint_names, q)
+            mirror.feed([("telesurg/local/slave/arm1/measured_js", stamp, js)])  # type: ignore[list-item]
+            mirror.draw()
+        view.close()
+        robot = [c for c in RrdReader(str(out)).stream() if c.entity_path == "/slave/geometry/mh3f"]
+        temporal = [c for c in robot if not c.is_static]
+        chunks[at_once] = (len(temporal), sum(c.num_rows for c in temporal))
+    (batched, rows), (handed, rows_at_once) = chunks[False], chunks[True]
+    assert rows == rows_at_once >= 25, chunks  # the same scenes either way
+    assert handed == rows_at_once and batched <= 2, chunks

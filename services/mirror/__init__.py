@@ -485,8 +485,12 @@ class Mirror:
         layout: str = "full",
         offview_hz: float = 0.0,
         trail_draw_hz: float = 0.0,
+        send_at_once: bool = False,
     ) -> None:
         self.view = view
+        # hand each drawn scene to the sinks at once (a live viewer), not at the batcher's next
+        # tick (a file: the batcher's fewer, larger chunks)
+        self._send_at_once = send_at_once
         self._layout = layout
         self._geometry_on = geometry
         # robot (registry entry) → its MuJoCo geometry, None where it failed to load
@@ -724,7 +728,8 @@ class Mirror:
         if self._now_rx - self._drawn_rx >= self._draw_dt_ns:
             self._drawn_rx = self._now_rx
             self._draw_scene()
-            self.view.send_now()  # not at the batcher's next tick: the scene reaches the viewer sooner
+            if self._send_at_once:
+                self.view.send_now()  # up to flush_s sooner to the viewer, the same messages
         if self._now_rx - self._series_sent_rx >= self._series_dt_ns:
             self._series_sent_rx = self._now_rx
             offview = self._now_rx - self._offview_sent_rx >= self._offview_dt_ns
@@ -976,6 +981,7 @@ def run(cfg: MirrorConfig, stop: threading.Event) -> None:
                 layout=cfg.layout,
                 offview_hz=cfg.effective_offview_hz(),
                 trail_draw_hz=cfg.effective_trail_draw_hz(),
+                send_at_once=cfg.serve,
             )
             trusted = frozenset(cfg.trusted_sources)
 
