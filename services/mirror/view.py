@@ -68,8 +68,10 @@ mirror's default) keeps the slave 3D view, the joint plots and the text log; ``f
 Every entity is one message per send to the viewer (a block of scalars, or the rows the batcher
 gathered in ``flush_s``), and the web viewer takes in a bounded amount each frame: its pace is set
 by the rows (and messages) a second and its frame rate (docs/performance.md). Hence one entity
-per arm for all its joints, one for the three latency quantiles, no stick figure where the
-robot's bodies are drawn, and the mirror's lower rates while it serves the viewer.
+per robot for all its primitives (posed in the world frame: a Transform3D row naming a frame
+costs the viewer far more), one per arm for all its joints, one for the three latency
+quantiles, no stick figure where the robot's bodies are drawn, and the mirror's lower rates
+while it serves the viewer.
 
 Time series show the last ``plot_window_s`` before the time cursor. Two timelines:
 ``source_time`` (the header stamp of the message, wall clock at the publisher) and
