@@ -29,7 +29,6 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import subprocess
 import sys
 import tempfile
 import threading
@@ -41,7 +40,7 @@ from typing import Any
 import numpy as np
 from telesurg.services.bench.browser import CHROMIUM, chromium
 from telesurg.services.bench.machine import machine, now
-from telesurg.services.bench.viewer import AUTOGROUP_NICE, frame_rate, probe, window_size
+from telesurg.services.bench.viewer import AUTOGROUP_NICE, demo_process, frame_rate, probe, window_size
 from telesurg.shared import jsonio, robots
 
 KINDS = ("poses", "primitives", "series", "trail")
@@ -103,26 +102,6 @@ class Feeder:
             self._thread.join(timeout=5)
 
 
-@contextlib.contextmanager
-def _headless_demo(seconds: float, log: Path) -> Iterator[None]:
-    """A headless demo (router, control services, camera; no mirror) for ``seconds``: the load of a
-    session; stopped with SIGINT."""
-    argv = [sys.executable, "-m", "telesurg.services.cli", "demo", "--headless", "--seconds", f"{seconds:g}"]
-    argv += ["--port", "0", "--console-port", "0", "--log-dir", str(log.parent / "logs")]
-    with log.open("wb") as out:
-        proc = subprocess.Popen(argv, stdout=out, stderr=subprocess.STDOUT)
-        try:
-            yield
-        finally:
-            if proc.poll() is None:
-                proc.send_signal(2)
-                try:
-                    proc.wait(timeout=60)
-                except subprocess.TimeoutExpired:
-                    proc.kill()
-                    proc.wait(timeout=10)
-
-
 def run(
     kind: str, rate: float, seconds: float, window: tuple[int, int], demo: bool, workdir: Path
 ) -> dict[str, Any]:
@@ -135,8 +114,10 @@ def run(
     samples: list[tuple[float, float]] = []
     fps: list[float] = []
     with contextlib.ExitStack() as stack:
-        if demo:
-            stack.enter_context(_headless_demo(seconds + 60.0, workdir / "demo.out"))
+        if demo:  # headless (router, control services, camera; no mirror): the load of a session
+            argv = [sys.executable, "-m", "telesurg.services.cli", "demo", "--headless"]
+            argv += ["--seconds", f"{seconds + 60.0:g}", "--port", "0", "--console-port", "0"]
+            stack.enter_context(demo_process(argv, workdir / "demo.out"))
             time.sleep(15.0)  # its services up and running
         view = RerunView(
             "telesurg-ingest", serve=True, web_port=web, grpc_port=grpc, history_mb=0.15, flush_s=0.25

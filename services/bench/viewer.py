@@ -250,7 +250,9 @@ def cpu_seconds(marker: str) -> float:
 
 
 @contextlib.contextmanager
-def _demo(argv: list[str], log: Path) -> Iterator[subprocess.Popen[bytes]]:
+def demo_process(argv: list[str], log: Path) -> Iterator[subprocess.Popen[bytes]]:
+    """``argv`` (a ``telesurg demo`` command line) running with its output in ``log``; stopped with
+    SIGINT (killed after 60 s) on exit."""
     with log.open("wb") as out:
         proc = subprocess.Popen(argv, stdout=out, stderr=subprocess.STDOUT)
         try:
@@ -307,7 +309,7 @@ def run(
     samples: list[dict[str, Any]] = []
     fps: list[dict[str, float]] = []
     t_open = load_open = browser_cpu = browser_wall = 0.0
-    with _demo(argv, workdir / "demo.out") as demo:
+    with demo_process(argv, workdir / "demo.out") as demo:
         if not wait_port("127.0.0.1", web, 120.0):
             raise RuntimeError(f"the demo served no viewer: {(workdir / 'demo.out').read_text()[-2000:]}")
         url = viewer_url(f"rerun+http://127.0.0.1:{grpc}/proxy", web)

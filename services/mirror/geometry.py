@@ -125,8 +125,6 @@ class RobotGeometry:
         #: the bodies with meshes (posed one by one: :meth:`pose`)
         self.mesh_bodies = tuple(b for b in self.bodies if b.meshes)
         self._geoms = {k: np.asarray([p.geom for p in ps], np.int64) for k, ps in self.primitives.items()}
-        self._geom_body = {k: np.asarray(self.model.geom_bodyid[g], np.int64) for k, g in self._geoms.items()}
-        self._geom_quat = {k: np.asarray(self.model.geom_quat[g], np.float64) for k, g in self._geoms.items()}
         self._qpos_of: dict[tuple[str, ...], npt.NDArray[np.int64]] = {}
 
     @classmethod
@@ -225,10 +223,13 @@ class RobotGeometry:
         with each arm's joints set (as :meth:`pose`; the same errors).
         """
         d = self._kinematics(arms)
-        return {
-            k: (d.geom_xpos[g].copy(), quat_mul(d.xquat[self._geom_body[k]], self._geom_quat[k]))
-            for k, g in self._geoms.items()
-        }
+        out: dict[str, tuple[FloatArray, FloatArray]] = {}
+        for k, g in self._geoms.items():
+            quats = np.empty((g.size, 4), np.float64)
+            for q, xmat in zip(quats, d.geom_xmat[g], strict=True):
+                self._mj.mju_mat2Quat(q, xmat)
+            out[k] = (d.geom_xpos[g].copy(), quats)
+        return out
 
     def _kinematics(self, arms: Mapping[str, tuple[ArmProfile, Sequence[float] | FloatArray]]) -> Any:
         d = self.data
@@ -240,21 +241,6 @@ class RobotGeometry:
             d.qpos[idx] = qa
         self._mj.mj_kinematics(self.model, d)
         return d
-
-
-def quat_mul(a: FloatArray, b: FloatArray) -> FloatArray:
-    """Hamilton products ``a ⊗ b`` of quaternions w x y z, row by row ((N, 4) each)."""
-    aw, ax, ay, az = np.moveaxis(np.asarray(a, np.float64), -1, 0)
-    bw, bx, by, bz = np.moveaxis(np.asarray(b, np.float64), -1, 0)
-    return np.stack(
-        [
-            aw * bw - ax * bx - ay * by - az * bz,
-            aw * bx + ax * bw + ay * bz - az * by,
-            aw * by - ax * bz + ay * bw + az * bx,
-            aw * bz + ax * by - ay * bx + az * bw,
-        ],
-        axis=-1,
-    )
 
 
 def moved(
