@@ -1,21 +1,30 @@
 """Per-service message authentication: a site keyring, HMAC-SHA256 authenticators in the zenoh
 attachment, per-process session ids.
 
-**Keyring.** A directory (mode 0700) with one file per identity, ``<identity>.key`` (mode 0600,
-the 32-byte key in hex, from :mod:`secrets`). An identity is a service instance id (the header
-``src`` it publishes under: ``watchdog``, ``mapping``, ``console``, …). ``telesurg keys init DIR``
-makes one; ``telesurg up`` / ``demo`` make the default one if it is absent; every process loads
-it (:func:`default_keys_dir`; ``--keyring DIR`` on every command line, ``--keys DIR`` for
-``up`` / ``demo``; ``BusConfig.keys_dir``). Nothing secret is in the repository. A process
-whose own identity has no key yet adds one to a keyring it can write (:meth:`Keyring.ensure`):
-anyone who can write the keyring can read every key in it anyway.
-Receivers look a signer they do not know up in the directory again, at most every 0.25 s per
-name (a key added after they started).
+**Keyring.** A directory (mode 0700, owned by the user that runs the services, not a symlink) with
+one file per identity this host runs, ``<identity>.key`` (mode 0600, owned by that user, a regular
+file, the 32-byte key in hex, from :mod:`secrets`), and one ``<host>.link`` file (same rules) per
+other host of the site: the pairwise keys of the link and the identities that host may sign as
+(:class:`Link`; ``telesurg keys export --to HOST`` makes both ends). An identity is a service
+instance id (the header ``src`` it publishes under: ``watchdog``, ``mapping``, ``console``, …).
+``telesurg keys init DIR`` makes one; ``telesurg up`` / ``demo`` make the default one if it is
+absent; every process loads it (:func:`default_keys_dir`; ``--keyring DIR`` on every command line,
+``--keys DIR`` for ``up`` / ``demo``; ``BusConfig.keys_dir``). Nothing secret is in the repository.
+A process whose own identity has no key yet adds one to a keyring it can write
+(:meth:`Keyring.ensure`): anyone who can write the keyring can read every key in it anyway.
+Receivers look a signer they do not know up in the directory again, at most every 0.25 s per name (a
+key added after they started).
 
 **Authenticator.** Every publication, query and reply made through :class:`~telesurg.shared.bus.Node`
 carries, in the zenoh *attachment* (the msgpack payload is unchanged)::
 
-    b"T1" | sid (8 bytes) | len(signer) (1 byte) | signer (ASCII) | mac (16 bytes)
+    b"T1" | sid (8 bytes) | len(signer) (1 byte) | signer (ASCII) | mac (16 bytes) × n
+
+one ``mac`` per audience: the first under the signer's own key (receivers on its host), then one
+under the send key of each link to another host. A receiver checks the one MAC it can make: the
+signer's key if the signer runs on this host, the link's receive key if a link names the signer.
+So a host can verify what another host's identities send, and cannot make what any of them sends
+to a third host, nor sign as an identity its links do not name.
 
 ``mac`` = HMAC-SHA256(key[signer], kind | sid | len(signer) | signer | len(key_expr) (2 bytes,
 big-endian) | key_expr | payload), truncated to 16 bytes; ``kind`` is ``P`` (put), ``Q`` (query)
@@ -30,7 +39,9 @@ Ed25519 (``cryptography``) was measured beside HMAC for the 1 kHz path: see docs
 
 from __future__ import annotations
 
+import errno
 import hmac
+import json
 import logging
 import os
 import re
@@ -49,6 +60,9 @@ SID_BYTES = 8
 MAC_BYTES = 16
 KEY_BYTES = 32
 KEY_SUFFIX = ".key"
+LINK_SUFFIX = ".link"
+#: most MACs an attachment carries (its own host + one per link)
+MAX_MACS = 16
 PUT, QUERY, REPLY = b"P", b"Q", b"R"
 #: s between two directory look-ups of the same unknown signer
 LOOKUP_INTERVAL_S = 0.25
@@ -72,25 +86,164 @@ def default_keys_dir(site: str) -> Path:
     return Path(state) / "telesurg" / site / "keys"
 
 
+def check_id_name(what: str, name: str) -> str:
+    """``name`` if it is a valid identity or host name, else ConfigError."""
+    if not _ID.match(name):
+        raise ConfigError(f"{what} {name!r} must match [A-Za-z0-9_-]{{1,64}}")
+    return name
+
+
 def _check_identity(identity: str) -> str:
-    if not _ID.match(identity):
-        raise ConfigError(f"key identity {identity!r} must match [A-Za-z0-9_-]{{1,64}}")
-    return identity
+    return check_id_name("key identity", identity)
+
+
+def _owned_private(path: Path, what: str, st: os.stat_result) -> None:
+    """ConfigError unless ``st`` (an lstat of ``path``) is owned by this user and not open to others."""
+    if stat.S_ISLNK(st.st_mode):
+        raise ConfigError(f"{what} {path} is a symbolic link; keep the real file in the keyring")
+    if st.st_uid != os.geteuid():
+        raise ConfigError(
+            f"{what} {path} is owned by uid {st.st_uid}, not by this user (uid {os.geteuid()}): "
+            "someone else made it; remove it and make the keyring again"
+        )
+    mode = stat.S_IMODE(st.st_mode)
+    if mode & (stat.S_IRWXG | stat.S_IRWXO):
+        want = "700" if stat.S_ISDIR(st.st_mode) else "600"
+        raise ConfigError(
+            f"{what} {path} is open to others (mode {mode:o}: readable or writable by group or "
+            f"others); chmod {want} it"
+        )
+
+
+def check_keyring_dir(directory: Path) -> None:
+    """ConfigError unless ``directory`` is a real directory (no symlink) owned by this user with
+    mode 0700, in folders that no other user can write (owned by this user or root, not writable
+    by group or others, unless sticky like /tmp): nobody else can add, swap or read a key."""
+    try:
+        st = os.lstat(directory)
+    except FileNotFoundError:
+        raise ConfigError(
+            f"no keyring at {directory}: make one with `telesurg keys init {directory}` "
+            "(telesurg up / demo make the default one), or pass --keyring DIR"
+        ) from None
+    if not stat.S_ISLNK(st.st_mode) and not stat.S_ISDIR(st.st_mode):
+        raise ConfigError(f"keyring {directory} is not a directory")
+    _owned_private(directory, "keyring", st)
+    parent = Path(os.path.abspath(directory)).parent
+    while True:
+        pst = os.stat(parent)
+        if pst.st_uid not in (0, os.geteuid()):
+            raise ConfigError(
+                f"keyring {directory}: the folder {parent} above it is owned by uid {pst.st_uid}, "
+                "who could replace the keyring; keep it under folders of this user or root"
+            )
+        if pst.st_mode & (stat.S_IWGRP | stat.S_IWOTH) and not pst.st_mode & stat.S_ISVTX:
+            raise ConfigError(
+                f"keyring {directory}: the folder {parent} above it is writable by others (mode "
+                f"{stat.S_IMODE(pst.st_mode):o}), who could replace the keyring"
+            )
+        if parent.parent == parent:
+            return
+        parent = parent.parent
+
+
+def _read_private(path: Path, what: str) -> str:
+    """Text of a key or link file that passes :func:`_owned_private` (opened without following a
+    symlink, checked on the opened file: it cannot be swapped in between)."""
+    try:
+        fd = os.open(path, os.O_RDONLY | os.O_NOFOLLOW)
+    except OSError as exc:
+        if exc.errno == errno.ELOOP:
+            raise ConfigError(
+                f"{what} {path} is a symbolic link; keep the real file in the keyring"
+            ) from None
+        raise
+    with os.fdopen(fd) as f:
+        st = os.fstat(fd)
+        if not stat.S_ISREG(st.st_mode):
+            raise ConfigError(f"{what} {path} is not a regular file")
+        _owned_private(path, what, st)
+        return f.read()
 
 
 def _read_key(path: Path) -> bytes:
-    st = path.stat()
-    if st.st_mode & (stat.S_IRWXG | stat.S_IRWXO):
-        raise ConfigError(
-            f"key file {path} is readable by others (mode {st.st_mode & 0o777:o}); chmod 600 it"
-        )
+    text = _read_private(path, "key file")
     try:
-        key = bytes.fromhex(path.read_text().strip())
+        key = bytes.fromhex(text.strip())
     except ValueError:
         raise ConfigError(f"key file {path}: not a hex key") from None
     if len(key) != KEY_BYTES:
         raise ConfigError(f"key file {path}: {len(key)} bytes, expected {KEY_BYTES}")
     return key
+
+
+@dataclass(frozen=True)
+class Link:
+    """The keys between this host and another host of the site (``<host>.link``, JSON).
+
+    ``send`` signs what this host's identities send (the other host verifies with it), ``recv``
+    verifies what the other host sends; ``claims`` are the identities the other host may sign as
+    (``("*",)``: every identity that is not this host's own — the site, as seen from a console
+    host). Pairwise keys: the other host can make ``recv``-MACs, which only this host accepts, and
+    only for the identities in ``claims``."""
+
+    host: str
+    claims: tuple[str, ...]
+    send: bytes
+    recv: bytes
+
+    def to_json(self) -> str:
+        return json.dumps(
+            {
+                "host": self.host,
+                "claims": list(self.claims),
+                "send": self.send.hex(),
+                "recv": self.recv.hex(),
+            },
+            indent=1,
+        )
+
+    @classmethod
+    def read(cls, path: Path) -> Link:
+        """Parse a link file; ConfigError naming what is wrong."""
+        try:
+            d = json.loads(_read_private(path, "link file"))
+            link = cls(
+                str(d["host"]),
+                tuple(str(c) for c in d["claims"]),
+                bytes.fromhex(d["send"]),
+                bytes.fromhex(d["recv"]),
+            )
+        except (ValueError, KeyError, TypeError) as exc:
+            raise ConfigError(f"link file {path}: not a telesurg link ({exc})") from None
+        if link.host != path.name[: -len(LINK_SUFFIX)]:
+            raise ConfigError(f"link file {path}: names host {link.host!r}, not its file name")
+        for c in link.claims:
+            if c != "*":
+                _check_identity(c)
+        if len(link.send) != KEY_BYTES or len(link.recv) != KEY_BYTES:
+            raise ConfigError(f"link file {path}: keys must be {KEY_BYTES} bytes")
+        return link
+
+
+def write_private(directory: Path, name: str, text: str) -> bool:
+    """Write ``text`` into ``directory/name`` (mode 0600) unless it exists; False if it did."""
+    path = directory / name
+    if os.path.lexists(path):
+        return False
+    # written whole under a temporary name, then linked into place (fails if the name exists):
+    # a reader never sees a half-written key, and two processes adding one identity agree
+    tmp = directory / f".{name}.{secrets.token_hex(8)}.tmp"
+    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW, 0o600)
+    try:
+        with os.fdopen(fd, "w") as f:
+            f.write(text)
+        os.link(tmp, path)
+    except FileExistsError:
+        return False
+    finally:
+        tmp.unlink(missing_ok=True)
+    return True
 
 
 def write_key(directory: Path, identity: str, key: bytes | None = None) -> bool:
@@ -101,22 +254,7 @@ def write_key(directory: Path, identity: str, key: bytes | None = None) -> bool:
     key = key if key is not None else secrets.token_bytes(KEY_BYTES)
     if len(key) != KEY_BYTES:
         raise ConfigError(f"key of {identity}: {len(key)} bytes, expected {KEY_BYTES}")
-    path = directory / f"{identity}{KEY_SUFFIX}"
-    if path.exists():
-        return False
-    # written whole under a temporary name, then linked into place (fails if the name exists):
-    # a reader never sees a half-written key, and two processes adding one identity agree
-    tmp = directory / f".{identity}.{secrets.token_hex(8)}.tmp"
-    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
-    try:
-        with os.fdopen(fd, "w") as f:
-            f.write(key.hex() + "\n")
-        os.link(tmp, path)
-    except FileExistsError:
-        return False
-    finally:
-        tmp.unlink(missing_ok=True)
-    return True
+    return write_private(directory, f"{identity}{KEY_SUFFIX}", key.hex() + "\n")
 
 
 def init_keyring(directory: str | Path, identities: list[str] | tuple[str, ...] = ()) -> Path:
@@ -145,33 +283,54 @@ def ensure_keyring(directory: str | Path) -> tuple[Path, bool]:
 
 @dataclass
 class Keyring:
-    """The keys of a site, loaded from a keyring directory."""
+    """The keys of this host: its identities' keys and its links to the site's other hosts."""
 
     path: Path
     keys: dict[str, bytes] = field(default_factory=dict)
+    links: dict[str, Link] = field(default_factory=dict)
     _missed: dict[str, float] = field(default_factory=dict)  # unknown signer -> last look-up (monotonic s)
 
     @classmethod
     def load(cls, directory: str | Path) -> Keyring:
-        """Load every ``*.key`` of ``directory``; ConfigError (saying how to make one) if absent."""
+        """Load every ``*.key`` and ``*.link`` of ``directory``; ConfigError (saying what to do) if
+        it is absent or any of it is not this user's alone (:func:`check_keyring_dir`)."""
         d = Path(directory)
-        if not d.is_dir():
-            raise ConfigError(
-                f"no keyring at {d}: make one with `telesurg keys init {d}` "
-                "(telesurg up / demo make the default one), or pass --keyring DIR"
-            )
+        check_keyring_dir(d)
         ring = cls(d)
         for p in sorted(d.glob(f"*{KEY_SUFFIX}")):
             ring.keys[p.name[: -len(KEY_SUFFIX)]] = _read_key(p)
+        for p in sorted(d.glob(f"*{LINK_SUFFIX}")):
+            link = Link.read(p)
+            ring.links[link.host] = link
         return ring
 
     def identities(self) -> list[str]:
-        """Known identities, sorted."""
+        """This host's identities, sorted."""
         return sorted(self.keys)
 
+    def send_keys(self) -> tuple[bytes, ...]:
+        """The keys this host's messages are also signed with: one per link."""
+        return tuple(link.send for _, link in sorted(self.links.items()))
+
+    def verifier(self, identity: str) -> bytes | None:
+        """The key that checks a message signed as ``identity`` on this host: the receive key of
+        the link that names it, else its own key (looked up on disk at most every
+        :data:`LOOKUP_INTERVAL_S` while unknown), else the receive key of a link that claims every
+        identity this host does not run; None if nothing here can check it."""
+        for link in self.links.values():
+            if identity in link.claims:
+                return link.recv
+        k = self.key(identity)
+        if k is not None:
+            return k
+        for link in self.links.values():
+            if "*" in link.claims:
+                return link.recv
+        return None
+
     def key(self, identity: str) -> bytes | None:
-        """``identity``'s key; an unknown one is looked up on disk at most every
-        :data:`LOOKUP_INTERVAL_S`."""
+        """``identity``'s own key; an unknown one is looked up on disk at most every
+        :data:`LOOKUP_INTERVAL_S` (the keyring's folder and the file checked again each time)."""
         k = self.keys.get(identity)
         if k is not None:
             return k
@@ -184,9 +343,13 @@ class Keyring:
         if len(self._missed) > 4096:  # a stranger cycling names: forget the oldest look-ups
             self._missed.clear()
         p = self.path / f"{identity}{KEY_SUFFIX}"
+        if not os.path.lexists(p):
+            return None
         try:
+            check_keyring_dir(self.path)
             k = _read_key(p)
-        except (OSError, ConfigError):
+        except (OSError, ConfigError) as exc:
+            log.error("key of %r not taken: %s", identity, exc)
             return None
         self.keys[identity] = k
         self._missed.pop(identity, None)
@@ -197,8 +360,15 @@ class Keyring:
         k = self.key(identity) or self.keys.get(identity)
         if k is not None:
             return k
+        for link in self.links.values():
+            if identity in link.claims:
+                raise ConfigError(
+                    f"identity {identity!r} runs on host {link.host!r} "
+                    f"({self.path / (link.host + LINK_SUFFIX)}): its key is there, not here"
+                )
         p = self.path / f"{identity}{KEY_SUFFIX}"
         try:
+            check_keyring_dir(self.path)
             if write_key(self.path, identity):
                 log.info("added a key for %s to the keyring %s", identity, self.path)
             k = _read_key(p)
@@ -216,7 +386,9 @@ def new_sid() -> bytes:
     return secrets.token_bytes(SID_BYTES)
 
 
-def _mac(key: bytes, kind: bytes, sid: bytes, signer: bytes, key_expr: bytes, payload: bytes) -> bytes:
+def _mac(
+    key: bytes, kind: bytes, sid: bytes, signer: bytes, key_expr: bytes, payload: bytes, bind: bytes = b""
+) -> bytes:
     msg = b"".join(
         (
             kind,
@@ -226,6 +398,7 @@ def _mac(key: bytes, kind: bytes, sid: bytes, signer: bytes, key_expr: bytes, pa
             len(key_expr).to_bytes(2, "big"),
             key_expr,
             payload,
+            bind,
         )
     )
     return hmac.digest(key, msg, "sha256")[:MAC_BYTES]
@@ -233,19 +406,28 @@ def _mac(key: bytes, kind: bytes, sid: bytes, signer: bytes, key_expr: bytes, pa
 
 @dataclass
 class Signer:
-    """Signs what one process sends: its identity, key and session id."""
+    """Signs what one process sends: its identity, key (and the send keys of its host's links)
+    and session id."""
 
     identity: str
     key: bytes
     sid: bytes = field(default_factory=new_sid)
+    links: tuple[bytes, ...] = ()  # Keyring.send_keys(): one more MAC per other host
 
     def __post_init__(self) -> None:
         self._id = self.identity.encode()
         self._head = MAGIC + self.sid + len(self._id).to_bytes(1, "big") + self._id
+        self._keys = (self.key, *self.links)
+        if len(self._keys) > MAX_MACS:
+            raise ConfigError(f"at most {MAX_MACS - 1} links to other hosts")
 
-    def attach(self, kind: bytes, key_expr: str, payload: bytes) -> bytes:
-        """The attachment of ``payload`` sent as ``kind`` on ``key_expr``."""
-        return self._head + _mac(self.key, kind, self.sid, self._id, key_expr.encode(), payload)
+    def attach(self, kind: bytes, key_expr: str, payload: bytes, bind: bytes = b"") -> bytes:
+        """The attachment of ``payload`` sent as ``kind`` on ``key_expr`` (``bind``: what else the
+        MAC covers without being sent, e.g. the query a reply answers)."""
+        ke = key_expr.encode()
+        if len(self._keys) == 1:
+            return self._head + _mac(self.key, kind, self.sid, self._id, ke, payload, bind)
+        return self._head + b"".join(_mac(k, kind, self.sid, self._id, ke, payload, bind) for k in self._keys)
 
 
 @dataclass(frozen=True, slots=True)
@@ -257,7 +439,8 @@ class Verified:
 
 
 def parse(attachment: bytes | None) -> tuple[bytes, str, bytes]:
-    """``(sid, signer, mac)`` of an attachment; AuthError if it is missing or malformed."""
+    """``(sid, signer, macs)`` of an attachment (``macs``: one or more MACs back to back);
+    AuthError if it is missing or malformed."""
     if not attachment:
         raise AuthError("no authenticator (unsigned message)")
     a = attachment
@@ -265,7 +448,8 @@ def parse(attachment: bytes | None) -> tuple[bytes, str, bytes]:
     if len(a) < n + 1 + MAC_BYTES or a[: len(MAGIC)] != MAGIC:
         raise AuthError("malformed authenticator")
     ln = a[n]
-    if len(a) != n + 1 + ln + MAC_BYTES:
+    rest = len(a) - (n + 1 + ln)
+    if rest < MAC_BYTES or rest % MAC_BYTES or rest > MAX_MACS * MAC_BYTES:
         raise AuthError("malformed authenticator")
     try:
         signer = a[n + 1 : n + 1 + ln].decode("ascii")
@@ -274,14 +458,20 @@ def parse(attachment: bytes | None) -> tuple[bytes, str, bytes]:
     return a[len(MAGIC) : n], signer, a[n + 1 + ln :]
 
 
-def verify(ring: Keyring, kind: bytes, key_expr: str, payload: bytes, attachment: bytes | None) -> Verified:
+def verify(
+    ring: Keyring, kind: bytes, key_expr: str, payload: bytes, attachment: bytes | None, bind: bytes = b""
+) -> Verified:
     """Check ``attachment`` for ``payload`` sent as ``kind`` on ``key_expr``; AuthError if it fails."""
-    sid, signer, mac = parse(attachment)
-    key = ring.key(signer)
+    sid, signer, macs = parse(attachment)
+    key = ring.verifier(signer)
     if key is None:
         raise AuthError(f"unknown signer {signer!r}")
-    want = _mac(key, kind, sid, signer.encode(), key_expr.encode(), payload)
-    if not hmac.compare_digest(want, mac):
+    want = _mac(key, kind, sid, signer.encode(), key_expr.encode(), payload, bind)
+    if len(macs) == MAC_BYTES:
+        ok = hmac.compare_digest(want, macs)
+    else:
+        ok = any(hmac.compare_digest(want, macs[i : i + MAC_BYTES]) for i in range(0, len(macs), MAC_BYTES))
+    if not ok:
         raise AuthError(f"bad authenticator (claimed signer {signer!r})")
     return Verified(signer, sid)
 

@@ -382,7 +382,7 @@ class Node:
         self.keys = Keys(site)
         self.service = check_id("service", service)
         self.keyring = Keyring.load(bus.keys_dir or default_keys_dir(site))
-        self.signer = Signer(self.service, self.keyring.ensure(self.service))
+        self.signer = Signer(self.service, self.keyring.ensure(self.service), links=self.keyring.send_keys())
         self._auth_reported: dict[str, tuple[int, float]] = {}  # key -> (reports, last report monotonic s)
         self.streams = StreamTable()
         self._lock = threading.Lock()

@@ -50,7 +50,7 @@ def test_keyring_files_are_private_and_hold_random_keys(tmp_path: Path) -> None:
     auth.init_keyring(d, ("mapping",))  # kept, not replaced
     assert auth.Keyring.load(d).keys["mapping"] == ring.keys["mapping"]
     os.chmod(d / "mapping.key", 0o644)
-    with pytest.raises(ConfigError, match="readable by others"):
+    with pytest.raises(ConfigError, match="open to others"):
         auth.Keyring.load(d)
     with pytest.raises(ConfigError, match="telesurg keys init"):
         auth.Keyring.load(tmp_path / "none")
@@ -76,10 +76,22 @@ def test_keys_cli_init_list_export_import(tmp_path: Path) -> None:
     a, b = tmp_path / "slave-site", tmp_path / "console-host"
     assert cli("init", str(a)).returncode == 0
     listed = cli("list", str(a)).stdout.split()
-    assert {"watchdog", "mapping", "slave_control", "console"} <= set(listed)
-    assert cli("export", "console", "--keys", str(a), "--out", str(tmp_path / "pack")).returncode == 0
-    assert cli("import", str(tmp_path / "pack"), "--keys", str(b)).returncode == 0
-    assert auth.Keyring.load(b).keys == {"console": auth.Keyring.load(a).keys["console"]}
+    assert {"watchdog", "mapping", "slave_control", "console", "master_capture"} <= set(listed)
+    console_key = auth.Keyring.load(a).keys["console"]
+    pack = tmp_path / "pack"
+    out = cli("export", "master_capture", "console", "--to", "console", "--keys", str(a), "--out", str(pack))
+    assert out.returncode == 0, out.stderr
+    assert cli("import", str(pack), "--keys", str(b)).returncode == 0
+    site, host = auth.Keyring.load(a), auth.Keyring.load(b)
+    # the console host has its own identities' keys and a link, nothing of the site's identities
+    assert host.keys == {"console": console_key, "master_capture": host.keys["master_capture"]}
+    assert set(host.links) == {"slave-site"} and host.links["slave-site"].claims == ("*",)
+    # the site no longer holds them: it verifies them through the link to the console host
+    assert "console" not in site.keys and "master_capture" not in site.keys
+    assert site.links["console"].claims == ("master_capture", "console")
+    assert "link to host console: signs as master_capture, console" in cli("list", str(a)).stdout
+    again = cli("export", "console", "--to", "console", "--keys", str(a), "--out", str(tmp_path / "p2"))
+    assert again.returncode == 2 and "no key for 'console'" in again.stderr
     bad = cli("list", str(tmp_path / "nope"))
     assert bad.returncode == 2 and "telesurg keys init" in bad.stderr
 

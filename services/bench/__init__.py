@@ -21,8 +21,13 @@ Subcommands::
 from __future__ import annotations
 
 import importlib
+import os
 import sys
+import tempfile
 from collections.abc import Sequence
+from pathlib import Path
+
+from telesurg.shared.auth import IDENTITIES, KEYS_ENV, init_keyring
 
 BENCHES = {
     "faults": ("telesurg.services.bench.faults", "inject faults one at a time; detection, motion, recovery"),
@@ -75,8 +80,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         print("\n".join(lines), file=sys.stdout if not args or args[0] in ("-h", "--help") else sys.stderr)
         return 0 if not args or args[0] in ("-h", "--help") else 2
     module = importlib.import_module(BENCHES[args[0]][0])
-    if BENCHES[args[0]][0] == "telesurg.services.bench.perf":
-        code: int = module.main(args[1:], args[0])
-    else:
-        code = module.main(args[1:])
+    # every bench runs on a keyring of its own, never the site's real one: its strangers and
+    # tools (intruder, fuzz, local_client, bench_probe) add their keys to this one only
+    with tempfile.TemporaryDirectory(prefix="telesurg-bench-keys-") as tmp:
+        os.environ[KEYS_ENV] = str(init_keyring(Path(tmp) / "keys", IDENTITIES))
+        if BENCHES[args[0]][0] == "telesurg.services.bench.perf":
+            code: int = module.main(args[1:], args[0])
+        else:
+            code = module.main(args[1:])
     return code

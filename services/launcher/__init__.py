@@ -293,6 +293,8 @@ class SiteSpec:
         from telesurg.services.launcher.lockdown import LocalPki
 
         cfg = BusConfig(connect=[self.endpoint])
+        if self.keys_dir is not None:
+            cfg.keys_dir = str(self.keys_dir)
         if self.local_pki:
             pki = LocalPki(self.local_pki)
             cfg.tls_root_ca, cfg.tls_cert, cfg.tls_key = str(pki.ca), str(pki.cert(name)), str(pki.key(name))

@@ -306,7 +306,7 @@ def link_cut_reporter(session: Any, cfg: RouterConfig) -> Callable[[LinkCut], No
     outlet: Outlet | None = None
     try:
         keyring = Keyring.load(cfg.bus.keys_dir or default_keys_dir(cfg.site))
-        signer = Signer(cfg.service, keyring.ensure(cfg.service))
+        signer = Signer(cfg.service, keyring.ensure(cfg.service), links=keyring.send_keys())
         key = Keys(cfg.site).events(cfg.service)
         outlet = Outlet(session.declare_publisher(key), cfg.service, signer, key)
     except ConfigError as exc:
