@@ -361,6 +361,12 @@ class Keyring:
         if k is not None:
             return k
         for link in self.links.values():
+            if "*" in link.claims:
+                raise ConfigError(
+                    f"identity {identity!r} has no key on this host, whose keyring {self.path} takes "
+                    f"every other identity from host {link.host!r}: export it from there "
+                    f"(`telesurg keys export {identity} --to HOST`)"
+                )
             if identity in link.claims:
                 raise ConfigError(
                     f"identity {identity!r} runs on host {link.host!r} "

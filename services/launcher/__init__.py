@@ -270,6 +270,9 @@ class SiteSpec:
     # the site keyring, passed to every service as --keyring DIR; made if absent (None: the default,
     # shared/auth.py default_keys_dir)
     keys_dir: Path | None = None
+    # service → a keyring of its own instead (a service that runs as another host's identity, with
+    # that host's keyring: the console host's master in a one-machine test of the two-host split)
+    service_keys: dict[str, Path] = field(default_factory=dict)
     # zenoh session id of each of ZID_SERVICES (random for each spec, kept over restarts): the
     # router waits for these sessions alone when a control stream's subscriber falls behind
     zids: dict[str, str] = field(default_factory=_new_zids)
@@ -323,8 +326,8 @@ def service_argv(spec: SiteSpec, name: str) -> list[str]:
             from telesurg.services.launcher.lockdown import LocalPki
 
             argv += LocalPki(spec.local_pki).client_flags(name)
-        if spec.keys_dir is not None:
-            argv += ["--keyring", str(spec.keys_dir)]
+        if (keys := spec.service_keys.get(name, spec.keys_dir)) is not None:
+            argv += ["--keyring", str(keys)]
         for plugin in spec.plugins:
             argv += ["--plugin", plugin]
     if name == "console":
