@@ -44,6 +44,8 @@ if str(REPO) not in sys.path:  # run as a script inside a namespace
 
 from helpers import clutch_flags  # noqa: E402
 from telesurg.services.bench.impair import NetNamespace, netns_available  # noqa: E402
+from telesurg.services.keys import export  # noqa: E402
+from telesurg.shared.auth import IDENTITIES, KEYS_ENV, init_keyring  # noqa: E402
 
 pytestmark = [pytest.mark.process, pytest.mark.timeout(240)]
 
@@ -362,6 +364,7 @@ class TwoHosts:
     other: Path
     logs: Path
     env: dict[str, str]
+    console_keys: Path  # the console host's keyring: its identities and the link to the site
     procs: dict[str, subprocess.Popen[str]] = field(default_factory=dict)
     probe: ProbeLog = field(default_factory=ProbeLog)
 
@@ -372,7 +375,8 @@ class TwoHosts:
         p = subprocess.Popen(
             ns.cmd(argv),
             cwd=REPO,
-            env=self.env,
+            # each host its own keyring, split as docs/deploy.md says (keys export --to console)
+            env=self.env if ns is self.slave else dict(self.env, **{KEYS_ENV: str(self.console_keys)}),
             stdin=subprocess.PIPE if pipe else subprocess.DEVNULL,
             stdout=subprocess.PIPE if pipe else log,
             stderr=log,
@@ -435,7 +439,9 @@ def hosts(tmp_path_factory: pytest.TempPathFactory) -> Iterator[TwoHosts]:
     make_certs(CertsConfig(out=certs, hosts=("localhost", "127.0.0.1", SLAVE_ADDR)))
     make_certs(CertsConfig(out=other, identities=("console",), ca_name="some other CA"))
     tag = os.getpid() % 100000
-    env = dict(os.environ, PYTHONPATH=str(REPO), PYTHONUNBUFFERED="1")
+    site_keys = init_keyring(tmp / "site-keys", (*IDENTITIES, "viewer"))
+    export(site_keys, ["master_capture", "console", "viewer"], "console", "slave-site", tmp / "console-keys")
+    env = dict(os.environ, PYTHONPATH=str(REPO), PYTHONUNBUFFERED="1", **{KEYS_ENV: str(site_keys)})
     with NetNamespace(f"ts2h-slave-{tag}") as ns_s, NetNamespace(f"ts2h-console-{tag}") as ns_c:
         veth_s, veth_c = f"t2hs{tag}", f"t2hc{tag}"
         for cmd in (
@@ -459,7 +465,7 @@ def hosts(tmp_path_factory: pytest.TempPathFactory) -> Iterator[TwoHosts]:
             ["-n", ns_c.name, "link", "set", veth_c, "up"],
         ):
             subprocess.run(["ip", *cmd], check=True, capture_output=True)
-        h = TwoHosts(ns_s, ns_c, certs, other, logs, env)
+        h = TwoHosts(ns_s, ns_c, certs, other, logs, env, tmp / "console-keys")
         try:
             site = [str(REPO / "deploy" / "slave-site.sh"), "--site", SITE, "--certs", str(certs)]
             site += [
