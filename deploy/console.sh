@@ -32,8 +32,9 @@ options:
   --site ID            site id, as on the slave site (default: lab)
   --certs DIR          ca.pem and IDENTITY.pem/.key (default: certs; telesurg certs)
   --identity NAME      certificate common name (default: console; console-mapping with --mapping)
-  --keyring DIR        the site keyring with this machine's identities (master_capture, console,
-                       mapping): telesurg keys export on the slave site, keys import here
+  --keyring DIR        this machine's keyring: master_capture, console (console-mapping with
+                       --mapping) and the link to the site, from `telesurg keys export ...
+                       --to console` on the slave site
                        (default: $TELESURG_KEYS or ~/.local/state/telesurg/SITE/keys)
   --config-dir DIR     site folder: DIR/site.toml, a table per service (default: console/
                        beside this script)
