@@ -6,7 +6,9 @@ the forceps axis passes through the wrist centre). A pose is allowed when the se
 touch the box, or when it enters the box within ``trocar_tol`` of the trocar with the forceps
 axis through the trocar (RCM error ≤ ``trocar_tol``). A motion is checked along its planned joint
 path at fine steps (:func:`path_problem`), so a sweep that passes through the patient between
-two allowed end poses is found too.
+two allowed end poses is found too. A followed command (master–slave, a policy: any ``servo_jp``)
+is clamped at the surface instead (:func:`clamp_step`): each control period's step goes only as
+far as the keep-out allows.
 
 Units: metres and radians. Pure (numpy in, str/None out).
 """
@@ -21,7 +23,7 @@ import numpy.typing as npt
 from telesurg.shared.errors import KinematicsError
 from telesurg.shared.kinematics.mh3f import MH3F, ArmGeometry, fk
 
-__all__ = ["PatientBox", "path_problem", "pose_problem", "shaft_inside_m"]
+__all__ = ["PatientBox", "clamp_step", "path_problem", "pose_problem", "shaft_inside_m"]
 
 
 @dataclass(frozen=True)
@@ -133,3 +135,46 @@ def shaft_inside_m(q: npt.ArrayLike, box: PatientBox, geom: ArmGeometry = MH3F) 
     leave = _segment_entry(tip, w, lo, hi)
     assert leave is not None  # the same segment, walked the other way
     return max(0.0, (1.0 - leave) - enter) * geom.wrist_to_tcp
+
+
+#: m: a pose already crossing the box may move while its shaft inside does not grow by more than this
+DEEPER_TOL_M = 1e-6
+
+
+def clamp_step(
+    q_from: npt.ArrayLike,
+    q_to: npt.ArrayLike,
+    box: PatientBox,
+    geom: ArmGeometry = MH3F,
+    *,
+    iterations: int = 16,
+) -> tuple[np.ndarray, str | None]:
+    """One control period's step ``q_from → q_to`` clamped at the patient's surface.
+
+    Returns ``(q, why)``: ``q_to`` itself and None when the keep-out allows it; else the farthest
+    joints along the straight joint-space step whose pose the keep-out allows (bisection,
+    ``iterations`` halvings: 2⁻¹⁶ of the step) and why ``q_to`` was refused. A ``q_from``
+    already crossing the box (an arm started inside it) may move while its shaft inside does not
+    grow (so it can get out); a step that would take it deeper stays at ``q_from``.
+
+    Only the end of the step is judged: meant for one period of a speed-limited command (a few
+    mrad), not for a long path (:func:`path_problem`).
+    """
+    b = np.asarray(q_to, dtype=np.float64)
+    problem = pose_problem(b, box, geom)
+    if problem is None:
+        return b, None
+    a = np.asarray(q_from, dtype=np.float64)
+    if pose_problem(a, box, geom) is not None:
+        if shaft_inside_m(b, box, geom) <= shaft_inside_m(a, box, geom) + DEEPER_TOL_M:
+            return b, None
+        return a.copy(), problem
+    lo, hi = 0.0, 1.0
+    for _ in range(iterations):
+        mid = 0.5 * (lo + hi)
+        if pose_problem(a + (b - a) * mid, box, geom) is None:
+            lo = mid
+        else:
+            hi = mid
+    out: np.ndarray = a + (b - a) * lo
+    return out, problem
