@@ -61,10 +61,13 @@ def test_a_step_into_the_torso_is_clamped_at_the_surface() -> None:
     target = down_path(OVER_TORSO, 0.06, 30)[-1]
     assert depth_in_box(target) > 0.015  # the step would put the tip 17 mm into the patient
     q, why = clamp_step(OVER_TORSO, target, BOX)
-    assert why is not None and "outside the trocar" in why
+    assert why is not None and "outside the trocar" in why and "from the trocar" in why
     assert depth_in_box(q) == 0.0
-    assert gap_to_box(q) < 1e-4  # at the surface, not short of it
     assert 0.0 < np.linalg.norm(q - OVER_TORSO) < np.linalg.norm(target - OVER_TORSO)
+    for _ in range(5):  # the clamp goes on period by period: it closes in on the surface
+        q, why = clamp_step(q, target, BOX, explain=False)
+        assert why is not None and depth_in_box(q) == 0.0
+    assert gap_to_box(q) < 1e-4  # at the surface, not short of it
     free = down_path(OVER_TORSO, 0.02, 10)[-1]  # 20 mm down: still above the patient
     assert clamp_step(OVER_TORSO, free, BOX) == (pytest.approx(free), None)
 
@@ -153,3 +156,26 @@ def test_the_trocar_arm_clamps_followed_setpoints_with_its_box_and_trocar() -> N
     assert motions.follow_keepout(q_in, ik(T, q_in))[1] == ""
     motions.trocar_taught = False
     assert "no trocar taught" in motions.follow_keepout(qa, q_in)[1]
+
+
+def test_the_fast_check_agrees_with_pose_problem() -> None:
+    """clamp_step's message-free check (keepout._allowed) against pose_problem: random poses, and
+    poses about the trocar (entering through it, beside it, tilted off it)."""
+    from telesurg.shared.kinematics.keepout import _allowed
+
+    rng = np.random.default_rng(7)
+    qa = posture_adjust(HOME, TROCAR)
+    T0 = fk(qa)
+    poses = [
+        rng.uniform([-0.8, -0.6, -0.5, -1.5, -2.0, -1.0], [0.8, 0.9, 1.2, 1.5, 0.8, 1.0]) for _ in range(2000)
+    ]
+    for _ in range(1000):
+        T = T0.copy()
+        T[:3, 3] = TROCAR + rng.uniform(-0.01, 0.08) * T0[:3, 0] + rng.normal(0.0, 0.004, 3)
+        poses.append(ik(T, qa))
+    allowed = 0
+    for box in (BOX, PatientBox(BOX.lo, BOX.hi, None)):
+        for q in poses:
+            assert (pose_problem(q, box) is None) == _allowed(q, box, MH3F), q
+            allowed += pose_problem(q, box) is None
+    assert 0 < allowed < 2 * len(poses)

@@ -263,8 +263,11 @@ class TrocarMotions(AttachedSource):
         is clamped at the patient box's surface unless the forceps enters through the trocar
         (:func:`~telesurg.shared.kinematics.keepout.clamp_step`; trocar-mode setpoints, RCM-exact
         by the trocar IK, pass)."""
-        q, why = clamp_step(q_from, q_to, self.patient_box())
+        q, why = clamp_step(q_from, q_to, self.patient_box(), explain=not self._follow_clamped)
+        self._follow_clamped = why is not None  # (where it crosses: said once, at the clamp's start)
         return q, f"patient keep-out: {why}" if why else ""
+
+    _follow_clamped = False  # the last followed step was clamped
 
     def rcm_guard_problem(self, job: Internal) -> str:
         """Why the slave-side motion ``job`` must stop for the RCM ("" = it may go on).
