@@ -9,14 +9,19 @@ not by the code under test.
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 import pytest
 from telesurg.services.slave_control import SlaveControlConfig
+from telesurg.services.slave_control.arm import ArmCore, ArmReading
 from telesurg.services.slave_control.control import FollowController, Lease, Setpoint
+from telesurg.services.slave_control.teach import TaughtPoint
 from telesurg.services.slave_control.trocar_arm import TrocarMotions
 from telesurg.shared.kinematics.keepout import PatientBox, clamp_step, pose_problem
 from telesurg.shared.kinematics.mh3f import MH3F, fk, ik
 from telesurg.shared.kinematics.trocar import posture_adjust
+from telesurg.shared.messages import Command, Header
 from telesurg.shared.robots import arm_profile
 
 TROCAR = np.array([0.5, 0.0, 0.2])
@@ -179,3 +184,57 @@ def test_the_fast_check_agrees_with_pose_problem() -> None:
             assert (pose_problem(q, box) is None) == _allowed(q, box, MH3F), q
             allowed += pose_problem(q, box) is None
     assert 0 < allowed < 2 * len(poses)
+
+
+# --------------------------------------------------------------------------- other motion sources
+
+
+def _trocar_core() -> tuple[ArmCore, TrocarMotions]:
+    cfg = SlaveControlConfig(model="mh3f", jog_speed_mm_s=40.0)
+    profile = arm_profile("mh3f", "arm1")
+    motions = TrocarMotions(cfg, profile)
+    core = ArmCore(profile, np.arange(6), cfg, 0.001, motion=motions)
+    core.start(_reading(core, OVER_TORSO))
+    core.lease = Lease(True, 1e9, "")
+    return core, motions
+
+
+def _reading(core: ArmCore, q: np.ndarray) -> ArmReading:
+    """The arm where it was commanded (a perfect servo: the keep-out judges commands)."""
+    return ArmReading(np.array(q, dtype=float), np.zeros(6), np.zeros(6), core.profile)
+
+
+def _cmd(name: str, *args: str) -> Command:
+    return Command(Header("console", 0, time.time_ns()), "arm1", name, args)
+
+
+def test_a_jog_toward_the_torso_stops_before_it() -> None:
+    """A base-z jog down from over the torso (non-trocar mode) stops with the keep-out's reason,
+    the forceps outside the patient box."""
+    core, motions = _trocar_core()
+    assert motions.command(_cmd("set_motion_mode", "mode=jog"))[0]
+    ok, why = motions.command(_cmd("jog", "frame=base", "axis=z", "direction=-1"))
+    assert ok, why
+    q = OVER_TORSO.copy()
+    for i in range(3000):  # 3 s at 40 mm/s: 120 mm down, were it not stopped
+        q = core.control(i * 0.001, _reading(core, q))
+        core.after_period(i + 1, _reading(core, q))
+        if i % 10 == 0:
+            core.measure(_reading(core, q))
+    assert motions.modes.jog_command is None  # stopped
+    assert depth_in_box(q) == 0.0 and gap_to_box(q) < 0.002  # at the box, one step short at most
+    assert fk(OVER_TORSO)[2, 3] - fk(q)[2, 3] > 0.03  # it did go down toward it
+
+
+def test_a_play_through_the_torso_is_refused() -> None:
+    """``play`` of a program whose joint path crosses the torso outside the trocar: refused,
+    nothing moves."""
+    _, motions = _trocar_core()
+    deep = down_path(OVER_TORSO, 0.06, 30)[-1]
+    motions.store.programs["deep"] = [
+        TaughtPoint(tuple(deep.tolist()), tuple(fk(deep)[:3, 3].tolist()), "non_trocar")
+    ]
+    assert motions.command(_cmd("set_motion_mode", "mode=playback"))[0]
+    ok, why = motions.command(_cmd("play", "program=deep"))
+    assert not ok and "patient keep-out" in why and "outside the trocar" in why
+    assert motions.playback is None
