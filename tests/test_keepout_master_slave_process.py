@@ -103,6 +103,7 @@ def site(tmp_path: Path) -> Iterator[Site]:
             f"state_file={json.dumps(str(store))}",
             "jog_speed_mm_s=40.0",
             "playback_dwell_s=0.02",
+            "ptp_speed_fraction=0.6",  # (the PTPs between the cases: shorter, fewer stopped by holds)
         ]
     }
     with (
