@@ -1,4 +1,5 @@
-"""The patient keep-out of followed setpoints (master–slave in every mode, any ``servo_jp``).
+"""The patient keep-out for every motion source: followed setpoints (master–slave in every mode,
+any ``servo_jp``) clamped at the surface, and the slave-side jog, play and direct teach.
 
 The geometry (:func:`telesurg.shared.kinematics.keepout.clamp_step`), the follow controller that
 applies it each period, and the trocar arm's rule (the site's patient box and trocar). The
@@ -238,3 +239,19 @@ def test_a_play_through_the_torso_is_refused() -> None:
     ok, why = motions.command(_cmd("play", "program=deep"))
     assert not ok and "patient keep-out" in why and "outside the trocar" in why
     assert motions.playback is None
+
+
+def test_direct_teach_does_not_follow_a_push_into_the_torso() -> None:
+    """Direct teach outside trocar mode: a hand pushing the forceps tip down (40 N) moves it down
+    toward the torso, and no further than the patient box."""
+    core, motions = _trocar_core()
+    assert motions.command(_cmd("set_motion_mode", "mode=direct_teach"))[0]
+    q = OVER_TORSO.copy()
+    for i in range(4000):
+        wrench = np.array([0.0, 0.0, -40.0, 0.0, 0.0, 0.0])  # N at the tip, base frame
+        tau = core.profile.jacobian(q).T @ wrench
+        r = ArmReading(q.copy(), np.zeros(6), np.zeros(6), core.profile, tau)
+        q = core.control(i * 0.001, r)
+        core.after_period(i + 1, r)
+    assert fk(OVER_TORSO)[2, 3] - fk(q)[2, 3] > 0.02  # the push moved it down
+    assert depth_in_box(q) == 0.0
