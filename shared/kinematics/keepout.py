@@ -193,7 +193,7 @@ def clamp_step(
     that would take it deeper stays at ``q_from``.
 
     Only the end of the step is judged: meant for one period of a speed-limited command (a few
-    mrad), not for a long path (:func:`path_problem`). Cost: one FK when allowed (~15 µs), about
+    mrad), not for a long path (:func:`path_problem`). Cost: one FK when allowed (~10 µs), about
     ``iterations`` + 2 when clamped (~100 µs).
     """
     b = np.asarray(q_to, dtype=np.float64)
