@@ -114,7 +114,8 @@ class SlaveControlConfig:
     trocar_taught: bool = True  # the configured trocar counts as taught (teach_trocar replaces it)
     # mm, base frame: the patient's body (the mh3f scene's torso under the drape). Every slave-side
     # motion of the trocar arm is refused / stopped where the forceps would cross it outside the
-    # trocar (shared/kinematics/keepout.py); the entry must be within 5 mm of the trocar
+    # trocar, and every followed servo_jp step is clamped at its surface
+    # (shared/kinematics/keepout.py); the entry must be within 5 mm of the trocar
     # deg, roll/pitch/yaw of the work jog frame (the laparoscope's view: x image right, y image
     # down, z into the image) in the base frame; default: looking down, patient's head (+x) up
     work_frame_rpy_deg: tuple[float, float, float] = (180.0, 0.0, -90.0)

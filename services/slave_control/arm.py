@@ -230,6 +230,12 @@ class MotionSource(Protocol):
         """Sub-rate (100 Hz) update from the measurements (mode machine, events)."""
         ...
 
+    def follow_keepout(self, q_from: np.ndarray, q_to: np.ndarray) -> tuple[np.ndarray, str]:
+        """The followed step ``q_from → q_to`` (one period of ``servo_jp``, any source) clamped
+        by the arm's keep-out (the patient's body): the joints allowed and why it was clamped
+        ("" = not). Called from the control loop without the lock."""
+        ...
+
     def command(self, cmd: Command) -> tuple[bool, str]:
         """Answer an operator command for this arm."""
         ...
@@ -407,6 +413,7 @@ class ArmCore:
             self._applied = np.zeros((300_000, 5), dtype=np.int64)
         if self.motion is not None:
             self.motion.attach(self)
+            self.ctl.keepout = self.motion.follow_keepout
 
     @property
     def arm(self) -> str:
@@ -794,9 +801,10 @@ class ArmCore:
                 path = f"{path[:-4]}.{self.arm}.npy"  # one file per arm; cfg.arm's keeps the name
             np.save(path, self._applied[: self._n_applied])
         log.info(
-            "%s: %d holds, %d setpoints rejected, %d cycles speed-clipped",
+            "%s: %d holds, %d setpoints rejected, %d cycles speed-clipped, %d clamped by the keep-out",
             self.arm,
             self.ctl.holds,
             self.rejected,
             self.ctl.clipped,
+            self.ctl.keepout_clamped,
         )

@@ -13,6 +13,11 @@ Rules (safety first — any doubt means hold):
   trocar's remote centre in trocar mode). Clipping
   reports itself: ``clipped`` counts the cycles in which the limit cut a step, and each clipping
   episode produces an event when it starts (which joint, how far behind) and when it ends.
+* A followed step the arm's keep-out refuses (:attr:`FollowController.keepout`: the patient's
+  body, ``shared/kinematics/keepout.py``) is clamped at the surface: the command goes only as far
+  as allowed and waits there while the setpoints stay beyond it. ``keepout_clamped`` counts those
+  cycles; each episode is an event (``keepout_clamped``) when it starts (why, where) and when it
+  ends, as the mapping reports its workspace clamp.
 
 Ages are judged on two clocks: wall time *and* control cycles executed since the input arrived.
 An input is stale (or a lease expired) only when both say so. A slave process that was itself
@@ -23,13 +28,17 @@ a silent input still times out after the same time once the loop runs.
 from __future__ import annotations
 
 import bisect
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
 from telesurg.shared.limits import limit_step
 
 #: Follow-controller event kinds published as warnings.
-WARN = frozenset({"hold", "clipped", "engage_refused"})
+WARN = frozenset({"hold", "clipped", "engage_refused", "keepout_clamped"})
+
+#: A followed step clamped by the keep-out: (q_from, q_to) → (the joints allowed, why clamped or "").
+Keepout = Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, str]]
 
 
 @dataclass
@@ -260,6 +269,11 @@ class FollowController:
     events: list[tuple[str, str]] = field(default_factory=list)  # (kind, text), drained by caller
     clipped: int = 0  # cycles in which the speed limit clipped the step
     clip_quiet_cycles: int = 100  # an episode ends after this many unclipped cycles
+    # the arm's keep-out of followed steps (None: none); see the module doc
+    keepout: Keepout | None = None
+    keepout_clamped: int = 0  # followed cycles whose step the keep-out clamped
+    _ko_episode: int = 0  # cycles clamped in the current keep-out episode (0: none)
+    _ko_quiet: int = 0
     _hold_q: np.ndarray | None = None
     _episode: int = 0  # cycles clipped in the current episode (0: none)
     _episode_lag: float = 0.0  # largest lag behind the target in the episode, rad
@@ -334,8 +348,31 @@ class FollowController:
         out: np.ndarray = q_cmd + limit_step(want, lim)
         if self.following:
             self._hold_q = None
+            if self.keepout is not None:
+                out, why = self.keepout(q_cmd, out)
+                self._account_keepout(why)
+                if why:  # waiting at the surface: not the speed limit's doing
+                    return out
             self._account_clip(want, lim)
         return out
+
+    def _account_keepout(self, why: str) -> None:
+        if why:
+            self.keepout_clamped += 1
+            self._ko_quiet = 0
+            if not self._ko_episode:
+                self.events.append(("keepout_clamped", f"setpoint clamped at the patient's surface: {why}"))
+            self._ko_episode += 1
+        elif self._ko_episode:
+            self._ko_quiet += 1
+            if self._ko_quiet >= self.clip_quiet_cycles:
+                self.events.append(
+                    (
+                        "keepout_clamped",
+                        f"setpoints clear of the patient again after {self._ko_episode} clamped cycles",
+                    )
+                )
+                self._ko_episode, self._ko_quiet = 0, 0
 
     def _account_clip(self, want: np.ndarray, lim: np.ndarray) -> None:
         over = np.abs(want) - lim
@@ -386,3 +423,11 @@ class FollowController:
         if fault:
             self.holds += 1
         self.events.append(("hold" if fault else "pause", cause))
+        if self._ko_episode:
+            self.events.append(
+                (
+                    "keepout_clamped",
+                    f"keep-out clamp ended with following after {self._ko_episode} clamped cycles",
+                )
+            )
+            self._ko_episode, self._ko_quiet = 0, 0

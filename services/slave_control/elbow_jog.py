@@ -110,6 +110,13 @@ class ElbowJog(AttachedSource):
     def measure(self, reading: ArmReading, q_cmd: np.ndarray) -> None:
         return None
 
+    def follow_keepout(self, q_from: np.ndarray, q_to: np.ndarray) -> tuple[np.ndarray, str]:
+        """Nothing to clamp: the VIP instrument crosses the abdominal wall only at the port R, by
+        its kinematics (the shaft and the elbow E = q3·z3 lie on the line through R, for every
+        joint value and every elbow jog); inside, the tissue is the surgical field
+        (docs/safety.md, the patient keep-out)."""
+        return q_to, ""
+
     def next(self, q_cmd: np.ndarray, reading: ArmReading, dt: float) -> np.ndarray:
         """The joints of this period: the elbow a speed-limited step further, the wrist held."""
         with self._core.lock:

@@ -39,7 +39,7 @@ from telesurg.services.slave_control.teach import (
 )
 from telesurg.services.slave_control.work_frame import ConfiguredWorkFrame, WorkFrame
 from telesurg.shared.errors import IKError, KinematicsError
-from telesurg.shared.kinematics.keepout import PatientBox, path_problem, pose_problem
+from telesurg.shared.kinematics.keepout import PatientBox, clamp_step, path_problem, pose_problem
 from telesurg.shared.kinematics.trocar import axis_angle_to_trocar, pose_to_trocar, posture_adjust
 from telesurg.shared.kinematics.trocar_limits import remove_step
 from telesurg.shared.messages import Command
@@ -248,10 +248,26 @@ class TrocarMotions(AttachedSource):
         """The patient keep-out with the current trocar (no entry anywhere while none is taught)."""
         c = self.trocar
         trocar = (float(c[0]), float(c[1]), float(c[2])) if self.trocar_taught else None
-        lo, hi = self.cfg.patient_box_min_mm, self.cfg.patient_box_max_mm
-        return PatientBox(
-            (lo[0] / 1e3, lo[1] / 1e3, lo[2] / 1e3), (hi[0] / 1e3, hi[1] / 1e3, hi[2] / 1e3), trocar
-        )
+        box = self._box
+        if box is None or box.trocar != trocar:  # built again only when the trocar changes
+            lo, hi = self.cfg.patient_box_min_mm, self.cfg.patient_box_max_mm
+            box = self._box = PatientBox(
+                (lo[0] / 1e3, lo[1] / 1e3, lo[2] / 1e3), (hi[0] / 1e3, hi[1] / 1e3, hi[2] / 1e3), trocar
+            )
+        return box
+
+    _box: PatientBox | None = None
+
+    def follow_keepout(self, q_from: np.ndarray, q_to: np.ndarray) -> tuple[np.ndarray, str]:
+        """Master–slave in every control mode, and any ``servo_jp`` (a policy): the followed step
+        is clamped at the patient box's surface unless the forceps enters through the trocar
+        (:func:`~telesurg.shared.kinematics.keepout.clamp_step`; trocar-mode setpoints, RCM-exact
+        by the trocar IK, pass)."""
+        q, why = clamp_step(q_from, q_to, self.patient_box(), explain=not self._follow_clamped)
+        self._follow_clamped = why is not None  # (where it crosses: said once, at the clamp's start)
+        return q, f"patient keep-out: {why}" if why else ""
+
+    _follow_clamped = False  # the last followed step was clamped
 
     def rcm_guard_problem(self, job: Internal) -> str:
         """Why the slave-side motion ``job`` must stop for the RCM ("" = it may go on).

@@ -6,7 +6,9 @@ the forceps axis passes through the wrist centre). A pose is allowed when the se
 touch the box, or when it enters the box within ``trocar_tol`` of the trocar with the forceps
 axis through the trocar (RCM error ≤ ``trocar_tol``). A motion is checked along its planned joint
 path at fine steps (:func:`path_problem`), so a sweep that passes through the patient between
-two allowed end poses is found too.
+two allowed end poses is found too. A followed command (master–slave, a policy: any ``servo_jp``)
+is clamped at the surface instead (:func:`clamp_step`): each control period's step goes only as
+far as the keep-out allows.
 
 Units: metres and radians. Pure (numpy in, str/None out).
 """
@@ -21,7 +23,7 @@ import numpy.typing as npt
 from telesurg.shared.errors import KinematicsError
 from telesurg.shared.kinematics.mh3f import MH3F, ArmGeometry, fk
 
-__all__ = ["PatientBox", "path_problem", "pose_problem", "shaft_inside_m"]
+__all__ = ["PatientBox", "clamp_step", "path_problem", "pose_problem", "shaft_inside_m"]
 
 
 @dataclass(frozen=True)
@@ -133,3 +135,85 @@ def shaft_inside_m(q: npt.ArrayLike, box: PatientBox, geom: ArmGeometry = MH3F) 
     leave = _segment_entry(tip, w, lo, hi)
     assert leave is not None  # the same segment, walked the other way
     return max(0.0, (1.0 - leave) - enter) * geom.wrist_to_tcp
+
+
+#: m: a pose already crossing the box may move while its shaft inside does not grow by more than this
+DEEPER_TOL_M = 1e-6
+
+
+def _allowed(q: npt.ArrayLike, box: PatientBox, geom: ArmGeometry) -> bool:
+    """:func:`pose_problem` is None, without its message: plain floats after the FK (the
+    bisection of :func:`clamp_step` runs it ~10 times in one control period)."""
+    r0, r1, r2, _ = fk(q, geom).tolist()
+    ax, ay, az = r0[0], r1[0], r2[0]
+    tx, ty, tz = r0[3], r1[3], r2[3]
+    L = geom.wrist_to_tcp
+    a, d = (tx - L * ax, ty - L * ay, tz - L * az), (L * ax, L * ay, L * az)
+    t0, t1 = 0.0, 1.0
+    for i in range(3):
+        lo, hi = box.lo[i], box.hi[i]
+        if abs(d[i]) < 1e-15:
+            if a[i] < lo or a[i] > hi:
+                return True
+            continue
+        ta, tb = (lo - a[i]) / d[i], (hi - a[i]) / d[i]
+        if ta > tb:
+            ta, tb = tb, ta
+        t0, t1 = max(t0, ta), min(t1, tb)
+        if t0 > t1:
+            return True  # the shaft misses the box
+    if box.trocar is None or t0 <= 0.0:
+        return False
+    cx, cy, cz = box.trocar
+    ex, ey, ez = a[0] + t0 * d[0] - cx, a[1] + t0 * d[1] - cy, a[2] + t0 * d[2] - cz  # entry - trocar
+    if math.sqrt(ex * ex + ey * ey + ez * ez) > box.trocar_tol + 1e-9:
+        return False
+    vx, vy, vz = cx - tx, cy - ty, cz - tz  # the trocar's distance from the axis
+    wx, wy, wz = vy * az - vz * ay, vz * ax - vx * az, vx * ay - vy * ax
+    return math.sqrt(wx * wx + wy * wy + wz * wz) <= box.trocar_tol
+
+
+def clamp_step(
+    q_from: npt.ArrayLike,
+    q_to: npt.ArrayLike,
+    box: PatientBox,
+    geom: ArmGeometry = MH3F,
+    *,
+    iterations: int = 6,
+    explain: bool = True,
+) -> tuple[np.ndarray, str | None]:
+    """One control period's step ``q_from → q_to`` clamped at the patient's surface.
+
+    Returns ``(q, why)``: ``q_to`` itself and None when the keep-out allows it; else the farthest
+    joints along the straight joint-space step whose pose the keep-out allows (bisection,
+    ``iterations`` halvings: within 1/64 of the step, and a clamp that goes on closes in on the
+    surface period by period) and why ``q_to`` was refused (with where only if ``explain``: a clamp that
+    goes on needs no new message). A ``q_from`` already crossing the box (an arm
+    started inside it) may move while its shaft inside does not grow (so it can get out); a step
+    that would take it deeper stays at ``q_from``.
+
+    Only the end of the step is judged: meant for one period of a speed-limited command (a few
+    mrad), not for a long path (:func:`path_problem`). Cost: one FK when allowed (~10 µs), about
+    ``iterations`` + 2 when clamped (~100 µs).
+    """
+    b = np.asarray(q_to, dtype=np.float64)
+    if _allowed(b, box, geom):
+        return b, None
+    problem = (pose_problem(b, box, geom) if explain else None) or (
+        "the forceps would cross the patient surface outside the trocar"
+    )
+    a = np.asarray(q_from, dtype=np.float64)
+    if not _allowed(a, box, geom):
+        if shaft_inside_m(b, box, geom) <= shaft_inside_m(a, box, geom) + DEEPER_TOL_M:
+            return b, None
+        return a.copy(), problem
+    lo, hi = 0.0, 1.0
+    al, dl = a.tolist(), (b - a).tolist()
+    for _ in range(iterations):
+        mid = 0.5 * (lo + hi)
+        if _allowed([x + mid * d for x, d in zip(al, dl, strict=True)], box, geom):
+            lo = mid
+        else:
+            hi = mid
+    out: np.ndarray = a + (b - a) * lo
+    return out, problem
