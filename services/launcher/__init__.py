@@ -347,6 +347,8 @@ class Site:
         self.procs: dict[str, subprocess.Popen[bytes]] = {}
         self._logs: list[IO[bytes]] = []
         self.off: tuple[str, ...] = ()  # optional services that could not start (OPTIONAL)
+        # the web console's one-time login token (made here, handed to it in its environment)
+        self.login_token = ""
 
     def start(self) -> None:
         """Start the router, wait for it, then every service, one at a time.
@@ -492,6 +494,11 @@ class Site:
             env = {**os.environ, BEST_EFFORT_ENV: str(best_effort_nice())}
         elif name in CONTROL:
             preexec = functools.partial(_foreground, slice_us)
+        if name == "console":  # its login token: in the environment, never on the command line
+            from telesurg.services.console.door import LOGIN_ENV
+
+            self.login_token = secrets.token_urlsafe(32)
+            env = {**(env or os.environ), LOGIN_ENV: self.login_token}
         log.debug("starting %s: %s", name, " ".join(argv))
         self.procs[name] = subprocess.Popen(
             argv,
@@ -781,12 +788,20 @@ def router_bus(spec: SiteSpec) -> BusConfig:
     return bus_from_args(args, BusConfig(mode="router", listen=[spec.endpoint, *spec.listen]))
 
 
-def run_site(spec: SiteSpec, seconds: float, stop: threading.Event) -> int:
-    """Run ``spec`` until ``stop`` or ``seconds``; 0 if every process stopped cleanly."""
+def login_url(page_url: str, token: str) -> str:
+    """The web console's one-time login URL (``page_url`` ends with ``/``)."""
+    return f"{page_url}login?token={token}"
+
+
+def run_site(spec: SiteSpec, seconds: float, stop: threading.Event, console: str = "") -> int:
+    """Run ``spec`` until ``stop`` or ``seconds``; 0 if every process stopped cleanly. ``console``:
+    the web console's page URL (its one-time login URL is printed once the site is up)."""
     deadline = time.monotonic() + seconds if seconds > 0 else float("inf")
     with Site(spec) as site:
         eps = ", ".join((spec.endpoint, *spec.listen))
         log.info("site %r up on %s; Ctrl-C stops everything", spec.site, eps)
+        if console and site.login_token:  # (stdout only: the launcher's log may be shared)
+            print(f"web surgeon console (one-time login): {login_url(console, site.login_token)}", flush=True)
         reported: set[str] = set()
         while not stop.wait(0.2) and time.monotonic() < deadline:
             for name, rc in site.dead().items():
@@ -876,13 +891,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.serve:
         spec.overrides.setdefault("mirror", []).append("serve=true")
     if url := console_url(args, spec):
-        log.info("web surgeon console: %s", url)
+        log.info("web surgeon console: %s (its one-time login URL is printed once it is up)", url)
     stop = threading.Event()
     install_stop_handlers(stop)
     if "console" in spec.services:
         spec.ports = (("the web console's port", args.console_port, "--console-port 0 picks a free one"),)
     try:
-        return run_site(spec, args.seconds, stop)
+        return run_site(spec, args.seconds, stop, url)
     except (TelesurgError, ConnectionError) as exc:  # (what had started is stopped: Site.__enter__)
         print(f"telesurg up: {exc}", file=sys.stderr)
         return 1

@@ -33,6 +33,7 @@ from telesurg.services.launcher import (
     add_site_args,
     config_class,
     console_url,
+    login_url,
     spec_from_args,
     with_console,
 )
@@ -120,7 +121,8 @@ def main(argv: Sequence[str] | None = None) -> int:
                         flush=True,
                     )
                     if web_url:
-                        print(f"web surgeon console: {web_url}", flush=True)
+                        login = login_url(web_url, site.login_token)
+                        print(f"web surgeon console (one-time login): {login}", flush=True)
                     print("Ctrl-C stops everything.\n", flush=True)
                 while not stop.wait(0.2) and time.monotonic() < deadline:
                     for name, rc in site.dead().items():
