@@ -441,7 +441,11 @@ class Server:
         self.page_sid: dict[str, str] = {}  # page → its session id
         self.ctl = Control(grace_s=wc.web.control_grace_s, alive=self._page_alive)
         self._told: dict[str, int] = {}  # refusal kind → events published
-        self.app = web.Application(middlewares=[self._guard])
+        @web.middleware
+        async def guard(request: Any, handler: Any) -> Any:
+            return await self._guard(request, handler)
+
+        self.app = web.Application(middlewares=[guard])
         self.app.router.add_get("/login", self._login)
         self.app.router.add_get("/", self._index)
         self.app.router.add_get("/api/state", self._api_state)
