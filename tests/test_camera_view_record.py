@@ -12,6 +12,7 @@ import urllib.error
 import urllib.request
 from pathlib import Path
 
+import psutil
 import pytest
 from conftest import wait_until
 from helpers import entity_paths, held_port
@@ -55,6 +56,12 @@ def test_view_page_recording_and_replay(tmp_path: Path) -> None:
             line = view.stdout.readline()
             assert line.startswith(f"endoscope view: http://127.0.0.1:{port}/login?token="), line
             login = line.split()[-1]
+            binds = {
+                c.laddr.ip
+                for c in psutil.net_connections("tcp")
+                if c.status == "LISTEN" and c.laddr.port == port
+            }
+            assert binds == {"127.0.0.1"}, f"telesurg view listens on {binds}"
             jar = urllib.request.HTTPCookieProcessor(http.cookiejar.CookieJar())
             browser = urllib.request.build_opener(jar)
             for url, headers, code in (

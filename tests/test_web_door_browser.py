@@ -23,6 +23,7 @@ from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
 from typing import Any
 
+import psutil
 import pytest
 from conftest import wait_until
 from helpers import DevTools, chromium
@@ -145,6 +146,12 @@ def test_outsiders_are_refused_and_control_moves_only_by_handover(endpoint: str,
         node.subscribe(k.master("m1", "measured_cp"), CartesianPose, on_master)
         base = base_of(login)
         port = int(base.rsplit(":", 1)[1].strip("/"))
+
+        # the page listens on loopback only (web.host's default)
+        binds = {
+            c.laddr.ip for c in psutil.net_connections("tcp") if c.status == "LISTEN" and c.laddr.port == port
+        }
+        assert binds == {"127.0.0.1"}, binds
 
         # -- plain socket clients: no session; a foreign Host ------------------------------------
         told = asyncio.run(outsiders(base))
