@@ -32,6 +32,7 @@ Examples::
 
 from __future__ import annotations
 
+import ipaddress
 import json
 import logging
 import re
@@ -295,6 +296,10 @@ class MirrorConfig:
                 raise ConfigError(f"{name}={port} outside [1, 65535]")
         if self.serve and self.web_port == self.grpc_port:
             raise ConfigError(f"web_port and grpc_port must differ (both {self.web_port})")
+        try:
+            ipaddress.ip_address(self.web_host)
+        except ValueError:
+            raise ConfigError(f"web_host={self.web_host!r}: an IP address (127.0.0.1, 0.0.0.0)") from None
 
 
 # --------------------------------------------------------------------------- reception
