@@ -115,9 +115,14 @@ async def _try(base: str, headers: dict[str, str], origin: str | None) -> dict[s
     async with aiohttp.ClientSession() as http:
         for path in ("", "api/state", "api/stats", "video.mjpg"):
             sent += 1
-            async with http.get(base + path, headers=headers) as r:
+            # (with its Origin, as a page's fetch sends it; a served MJPEG stream never ends: the
+            # first bytes only)
+            get_headers = {**headers, **({"Origin": origin} if origin else {})}
+            async with http.get(base + path, headers=get_headers) as r:
                 accepted += r.status == 200
-                said.append(f"/{path}: {r.status} {(await r.text())[:100].strip()}")
+                said.append(
+                    f"/{path}: {r.status} {(await r.content.read(100)).decode(errors='replace').strip()}"
+                )
         sent += 1
         ws_url = base.replace("http", "ws") + "ws"
         async with http.ws_connect(ws_url, headers=dict(headers), origin=origin) as ws:
