@@ -231,7 +231,9 @@ def test_outsiders_are_refused_and_control_moves_only_by_handover(endpoint: str,
             wait_page(cdp, s2, "#control", lambda t: t == "this page is in control", 5.0)
             assert "now a viewer" in text(cdp, s1, "#log")
             st1 = api_state(cdp, s1)
-            print(f"handover: first page told within {told_ms:.0f} ms; refusals {st1['door']}")
+            # the operator's page shows the refusals at its door
+            shown = wait_page(cdp, s1, "#door-refused", lambda t: "origin" in t and "host" in t, 5.0)
+            print(f"handover: first page told within {told_ms:.0f} ms; the page shows {shown!r}")
 
         time.sleep(0.5)
         with lock:

@@ -112,7 +112,7 @@ async def _try(base: str, headers: dict[str, str], origin: str | None) -> dict[s
 
     sent = accepted = 0
     said: list[str] = []
-    async with aiohttp.ClientSession() as http:
+    async with aiohttp.ClientSession(timeout=aiohttp.ClientTimeout(total=30)) as http:
         for path in ("", "api/state", "api/stats", "video.mjpg"):
             sent += 1
             # (with its Origin, as a page's fetch sends it; a served MJPEG stream never ends: the

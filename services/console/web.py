@@ -441,6 +441,7 @@ class Server:
         self.page_sid: dict[str, str] = {}  # page → its session id
         self.ctl = Control(grace_s=wc.web.control_grace_s, alive=self._page_alive)
         self._told: dict[str, int] = {}  # refusal kind → events published
+
         @web.middleware
         async def guard(request: Any, handler: Any) -> Any:
             return await self._guard(request, handler)

@@ -279,7 +279,9 @@ function render(m) {
   window.consoleState = m;
   mmPerPx = m.mouse_mm_per_px || mmPerPx;
   $("#site").textContent = "site " + m.site;
-  $("#alive").innerHTML = `<span class="dim">alive: ${esc(m.alive.join(" "))}</span>`;
+  const refused = m.door ? Object.entries(m.door.refused) : [];
+  $("#alive").innerHTML = `<span class="dim">alive: ${esc(m.alive.join(" "))}</span>` +
+    (refused.length ? ` <span class="warn" id="door-refused">refused at the door: ${esc(refused.map(([k, n]) => k + " " + n).join(", "))}</span>` : "");
   const ms = m.masters[MASTER];
   masterOn = !!ms;
   const el = $("#master-status");
