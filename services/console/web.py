@@ -761,6 +761,12 @@ class Server:
                 ]
                 data = json.dumps(state)
                 for ws in list(self.sockets):
+                    page = self.pages.get(ws)
+                    if page is not None and not ws.closed and not self._page_alive(page):
+                        self._count("expired")  # a page that sends nothing learns it too
+                        with contextlib.suppress(Exception):
+                            await ws.close(code=4401, message=b"session expired: log in again")
+                        continue
                     if not ws.closed:
                         with contextlib.suppress(Exception):
                             await ws.send_str(data)
