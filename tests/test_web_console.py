@@ -400,11 +400,11 @@ def test_quiet_browser_holds_and_reengages_without_a_jump(tmp_path: Path) -> Non
         target2 = cdp.call("Target.createTarget", {"url": base})["targetId"]
         s2 = cdp.call("Target.attachToTarget", {"targetId": target2, "flatten": True})["sessionId"]
         cdp.call("Emulation.setFocusEmulationEnabled", {"enabled": True}, s2)
-        wait_page(cdp, s2, "#arm-arm1 .v.safety .state", lambda t: t == "OK", 30.0)
-        wait_page(cdp, s2, "#control", lambda t: t.startswith("VIEWER"), 10.0)
+        wait_page(cdp, s2, "#control", lambda t: t.startswith("VIEWER"), 30.0)
         time.sleep(1.2)
         click(cdp, s2, "#take")
         wait_page(cdp, s2, "#control", lambda t: t == "this page is in control", 10.0)
+        wait_page(cdp, s2, "#arm-arm1 .v.safety .state", lambda t: t == "OK", 30.0)
         drag(cdp, s2, 150.0, 0.0, steps=10)
         p_after = settle(probe)
         moved_mm = float(np.linalg.norm(p_after - p_hold) * 1e3)
