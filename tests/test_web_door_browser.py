@@ -26,7 +26,7 @@ from typing import Any
 import psutil
 import pytest
 from conftest import wait_until
-from helpers import DevTools, chromium
+from helpers import DevTools, chromium, run_unprivileged
 from telesurg.shared.bus import BusConfig, Node
 from telesurg.shared.messages import CartesianPose, EStop, SafetyEvent
 from test_web_console import click, js, needs_chromium, text, wait_page
@@ -163,6 +163,13 @@ def test_outsiders_are_refused_and_control_moves_only_by_handover(endpoint: str,
         assert told["host /api/state"][0] == 403 and "rebind.example" in told["host /api/state"][1]
         assert told["host ws"][:2] == ("CLOSE", 4403) and "Host" in told["host ws"][2]
         assert told["bad login"][0] == 401 and "not valid" in told["bad login"][1]
+        # another local user (uid nobody when the tests run as root)
+        other = run_unprivileged(
+            "import urllib.error, urllib.request",
+            f"try:\n    urllib.request.urlopen('{base}api/state', timeout=10)\n    print('served')\n"
+            "except urllib.error.HTTPError as e:\n    print(e.code, e.read().decode().strip())",
+        )
+        assert other.stdout.startswith("401 refused: not logged in"), (other.stdout, other.stderr[-500:])
 
         flags = ("--host-resolver-rules=MAP rebind.example 127.0.0.1",)
         with chromium(login, tmp_path, nice=0, flags=flags) as (cdp, s1):
@@ -241,8 +248,9 @@ def test_outsiders_are_refused_and_control_moves_only_by_handover(endpoint: str,
             handed = [t for k, t in events if k == "web_control"]
             actions = [a for src, a in estops if src == "console"]
         refused = st1["door"]["refused"]
-        # counted: no session (3 pages + the socket), foreign Host (socket, chromium), Origin, login
-        assert refused.get("session", 0) >= 4 and refused.get("host", 0) >= 2, refused
+        # counted: no session (3 pages + the socket + the other user), foreign Host (socket,
+        # chromium), Origin, login
+        assert refused.get("session", 0) >= 5 and refused.get("host", 0) >= 2, refused
         assert refused.get("origin", 0) >= 1 and refused.get("login", 0) >= 2, refused
         assert "web_refused" in kinds and "web_login" in kinds, kinds
         assert any("handed control" in t for t in handed), handed
