@@ -1,8 +1,9 @@
 """The web console's door in headless chromium and from plain socket clients (issue #39,
 acceptance 2 and 4). One ``telesurg console --web`` on a router serves every case:
 
-* a client without the session (no cookie; another local user, uid nobody), a foreign ``Host`` (``rebind.example``, DNS
-  rebinding: chromium maps the name to 127.0.0.1) and a page served from another origin
+* a client without the session (no cookie; also another local user, uid nobody), a foreign
+  ``Host`` (``rebind.example``, DNS rebinding: chromium maps the name to 127.0.0.1) and a page
+  served from another origin
   (another 127.0.0.1 port) in the same chromium that holds the operator's session cookie cannot
   read the state, drive, confirm, record, reset or take control: each gets a one-line refusal
   (HTTP 401/403, or its websocket closed with the reason) and is counted;
