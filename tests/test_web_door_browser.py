@@ -166,7 +166,7 @@ def test_outsiders_are_refused_and_control_moves_only_by_handover(endpoint: str,
         assert told["bad login"][0] == 401 and "not valid" in told["bad login"][1]
         # another local user (uid nobody when the tests run as root)
         other = run_unprivileged(
-            "import urllib.error, urllib.request",
+            "import encodings.idna, urllib.error, urllib.request",
             f"try:\n    urllib.request.urlopen('{base}api/state', timeout=10)\n    print('served')\n"
             "except urllib.error.HTTPError as e:\n    print(e.code, e.read().decode().strip())",
         )
