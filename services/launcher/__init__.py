@@ -40,6 +40,7 @@ import subprocess
 import sys
 import threading
 import time
+import urllib.parse
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -793,6 +794,14 @@ def login_url(page_url: str, token: str) -> str:
     return f"{page_url}login?token={token}"
 
 
+def announce_login(page_url: str, token: str) -> None:
+    """Print the web console's one-time login URL once its page is served (stdout only: the
+    launcher's log may be readable by others)."""
+    u = urllib.parse.urlsplit(page_url)
+    wait_port(u.hostname or "127.0.0.1", u.port or 80, 30.0)
+    print(f"web surgeon console (one-time login): {login_url(page_url, token)}", flush=True)
+
+
 def run_site(spec: SiteSpec, seconds: float, stop: threading.Event, console: str = "") -> int:
     """Run ``spec`` until ``stop`` or ``seconds``; 0 if every process stopped cleanly. ``console``:
     the web console's page URL (its one-time login URL is printed once the site is up)."""
@@ -800,8 +809,8 @@ def run_site(spec: SiteSpec, seconds: float, stop: threading.Event, console: str
     with Site(spec) as site:
         eps = ", ".join((spec.endpoint, *spec.listen))
         log.info("site %r up on %s; Ctrl-C stops everything", spec.site, eps)
-        if console and site.login_token:  # (stdout only: the launcher's log may be shared)
-            print(f"web surgeon console (one-time login): {login_url(console, site.login_token)}", flush=True)
+        if console and site.login_token:
+            announce_login(console, site.login_token)
         reported: set[str] = set()
         while not stop.wait(0.2) and time.monotonic() < deadline:
             for name, rc in site.dead().items():
