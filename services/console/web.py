@@ -21,10 +21,16 @@ after it was seen released (a fresh press). Commands and e-stops go out through 
 :class:`~telesurg.services.console.model.ConsoleModel` as the terminal console, with its
 identity (``service``, ``console``).
 
+Everything is served only to a logged-in browser (:mod:`telesurg.services.console.door`): the
+one-time login URL printed at start (or handed over by the launcher, :data:`LOGIN_ENV`) is swapped
+for a session cookie; ``Host`` and ``Origin`` are checked; one page controls the master, the others
+view until control is handed over (:mod:`telesurg.services.console.control`).
+
 Examples::
 
-    telesurg console --web --connect tcp/127.0.0.1:7447            # http://127.0.0.1:8470/
-    telesurg console --web --port 8080 --set web.host=0.0.0.0      # a phone on the LAN
+    telesurg console --web --connect tcp/127.0.0.1:7447            # prints its login URL
+    telesurg console --web --port 8080 --set web.host=0.0.0.0 \
+        --set 'web.allowed_hosts=["192.168.1.20"]'                 # a phone on the LAN
 """
 
 from __future__ import annotations
