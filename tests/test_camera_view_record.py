@@ -4,12 +4,15 @@ rerun shows them as images."""
 
 from __future__ import annotations
 
+import http.cookiejar
 import json
 import subprocess
 import sys
+import urllib.error
 import urllib.request
 from pathlib import Path
 
+import psutil
 import pytest
 from conftest import wait_until
 from helpers import entity_paths, held_port
@@ -43,10 +46,38 @@ def test_view_page_recording_and_replay(tmp_path: Path) -> None:
                 "--seconds",
                 "60",
             ],
-            stdout=subprocess.DEVNULL,
+            stdout=subprocess.PIPE,
             stderr=subprocess.DEVNULL,
+            text=True,
         )
         try:
+            # the page is served only after the one-time login URL it printed (a session cookie)
+            assert view.stdout is not None
+            line = view.stdout.readline()
+            assert line.startswith(f"endoscope view: http://127.0.0.1:{port}/login?token="), line
+            login = line.split()[-1]
+            binds = {
+                c.laddr.ip
+                for c in psutil.net_connections("tcp")
+                if c.status == "LISTEN" and c.laddr.port == port
+            }
+            assert binds == {"127.0.0.1"}, f"telesurg view listens on {binds}"
+            jar = urllib.request.HTTPCookieProcessor(http.cookiejar.CookieJar())
+            browser = urllib.request.build_opener(jar)
+            for url, headers, code in (
+                (f"http://127.0.0.1:{port}/", {}, 401),  # another local user: no session
+                (f"http://127.0.0.1:{port}/status.json", {}, 401),
+                (login, {"Host": "rebind.example"}, 403),  # DNS rebinding
+            ):
+                with pytest.raises(urllib.error.HTTPError) as refused:
+                    urllib.request.urlopen(urllib.request.Request(url, headers=headers), timeout=5)
+                assert refused.value.code == code
+                assert refused.value.read().startswith(b"refused: ")
+            with browser.open(login, timeout=5) as r:  # one step: the cookie, then the page
+                assert r.url == f"http://127.0.0.1:{port}/" and b"/stream.mjpg" in r.read()
+            with pytest.raises(urllib.error.HTTPError) as again:
+                browser.open(login, timeout=5)
+            assert again.value.code == 401, "the login URL worked twice"
             rec = subprocess.run(
                 [
                     sys.executable,
@@ -70,7 +101,7 @@ def test_view_page_recording_and_replay(tmp_path: Path) -> None:
 
             def status() -> dict[str, object]:
                 try:
-                    with urllib.request.urlopen(f"http://127.0.0.1:{port}/status.json", timeout=2) as r:
+                    with browser.open(f"http://127.0.0.1:{port}/status.json", timeout=2) as r:
                         return dict(json.loads(r.read()))
                 except OSError:
                     return {}
@@ -78,14 +109,14 @@ def test_view_page_recording_and_replay(tmp_path: Path) -> None:
             assert wait_until(lambda: int(status().get("seq", -1)) >= 0, 20.0), status()
             s = status()
             assert (s["camera"], s["width"], s["height"]) == ("endo", 320, 240)
-            with urllib.request.urlopen(f"http://127.0.0.1:{port}/stream.mjpg", timeout=5) as r:
+            with browser.open(f"http://127.0.0.1:{port}/stream.mjpg", timeout=5) as r:
                 head = r.read(4096)
             assert head.startswith(b"--frame\r\nContent-Type: image/jpeg") and b"\xff\xd8" in head
-            with urllib.request.urlopen(f"http://127.0.0.1:{port}/", timeout=5) as r:
-                assert b"/stream.mjpg" in r.read()
         finally:
             view.terminate()
             view.wait(10)
+            if view.stdout is not None:
+                view.stdout.close()
     with open_mcap(out) as reader:
         frames = [m for t, _, _, _, m in iter_decoded(reader) if t.endswith("/camera/endo/image")]
     assert len(frames) >= 10 and all(isinstance(m, CameraImage) for m in frames), len(frames)

@@ -35,7 +35,7 @@ import numpy as np
 import pytest
 from conftest import wait_until
 from helpers import CHROMIUM, DevTools, chromium, screenshot
-from telesurg.services.launcher import Site, SiteSpec, default_config_dir, free_port
+from telesurg.services.launcher import Site, SiteSpec, default_config_dir, free_port, login_url
 from telesurg.shared.bus import BusConfig, Node
 from telesurg.shared.messages import CameraImage, CartesianPose, JointSetpoint, SafetyState
 
@@ -114,14 +114,15 @@ class Probe:
 def running_console(tmp: Path, camera: bool = False) -> Iterator[tuple[str, str, Probe]]:
     """``telesurg up --master web``'s processes (router, watchdog, slave_control, mapping and the
     web console as the master; deploy/local; ``camera``: the endoscope camera too) and a probe:
-    (page URL, endpoint, probe)."""
+    (the one-time login URL the launcher prints, endpoint, probe). A controlling page gone for 1 s
+    may be replaced by a page that takes control (``web.control_grace_s``)."""
     web_port = free_port()
     spec = SiteSpec(
         port=free_port(),
         config_dir=default_config_dir(),
         services=("watchdog", "slave_control", "mapping", *(("camera",) if camera else ()), "console"),
         # (web.rt_priority: the publisher under SCHED_FIFO, as master_capture in deploy/local)
-        overrides={"console": [f"web.port={web_port}", "web.rt_priority=20"]},
+        overrides={"console": [f"web.port={web_port}", "web.rt_priority=20", "web.control_grace_s=1"]},
         log_dir=tmp / "logs",
     )
     probe = Probe()
@@ -131,19 +132,22 @@ def running_console(tmp: Path, camera: bool = False) -> Iterator[tuple[str, str,
         node.subscribe(k.slave("arm1", "servo_jp"), JointSetpoint, probe.on_servo)
         node.subscribe(k.master("m1", "measured_cp"), CartesianPose, probe.on_master)
         node.subscribe(k.safety("arm1", "state"), SafetyState, probe.on_safety)
+        import urllib.error
         import urllib.request
 
         url = f"http://127.0.0.1:{web_port}/"
 
-        def up() -> bool:
+        def up() -> bool:  # (without a session: refused, 401)
             try:
-                with urllib.request.urlopen(url + "api/stats", timeout=1) as r:
-                    return bool(r.status == 200)
+                with urllib.request.urlopen(url + "api/stats", timeout=1):
+                    return False
+            except urllib.error.HTTPError as exc:
+                return exc.code == 401
             except OSError:
                 return False
 
         assert wait_until(up, 30.0), "the web console did not serve its page within 30 s"
-        yield url, spec.endpoint, probe
+        yield login_url(url, site.login_token), spec.endpoint, probe
         assert not site.dead(), f"services died: {site.dead()}"
         codes = site.stop()
         assert codes.get("console") == 0, f"web console exit codes {codes}"
@@ -379,7 +383,8 @@ def test_quiet_browser_holds_and_reengages_without_a_jump(tmp_path: Path) -> Non
         drag(cdp, s, 100.0, 0.0, steps=10)
         settle(probe)
         target = cdp.call("Target.getTargets")["targetInfos"]
-        page = next(t["targetId"] for t in target if t["type"] == "page" and t["url"].startswith(url))
+        base = url.split("login?")[0]
+        page = next(t["targetId"] for t in target if t["type"] == "page" and t["url"].startswith(base))
         t_close = time.monotonic()
         cdp.call("Target.closeTarget", {"targetId": page})
         assert wait_until(lambda: probe.first_state(t_close, ("HOLD",)) is not None, 5.0)
@@ -390,10 +395,15 @@ def test_quiet_browser_holds_and_reengages_without_a_jump(tmp_path: Path) -> Non
         assert last is not None
         quiet_ms = (t_hold - last) * 1e3  # the last master sample on the bus → the watchdog's HOLD
         p_hold = settle(probe)
-        # a new tab: its clutch is released; a drag moves nothing
-        target2 = cdp.call("Target.createTarget", {"url": url})["targetId"]
+        # a new tab (the same login session): a viewer until it takes control (the closed page is
+        # gone for web.control_grace_s); then its clutch is released; a drag moves nothing
+        target2 = cdp.call("Target.createTarget", {"url": base})["targetId"]
         s2 = cdp.call("Target.attachToTarget", {"targetId": target2, "flatten": True})["sessionId"]
         cdp.call("Emulation.setFocusEmulationEnabled", {"enabled": True}, s2)
+        wait_page(cdp, s2, "#control", lambda t: t.startswith("VIEWER"), 30.0)
+        time.sleep(1.2)
+        click(cdp, s2, "#take")
+        wait_page(cdp, s2, "#control", lambda t: t == "this page is in control", 10.0)
         wait_page(cdp, s2, "#arm-arm1 .v.safety .state", lambda t: t == "OK", 30.0)
         drag(cdp, s2, 150.0, 0.0, steps=10)
         p_after = settle(probe)

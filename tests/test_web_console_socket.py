@@ -11,7 +11,6 @@ import subprocess
 import sys
 import threading
 import time
-import urllib.request
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -27,16 +26,24 @@ pytestmark = pytest.mark.process
 
 @contextmanager
 def web_console(ep: str, tmp: Path, *extra: str) -> Iterator[tuple[str, float]]:
-    """``telesurg console --web`` connected to ``ep``: (base URL, monotonic time it was started)."""
+    """``telesurg console --web`` connected to ``ep``: (the one-time login URL it printed,
+    monotonic time it was started)."""
     port = free_port()
     argv = [sys.executable, "-m", "telesurg.services.cli", "console", "--web", "--port", str(port)]
     argv += ["--connect", ep, "--log-file", str(tmp / "web.log"), *extra]
     t0 = time.monotonic()
-    proc = subprocess.Popen(argv, stdout=subprocess.DEVNULL, stderr=subprocess.STDOUT)
-    url = f"http://127.0.0.1:{port}/"
+    proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+    lines: list[str] = []
+    assert proc.stdout is not None
+    out = proc.stdout
+    reader = threading.Thread(target=lambda: lines.extend(out), daemon=True)
+    reader.start()
     try:
-        assert wait_until(lambda: get(url + "api/stats") is not None, 30.0), "no page within 30 s"
-        yield url, t0
+        printed = lambda: next((x.split()[-1] for x in lines if x.startswith("web console: ")), "")  # noqa: E731
+        assert wait_until(lambda: bool(printed()), 60.0), f"no login URL printed within 60 s: {lines}"
+        login = printed()
+        assert login.startswith(f"http://127.0.0.1:{port}/login?token="), login
+        yield login, t0
     finally:
         proc.send_signal(signal.SIGINT)
         try:
@@ -44,15 +51,25 @@ def web_console(ep: str, tmp: Path, *extra: str) -> Iterator[tuple[str, float]]:
         except subprocess.TimeoutExpired:
             proc.kill()
             code = proc.wait()
+        reader.join(5)
+        out.close()
         assert code == 0, f"web console exit code {code}"
 
 
-def get(url: str) -> Any:
-    try:
-        with urllib.request.urlopen(url, timeout=2) as r:
-            return json.loads(r.read())
-    except OSError:
-        return None
+def base_of(login: str) -> str:
+    return login.split("login?")[0]
+
+
+async def logged_in(http: Any, login: str) -> None:
+    """Open the printed login URL (one step: the cookie, then the page)."""
+    async with http.get(login) as r:
+        assert r.status == 200 and str(r.url) == base_of(login), (r.status, r.url)
+
+
+def client() -> Any:
+    import aiohttp
+
+    return aiohttp.ClientSession(cookie_jar=aiohttp.CookieJar(unsafe=True))  # (an IP address host)
 
 
 NAN = '{"type": "sample", "master": "m1", "t": 1, "p": [NaN, 0, 0], "q": [0, 0, 0, 1], "clutch": true}'
@@ -60,15 +77,19 @@ INF = '{"type": "sample", "master": "m1", "t": 1, "p": [0, 0, 0], "q": [0, 0, 0,
 GOOD = {"type": "sample", "master": "m1", "t": 1.0, "p": [0, 0, 0], "q": [0, 0, 0, 1], "clutch": True}
 
 
-async def attack(url: str) -> dict[str, Any]:
-    """Send each kind of bad frame on one connection (then a flood on a second, and a frame past
-    aiohttp's own cap on a third); what the server said and how each connection ended."""
+async def attack(login: str) -> tuple[dict[str, Any], dict[str, Any]]:
+    """Logged in, send each kind of bad frame on one connection (then a flood on a second, and a
+    frame past aiohttp's own cap on a third); what the server said and how each connection ended,
+    and the console's counters after."""
     import aiohttp
 
-    ws_url = url.replace("http", "ws") + "ws"
+    url = base_of(login)
+    ws_url = url.replace("http", "ws") + "ws?page=tester1"  # one page: the one in control
+    origin = url.rstrip("/")
     out: dict[str, Any] = {}
-    async with aiohttp.ClientSession() as http:
-        async with http.ws_connect(ws_url) as ws:
+    async with client() as http:
+        await logged_in(http, login)
+        async with http.ws_connect(ws_url, origin=origin) as ws:
             bad: list[str | bytes] = [
                 "{not json",
                 "[1, 2, 3]",
@@ -86,27 +107,31 @@ async def attack(url: str) -> dict[str, Any]:
                 await (ws.send_bytes(f) if isinstance(f, bytes) else ws.send_str(f))
             await asyncio.sleep(0.5)
             out["first_closed"] = ws.closed
-        async with http.ws_connect(ws_url) as ws:
+        async with http.ws_connect(ws_url, origin=origin) as ws:
             for _ in range(2000):
                 await ws.send_str('{"type": "ping"}')
             msg = await ws.receive(timeout=10)
             while msg.type == aiohttp.WSMsgType.TEXT:
                 msg = await ws.receive(timeout=10)
             out["flood_close"] = ws.close_code
-        async with http.ws_connect(ws_url) as ws:  # well-formed frames with bad values, repeated
+        async with http.ws_connect(
+            ws_url, origin=origin
+        ) as ws:  # well-formed frames with bad values, repeated
             for _ in range(60):
                 await ws.send_str(json.dumps({**GOOD, "p": [0, 0, 9.0]}))
             msg = await ws.receive(timeout=10)
             while msg.type == aiohttp.WSMsgType.TEXT:
                 msg = await ws.receive(timeout=10)
             out["values_close"] = ws.close_code
-        async with http.ws_connect(ws_url, max_msg_size=0) as ws:
+        async with http.ws_connect(ws_url, origin=origin, max_msg_size=0) as ws:
             await ws.send_str("y" * (1 << 20))
             msg = await ws.receive(timeout=10)
             while msg.type == aiohttp.WSMsgType.TEXT:
                 msg = await ws.receive(timeout=10)
             out["huge_close"] = ws.close_code
-    return out
+        async with http.get(url + "api/stats") as r:
+            stats = await r.json()
+    return out, stats
 
 
 def test_bad_socket_input_is_refused_counted_and_never_reaches_the_bus(endpoint: str, tmp_path: Path) -> None:
@@ -120,9 +145,8 @@ def test_bad_socket_input_is_refused_counted_and_never_reaches_the_bus(endpoint:
                 seen.append(str(s.key_expr))
 
         sub = session.declare_subscriber("telesurg/local/master/**", on_sample)
-        with web_console(endpoint, tmp_path) as (url, _):
-            result = asyncio.run(attack(url))
-            stats = get(url + "api/stats")
+        with web_console(endpoint, tmp_path) as (login, _):
+            result, stats = asyncio.run(attack(login))
             time.sleep(0.3)
         sub.undeclare()
     finally:
@@ -142,13 +166,14 @@ def test_bad_socket_input_is_refused_counted_and_never_reaches_the_bus(endpoint:
         assert seen == [], f"bad input reached the bus: {seen[:5]}"
 
 
-async def first_state(url: str) -> tuple[float, dict[str, Any]]:
-    import aiohttp
-
-    async with aiohttp.ClientSession() as http, http.ws_connect(url.replace("http", "ws") + "ws") as ws:
-        t = time.monotonic()
-        msg = await ws.receive(timeout=10)
-        return t, json.loads(msg.data)
+async def first_state(login: str) -> tuple[float, dict[str, Any]]:
+    url = base_of(login)
+    async with client() as http:
+        await logged_in(http, login)
+        async with http.ws_connect(url.replace("http", "ws") + "ws", origin=url.rstrip("/")) as ws:
+            t = time.monotonic()
+            msg = await ws.receive(timeout=10)
+            return t, json.loads(msg.data)
 
 
 def test_a_console_opened_after_the_engage_shows_it_at_once(tmp_path: Path) -> None:

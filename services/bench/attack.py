@@ -929,7 +929,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--log-dir", type=Path, help="service logs (default: a temporary directory)")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(levelname)s %(message)s")
-    all_cases = cases()
+    from telesurg.services.bench.attack_web import web_cases
+
+    all_cases = [*cases(), *web_cases()]
     selected = all_cases
     if args.only:
         names = [n.strip() for n in args.only.split(",") if n.strip()]

@@ -1,12 +1,15 @@
 """``telesurg view``: the live endoscope picture in a small web page (until the web console lands).
 
-Subscribes to ``camera/<cam>/image`` and serves, on localhost only, a page (``/``) with the
+Subscribes to ``camera/<cam>/image`` and serves, on 127.0.0.1 only, a page (``/``) with the
 picture as an MJPEG stream (``/stream.mjpg``: each frame's JPEG as it arrives, no re-encoding)
-and the frame's age, sequence and size (``/status.json``). Any browser shows it.
+and the frame's age, sequence and size (``/status.json``). Any browser shows it — once logged in:
+like the web console, the page is served only with the session cookie that the one-time login URL
+printed at start gives (:mod:`telesurg.services.console.door`: Host and Origin checked, sessions
+expire after 8 h); another local user or another page in the browser gets a one-line refusal.
 
 Example::
 
-    telesurg view --connect tcp/127.0.0.1:7447 --port 8088    # then open http://127.0.0.1:8088/
+    telesurg view --connect tcp/127.0.0.1:7447 --port 8088    # open the login URL it prints
 """
 
 from __future__ import annotations
@@ -18,10 +21,13 @@ import sys
 import threading
 import time
 from collections.abc import Sequence
+from http.cookies import SimpleCookie
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from typing import Any
+from urllib.parse import parse_qs
 
 from telesurg.services.common import duration_s, install_stop_handlers, setup_logging, tcp_port
+from telesurg.services.console.door import Door
 from telesurg.shared.bus import Node, add_bus_args, bus_from_args
 from telesurg.shared.errors import TelesurgError
 from telesurg.shared.messages import CameraImage
@@ -70,14 +76,45 @@ class Latest:
             }
 
 
-def make_server(latest: Latest, port: int, stop: threading.Event) -> ThreadingHTTPServer:
-    """The page, the MJPEG stream and the status on 127.0.0.1:``port``."""
+def make_server(latest: Latest, port: int, stop: threading.Event, door: Door) -> ThreadingHTTPServer:
+    """The page, the MJPEG stream and the status on 127.0.0.1:``port``, behind ``door``."""
 
     class Handler(BaseHTTPRequestHandler):
         def log_message(self, fmt: str, *args: Any) -> None:
             log.debug(fmt, *args)
 
+        def _admitted(self, method: str) -> bool:
+            path, _, query = self.path.partition("?")
+            cookies = {k: m.value for k, m in SimpleCookie(self.headers.get("Cookie", "")).items()}
+            headers = {h: v for h in ("Host", "Origin") if (v := self.headers.get(h)) is not None}
+            verdict = door.admit(method, path, headers, cookies, websocket=False)
+            if not verdict.ok:
+                log.warning("%s (from %s)", verdict.reason, self.client_address[0])
+                self._send(verdict.reason.encode() + b"\n", "text/plain; charset=utf-8", verdict.status)
+                return False
+            if path == "/login":
+                got = door.login(parse_qs(query).get("token", [""])[0])
+                if got is None:
+                    reason = b"refused: this login link is not valid (already used or mistyped)\n"
+                    log.warning("refused login from %s", self.client_address[0])
+                    self._send(reason, "text/plain; charset=utf-8", 401)
+                    return False
+                self.send_response(303)
+                self.send_header("Location", "/")
+                self.send_header("Set-Cookie", door.cookie_header(got[0]))
+                self.send_header("Cache-Control", "no-store")
+                self.send_header("Content-Length", "0")
+                self.end_headers()
+                return False
+            return True
+
+        def do_POST(self) -> None:
+            if self._admitted("POST"):
+                self.send_error(405)
+
         def do_GET(self) -> None:
+            if not self._admitted("GET"):
+                return
             if self.path == "/":
                 self._send(PAGE.encode(), "text/html; charset=utf-8")
             elif self.path == "/status.json":
@@ -87,8 +124,8 @@ def make_server(latest: Latest, port: int, stop: threading.Event) -> ThreadingHT
             else:
                 self.send_error(404)
 
-        def _send(self, body: bytes, ctype: str) -> None:
-            self.send_response(200)
+        def _send(self, body: bytes, ctype: str, status: int = 200) -> None:
+            self.send_response(status)
             self.send_header("Content-Type", ctype)
             self.send_header("Content-Length", str(len(body)))
             self.send_header("Cache-Control", "no-store")
@@ -146,8 +183,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     stop = threading.Event()
     install_stop_handlers(stop)
     latest = Latest()
+    door = Door("127.0.0.1", a.port, cookie="telesurg_view")
     try:  # the page's port first: a taken one is said before anything joins the site
-        server = make_server(latest, a.port, stop)
+        server = make_server(latest, a.port, stop, door)
     except OSError as exc:
         print(
             f"telesurg view: port {a.port} on 127.0.0.1: {exc.strerror or exc} (--port picks another)",
@@ -160,7 +198,9 @@ def main(argv: Sequence[str] | None = None) -> int:
                 node.keys.camera(a.camera, "image"), CameraImage, latest.on_frame, sources=["camera"]
             )
             threading.Thread(target=server.serve_forever, daemon=True).start()
-            log.info("endoscope view: http://127.0.0.1:%d/", a.port)
+            log.info("endoscope view: http://127.0.0.1:%d/ (log in with the login URL)", a.port)
+            # (stdout only, never the log: the one-time login token is the page's secret)
+            print(f"endoscope view: {door.login_url(door.mint())}", flush=True)
             stop.wait(a.seconds or None)
             stop.set()
             with latest.cond:

@@ -20,6 +20,9 @@ A frame from the browser is one JSON object with a ``type``:
 * ``estop`` / ``reset`` (``arm``: an arm or ``*``; a reset needs ``"confirm": true``),
   ``command`` (``arm``, ``name``, ``args``: ["key=value", …], ``target``: slave | mapping),
   ``record`` (``action``: start | stop).
+* ``control`` (``action``: take | release | grant | refuse) and ``invite`` (a one-time login link
+  for another page); a page not in control (a viewer) may send only these, ``estop``, ``hidden``
+  and ``ping``.
 """
 
 from __future__ import annotations
@@ -46,7 +49,13 @@ FRAMES: dict[str, tuple[frozenset[str], frozenset[str]]] = {
     # the operator's answer to a server's ``confirm required`` (a motion-starting command)
     "confirm": (frozenset({"type", "yes"}), frozenset({"type", "yes"})),
     "ping": (frozenset({"type", "t"}), frozenset({"type"})),
+    # control of the master (services/console/control.py): take | release | grant | refuse
+    "control": (frozenset({"type", "action"}), frozenset({"type", "action"})),
+    # a one-time login link for another page (a viewer)
+    "invite": (frozenset({"type"}), frozenset({"type"})),
 }
+#: frame types a viewer (a page not in control) may send; the rest need control
+VIEWER_FRAMES = frozenset({"estop", "hidden", "ping", "control", "invite"})
 DEVICES = ("mouse", "touch", "gamepad", "keyboard")
 MAX_POSITION_M = 1.0  # m: a browser master's position beyond this is refused
 

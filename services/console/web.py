@@ -21,10 +21,16 @@ after it was seen released (a fresh press). Commands and e-stops go out through 
 :class:`~telesurg.services.console.model.ConsoleModel` as the terminal console, with its
 identity (``service``, ``console``).
 
+Everything is served only to a logged-in browser (:mod:`telesurg.services.console.door`): the
+one-time login URL printed at start (or handed over by the launcher, :data:`LOGIN_ENV`) is swapped
+for a session cookie; ``Host`` and ``Origin`` are checked; one page controls the master, the others
+view until control is handed over (:mod:`telesurg.services.console.control`).
+
 Examples::
 
-    telesurg console --web --connect tcp/127.0.0.1:7447            # http://127.0.0.1:8470/
-    telesurg console --web --port 8080 --set web.host=0.0.0.0      # a phone on the LAN
+    telesurg console --web --connect tcp/127.0.0.1:7447            # prints its login URL
+    telesurg console --web --port 8080 --set web.host=0.0.0.0 \
+        --set 'web.allowed_hosts=["192.168.1.20"]'                 # a phone on the LAN
 """
 
 from __future__ import annotations
@@ -36,6 +42,9 @@ import importlib.resources
 import json
 import logging
 import math
+import os
+import re
+import secrets
 import signal
 import threading
 import time
@@ -47,12 +56,15 @@ from typing import Any
 import numpy as np
 from telesurg.services.common import install_stop_handlers, watch_parent
 from telesurg.services.console.browser import (
+    VIEWER_FRAMES,
     BrowserMaster,
     ClockMap,
     FrameError,
     SocketGuard,
     parse_sample,
 )
+from telesurg.services.console.control import Control
+from telesurg.services.console.door import LOGIN_ENV, Door
 from telesurg.services.console.model import ConsoleConfig, ConsoleModel
 from telesurg.shared import robots
 from telesurg.shared.bus import Node, only
@@ -421,14 +433,27 @@ class WebConsole:
 
 
 class Server:
-    """The aiohttp application: page, static files, ``/api/state``, ``/api/stats`` and ``/ws``."""
+    """The aiohttp application: ``/login``, the page, static files, ``/api/state``, ``/api/stats``,
+    ``/video.mjpg`` and ``/ws`` — every one behind the :class:`~telesurg.services.console.door.Door`
+    (Host, Origin, the session cookie) and the websocket's frames behind the
+    :class:`~telesurg.services.console.control.Control` (one controlling page)."""
 
-    def __init__(self, wc: WebConsole) -> None:
+    def __init__(self, wc: WebConsole, door: Door) -> None:
         from aiohttp import web
 
-        self.wc = wc
+        self.wc, self.door = wc, door
         self.sockets: weakref.WeakSet[Any] = weakref.WeakSet()
-        self.app = web.Application()
+        self.pages: dict[Any, str] = {}  # open socket → its page
+        self.page_sid: dict[str, str] = {}  # page → its session id
+        self.ctl = Control(grace_s=wc.web.control_grace_s, alive=self._page_alive)
+        self._told: dict[str, int] = {}  # refusal kind → events published
+
+        @web.middleware
+        async def guard(request: Any, handler: Any) -> Any:
+            return await self._guard(request, handler)
+
+        self.app = web.Application(middlewares=[guard])
+        self.app.router.add_get("/login", self._login)
         self.app.router.add_get("/", self._index)
         self.app.router.add_get("/api/state", self._api_state)
         self.app.router.add_get("/api/stats", self._api_stats)
@@ -436,20 +461,86 @@ class Server:
         self.app.router.add_get("/video.mjpg", self._video)
         self.app.router.add_static("/static/", static_dir())
 
+    # -- the door ------------------------------------------------------------------------------
+    def _page_alive(self, page: str) -> bool:
+        return self.door.alive(self.page_sid.get(page, ""))
+
+    @staticmethod
+    def _is_ws(request: Any) -> bool:
+        return str(request.headers.get("Upgrade", "")).lower() == "websocket"
+
+    async def _guard(self, request: Any, handler: Any) -> Any:
+        """Every request: Host, Origin and the session (:meth:`Door.admit`); a refusal is one line
+        (a refused websocket is accepted only to be closed at once with the reason)."""
+        from aiohttp import web
+
+        ws = self._is_ws(request)
+        v = self.door.admit(request.method, request.path, request.headers, request.cookies, ws)
+        if v.ok:
+            request["session"] = v.session
+            return await handler(request)
+        self.refused(v.kind, v.reason, request.remote)
+        if ws:
+            sock = web.WebSocketResponse()
+            await sock.prepare(request)
+            await sock.close(code=4400 + (v.status % 100), message=v.reason.encode()[:120])
+            return sock
+        return web.Response(status=v.status, text=v.reason + "\n", headers={"Cache-Control": "no-store"})
+
+    def refused(self, kind: str, reason: str, peer: str | None) -> None:
+        """Log a refusal and publish it as a ``web_refused`` event (the first five of each kind,
+        then every 100th: a flood of refusals does not flood the bus)."""
+        n = self._told.get(kind, 0) + 1
+        self._told[kind] = n
+        if n <= 5 or n % 100 == 0:
+            total = self.door.counts().get(kind, n)
+            text = f"{reason} (from {peer}; {kind} refusals: {total})"
+            self.wc.node.event("web_refused", text, severity="warning")
+
+    async def _login(self, request: Any) -> Any:
+        """``/login?token=T``: a one-time token for a session cookie, then the page (303)."""
+        from aiohttp import web
+
+        got = self.door.login(request.query.get("token", ""))
+        if got is None:
+            reason = "refused: this login link is not valid (already used, expired or mistyped)"
+            self.refused("login", reason, request.remote)
+            return web.Response(status=401, text=reason + "\n", headers={"Cache-Control": "no-store"})
+        value, s = got
+        self.wc.node.event("web_login", f"session {s.label} logged in from {request.remote}")
+        return web.Response(
+            status=303,
+            headers={
+                "Location": "/",
+                "Set-Cookie": self.door.cookie_header(value),
+                "Cache-Control": "no-store",
+                "Referrer-Policy": "no-referrer",
+            },
+        )
+
+    # -- what is served --------------------------------------------------------------------------
     async def _index(self, request: Any) -> Any:
         from aiohttp import web
 
         return web.FileResponse(static_dir() / "index.html")
 
+    def state(self) -> dict[str, Any]:
+        """The console's state with the door's and the control's."""
+        st = self.wc.state()
+        holder, request = self.ctl.snapshot()
+        st["control"] = {"holder": holder, "request": request}
+        st["door"] = {"refused": self.door.counts()}
+        return st
+
     async def _api_state(self, request: Any) -> Any:
         from aiohttp import web
 
-        return web.json_response(self.wc.state())
+        return web.json_response(self.state())
 
     async def _api_stats(self, request: Any) -> Any:
         from aiohttp import web
 
-        return web.json_response(self.wc.counters.as_dict())
+        return web.json_response({**self.wc.counters.as_dict(), "door": self.door.counts()})
 
     async def _video(self, request: Any) -> Any:
         """The endoscope picture as an MJPEG stream (``?camera=ID``; default: the first camera):
@@ -478,65 +569,145 @@ class Server:
                 await asyncio.sleep(0.02)
         return resp
 
+    # -- control ---------------------------------------------------------------------------------
+    def _role(self, page: str) -> dict[str, Any]:
+        holder, request = self.ctl.snapshot()
+        return {
+            "type": "control",
+            "page": page,
+            "role": "controller" if holder == page else "viewer",
+            "holder": holder,
+            "request": request,
+        }
+
+    async def tell_roles(self) -> None:
+        """Tell every page its role now (after any change of control)."""
+        for ws, page in list(self.pages.items()):
+            if not ws.closed:
+                with contextlib.suppress(Exception):
+                    await ws.send_json(self._role(page))
+
+    def _control_event(self, text: str) -> None:
+        if text:
+            self.wc.node.event("web_control", text)
+
+    def _handover(self, before: str | None) -> None:
+        """Control moved away from ``before``: its samples are invalid at once (the watchdog
+        holds until the new controller presses the clutch afresh)."""
+        holder, _ = self.ctl.snapshot()
+        if before is not None and holder != before:
+            for conn_ws, page in list(self.pages.items()):
+                if page == before:
+                    self.wc.release(conn_ws)
+
     async def _ws(self, request: Any) -> Any:
         from aiohttp import WSCloseCode, WSMsgType, web
 
         w = self.wc.web
+        sid = str(request["session"])
+        asked = request.query.get("page", "")
+        pid = asked if re.fullmatch(r"[A-Za-z0-9]{4,32}", asked) else secrets.token_hex(4)
+        page = f"{sid[:6]}-{pid}"
         # aiohttp's own cap (a larger frame closes the socket, code 1009); below it, SocketGuard
         # refuses frames over max_frame_bytes and counts them
         ws = web.WebSocketResponse(max_msg_size=16 * w.max_frame_bytes, heartbeat=5.0)
         await ws.prepare(request)
         guard = SocketGuard(rate_hz=w.max_frames_hz, max_rejects=w.max_rejects, max_bytes=w.max_frame_bytes)
         clock = ClockMap()
-        conn = object()
         with self.wc.counters.lock:
             self.wc.counters.connections += 1
         self.sockets.add(ws)
+        self.page_sid[page] = sid
+        self.pages[ws] = page
+        self._control_event(self.ctl.join(page))
         peer = request.remote
-        log.info("page connected from %s", peer)
-        await ws.send_json(self.wc.state())
+        log.info("page %s connected from %s", page, peer)
+        await ws.send_json(self.state())
+        await self.tell_roles()
+        told: dict[str, int] = {}
         try:
             async for msg in ws:
                 if msg.type == WSMsgType.ERROR:
                     self._count("oversized" if "size" in str(ws.exception()) else "protocol")
                     break
+                if not self.door.alive(sid):
+                    self._count("expired")
+                    await ws.close(code=4401, message=b"session expired: log in again")
+                    break
                 text: str | bytes = msg.data if msg.type == WSMsgType.TEXT else bytes(msg.data)
+                before = self.ctl.snapshot()
                 try:
-                    reply = self._handle(conn, guard.admit(text), clock)  # admit counts its refusals
+                    reply = self._handle(ws, page, guard.admit(text), clock)  # admit counts its refusals
                 except FrameError as exc:
-                    if exc.admitted:  # refused after admission (a bad field): count it here
+                    if exc.admitted and exc.kind != "viewer":  # a bad field, after admission
                         guard.reject(exc.kind)
                     self._count(exc.kind)
                     if guard.abusive:
                         with self.wc.counters.lock:
                             self.wc.counters.closed_abusive += 1
                         log.warning("closing the connection from %s: %d refused frames", peer, guard.rejected)
-                        self.wc.release(conn)
+                        self.wc.release(ws)
                         await ws.close(code=WSCloseCode.POLICY_VIOLATION, message=b"too many refused frames")
                         break
-                    if guard.counts[exc.kind] <= 3:  # tell the page, without echoing a flood
+                    told[exc.kind] = told.get(exc.kind, 0) + 1
+                    if told[exc.kind] <= 3:  # tell the page, without echoing a flood
                         await ws.send_json({"type": "refused", "kind": exc.kind, "text": str(exc)})
                     continue
                 with self.wc.counters.lock:
                     self.wc.counters.accepted += 1
-                if reply:
+                if isinstance(reply, dict):
+                    await ws.send_json(reply)
+                elif reply:
                     await ws.send_json({"type": "notice", "text": reply})
+                if self.ctl.snapshot() != before:  # control moved, or was asked for
+                    self._handover(before[0])
+                    await self.tell_roles()
         finally:
-            self.wc.release(conn)
-            log.info("page from %s gone (%d frames refused)", peer, guard.rejected)
+            self.wc.release(ws)
+            self.pages.pop(ws, None)
+            self._control_event(self.ctl.leave(page))
+            log.info("page %s from %s gone (%d frames refused)", page, peer, guard.rejected)
+            with contextlib.suppress(Exception):
+                await self.tell_roles()
         return ws
 
     def _count(self, kind: str) -> None:
+        """Count a refused frame (shown on the page, served on ``/api/stats``)."""
         with self.wc.counters.lock:
             self.wc.counters.rejected[kind] = self.wc.counters.rejected.get(kind, 0) + 1
 
-    def _handle(self, conn: object, obj: dict[str, Any], clock: ClockMap) -> str:
-        """One admitted frame; the text to tell the page, if any (FrameError marked admitted)."""
+    def _handle(self, conn: object, page: str, obj: dict[str, Any], clock: ClockMap) -> str | dict[str, Any]:
+        """One admitted frame; the text (or message) to tell the page, if any (FrameError marked
+        admitted)."""
         try:
+            if obj["type"] not in VIEWER_FRAMES and not self.ctl.is_controller(page):
+                raise FrameError("viewer", f"this page is a viewer: {obj['type']} needs control (ask for it)")
+            if obj["type"] == "control":
+                return self._control(page, obj["action"])
+            if obj["type"] == "invite":
+                token = self.door.mint(self.wc.web.invite_s)
+                self.wc.node.event("web_invite", f"page {page} made a login link for another page")
+                return {"type": "invite", "url": f"/login?token={token}", "valid_s": self.wc.web.invite_s}
             return self._handle_frame(conn, obj, clock)
         except FrameError as exc:
             exc.admitted = True
             raise
+
+    def _control(self, page: str, action: Any) -> str:
+        """A ``control`` frame: take | release | grant | refuse (services/console/control.py)."""
+        if action == "take":
+            granted, text = self.ctl.take(page)
+            self._control_event(text)
+            return "" if granted else "asked the controlling page for control"
+        if action == "release":
+            text = self.ctl.release(page)
+            self._control_event(text)
+            return "control released" if text else "this page is not in control"
+        if action in ("grant", "refuse"):
+            text = self.ctl.answer(page, action == "grant")
+            self._control_event(text)
+            return "" if text else "no request to answer"
+        raise FrameError("invalid", f"control action {action!r}; valid: take, release, grant, refuse")
 
     def _handle_frame(self, conn: object, obj: dict[str, Any], clock: ClockMap) -> str:
         kind = obj["type"]
@@ -590,12 +761,18 @@ class Server:
         while not stop.is_set():
             notices = self.wc.model.drain()
             if self.sockets:
-                state = self.wc.state()
+                state = self.state()
                 state["notices"] = [
                     {"t": n.stamp, "severity": n.severity, "text": n.text, "toast": n.toast} for n in notices
                 ]
                 data = json.dumps(state)
                 for ws in list(self.sockets):
+                    page = self.pages.get(ws)
+                    if page is not None and not ws.closed and not self._page_alive(page):
+                        self._count("expired")  # a page that sends nothing learns it too
+                        with contextlib.suppress(Exception):
+                            await ws.close(code=4401, message=b"session expired: log in again")
+                        continue
                     if not ws.closed:
                         with contextlib.suppress(Exception):
                             await ws.send_str(data)
@@ -603,21 +780,27 @@ class Server:
                 await asyncio.wait_for(stop.wait(), period)
 
 
-async def serve(wc: WebConsole, stop: asyncio.Event) -> None:
-    """Serve the page until ``stop``; logs (and prints) the URL."""
+async def serve(wc: WebConsole, stop: asyncio.Event, token: str = "") -> None:
+    """Serve the page until ``stop``. ``token``: the one-time login token the launcher made and
+    printed; without one, a token is made here and the login URL printed (stdout only, never the
+    log)."""
     from aiohttp import web
 
-    server = Server(wc)
+    w = wc.web
+    door = Door(w.host, w.port, session_s=w.session_s, allowed_hosts=tuple(w.allowed_hosts))
+    server = Server(wc, door)
     runner = web.AppRunner(server.app, handle_signals=False, access_log=None)
     await runner.setup()
-    site = web.TCPSite(runner, wc.web.host, wc.web.port)
+    site = web.TCPSite(runner, w.host, w.port)
     await site.start()
-    port = wc.web.port
     with contextlib.suppress(Exception):
-        port = runner.addresses[0][1]
-    url = f"http://{wc.web.host}:{port}/"
-    log.info("web console on %s", url)
-    print(f"web console: {url}", flush=True)
+        door.port = runner.addresses[0][1]
+    log.info("web console on http://%s:%d/ (log in with the login URL)", w.host, door.port)
+    if token:
+        door.add_token(token)
+        print(f"web console: http://{w.host}:{door.port}/ (login URL: from the launcher)", flush=True)
+    else:
+        print(f"web console: {door.login_url(door.mint())}", flush=True)
     task = asyncio.create_task(server.broadcast(stop))
     try:
         await stop.wait()
@@ -633,6 +816,7 @@ def run_web(cfg: ConsoleConfig, parent_pid: int = 0) -> None:
     """Open the console's node and the master node, serve until SIGINT / SIGTERM (or, with
     ``parent_pid``, until that launcher is gone)."""
     cfg.web.validate()
+    token = os.environ.pop(LOGIN_ENV, "")
     gone = threading.Event()  # SIGINT / SIGTERM (from now on: no KeyboardInterrupt mid-start-up)
     install_stop_handlers(gone)
     if parent_pid:
@@ -650,7 +834,7 @@ def run_web(cfg: ConsoleConfig, parent_pid: int = 0) -> None:
                 threading.Thread(
                     target=lambda: (gone.wait(), loop.call_soon_threadsafe(stop.set)), daemon=True
                 ).start()
-                await serve(wc, stop)
+                await serve(wc, stop, token)
 
             asyncio.run(main())
         finally:

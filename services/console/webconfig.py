@@ -2,7 +2,8 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import re
+from dataclasses import dataclass, field
 
 from telesurg.shared.errors import ConfigError
 from telesurg.shared.keys import check_id
@@ -14,6 +15,13 @@ class WebConfig:
     """The web console's own settings (``[console.web]``)."""
 
     host: str = "127.0.0.1"  # address the page is served on (0.0.0.0 for a phone on the LAN)
+    # more names (no port) the page may be reached by, besides host, 127.0.0.1 and localhost: a
+    # request with any other Host header is refused (DNS rebinding), e.g. ["192.168.1.20"] on a LAN
+    allowed_hosts: list[str] = field(default_factory=list)
+    session_s: float = 8 * 3600.0  # s: a login session lasts this long (then log in again)
+    invite_s: float = 600.0  # s: a login link a page makes for another page is valid this long
+    # s: a controlling page gone (no socket) this long may be replaced by a viewer's explicit take
+    control_grace_s: float = 10.0
     port: int = 8470  # TCP port of the page and its websocket
     # service id of the node publishing the browser masters' streams: the mapping and the watchdog
     # accept master/<m>/* from this id only (their master_source); "" = no browser master (the
@@ -39,6 +47,15 @@ class WebConfig:
         if self.master_service:
             check_id("master_service", self.master_service)
         check_rt_priority(self.rt_priority)
+        if not 60.0 <= self.session_s <= 7 * 86400.0:
+            raise ConfigError(f"web.session_s={self.session_s} outside [60, 604800]")
+        if not 10.0 <= self.invite_s <= 86400.0:
+            raise ConfigError(f"web.invite_s={self.invite_s} outside [10, 86400]")
+        if not 1.0 <= self.control_grace_s <= 3600.0:
+            raise ConfigError(f"web.control_grace_s={self.control_grace_s} outside [1, 3600]")
+        for h in self.allowed_hosts:
+            if not re.fullmatch(r"[A-Za-z0-9.-]+|\[[0-9A-Fa-f:]+\]", h):
+                raise ConfigError(f"web.allowed_hosts: {h!r} is not a host name (no port, no scheme)")
         if not 0 <= self.port <= 65535:
             raise ConfigError(f"web.port={self.port} outside [0, 65535]")
         if not 100.0 <= self.rate_hz <= 2000.0:

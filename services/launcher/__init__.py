@@ -40,6 +40,7 @@ import subprocess
 import sys
 import threading
 import time
+import urllib.parse
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -352,6 +353,8 @@ class Site:
         self.procs: dict[str, subprocess.Popen[bytes]] = {}
         self._logs: list[IO[bytes]] = []
         self.off: tuple[str, ...] = ()  # optional services that could not start (OPTIONAL)
+        # the web console's one-time login token (made here, handed to it in its environment)
+        self.login_token = ""
 
     def start(self) -> None:
         """Start the router, wait for it, then every service, one at a time.
@@ -497,6 +500,11 @@ class Site:
             env = {**os.environ, BEST_EFFORT_ENV: str(best_effort_nice())}
         elif name in CONTROL:
             preexec = functools.partial(_foreground, slice_us)
+        if name == "console":  # its login token: in the environment, never on the command line
+            from telesurg.services.console.door import LOGIN_ENV
+
+            self.login_token = secrets.token_urlsafe(32)
+            env = {**(env or os.environ), LOGIN_ENV: self.login_token}
         log.debug("starting %s: %s", name, " ".join(argv))
         self.procs[name] = subprocess.Popen(
             argv,
@@ -786,12 +794,28 @@ def router_bus(spec: SiteSpec) -> BusConfig:
     return bus_from_args(args, BusConfig(mode="router", listen=[spec.endpoint, *spec.listen]))
 
 
-def run_site(spec: SiteSpec, seconds: float, stop: threading.Event) -> int:
-    """Run ``spec`` until ``stop`` or ``seconds``; 0 if every process stopped cleanly."""
+def login_url(page_url: str, token: str) -> str:
+    """The web console's one-time login URL (``page_url`` ends with ``/``)."""
+    return f"{page_url}login?token={token}"
+
+
+def announce_login(page_url: str, token: str) -> None:
+    """Print the web console's one-time login URL once its page is served (stdout only: the
+    launcher's log may be readable by others)."""
+    u = urllib.parse.urlsplit(page_url)
+    wait_port(u.hostname or "127.0.0.1", u.port or 80, 30.0)
+    print(f"web surgeon console (one-time login): {login_url(page_url, token)}", flush=True)
+
+
+def run_site(spec: SiteSpec, seconds: float, stop: threading.Event, console: str = "") -> int:
+    """Run ``spec`` until ``stop`` or ``seconds``; 0 if every process stopped cleanly. ``console``:
+    the web console's page URL (its one-time login URL is printed once the site is up)."""
     deadline = time.monotonic() + seconds if seconds > 0 else float("inf")
     with Site(spec) as site:
         eps = ", ".join((spec.endpoint, *spec.listen))
         log.info("site %r up on %s; Ctrl-C stops everything", spec.site, eps)
+        if console and site.login_token:
+            announce_login(console, site.login_token)
         reported: set[str] = set()
         while not stop.wait(0.2) and time.monotonic() < deadline:
             for name, rc in site.dead().items():
@@ -881,13 +905,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.serve:
         spec.overrides.setdefault("mirror", []).append("serve=true")
     if url := console_url(args, spec):
-        log.info("web surgeon console: %s", url)
+        log.info("web surgeon console: %s (its one-time login URL is printed once it is up)", url)
     stop = threading.Event()
     install_stop_handlers(stop)
     if "console" in spec.services:
         spec.ports = (("the web console's port", args.console_port, "--console-port 0 picks a free one"),)
     try:
-        return run_site(spec, args.seconds, stop)
+        return run_site(spec, args.seconds, stop, url)
     except (TelesurgError, ConnectionError) as exc:  # (what had started is stopped: Site.__enter__)
         print(f"telesurg up: {exc}", file=sys.stderr)
         return 1

@@ -31,6 +31,7 @@ from telesurg.services.common import install_stop_handlers, setup_logging, tcp_p
 from telesurg.services.launcher import (
     Site,
     add_site_args,
+    announce_login,
     config_class,
     console_url,
     spec_from_args,
@@ -120,7 +121,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                         flush=True,
                     )
                     if web_url:
-                        print(f"web surgeon console: {web_url}", flush=True)
+                        announce_login(web_url, site.login_token)
                     print("Ctrl-C stops everything.\n", flush=True)
                 while not stop.wait(0.2) and time.monotonic() < deadline:
                     for name, rc in site.dead().items():

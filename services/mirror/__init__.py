@@ -32,6 +32,7 @@ Examples::
 
 from __future__ import annotations
 
+import ipaddress
 import json
 import logging
 import re
@@ -156,6 +157,9 @@ class MirrorConfig:
     save: str = ""  # path of an .rrd to write headless ("" = no file); needs save or serve
     serve: bool = False  # serve gRPC (data, 127.0.0.1 only) + the web viewer; open the logged URL
     web_port: int = 9090  # TCP port of the web viewer, HTTP (static viewer files only, no data)
+    # address the web viewer listens on (127.0.0.1: this host only; 0.0.0.0 to show it on the LAN —
+    # its data still comes from the gRPC port, on 127.0.0.1 only)
+    web_host: str = "127.0.0.1"
     grpc_port: int = 9876  # TCP port of the rerun gRPC data server on 127.0.0.1
     # MB of recent data the gRPC server keeps for a viewer that opens later (oldest dropped
     # first; the static robot geometry stays while it fits: at 0.05 MB it did not): a new viewer starts
@@ -292,6 +296,10 @@ class MirrorConfig:
                 raise ConfigError(f"{name}={port} outside [1, 65535]")
         if self.serve and self.web_port == self.grpc_port:
             raise ConfigError(f"web_port and grpc_port must differ (both {self.web_port})")
+        try:
+            ipaddress.ip_address(self.web_host)
+        except ValueError:
+            raise ConfigError(f"web_host={self.web_host!r}: an IP address (127.0.0.1, 0.0.0.0)") from None
 
 
 # --------------------------------------------------------------------------- reception
@@ -954,6 +962,7 @@ def run(cfg: MirrorConfig, stop: threading.Event) -> None:
         save=cfg.save,
         serve=cfg.serve,
         web_port=cfg.web_port,
+        web_host=cfg.web_host,
         grpc_port=cfg.grpc_port,
         history_mb=cfg.history_mb,
         flush_s=cfg.flush_s,

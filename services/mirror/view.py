@@ -81,8 +81,15 @@ functions and classes that use it.
 
 from __future__ import annotations
 
+import contextlib
+import ctypes
 import functools
 import logging
+import signal
+import socket
+import subprocess
+import sys
+import time
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -351,6 +358,12 @@ def _paler(c: Color) -> Color:
 _THIN, _LINE, _THICK, _DOT, _BIG_DOT = -1.0, -1.5, -3.0, -3.0, -6.0
 
 
+def _die_with_parent() -> None:
+    """``preexec_fn``: the child gets SIGTERM when its parent dies (Linux ``PR_SET_PDEATHSIG``)."""
+    with contextlib.suppress(OSError, AttributeError):
+        ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGTERM)  # 1: PR_SET_PDEATHSIG
+
+
 class RerunView:
     """A rerun recording with typed drawing calls; one instance per process, one thread uses it.
 
@@ -363,7 +376,9 @@ class RerunView:
         application_id: rerun application id.
         recording_id: rerun recording id ("" → random); equal ids merge processes' data.
         save: path of an .rrd to write ("" → none).
-        serve: host a gRPC server on 127.0.0.1:``grpc_port`` and the web viewer on ``web_port``.
+        serve: host a gRPC server on 127.0.0.1:``grpc_port`` and the web viewer on
+            ``web_host``:``web_port`` (a child ``rerun --serve-web --bind``: rerun's own
+            ``serve_web_viewer`` listens on every interface).
         history_mb: MB of logged data the gRPC server keeps for a viewer that connects later (the
             oldest dropped first; static data — the robot geometry, styles — stays while the
             limit holds it: at 0.05 MB a late viewer got none of it, at 0.5 MB all of the MH3F's);
@@ -381,6 +396,7 @@ class RerunView:
         save: str = "",
         serve: bool = False,
         web_port: int = 9090,
+        web_host: str = "127.0.0.1",
         grpc_port: int = 9876,
         history_mb: float = 0.0,
         flush_s: float = 0.0,
@@ -390,6 +406,7 @@ class RerunView:
 
         self._rr = rr
         self.url = ""
+        self._web: subprocess.Popen[bytes] | None = None  # the web viewer's server
         self.blueprint_arms: tuple[str, ...] | None = None  # set once the layout is sent
         self._styled: set[str] = set()
         self._series_styles: dict[str, tuple[tuple[str, ...], tuple[Color, ...], float]] = {}
@@ -413,10 +430,10 @@ class RerunView:
         self._rec.set_sinks(*sinks)
         if serve:
             try:
-                rr.serve_web_viewer(web_port=web_port, open_browser=False, connect_to=server.uri)
-            except RuntimeError as exc:
+                web_port = self._serve_web_viewer(web_host, web_port, server.uri)
+            except ConnectionError:
                 self._rec.disconnect()
-                raise ConnectionError(f"rerun web viewer on port {web_port}: {exc}") from exc
+                raise
             self.url = viewer_url(server.uri, web_port)
         self._rec.log("/", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
         self._rec.log("/master", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
@@ -691,12 +708,46 @@ class RerunView:
         """Have :meth:`close` call ``flush()`` first (a drawer's buffered samples reach the sinks)."""
         self._flushers.append(flush)
 
+    def _serve_web_viewer(self, host: str, port: int, uri: str) -> int:
+        """Serve rerun's web viewer (static files; its data comes from ``uri``) on ``host:port``
+        from a child ``rerun --serve-web --bind HOST`` (ended with this process: SIGTERM when its
+        parent dies); the port it serves on (``port`` 0: a free one)."""
+        if port == 0:
+            with socket.socket() as s:
+                s.bind((host, 0))
+                port = int(s.getsockname()[1])
+        check_port_free(host, port, "web_port")
+        argv = [sys.executable, "-m", "rerun_cli", "--serve-web", "--bind", host]
+        argv += ["--web-viewer-port", str(port), uri]
+        self._web = subprocess.Popen(
+            argv, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, preexec_fn=_die_with_parent
+        )
+        deadline = time.monotonic() + 30.0
+        while time.monotonic() < deadline and self._web.poll() is None:
+            with contextlib.suppress(OSError), socket.create_connection((host, port), timeout=0.2):
+                return port
+            time.sleep(0.1)
+        self._stop_web()
+        raise ConnectionError(f"rerun web viewer on {host}:{port} did not start")
+
+    def _stop_web(self) -> None:
+        web, self._web = self._web, None
+        if web is None:
+            return
+        web.terminate()
+        try:
+            web.wait(5)
+        except subprocess.TimeoutExpired:
+            web.kill()
+            web.wait()
+
     def close(self) -> None:
         """Send what the drawers still buffer, flush everything to the sinks and close them (the
-        .rrd is complete after this)."""
+        .rrd is complete after this); stop the web viewer's server."""
         try:
             for flush in self._flushers:
                 flush()
         finally:
             self._rec.flush(timeout_sec=10.0)
         self._rec.disconnect()
+        self._stop_web()

@@ -42,25 +42,63 @@ function move(dx, dy, dz) { // m
 }
 
 // ------------------------------------------------------------------ socket
-let ws = null, wsOpen = false;
+// This tab's page id (kept across reloads: a reload keeps control); the server's session cookie
+// (HttpOnly, set by /login) authenticates the socket.
+const PAGE = sessionStorage.getItem("telesurg-page") ||
+  [...crypto.getRandomValues(new Uint8Array(8))].map((b) => b.toString(16).padStart(2, "0")).join("");
+sessionStorage.setItem("telesurg-page", PAGE);
+let ws = null, wsOpen = false, refusedWhy = "";
+window.consoleRole = null; // the last control message: {role: controller | viewer, holder, request}
 window.consoleState = null; // the last state the server pushed (for tests and debugging)
 window.consoleNotices = [];
 function connect() {
-  ws = new WebSocket((location.protocol === "https:" ? "wss://" : "ws://") + location.host + "/ws");
-  ws.onopen = () => { wsOpen = true; master.key = master.pedal = master.pad = false; setLink(); };
-  ws.onclose = () => { wsOpen = false; setLink(); setTimeout(connect, 1000); };
+  ws = new WebSocket((location.protocol === "https:" ? "wss://" : "ws://") + location.host + "/ws?page=" + PAGE);
+  ws.onopen = () => { wsOpen = true; refusedWhy = ""; master.key = master.pedal = master.pad = false; setLink(); };
+  ws.onclose = (ev) => {
+    wsOpen = false;
+    if (ev.code >= 4400 && ev.code < 4500) { // refused by the door (not logged in, session expired)
+      refusedWhy = ev.reason || "refused";
+      logLine("error", "console: " + refusedWhy);
+      setLink();
+      setTimeout(connect, 10000);
+      return;
+    }
+    setLink(); setTimeout(connect, 1000);
+  };
   ws.onerror = () => {};
   ws.onmessage = (ev) => {
     const m = JSON.parse(ev.data);
     if (m.type === "state") render(m);
     else if (m.type === "notice") logLine("info", m.text);
     else if (m.type === "refused") logLine("error", "refused by the console: " + m.text);
+    else if (m.type === "control") setRole(m);
+    else if (m.type === "invite") {
+      $("#invite-url").textContent = location.origin + m.url; $("#invite-s").textContent = m.valid_s;
+      $("#invite-box").hidden = false;
+    }
   };
 }
 function send(obj) { if (wsOpen) ws.send(JSON.stringify(obj)); }
 let masterOn = false; // this console publishes browser master MASTER (web.master_service set)
+let inControl = false; // this page controls the master (one page per master; the others view)
+function setRole(m) {
+  const was = inControl;
+  window.consoleRole = m;
+  inControl = m.role === "controller";
+  const el = $("#control");
+  el.textContent = inControl ? "this page is in control" :
+    "VIEWER — " + (m.holder ? "page " + m.holder + " is in control" : "nobody is in control") +
+    (m.request === m.page ? " (asked for control)" : "");
+  el.className = inControl ? "ok" : "viewer";
+  $("#take").hidden = inControl;
+  $("#release").hidden = !inControl;
+  $("#handover").hidden = !(inControl && m.request);
+  if (inControl && m.request) $("#handover-text").textContent = "Page " + m.request + " asks for control of the master. Hand it over?";
+  if (was && !inControl) { master.key = master.pedal = master.pad = false; pedal.classList.remove("on"); logLine("warning", "control of the master went to page " + (m.holder || "—") + ": this page is now a viewer"); }
+  if (!was && inControl) logLine("info", "this page is in control of the master");
+}
 function sendSample(tMs) {
-  if (!wsOpen || master.hidden || !masterOn) return;
+  if (!wsOpen || master.hidden || !masterOn || !inControl) return;
   send({ type: "sample", master: MASTER, t: tMs, p: master.p, q: master.q, clutch: clutch(),
          present: true, device: master.device });
 }
@@ -68,7 +106,7 @@ const now = () => performance.timeOrigin + performance.now();
 const evTime = (ev) => performance.timeOrigin + ev.timeStamp;
 function setLink() {
   const l = $("#link");
-  l.textContent = wsOpen ? "console connected" : "console link lost — reconnecting";
+  l.textContent = wsOpen ? "console connected" : refusedWhy ? "console " + refusedWhy : "console link lost — reconnecting";
   l.className = wsOpen ? "ok" : "bad";
 }
 
@@ -190,6 +228,11 @@ $("#cmdline").addEventListener("submit", (ev) => {
   command(words.shift(), words, target);
   $("#cmd").value = "";
 });
+$("#take").addEventListener("click", () => send({ type: "control", action: "take" }));
+$("#release").addEventListener("click", () => send({ type: "control", action: "release" }));
+$("#handover-yes").addEventListener("click", () => { $("#handover").hidden = true; send({ type: "control", action: "grant" }); });
+$("#handover-no").addEventListener("click", () => { $("#handover").hidden = true; send({ type: "control", action: "refuse" }); });
+$("#invite").addEventListener("click", () => send({ type: "invite" }));
 $("#record").addEventListener("click", () => send({ type: "record", action: window.consoleState && window.consoleState.recording ? "stop" : "start" }));
 
 // ------------------------------------------------------------------ rendering
@@ -236,7 +279,9 @@ function render(m) {
   window.consoleState = m;
   mmPerPx = m.mouse_mm_per_px || mmPerPx;
   $("#site").textContent = "site " + m.site;
-  $("#alive").innerHTML = `<span class="dim">alive: ${esc(m.alive.join(" "))}</span>`;
+  const refused = m.door ? Object.entries(m.door.refused) : [];
+  $("#alive").innerHTML = `<span class="dim">alive: ${esc(m.alive.join(" "))}</span>` +
+    (refused.length ? ` <span class="warn" id="door-refused">refused at the door: ${esc(refused.map(([k, n]) => k + " " + n).join(", "))}</span>` : "");
   const ms = m.masters[MASTER];
   masterOn = !!ms;
   const el = $("#master-status");
@@ -266,7 +311,7 @@ function render(m) {
 // A motion-starting command is carried out only once the operator confirms the server's question.
 let asked = "";
 function askConfirm(c) {
-  if (!c) { asked = ""; return; }
+  if (!c || !inControl) { asked = ""; return; }
   const q = `${c.arm}: ${c.command}\n${c.question}\n\nStart this motion?`;
   if (q === asked) return;
   asked = q;
