@@ -216,7 +216,9 @@ def new_sid() -> bytes:
     return secrets.token_bytes(SID_BYTES)
 
 
-def _mac(key: bytes, kind: bytes, sid: bytes, signer: bytes, key_expr: bytes, payload: bytes) -> bytes:
+def _mac(
+    key: bytes, kind: bytes, sid: bytes, signer: bytes, key_expr: bytes, payload: bytes, bind: bytes = b""
+) -> bytes:
     msg = b"".join(
         (
             kind,
@@ -226,6 +228,7 @@ def _mac(key: bytes, kind: bytes, sid: bytes, signer: bytes, key_expr: bytes, pa
             len(key_expr).to_bytes(2, "big"),
             key_expr,
             payload,
+            bind,
         )
     )
     return hmac.digest(key, msg, "sha256")[:MAC_BYTES]
@@ -243,9 +246,10 @@ class Signer:
         self._id = self.identity.encode()
         self._head = MAGIC + self.sid + len(self._id).to_bytes(1, "big") + self._id
 
-    def attach(self, kind: bytes, key_expr: str, payload: bytes) -> bytes:
-        """The attachment of ``payload`` sent as ``kind`` on ``key_expr``."""
-        return self._head + _mac(self.key, kind, self.sid, self._id, key_expr.encode(), payload)
+    def attach(self, kind: bytes, key_expr: str, payload: bytes, *, bind: bytes = b"") -> bytes:
+        """The attachment of ``payload`` sent as ``kind`` on ``key_expr``; ``bind`` (a reply: the
+        query's attachment) is appended to the MAC input, so the reply verifies only for it."""
+        return self._head + _mac(self.key, kind, self.sid, self._id, key_expr.encode(), payload, bind)
 
 
 @dataclass(frozen=True, slots=True)
@@ -274,13 +278,16 @@ def parse(attachment: bytes | None) -> tuple[bytes, str, bytes]:
     return a[len(MAGIC) : n], signer, a[n + 1 + ln :]
 
 
-def verify(ring: Keyring, kind: bytes, key_expr: str, payload: bytes, attachment: bytes | None) -> Verified:
-    """Check ``attachment`` for ``payload`` sent as ``kind`` on ``key_expr``; AuthError if it fails."""
+def verify(
+    ring: Keyring, kind: bytes, key_expr: str, payload: bytes, attachment: bytes | None, *, bind: bytes = b""
+) -> Verified:
+    """Check ``attachment`` for ``payload`` sent as ``kind`` on ``key_expr`` (signed with ``bind``,
+    see :meth:`Signer.attach`); AuthError if it fails."""
     sid, signer, mac = parse(attachment)
     key = ring.key(signer)
     if key is None:
         raise AuthError(f"unknown signer {signer!r}")
-    want = _mac(key, kind, sid, signer.encode(), key_expr.encode(), payload)
+    want = _mac(key, kind, sid, signer.encode(), key_expr.encode(), payload, bind)
     if not hmac.compare_digest(want, mac):
         raise AuthError(f"bad authenticator (claimed signer {signer!r})")
     return Verified(signer, sid)
