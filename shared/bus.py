@@ -383,7 +383,11 @@ class Node:
     no keyring → ConfigError saying how to make one); every message it receives is verified
     first, before decoding: one that fails (no authenticator, unknown signer, bad MAC, signer ≠
     header ``src``) is rejected, counted (``unauthenticated``, within ``rejected``), reported as
-    an ``unauthenticated`` event (rate-limited) and changes nothing else. Every subscription made
+    an ``unauthenticated`` event (rate-limited) and changes nothing else. An authenticated
+    message that is not fresh (too old, stamped before this node started, not newer than what its
+    signer sent on the key before, a query already taken; :mod:`telesurg.shared.fresh`) is
+    rejected the same way (``replayed``, a ``replayed`` event). Replies are bound to their query.
+    Every subscription made
     with :meth:`subscribe` decodes through the strict decoder; malformed or out-of-order messages
     are counted per key in :attr:`streams` and never reach the callback.
     Use as a context manager; it undeclares everything on exit.
