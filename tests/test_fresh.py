@@ -252,3 +252,24 @@ def test_a_reply_to_another_query_is_refused(endpoint: str) -> None:
         assert len(answered) == 4 and console.streams.get(key).unauthenticated >= 1
         h.undeclare()
         spy.close()  # type: ignore[no-untyped-call]
+
+
+def test_a_late_number_is_reordered_and_a_second_copy_is_a_replay(endpoint: str) -> None:
+    """A number the stream skipped, arriving late (a genuine reordering), is dropped and counted
+    as reordered, not as a replay; the same message once more is a replay."""
+    bus = BusConfig(connect=[endpoint])
+    got: list[int] = []
+    with Node(bus, "t", "watchdog") as wd, Node(bus, "t", "slave_control") as sub:
+        key = wd.keys.safety("arm1", "lease")
+        sub.subscribe(key, SafetyLease, lambda m, k: got.append(m.header.seq), sources=["watchdog"])
+        time.sleep(0.3)
+        msgs = {
+            s: SafetyLease(Header("watchdog", s, time.time_ns()), "arm1", True, 250.0, "").encode()
+            for s in range(3)
+        }
+        for s in (0, 2, 1, 1):
+            wd.session.put(key, msgs[s], attachment=wd.signer.attach(auth.PUT, key, msgs[s]))
+            time.sleep(0.05)
+        stats = sub.streams.get(key)
+        assert wait_until(lambda: stats.replayed == 1)
+        assert got == [0, 2] and stats.reordered == 1 and stats.rejected == 1
