@@ -427,9 +427,9 @@ class Signer:
         if len(self._keys) > MAX_MACS:
             raise ConfigError(f"at most {MAX_MACS - 1} links to other hosts")
 
-    def attach(self, kind: bytes, key_expr: str, payload: bytes, bind: bytes = b"") -> bytes:
-        """The attachment of ``payload`` sent as ``kind`` on ``key_expr`` (``bind``: what else the
-        MAC covers without being sent, e.g. the query a reply answers)."""
+    def attach(self, kind: bytes, key_expr: str, payload: bytes, *, bind: bytes = b"") -> bytes:
+        """The attachment of ``payload`` sent as ``kind`` on ``key_expr``; ``bind`` (a reply: the
+        query's attachment) is appended to the MAC input, so the reply verifies only for it."""
         ke = key_expr.encode()
         if len(self._keys) == 1:
             return self._head + _mac(self.key, kind, self.sid, self._id, ke, payload, bind)
@@ -465,9 +465,10 @@ def parse(attachment: bytes | None) -> tuple[bytes, str, bytes]:
 
 
 def verify(
-    ring: Keyring, kind: bytes, key_expr: str, payload: bytes, attachment: bytes | None, bind: bytes = b""
+    ring: Keyring, kind: bytes, key_expr: str, payload: bytes, attachment: bytes | None, *, bind: bytes = b""
 ) -> Verified:
-    """Check ``attachment`` for ``payload`` sent as ``kind`` on ``key_expr``; AuthError if it fails."""
+    """Check ``attachment`` for ``payload`` sent as ``kind`` on ``key_expr`` (signed with ``bind``,
+    see :meth:`Signer.attach`); AuthError if it fails."""
     sid, signer, macs = parse(attachment)
     key = ring.verifier(signer)
     if key is None:

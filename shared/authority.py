@@ -7,7 +7,9 @@ message authentication is on, and across hosts the certificate CN the router's A
 
 * an **e-stop** is accepted from every source in ``estop_sources`` (``"*"``: any source — an
   e-stop is never refused, fail-safe);
-* a **reset** of an e-stop only from an ``operators`` identity (the operator console);
+* a **reset** of an e-stop only from an ``operators`` identity (the operator console), and only
+  if it is stamped after the latest e-stop accepted (:meth:`Authority.estop_order`): an old reset
+  sent again after anyone's newer e-stop never clears the latch;
 * **read-only** commands (``public_commands``: ``state``, ``programs``) from anyone; **stopping**
   commands (``stop_commands``: ``stop``, ``abort``) from an operator or an e-stop source;
 * **state-changing** commands that start no motion (``unconfirmed_commands``: teach, load a
@@ -133,6 +135,7 @@ class Authority:
         self._lock = threading.Lock()
         self._pending: OrderedDict[str, _Pending] = OrderedDict()
         self.refused = 0  # commands, e-stops and resets refused so far
+        self._estop_ns = 0  # header stamp of the latest e-stop taken (the receiver's clock)
 
     # -- e-stop ---------------------------------------------------------------------------------
     def estop_problem(self, source: str, action: str) -> str:
@@ -148,6 +151,20 @@ class Authority:
         with self._lock:
             self.refused += 1
         return problem
+
+    def estop_order(self, action: str, stamp_ns: int) -> str:
+        """Order e-stops and resets by their header stamps (on this receiver's clock): an allowed
+        e-stop is recorded (and always taken, ""); a reset stamped at or before the latest e-stop
+        taken is refused (the reason; the caller counts it as a replay)."""
+        with self._lock:
+            if action == "estop":
+                self._estop_ns = max(self._estop_ns, stamp_ns)
+                return ""
+            latest = self._estop_ns
+            if stamp_ns > latest:
+                return ""
+            self.refused += 1
+        return f"e-stop reset stamped {(latest - stamp_ns) / 1e9:.3f} s before the latest e-stop: not cleared"
 
     # -- commands -------------------------------------------------------------------------------
     def check(self, cmd: Command) -> Verdict:

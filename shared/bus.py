@@ -60,6 +60,7 @@ from telesurg.shared.auth import (
     verify,
 )
 from telesurg.shared.errors import AuthorityError, ConfigError, MessageError
+from telesurg.shared.fresh import MAX_AGE_MS, TOLERANCE_MS, Freshness, SenderWindow
 from telesurg.shared.keys import Keys, check_id
 from telesurg.shared.messages import Header, Heartbeat, Message, SafetyEvent, Sequencer, decode_as
 from telesurg.shared.presence import Presence
@@ -110,6 +111,12 @@ class BusConfig:
     # but drops it for every other subscriber that does not keep up, so a stalled viewer cannot
     # stall the control path
     zid: str = ""
+    # freshness (shared/fresh.py): a message whose header stamp is older than this, ms, on the
+    # receiver's clock is refused as stale (a replay), and so is one stamped before the receiver
+    # started, or more than clock_tolerance_ms in the future
+    max_age_ms: int = MAX_AGE_MS
+    # ms of clock offset between two hosts tolerated by the freshness rules (one host: scheduling)
+    clock_tolerance_ms: int = TOLERANCE_MS
 
     @property
     def secured(self) -> bool:
@@ -122,6 +129,10 @@ class BusConfig:
             raise ConfigError(f"bus mode {self.mode!r} invalid; valid: {', '.join(MODES)}")
         if not 100 <= self.lease_ms <= 60_000:
             raise ConfigError(f"bus lease_ms={self.lease_ms} outside [100, 60000]")
+        if not 100 <= self.max_age_ms <= 600_000:
+            raise ConfigError(f"bus max_age_ms={self.max_age_ms} outside [100, 600000]")
+        if not 0 <= self.clock_tolerance_ms <= 60_000:
+            raise ConfigError(f"bus clock_tolerance_ms={self.clock_tolerance_ms} outside [0, 60000]")
         if self.zid and not valid_zid(self.zid):
             raise ConfigError(f"bus zid {self.zid!r} invalid: 1-32 lowercase hex digits, no leading 0")
         if self.mode == "client" and not self.connect:
@@ -372,7 +383,11 @@ class Node:
     no keyring → ConfigError saying how to make one); every message it receives is verified
     first, before decoding: one that fails (no authenticator, unknown signer, bad MAC, signer ≠
     header ``src``) is rejected, counted (``unauthenticated``, within ``rejected``), reported as
-    an ``unauthenticated`` event (rate-limited) and changes nothing else. Every subscription made
+    an ``unauthenticated`` event (rate-limited) and changes nothing else. An authenticated
+    message that is not fresh (too old, stamped before this node started, not newer than what its
+    signer sent on the key before, a query already taken; :mod:`telesurg.shared.fresh`) is
+    rejected the same way (``replayed``, a ``replayed`` event). Replies are bound to their query.
+    Every subscription made
     with :meth:`subscribe` decodes through the strict decoder; malformed or out-of-order messages
     are counted per key in :attr:`streams` and never reach the callback.
     Use as a context manager; it undeclares everything on exit.
@@ -384,6 +399,9 @@ class Node:
         self.keyring = Keyring.load(bus.keys_dir or default_keys_dir(site))
         self.signer = Signer(self.service, self.keyring.ensure(self.service), links=self.keyring.send_keys())
         self._auth_reported: dict[str, tuple[int, float]] = {}  # key -> (reports, last report monotonic s)
+        self._replay_reported: dict[str, tuple[int, float]] = {}  # the same for replays
+        # freshness (shared/fresh.py): started now, so nothing stamped before this start gets in
+        self.fresh = Freshness(bus.max_age_ms, bus.clock_tolerance_ms)
         self.streams = StreamTable()
         self._lock = threading.Lock()
         self._start = time.monotonic()
@@ -434,8 +452,9 @@ class Node:
             def on_query(query: Any) -> None:
                 last = out.last
                 with contextlib.suppress(Exception):  # the querier may be gone
-                    if last is not None:
-                        query.reply(key, last, attachment=self.signer.attach(REPLY, key, last))
+                    if last is not None:  # bound to the query: valid as an answer to it only
+                        bind = _raw(query.attachment) or b""
+                        query.reply(key, last, attachment=self.signer.attach(REPLY, key, last, bind=bind))
 
             self._handles.append(self.session.declare_queryable(key, on_query))
         return out
@@ -490,13 +509,14 @@ class Node:
             def trusted(key: str, source: str) -> bool:
                 return source in allowed
 
-        def on_sample(sample: Any, rx_ns: int = 0, queried: bool = False) -> None:
+        def on_sample(sample: Any, rx_ns: int = 0, bind: bytes = b"") -> None:
+            queried = bool(bind)  # a latest value answering our own query (bound to it)
             k = str(sample.key_expr)
             stats = table.get(k)
             payload = sample.payload.to_bytes()
             att = sample.attachment
             try:  # authentication first: nothing of a forged message is looked at
-                who = verify(self.keyring, REPLY if queried else PUT, k, payload, _raw(att))
+                who = verify(self.keyring, REPLY if queried else PUT, k, payload, _raw(att), bind=bind)
             except AuthError as exc:
                 self._unauthenticated(stats, k, _raw(att), str(exc))
                 return
@@ -523,10 +543,31 @@ class Node:
                         "rejected %s from %r on %s: not an allowed source", cls.TYPE, msg.header.source, k
                     )
                 return
+            h = msg.header
             with self._lock:
-                if queried and stats.source == msg.header.source and msg.header.seq <= stats.last_seq:
+                win = stats.senders.get(who.signer)
+                if win is None:
+                    win = stats.senders[who.signer] = SenderWindow()
+                if queried and win.sid == who.sid and h.seq <= win.top:
                     return  # a queried current value the subscription has delivered already
-                fresh = stats.accept(msg.header.source, msg.header.seq, rx_ns, who.sid, msg.header.stamp_ns)
+                why = self.fresh.put_problem(
+                    who.signer, win, who.sid, h.seq, h.stamp_ns, time.time_ns(), bound=queried
+                )
+                fresh = False
+                if why and win.sid == who.sid and h.seq in stats.seq.holes and stats.source == who.signer:
+                    # a number the stream skipped, arriving late (e.g. two threads putting on one
+                    # outlet): dropped and counted as reordered, as ever — not a replay
+                    stats.accept(h.source, h.seq, rx_ns, who.sid, h.stamp_ns)
+                    why = ""
+                elif why:
+                    stats.rejected += 1
+                    stats.replayed += 1
+                else:
+                    fresh = stats.accept(h.source, h.seq, rx_ns, who.sid, h.stamp_ns)
+                    if fresh:
+                        self.fresh.took(win, who.sid, h.seq, h.stamp_ns)
+            if why:
+                self._replayed(stats, k, who.signer, why)
             if not fresh:
                 return
             if calls := self.presence.authenticated(who.signer, who.sid):
@@ -545,12 +586,22 @@ class Node:
         else:
             self._inputs.append(self.session.declare_subscriber(key, on_sample))
         if latest:
+            import zenoh
+
+            latest_att = self.signer.attach(QUERY, key, b"")
 
             def on_reply(reply: Any) -> None:
                 if reply.ok is not None and not self._closed:
-                    on_sample(reply.ok, queried=True)
+                    on_sample(reply.ok, bind=latest_att)
 
-            self.session.get(key, on_reply, timeout=2.0)  # (returns at once: replies come to on_reply)
+            # every reply (no consolidation): a stranger's answer must not hide the genuine one
+            self.session.get(  # (returns at once: replies come to on_reply)
+                key,
+                on_reply,
+                attachment=latest_att,
+                timeout=2.0,
+                consolidation=zenoh.ConsolidationMode.NONE,
+            )
 
     def received(self, key: str) -> float:
         """When the message being handled on ``key`` arrived (monotonic s); for a polled stream
@@ -614,6 +665,15 @@ class Node:
                     with contextlib.suppress(Exception):
                         query.reply_err(b"rejected: signer is not the header src")
                     return
+                h = req.header
+                if why := self.fresh.query_problem(who.signer, who.sid, h.seq, h.stamp_ns, time.time_ns()):
+                    with self._lock:
+                        stats.rejected += 1
+                        stats.replayed += 1
+                    self._replayed(stats, k, who.signer, why)
+                    with contextlib.suppress(Exception):
+                        query.reply_err(f"rejected: {why}".encode())
+                    return
                 if allowed is not None and req.header.source not in allowed:
                     with self._lock:
                         stats.foreign += 1
@@ -640,32 +700,61 @@ class Node:
                     query.reply_err(f"handler error: {type(exc).__name__}: {exc}".encode())
                 return
             out = reply.encode()
-            with contextlib.suppress(Exception):  # the querier may have gone
-                query.reply(query.key_expr, out, attachment=self.signer.attach(REPLY, k, out))
+            with contextlib.suppress(Exception):  # the querier may have gone; bound to its query
+                query.reply(
+                    query.key_expr, out, attachment=self.signer.attach(REPLY, k, out, bind=raw or b"")
+                )
 
         self._handles.append(self.session.declare_queryable(key, on_query))
 
     def request(self, key: str, msg: Message, reply_cls: type[M], timeout: float = 2.0) -> M:
         """Send ``msg`` as a query to ``key`` and return the strictly decoded reply.
 
+        A reply counts only if it is signed for this query (bound to its attachment,
+        :mod:`telesurg.shared.fresh`), decodes, is signed by its header ``src`` and is fresh; any
+        other (a stranger's replayed reply) is counted under ``key`` (``replayed`` or
+        ``unauthenticated``), reported, and skipped: the genuine reply may still come.
+
         Raises:
             TimeoutError: nobody answered within ``timeout`` s.
+            AuthError: only replies that failed those checks came (the last one's reason).
             MessageError: the server refused the request (its reason), or the reply is malformed.
         """
+        import zenoh
+
         payload = msg.encode()
         att = self.signer.attach(QUERY, key, payload)
-        for reply in self.session.get(key, payload=payload, attachment=att, timeout=timeout):
+        problem: AuthError | None = None
+        for reply in self.session.get(
+            key, payload=payload, attachment=att, timeout=timeout, consolidation=zenoh.ConsolidationMode.NONE
+        ):
             if reply.ok is not None:
                 sample = reply.ok
                 body = sample.payload.to_bytes()
-                a = sample.attachment
-                who = verify(self.keyring, REPLY, str(sample.key_expr), body, _raw(a))
+                a = _raw(sample.attachment)
+                k = str(sample.key_expr)
+                stats = self.streams.get(key)
+                try:
+                    who = verify(self.keyring, REPLY, k, body, a, bind=att)
+                except AuthError as exc:
+                    problem = AuthError(f"reply on {k}: {exc} (not a reply to this query)")
+                    self._unauthenticated(stats, k, a, str(problem))
+                    continue
                 out = decode_as(body, reply_cls)
                 if out.header.source != who.signer:
                     raise AuthError(f"reply signed by {who.signer!r} claims src {out.header.source!r}")
+                if why := self.fresh.reply_problem(who.signer, out.header.stamp_ns, time.time_ns()):
+                    problem = AuthError(f"reply on {k} from {who.signer!r}: {why}")
+                    with self._lock:
+                        stats.rejected += 1
+                        stats.replayed += 1
+                    self._replayed(stats, k, who.signer, why)
+                    continue
                 return out
             err = reply.err
             raise MessageError(err.payload.to_string() if err is not None else "error reply")
+        if problem is not None:
+            raise problem
         raise TimeoutError(f"no reply on {key} within {timeout:g} s (is the service running?)")
 
     def watch_liveliness(self, pattern: str, callback: Callable[[str, bool], None]) -> None:
@@ -729,6 +818,32 @@ class Node:
                     "unauthenticated",
                     f"rejected message on {key} (claimed signer {claimed!r}; "
                     f"{stats.unauthenticated} so far): {why}",
+                    severity="warning",
+                )
+
+    def replayed(self, key: str, signer: str, why: str) -> None:
+        """Count and report a message of ``signer`` on ``key`` a service refused as not fresh
+        (e.g. an e-stop reset older than the latest e-stop)."""
+        stats = self.streams.get(key)
+        with self._lock:
+            stats.rejected += 1
+            stats.replayed += 1
+        self._replayed(stats, key, signer, why)
+
+    def _replayed(self, stats: StreamStats, key: str, signer: str, why: str) -> None:
+        """Report a message refused by the freshness rules (counted by the caller): at most one
+        event per key per second, after the first five. Never acted on otherwise."""
+        with self._lock:
+            n, last = self._replay_reported.get(key, (0, 0.0))
+            now = time.monotonic()
+            report = n < 5 or now - last >= 1.0
+            if report:
+                self._replay_reported[key] = (n + 1, now)
+        if report and not self._closed:
+            with contextlib.suppress(Exception):  # the session may be closing
+                self.event(
+                    "replayed",
+                    f"rejected message on {key} signed by {signer!r} ({stats.replayed} so far): {why}",
                     severity="warning",
                 )
 

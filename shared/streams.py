@@ -29,6 +29,8 @@ import time
 from dataclasses import dataclass, field
 from typing import Any
 
+from telesurg.shared.fresh import SenderWindow
+
 #: A forward sequence jump larger than this is implausible (at 1 kHz: over 100 s of loss without
 #: the link dropping); it is rejected unless the next message confirms the new numbering.
 MAX_SEQ_JUMP = 100_000
@@ -155,8 +157,9 @@ class StreamStats:
     new source id (a restarted publisher) is a restart, like ``seq`` 0 after a higher one.
     ``rejected`` counts what the strict decoder refused, messages from a source that may not
     publish on this key (also in ``foreign``), messages that failed authentication (also in
-    ``unauthenticated``; the bus rejects them before decoding, so they change nothing else here)
-    and unconfirmed jumps.
+    ``unauthenticated``; the bus rejects them before decoding, so they change nothing else here),
+    messages the freshness rules refused (also in ``replayed``: too old, or not newer than what
+    their signer sent before, :mod:`telesurg.shared.fresh`) and unconfirmed jumps.
 
     With an authenticated session id (``accept(..., sid=...)``, the bus's case) a restart is a new
     ``sid`` only — ``seq`` 0 in the same session is an old or duplicate number, dropped — and a new
@@ -176,6 +179,9 @@ class StreamStats:
     jumps: int = 0
     unauthenticated: int = 0  # failed authentication (also in rejected)
     stale_sessions: int = 0  # a session id change with an older stamp (also in rejected)
+    replayed: int = 0  # refused by the freshness rules, shared/fresh.py (also in rejected)
+    # signer -> what was taken from it on this key (shared/fresh.py; the bus keeps them)
+    senders: dict[str, SenderWindow] = field(default_factory=dict)
     sid: bytes = b""  # authenticated session id of the source ("" = none seen / not tracked)
     last_stamp_ns: int = 0  # header stamp of the last accepted message (with a sid)
     seq: SeqTracker = field(default_factory=lambda: SeqTracker(max_holes=BUS_MAX_HOLES))
@@ -261,6 +267,7 @@ class StreamStats:
             "restarts": self.restarts,
             "foreign": self.foreign,
             "unauthenticated": self.unauthenticated,
+            "replayed": self.replayed,
         }
 
 

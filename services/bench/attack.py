@@ -587,6 +587,88 @@ def _stranger_reset(a: Attacker) -> dict[str, Any]:
     return row
 
 
+class _Recorder:
+    """A stranger without the keyring (a plain zenoh session): records the signed puts on the
+    e-stop key and the queries on the mapping's command key (answering none), and sends them again."""
+
+    def __init__(self, a: Attacker) -> None:
+        from telesurg.shared.bus import open_session
+
+        self.session = open_session(a.pipe.spec.client_bus(CREDENTIAL))
+        self.puts: list[tuple[str, bytes, bytes]] = []
+        self.queries: list[tuple[str, bytes, bytes]] = []
+        self.lock = threading.Lock()
+
+        def on_put(s: Any) -> None:
+            if s.attachment is not None:
+                with self.lock:
+                    self.puts.append((str(s.key_expr), s.payload.to_bytes(), s.attachment.to_bytes()))
+
+        def on_query(q: Any) -> None:
+            if q.payload is not None and q.attachment is not None:
+                with self.lock:
+                    self.queries.append((str(q.key_expr), q.payload.to_bytes(), q.attachment.to_bytes()))
+
+        self._h: list[Any] = [
+            self.session.declare_subscriber(a.k.estop, on_put),
+            self.session.declare_queryable(a.k.mapping_command("arm1"), on_query),
+        ]
+
+    def close(self) -> None:
+        for h in self._h:
+            with contextlib.suppress(Exception):
+                h.undeclare()
+        self.session.close()  # type: ignore[no-untyped-call]
+
+
+def _replay(a: Attacker) -> dict[str, Any]:
+    """The console's ``set_scale`` and its e-stop + reset, captured by a stranger without the keyring
+    and sent again 1 s later — the reset after another identity's e-stop (issue #39)."""
+    pipe, mk = a.pipe, a.k.mapping_command("arm1")
+    rec = _Recorder(a)
+    try:
+        time.sleep(0.3)
+        scale0 = a.obs.scale()
+        a.request(mk, "console", "set_scale", "value=0.3")
+        a.request(mk, "console", "set_scale", f"value={scale0:g}")
+        pipe.estop("estop", source="console")
+        latched = pipe.wait(lambda: pipe.p.safety_state() == "ESTOP", 5.0)
+        pipe.estop("reset", source="console")
+        pipe.wait(lambda: pipe.p.safety_state() != "ESTOP", 5.0)
+        time.sleep(1.0)
+        with rec.lock:
+            queries, puts = list(rec.queries), list(rec.puts)
+        pipe.estop("estop", source="bench_operator2")  # another identity's e-stop
+        pipe.wait(lambda: pipe.p.safety_state() == "ESTOP", 5.0)
+        t0 = now_ns()
+        replies = []
+        for key, body, att in queries[:1]:  # set_scale 0.3
+            for r in rec.session.get(key, payload=body, attachment=att, timeout=3.0):
+                err = r.err
+                replies.append("ACCEPTED" if err is None else err.payload.to_string())
+        for key, body, att in puts:  # the console's old e-stop and its old reset
+            rec.session.put(key, body, attachment=att)
+        time.sleep(1.5)
+        cleared = pipe.p.safety_state() != "ESTOP"
+        row: dict[str, Any] = {
+            "sent": len(queries[:1]) + len(puts),
+            "accepted": int(cleared) + replies.count("ACCEPTED") + int(a.obs.scale() != scale0),
+            "forbidden": True,
+            "latched_before": latched,
+            "reply": (replies[0] if replies else "no reply")[:160],
+            "scale_before": scale0,
+            "scale_after": a.obs.scale(),
+            "motion_mm": _motion(pipe, t0, now_ns()),
+        }
+    finally:
+        rec.close()
+    for _ in range(20):  # the operator resets
+        pipe.estop("reset", source="console")
+        if pipe.wait(lambda: pipe.p.safety_state() != "ESTOP", 0.2):
+            break
+    return row
+
+
 def _console_scale_follow(a: Attacker) -> dict[str, Any]:
     """The case, again (up to 8 tries) when the mapping answered while the pair was not following
     (a watchdog HOLD of a busy host disengages it, and then a scale change is allowed), did not
@@ -782,6 +864,12 @@ def cases() -> list[Case]:
             "console-ptp",
             "PTP from the console, no confirmation",
             _command_case("console", "slave", "begin_posture_adjust", "method=ptp"),
+            fresh=False,
+        ),
+        Case(
+            "replay",
+            "the console's set_scale, e-stop and reset replayed 1 s later by a stranger",
+            _replay,
             fresh=False,
         ),
         Case(

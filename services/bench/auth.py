@@ -6,6 +6,9 @@ The HMAC figures are what :class:`~telesurg.shared.bus.Node` adds per message: `
 :meth:`~telesurg.shared.auth.Signer.attach` (the sender, once per publication), ``verify`` is
 :func:`~telesurg.shared.auth.verify` (every subscriber, per message). Each figure is the best of
 ``--repeat`` short runs of ``--n`` calls (a busy machine inflates it less than a mean would).
+``fresh`` is what the freshness rules (:mod:`telesurg.shared.fresh`) add per received put, as the
+bus runs them: the clock read, the signer's window on the key, the age and sequence checks and
+the window update.
 
 Example::
 
@@ -27,7 +30,10 @@ from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey
 from telesurg.services.bench.machine import machine, now
 from telesurg.shared import auth
 from telesurg.shared import messages as m
+from telesurg.shared.fresh import Freshness, SenderWindow
 from telesurg.shared.keys import Keys
+from telesurg.shared.messages import now_ns
+from telesurg.shared.streams import StreamStats
 
 J6 = ("j1", "j2", "j3", "j4", "j5", "j6")
 Q6 = (0.1234567, -0.7654321, 1.2345678, -0.0123456, 0.5432109, -1.5707963)
@@ -65,6 +71,27 @@ def _best(fn: Any, n: int, repeat: int) -> float:
     return min(timeit.repeat(fn, number=n, repeat=repeat)) / n * 1e6
 
 
+def fresh_check(signer: str, sid: bytes, stamp_ns: int) -> Any:
+    """One received put's freshness check as :meth:`~telesurg.shared.bus.Node.subscribe` runs it
+    (each call the next sequence number, so every call passes)."""
+    import time
+
+    fresh = Freshness(max_age_ms=600_000, start_ns=1)
+    stats = StreamStats()
+    seq = [0]
+
+    def check() -> None:
+        s = seq[0] = seq[0] + 1
+        win = stats.senders.get(signer)
+        if win is None:
+            win = stats.senders[signer] = SenderWindow()
+        if fresh.put_problem(signer, win, sid, s, stamp_ns, time.time_ns()):
+            raise AssertionError("a fresh message was refused")
+        fresh.took(win, sid, s, stamp_ns)
+
+    return check
+
+
 def run(n: int, repeat: int) -> dict[str, Any]:
     """µs per sign / verify of each sample, HMAC and Ed25519; checks that each verifies."""
     rows: dict[str, Any] = {}
@@ -96,6 +123,7 @@ def run(n: int, repeat: int) -> dict[str, Any]:
                     _best(functools.partial(pk.verify, sig, data), max(1, n // 10), repeat), 2
                 ),
                 "decode_us": round(_best(functools.partial(m.decode, payload), n, repeat), 2),
+                "fresh_us": round(_best(fresh_check(signer_id, signer.sid, now_ns()), n, repeat), 2),
             }
     return rows
 
@@ -111,7 +139,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     if a.n < 1 or a.repeat < 1:
         ap.error("--n and --repeat must be >= 1")
     rows = run(a.n, a.repeat)
-    cols = ("hmac_sign_us", "hmac_verify_us", "ed25519_sign_us", "ed25519_verify_us", "decode_us")
+    cols = ("hmac_sign_us", "hmac_verify_us", "ed25519_sign_us", "ed25519_verify_us", "decode_us", "fresh_us")
     print(f"{'message':<36} {'bytes':>5} " + " ".join(f"{c[:-3]:>15}" for c in cols) + "   (µs)")
     for name, r in rows.items():
         print(f"{name:<36} {r['payload_bytes']:>5} " + " ".join(f"{r[c]:>15.2f}" for c in cols))

@@ -475,6 +475,12 @@ class ArmCore:
         if problem := self.authority.estop_problem(msg.header.source, msg.action):
             self.event("estop_refused", problem, "warning")
             return
+        node, src = self.node, msg.header.source
+        stamp = node.fresh.local_ns(src, msg.header.stamp_ns) if node is not None else msg.header.stamp_ns
+        if stale := self.authority.estop_order(msg.action, stamp):
+            if node is not None:
+                node.replayed(key, src, stale)
+            return
         with self.lock:
             was = self.estop
             if msg.action == "estop":

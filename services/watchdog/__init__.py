@@ -351,6 +351,10 @@ class Watchdog:
                 "estop_refused", problem, arm="" if msg.arm == "*" else msg.arm, severity="warning"
             )
             return
+        stamp = self.node.fresh.local_ns(msg.header.source, msg.header.stamp_ns)
+        if stale := self.authority.estop_order(msg.action, stamp):
+            self.node.replayed(key, msg.header.source, stale)
+            return
         with self.lock:
             changed = [a.safety.on_estop(msg) for a in self.arms]
         if any(changed):
