@@ -6,7 +6,9 @@ The HMAC figures are what :class:`~telesurg.shared.bus.Node` adds per message: `
 :meth:`~telesurg.shared.auth.Signer.attach` (the sender, once per publication), ``verify`` is
 :func:`~telesurg.shared.auth.verify` (every subscriber, per message). Each figure is the best of
 ``--repeat`` short runs of ``--n`` calls (a busy machine inflates it less than a mean would).
-``fresh`` is what the freshness rules (:mod:`telesurg.shared.fresh`) add per received put, as the
+``link_sign`` / ``link_verify`` are the same on a site of two hosts (shared/auth.py links): the
+sender adds a second MAC under the link's key, the other host verifies that one. ``fresh`` is
+what the freshness rules (:mod:`telesurg.shared.fresh`) add per received put, as the
 bus runs them: the clock read, the signer's window on the key, the age and sequence checks and
 the window update.
 
@@ -28,6 +30,7 @@ from typing import Any
 
 from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey
 from telesurg.services.bench.machine import machine, now
+from telesurg.services.keys import export
 from telesurg.shared import auth
 from telesurg.shared import messages as m
 from telesurg.shared.fresh import Freshness, SenderWindow
@@ -96,13 +99,26 @@ def run(n: int, repeat: int) -> dict[str, Any]:
     """µs per sign / verify of each sample, HMAC and Ed25519; checks that each verifies."""
     rows: dict[str, Any] = {}
     with tempfile.TemporaryDirectory() as tmp:
-        d = auth.init_keyring(Path(tmp) / "keys", ("mapping", "watchdog", "master_capture"))
+        d = auth.init_keyring(Path(tmp) / "keys", ("mapping", "watchdog", "master_capture", "console"))
         ring = auth.Keyring.load(d)
+        # the same identities on a site of two hosts: the console host (master_capture) and the site
+        site = auth.init_keyring(Path(tmp) / "site", ("mapping", "watchdog", "master_capture", "console"))
+        export(
+            site, ["master_capture", "console"], "console", "slave-site", Path(tmp) / "console", quiet=True
+        )
+        site_ring, console_ring = auth.Keyring.load(site), auth.Keyring.load(Path(tmp) / "console")
         for name, (signer_id, key, msg) in samples().items():
             payload = msg.encode()
             signer = auth.Signer(signer_id, ring.keys[signer_id])
             att = signer.attach(auth.PUT, key, payload)
             auth.verify(ring, auth.PUT, key, payload, att)  # raises if it does not verify
+            # the sender's host and the other host
+            here, there = (
+                (console_ring, site_ring) if signer_id == "master_capture" else (site_ring, console_ring)
+            )
+            linked = auth.Signer(signer_id, here.keys[signer_id], links=here.send_keys())
+            latt = linked.attach(auth.PUT, key, payload)
+            auth.verify(there, auth.PUT, key, payload, latt)
             sk = Ed25519PrivateKey.generate()
             pk = sk.public_key()
             data = key.encode() + payload
@@ -122,6 +138,12 @@ def run(n: int, repeat: int) -> dict[str, Any]:
                 "ed25519_verify_us": round(
                     _best(functools.partial(pk.verify, sig, data), max(1, n // 10), repeat), 2
                 ),
+                "link_sign_us": round(
+                    _best(functools.partial(linked.attach, auth.PUT, key, payload), n, repeat), 2
+                ),
+                "link_verify_us": round(
+                    _best(functools.partial(auth.verify, there, auth.PUT, key, payload, latt), n, repeat), 2
+                ),
                 "decode_us": round(_best(functools.partial(m.decode, payload), n, repeat), 2),
                 "fresh_us": round(_best(fresh_check(signer_id, signer.sid, now_ns()), n, repeat), 2),
             }
@@ -139,7 +161,16 @@ def main(argv: Sequence[str] | None = None) -> int:
     if a.n < 1 or a.repeat < 1:
         ap.error("--n and --repeat must be >= 1")
     rows = run(a.n, a.repeat)
-    cols = ("hmac_sign_us", "hmac_verify_us", "ed25519_sign_us", "ed25519_verify_us", "decode_us", "fresh_us")
+    cols = (
+        "hmac_sign_us",
+        "hmac_verify_us",
+        "link_sign_us",
+        "link_verify_us",
+        "ed25519_sign_us",
+        "ed25519_verify_us",
+        "decode_us",
+        "fresh_us",
+    )
     print(f"{'message':<36} {'bytes':>5} " + " ".join(f"{c[:-3]:>15}" for c in cols) + "   (µs)")
     for name, r in rows.items():
         print(f"{name:<36} {r['payload_bytes']:>5} " + " ".join(f"{r[c]:>15.2f}" for c in cols))

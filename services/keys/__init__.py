@@ -129,7 +129,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     return 0
 
 
-def export(keyring: Path, identities: list[str], to: str, this_host: str, out: Path) -> None:
+def export(
+    keyring: Path, identities: list[str], to: str, this_host: str, out: Path, quiet: bool = False
+) -> None:
     """Move ``identities`` from ``keyring`` to a new folder ``out`` for host ``to``, with a link.
 
     ``out`` gets the identities' keys and ``<this_host>.link`` (this host signs as every identity
@@ -156,6 +158,8 @@ def export(keyring: Path, identities: list[str], to: str, this_host: str, out: P
     write_private(ring.path, f"{to}{LINK_SUFFIX}", Link(to, tuple(identities), to_them, to_us).to_json())
     for ident in identities:
         (ring.path / f"{ident}{KEY_SUFFIX}").unlink()
+    if quiet:
+        return
     print(
         f"moved {', '.join(identities)} to {out} for host {to!r} (copy it there securely, then delete it); "
         f"{ring.path} verifies them through the link {to}{LINK_SUFFIX}"
