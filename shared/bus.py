@@ -164,6 +164,17 @@ class BusConfig:
                     )
 
 
+def _report_due(reported: dict[str, tuple[int, float]], key: str) -> bool:
+    """Whether a refusal on ``key`` is reported: the first five, then at most one a second
+    (``reported``: key → (reports so far, monotonic s of the last); the caller holds its lock)."""
+    n, last = reported.get(key, (0, 0.0))
+    now = time.monotonic()
+    if n < 5 or now - last >= 1.0:
+        reported[key] = (n + 1, now)
+        return True
+    return False
+
+
 def valid_zid(zid: str) -> bool:
     """``zid`` is a zenoh session id as zenoh writes one: 1-32 lowercase hex digits, no leading 0."""
     return bool(re.fullmatch(r"[1-9a-f][0-9a-f]{0,31}", zid))
@@ -806,11 +817,7 @@ class Node:
         with self._lock:
             stats.rejected += 1
             stats.unauthenticated += 1
-            n, last = self._auth_reported.get(key, (0, 0.0))
-            now = time.monotonic()
-            report = n < 5 or now - last >= 1.0
-            if report:
-                self._auth_reported[key] = (n + 1, now)
+            report = _report_due(self._auth_reported, key)
         if report and not self._closed:
             claimed = attachment_signer(attachment)
             with contextlib.suppress(Exception):  # the session may be closing
@@ -834,11 +841,7 @@ class Node:
         """Report a message refused by the freshness rules (counted by the caller): at most one
         event per key per second, after the first five. Never acted on otherwise."""
         with self._lock:
-            n, last = self._replay_reported.get(key, (0, 0.0))
-            now = time.monotonic()
-            report = n < 5 or now - last >= 1.0
-            if report:
-                self._replay_reported[key] = (n + 1, now)
+            report = _report_due(self._replay_reported, key)
         if report and not self._closed:
             with contextlib.suppress(Exception):  # the session may be closing
                 self.event(
