@@ -9,7 +9,8 @@ after authentication and decoding, before anything else looks at a message:
   signer's clock offset (:meth:`Freshness.offset_ns`, the hook for an offset a site estimates;
   0 today), may be at most ``max_age_ms`` old and at most ``tolerance_ms`` in the future, and not
   older than the receiver's own start minus ``tolerance_ms`` — so nothing captured before a
-  receiver (re)started gets in, although the receiver forgot what it had seen.
+  receiver (re)started gets in, although the receiver forgot what it had seen. A put is aged when
+  its session starts to be followed; the next numbers of that session are not (late, not replayed).
 * **Per sender** (puts; a :class:`SenderWindow` per key *and* signer): within one session id the
   sequence number must move forward; a new session id of the signer is taken only with a stamp
   newer than that signer's last accepted one on the key. A message of one identity between
@@ -116,13 +117,18 @@ class Freshness:
         bound: bool = False,
     ) -> str:
         """Why a put (``bound``: a latest value answering this receiver's own query, not aged) is
-        not fresh for ``win``, the window of its key and signer ("" = fresh)."""
-        if not bound and (why := self.age_problem(signer, stamp_ns, now_ns)):
-            return why
+        not fresh for ``win``, the window of its key and signer ("" = fresh).
+
+        The next numbers of the session this receiver follows are not aged: each is newer than
+        anything it took, so not a replay to it, only late (a receiver that fell behind); how old
+        a lease or setpoint may be to be *acted on* is the slave's own stamp-age rule."""
         if sid == win.sid:
             if seq <= win.top:
                 return f"seq {seq} not after {win.top} of session {sid.hex()}"
-        elif win.sid and stamp_ns <= win.stamp_ns:
+            return ""
+        if not bound and (why := self.age_problem(signer, stamp_ns, now_ns)):
+            return why
+        if win.sid and stamp_ns <= win.stamp_ns:
             return (
                 f"session {sid.hex()} stamped {(win.stamp_ns - stamp_ns) / 1e9:.3f} s before "
                 f"the signer's last message (session {win.sid.hex()})"
