@@ -1,12 +1,12 @@
 """The door of a local page (login token → session, Host, Origin) and the one controlling page,
-as pure logic (services/console/door.py, control.py)."""
+as pure logic (shared/door.py, control.py)."""
 
 from __future__ import annotations
 
 import pytest
 from telesurg.services.console.control import Control
-from telesurg.services.console.door import Door
 from telesurg.services.console.webconfig import WebConfig
+from telesurg.shared.door import Door
 from telesurg.shared.errors import ConfigError
 
 

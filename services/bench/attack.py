@@ -1019,7 +1019,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(levelname)s %(message)s")
     from telesurg.services.bench.attack_web import web_cases
 
-    all_cases = [*cases(), *web_cases()]
+    all_cases = [*cases(), *web_cases(Case, _motion)]
     selected = all_cases
     if args.only:
         names = [n.strip() for n in args.only.split(",") if n.strip()]

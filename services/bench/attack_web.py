@@ -36,6 +36,9 @@ from typing import Any
 from telesurg.services.bench.harness import now_ns
 from telesurg.services.launcher import free_port
 
+#: the attack bench's tip motion, mm, of a pipeline between two probe times (None: no data)
+Motion = Callable[[Any, int, int], float | None]
+
 #: the frames an outsider tries over the websocket, each an action only the controlling page may do
 FRAMES = (
     {"type": "sample", "master": "m1", "t": 0.0, "p": [0.05, 0, 0], "q": [0, 0, 0, 1], "clutch": True},
@@ -141,7 +144,7 @@ async def _try(base: str, headers: dict[str, str], origin: str | None) -> dict[s
     return {"sent": sent, "served": accepted, "said": said}
 
 
-def _web_case(how: str) -> Callable[[Any], dict[str, Any]]:
+def _web_case(how: str, motion: Motion) -> Callable[[Any], dict[str, Any]]:
     """A web case (see the module docstring): ``how`` = no-session | foreign-host | cross-origin."""
 
     def run(a: Any) -> dict[str, Any]:
@@ -174,25 +177,19 @@ def _web_case(how: str) -> Callable[[Any], dict[str, Any]]:
             "forbidden": True,
             "refused": refused,
             "said": tried["said"],
-            "motion_mm": _motion(pipe, t0),
+            "motion_mm": motion(pipe, t0, now_ns()),
         }
 
     return run
 
 
-def _motion(pipe: Any, t0: int) -> float | None:
-    from telesurg.services.bench.attack import _motion as motion
-
-    return motion(pipe, t0, now_ns())
-
-
-def web_cases() -> list[Any]:
-    """The web cases, each on the site the command cases share (a console of its own per case)."""
-    from telesurg.services.bench.attack import Case
-
+def web_cases(case: Callable[..., Any], motion: Motion) -> list[Any]:
+    """The web cases as ``case(name, text, run, fresh=False)`` (the attack bench's ``Case``), each
+    on the site the command cases share (a console of its own per case); ``motion(pipe, t0, t1)``
+    is the bench's tip motion in mm."""
     what = {
         "no-session": "web console: no session cookie",
         "foreign-host": "web console: Host rebind.example, the cookie",
         "cross-origin": "web console: another page's Origin, the cookie",
     }
-    return [Case(f"web-{how}", text, _web_case(how), fresh=False) for how, text in what.items()]
+    return [case(f"web-{how}", text, _web_case(how, motion), fresh=False) for how, text in what.items()]

@@ -4,7 +4,7 @@ Subscribes to ``camera/<cam>/image`` and serves, on 127.0.0.1 only, a page (``/`
 picture as an MJPEG stream (``/stream.mjpg``: each frame's JPEG as it arrives, no re-encoding)
 and the frame's age, sequence and size (``/status.json``). Any browser shows it — once logged in:
 like the web console, the page is served only with the session cookie that the one-time login URL
-printed at start gives (:mod:`telesurg.services.console.door`: Host and Origin checked, sessions
+printed at start gives (:mod:`telesurg.shared.door`: Host and Origin checked, sessions
 expire after 8 h); another local user or another page in the browser gets a one-line refusal.
 
 Example::
@@ -27,8 +27,8 @@ from typing import Any
 from urllib.parse import parse_qs
 
 from telesurg.services.common import duration_s, install_stop_handlers, setup_logging, tcp_port
-from telesurg.services.console.door import Door
 from telesurg.shared.bus import Node, add_bus_args, bus_from_args
+from telesurg.shared.door import Door
 from telesurg.shared.errors import TelesurgError
 from telesurg.shared.messages import CameraImage
 

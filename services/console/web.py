@@ -21,7 +21,7 @@ after it was seen released (a fresh press). Commands and e-stops go out through 
 :class:`~telesurg.services.console.model.ConsoleModel` as the terminal console, with its
 identity (``service``, ``console``).
 
-Everything is served only to a logged-in browser (:mod:`telesurg.services.console.door`): the
+Everything is served only to a logged-in browser (:mod:`telesurg.shared.door`): the
 one-time login URL printed at start (or handed over by the launcher, :data:`LOGIN_ENV`) is swapped
 for a session cookie; ``Host`` and ``Origin`` are checked; one page controls the master, the others
 view until control is handed over (:mod:`telesurg.services.console.control`).
@@ -64,10 +64,10 @@ from telesurg.services.console.browser import (
     parse_sample,
 )
 from telesurg.services.console.control import Control
-from telesurg.services.console.door import LOGIN_ENV, Door
 from telesurg.services.console.model import ConsoleConfig, ConsoleModel
 from telesurg.shared import robots
 from telesurg.shared.bus import Node, only
+from telesurg.shared.door import LOGIN_ENV, Door
 from telesurg.shared.errors import ConfigError
 from telesurg.shared.messages import CameraImage, CartesianPose, JointState, MasterButtons
 from telesurg.shared.timing import CycleTimer, start_loop
@@ -434,7 +434,7 @@ class WebConsole:
 
 class Server:
     """The aiohttp application: ``/login``, the page, static files, ``/api/state``, ``/api/stats``,
-    ``/video.mjpg`` and ``/ws`` — every one behind the :class:`~telesurg.services.console.door.Door`
+    ``/video.mjpg`` and ``/ws`` — every one behind the :class:`~telesurg.shared.door.Door`
     (Host, Origin, the session cookie) and the websocket's frames behind the
     :class:`~telesurg.services.console.control.Control` (one controlling page)."""
 

@@ -501,7 +501,7 @@ class Site:
         elif name in CONTROL:
             preexec = functools.partial(_foreground, slice_us)
         if name == "console":  # its login token: in the environment, never on the command line
-            from telesurg.services.console.door import LOGIN_ENV
+            from telesurg.shared.door import LOGIN_ENV
 
             self.login_token = secrets.token_urlsafe(32)
             env = {**(env or os.environ), LOGIN_ENV: self.login_token}
