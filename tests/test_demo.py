@@ -37,8 +37,12 @@ def test_demo_headless_report(tmp_path: Path) -> None:
     r = json.loads(report.read_text())
     assert set(r["exit_codes"].values()) == {0}
     for stream in ("servo_jp", "measured_js", "measured_cp", "master_cp"):
-        assert r["streams"][stream]["received"] > 500, stream
-        assert r["streams"][stream]["gaps"] == 0, stream
+        s = r["streams"][stream]
+        assert s["received"] > 500, stream
+        # the report's own node is an observer: the router drops samples for it rather than hold
+        # up the control path when this 2-core host leaves it behind (1–33 of ~7,000 seen, on the
+        # code before and after issue #39); more than 1 % would be a broken stream
+        assert s["lost"] <= 0.01 * s["received"] and s["rejected"] == 0, (stream, s)
     err = r["tip_tracking_error_mm"]
     assert err["samples"] > 400 and err["max_mm"] < 2.0, r["events"]  # ≥ 1.6 s at 250 Hz
     assert r["engagements"] >= 1, r["events"]
