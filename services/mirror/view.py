@@ -88,7 +88,6 @@ import logging
 import signal
 import socket
 import subprocess
-import sys
 import time
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
@@ -356,6 +355,18 @@ def _paler(c: Color) -> Color:
 #: Radii in UI points (rerun: negative = points on screen), so arms of 5 cm (PLAS) and of 1 m
 #: (MH3F) are drawn alike.
 _THIN, _LINE, _THICK, _DOT, _BIG_DOT = -1.0, -1.5, -3.0, -3.0, -6.0
+
+
+def _rerun_binary() -> str:
+    """rerun's own executable (``rerun_cli/rerun`` of the rerun-sdk wheel), started directly: the
+    ``python -m rerun_cli`` wrapper runs it as a grandchild that outlives a killed mirror."""
+    import importlib.util
+
+    spec = importlib.util.find_spec("rerun_cli")
+    exe = Path(spec.origin if spec is not None and spec.origin else ".").parent / "rerun"
+    if not exe.is_file():
+        raise ConnectionError(f"rerun's executable not found at {exe} (rerun-sdk installed without its CLI?)")
+    return str(exe)
 
 
 def _die_with_parent() -> None:
@@ -717,7 +728,7 @@ class RerunView:
                 s.bind((host, 0))
                 port = int(s.getsockname()[1])
         check_port_free(host, port, "web_port")
-        argv = [sys.executable, "-m", "rerun_cli", "--serve-web", "--bind", host]
+        argv = [_rerun_binary(), "--serve-web", "--bind", host]
         argv += ["--web-viewer-port", str(port), uri]
         self._web = subprocess.Popen(
             argv, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, preexec_fn=_die_with_parent
