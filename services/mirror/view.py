@@ -370,9 +370,10 @@ def _rerun_binary() -> str:
 
 
 def _die_with_parent() -> None:
-    """``preexec_fn``: the child gets SIGTERM when its parent dies (Linux ``PR_SET_PDEATHSIG``)."""
+    """``preexec_fn``: the child gets SIGKILL when its parent dies (Linux ``PR_SET_PDEATHSIG``):
+    rerun's server outlives a SIGTERM while it serves, and has nothing to save."""
     with contextlib.suppress(OSError, AttributeError):
-        ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGTERM)  # 1: PR_SET_PDEATHSIG
+        ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGKILL)  # 1: PR_SET_PDEATHSIG
 
 
 class RerunView:
@@ -721,7 +722,7 @@ class RerunView:
 
     def _serve_web_viewer(self, host: str, port: int, uri: str) -> int:
         """Serve rerun's web viewer (static files; its data comes from ``uri``) on ``host:port``
-        from a child ``rerun --serve-web --bind HOST`` (ended with this process: SIGTERM when its
+        from a child ``rerun --serve-web --bind HOST`` (ended with this process: SIGKILL when its
         parent dies); the port it serves on (``port`` 0: a free one)."""
         if port == 0:
             with socket.socket() as s:
@@ -745,12 +746,8 @@ class RerunView:
         web, self._web = self._web, None
         if web is None:
             return
-        web.terminate()
-        try:
-            web.wait(5)
-        except subprocess.TimeoutExpired:
-            web.kill()
-            web.wait()
+        web.kill()  # (it serves static files: nothing to save; it outlives a SIGTERM while serving)
+        web.wait()
 
     def close(self) -> None:
         """Send what the drawers still buffer, flush everything to the sinks and close them (the
