@@ -82,7 +82,6 @@ functions and classes that use it.
 from __future__ import annotations
 
 import contextlib
-import ctypes
 import functools
 import logging
 import signal
@@ -97,6 +96,7 @@ import numpy as np
 import numpy.typing as npt
 from telesurg.services.common import check_port_free
 from telesurg.services.mirror.geometry import KINDS, Body, Primitive, quat_matrix
+from telesurg.shared.session import die_with_parent
 from telesurg.shared.viewer import viewer_url
 
 log = logging.getLogger(__name__)
@@ -367,13 +367,6 @@ def _rerun_binary() -> str:
     if not exe.is_file():
         raise ConnectionError(f"rerun's executable not found at {exe} (rerun-sdk installed without its CLI?)")
     return str(exe)
-
-
-def _die_with_parent() -> None:
-    """``preexec_fn``: the child gets SIGKILL when its parent dies (Linux ``PR_SET_PDEATHSIG``):
-    rerun's server outlives a SIGTERM while it serves, and has nothing to save."""
-    with contextlib.suppress(OSError, AttributeError):
-        ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGKILL)  # 1: PR_SET_PDEATHSIG
 
 
 class RerunView:
@@ -732,7 +725,10 @@ class RerunView:
         argv = [_rerun_binary(), "--serve-web", "--bind", host]
         argv += ["--web-viewer-port", str(port), uri]
         self._web = subprocess.Popen(
-            argv, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, preexec_fn=_die_with_parent
+            argv,
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL,
+            preexec_fn=functools.partial(die_with_parent, signal.SIGKILL),
         )
         deadline = time.monotonic() + 30.0
         while time.monotonic() < deadline and self._web.poll() is None:
