@@ -32,9 +32,15 @@ def pytest_configure(config: pytest.Config) -> None:
 
 #: A process test (real services on this 2-core VM) runs once more after a failure: a stall of
 #: the host can make the watchdog hold mid-test (its stream deadlines are tens of ms), which is the
-#: system doing its job, not the behaviour under test. A test that fails twice fails; the rerun
-#: shows in the summary (``R``) and in pytest-rerunfailures' report, so flakes stay visible.
+#: system doing its job, not the behaviour under test. A test that fails twice fails.
 PROCESS_RERUNS = 1
+#: More reruns than this in one run fail the run: a rerun hides a flake, many reruns hide a defect.
+#: Every rerun is listed with its first failure; the last runs' reruns are counted across runs.
+RERUN_BUDGET = 3
+#: Seconds the unit tests (``make test-fast``: ``-m "not process"``) may take, and the whole run.
+FAST_BUDGET_S = 90.0
+SUITE_BUDGET_S = 15 * 60.0
+_HISTORY = "telesurg/runs"  # pytest's cache key of the per-run records (.pytest_cache)
 
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
@@ -44,24 +50,75 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
 
 
 _RERUNS: list[pytest.TestReport] = []
+_SECONDS = {"unit": 0.0, "process": 0.0}
+_COUNT = {"unit": 0, "process": 0}
+_START = time.monotonic()
 
 
 def pytest_runtest_logreport(report: pytest.TestReport) -> None:
+    kind = "process" if "process" in report.keywords else "unit"
+    _SECONDS[kind] += report.duration
+    if report.outcome != "rerun" and (
+        report.when == "call" or (report.when == "setup" and report.outcome != "passed")
+    ):
+        _COUNT[kind] += 1
     if report.outcome == "rerun":  # (pytest-rerunfailures' outcome for a first failure)
         _RERUNS.append(report)
 
 
+def _rerun_ids() -> list[str]:
+    return sorted({r.nodeid for r in _RERUNS})
+
+
+def pytest_sessionfinish(session: pytest.Session, exitstatus: int) -> None:
+    """Over the rerun budget → the run fails; the run's record goes to pytest's cache."""
+    if len(_rerun_ids()) > RERUN_BUDGET and exitstatus == pytest.ExitCode.OK:
+        session.exitstatus = pytest.ExitCode.TESTS_FAILED
+    cache = session.config.cache
+    if cache is not None and _COUNT["unit"] + _COUNT["process"] > 0:
+        runs = cache.get(_HISTORY, [])
+        runs.append(
+            {
+                "finished": time.strftime("%Y-%m-%dT%H:%M:%S"),
+                "wall_s": round(time.monotonic() - _START, 1),
+                "unit": {"tests": _COUNT["unit"], "s": round(_SECONDS["unit"], 1)},
+                "process": {"tests": _COUNT["process"], "s": round(_SECONDS["process"], 1)},
+                "reruns": _rerun_ids(),
+            }
+        )
+        cache.set(_HISTORY, runs[-20:])
+
+
 def pytest_terminal_summary(terminalreporter: pytest.TerminalReporter) -> None:
-    """Why each rerun test failed the first time (pytest-rerunfailures names it, not why): the
-    end of its failure text, so a flake can be told from a defect that a rerun hid."""
-    if not _RERUNS:
-        return
-    terminalreporter.section("first failures of the rerun tests")
+    """The run's split (unit / process seconds against their budgets), its reruns against the
+    budget with why each failed the first time, and the reruns of the last recorded runs."""
+    tr = terminalreporter
+    tr.section("telesurg suite")
+    unit, proc = _SECONDS["unit"], _SECONDS["process"]
+    tr.write_line(
+        f"unit tests: {_COUNT['unit']} in {unit:.0f} s (make test-fast budget {FAST_BUDGET_S:.0f} s); "
+        f"process tests: {_COUNT['process']} in {proc:.0f} s; "
+        f"total {unit + proc:.0f} s (budget {SUITE_BUDGET_S:.0f} s)"
+    )
+    ids = _rerun_ids()
+    verdict = "over the budget: the run fails" if len(ids) > RERUN_BUDGET else "within the budget"
+    tr.write_line(f"reruns: {len(ids)} of a budget of {RERUN_BUDGET} ({verdict})")
     for r in _RERUNS:
         lines = r.longreprtext.strip().splitlines()
-        terminalreporter.write_line(f"{r.nodeid} ({r.when}):")
+        tr.write_line(f"  rerun {r.nodeid} ({r.when}), first failure:")
         for line in lines[-25:]:
-            terminalreporter.write_line(f"    {line}")
+            tr.write_line(f"      {line}")
+    cache = tr.config.cache
+    runs = cache.get(_HISTORY, []) if cache is not None else []
+    if len(runs) > 1:
+        counts: dict[str, int] = {}
+        for run in runs:
+            for nodeid in run["reruns"]:
+                counts[nodeid] = counts.get(nodeid, 0) + 1
+        worst = sorted(counts.items(), key=lambda kv: -kv[1])[:10]
+        tr.write_line(f"reruns over the last {len(runs)} recorded runs (.pytest_cache): {len(counts)} tests")
+        for nodeid, n in worst:
+            tr.write_line(f"  {n:3d}× {nodeid}")
 
 
 def pytest_unconfigure(config: pytest.Config) -> None:

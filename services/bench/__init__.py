@@ -82,10 +82,18 @@ def main(argv: Sequence[str] | None = None) -> int:
     module = importlib.import_module(BENCHES[args[0]][0])
     # every bench runs on a keyring of its own, never the site's real one: its strangers and
     # tools (intruder, fuzz, local_client, bench_probe) add their keys to this one only
+    # (restored after: a bench called in-process must not leave the caller on a deleted keyring)
+    before = os.environ.get(KEYS_ENV)
     with tempfile.TemporaryDirectory(prefix="telesurg-bench-keys-") as tmp:
         os.environ[KEYS_ENV] = str(init_keyring(Path(tmp) / "keys", IDENTITIES))
-        if BENCHES[args[0]][0] == "telesurg.services.bench.perf":
-            code: int = module.main(args[1:], args[0])
-        else:
-            code = module.main(args[1:])
+        try:
+            if BENCHES[args[0]][0] == "telesurg.services.bench.perf":
+                code: int = module.main(args[1:], args[0])
+            else:
+                code = module.main(args[1:])
+        finally:
+            if before is None:
+                os.environ.pop(KEYS_ENV, None)
+            else:
+                os.environ[KEYS_ENV] = before
     return code

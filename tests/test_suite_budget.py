@@ -1,0 +1,54 @@
+"""The suite's own honesty: more process-test reruns than the budget fail the run, and the
+summary lists each rerun with its first failure and the unit/process split of the run's time."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+CONFTEST = Path(__file__).resolve().parent / "conftest.py"
+
+FLAKY = """
+import pathlib
+import pytest
+
+@pytest.mark.process
+@pytest.mark.parametrize("i", range({n}))
+def test_fails_once(i, tmp_path_factory):
+    mark = pathlib.Path(__file__).with_name(f"ran-{{i}}")
+    if not mark.exists():
+        mark.write_text("once")
+        raise AssertionError(f"first attempt of {{i}} fails")
+
+def test_unit_passes():
+    pass
+"""
+
+
+def run_suite(tmp_path: Path, flaky: int) -> subprocess.CompletedProcess[str]:
+    (tmp_path / "conftest.py").write_text(CONFTEST.read_text())
+    (tmp_path / "test_flaky.py").write_text(FLAKY.format(n=flaky))
+    (tmp_path / "pytest.ini").write_text("[pytest]\nmarkers =\n    process: real services\n")
+    return subprocess.run(
+        [sys.executable, "-m", "pytest", "-q", "-p", "no:randomly", str(tmp_path)],
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+
+
+@pytest.mark.parametrize("flaky", [1, 4])
+def test_reruns_over_the_budget_fail_the_run_and_are_listed(tmp_path: Path, flaky: int) -> None:
+    r = run_suite(tmp_path, flaky)
+    over = flaky > 3
+    assert (r.returncode != 0) == over, r.stdout[-3000:]
+    assert f"reruns: {flaky} of a budget of 3" in r.stdout, r.stdout[-3000:]
+    assert ("over the budget: the run fails" in r.stdout) == over
+    for i in range(flaky):
+        assert f"rerun test_flaky.py::test_fails_once[{i}] (call), first failure:" in r.stdout
+        assert f"first attempt of {i} fails" in r.stdout
+    assert "unit tests: 1 in" in r.stdout and f"process tests: {flaky} in" in r.stdout, r.stdout[-3000:]
