@@ -298,10 +298,10 @@ RESULTS: tuple[Result, ...] = (
         _wakeup,
     ),
     Result(
-        "Memory over a quiet run",
-        f"{P}/memory/memory-1200s-1203-1125.json",
-        f"telesurg bench memory --seconds 1200 --every 30 --warmup 120 "
-        f"--json {P}/memory/memory-1200s-1203-1125.json --plot docs/img/memory_1200s.png",
+        "Memory over a quiet run (the mirror trimming its heap)",
+        f"{P}/memory/memory-600s-trim30-1203-1208.json",
+        "telesurg bench memory --seconds 600 --every 30 --warmup 240 "
+        f"--json {P}/memory/memory-600s-trim30-1203-1208.json --plot docs/img/memory_600s_trim30.png",
         _memory,
         "2026-12-03",
     ),
