@@ -133,3 +133,30 @@ def test_every_data_file_and_image_is_used_by_a_page() -> None:
 def test_every_data_file_and_image_a_page_names_exists() -> None:
     missing = [f"{page}: {path}" for path, page in _referenced().items() if not (ROOT / path).exists()]
     assert missing == []
+
+
+# --------------------------------------------------------------------------- the manual's size
+
+GENERATED = {"messages.md", "performance.md"}
+
+
+def test_the_manual_is_short() -> None:
+    """docs/ is at most 12 pages and 4,000 lines, a hand-written page at most ~400, no dated heading."""
+    import re
+
+    pages = sorted((ROOT / "docs").rglob("*.md"))
+    lines = {
+        p.relative_to(ROOT / "docs").as_posix(): len(p.read_text(encoding="utf-8").splitlines())
+        for p in pages
+    }
+    assert len(pages) <= 12, sorted(lines)
+    assert sum(lines.values()) <= 4000, lines
+    long = {name: n for name, n in lines.items() if name not in GENERATED and n > 420}
+    assert long == {}, f"pages over ~400 lines: {long}"
+    dated = [
+        f"{p.name}: {line}"
+        for p in pages
+        for line in p.read_text(encoding="utf-8").splitlines()
+        if line.startswith("#") and re.search(r"\b20\d\d-\d\d-\d\d\b", line)
+    ]
+    assert dated == [], f"dated headings (a run log, not a manual): {dated}"
