@@ -55,3 +55,108 @@ def test_a_key_without_a_row_in_the_keys_table_fails_the_generation() -> None:
     row = next(line for line in text.splitlines() if line.startswith("| `console/<m>/clutch` |"))
     with pytest.raises(ValueError, match="console/<m>/clutch"):
         message_page(text.replace(row + "\n", ""))
+
+
+# --------------------------------------------------------------------------- performance.md
+
+
+def test_committed_performance_md_is_the_generated_page() -> None:
+    from telesurg.services.docs.performance import DEFAULT_OUT as PERF_OUT
+    from telesurg.services.docs.performance import performance_page
+
+    assert PERF_OUT.read_text(encoding="utf-8") == performance_page(), (
+        "docs/performance.md drifted from the result files: run `telesurg docs performance`"
+    )
+
+
+def test_every_performance_row_names_a_command_the_cli_takes() -> None:
+    """Each row's command parses (as the docs' command lines do) and writes the file the row reads."""
+    from telesurg.services.cli import COMMANDS
+    from telesurg.services.docs.performance import RESULTS
+    from test_docs_commands import parse_only
+
+    for r in RESULTS:
+        words = r.command.split()
+        if words[0] != "telesurg":  # a test that writes the file: TELESURG_PERF_DIR=DIR pytest …
+            assert words[0] == f"TELESURG_PERF_DIR={Path(r.data).parent}", r.command
+            continue
+        assert r.data in words, f"{r.command}: does not write {r.data}"
+        module = COMMANDS[words[1]][0]
+        problem = parse_only(module, tuple(words[2:]))
+        assert problem is None, f"{r.command}: {problem}"
+
+
+def test_a_missing_result_file_fails_the_generation(tmp_path: Path) -> None:
+    from telesurg.services.docs import performance
+
+    gone = performance.Result("x", "docs/data/perf/no-such.json", "telesurg bench sim --json x", lambda d: "")
+    with pytest.raises(ValueError, match=r"no-such\.json"):
+        performance._row(gone)
+    assert main(["performance", "--out", str(tmp_path / "p.md")]) == 0
+    assert main(["performance", "--out", str(tmp_path / "p.md"), "--check"]) == 0
+
+
+# --------------------------------------------------------------------------- data and images
+
+ROOT = Path(__file__).resolve().parents[1]
+PAGES = [ROOT / "README.md", *sorted((ROOT / "docs").rglob("*.md"))]
+ASSET_DIRS = ("docs/data", "docs/img")
+
+
+def _referenced() -> dict[str, str]:
+    """Every docs/data or docs/img path a page names (links, images, commands), by the page."""
+    import re
+
+    out: dict[str, str] = {}
+    for page in PAGES:
+        text = page.read_text(encoding="utf-8")
+        for hit in re.finditer(
+            r"(?<![\w/.-])((?:\.\./)*(?:docs/)?(?:data|img)/[\w./-]+?)(?=[)\s`\"'\],;|]|$)", text
+        ):
+            name = hit.group(1)
+            path = (ROOT / name if name.startswith("docs/") else page.parent / name).resolve()
+            out[path.relative_to(ROOT).as_posix().rstrip("/")] = page.relative_to(ROOT).as_posix()
+    return out
+
+
+def test_every_data_file_and_image_is_used_by_a_page() -> None:
+    refs = _referenced()
+    unused = [
+        f.relative_to(ROOT).as_posix()
+        for d in ASSET_DIRS
+        for f in sorted((ROOT / d).rglob("*"))
+        if f.is_file() and f.relative_to(ROOT).as_posix() not in refs
+    ]
+    assert unused == [], f"files in docs/data or docs/img that no page uses: {unused}"
+
+
+def test_every_data_file_and_image_a_page_names_exists() -> None:
+    missing = [f"{page}: {path}" for path, page in _referenced().items() if not (ROOT / path).exists()]
+    assert missing == []
+
+
+# --------------------------------------------------------------------------- the manual's size
+
+GENERATED = {"messages.md", "performance.md"}
+
+
+def test_the_manual_is_short() -> None:
+    """docs/ is at most 12 pages and 4,000 lines, a hand-written page at most ~400, no dated heading."""
+    import re
+
+    pages = sorted((ROOT / "docs").rglob("*.md"))
+    lines = {
+        p.relative_to(ROOT / "docs").as_posix(): len(p.read_text(encoding="utf-8").splitlines())
+        for p in pages
+    }
+    assert len(pages) <= 12, sorted(lines)
+    assert sum(lines.values()) <= 4000, lines
+    long = {name: n for name, n in lines.items() if name not in GENERATED and n > 420}
+    assert long == {}, f"pages over ~400 lines: {long}"
+    dated = [
+        f"{p.name}: {line}"
+        for p in pages
+        for line in p.read_text(encoding="utf-8").splitlines()
+        if line.startswith("#") and re.search(r"\b20\d\d-\d\d-\d\d\b", line)
+    ]
+    assert dated == [], f"dated headings (a run log, not a manual): {dated}"

@@ -13,6 +13,7 @@ Example::
 
     telesurg docs messages                 # rewrite docs/messages.md
     telesurg docs messages --check         # exit 1 if docs/messages.md is out of date
+    telesurg docs performance              # docs/performance.md: services/docs/performance.py
 """
 
 from __future__ import annotations
@@ -320,22 +321,28 @@ def message_page(template: str | None = None) -> str:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """``telesurg docs messages [--out FILE] [--check]``."""
+    """``telesurg docs messages|performance [--out FILE] [--check]``."""
+    from telesurg.services.docs import performance
+
+    pages = {
+        "messages": (DEFAULT_OUT, message_page),
+        "performance": (performance.DEFAULT_OUT, performance.performance_page),
+    }
     ap = argparse.ArgumentParser(prog="telesurg docs", description=__doc__)
-    ap.add_argument("page", choices=["messages"], help="the page to generate")
-    ap.add_argument(
-        "--out", type=Path, default=DEFAULT_OUT, help=f"where to write it (default {DEFAULT_OUT})"
-    )
+    ap.add_argument("page", choices=sorted(pages), help="the page to generate")
+    ap.add_argument("--out", type=Path, help="where to write it (default docs/<page>.md of this checkout)")
     ap.add_argument("--check", action="store_true", help="only compare: exit 1 if the file differs")
     a = ap.parse_args(argv)
-    page = message_page()
+    default_out, build = pages[a.page]
+    out: Path = a.out or default_out
+    page = build()
     if a.check:
-        current = a.out.read_text(encoding="utf-8") if a.out.exists() else ""
+        current = out.read_text(encoding="utf-8") if out.exists() else ""
         if current != page:
-            print(f"{a.out} is out of date: run `telesurg docs messages`", file=sys.stderr)
+            print(f"{out} is out of date: run `telesurg docs {a.page}`", file=sys.stderr)
             return 1
-        print(f"{a.out} is up to date")
+        print(f"{out} is up to date")
         return 0
-    a.out.write_text(page, encoding="utf-8")
-    print(f"wrote {a.out}")
+    out.write_text(page, encoding="utf-8")
+    print(f"wrote {out}")
     return 0
