@@ -44,9 +44,11 @@ import time
 from collections import deque
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 from telesurg.services.common import service_main
+from telesurg.services.watchdog import rules as safety_rules
 from telesurg.services.watchdog.commanded import CommandedCheck
 from telesurg.services.watchdog.logic import ArmSafety, Policy, Verdict
 from telesurg.services.watchdog.video import VideoPolicy, VideoWatch
@@ -121,6 +123,9 @@ class WatchdogConfig:
     fault_latch_ms: float = 500.0  # ms: a message-level fault holds at least this long
     min_hold_ms: float = 250.0  # ms: a HOLD outlasts its causes by this much (no flapping lease)
     require_operator: bool = True  # HOLD while the master reports no operator present
+    # settings of the safety rules (services/watchdog/rules/, one file each; plugins add more):
+    # rule name → its keys, e.g. [watchdog.rules.rcm] modes = ["trocar"]
+    rules: dict[str, dict[str, Any]] = field(default_factory=dict)
     state_hz: float = 5.0  # Hz: safety state republish rate (also sent on every change)
     # Only these services may publish the watched streams (others are rejected and counted, and
     # cannot keep a stream looking fresh; "" = anyone). E-stops are accepted from anyone.
@@ -182,6 +187,7 @@ class WatchdogConfig:
             raise ConfigError("patient_box_min_mm must be below patient_box_max_mm on every axis")
         for p in self.pairs:
             arm_profile(self.model, parse_pair(p)[1])
+        safety_rules.check_settings(self.rules)
 
     def policy(self, arm: str = "arm1") -> Policy:
         """Per-arm limits: this config plus the robot model's joint limits for ``arm``."""
@@ -229,7 +235,9 @@ class ArmWatch:
             k.slave(arm, "measured_js"),
         ]
         profile = arm_profile(cfg.model, arm)
-        self.safety = ArmSafety(arm, cfg.policy(arm), profile.joint_names, tip_of=profile.tip)
+        self.safety = ArmSafety(
+            arm, cfg.policy(arm), profile.joint_names, tip_of=profile.tip, rule_settings=cfg.rules
+        )
         keepout = robot_spec(cfg.model).slave_family == "trocar"  # the forceps arm and its patient
         self.commanded = CommandedCheck(
             self.safety,
@@ -307,7 +315,7 @@ class Watchdog:
     def _on_buttons(self, a: ArmWatch, msg: MasterButtons, key: str) -> None:
         self.last_tick[key] = self.ticks
         with self.lock:
-            a.safety.on_buttons(msg)
+            a.safety.on_buttons(msg, time.monotonic())
 
     def _on_servo(self, a: ArmWatch, msg: JointSetpoint, key: str) -> None:
         self.last_tick[key] = self.ticks
