@@ -10,6 +10,7 @@ it, and the watchdog holds the arm with the rule's cause once the tip leaves its
 
 from __future__ import annotations
 
+import re
 import threading
 import time
 from collections.abc import Iterator
@@ -103,6 +104,14 @@ def test_a_rule_that_raises_holds_the_arm() -> None:
     assert v.state == "HOLD"
     assert any("safety rule broken failed: ZeroDivisionError" in c for c in v.causes), v.causes
     assert any("safety rule broken failed: AttributeError" in c for c in v.causes), v.causes
+
+
+def test_the_manual_quotes_the_plugin_files_as_they_are() -> None:
+    """docs/extending.md's worked examples are these files, as tested here."""
+    doc = (HERE.parent / "docs" / "extending.md").read_text()
+    blocks = re.findall(r"```python\n(.*?)```", doc, re.S)
+    assert FIGURE_EIGHT.read_text() in blocks
+    assert TIP_SPHERE.read_text() in blocks
 
 
 # -- one real site with both plugins ----------------------------------------------------------

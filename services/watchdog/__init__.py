@@ -1,34 +1,22 @@
 """watchdog: grants each slave arm a short lease to move, only while everything is healthy.
 
-Signals, combined per arm into OK / DEGRADED / HOLD / ESTOP (see :mod:`telesurg.services.watchdog.logic`
-and ``docs/safety.md``):
+Per arm it combines into OK / DEGRADED / HOLD / ESTOP (:mod:`telesurg.services.watchdog.logic`,
+``docs/safety.md``):
 
-* liveliness tokens ``alive/<service>`` of every required service — a crash is seen in ms;
-* staleness of each control stream against its deadline — a hang, a frozen process or a
-  partition, which liveliness only sees after the transport lease;
-* lost and reordered messages on the control streams (per second);
-* latency of the command path, p50/p90/p99 over a window: the age of each ``servo_jp`` since its
-  master sample (same-host clocks, ``latency_source="clock"``) or half the round-trip time to the
-  master's echo queryable (``"echo"``, hosts without a shared clock);
-* joint position and speed of the setpoints, the workspace (the tip position the followed
-  setpoint would give, by forward kinematics), the RCM error in trocar mode, the
-  operator-presence switch of the master;
-* the same for the slave's commanded joints of slave-side motions (``slave/<arm>/setpoint_js``:
-  PTP, jog, playback, insert/remove, direct teach), plus the patient keep-out for a trocar-family
-  robot: the forceps may cross the patient box (``patient_box_min_mm``/``patient_box_max_mm``)
-  only through the trocar (:mod:`telesurg.services.watchdog.commanded`); a violation revokes the
-  lease at once;
-* e-stop commands on ``estop`` (latched until an explicit reset);
-* with ``video_camera`` set, the endoscope video (``camera/<cam>/image``): no frame for
-  ``video_stale_ms`` or a frame older than ``video_age_budget_ms`` → DEGRADED, beyond
-  ``video_hold_ms`` / ``video_age_limit_ms`` → HOLD, OK again only after ``video_fresh_frames``
-  fresh frames (:mod:`telesurg.services.watchdog.video`); the frame ages go out on
-  ``safety/<arm>/video`` with each safety state.
+* its own measurements: the liveliness tokens ``alive/<service>`` of ``required_services``; the
+  staleness of each control stream against its deadline (``*_deadline_ms``); lost and reordered
+  control messages per second; the command-path latency (p50/p90/p99: ``servo_jp``'s age since
+  its master sample, or half the round trip to the master's echo queryable); with
+  ``video_camera`` set, the endoscope video's freshness (:mod:`telesurg.services.watchdog.video`);
+* the safety rules (:mod:`telesurg.services.watchdog.rules`, one file each; plugins add more) on
+  ``servo_jp``, the slave's ``operating_state`` and the master's buttons;
+* the slave's commanded joints of slave-side motions (``slave/<arm>/setpoint_js``) and the patient
+  keep-out (:mod:`telesurg.services.watchdog.commanded`);
+* e-stop commands on ``estop`` (latched until an explicit reset).
 
-Every ``1/lease_hz`` s, and at once on any liveliness loss or e-stop, the watchdog publishes
-``safety/<arm>/lease`` (``allow``, ``valid_for_ms``, ``reason``). The slave holds the moment the
-lease says hold or expires, so the watchdog's own death is fail-safe. ``safety/<arm>/state``
-(state, causes, motion-scale factor, latency) goes out on change and at ``state_hz``; every
+Every ``1/lease_hz`` s, and at once on a liveliness loss, an e-stop or a commanded fault, it
+publishes ``safety/<arm>/lease`` (``allow``, ``valid_for_ms``, ``reason``); the slave holds when the
+lease says hold or expires. ``safety/<arm>/state`` goes out on change and at ``state_hz``; every
 transition is an event with its causes.
 
 Example::
