@@ -125,7 +125,8 @@ def service_main(
         action="append",
         default=[],
         metavar="FILE",
-        help="robot plugin: a Python file that registers robots (telesurg.shared.robots); repeatable",
+        help="plugin: a Python file that registers robots, master devices or safety rules "
+        "(docs/extending.md); repeatable",
     )
     add_bus_args(parser)
     args = parser.parse_args(argv)

@@ -1,4 +1,5 @@
-"""Desk master devices (services/master_capture/desk.py): the device-independent parts — rate
+"""Desk master devices (services/master_capture/devices/desk.py, a file per device): the
+device-independent parts — rate
 integration, deadband, workspace box, button edges, staleness, frames — and the library bindings
 where their library is installed (skipped with the reason otherwise: none is installable here and
 none has been run against hardware)."""
@@ -13,18 +14,24 @@ import time
 from dataclasses import dataclass, field
 
 import pytest
-from telesurg.services.master_capture.desk import (
-    LIBRARIES,
+from telesurg.services.master_capture import devices
+from telesurg.services.master_capture.devices import open_device
+from telesurg.services.master_capture.devices.desk import (
     ButtonEdges,
     DeskConfig,
     DeskDevice,
     RateIntegrator,
     Reading,
     deadband,
-    open_device,
     scaled_position,
 )
+from telesurg.services.master_capture.devices.gamepad import GamepadDevice
+from telesurg.services.master_capture.devices.spacemouse import SpaceMouseDevice
+from telesurg.services.master_capture.devices.touch import TouchDevice
 from telesurg.shared.errors import ConfigError, DeviceConnectionError
+
+#: desk device → (Python package to pip install, what else it needs)
+LIBRARIES = {n: cls.library for n in devices.names() if issubclass(cls := devices.get(n), DeskDevice)}
 
 
 @dataclass
@@ -102,7 +109,7 @@ def test_desk_device_staleness_and_clutch() -> None:
             Reading(now + 0.01, trans=(1.0, 0.0, 0.0), buttons=(True,)),
         ]
     )
-    dev = DeskDevice("spacemouse", cfg, binding=played)
+    dev = SpaceMouseDevice(cfg, binding=played)
     with dev:
         assert played.opened
         s1 = dev.read(0.0)
@@ -120,14 +127,14 @@ def test_absolute_device_reports_its_pose() -> None:
     played = Played(
         [Reading(now, position=(0.01, 0.02, 0.03), orientation=(0, 0, 0, 1), buttons=(False, True))]
     )
-    dev = DeskDevice("touch", DeskConfig(clutch_button=1), binding=played)
+    dev = TouchDevice(DeskConfig(clutch_button=1), binding=played)
     s = dev.read(0.0)
     assert s.valid and s.clutch and s.position == pytest.approx((0.01, 0.02, 0.03))
 
 
 def test_config_errors_name_the_problem() -> None:
     with pytest.raises(ConfigError, match="clutch_mode"):
-        DeskDevice("gamepad", DeskConfig(clutch_mode="latch"), binding=Played())
+        GamepadDevice(DeskConfig(clutch_mode="latch"), binding=Played())
     with pytest.raises(ConfigError, match="deadband"):
         DeskConfig(deadband=0.95).validate()
 

@@ -33,11 +33,11 @@ from telesurg.services.device import main as device_main
 from telesurg.services.device import monitor
 from telesurg.services.device.emulator import BoardEmulator, EmulatorOptions, motion_joints
 from telesurg.services.master_capture import MasterCaptureConfig, run
-from telesurg.services.master_capture.devices import (
+from telesurg.services.master_capture.devices import open_device
+from telesurg.services.master_capture.devices.serial import (
     PLAS_MASTER_JOINTS,
     SerialMasterConfig,
     SerialMasterDevice,
-    make_device,
 )
 from telesurg.shared.bus import BusConfig, Node
 from telesurg.shared.config import load_config
@@ -115,7 +115,7 @@ def raw_wire(version: int, kind: int, seq: int, body: Any) -> bytes:
 @contextlib.contextmanager
 def opened_device(path: str, **cfg: Any) -> Iterator[SerialMasterDevice]:
     """A serial device on ``path``, open (its HELLO_REQUEST is consumed by the caller)."""
-    dev = make_device("serial", serial=SerialMasterConfig(port=path, **cfg))
+    dev = SerialMasterDevice(SerialMasterConfig(port=path, **cfg))
     assert isinstance(dev, SerialMasterDevice)
     with dev:
         yield dev
@@ -305,13 +305,13 @@ def test_serial_config_keys_and_errors() -> None:
     with pytest.raises(ConfigError, match=r"valid: .*calibration.*port"):
         load_config(MasterCaptureConfig, None, ["serial.prot=/dev/ttyUSB0"])
     with pytest.raises(ConfigError, match="serial port is empty"):
-        make_device("serial", serial=SerialMasterConfig(port=""))
+        SerialMasterDevice(SerialMasterConfig(port=""))
     with pytest.raises(ConfigError, match=r"stale_ms=0.0 outside \[1, 10000\]"):
-        make_device("serial", serial=SerialMasterConfig(stale_ms=0.0))
+        SerialMasterDevice(SerialMasterConfig(stale_ms=0.0))
     with pytest.raises(ConfigError, match="must be 6 distinct names"):
-        make_device("serial", serial=SerialMasterConfig(joint_names=("a", "b")))
+        SerialMasterDevice(SerialMasterConfig(joint_names=("a", "b")))
     with pytest.raises(ConfigError, match="valid: scripted, serial"):
-        make_device("phantom")
+        open_device("phantom")
 
 
 # --------------------------------------------------------------------------- transports

@@ -11,7 +11,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 from telesurg.services.bench.harness import Pipeline
-from telesurg.services.master_capture.devices import ScriptedConfig, ScriptedDevice, make_device
+from telesurg.services.master_capture.devices import open_device
+from telesurg.services.master_capture.devices.scripted import ScriptedConfig, ScriptedDevice
 from telesurg.shared.errors import ConfigError
 from telesurg.shared.messages import SafetyState, TeleopState
 
@@ -31,7 +32,7 @@ def test_circle_radius_period_and_clutch_schedule() -> None:
 def test_csv_playback_loops_and_gates_clutch(tmp_path: Path) -> None:
     f = tmp_path / "path.csv"
     f.write_text("t,x,y,z,clutch\n0,0,0,0,1\n1,0.01,0,0,1\n2,0.01,0.01,0,0\n")
-    with make_device("scripted", ScriptedConfig(trajectory="csv", csv_path=str(f), clutch=[[0, 1e9]])) as dev:
+    with ScriptedDevice(ScriptedConfig(trajectory="csv", csv_path=str(f), clutch=[[0, 1e9]])) as dev:
         assert math.isclose(dev.read(0.5).position[0], 0.005)
         assert dev.read(0.5).clutch and not dev.read(1.9).clutch
         assert math.isclose(dev.read(2.5).position[0], 0.005)  # looped
@@ -61,7 +62,7 @@ def test_config_errors() -> None:
     with pytest.raises(ConfigError, match="t_on <= t_off"):
         ScriptedDevice(ScriptedConfig(clutch=[[2.0, 1.0]]))
     with pytest.raises(ConfigError, match="valid: scripted"):
-        make_device("phantom", ScriptedConfig())
+        open_device("phantom")
 
 
 def test_a_refused_engage_is_answered_by_a_release_and_a_new_press_within_the_retry_time() -> None:

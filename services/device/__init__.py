@@ -56,7 +56,7 @@ from telesurg.shared.errors import MessageError, TelesurgError
 from telesurg.shared.serial_link import SerialLink
 
 if TYPE_CHECKING:
-    from telesurg.services.master_capture.devices import SerialMasterConfig
+    from telesurg.services.master_capture.devices.serial import SerialMasterConfig
 
 log = logging.getLogger(__name__)
 
@@ -147,12 +147,12 @@ def check(device: object, seconds: float, print_hz: float, out: TextIO, stop: th
 
 def _check_main(args: argparse.Namespace, stop: threading.Event) -> int:
     from telesurg.services.master_capture import MasterCaptureConfig
-    from telesurg.services.master_capture.desk import open_device
+    from telesurg.services.master_capture.devices import open_device
     from telesurg.shared.config import load_config
 
     try:
         cfg = load_config(MasterCaptureConfig, args.config, [*args.set, f"device={json.dumps(args.type)}"])
-        device = open_device(cfg.device, cfg.scripted, cfg.serial, cfg.desk)
+        device = open_device(cfg.device, cfg)
     except TelesurgError as exc:
         print(f"telesurg device check: {exc}", file=sys.stderr)
         return 2

@@ -650,7 +650,7 @@ def add_site_args(parser: argparse.ArgumentParser) -> None:
         action="append",
         default=[],
         metavar="FILE",
-        help="robot plugin file, passed to every service (repeatable)",
+        help="plugin file (robots, master devices, safety rules), passed to every service (repeatable)",
     )
     parser.add_argument(
         "--master",

@@ -1,19 +1,11 @@
 """master_capture: samples a master device and publishes its pose, joints and buttons.
 
-Publishes at ``rate_hz`` (default 500 Hz) on ``master/<arm>/measured_cp`` (CartesianPose, master
-frame) and, for devices with joints, ``master/<arm>/measured_js``; ``master/<arm>/buttons``
-(MasterButtons) goes out before the pose on every change and at least at ``buttons_hz``.
-
-While the device's reading is not valid (``DeviceSample.valid``: the serial encoder board is
-unplugged, silent for ``serial.stale_ms`` or refused), nothing is published — no pose, joints or
-buttons — so the watchdog's freshness check holds the slave; publishing resumes with the first fresh
-reading. Each such outage is logged once.
-
-The scripted device answers a refused engage as an operator would (``scripted.retry_refused_engage_s``,
-1 s by default): master_capture follows the mapping's teleop states of every pair this master
-drives (``mapping/*/teleop_state``, those whose ``master`` is ``arm``), and when one goes
-ENGAGING → HOLDING (the engage was refused: e.g. the slave was not yet allowed to move) while the
-schedule has the pedal pressed, the pedal is released at once and pressed again that long after.
+Publishes at ``rate_hz`` on ``master/<arm>/measured_cp`` (CartesianPose, m, master frame) and, for
+devices with joints, ``master/<arm>/measured_js``; ``master/<arm>/buttons`` (MasterButtons) goes out
+before the pose on every change and at least at ``buttons_hz``. While the device's reading is not
+valid (``DeviceSample.valid``) nothing is published, so the watchdog holds. A device with an
+``engage_retry`` (the scripted pedal) is told of the mapping's refused engages of this master
+(``mapping/*/teleop_state`` ENGAGING → HOLDING). Devices: :mod:`.devices`.
 
 Examples::
 
@@ -28,14 +20,13 @@ import threading
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 from telesurg.services.common import service_main
-from telesurg.services.master_capture.desk import DeskConfig, open_device
-from telesurg.services.master_capture.devices import (
-    ScriptedConfig,
-    ScriptedDevice,
-    SerialMasterConfig,
-)
+from telesurg.services.master_capture import devices
+from telesurg.services.master_capture.devices.desk import DeskConfig
+from telesurg.services.master_capture.devices.scripted import EngageRetry, ScriptedConfig
+from telesurg.services.master_capture.devices.serial import SerialMasterConfig
 from telesurg.shared.bus import BusConfig, Node
 from telesurg.shared.errors import ConfigError
 from telesurg.shared.messages import CartesianPose, JointState, MasterButtons, TeleopState
@@ -53,12 +44,14 @@ class MasterCaptureConfig:
     arm: str = "m1"  # master arm id in keys master/<arm>/...
     rate_hz: float = 500.0  # Hz: publish rate of the pose (and joints)
     buttons_hz: float = 50.0  # Hz: buttons are sent on every change and at least this often
-    # device type; valid: scripted, serial, spacemouse, touch, omega7, gamepad (desk devices:
-    # services/master_capture/desk.py, docs/console.md)
+    # master device: a registered name (services/master_capture/devices/, one file each; plugins
+    # add more; --help lists them)
     device: str = "scripted"
     scripted: ScriptedConfig = field(default_factory=ScriptedConfig)  # scripted device settings
     serial: SerialMasterConfig = field(default_factory=SerialMasterConfig)  # serial encoder-board settings
     desk: DeskConfig = field(default_factory=DeskConfig)  # desk device settings (spacemouse … gamepad)
+    # settings of a plugin device (its config dataclass's keys; docs/extending.md)
+    device_options: dict[str, Any] = field(default_factory=dict)
     # The operator console's keyboard clutch (console/<arm>/clutch) is ORed with the device's
     # pedal while it is fresh; "" turns it off. A console that dies or is cut off counts as released.
     console_source: str = "console"
@@ -77,7 +70,7 @@ def run(cfg: MasterCaptureConfig, stop: threading.Event) -> None:
     if not 1.0 <= cfg.rate_hz <= 5000.0:
         raise ConfigError(f"rate_hz={cfg.rate_hz} outside [1, 5000]")
     check_rt_priority(cfg.rt_priority)
-    device = open_device(cfg.device, cfg.scripted, cfg.serial, cfg.desk)
+    device = devices.open_device(cfg.device, cfg)
     with device, Node(cfg.bus, cfg.site, cfg.service) as node:
         k = node.keys
         pose_out = node.outlet(k.master(cfg.arm, "measured_cp"))
@@ -96,7 +89,10 @@ def run(cfg: MasterCaptureConfig, stop: threading.Event) -> None:
         if cfg.console_source:
             node.subscribe(k.console_clutch(cfg.arm), MasterButtons, on_console, sources=[cfg.console_source])
         console_timeout = cfg.console_clutch_timeout_ms / 1e3
-        retry = device.engage_retry if isinstance(device, ScriptedDevice) else None
+        # a device that answers a refused engage (the scripted pedal) has an engage_retry
+        retry = getattr(device, "engage_retry", None)
+        if not isinstance(retry, EngageRetry):
+            retry = None
         if retry is not None:
             engage_retry = retry
 
@@ -151,4 +147,5 @@ def run(cfg: MasterCaptureConfig, stop: threading.Event) -> None:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """``telesurg master-capture``."""
-    return service_main("master-capture", MasterCaptureConfig, run, argv, __doc__ or "")
+    about = f"{__doc__ or ''}\nMaster devices: {', '.join(devices.names())} (more from --plugin FILE).\n"
+    return service_main("master-capture", MasterCaptureConfig, run, argv, about)

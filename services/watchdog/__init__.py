@@ -1,34 +1,22 @@
 """watchdog: grants each slave arm a short lease to move, only while everything is healthy.
 
-Signals, combined per arm into OK / DEGRADED / HOLD / ESTOP (see :mod:`telesurg.services.watchdog.logic`
-and ``docs/safety.md``):
+Per arm it combines into OK / DEGRADED / HOLD / ESTOP (:mod:`telesurg.services.watchdog.logic`,
+``docs/safety.md``):
 
-* liveliness tokens ``alive/<service>`` of every required service — a crash is seen in ms;
-* staleness of each control stream against its deadline — a hang, a frozen process or a
-  partition, which liveliness only sees after the transport lease;
-* lost and reordered messages on the control streams (per second);
-* latency of the command path, p50/p90/p99 over a window: the age of each ``servo_jp`` since its
-  master sample (same-host clocks, ``latency_source="clock"``) or half the round-trip time to the
-  master's echo queryable (``"echo"``, hosts without a shared clock);
-* joint position and speed of the setpoints, the workspace (the tip position the followed
-  setpoint would give, by forward kinematics), the RCM error in trocar mode, the
-  operator-presence switch of the master;
-* the same for the slave's commanded joints of slave-side motions (``slave/<arm>/setpoint_js``:
-  PTP, jog, playback, insert/remove, direct teach), plus the patient keep-out for a trocar-family
-  robot: the forceps may cross the patient box (``patient_box_min_mm``/``patient_box_max_mm``)
-  only through the trocar (:mod:`telesurg.services.watchdog.commanded`); a violation revokes the
-  lease at once;
-* e-stop commands on ``estop`` (latched until an explicit reset);
-* with ``video_camera`` set, the endoscope video (``camera/<cam>/image``): no frame for
-  ``video_stale_ms`` or a frame older than ``video_age_budget_ms`` → DEGRADED, beyond
-  ``video_hold_ms`` / ``video_age_limit_ms`` → HOLD, OK again only after ``video_fresh_frames``
-  fresh frames (:mod:`telesurg.services.watchdog.video`); the frame ages go out on
-  ``safety/<arm>/video`` with each safety state.
+* its own measurements: the liveliness tokens ``alive/<service>`` of ``required_services``; the
+  staleness of each control stream against its deadline (``*_deadline_ms``); lost and reordered
+  control messages per second; the command-path latency (p50/p90/p99: ``servo_jp``'s age since
+  its master sample, or half the round trip to the master's echo queryable); with
+  ``video_camera`` set, the endoscope video's freshness (:mod:`telesurg.services.watchdog.video`);
+* the safety rules (:mod:`telesurg.services.watchdog.rules`, one file each; plugins add more) on
+  ``servo_jp``, the slave's ``operating_state`` and the master's buttons;
+* the slave's commanded joints of slave-side motions (``slave/<arm>/setpoint_js``) and the patient
+  keep-out (:mod:`telesurg.services.watchdog.commanded`);
+* e-stop commands on ``estop`` (latched until an explicit reset).
 
-Every ``1/lease_hz`` s, and at once on any liveliness loss or e-stop, the watchdog publishes
-``safety/<arm>/lease`` (``allow``, ``valid_for_ms``, ``reason``). The slave holds the moment the
-lease says hold or expires, so the watchdog's own death is fail-safe. ``safety/<arm>/state``
-(state, causes, motion-scale factor, latency) goes out on change and at ``state_hz``; every
+Every ``1/lease_hz`` s, and at once on a liveliness loss, an e-stop or a commanded fault, it
+publishes ``safety/<arm>/lease`` (``allow``, ``valid_for_ms``, ``reason``); the slave holds when the
+lease says hold or expires. ``safety/<arm>/state`` goes out on change and at ``state_hz``; every
 transition is an event with its causes.
 
 Example::
@@ -44,9 +32,11 @@ import time
 from collections import deque
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 from telesurg.services.common import service_main
+from telesurg.services.watchdog import rules as safety_rules
 from telesurg.services.watchdog.commanded import CommandedCheck
 from telesurg.services.watchdog.logic import ArmSafety, Policy, Verdict
 from telesurg.services.watchdog.video import VideoPolicy, VideoWatch
@@ -121,6 +111,9 @@ class WatchdogConfig:
     fault_latch_ms: float = 500.0  # ms: a message-level fault holds at least this long
     min_hold_ms: float = 250.0  # ms: a HOLD outlasts its causes by this much (no flapping lease)
     require_operator: bool = True  # HOLD while the master reports no operator present
+    # settings of the safety rules (services/watchdog/rules/, one file each; plugins add more):
+    # rule name → its keys, e.g. [watchdog.rules.rcm] modes = ["trocar"]
+    rules: dict[str, dict[str, Any]] = field(default_factory=dict)
     state_hz: float = 5.0  # Hz: safety state republish rate (also sent on every change)
     # Only these services may publish the watched streams (others are rejected and counted, and
     # cannot keep a stream looking fresh; "" = anyone). E-stops are accepted from anyone.
@@ -182,6 +175,7 @@ class WatchdogConfig:
             raise ConfigError("patient_box_min_mm must be below patient_box_max_mm on every axis")
         for p in self.pairs:
             arm_profile(self.model, parse_pair(p)[1])
+        safety_rules.check_settings(self.rules)
 
     def policy(self, arm: str = "arm1") -> Policy:
         """Per-arm limits: this config plus the robot model's joint limits for ``arm``."""
@@ -229,7 +223,9 @@ class ArmWatch:
             k.slave(arm, "measured_js"),
         ]
         profile = arm_profile(cfg.model, arm)
-        self.safety = ArmSafety(arm, cfg.policy(arm), profile.joint_names, tip_of=profile.tip)
+        self.safety = ArmSafety(
+            arm, cfg.policy(arm), profile.joint_names, tip_of=profile.tip, rule_settings=cfg.rules
+        )
         keepout = robot_spec(cfg.model).slave_family == "trocar"  # the forceps arm and its patient
         self.commanded = CommandedCheck(
             self.safety,
@@ -307,7 +303,7 @@ class Watchdog:
     def _on_buttons(self, a: ArmWatch, msg: MasterButtons, key: str) -> None:
         self.last_tick[key] = self.ticks
         with self.lock:
-            a.safety.on_buttons(msg)
+            a.safety.on_buttons(msg, time.monotonic())
 
     def _on_servo(self, a: ArmWatch, msg: JointSetpoint, key: str) -> None:
         self.last_tick[key] = self.ticks

@@ -1,34 +1,43 @@
-"""The watchdog's verdict for one arm, free of I/O so every rule can be tested on its own.
+"""The watchdog's verdict for one arm, free of I/O.
 
 :class:`ArmSafety` is fed the arm's messages (from zenoh callbacks, under a lock held by the
-caller) and, at every lease tick, :meth:`ArmSafety.evaluate` combines them with the causes the
-service measured itself (liveliness, stream staleness, loss) into a :class:`Verdict`:
+caller), runs the registered safety rules on them (:mod:`telesurg.services.watchdog.rules`) and,
+at every lease tick, :meth:`ArmSafety.evaluate` combines the rules' verdicts, the command-path
+latency and the causes the service measured itself (liveliness, stream staleness, loss) into a
+:class:`Verdict`:
 
 =========  ==================================================================================
 state      meaning
 =========  ==================================================================================
 OK         the arm may move at the operator's scale
-DEGRADED   the arm may move, at a reduced motion scale (latency over budget, lossy streams,
-           setpoints faster than the joints can follow)
+DEGRADED   the arm may move, at a reduced motion scale (``degraded_scale``)
 HOLD       the arm must hold; it resumes only after every cause cleared *and* a new engage
 ESTOP      latched by an e-stop command; only an explicit reset leaves it (then HOLD rules apply)
 =========  ==================================================================================
 
-Faults seen in single messages (a setpoint outside the joint limits, a jump, a target outside
-the workspace, the RCM drifting in trocar mode) hold for at least ``fault_latch_ms`` after the
-last offending message, so a fault cannot flicker the lease.
+A rule's message-level fault holds (or degrades) for at least ``fault_latch_ms`` after the last
+offending message; a HOLD lasts at least ``min_hold_ms`` after its causes cleared.
 """
 
 from __future__ import annotations
 
-import math
+import logging
+import time
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from functools import cached_property
+from typing import Any
 
 import numpy as np
+from telesurg.services.watchdog import rules as safety_rules
+from telesurg.services.watchdog.rules import HOLD, ArmContext, Finding, Rule
+from telesurg.services.watchdog.rules.joint_limits import outside_limits
+from telesurg.services.watchdog.rules.workspace import Workspace, outside_box
 from telesurg.shared.messages import EStop, JointSetpoint, MasterButtons, OperatingState
+
+__all__ = ["STATES", "ArmSafety", "Policy", "Verdict", "outside_limits"]
+log = logging.getLogger(__name__)
 
 STATES = ("OK", "DEGRADED", "HOLD", "ESTOP")  # in increasing severity
 
@@ -88,20 +97,6 @@ class Policy:
         return tuple(float(v) for v in self.max_velocity)
 
 
-def outside_limits(
-    names: tuple[str, ...], pos: tuple[float, ...], lower: tuple[float, ...], upper: tuple[float, ...]
-) -> str:
-    """The joints of ``pos`` outside [``lower``, ``upper``] in words ("" = all within): a fault's
-    text. Plain float comparisons first (1 kHz; numpy on 6 values costs ~10× more)."""
-    if all(lo <= v <= hi for v, lo, hi in zip(pos, lower, upper, strict=True)):
-        return ""
-    return ", ".join(
-        f"{n}={math.degrees(v):.1f}° (limits {math.degrees(lo):.0f}..{math.degrees(hi):.0f}°)"
-        for n, v, lo, hi in zip(names, pos, lower, upper, strict=True)
-        if not lo <= v <= hi
-    )
-
-
 @dataclass(frozen=True)
 class Verdict:
     """What the watchdog decided for one arm at one tick."""
@@ -122,7 +117,10 @@ class Verdict:
 
 @dataclass
 class ArmSafety:
-    """Message-level safety checks and the state decision of one arm (not thread-safe)."""
+    """The registered safety rules and the state decision of one arm (not thread-safe).
+
+    ``rule_settings`` is the watchdog's ``[watchdog.rules]`` table (rule name → its settings).
+    """
 
     arm: str
     policy: Policy
@@ -132,19 +130,22 @@ class ArmSafety:
     latency_state: str = "OK"  # OK / DEGRADED / HOLD with hysteresis
     state: str = "HOLD"
     causes: tuple[str, ...] = ("starting",)
-    _latched: dict[str, tuple[str, float]] = field(default_factory=dict)  # tag → (text, until)
+    _latched: dict[str, tuple[str, str, float]] = field(default_factory=dict)  # tag → (state, text, until)
     # bounded (docs/security.md#bounded-queues): 10 s of samples at 1 kHz, far beyond the 1 s
-    # latency window and the velocity window, whatever rate or stamps a publisher sends
+    # latency window, whatever rate or stamps a publisher sends
     _latency: deque[tuple[float, float]] = field(default_factory=lambda: deque(maxlen=10_000))  # (mono s, ms)
-    _history: deque[tuple[int, tuple[float, ...]]] = field(
-        default_factory=lambda: deque(maxlen=10_000)
-    )  # (src ts ns, q)
     _hold_until: float = 0.0
     _hold_causes: tuple[str, ...] = ()
     counters: dict[str, int] = field(default_factory=dict)
-    # forward kinematics (q → tip position, m): followed setpoints are checked against the
-    # workspace where the slave would actually put the tip
+    # forward kinematics (q → tip position, m, base frame), for rules that check where the tip goes
     tip_of: Callable[[np.ndarray], np.ndarray] | None = None
+    rule_settings: dict[str, dict[str, Any]] = field(default_factory=dict)
+    rules: list[Rule] = field(init=False)
+    _failed: set[str] = field(default_factory=set)  # rules whose error was logged
+
+    def __post_init__(self) -> None:
+        ctx = ArmContext(self.arm, self.policy, self.names, self.tip_of)
+        self.rules = safety_rules.make_rules(ctx, self.rule_settings)
 
     # -- inputs -------------------------------------------------------------------------------
     def on_estop(self, msg: EStop) -> bool:
@@ -160,79 +161,32 @@ class ArmSafety:
             return True
         return False
 
-    def on_buttons(self, msg: MasterButtons) -> None:
-        """Track operator presence."""
+    def on_buttons(self, msg: MasterButtons, now: float | None = None) -> None:
+        """Track operator presence; run the rules' ``on_buttons``."""
         self.operator_present = msg.operator_present
+        now = time.monotonic() if now is None else now
+        for r in self.rules:
+            self._found(r, self._ask(r, r.on_buttons, msg, now), now)
 
     def add_latency(self, ms: float, now: float) -> None:
         """One latency sample (ms) observed at ``now`` (monotonic s)."""
         self._latency.append((now, max(0.0, ms)))
 
     def on_servo(self, msg: JointSetpoint, now: float, rx_wall_ns: int | None = None) -> None:
-        """Check one joint setpoint; ``rx_wall_ns`` (same-host clocks) adds a latency sample."""
+        """Run the rules on one joint setpoint; ``rx_wall_ns`` (same-host clocks) adds a latency
+        sample. A setpoint for other joints is a fault the rules never see."""
         if rx_wall_ns is not None and msg.origin_ns > 0:
             self.add_latency((rx_wall_ns - msg.origin_ns) / 1e6, now)
         if msg.names != self.names:
             self._fault("joints", f"servo_jp joint names {list(msg.names)} != {list(self.names)}", now)
             return
-        p = self.policy
-        pos = msg.position
-        text = outside_limits(self.names, pos, p.lower_t, p.upper_t)
-        if text:
-            self._fault("joint_limit", f"servo_jp outside joint limits: {text}", now)
-        if not msg.follow:
-            self._history.clear()
-            return
-        q = np.asarray(pos)
-        if self.tip_of is not None:
-            self.check_workspace(self.tip_of(q), now)
-        # speed on the master's clock when the setpoint carries it (origin_ns): a mapping that
-        # caught up after a stall publishes several samples' motion within a few ms, which is
-        # not a faster motion
-        ts = msg.origin_ns or msg.header.stamp_ns
-        if self._history and ts <= self._history[-1][0]:
-            return
-        hist = self._history
-        hist.append((ts, pos))
-        span_ns = p.velocity_window_ms * 1e6
-        while len(hist) > 2 and ts - hist[1][0] >= span_ns:
-            hist.popleft()
-        t0, q0 = hist[0]
-        if ts - t0 >= span_ns:
-            per_s = 1e9 / (ts - t0)
-            ratio = [abs(a - b) * per_s / v for a, b, v in zip(pos, q0, p.max_velocity_t, strict=True)]
-            worst = max(ratio)
-            if worst > 1.0:
-                j = ratio.index(worst)
-                speed, limit = worst * p.max_velocity_t[j], p.max_velocity_t[j]
-                text = f"servo_jp {self.names[j]} at {speed:.2f} rad/s (limit {limit:.2f})"
-                if worst > p.velocity_hold_factor:
-                    self._fault("jump", f"{text}: a jump, over {p.velocity_hold_factor:g}× the limit", now)
-                else:
-                    self._latch("speed", f"{text}: the slave clips it", now)
-
-    def check_workspace(self, position: np.ndarray, now: float) -> None:
-        """Fault if the tip ``position`` (m, base frame) is outside the workspace box."""
-        p = self.policy
-        lo, hi = p.workspace_min_mm, p.workspace_max_mm
-        mm = [v * 1e3 for v in position.tolist()]
-        if not all(a <= v <= b for v, a, b in zip(mm, lo, hi, strict=True)):
-            text = ", ".join(
-                f"{ax}={v:.0f} mm ({a:.0f}..{b:.0f})"
-                for ax, v, a, b in zip("xyz", mm, lo, hi, strict=True)
-                if not a <= v <= b
-            )
-            self._fault("workspace", f"target outside the workspace: {text}", now)
+        for r in self.rules:
+            self._found(r, self._ask(r, r.on_servo, msg, now), now)
 
     def on_slave_state(self, msg: OperatingState, now: float) -> None:
-        """Check the RCM error reported by the slave in trocar mode."""
-        if msg.control_mode == "trocar" and msg.rcm_error_mm > self.policy.rcm_limit_mm:
-            self._fault(
-                "rcm",
-                f"RCM error {msg.rcm_error_mm:.2f} mm > limit {self.policy.rcm_limit_mm:.2f} mm "
-                "in trocar mode (way out: remove, docs/trocar.md)",
-                now,
-            )
+        """Run the rules on one slave operating state."""
+        for r in self.rules:
+            self._found(r, self._ask(r, r.on_slave_state, msg, now), now)
 
     # -- decision -----------------------------------------------------------------------------
     def latency(self, now: float) -> tuple[float, float, float, int]:
@@ -256,11 +210,8 @@ class ArmSafety:
         degraded_causes = list(degraded or [])
         p50, p90, p99, n = self.latency(now)
         if n >= p.latency_min_samples:
-            # The budget judges p90 and the hard limit the median: a slow link shifts them all,
-            # while the tail (p99) on a busy 2-core host is dominated by CPU scheduling, and the
-            # burst of queued messages after one stall must not force the arm out of follow (a
-            # stall longer than a deadline is caught as stale anyway).
-            # Hysteresis: a level is left only 20 % below its threshold.
+            # p90 against the budget, the median against the hard limit (the tail on a busy host
+            # is scheduling); a level is left only 20 % below its threshold
             ls = self.latency_state
             if p50 > p.latency_limit_ms or (ls == "HOLD" and p50 > 0.8 * p.latency_limit_ms):
                 ls = "HOLD"
@@ -273,15 +224,17 @@ class ArmSafety:
             hold_causes.append(f"latency p50 {p50:.1f} ms > limit {p.latency_limit_ms:g} ms")
         elif self.latency_state == "DEGRADED":
             degraded_causes.append(f"latency p90 {p90:.1f} ms > budget {p.latency_budget_ms:g} ms")
-        if p.require_operator and self.operator_present is False:
-            hold_causes.append("operator not present")
-        for tag, (text, until) in list(self._latched.items()):
+        for r in self.rules:
+            f = self._ask(r, r.check, now)
+            if f is not None:
+                (hold_causes if f.state == HOLD else degraded_causes).append(f.cause)
+        for tag, (level, text, until) in list(self._latched.items()):
             if now >= until:
                 del self._latched[tag]
-            elif tag == "speed":
-                degraded_causes.append(text)
-            else:
+            elif level == HOLD:
                 hold_causes.append(text)
+            else:
+                degraded_causes.append(text)
         if self.estop:
             state, causes = "ESTOP", [self.estop, *hold_causes, *degraded_causes]
         elif hold_causes:
@@ -298,15 +251,41 @@ class ArmSafety:
         scale = p.degraded_scale if state == "DEGRADED" else 1.0
         return Verdict(state, tuple(c[:500] for c in causes[:64]), scale, p50, p90, p99, n)
 
+    def check_workspace(self, position: np.ndarray, now: float) -> None:
+        """Fault if the tip ``position`` (m, base frame) is outside the workspace box."""
+        p = self.policy
+        text = outside_box(position, p.workspace_min_mm, p.workspace_max_mm)
+        if text:
+            self._fault("workspace", f"{Workspace.cause}: {text}", now)
+
     def fault(self, tag: str, text: str, now: float) -> None:
-        """A message-level fault found by a check outside this class (the commanded joints of
+        """A message-level fault found by a check outside the rules (the commanded joints of
         slave-side motions, :mod:`telesurg.services.watchdog.commanded`): HOLD, latched."""
         self._fault(tag, text, now)
 
     # -- internals ----------------------------------------------------------------------------
-    def _latch(self, tag: str, text: str, now: float) -> None:
-        self._latched[tag] = (text, now + self.policy.fault_latch_ms / 1e3)
+    def _ask(self, rule: Rule, method: Callable[..., Finding | None], *args: Any) -> Finding | None:
+        """``rule.method(*args)``; a rule that raises (or answers nonsense) holds the arm."""
+        try:
+            f = method(*args)
+            if f is None or (isinstance(f, Finding) and f.state in (HOLD, "DEGRADED")):
+                return f
+            raise TypeError(f"returned {f!r}, not a Finding (HOLD or DEGRADED) or None")
+        except Exception as exc:
+            if rule.name not in self._failed:
+                self._failed.add(rule.name)
+                log.exception("%s: safety rule %s failed; holding", self.arm, rule.name)
+            return Finding(
+                HOLD, f"safety rule {rule.name} failed: {type(exc).__name__}: {exc}", f"{rule.name}!"
+            )
+
+    def _found(self, rule: Rule, f: Finding | None, now: float) -> None:
+        if f is not None:
+            self._latch(f.tag or rule.name, f.state, f.cause, now)
+
+    def _latch(self, tag: str, state: str, text: str, now: float) -> None:
+        self._latched[tag] = (state, text, now + self.policy.fault_latch_ms / 1e3)
         self.counters[tag] = self.counters.get(tag, 0) + 1
 
     def _fault(self, tag: str, text: str, now: float) -> None:
-        self._latch(tag, text, now)
+        self._latch(tag, HOLD, text, now)

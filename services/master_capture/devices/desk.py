@@ -1,54 +1,31 @@
-"""Desk master devices: 3Dconnexion SpaceMouse, Geomagic Touch / PHANTOM Omni, Force Dimension
-omega.7 and a gamepad, as ``master_capture`` device types (``device = "spacemouse"`` …).
+"""What the desk devices (spacemouse, gamepad: rate control; touch, omega7: absolute) share:
+their settings (``[master_capture.desk]``), the device-independent parts and :class:`DeskDevice`,
+the base class of each desk device's file (``spacemouse.py`` …).
 
-Everything that does not need the device is here and tested (``tests/test_desk_devices.py``):
-
-* :class:`RateIntegrator` — rate control (SpaceMouse, gamepad): each axis in [-1, 1] through a
-  deadband (the rest rescaled to start at 0), times the top speed, integrated over the *reading's*
-  time step (capped at ``max_dt_s``, so a stalled reader never makes a jump), kept inside the
+* :class:`RateIntegrator` — rate control: each axis in [-1, 1] through a deadband, times the top
+  speed, integrated over the reading's time step (capped at ``max_dt_s``), kept inside the
   workspace box; rotation integrated as a quaternion (body-fixed increments);
-* :class:`ButtonEdges` — the clutch from a button: ``hold`` (pressed while held) or ``toggle``
-  (each press flips it), from the rising edges;
-* staleness — a reading older than ``stale_ms`` (device time) makes the sample invalid, so
-  master_capture publishes nothing and the watchdog holds;
-* :func:`scaled_position` — absolute devices (Touch, omega.7): device position (m, in its own
-  frame) → master frame, through ``rotation_rpy_deg`` and an optional offset.
+* :class:`ButtonEdges` — the clutch from a button: ``hold`` or ``toggle``;
+* staleness — a reading older than ``stale_ms`` makes the sample invalid (nothing is published);
+* :func:`scaled_position` — absolute devices: device position (m, its frame) → master frame,
+  through ``rotation_rpy_deg`` and an offset.
 
-The binding layer (:class:`SpaceMouseBinding` on ``pyspacemouse``, :class:`TouchBinding` on
-``pyopenhaptics``, :class:`Omega7Binding` on ``forcedimension-core``, :class:`GamepadBinding` on
-``pygame``) imports its library when the device is opened; without it the device fails to open
-with a :class:`~telesurg.shared.errors.DeviceConnectionError` naming the package and the vendor
-SDK it needs. **None of these bindings has been run against hardware** (docs/console.md).
-
-``telesurg device check TYPE`` opens one and prints its readings (services/device).
+A device's binding imports its library when the device is opened; without it the open fails with
+a :class:`~telesurg.shared.errors.DeviceConnectionError` naming the package and the vendor SDK.
+None of the bindings has been run against hardware (docs/console.md).
 """
 
 from __future__ import annotations
 
+import importlib
 import math
 import time
-from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from types import TracebackType
-from typing import Protocol
+from typing import ClassVar, Protocol
 
-from telesurg.services.master_capture.devices import (
-    DESK_DEVICES,
-    DeviceSample,
-    MasterDevice,
-    ScriptedConfig,
-    SerialMasterConfig,
-    make_device,
-)
+from telesurg.services.master_capture.devices import DeviceSample, MasterDevice
 from telesurg.shared.errors import ConfigError, DeviceConnectionError
-
-#: device type → (Python package to pip install, what else it needs)
-LIBRARIES = {
-    "spacemouse": ("pyspacemouse", "hidapi (libhidapi) and read access to the HID device"),
-    "touch": ("pyopenhaptics", "the 3D Systems OpenHaptics SDK and Touch device drivers"),
-    "omega7": ("forcedimension-core", "the Force Dimension SDK (libdhd / libdrd)"),
-    "gamepad": ("pygame", "SDL2 joystick support (read access to /dev/input)"),
-}
 
 
 @dataclass
@@ -224,146 +201,18 @@ class Binding(Protocol):
     def close(self) -> None: ...
 
 
-def _need(kind: str, module: str) -> object:
-    import importlib
-
+def need_library(device: type[DeskDevice], module: str) -> object:
+    """Import ``module`` for ``device``; DeviceConnectionError naming its ``library``."""
     try:
         return importlib.import_module(module)
     except ImportError as exc:
-        pkg, also = LIBRARIES[kind]
+        package, also = device.library
         raise DeviceConnectionError(
-            f"{kind}: Python package {pkg!r} not installed ({exc}); it also needs {also}"
+            f"{device.name}: Python package {package!r} not installed ({exc}); it also needs {also}"
         ) from None
 
 
-class SpaceMouseBinding:
-    """3Dconnexion SpaceMouse through ``pyspacemouse`` (HID): six axes in [-1, 1], buttons."""
-
-    def __init__(self, cfg: DeskConfig) -> None:
-        self.cfg = cfg
-        self._lib: object | None = None
-
-    def open(self) -> None:
-        lib = _need("spacemouse", "pyspacemouse")
-        if not lib.open():  # type: ignore[attr-defined]
-            raise DeviceConnectionError("spacemouse: no device found (is it plugged in? HID permissions?)")
-        self._lib = lib
-
-    def read(self) -> Reading | None:
-        s = self._lib.read()  # type: ignore[union-attr]
-        if s is None:
-            return None
-        return Reading(
-            time.monotonic(),
-            trans=(float(s.x), float(s.y), float(s.z)),
-            rot=(float(s.pitch), float(s.roll), float(s.yaw)),
-            buttons=tuple(bool(b) for b in s.buttons),
-        )
-
-    def close(self) -> None:
-        if self._lib is not None:
-            self._lib.close()  # type: ignore[attr-defined]
-
-
-class GamepadBinding:
-    """A gamepad through ``pygame``'s joystick module: left stick x/y, right stick y for depth."""
-
-    def __init__(self, cfg: DeskConfig) -> None:
-        self.cfg = cfg
-        self._pad: object | None = None
-        self._pg: object | None = None
-
-    def open(self) -> None:
-        pg = _need("gamepad", "pygame")
-        pg.joystick.init()  # type: ignore[attr-defined]
-        if pg.joystick.get_count() <= self.cfg.device_index:  # type: ignore[attr-defined]
-            raise DeviceConnectionError(f"gamepad: no joystick number {self.cfg.device_index}")
-        self._pad = pg.joystick.Joystick(self.cfg.device_index)  # type: ignore[attr-defined]
-        self._pg = pg
-
-    def read(self) -> Reading | None:
-        pad, pg = self._pad, self._pg
-        pg.event.pump()  # type: ignore[union-attr]
-        ax = [pad.get_axis(i) for i in range(pad.get_numaxes())]  # type: ignore[union-attr]
-        ax += [0.0] * (4 - len(ax))
-        buttons = tuple(bool(pad.get_button(i)) for i in range(pad.get_numbuttons()))  # type: ignore[union-attr]
-        return Reading(time.monotonic(), trans=(ax[0], -ax[1], -ax[3]), buttons=buttons)
-
-    def close(self) -> None:
-        if self._pg is not None:
-            self._pg.joystick.quit()  # type: ignore[attr-defined]
-
-
-class TouchBinding:
-    """Geomagic Touch / PHANTOM Omni through ``pyopenhaptics`` (OpenHaptics HD API): the stylus
-    tip position (mm → m) and orientation from its transform, the two stylus buttons."""
-
-    def __init__(self, cfg: DeskConfig) -> None:
-        self.cfg = cfg
-        self._dev: object | None = None
-        self._hd: object | None = None
-
-    def open(self) -> None:
-        hd = _need("touch", "pyOpenHaptics.hd")
-        dev_mod = _need("touch", "pyOpenHaptics.hd_device")
-        self._dev = dev_mod.HapticDevice(callback=lambda: None, scheduler_type="async")  # type: ignore[attr-defined]
-        self._hd = hd
-
-    def read(self) -> Reading | None:
-        hd = self._hd
-        m = hd.get_transform()  # type: ignore[union-attr]  # column-major 4×4, mm
-        pos = (m[3][0] / 1e3, m[3][1] / 1e3, m[3][2] / 1e3)
-        b = int(hd.get_buttons())  # type: ignore[union-attr]
-        return Reading(
-            time.monotonic(),
-            position=pos,
-            orientation=_quat_of_columns(m),
-            buttons=(bool(b & 1), bool(b & 2)),
-        )
-
-    def close(self) -> None:
-        if self._dev is not None:
-            self._dev.close()  # type: ignore[attr-defined]
-
-
-class Omega7Binding:
-    """Force Dimension omega.7 through ``forcedimension-core`` (DHD API): position (m), the
-    orientation frame, the gripper angle as the grasp axis, the user button."""
-
-    def __init__(self, cfg: DeskConfig) -> None:
-        self.cfg = cfg
-        self._dhd: object | None = None
-
-    def open(self) -> None:
-        sdk = _need("omega7", "forcedimension_core")
-        dhd = sdk.dhd  # type: ignore[attr-defined]
-        if dhd.open() < 0:
-            raise DeviceConnectionError(f"omega7: dhdOpen failed: {dhd.errorGetLastStr()}")
-        self._dhd = dhd
-
-    def read(self) -> Reading | None:
-        dhd = self._dhd
-        p = [0.0, 0.0, 0.0]
-        if dhd.getPosition(out=p) < 0:  # type: ignore[union-attr]
-            return None
-        frame = [[0.0] * 3 for _ in range(3)]
-        dhd.getOrientationFrame(out=frame)  # type: ignore[union-attr]
-        angle = float(dhd.getGripperAngleRad())  # type: ignore[union-attr]
-        cols = [[frame[r][c] for r in range(3)] for c in range(3)]
-        return Reading(
-            time.monotonic(),
-            position=(p[0], p[1], p[2]),
-            orientation=_quat_of_columns(cols),
-            buttons=(bool(dhd.getButton(0)),),  # type: ignore[union-attr]
-            grasp=max(0.0, min(1.0, 1.0 - angle / 0.52)),  # 0.52 rad ≈ the gripper's open angle
-        )
-
-    def close(self) -> None:
-        if self._dhd is not None:
-            self._dhd.close()  # type: ignore[attr-defined]
-
-
-def _quat_of_columns(m: object) -> tuple[float, float, float, float]:
+def quat_of_columns(m: object) -> tuple[float, float, float, float]:
     """Quaternion (x, y, z, w) of a rotation given as columns ``m[c][r]`` (the first 3×3)."""
     c = m  # c[col][row]
     r00, r11, r22 = c[0][0], c[1][1], c[2][2]  # type: ignore[index]
@@ -378,48 +227,31 @@ def _quat_of_columns(m: object) -> tuple[float, float, float, float]:
     return (x / n, y / n, z / n, w / n)
 
 
-BINDINGS: dict[str, Callable[[DeskConfig], Binding]] = {
-    "spacemouse": SpaceMouseBinding,
-    "gamepad": GamepadBinding,
-    "touch": TouchBinding,
-    "omega7": Omega7Binding,
-}
+class DeskDevice(MasterDevice):
+    """A desk device: its ``binding`` (a library's reader) turned into master samples.
 
-
-@dataclass
-class DeskDevice:
-    """A desk device as a :class:`~telesurg.services.master_capture.devices.MasterDevice`.
-
-    Rate devices (spacemouse, gamepad) integrate their axes (:class:`RateIntegrator`); absolute
-    ones (touch, omega7) map their pose (:func:`scaled_position`). The clutch comes from
-    ``clutch_button`` (:class:`ButtonEdges`); a missing or stale reading makes the sample invalid
-    and resets the clutch (a new press is needed).
+    Rate devices integrate their axes (:class:`RateIntegrator`); absolute ones (``absolute =
+    True``) map their pose (:func:`scaled_position`). The clutch comes from ``clutch_button``
+    (:class:`ButtonEdges`); a missing or stale reading makes the sample invalid and resets the
+    clutch (a new press is needed). A subclass sets ``name``, ``binding_class``, ``library``
+    (Python package, what else it needs) and ``absolute``.
     """
 
-    kind: str
-    cfg: DeskConfig
-    binding: Binding | None = None  # None: the type's library binding (opened in __enter__)
-    joint_names: tuple[str, ...] = ()
-    rate: RateIntegrator = field(init=False)
-    edges: ButtonEdges = field(init=False)
-    last: Reading | None = None
+    config = DeskConfig
+    table = "desk"
+    binding_class: ClassVar[type[Binding]]
+    library: ClassVar[tuple[str, str]]
+    absolute: ClassVar[bool] = False
 
-    def __post_init__(self) -> None:
-        if self.kind not in DESK_DEVICES:
-            raise ConfigError(f"desk device {self.kind!r} unknown; valid: {', '.join(DESK_DEVICES)}")
-        self.cfg.validate()
-        self.rate = RateIntegrator(self.cfg)
-        self.edges = ButtonEdges(self.cfg.clutch_mode)
-        if self.binding is None:
-            self.binding = BINDINGS[self.kind](self.cfg)
-
-    @property
-    def absolute(self) -> bool:
-        """The device reports a pose (touch, omega7), not rates."""
-        return self.kind in ("touch", "omega7")
+    def __init__(self, cfg: DeskConfig, binding: Binding | None = None) -> None:
+        cfg.validate()
+        self.cfg = cfg
+        self.rate = RateIntegrator(cfg)
+        self.edges = ButtonEdges(cfg.clutch_mode)
+        self.last: Reading | None = None
+        self.binding: Binding = binding if binding is not None else self.binding_class(cfg)  # type: ignore[call-arg]
 
     def __enter__(self) -> DeskDevice:
-        assert self.binding is not None
         self.binding.open()
         return self
 
@@ -429,12 +261,10 @@ class DeskDevice:
         exc: BaseException | None,
         tb: TracebackType | None,
     ) -> None:
-        assert self.binding is not None
         self.binding.close()
 
     def read(self, t: float) -> DeviceSample:
         """Sample the device (``t``: s since capture started; staleness uses the reading's time)."""
-        assert self.binding is not None
         r = self.binding.read()
         if r is not None:
             self.last = r
@@ -450,17 +280,3 @@ class DeskDevice:
             return DeviceSample(pos, r.orientation or (0.0, 0.0, 0.0, 1.0), clutch, True)
         self.rate.step(r.t, r.trans, r.rot)
         return DeviceSample(self.rate.position, self.rate.orientation, clutch, True)
-
-
-def open_device(
-    kind: str,
-    scripted: ScriptedConfig | None = None,
-    serial: SerialMasterConfig | None = None,
-    desk: DeskConfig | None = None,
-) -> MasterDevice:
-    """Any master device type: a desk device here, the others from
-    :func:`~telesurg.services.master_capture.devices.make_device` (the library of a desk device is
-    imported when it is opened)."""
-    if kind in DESK_DEVICES:
-        return DeskDevice(kind, desk or DeskConfig())
-    return make_device(kind, scripted, serial)
