@@ -10,10 +10,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from telesurg.services.bench.harness import Pipeline
 from telesurg.services.master_capture.devices import ScriptedConfig, ScriptedDevice, make_device
 from telesurg.shared.errors import ConfigError
 from telesurg.shared.messages import SafetyState, TeleopState
+from telesurg.tools.bench.harness import Pipeline
 
 
 def test_circle_radius_period_and_clutch_schedule() -> None:
