@@ -17,22 +17,67 @@ import importlib.util
 import re
 import sys
 from collections.abc import Sequence
+from dataclasses import dataclass
 
-from telesurg.services import COMMANDS as _COMMANDS
-from telesurg.services import SERVICES
+from telesurg.shared.service_table import SERVICES
+
+
+@dataclass(frozen=True)
+class Command:
+    """A ``telesurg`` command that is not a site process: ``module`` has ``main(argv) -> int``."""
+
+    name: str
+    module: str
+    help: str
+    own_session: bool = False  # from the command line it runs in a session (autogroup) of its own
+    extra: str = ""  # the optional dependencies it needs: ``pip install 'telesurg[<extra>]'``
+
+
+_S = "telesurg.services"
+_T = "telesurg.tools"
+OTHER_COMMANDS: tuple[Command, ...] = (
+    Command(
+        "up", f"{_S}.launcher", "start router + all services locally; Ctrl-C stops all", own_session=True
+    ),
+    Command("demo", f"{_S}.launcher.demo", "the whole simulated teleop session (scripted circle)", True),
+    Command("site", f"{_S}.launcher.site", "write the packaged site files to DIR (init), check one"),
+    Command("estop", f"{_S}.estop", "e-stop (or --reset) one arm or every arm of a site"),
+    Command("cmd", f"{_S}.command", "send an operator command (trocar mode, jog, …) to a slave arm"),
+    Command("certs", f"{_S}.certs", "make a CA and per-identity certificates for mutual TLS"),
+    Command("keys", f"{_S}.keys", "the site keyring that authenticates every message (init, list, …)"),
+    Command("record", f"{_S}.record", "record every message of a site into an MCAP file"),
+    Command("replay", f"{_S}.record.replay", "replay a recording's master streams into a live site, compare"),
+    Command(
+        "export", f"{_S}.record.export", "a recording in Foxglove / ROS 2 schemas (MCAP) or as a rerun .rrd"
+    ),
+    Command("view", f"{_S}.camera.view", "show a site's live camera picture in a small web page"),
+    Command("bridge", f"{_S}.bridge", "bridge ros2: an arm's CRTK topics for ROS 2 (rmw_zenoh)"),
+    Command("docs", f"{_S}.docs", "regenerate (or --check) the docs pages built from the code"),
+    # tools beside the runtime (tools/): the runtime never imports them
+    Command("bench", f"{_T}.bench", "fault-injection and fuzz benchmarks (tables + JSON)", True, "lab"),
+    Command(
+        "experiment",
+        f"{_T}.experiment",
+        "reproduce a paper's evaluation (figures + metrics.json)",
+        extra="lab",
+    ),
+    Command("impair", f"{_T}.bench.impair", "userspace TCP link impairer (cut / delay) for fault tests"),
+    Command("device", f"{_T}.emulate", "serial device tools: emulate an encoder board on a pty, monitor one"),
+)
+
 
 #: subcommand → (module with a ``main(argv) -> int``, help), from the service table
-#: (:mod:`telesurg.services`): every site process, then the other commands.
+#: (:mod:`telesurg.shared.service_table`), then the other commands.
 COMMANDS: dict[str, tuple[str, str]] = {
     **{s.cli: (s.module, s.help) for s in SERVICES},
-    **{c.name: (c.module, c.help) for c in _COMMANDS},
+    **{c.name: (c.module, c.help) for c in OTHER_COMMANDS},
 }
 #: Commands that start a site (or a bench's) and watch it: run from the command line, each runs in
 #: a session, so a scheduler autogroup, of its own (:mod:`telesurg.shared.session`), not in the
 #: busy jobs' of its shell.
-OWN_SESSION = tuple(c.name for c in _COMMANDS if c.own_session)
+OWN_SESSION = tuple(c.name for c in OTHER_COMMANDS if c.own_session)
 #: command → the optional dependency group it needs (``pip install 'telesurg[lab]'``)
-EXTRAS = {c.name: c.extra for c in _COMMANDS if c.extra}
+EXTRAS = {c.name: c.extra for c in OTHER_COMMANDS if c.extra}
 
 
 def missing_extra(extra: str) -> list[str]:

@@ -47,8 +47,6 @@ from pathlib import Path
 from types import TracebackType
 from typing import IO, Any
 
-from telesurg.services import ROUTER
-from telesurg.services import SERVICES as SERVICE_ROWS
 from telesurg.services.common import (
     STACKS_SIGNAL,
     check_port_free,
@@ -61,6 +59,8 @@ from telesurg.shared.auth import default_keys_dir, ensure_keyring
 from telesurg.shared.bus import BusConfig, add_bus_args, bus_from_args
 from telesurg.shared.config import SITE_FILE, load_config, read_site, site_plugins
 from telesurg.shared.errors import ConfigError, SiteStartError, TelesurgError
+from telesurg.shared.service_table import ROUTER
+from telesurg.shared.service_table import SERVICES as SERVICE_ROWS
 from telesurg.shared.timing import (
     BEST_EFFORT_ENV,
     check_slice_us,
@@ -73,7 +73,7 @@ from telesurg.shared.timing import (
 
 log = logging.getLogger("telesurg.launcher")
 
-#: The service table (:mod:`telesurg.services`): one row per site process.
+#: The service table (:mod:`telesurg.shared.service_table`): one row per site process.
 TABLE = {s.name: s for s in SERVICE_ROWS}
 #: Start order (the router first, then these; :data:`ON_REQUEST` last).
 SERVICES = tuple(s.name for s in sorted(SERVICE_ROWS, key=lambda s: s.start) if s.start and not s.on_request)
