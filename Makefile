@@ -16,19 +16,20 @@ $(STAMP): pyproject.toml
 demo: $(STAMP)
 	$(BIN)/telesurg demo
 
-## test: ruff, mypy (shared/ and services/) and pytest
+## test: ruff, mypy (shared/, services/, tools/) and pytest
 test: lint typecheck pytest
 
 lint: $(STAMP)
-	$(BIN)/ruff check shared services tests
-	$(BIN)/ruff format --check shared services tests
+	$(BIN)/ruff check shared services tools tests
+	$(BIN)/ruff format --check shared services tools tests
 
-# mypy checks the sources under their installed names (telesurg.shared, telesurg.services): a tree
+# mypy checks the sources under their installed names (telesurg.shared, telesurg.services, telesurg.tools): a tree
 # of links in the venv maps the user's folders under the telesurg namespace, as pyproject does.
 typecheck: $(STAMP)
 	mkdir -p $(VENV)/typecheck/telesurg
 	ln -sfn ../../../shared $(VENV)/typecheck/telesurg/shared
 	ln -sfn ../../../services $(VENV)/typecheck/telesurg/services
+	ln -sfn ../../../tools $(VENV)/typecheck/telesurg/tools
 	MYPYPATH=$(VENV)/typecheck $(BIN)/mypy $(VENV)/typecheck/telesurg
 
 pytest: $(STAMP)

@@ -1,1 +1,1 @@
-"""telesurg services: one subpackage per process."""
+"""telesurg services: one subpackage per process (the table of them: shared/service_table.py)."""

@@ -13,56 +13,95 @@ Examples::
 from __future__ import annotations
 
 import importlib
+import importlib.util
+import re
 import sys
 from collections.abc import Sequence
+from dataclasses import dataclass
 
-#: subcommand → module with a ``main(argv) -> int``
-COMMANDS = {
-    "router": ("telesurg.services.router", "zenoh router for a site (Python process, no zenohd)"),
-    "master-capture": ("telesurg.services.master_capture", "publish a master device's pose and buttons"),
-    "mapping": ("telesurg.services.mapping", "master pose → slave joint setpoints (clutch, scale, IK)"),
-    "slave-control": ("telesurg.services.slave_control", "run the slave arm (MuJoCo) under a lease"),
-    "watchdog": ("telesurg.services.watchdog", "grant slave leases while every service is healthy"),
-    "mirror": ("telesurg.services.mirror", "stream everything to rerun (web viewer or .rrd)"),
-    "up": ("telesurg.services.launcher", "start router + all services locally; Ctrl-C stops all"),
-    "demo": ("telesurg.services.launcher.demo", "the whole simulated teleop session (scripted circle)"),
-    "site": ("telesurg.services.launcher.site", "write the packaged site files to DIR (init), check one"),
-    "estop": ("telesurg.services.estop", "e-stop (or --reset) one arm or every arm of a site"),
-    "cmd": ("telesurg.services.command", "send an operator command (trocar mode, jog, …) to a slave arm"),
-    "bench": ("telesurg.services.bench", "fault-injection and fuzz benchmarks (tables + JSON)"),
-    "impair": ("telesurg.services.bench.impair", "userspace TCP link impairer (cut / delay) for fault tests"),
-    "device": (
-        "telesurg.services.device",
-        "serial device tools: emulate an encoder board on a pty, monitor one",
+from telesurg.shared.service_table import SERVICES
+
+
+@dataclass(frozen=True)
+class Command:
+    """A ``telesurg`` command that is not a site process: ``module`` has ``main(argv) -> int``."""
+
+    name: str
+    module: str
+    help: str
+    own_session: bool = False  # from the command line it runs in a session (autogroup) of its own
+    extra: str = ""  # the optional dependencies it needs: ``pip install 'telesurg[<extra>]'``
+
+
+_S = "telesurg.services"
+_T = "telesurg.tools"
+OTHER_COMMANDS: tuple[Command, ...] = (
+    Command(
+        "up", f"{_S}.launcher", "start router + all services locally; Ctrl-C stops all", own_session=True
     ),
-    "console": (
-        "telesurg.services.console",
-        "operator console (terminal UI): state, clutch, commands, e-stop",
+    Command("demo", f"{_S}.launcher.demo", "the whole simulated teleop session (scripted circle)", True),
+    Command("site", f"{_S}.launcher.site", "write the packaged site files to DIR (init), check one"),
+    Command("estop", f"{_S}.estop", "e-stop (or --reset) one arm or every arm of a site"),
+    Command("cmd", f"{_S}.command", "send an operator command (trocar mode, jog, …) to a slave arm"),
+    Command("certs", f"{_S}.certs", "make a CA and per-identity certificates for mutual TLS"),
+    Command("keys", f"{_S}.keys", "the site keyring that authenticates every message (init, list, …)"),
+    Command("record", f"{_S}.record", "record every message of a site into an MCAP file"),
+    Command("replay", f"{_S}.record.replay", "replay a recording's master streams into a live site, compare"),
+    Command(
+        "export", f"{_S}.record.export", "a recording in Foxglove / ROS 2 schemas (MCAP) or as a rerun .rrd"
     ),
-    "certs": ("telesurg.services.certs", "make a CA and per-identity certificates for mutual TLS"),
-    "keys": ("telesurg.services.keys", "the site keyring that authenticates every message (init, list, …)"),
-    "record": ("telesurg.services.record", "record every message of a site into an MCAP file"),
-    "replay": (
-        "telesurg.services.record.replay",
-        "replay a recording's master streams into a live site, compare",
+    Command("view", f"{_S}.camera.view", "show a site's live camera picture in a small web page"),
+    Command("bridge", f"{_S}.bridge", "bridge ros2: an arm's CRTK topics for ROS 2 (rmw_zenoh)"),
+    Command("docs", f"{_S}.docs", "regenerate (or --check) the docs pages built from the code"),
+    # tools beside the runtime (tools/): the runtime never imports them
+    Command("bench", f"{_T}.bench", "fault-injection and fuzz benchmarks (tables + JSON)", True, "lab"),
+    Command(
+        "experiment",
+        f"{_T}.experiment",
+        "reproduce a paper's evaluation (figures + metrics.json)",
+        extra="lab",
     ),
-    "export": (
-        "telesurg.services.record.export",
-        "a recording in Foxglove / ROS 2 schemas (MCAP) or as a rerun .rrd",
-    ),
-    "docs": ("telesurg.services.docs", "regenerate (or --check) the docs pages built from the code"),
-    "experiment": ("telesurg.services.experiment", "reproduce a paper's evaluation (figures + metrics.json)"),
-    "camera": (
-        "telesurg.services.camera",
-        "the endoscope view: MuJoCo render or a real camera → JPEG frames",
-    ),
-    "view": ("telesurg.services.camera.view", "show a site's live camera picture in a small web page"),
-    "bridge": ("telesurg.services.bridge", "bridge ros2: an arm's CRTK topics for ROS 2 (rmw_zenoh)"),
+    Command("impair", f"{_T}.bench.impair", "userspace TCP link impairer (cut / delay) for fault tests"),
+    Command("device", f"{_T}.emulate", "serial device tools: emulate an encoder board on a pty, monitor one"),
+)
+
+
+#: subcommand → (module with a ``main(argv) -> int``, help), from the service table
+#: (:mod:`telesurg.shared.service_table`), then the other commands.
+COMMANDS: dict[str, tuple[str, str]] = {
+    **{s.cli: (s.module, s.help) for s in SERVICES},
+    **{c.name: (c.module, c.help) for c in OTHER_COMMANDS},
 }
 #: Commands that start a site (or a bench's) and watch it: run from the command line, each runs in
 #: a session, so a scheduler autogroup, of its own (:mod:`telesurg.shared.session`), not in the
 #: busy jobs' of its shell.
-OWN_SESSION = ("up", "demo", "bench")
+OWN_SESSION = tuple(c.name for c in OTHER_COMMANDS if c.own_session)
+#: command → the optional dependency group it needs (``pip install 'telesurg[lab]'``)
+EXTRAS = {c.name: c.extra for c in OTHER_COMMANDS if c.extra}
+
+
+def missing_extra(extra: str) -> list[str]:
+    """The distributions of the installed package's optional group ``extra`` that are not
+    installed (none for an unknown group, or when telesurg's metadata is not installed)."""
+    from importlib import metadata
+
+    try:
+        requires = metadata.requires("telesurg") or []
+    except metadata.PackageNotFoundError:
+        return []
+    missing = []
+    for req in requires:
+        name, _, marker = req.partition(";")
+        if marker.replace("'", '"').split() != ["extra", "==", f'"{extra}"']:
+            continue
+        dist = re.split(r"[\s\[<>=!~]", name.strip(), maxsplit=1)[0]
+        try:
+            found = importlib.util.find_spec(dist.replace("-", "_")) is not None
+        except ImportError:
+            found = False
+        if not found:
+            missing.append(dist)
+    return missing
 
 
 def usage() -> str:
@@ -87,6 +126,13 @@ def main(argv: Sequence[str] | None = None) -> int:
 
         if (rc := run_in_own_session(args)) is not None:
             return rc
+    if (extra := EXTRAS.get(cmd)) and (missing := missing_extra(extra)):
+        print(
+            f"telesurg {cmd} needs the {extra!r} extra ({', '.join(missing)} not installed): "
+            f"pip install 'telesurg[{extra}]' (in a checkout: pip install -e '.[{extra}]')",
+            file=sys.stderr,
+        )
+        return 2
     module = importlib.import_module(COMMANDS[cmd][0])
     code: int = module.main(rest)
     return code

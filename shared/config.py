@@ -41,22 +41,14 @@ from typing import Any, TypeVar
 
 from telesurg.shared.authority import AuthorityConfig
 from telesurg.shared.errors import ConfigError
+from telesurg.shared.service_table import SERVICES
 
 T = TypeVar("T")
 
 #: The site file's name inside a site folder (``deploy/<site>/site.toml``).
 SITE_FILE = "site.toml"
 #: The tables a site file may hold beside ``[site]``: one per service.
-SERVICE_TABLES = (
-    "router",
-    "master_capture",
-    "mapping",
-    "slave_control",
-    "watchdog",
-    "mirror",
-    "console",
-    "camera",
-)
+SERVICE_TABLES = tuple(s.name for s in SERVICES)
 #: ``[site]`` fact → the service config fields it fills (in every config that has one).
 SHARED_FACTS: dict[str, tuple[str, ...]] = {
     "robot": ("model",),

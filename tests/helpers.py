@@ -21,8 +21,8 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from telesurg.services.bench.harness import BENCH_CLUTCH
 from telesurg.shared.messages import CartesianPose, Header, MasterButtons
+from telesurg.tools.bench.harness import BENCH_CLUTCH
 
 #: header of the messages the tests hand to a mapping's callbacks
 TEST_HEADER = Header("test", 0, 0)
@@ -256,8 +256,8 @@ def feed_master(arm: Any, p: tuple[float, float, float], clutch: bool) -> None:
 
 
 # --------------------------------------------------------------------------- chromium over DevTools
-# (the benches' browser, services/bench/browser.py; re-exported for the tests)
-from telesurg.services.bench.browser import (  # noqa: E402
+# (the benches' browser, tools/bench/browser.py; re-exported for the tests)
+from telesurg.tools.bench.browser import (  # noqa: E402
     CHROMIUM,
     CHROMIUM_FLAGS,
     WINDOW,

@@ -548,7 +548,7 @@ def running_slave(kind: str, tmp: Path, extra: Sequence[str] = ()) -> Iterator[R
     if backend == "serial":
         emu_err = (tmp / "emulator.log").open("w")
         emu = subprocess.Popen(
-            [sys.executable, "-m", "telesurg.services.device", "emulate-slave", "--pty", "--model", model],
+            [sys.executable, "-m", "telesurg.tools.emulate", "emulate-slave", "--pty", "--model", model],
             stdout=subprocess.PIPE,
             stderr=emu_err,
             text=True,

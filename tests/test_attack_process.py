@@ -1,6 +1,6 @@
 """Issue #17, acceptance 1 (operator authority and the attack bench), with the real services.
 
-``telesurg bench attack --quick``'s cases (services/bench/attack.py) run against local sites
+``telesurg bench attack --quick``'s cases (tools/bench/attack.py) run against local sites
 (router, watchdog, slave_control, mapping, master_capture; the operator's clutch released); each
 case's row is judged against the acceptance limits: 0 messages accepted where the rules forbid, slave
 motion < 0.5 mm, the genuine faults' time to hold. The operator-authority cases (this branch) and
@@ -23,8 +23,8 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from telesurg.services.bench import attack
-from telesurg.services.bench.harness import now_ns
+from telesurg.tools.bench import attack
+from telesurg.tools.bench.harness import now_ns
 
 #: the module's fixture runs every case, each forging case on a site of its own (15 sites, about a
 #: minute each on the shared 2-core machine under load): longer than the suite's 300 s per test

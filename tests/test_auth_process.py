@@ -14,7 +14,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from telesurg.services.bench.harness import Pipeline, now_ns
 from telesurg.shared.bus import BusConfig, open_session
 from telesurg.shared.keys import Keys
 from telesurg.shared.messages import (
@@ -24,6 +23,7 @@ from telesurg.shared.messages import (
     JointState,
     SafetyLease,
 )
+from telesurg.tools.bench.harness import Pipeline, now_ns
 
 pytestmark = pytest.mark.process
 

@@ -10,7 +10,7 @@ import time
 from pathlib import Path
 
 import pytest
-from telesurg.services.bench.ingest import KINDS, Feeder
+from telesurg.tools.bench.ingest import KINDS, Feeder
 
 
 @pytest.mark.parametrize("kind", KINDS)

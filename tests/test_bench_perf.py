@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from telesurg.services.bench import schedtrace
+from telesurg.tools.bench import schedtrace
 
 
 def bench(tmp_path: Path, *args: str) -> dict:  # type: ignore[type-arg]
@@ -69,7 +69,7 @@ def _hogs_left() -> list[int]:
 
 
 def test_load_specs() -> None:
-    from telesurg.services.bench.load import Load
+    from telesurg.tools.bench.load import Load
 
     assert Load.parse("cpu:2") == Load("cpu", 2) and Load.parse("record").name == "record"
     bad_specs = (
@@ -184,7 +184,7 @@ def test_sched_trace_without_perf_is_refused(tmp_path: Path) -> None:
 
 
 def test_watchdog_holds_counts_the_runs_holds_not_the_stop_sequences() -> None:
-    from telesurg.services.bench.perf import watchdog_holds
+    from telesurg.tools.bench.perf import watchdog_holds
 
     log = (
         "2026-12-02 04:45:48,119 watchdog INFO telesurg.shared.bus: [arm1] safety_transition: HOLD → OK\n"
@@ -208,7 +208,7 @@ def test_watchdog_holds_counts_the_runs_holds_not_the_stop_sequences() -> None:
 def test_the_stages_join_each_setpoint_across_the_logs() -> None:
     """A setpoint's row takes the mapping's and the tap's times by its servo_jp stamp; a setpoint
     one log lacks keeps 0 there (and that stage leaves it out)."""
-    from telesurg.services.bench.perf import STAGE_COLUMNS, _stage_figures, _stages
+    from telesurg.tools.bench.perf import STAGE_COLUMNS, _stage_figures, _stages
 
     # the slave's log: origin, servo_jp stamp, used, stepped, reference played (ns)
     slave = np.array([[100, 300, 900, 950, 50], [200, 400, 1000, 1100, 0]], dtype=np.int64)
@@ -267,7 +267,7 @@ def test_busy_processes_end_with_a_bench_that_is_killed(tmp_path: Path) -> None:
     code = (
         "import sys, time\n"
         "from pathlib import Path\n"
-        "from telesurg.services.bench.load import Load\n"
+        "from telesurg.tools.bench.load import Load\n"
         "with Load.parse('cpu:2').running('', Path(sys.argv[1])) as pids:\n"
         "    print(*pids, flush=True)\n"
         "    time.sleep(60)\n"

@@ -12,7 +12,7 @@ import subprocess
 from pathlib import Path
 
 import pytest
-from telesurg.services.bench.viewer import fields, viewer_times
+from telesurg.tools.bench.viewer import fields, viewer_times
 
 
 def _varint(n: int) -> bytes:
@@ -72,7 +72,7 @@ def test_bytes_that_are_not_a_message_raise() -> None:
 
 
 def test_an_unknown_rasteriser_is_refused_by_name() -> None:
-    from telesurg.services.bench.browser import _flags
+    from telesurg.tools.bench.browser import _flags
 
     with pytest.raises(ValueError, match="gl='gpu': one of swiftshader, llvmpipe"):
         _flags([], "gpu")
@@ -83,8 +83,8 @@ def test_the_bench_browser_draws_with_the_rasteriser_it_names(tmp_path: Path, gl
     """What ``bench viewer --gl`` reports is what the page gets: a real headless Chromium asked for
     each rasteriser, the WebGL renderer string of a page read back (the figures in
     docs/performance.md compare the two)."""
-    from telesurg.services.bench.browser import CHROMIUM, chromium
-    from telesurg.services.bench.viewer import browser_version, webgl_renderer
+    from telesurg.tools.bench.browser import CHROMIUM, chromium
+    from telesurg.tools.bench.viewer import browser_version, webgl_renderer
 
     if not CHROMIUM.exists():
         pytest.skip(f"no Chromium at {CHROMIUM}")
@@ -106,9 +106,9 @@ def test_the_bench_browser_runs_the_executable_it_is_given(tmp_path: Path) -> No
     """``bench viewer --browser PATH`` (another Chromium build) is the executable that draws: a
     wrapper given as the browser leaves its mark and the page answers through it; a path with no
     executable is refused with exit code 2 before anything starts."""
-    from telesurg.services.bench.browser import CHROMIUM, chromium
-    from telesurg.services.bench.viewer import browser_version
-    from telesurg.services.bench.viewer import main as viewer_main
+    from telesurg.tools.bench.browser import CHROMIUM, chromium
+    from telesurg.tools.bench.viewer import browser_version
+    from telesurg.tools.bench.viewer import main as viewer_main
 
     missing = tmp_path / "no-such-chromium"
     assert viewer_main(["--seconds", "5", "--browser", str(missing)]) == 2

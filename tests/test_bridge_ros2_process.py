@@ -31,8 +31,8 @@ from typing import Any
 
 import numpy as np
 import pytest
-from telesurg.services.bench.harness import Pipeline, now_ns
 from telesurg.shared.messages import JointState
+from telesurg.tools.bench.harness import Pipeline, now_ns
 
 pytestmark = pytest.mark.process
 

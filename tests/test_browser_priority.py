@@ -17,7 +17,7 @@ from pathlib import Path
 
 import pytest
 from helpers import autogroup
-from telesurg.services.bench.browser import CHROMIUM, autogroups, chromium, lowest_priority
+from telesurg.tools.bench.browser import CHROMIUM, autogroups, chromium, lowest_priority
 
 pytestmark = pytest.mark.process
 

@@ -25,10 +25,10 @@ import numpy as np
 import pytest
 from helpers import GoalMaster as Master
 from helpers import settled_tip
-from telesurg.services.bench.harness import Pipeline
 from telesurg.services.camera import pose_matrix, quat_xyzw
 from telesurg.shared.bus import BusConfig, Node
 from telesurg.shared.messages import CameraImage, CartesianPose, OperatingState
+from telesurg.tools.bench.harness import Pipeline
 
 pytestmark = pytest.mark.process
 

@@ -17,11 +17,11 @@ from collections.abc import Callable
 from pathlib import Path
 
 import pytest
-from telesurg.services.bench.harness import Pipeline
 from telesurg.services.console import ConsoleConfig, ConsoleModel, console_clutch_key
 from telesurg.services.console.app import ArmPanel, ConsoleApp
 from telesurg.shared.bus import BusConfig, Node
 from telesurg.shared.messages import MasterButtons, OperatingState
+from telesurg.tools.bench.harness import Pipeline
 from textual.geometry import Region
 from textual.pilot import Pilot
 from textual.widget import Widget

@@ -19,10 +19,10 @@ from pathlib import Path
 
 import pytest
 from helpers import run_unprivileged
-from telesurg.services.bench.perf import slice_threads
 from telesurg.services.launcher import CONTROL_SLICE_US, Site, SiteSpec, control_slice_us, free_port
 from telesurg.shared.errors import ConfigError
 from telesurg.shared.timing import check_slice_us, fair_slice_us, set_fair_slice, set_realtime
+from telesurg.tools.bench.perf import slice_threads
 
 
 def _in_thread(fn):  # type: ignore[no-untyped-def]

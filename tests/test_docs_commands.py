@@ -40,7 +40,7 @@ DOCS = [ROOT / "README.md", *sorted((ROOT / "docs").rglob("*.md"))]
 FENCE = re.compile(r"^(\s*)(```+|~~~+)(.*)$")
 SEPARATORS = {"&&", "||", ";", "|", "&"}
 PATH_FLAGS = {"--config", "--config-dir", "--plugin", "--attach"}
-REPO_DIRS = ("deploy/", "tests/", "docs/", "services/", "shared/", "firmware/")
+REPO_DIRS = ("deploy/", "tests/", "docs/", "services/", "shared/", "tools/", "firmware/")
 
 
 @dataclass(frozen=True)

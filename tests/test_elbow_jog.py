@@ -18,7 +18,6 @@ import time
 
 import numpy as np
 import pytest
-from telesurg.services.experiment.jang import FIG9_TARGET_OFFSET_M, paper_vip
 from telesurg.services.slave_control import SlaveControlConfig
 from telesurg.services.slave_control.arm import ArmCore, ArmReading
 from telesurg.services.slave_control.control import Lease
@@ -34,6 +33,7 @@ from telesurg.shared.kinematics.elbow import (
 )
 from telesurg.shared.messages import Command, Header
 from telesurg.shared.robots import arm_profile
+from telesurg.tools.experiment.jang import FIG9_TARGET_OFFSET_M, paper_vip
 
 G = vip.VIP_ARM1
 PROFILE = arm_profile("vip", "arm1")

@@ -2,7 +2,7 @@
 
 Layers: pure message/calibration tests; round trips through pyserial over ``loop://`` and a real
 pseudo-terminal; the ``serial`` device against an in-process emulated board on a pty (damage,
-refusal, silence, unplug and re-plug); ``python -m telesurg.services.device emulate --pty`` as a real
+refusal, silence, unplug and re-plug); ``python -m telesurg.tools.emulate emulate --pty`` as a real
 process; master_capture on an in-process zenoh router publishing only fresh readings.
 """
 
@@ -29,9 +29,6 @@ import pytest
 import telesurg.shared.encoder_protocol as ep
 from cobs import cobs  # type: ignore[import-untyped]
 from conftest import wait_until
-from telesurg.services.device import main as device_main
-from telesurg.services.device import monitor
-from telesurg.services.device.emulator import BoardEmulator, EmulatorOptions, motion_joints
 from telesurg.services.master_capture import MasterCaptureConfig, run
 from telesurg.services.master_capture.devices import open_device
 from telesurg.services.master_capture.devices.serial import (
@@ -55,6 +52,9 @@ from telesurg.shared.encoder_protocol import (
 from telesurg.shared.errors import ConfigError, MessageError
 from telesurg.shared.messages import CartesianPose, JointState, MasterButtons
 from telesurg.shared.serial_link import Frame, FrameReader, SerialLink, crc16_ccitt_false, decode_frame
+from telesurg.tools.emulate import main as device_main
+from telesurg.tools.emulate import monitor
+from telesurg.tools.emulate.emulator import BoardEmulator, EmulatorOptions, motion_joints
 
 pytestmark = pytest.mark.timeout(60)
 
@@ -499,7 +499,7 @@ def test_monitor_prints_hello_readings_and_counters(pty_pair: tuple[int, str]) -
 
 def start_emulator(*args: str) -> tuple[subprocess.Popen[str], str]:
     p = subprocess.Popen(
-        [sys.executable, "-m", "telesurg.services.device", "emulate", "--pty", *args],
+        [sys.executable, "-m", "telesurg.tools.emulate", "emulate", "--pty", *args],
         cwd=REPO,
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,

@@ -22,11 +22,11 @@ from typing import Any
 import numpy as np
 import pytest
 from mcap.reader import make_reader
-from telesurg.services.bench.harness import Pipeline
 from telesurg.services.record import iter_decoded, open_mcap
 from telesurg.services.record.export import RobotModel, main
 from telesurg.shared import robots
 from telesurg.shared.messages import CameraImage, CartesianPose, JointState, OperatingState, SafetyEvent
+from telesurg.tools.bench.harness import Pipeline
 
 ROOT = Path(__file__).resolve().parents[1]
 RERUN = Path(sys.executable).with_name("rerun")

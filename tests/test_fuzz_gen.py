@@ -1,4 +1,4 @@
-"""The fuzz payload generator (telesurg.services.bench.fuzzgen) and the strict decoder under its payloads."""
+"""The fuzz payload generator (telesurg.tools.bench.fuzzgen) and the strict decoder under its payloads."""
 
 from __future__ import annotations
 
@@ -16,10 +16,12 @@ from pathlib import Path
 
 import msgpack
 import pytest
-import telesurg.services.bench.fuzzgen as fz
+import telesurg.tools.bench.fuzzgen as fz
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from telesurg.services.bench.fuzzgen import (
+from telesurg.shared.errors import MessageError
+from telesurg.shared.messages import MAX_JOINTS, MAX_PAYLOAD_BYTES, MESSAGE_TYPES, Message, decode, decode_as
+from telesurg.tools.bench.fuzzgen import (
     ALWAYS_INVALID_KINDS,
     FUZZ_KINDS,
     FuzzCase,
@@ -29,8 +31,6 @@ from telesurg.services.bench.fuzzgen import (
     mutate,
     valid_template,
 )
-from telesurg.shared.errors import MessageError
-from telesurg.shared.messages import MAX_JOINTS, MAX_PAYLOAD_BYTES, MESSAGE_TYPES, Message, decode, decode_as
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -123,7 +123,7 @@ def test_deterministic_across_processes() -> None:
     """No dependence on str hashing (PYTHONHASHSEED) or other per-process state."""
     code = (  # _digest, inline
         "import hashlib, random\n"
-        "from telesurg.services.bench.fuzzgen import default_templates, fuzz_cases\n"
+        "from telesurg.tools.bench.fuzzgen import default_templates, fuzz_cases\n"
         "h = hashlib.sha256()\n"
         "for c in fuzz_cases(random.Random(3), default_templates(), 2000):\n"
         "    h.update(f'{c.kind}|{c.template}|'.encode() + c.payload)\n"

@@ -1,7 +1,7 @@
 """Property-based fuzzing of the *running* services (hypothesis → zenoh → real processes).
 
 Hypothesis builds batches of payloads — arbitrary bytes, and valid messages mutated by
-:func:`telesurg.services.bench.fuzzgen.mutate` — and publishes them on every key the services
+:func:`telesurg.tools.bench.fuzzgen.mutate` — and publishes them on every key the services
 subscribe to, while the scripted master drives the MuJoCo slave. Afterwards: every service is still
 alive, each one's rejection counter (from its heartbeat) equals what the same strict decoder and
 source rules say it must reject, the slave never left its joint limits, and it follows the master
@@ -20,11 +20,11 @@ import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
-from telesurg.services.bench.fuzz import ROUTER_CAP, SERVICES, TARGETS, expected_rejections, fuzz_signer
-from telesurg.services.bench.fuzzgen import mutate, valid_template
-from telesurg.services.bench.harness import Pipeline
 from telesurg.shared.auth import PUT
 from telesurg.shared.kinematics import MH3F
+from telesurg.tools.bench.fuzz import ROUTER_CAP, SERVICES, TARGETS, expected_rejections, fuzz_signer
+from telesurg.tools.bench.fuzzgen import mutate, valid_template
+from telesurg.tools.bench.harness import Pipeline
 
 pytestmark = pytest.mark.process
 

@@ -15,7 +15,7 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import pytest
-from telesurg.services.bench.impair import LinkImpairer, parse_hostport
+from telesurg.tools.bench.impair import LinkImpairer, parse_hostport
 
 pytestmark = pytest.mark.timeout(30)
 
@@ -452,7 +452,7 @@ def test_parse_hostport_rejects(text: str) -> None:
 
 def test_cli_runs_until_sigint(echo: EchoServer) -> None:
     env = dict(os.environ, PYTHONPATH=str(REPO))
-    cmd = [sys.executable, "-m", "telesurg.services.bench.impair", "--listen", "127.0.0.1:0"]
+    cmd = [sys.executable, "-m", "telesurg.tools.bench.impair", "--listen", "127.0.0.1:0"]
     cmd += ["--target", f"{echo.address[0]}:{echo.address[1]}", "--delay-ms", "5"]
     proc = subprocess.Popen(cmd, cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:

@@ -1,6 +1,6 @@
 """``telesurg experiment jang-vip`` (Jang et al. 2014, VIP control): Figs. 6 and 9, VIP vs
 pseudo-inverse elbow, and the Fig. 6 loop in MuJoCo from 25 Hz setpoints through the slave's
-1 kHz interpolator. Runs :func:`telesurg.services.experiment.jang.run` in-process once (a few seconds)."""
+1 kHz interpolator. Runs :func:`telesurg.tools.experiment.jang.run` in-process once (a few seconds)."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ from typing import Any
 
 import numpy as np
 import pytest
-from telesurg.services.experiment.jang import PAPER_VIP_M, SIM_TRACK_TOL_MM, run
+from telesurg.tools.experiment.jang import PAPER_VIP_M, SIM_TRACK_TOL_MM, run
 
 FIGURES = ("jang-fig6.png", "jang-fig9.png", "jang-elbow.png", "jang-sim.png")
 

@@ -27,10 +27,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 from helpers import GoalMaster, operator_command
-from telesurg.services.bench.harness import Pipeline
 from telesurg.shared.bus import BusConfig, Node
 from telesurg.shared.kinematics.mh3f import fk
 from telesurg.shared.messages import CommandReply, JointSetpoint, JointState, OperatingState, SafetyEvent
+from telesurg.tools.bench.harness import Pipeline
 from test_keepout_process import Patient
 
 pytestmark = [pytest.mark.process, pytest.mark.timeout(300)]

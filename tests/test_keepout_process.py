@@ -48,7 +48,6 @@ import numpy as np
 import pytest
 import telesurg.services.slave_control as slave_control
 from helpers import MasterHand, operator_command
-from telesurg.services.bench.harness import Pipeline
 from telesurg.shared.bus import BusConfig, Node
 from telesurg.shared.kinematics.trocar import posture_adjust
 from telesurg.shared.messages import (
@@ -57,6 +56,7 @@ from telesurg.shared.messages import (
     OperatingState,
     SafetyEvent,
 )
+from telesurg.tools.bench.harness import Pipeline
 
 # (long: every accepted motion runs; see docs/trocar.md for the time it took)
 pytestmark = [

@@ -9,9 +9,9 @@ level, inside functions and under ``if TYPE_CHECKING:`` alike — and checked ag
   (it starts services as ``python -m telesurg.services.cli <command>`` processes, never imports
   them): imports ``shared``, ``services/common.py`` and its own package, nothing else under
   ``services/``.
-* a **tool** — ``services/cli.py``, ``services/bench``, ``services/experiment``,
-  ``services/device`` and ``services/record/replay.py``: may import any service (tools drive
-  and compose services); only tools import tools.
+* a **tool** — ``services/cli.py`` and ``services/record/replay.py``, ``export.py``: may import
+  any service (tools drive and compose services); only tools import tools. (The benchmarks,
+  experiments and emulators live beside the runtime in ``tools/``: tests/test_tools_layout.py.)
 * nothing under ``shared/`` or ``services/`` imports the tests.
 * no import cycle between modules. A lazy import (inside a function) counts — it only hides the
   loop until the function runs; an ``if TYPE_CHECKING:`` import does not (it never runs).
@@ -33,9 +33,6 @@ MAPPING = "telesurg.services.mapping"
 #: modules and packages that drive or compose services (a package name covers its submodules)
 TOOLS = (
     "telesurg.services.cli",
-    "telesurg.services.bench",
-    "telesurg.services.experiment",
-    "telesurg.services.device",
     "telesurg.services.record.replay",
     "telesurg.services.record.export",
 )
@@ -204,7 +201,7 @@ def test_the_rules_catch_what_they_forbid() -> None:
         ("telesurg.services", "telesurg.services.watchdog"),
         ("telesurg.services.slave_control", "telesurg.services.bench.harness"),
         ("telesurg.services.record", "telesurg.services.record.replay"),
-        ("telesurg.services.bench.harness", "conftest"),
+        ("telesurg.services.record.replay", "conftest"),
         ("telesurg.shared.messages", "tests.helpers"),
     ]
     good = [
@@ -212,8 +209,6 @@ def test_the_rules_catch_what_they_forbid() -> None:
         ("telesurg.services.watchdog", "telesurg.services.watchdog.logic"),
         ("telesurg.services.mapping.joints", "telesurg.services.mapping.engage"),
         ("telesurg.services.mirror", "telesurg.services.common"),
-        ("telesurg.services.bench.fuzz", "telesurg.services.mirror"),
-        ("telesurg.services.experiment.jinno", "telesurg.services.bench.harness"),
         ("telesurg.services.record.replay", "telesurg.services.mirror.view"),
         ("telesurg.services.cli", "importlib"),
     ]

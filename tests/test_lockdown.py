@@ -411,7 +411,7 @@ def test_flood_of_large_messages_reaches_no_service(tmp_path: Path) -> None:
     window follows: the bench measured each (CPU of the router's zenoh threads by name)."""
     import argparse
 
-    from telesurg.services.bench.flood import run
+    from telesurg.tools.bench.flood import run
 
     args = argparse.Namespace(
         site="locked",

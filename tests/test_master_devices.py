@@ -10,11 +10,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from telesurg.services.bench.harness import Pipeline
 from telesurg.services.master_capture.devices import open_device
 from telesurg.services.master_capture.devices.scripted import ScriptedConfig, ScriptedDevice
 from telesurg.shared.errors import ConfigError
 from telesurg.shared.messages import SafetyState, TeleopState
+from telesurg.tools.bench.harness import Pipeline
 
 
 def test_circle_radius_period_and_clutch_schedule() -> None:

@@ -23,21 +23,31 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 #: the user's folders and the files the build reads
-SOURCES = ("pyproject.toml", "README.md", "shared", "services", "deploy")
+SOURCES = ("pyproject.toml", "setup.py", "README.md", "shared", "services", "tools", "deploy")
+#: the folders mapped under ``telesurg`` (pyproject.toml [tool.setuptools.package-dir])
+FOLDERS = ("shared", "services", "tools", "deploy")
 SITES = ("local", "plas", "vip", "serial", "slave-site", "console")
 
 
-def test_pyproject_lists_every_package() -> None:
-    """Every folder with an ``__init__.py`` under shared/, services/, deploy/ is in the wheel."""
-    cfg = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]
-    dirs = {v: k for k, v in cfg["package-dir"].items()}
-    assert set(dirs) == {"shared", "services", "deploy"}
-    want = {
-        ".".join([dirs[p.parent.relative_to(ROOT).parts[0]], *p.parent.relative_to(ROOT).parts[1:]])
-        for top in dirs
+def source_packages() -> set[str]:
+    """``telesurg.<folder>…`` of every folder with an ``__init__.py`` under the mapped folders."""
+    return {
+        ".".join(("telesurg", *p.parent.relative_to(ROOT).parts))
+        for top in FOLDERS
         for p in (ROOT / top).rglob("__init__.py")
+        if "__pycache__" not in p.parts
     }
-    assert set(cfg["packages"]) == want
+
+
+def test_every_folder_is_mapped_under_telesurg() -> None:
+    """pyproject maps each user folder to ``telesurg.<folder>`` (setup.py lists the packages
+    under them); the service table's packages are among them."""
+    from telesurg.shared.service_table import SERVICES
+
+    cfg = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]
+    assert cfg["package-dir"] == {f"telesurg.{f}": f for f in FOLDERS}
+    assert "packages" not in cfg  # (a hand-kept list drifts: setup.py finds them)
+    assert {s.module for s in SERVICES} <= source_packages()
 
 
 def _clean_env(venv: Path) -> dict[str, str]:
@@ -82,6 +92,8 @@ def test_wheel_is_telesurg_only_and_ships_the_sites(wheel: Path) -> None:
         infos = {i.filename: i for i in z.infolist()}
     top = {n.split("/")[0] for n in infos if not n.split("/")[0].endswith(".dist-info")}
     assert top == {"telesurg"}, top  # no shared/, no services/ at the top
+    packaged = {n.removesuffix("/__init__.py").replace("/", ".") for n in infos if n.endswith("/__init__.py")}
+    assert packaged == source_packages(), packaged ^ source_packages()
     deploy = {n.removeprefix("telesurg/deploy/") for n in infos if n.startswith("telesurg/deploy/")}
     want = {f"{s}/site.toml" for s in SITES} | {
         "slave-site/acl.json5",
@@ -163,3 +175,27 @@ def test_installed_demo_runs_on_the_packaged_site_file(fresh_venv: Path, tmp_pat
         ROOT / "deploy/plas/site.toml"
     ).read_text()
     assert os.access(tmp_path / "sites" / "local.sh", os.X_OK)
+
+
+@pytest.mark.process
+def test_installed_runtime_needs_no_lab_extra(fresh_venv: Path, tmp_path: Path) -> None:
+    """The wheel without extras has no matplotlib (psutil may come with rerun-sdk); a tool that
+    needs the lab extra says what to install, in one line, and changes nothing; the tools
+    without heavy dependencies run."""
+    env = _clean_env(fresh_venv)
+    python, telesurg = str(fresh_venv / "bin" / "python"), str(fresh_venv / "bin" / "telesurg")
+    code = "import importlib.util as u; print([u.find_spec(n) is None for n in ('matplotlib', 'mink')])"
+    r = subprocess.run([python, "-c", code], cwd=tmp_path, env=env, capture_output=True, text=True)
+    assert r.stdout.strip() == "[True, True]", r.stdout + r.stderr
+    for cmd in (["bench", "faults"], ["experiment", "shim-mapping", "--out", "x"]):
+        r = subprocess.run(
+            [telesurg, *cmd], cwd=tmp_path, env=env, capture_output=True, text=True, timeout=60
+        )
+        assert r.returncode == 2, r.stderr
+        (line,) = r.stderr.strip().splitlines()
+        assert "'lab' extra" in line and "pip install 'telesurg[lab]'" in line and "matplotlib" in line, line
+    assert list(tmp_path.iterdir()) == []
+    r = subprocess.run(
+        [telesurg, "device", "emulate", "--help"], cwd=tmp_path, env=env, capture_output=True, text=True
+    )
+    assert r.returncode == 0 and "--pty" in r.stdout, r.stderr

@@ -1,5 +1,5 @@
 """Tests for telesurg.shared.kinematics.plas (Shim 2015: PLAS slave, ergonomic master, Table-6 mapping)
-and for the Section-4 reproduction in telesurg.services.experiment.shim."""
+and for the Section-4 reproduction in telesurg.tools.experiment.shim."""
 
 from __future__ import annotations
 
@@ -9,7 +9,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from telesurg.services.experiment.shim import run
 from telesurg.shared.errors import KinematicsError
 from telesurg.shared.kinematics.plas import (
     PLAS_MASTER,
@@ -31,6 +30,7 @@ from telesurg.shared.kinematics.plas import (
     tip_velocity_error,
 )
 from telesurg.shared.kinematics.transforms import FloatArray, rot_x, rotvec_from_matrix
+from telesurg.tools.experiment.shim import run
 
 # Thesis dimensions [m] (Section 3.4), written out again so the tests do not read them back
 # from the module under test.

@@ -23,10 +23,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from telesurg.services.bench.harness import Pipeline
 from telesurg.shared.bus import BusConfig, Node
 from telesurg.shared.kinematics import plas
 from telesurg.shared.messages import JointSetpoint, JointState, OperatingState, SafetyEvent, SafetyState
+from telesurg.tools.bench.harness import Pipeline
 
 pytestmark = pytest.mark.process
 DEPLOY = Path(__file__).resolve().parents[1] / "deploy" / "plas"
@@ -45,7 +45,7 @@ class Board:
             [
                 sys.executable,
                 "-m",
-                "telesurg.services.device",
+                "telesurg.tools.emulate",
                 "emulate",
                 "--pty",
                 "--rate",

@@ -20,7 +20,6 @@ from typing import Any
 import msgpack
 import numpy as np
 import pytest
-from telesurg.services.bench.harness import Pipeline
 from telesurg.services.record import (
     MESSAGE_ENCODING,
     RECORDING_METADATA,
@@ -43,6 +42,7 @@ from telesurg.shared.messages import (
     MasterButtons,
     decode,
 )
+from telesurg.tools.bench.harness import Pipeline
 
 ROOT = Path(__file__).resolve().parents[1]
 PREFIX = "telesurg/t/"

@@ -21,11 +21,11 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from telesurg.services.bench import attack
-from telesurg.services.bench.harness import now_ns
 from telesurg.shared import auth
 from telesurg.shared.bus import open_session
 from telesurg.shared.messages import Command, CommandReply, Header, OperatingState, decode_as
+from telesurg.tools.bench import attack
+from telesurg.tools.bench.harness import now_ns
 
 pytestmark = [pytest.mark.process, pytest.mark.timeout(600)]
 

@@ -17,7 +17,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from telesurg.services.bench.harness import Pipeline
 from telesurg.services.console import ConsoleConfig, ConsoleModel
 from telesurg.services.launcher.report import (
     RELEASE_TRIM_S,
@@ -29,6 +28,7 @@ from telesurg.services.launcher.report import (
 )
 from telesurg.shared.bus import BusConfig, Node
 from telesurg.shared.messages import CartesianPose, Header, SafetyState
+from telesurg.tools.bench.harness import Pipeline
 
 CONFIG_SCALE = 0.5  # deploy/local/mapping.toml
 OPERATOR_SCALE = 0.3

@@ -9,10 +9,10 @@ import sys
 from pathlib import Path
 
 import pytest
-from telesurg.services import device
 from telesurg.services.launcher import add_site_args, service_argv, spec_from_args
 from telesurg.shared import robots
 from telesurg.shared.errors import ConfigError
+from telesurg.tools import emulate as device
 
 TRI3 = str(Path(__file__).resolve().parent / "robots" / "tri3" / "tri3.py")
 

@@ -14,8 +14,8 @@ import sys
 from collections.abc import Iterator
 
 import pytest
-from telesurg.services.bench.faults import parse_only, run_fault
-from telesurg.services.bench.harness import Pipeline
+from telesurg.tools.bench.faults import parse_only, run_fault
+from telesurg.tools.bench.harness import Pipeline
 
 pytestmark = pytest.mark.process
 

@@ -2,7 +2,7 @@
 
 The full local pipeline (scripted master → mapping → watchdog → slave_control) with
 ``slave_control backend = "serial"`` on the servo-controller emulator
-(``python -m telesurg.services.device emulate-slave --pty --model mh3f``) on a real pseudo-terminal, and the
+(``python -m telesurg.tools.emulate emulate-slave --pty --model mh3f``) on a real pseudo-terminal, and the
 MuJoCo shadow on. slave_control's port is a symlink to the emulator's pty, like
 ``/dev/serial/by-id/…`` on a real machine: each test starts a new emulator (with the fault it
 injects), moves the link to it and kills the old one — an unplug and re-plug, so every test also
@@ -32,11 +32,11 @@ from typing import IO
 
 import numpy as np
 import pytest
-from telesurg.services.bench.harness import Pipeline
 from telesurg.shared.bus import BusConfig, Node
 from telesurg.shared.messages import JointSetpoint, JointState, OperatingState, SafetyEvent
 from telesurg.shared.serial_link import SerialLink
 from telesurg.shared.servo_protocol import HelloRequest, State, decode_message, send_message
+from telesurg.tools.bench.harness import Pipeline
 
 pytestmark = pytest.mark.process
 #: Generous link timeouts: this shared CI host stalls processes for 100+ ms under load.
@@ -68,7 +68,7 @@ class Controller:
         cmd = [
             sys.executable,
             "-m",
-            "telesurg.services.device",
+            "telesurg.tools.emulate",
             "emulate-slave",
             "--pty",
             "--model",

@@ -5,7 +5,7 @@ check); round trips through pyserial over ``loop://`` and a real pseudo-terminal
 own rules (sequence order, limits, watchdog) driven by hand; the ``serial`` backend against an
 in-process emulator on a pty (handshake, refusal of a wrong robot, damaged frames, sequence gaps,
 silence, the controller's watchdog and fault flag, clamps, the MuJoCo shadow); the fault hold of
-the control loops; ``python -m telesurg.services.device emulate-slave`` as a real process.
+the control loops; ``python -m telesurg.tools.emulate emulate-slave`` as a real process.
 """
 
 from __future__ import annotations
@@ -27,9 +27,6 @@ import numpy as np
 import pytest
 import telesurg.shared.servo_protocol as sp
 from conftest import wait_until
-from telesurg.services.device import main as device_main
-from telesurg.services.device.emulator import BoardEmulator
-from telesurg.services.device.servo_emulator import ServoEmulator, ServoEmulatorOptions
 from telesurg.services.slave_control import SlaveControlConfig
 from telesurg.services.slave_control.arm import FaultHold
 from telesurg.services.slave_control.backends import MujocoBackend
@@ -58,6 +55,9 @@ from telesurg.shared.servo_protocol import (
     encode_message,
     send_message,
 )
+from telesurg.tools.emulate import main as device_main
+from telesurg.tools.emulate.emulator import BoardEmulator
+from telesurg.tools.emulate.servo_emulator import ServoEmulator, ServoEmulatorOptions
 
 pytestmark = pytest.mark.timeout(120)
 REPO = Path(__file__).resolve().parent.parent
@@ -609,7 +609,7 @@ def test_emulate_slave_process_serves_a_two_arm_robot() -> None:
         [
             sys.executable,
             "-m",
-            "telesurg.services.device",
+            "telesurg.tools.emulate",
             "emulate-slave",
             "--pty",
             "--model",

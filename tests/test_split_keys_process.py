@@ -18,7 +18,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from telesurg.services.bench.harness import Pipeline, now_ns
 from telesurg.services.keys import export
 from telesurg.shared import auth
 from telesurg.shared.bus import BusConfig, Node, open_session
@@ -33,6 +32,7 @@ from telesurg.shared.messages import (
     SafetyState,
     Sequencer,
 )
+from telesurg.tools.bench.harness import Pipeline, now_ns
 
 pytestmark = pytest.mark.process
 

@@ -19,12 +19,12 @@ import time
 from pathlib import Path
 
 import pytest
-from telesurg.services.bench.harness import Pipeline, now_ns
-from telesurg.services.bench.load import Load
 from telesurg.services.launcher import ZID_SERVICES, SiteSpec, service_argv
 from telesurg.services.router import RouterConfig, congestion_rules
 from telesurg.shared.bus import BusConfig, open_session
 from telesurg.shared.errors import ConfigError
+from telesurg.tools.bench.harness import Pipeline, now_ns
+from telesurg.tools.bench.load import Load
 
 #: pedal pressed from 0.5 s on and held: one engage, so any HOLD ends the following for good
 HELD_PEDAL = ["scripted.clutch=[[0.5, 1e9]]", "scripted.clutch_repeat_s=0.0"]

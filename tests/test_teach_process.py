@@ -14,11 +14,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from telesurg.services.bench.harness import Pipeline
-from telesurg.services.experiment.client import ArmClient
 from telesurg.shared.bus import BusConfig, Node
 from telesurg.shared.kinematics.mh3f import MH3F, jacobian, wrist_center
 from telesurg.shared.kinematics.trocar import posture_adjust
+from telesurg.tools.bench.harness import Pipeline
+from telesurg.tools.experiment.client import ArmClient
 
 pytestmark = pytest.mark.process
 

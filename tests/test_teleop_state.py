@@ -16,11 +16,11 @@ from collections.abc import Callable
 from pathlib import Path
 
 import pytest
-from telesurg.services.bench.harness import Pipeline
 from telesurg.services.console import ArmState, ConsoleConfig, ConsoleModel
 from telesurg.services.console.app import arm_text
 from telesurg.shared.bus import BusConfig, Node
 from telesurg.shared.messages import TeleopState
+from telesurg.tools.bench.harness import Pipeline
 
 pytestmark = pytest.mark.process
 

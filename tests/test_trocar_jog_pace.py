@@ -21,7 +21,6 @@ import math
 
 import numpy as np
 import pytest
-from telesurg.services.experiment.jinno import STARTS, TROCAR
 from telesurg.services.slave_control import SlaveControlConfig
 from telesurg.services.slave_control.arm import REPLAY_MAX_PERIODS
 from telesurg.services.slave_control.backends import MujocoBackend
@@ -33,6 +32,7 @@ from telesurg.shared.kinematics.mh3f import MH3F, fk, ik
 from telesurg.shared.kinematics.trocar import insertion_depth, posture_adjust, rcm_error
 from telesurg.shared.limits import limit_step
 from telesurg.shared.robots import arm_profile
+from telesurg.tools.experiment.jinno import STARTS, TROCAR
 
 DT = 0.001
 VMAX = np.array(MH3F.max_velocity)

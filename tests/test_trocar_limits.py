@@ -10,12 +10,12 @@ import math
 
 import numpy as np
 import pytest
-from telesurg.services.experiment.jinno import STARTS, TROCAR
 from telesurg.shared.errors import IKError
 from telesurg.shared.kinematics.keepout import PatientBox, path_problem, pose_problem
 from telesurg.shared.kinematics.mh3f import MH3F, fk, wrist_center
 from telesurg.shared.kinematics.trocar import insertion_depth, posture_adjust, rcm_error, trocar_ik
 from telesurg.shared.kinematics.trocar_limits import TROCAR_SPEED_FRACTION, clamped_trocar_ik, remove_step
+from telesurg.tools.experiment.jinno import STARTS, TROCAR
 
 DT = 1 / 250
 VMAX = np.array(MH3F.max_velocity)

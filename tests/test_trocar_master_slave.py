@@ -16,9 +16,9 @@ from collections.abc import Iterator
 import numpy as np
 import pytest
 from helpers import MasterHand, operator_command
-from telesurg.services.bench.harness import Pipeline
 from telesurg.shared.bus import BusConfig, Node
 from telesurg.shared.messages import CartesianPose, CommandReply, OperatingState
+from telesurg.tools.bench.harness import Pipeline
 
 pytestmark = pytest.mark.process
 

@@ -12,9 +12,9 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
-from telesurg.services.bench.harness import Pipeline
 from telesurg.shared.bus import BusConfig, Node
 from telesurg.shared.messages import Command, CommandReply, OperatingState, SafetyEvent
+from telesurg.tools.bench.harness import Pipeline
 
 pytestmark = pytest.mark.process
 

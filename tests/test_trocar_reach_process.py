@@ -26,8 +26,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 from helpers import MasterHand, operator_command
-from telesurg.services.bench.harness import Pipeline
-from telesurg.services.experiment.jinno import STARTS
 from telesurg.shared.bus import BusConfig, Node
 from telesurg.shared.kinematics.mh3f import MH3F
 from telesurg.shared.kinematics.trocar import rcm_error
@@ -39,6 +37,8 @@ from telesurg.shared.messages import (
     SafetyEvent,
     SafetyState,
 )
+from telesurg.tools.bench.harness import Pipeline
+from telesurg.tools.experiment.jinno import STARTS
 
 pytestmark = pytest.mark.process
 

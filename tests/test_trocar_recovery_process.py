@@ -25,8 +25,6 @@ from pathlib import Path
 
 import pytest
 from helpers import MasterHand, operator_command
-from telesurg.services.bench.harness import Pipeline
-from telesurg.services.experiment.jinno import STARTS
 from telesurg.shared.bus import BusConfig, Node
 from telesurg.shared.messages import (
     CartesianPose,
@@ -36,6 +34,8 @@ from telesurg.shared.messages import (
     SafetyEvent,
     SafetyState,
 )
+from telesurg.tools.bench.harness import Pipeline
+from telesurg.tools.experiment.jinno import STARTS
 
 pytestmark = pytest.mark.process
 

@@ -25,7 +25,6 @@ import math
 
 import numpy as np
 import pytest
-from telesurg.services.experiment.jinno import STARTS, TROCAR
 from telesurg.services.slave_control.arm import (
     CATCHUP,
     CATCHUP_SPEED_FRACTION,
@@ -38,6 +37,7 @@ from telesurg.services.slave_control.control import FollowController, Lease, Set
 from telesurg.shared.kinematics.mh3f import MH3F, fk, ik
 from telesurg.shared.kinematics.trocar import insertion_depth, posture_adjust, rcm_error, trocar_ik
 from telesurg.shared.kinematics.trocar_limits import TROCAR_SPEED_FRACTION, clamped_trocar_ik
+from telesurg.tools.experiment.jinno import STARTS, TROCAR
 
 DT = 0.001  # s: the slave's period (MuJoCo step)
 MASTER_DT = 0.004  # s: 250 Hz master, one servo_jp per mapped sample

@@ -17,7 +17,7 @@ cleanly.
 Root and ``ip netns`` are required (those tests skip otherwise). Without root, the same access
 control is checked on loopback in one process (every identity's puts, queries and subscriptions,
 strangers refused) along with the secured-bus configuration errors; with root, also the packet
-link of ``services/bench/impair.py`` (delay, loss, cut). The helpers that run inside the namespaces are
+link of ``tools/bench/impair.py`` (delay, loss, cut). The helpers that run inside the namespaces are
 this file run as a script: ``python tests/test_two_hosts.py probe|identities|udpecho|udpping ...``.
 """
 
@@ -43,9 +43,9 @@ if str(REPO) not in sys.path:  # run as a script inside a namespace
     sys.path.insert(0, str(REPO))
 
 from helpers import clutch_flags  # noqa: E402
-from telesurg.services.bench.impair import NetNamespace, netns_available  # noqa: E402
 from telesurg.services.keys import export  # noqa: E402
 from telesurg.shared.auth import IDENTITIES, KEYS_ENV, init_keyring  # noqa: E402
+from telesurg.tools.bench.impair import NetNamespace, netns_available  # noqa: E402
 
 pytestmark = [pytest.mark.process, pytest.mark.timeout(240)]
 
@@ -479,7 +479,7 @@ def hosts(tmp_path_factory: pytest.TempPathFactory) -> Iterator[TwoHosts]:
                 str(tmp / "local-creds"),
             ]
             h.spawn("slave-site", ns_s, site)
-            imp = [sys.executable, "-m", "telesurg.services.bench.impair", "--control"]
+            imp = [sys.executable, "-m", "telesurg.tools.bench.impair", "--control"]
             imp += ["--listen", f"{SLAVE_ADDR}:{TLS_PORT}", "--target", f"127.0.0.1:{TLS_PORT}"]
             p = h.spawn("impair", ns_s, imp, pipe=True)
             assert p.stdout is not None
@@ -654,8 +654,8 @@ def test_mtls_and_access_control_on_loopback(pki: tuple[Path, Path], tmp_path: P
 
 
 def test_packet_link_delays_drops_and_cuts() -> None:
-    """telesurg.services.bench.impair.PacketLink between two namespaces: delay, loss and cut (UDP)."""
-    from telesurg.services.bench.impair import PacketLink
+    """telesurg.tools.bench.impair.PacketLink between two namespaces: delay, loss and cut (UDP)."""
+    from telesurg.tools.bench.impair import PacketLink
 
     if why := netns_available():
         pytest.skip(f"packet link test {why}")

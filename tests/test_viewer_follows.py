@@ -4,7 +4,7 @@ The real mirror (``telesurg mirror --serve``) is fed MH3F joint states over zeno
 slave_control publishes them, for :data:`PREROLL_S` before the viewer opens; its gRPC server keeps
 the whole session (``history_mb = 0``), so a new viewer is replayed it from its start. Headless
 Chromium then opens the web viewer and, once a second, the test reads the viewer's own state (the
-bench's probe, :func:`telesurg.services.bench.viewer.probe`): the time cursor on ``source_time``,
+bench's probe, :func:`telesurg.tools.bench.viewer.probe`): the time cursor on ``source_time``,
 the newest time the viewer has ingested, and the page's clock.
 
 A *following* viewer (the blueprint's time panel, :func:`telesurg.services.mirror.view.blueprint`)
@@ -52,11 +52,11 @@ WINDOW_S = 15.0
 def test_the_web_viewer_follows_the_live_end_of_the_stream(tmp_path: Path) -> None:
     if not CHROMIUM.exists():
         pytest.skip("needs Debian chromium at /usr/bin/chromium: apt-get install -y chromium")
-    from telesurg.services.bench.viewer import probe
     from telesurg.services.launcher import free_port, wait_port
     from telesurg.shared import robots
     from telesurg.shared.bus import BusConfig, Node, open_session
     from telesurg.shared.viewer import viewer_url
+    from telesurg.tools.bench.viewer import probe
 
     profile = robots.get("mh3f").arm("arm1")
     ep = f"tcp/127.0.0.1:{free_port()}"

@@ -223,11 +223,11 @@ def _loading_page(png: bytes) -> bool:
 def test_web_viewer_shows_the_robot_geometry(tmp_path: Path) -> None:
     if not CHROMIUM.exists():
         pytest.skip("needs Debian chromium at /usr/bin/chromium: apt-get install -y chromium")
-    from telesurg.services.bench.viewer import probe
     from telesurg.services.launcher import free_port, wait_port
     from telesurg.services.mirror.geometry import RobotGeometry
     from telesurg.shared.bus import BusConfig, Node, open_session
     from telesurg.shared.viewer import viewer_url
+    from telesurg.tools.bench.viewer import probe
 
     spec = robots.get("mh3f")
     profile = spec.arm("arm1")

@@ -15,7 +15,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 from helpers import operator_command
-from telesurg.services.bench.harness import Pipeline
 from telesurg.shared.bus import BusConfig, Node
 from telesurg.shared.kinematics import vip
 from telesurg.shared.messages import (
@@ -25,6 +24,7 @@ from telesurg.shared.messages import (
     JointState,
     SafetyEvent,
 )
+from telesurg.tools.bench.harness import Pipeline
 
 pytestmark = pytest.mark.process
 DEPLOY = Path(__file__).resolve().parents[1] / "deploy" / "vip"

@@ -35,8 +35,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 from helpers import operator_command
-from telesurg.services.bench.harness import Pipeline
-from telesurg.services.experiment.jang import FIG9_TARGET_OFFSET_M, paper_vip
 from telesurg.shared.bus import BusConfig, Node
 from telesurg.shared.kinematics import vip
 from telesurg.shared.kinematics.elbow import limit_margin, off_line
@@ -48,6 +46,8 @@ from telesurg.shared.messages import (
     SafetyEvent,
     TeleopState,
 )
+from telesurg.tools.bench.harness import Pipeline
+from telesurg.tools.experiment.jang import FIG9_TARGET_OFFSET_M, paper_vip
 
 pytestmark = pytest.mark.process
 DEPLOY = Path(__file__).resolve().parents[1] / "deploy" / "vip"

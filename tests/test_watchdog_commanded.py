@@ -9,7 +9,6 @@ along the forceps axis through the trocar; each sample is a ``setpoint_js`` 10 m
 from __future__ import annotations
 
 import numpy as np
-from telesurg.services.experiment.jinno import STARTS
 from telesurg.services.watchdog import WatchdogConfig
 from telesurg.services.watchdog.commanded import CommandedCheck
 from telesurg.services.watchdog.logic import ArmSafety
@@ -18,6 +17,7 @@ from telesurg.shared.kinematics.mh3f import fk, ik
 from telesurg.shared.kinematics.trocar import posture_adjust, rcm_error
 from telesurg.shared.messages import Header, JointState, OperatingState
 from telesurg.shared.robots import arm_profile
+from telesurg.tools.experiment.jinno import STARTS
 
 PROFILE = arm_profile("mh3f", "arm1")
 TROCAR = (0.5, 0.0, 0.2)

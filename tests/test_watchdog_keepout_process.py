@@ -25,7 +25,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 from helpers import operator_command
-from telesurg.services.bench.harness import Pipeline
 from telesurg.services.watchdog import WatchdogConfig
 from telesurg.shared.bus import BusConfig, Node
 from telesurg.shared.kinematics.keepout import PatientBox, shaft_inside_m
@@ -40,6 +39,7 @@ from telesurg.shared.messages import (
     SafetyState,
 )
 from telesurg.shared.robots import arm_profile
+from telesurg.tools.bench.harness import Pipeline
 
 pytestmark = pytest.mark.process
 

@@ -30,13 +30,13 @@ import numpy as np
 import pytest
 from helpers import GoalMaster as Master
 from helpers import operator_command, settled_tip
-from telesurg.services.bench.harness import Pipeline
 from telesurg.services.camera import pose_matrix, quat_xyzw
 from telesurg.services.launcher import default_config_dir
 from telesurg.shared.bus import BusConfig, Node
 from telesurg.shared.config import SITE_FILE
 from telesurg.shared.kinematics.transforms import rpy_matrix
 from telesurg.shared.messages import CartesianPose, CommandReply, OperatingState
+from telesurg.tools.bench.harness import Pipeline
 
 pytestmark = pytest.mark.process
 

@@ -59,6 +59,8 @@ from telesurg.shared.auth import default_keys_dir, ensure_keyring
 from telesurg.shared.bus import BusConfig, add_bus_args, bus_from_args
 from telesurg.shared.config import SITE_FILE, load_config, read_site, site_plugins
 from telesurg.shared.errors import ConfigError, SiteStartError, TelesurgError
+from telesurg.shared.service_table import ROUTER
+from telesurg.shared.service_table import SERVICES as SERVICE_ROWS
 from telesurg.shared.timing import (
     BEST_EFFORT_ENV,
     check_slice_us,
@@ -71,39 +73,30 @@ from telesurg.shared.timing import (
 
 log = logging.getLogger("telesurg.launcher")
 
-#: Start order; they stop in reverse, except the mirror, which stops after the others to record
-#: everything, and the router, which stops last.
-SERVICES = ("watchdog", "slave_control", "mapping", "mirror", "master_capture", "camera")
-STOP_ORDER = (
-    "console",
-    "master_capture",
-    "mapping",
-    "watchdog",
-    "slave_control",
-    "camera",
-    "mirror",
-    "router",
-)
+#: The service table (:mod:`telesurg.shared.service_table`): one row per site process.
+TABLE = {s.name: s for s in SERVICE_ROWS}
+#: Start order (the router first, then these; :data:`ON_REQUEST` last).
+SERVICES = tuple(s.name for s in sorted(SERVICE_ROWS, key=lambda s: s.start) if s.start and not s.on_request)
+#: Stop order: master first; the mirror after the others, to record everything; the router last.
+STOP_ORDER = tuple(s.name for s in sorted(SERVICE_ROWS, key=lambda s: s.stop))
 #: Started only when asked (``--master web`` / ``--console``), after the others: the web console
 #: (``telesurg console --web``), which with ``--master web`` is also the site's master.
-ON_REQUEST = ("console",)
+ON_REQUEST = tuple(s.name for s in sorted(SERVICE_ROWS, key=lambda s: s.start) if s.on_request)
 #: Best-effort services: started at normal priority, they step down to :func:`best_effort_nice`
 #: once they are up (``SCHED_IDLE`` and their autogroup's nice; shared/timing.py ``step_down``),
 #: so they only get the CPU the control loops and the host's other programs leave; the launcher
 #: lifts them back before it asks them to stop, so they can save what they hold.
-NICE = ("mirror", "camera")
+NICE = tuple(s.name for s in SERVICE_ROWS if s.best_effort)
 #: The nice value the best-effort services step down to once up (1..19; 0: they stay at normal
 #: priority, level with the host's other programs). ``$TELESURG_BEST_EFFORT_NICE`` overrides.
 BEST_EFFORT_NICE = 19
 #: Services a site runs without when they cannot start (the camera without OpenGL): the launcher
-#: says so and turns the video off for the others (:data:`OPTIONAL_OFF` overrides).
-OPTIONAL = ("camera",)
-#: What a :class:`SiteSpec` starts by default: every service but the camera (``telesurg up`` and
-#: ``demo`` add it; a test or bench names it when it wants video).
+#: says so and sets the others as :data:`OPTIONAL_OFF` says.
+OPTIONAL = tuple(s.name for s in SERVICE_ROWS if s.optional)
+#: What a :class:`SiteSpec` starts by default: every service but the optional ones (``telesurg up``
+#: and ``demo`` add the camera; a test or bench names it when it wants video).
 CONTROL_SERVICES = tuple(s for s in SERVICES if s not in OPTIONAL)
-OPTIONAL_OFF = {
-    "camera": {"watchdog": ['video_camera=""'], "mapping": ['camera=""'], "slave_control": ['camera=""']}
-}
+OPTIONAL_OFF = {s.name: {k: list(v) for k, v in s.without.items()} for s in SERVICE_ROWS if s.optional}
 
 
 #: The control path's processes run at this nice value (all their threads: the loops, zenoh's
@@ -114,16 +107,15 @@ OPTIONAL_OFF = {
 CONTROL_NICE = -10
 #: A fair-scheduler slice (µs) to ask for every thread of theirs (Linux ≥ 6.12, no privilege
 #: needed; :func:`telesurg.shared.timing.set_fair_slice`), so a waking control thread preempts a
-#: CPU hog instead of waiting out the hog's slice. 0: the kernel's (~1.4 ms here). Off by default:
-#: on this project's VM 100 µs changed neither the pipeline's latency under two hogs nor a thread's
-#: wake-up (docs/performance.md, "Tried and not kept"); ``$TELESURG_CONTROL_SLICE_US`` asks for one.
+#: CPU hog instead of waiting out the hog's slice. 0: the kernel's. Off by default;
+#: ``$TELESURG_CONTROL_SLICE_US`` asks for one.
 CONTROL_SLICE_US = 0
-CONTROL = ("router", "watchdog", "slave_control", "mapping", "master_capture")
+CONTROL = tuple(s.name for s in SERVICE_ROWS if s.control)
 #: The subscribers a control stream waits for at the router (services/router congestion_rules):
 #: each gets a zenoh session id of the launcher's (:attr:`SiteSpec.zids`), which the router is told.
 #: Every other subscriber (mirror, camera, console, a recorder, anyone) gets control streams as
 #: DROP: when it falls behind it loses samples instead of holding them up for these.
-ZID_SERVICES = ("watchdog", "slave_control", "mapping", "master_capture")
+ZID_SERVICES = tuple(s.name for s in SERVICE_ROWS if s.zid)
 
 
 def _new_zids() -> dict[str, str]:
@@ -172,30 +164,11 @@ def _foreground(slice_us: float = 0.0) -> None:
     set_fair_slice(slice_us)  # a refusal is read back and reported by the launcher
 
 
-CLI_NAME = {
-    "router": "router",
-    "watchdog": "watchdog",
-    "slave_control": "slave-control",
-    "mapping": "mapping",
-    "master_capture": "master-capture",
-    "mirror": "mirror",
-    "camera": "camera",
-    "console": "console",
-}
-
-
+#: service → its ``telesurg`` command
+CLI_NAME = {s.name: s.cli for s in SERVICE_ROWS}
 #: service → its config class (module, name): the launcher checks each site-file table before it
 #: starts anything, so a typo is one error naming the file and key, not a service that dies.
-CONFIG_CLASSES = {
-    "router": ("telesurg.services.router", "RouterConfig"),
-    "watchdog": ("telesurg.services.watchdog", "WatchdogConfig"),
-    "slave_control": ("telesurg.services.slave_control", "SlaveControlConfig"),
-    "mapping": ("telesurg.services.mapping", "MappingConfig"),
-    "master_capture": ("telesurg.services.master_capture", "MasterCaptureConfig"),
-    "mirror": ("telesurg.services.mirror", "MirrorConfig"),
-    "camera": ("telesurg.services.camera", "CameraConfig"),
-    "console": ("telesurg.services.console", "ConsoleConfig"),
-}
+CONFIG_CLASSES = {s.name: (s.module, s.config) for s in SERVICE_ROWS}
 
 
 def deploy_dir() -> Path:
@@ -310,7 +283,7 @@ def service_argv(spec: SiteSpec, name: str) -> list[str]:
     """Command line that starts service ``name`` of ``spec``."""
     argv = [sys.executable, "-m", "telesurg.services.cli", CLI_NAME[name], "--site", spec.site]
     argv += ["--log-level", spec.log_level, "--parent-pid", str(os.getpid())]
-    if name == "router":
+    if name == ROUTER:
         local = spec.endpoint
         if spec.local_pki:
             from telesurg.services.launcher.lockdown import LocalPki
@@ -331,11 +304,10 @@ def service_argv(spec: SiteSpec, name: str) -> list[str]:
             argv += ["--keyring", str(keys)]
         for plugin in spec.plugins:
             argv += ["--plugin", plugin]
-    if name == "console":
-        argv.append("--web")
+    argv += TABLE[name].args
     if spec.site_file is not None:
         argv += ["--config", str(spec.site_file), "--table", name]
-    if name == "router":
+    if name == ROUTER:
         zids = [spec.zids[s] for s in ZID_SERVICES if s in spec.zids and s in spec.services]
         argv += ["--set", f"control_zids={json.dumps(zids)}"]
     elif name in spec.zids:
@@ -373,8 +345,8 @@ class Site:
         # service would join that site instead (same site id, same keyring): refuse to start
         router_port = ("the router's port", self.spec.port, "--port 0 picks a free one")
         check_ports(self.spec.host, [router_port, *self.spec.ports])
-        self._spawn("router")
-        router = self.procs["router"]
+        self._spawn(ROUTER)
+        router = self.procs[ROUTER]
         deadline = time.monotonic() + 15.0
         while router.poll() is None and not self._router_ready():
             if time.monotonic() > deadline:
