@@ -4,8 +4,8 @@ Each service runs as its own OS process, a zenoh client of the site router on an
 loopback endpoint, with its table of the site file ``--config-dir``/site.toml (default: the
 packaged ``deploy/local``; docs/deploy.md#site-files). The launcher builds every service's config
 first: a missing site file, an unknown key or a wrong type stops it before anything starts.
-Ctrl-C (SIGINT) or SIGTERM stops the services in a safe order — master first, slave and router
-last — waits for them, and exits 0 if every process stopped cleanly. Children
+Ctrl-C (SIGINT) or SIGTERM stops the services in a safe order — the watchdog first (it revokes
+every lease), slave and router last — waits for them, and exits 0 if every process stopped cleanly. Children
 also stop by themselves if the launcher dies (they watch their parent PID).
 
 A secured site (``deploy/slave-site.sh``) gives the router more listeners and its TLS / access
@@ -71,14 +71,16 @@ from telesurg.shared.timing import (
 
 log = logging.getLogger("telesurg.launcher")
 
-#: Start order; they stop in reverse, except the mirror, which stops after the others to record
-#: everything, and the router, which stops last.
+#: Start order. The stop order: the console, then the watchdog, whose last word revokes every
+#: lease (the slave holds by permission, not on a fault, and no service's leaving is a fault to
+#: report), then the rest in reverse; the mirror after the others, to record everything, and the
+#: router last.
 SERVICES = ("watchdog", "slave_control", "mapping", "mirror", "master_capture", "camera")
 STOP_ORDER = (
     "console",
+    "watchdog",
     "master_capture",
     "mapping",
-    "watchdog",
     "slave_control",
     "camera",
     "mirror",
