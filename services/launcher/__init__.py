@@ -71,6 +71,9 @@ from telesurg.shared.timing import (
 
 log = logging.getLogger("telesurg.launcher")
 
+#: s ``telesurg up`` and ``demo`` wait for the master's first sample once the site is up (a serial
+#: board resets for ~1.5 s when its port opens).
+MASTER_WAIT_S = 15.0
 #: Start order. The stop order: the console, then the watchdog, whose last word revokes every
 #: lease (the slave holds by permission, not on a fault, and no service's leaving is a fault to
 #: report), then the rest in reverse; the mirror after the others, to record everything, and the
@@ -282,6 +285,10 @@ class SiteSpec:
     # other ports its services will listen on, as (what, port, hint): checked with the router's
     # before anything starts (check_ports); 0 = a free one, not checked
     ports: tuple[tuple[str, int, str], ...] = ()
+    # s to wait, once every service is up, for master_capture's first sample; none by then stops
+    # the site with the reason master_capture gave (a refused or silent device). 0: no wait (a
+    # test that plugs its device in later); telesurg up / demo: MASTER_WAIT_S
+    master_wait_s: float = 0.0
 
     @property
     def site_file(self) -> Path | None:
@@ -391,6 +398,7 @@ class Site:
             self._camera_first()
         session = open_session(self.spec.client_bus("launcher"))
         try:
+            wait_master = self._watch_master(session)
             for name in (*SERVICES, *ON_REQUEST):
                 if name not in self.spec.services:
                     continue
@@ -405,6 +413,8 @@ class Site:
                         if rc is None
                         else f"{name} exited with code {rc} before it came up (its log says why)"
                     )
+            if wait_master is not None:
+                wait_master()
         finally:
             session.close()  # type: ignore[no-untyped-call]
         if self.spec.log_dir:
@@ -487,6 +497,59 @@ class Site:
                 return True
             time.sleep(0.05)
         return False
+
+    def _watch_master(self, session: Any) -> Callable[[], None] | None:
+        """If ``up`` waits for the master (:attr:`SiteSpec.master_wait_s`): listen, before
+        master_capture starts, for its first sample and its ``master_device`` events (why it does
+        not publish: a refused board, …); return the wait, which raises SiteStartError naming
+        the cause when no sample came in time. None: no wait."""
+        from telesurg.shared.keys import Keys
+        from telesurg.shared.messages import SafetyEvent, decode
+
+        spec = self.spec
+        if "master_capture" not in spec.services or spec.master_wait_s <= 0 or spec.local_pki:
+            return None  # (a locked-down site's launcher may only ask for liveliness)
+        table = "master_capture"
+        cfg = load_config(config_class(table), spec.site_file, spec.overrides.get(table, []), table=table)
+        keys = Keys(spec.site)
+        got = threading.Event()
+        why: list[str] = []
+
+        def on_event(sample: Any) -> None:
+            with contextlib.suppress(Exception):  # (read for the message below only)
+                msg = decode(bytes(sample.payload))
+                if isinstance(msg, SafetyEvent) and msg.kind == "master_device":
+                    why.append(msg.text)
+
+        subs = [
+            session.declare_subscriber(keys.master(cfg.arm, "measured_cp"), lambda _s: got.set()),
+            session.declare_subscriber(keys.events(cfg.service), on_event),
+        ]
+
+        def wait() -> None:
+            try:
+                p = self.procs[table]
+                deadline = time.monotonic() + spec.master_wait_s
+                while not got.wait(0.1) and time.monotonic() < deadline and p.poll() is None:
+                    pass
+            finally:
+                for sub in subs:
+                    with contextlib.suppress(Exception):
+                        sub.undeclare()
+            if got.is_set():
+                return
+            where = f"; {spec.log_dir / (table + '.log')}" if spec.log_dir else ""
+            if p.poll() is not None:
+                raise SiteStartError(
+                    f"master_capture exited with code {p.returncode} (its log says why{where})"
+                )
+            cause = why[-1] if why else "its device gave no reading"
+            raise SiteStartError(
+                f"master_capture published nothing for master {cfg.arm} within "
+                f"{spec.master_wait_s:.0f} s: {cause}{where}"
+            )
+
+        return wait
 
     def _spawn(self, name: str) -> None:
         out: IO[bytes] | None = None
@@ -746,6 +809,7 @@ def spec_from_args(args: argparse.Namespace, services: Sequence[str]) -> SiteSpe
         args.log_level,
         plugins=plugins,
         keys_dir=(args.keys or default_keys_dir(args.site)).resolve(),
+        master_wait_s=MASTER_WAIT_S,
     )
 
 
