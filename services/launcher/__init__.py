@@ -289,6 +289,9 @@ class SiteSpec:
     # the site with the reason master_capture gave (a refused or silent device). 0: no wait (a
     # test that plugs its device in later); telesurg up / demo: MASTER_WAIT_S
     master_wait_s: float = 0.0
+    # record the whole site into this MCAP file (telesurg record), from before any service starts
+    # to after every one stopped: a recording a replay can compare from its start (None: none)
+    record: Path | None = None
 
     @property
     def site_file(self) -> Path | None:
@@ -398,6 +401,12 @@ class Site:
             self._camera_first()
         session = open_session(self.spec.client_bus("launcher"))
         try:
+            if self.spec.record is not None:
+                self._spawn_tool("record", ["record", "--out", str(self.spec.record)])
+                if not self._wait_alive(session, keys.alive("record"), 30.0):
+                    raise SiteStartError(
+                        f"the recorder did not start (exit code {self.procs['record'].poll()})"
+                    )
             wait_master = self._watch_master(session)
             for name in (*SERVICES, *ON_REQUEST):
                 if name not in self.spec.services:
@@ -551,6 +560,30 @@ class Site:
 
         return wait
 
+    def _spawn_tool(self, name: str, cli: list[str]) -> subprocess.Popen[bytes]:
+        """Start a telesurg tool (``telesurg record …``, ``replay …``) on this site's bus as
+        process ``name``: its log in the log folder (or the terminal), ended with the launcher."""
+        from telesurg.shared.session import die_with_parent
+
+        spec = self.spec
+        argv = [sys.executable, "-m", "telesurg.services.cli", *cli, "--connect", spec.endpoint]
+        if spec.keys_dir is not None:
+            argv += ["--keyring", str(spec.keys_dir)]
+        out: IO[bytes] | None = None
+        if spec.log_dir:
+            spec.log_dir.mkdir(parents=True, exist_ok=True)
+            out = (spec.log_dir / f"{name}.log").open("ab")
+            self._logs.append(out)
+        p = subprocess.Popen(
+            argv,
+            stderr=out,
+            start_new_session=True,
+            preexec_fn=functools.partial(die_with_parent, signal.SIGINT),
+        )
+        self.procs[name] = p
+        log.info("started %-15s pid %d", name, p.pid)
+        return p
+
     def _spawn(self, name: str) -> None:
         out: IO[bytes] | None = None
         if self.spec.log_dir:
@@ -641,7 +674,12 @@ class Site:
         earlier was reported when it died; it is not part of a clean or unclean shutdown).
         """
         codes: dict[str, int] = {}
-        for name in STOP_ORDER:
+        for name in (
+            *STOP_ORDER[:-1],
+            "record",
+            "replay",
+            STOP_ORDER[-1],
+        ):  # the recorder last, then the router
             p = self.procs.get(name)
             if p is None or p.poll() is not None:
                 continue
@@ -873,28 +911,41 @@ def announce_login(page_url: str, token: str) -> None:
     print(f"web surgeon console (one-time login): {login_url(page_url, token)}", flush=True)
 
 
-def run_site(spec: SiteSpec, seconds: float, stop: threading.Event, console: str = "") -> int:
+def run_site(
+    spec: SiteSpec, seconds: float, stop: threading.Event, console: str = "", replay: Sequence[str] = ()
+) -> int:
     """Run ``spec`` until ``stop`` or ``seconds``; 0 if every process stopped cleanly. ``console``:
-    the web console's page URL (its one-time login URL is printed once the site is up)."""
+    the web console's page URL (its one-time login URL is printed once the site is up).
+    ``replay``: ``telesurg replay`` arguments (the file first), run once the site is up; the site
+    stops when it ends, and its exit code is the result (docs/recording.md)."""
     deadline = time.monotonic() + seconds if seconds > 0 else float("inf")
+    replay_rc: int | None = None
     with Site(spec) as site:
         eps = ", ".join((spec.endpoint, *spec.listen))
         log.info("site %r up on %s; Ctrl-C stops everything", spec.site, eps)
         if console and site.login_token:
             announce_login(console, site.login_token)
+        player = site._spawn_tool("replay", ["replay", *replay, "--site", spec.site]) if replay else None
         reported: set[str] = set()
         while not stop.wait(0.2) and time.monotonic() < deadline:
+            if player is not None and (replay_rc := player.poll()) is not None:
+                break
             for name, rc in site.dead().items():
                 if name not in reported:
                     reported.add(name)
                     log.error("%s exited with code %d (the watchdog holds the slave)", name, rc)
         codes = site.stop()
+    if player is not None:
+        codes.pop("replay", None)
+        if replay_rc is None:
+            log.error("the replay did not finish")
+            replay_rc = 1
     bad = {n: c for n, c in codes.items() if c != 0}
     if bad:
         log.error("unclean exits: %s", bad)
-        return 1
+        return replay_rc or 1
     log.info("all processes stopped cleanly")
-    return 0
+    return replay_rc or 0
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -908,6 +959,20 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--no-mirror", action="store_true", help="do not start the mirror")
     parser.add_argument("--save", metavar="FILE.rrd", help="mirror writes this .rrd")
     parser.add_argument("--serve", action="store_true", help="mirror serves the rerun web viewer")
+    parser.add_argument(
+        "--record",
+        type=Path,
+        metavar="FILE.mcap",
+        help="record the whole session from before any service starts (telesurg record)",
+    )
+    parser.add_argument(
+        "--replay",
+        type=Path,
+        metavar="FILE.mcap",
+        help="a site without master_capture: replay FILE's master streams once it is up, compare, "
+        "stop; exits with telesurg replay's code (0: the slave did the same)",
+    )
+    parser.add_argument("--replay-json", type=Path, metavar="FILE", help="with --replay: its report as JSON")
     parser.add_argument(
         "--services",
         metavar="LIST",
@@ -957,8 +1022,19 @@ def main(argv: Sequence[str] | None = None) -> int:
         if s in wanted and not (s == "mirror" and (args.no_mirror or not (args.save or args.serve)))
     ]
     services = with_console(args, services)
+    replay: list[str] = []
+    if (args.record or args.replay) and args.acl:
+        print("telesurg up: --record / --replay run on an open local site, not with --acl", file=sys.stderr)
+        return 2
+    if args.replay:
+        if not args.replay.is_file():
+            print(f"telesurg up: --replay {args.replay}: no such file", file=sys.stderr)
+            return 2
+        services = [s for s in services if s != "master_capture"]  # the replay takes its place
+        replay = [str(args.replay), *(["--json", str(args.replay_json)] if args.replay_json else [])]
     try:
         spec = spec_from_args(args, services)
+        spec.record = args.record
         spec.listen, spec.router_flags = tuple(args.listen), tuple(router_security_flags(args))
         if args.acl:  # a secured router: the local services authenticate too
             lock_down(spec, args.credentials_dir, args.tls_cert or "")
@@ -977,7 +1053,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     if "console" in spec.services:
         spec.ports = (("the web console's port", args.console_port, "--console-port 0 picks a free one"),)
     try:
-        return run_site(spec, args.seconds, stop, url)
+        return run_site(spec, args.seconds, stop, url, replay)
     except (TelesurgError, ConnectionError) as exc:  # (what had started is stopped: Site.__enter__)
         print(f"telesurg up: {exc}", file=sys.stderr)
         return 1
