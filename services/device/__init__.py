@@ -20,7 +20,7 @@
 Examples::
 
     telesurg device emulate --pty --rate 500 --motion sine          # prints /dev/pts/N
-    telesurg device emulate --pty --config-dir deploy/plas          # the board deploy/plas expects
+    telesurg device emulate --pty --config-dir deploy/plas --link ttyPLAS   # the board deploy/plas expects
     telesurg master-capture --set device=serial --set serial.port=/dev/pts/N
     telesurg device monitor --set serial.port=/dev/ttyACM0 --seconds 10
     telesurg device check spacemouse --set desk.deadband=0.15 --seconds 30
@@ -96,6 +96,11 @@ def _parser() -> argparse.ArgumentParser:
         metavar="S",
         help="the operator presses the clutch 1 s after the host opens the port and releases it for "
         "0.3 s every S seconds (re-clutching; default 5; 0: keeps it pressed)",
+    )
+    em.add_argument(
+        "--link",
+        metavar="PATH",
+        help="also make PATH a symlink to the pty while it runs: a stable port name for the host",
     )
     em.add_argument(
         "--config-dir",
@@ -311,7 +316,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             print(f"telesurg device emulate: {exc}", file=sys.stderr)
             return 2
         install_stop_handlers(stop)
-        stats = run_pty(opts, stop, args.seconds)
+        stats = run_pty(opts, stop, args.seconds, args.link or "")
         log.info(
             "sent %d SAMPLEs, %d HELLOs; dropped %d, garbage %d, HELLO_REQUESTs %d, overflow %d bytes",
             stats.samples,

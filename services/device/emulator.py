@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import logging
 import math
+import os
 import random
 import threading
 import time
@@ -209,10 +210,23 @@ class BoardEmulator:
         self.stats.overflow_bytes += self.port.write(data)
 
 
-def run_pty(opts: EmulatorOptions, stop: threading.Event, seconds: float = 0.0) -> EmulatorStats:
-    """Serve on a new pseudo-terminal (its device path printed on stdout) until ``stop``."""
+def run_pty(
+    opts: EmulatorOptions, stop: threading.Event, seconds: float = 0.0, link: str = ""
+) -> EmulatorStats:
+    """Serve on a new pseudo-terminal (its device path printed on stdout) until ``stop``. ``link``:
+    a symlink to that path, made at once and removed at the end (a stable name for the host, as
+    ``/dev/serial/by-id/…`` is for a real board)."""
     with pty_device() as (fd, path):
-        emulator = BoardEmulator(fd, opts)
-        log.info("emulating %s on %s: %.0f Hz, motion %s", opts.model, path, opts.rate_hz, opts.motion)
-        emulator.serve(stop, seconds)
-        return emulator.stats
+        if link:
+            tmp = f"{link}.{os.getpid()}.tmp"
+            os.symlink(path, tmp)
+            os.replace(tmp, link)
+        try:
+            emulator = BoardEmulator(fd, opts)
+            where = f"{path} ({link})" if link else path
+            log.info("emulating %s on %s: %.0f Hz, motion %s", opts.model, where, opts.rate_hz, opts.motion)
+            emulator.serve(stop, seconds)
+            return emulator.stats
+        finally:
+            if link and os.path.islink(link) and os.readlink(link) == path:
+                os.unlink(link)
