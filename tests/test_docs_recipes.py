@@ -28,7 +28,7 @@ ROOT = Path(__file__).resolve().parents[1]
 DOCS = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
 BIN = Path(sys.executable).parent
 RECIPE = re.compile(r"^```+\s*(\w+)\s+.*\brecipe=([\w-]+)")
-NAMES = ("record-replay", "plas-pty", "messages-node", "messages-codec")
+NAMES = ("record-replay", "plas-pty", "messages-node", "messages-codec", "two-host-keys")
 
 
 def recipe(name: str) -> tuple[str, list[str]]:
@@ -84,12 +84,48 @@ def errors(text: str) -> list[str]:
     return [line for line in text.splitlines() if " ERROR " in line or "Traceback" in line]
 
 
+def two_host_keys(tmp: Path) -> tuple[Path, Path]:
+    """docs/deploy.md's key export (slave machine) and import (console machine), each line run
+    as written in ``tmp`` with each machine's own state folder; (the slave site's keyring, the
+    console machine's). The slave's keyring is made first, as its first ``telesurg up`` does."""
+    from telesurg.shared import auth
+
+    machine = ""
+    homes = {m: tmp / f"{m}-state" for m in ("slave", "console")}
+    site_keys = auth.init_keyring(homes["slave"] / "telesurg" / "lab" / "keys", auth.IDENTITIES)
+    for line in commands("two-host-keys"):
+        if m := re.match(r"#\s*(slave|console) machine", line):
+            machine = m.group(1)
+            continue
+        if line.lstrip().startswith("#"):
+            continue
+        assert machine, f"{line!r}: on which machine? (a '# slave machine' line first)"
+        env = dict(os.environ, PATH=f"{BIN}:{os.environ['PATH']}", XDG_STATE_HOME=str(homes[machine]))
+        env.pop("TELESURG_KEYS", None)
+        r = subprocess.run(["bash", "-c", line], cwd=tmp, env=env, capture_output=True, text=True, timeout=60)
+        assert r.returncode == 0, f"{machine} machine: {line}\n{r.stdout}{r.stderr}"
+    return site_keys, homes["console"] / "telesurg" / "lab" / "keys"
+
+
 # --------------------------------------------------------------------------- the blocks
 
 
 def test_every_recipe_is_marked() -> None:
     for name in NAMES:
         assert recipe(name)[1], name
+
+
+def test_the_two_host_key_split_as_written(tmp_path: Path) -> None:
+    """docs/deploy.md: the console machine ends up with its identities' keys and a link to the
+    site; the site's keyring no longer signs as them (tests/test_split_keys_process.py drives a
+    site with these keyrings)."""
+    from telesurg.shared import auth
+
+    site_keys, console_keys = two_host_keys(tmp_path)
+    site, console = auth.Keyring.load(site_keys), auth.Keyring.load(console_keys)
+    assert console.identities() == ["console", "master_capture"] and list(console.links) == ["slave-site"]
+    assert "console" not in site.identities() and "master_capture" not in site.identities()
+    assert list(site.links) == ["console"]
 
 
 # --------------------------------------------------------------------------- record → replay
