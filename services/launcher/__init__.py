@@ -674,12 +674,10 @@ class Site:
         earlier was reported when it died; it is not part of a clean or unclean shutdown).
         """
         codes: dict[str, int] = {}
-        for name in (
-            *STOP_ORDER[:-1],
-            "record",
-            "replay",
-            STOP_ORDER[-1],
-        ):  # the recorder last, then the router
+        order = (*STOP_ORDER[:-1], "record", "replay", STOP_ORDER[-1])  # the recorder, then the router
+        if running := [n for n in order if n in self.procs and self.procs[n].poll() is None]:
+            log.info("stopping %s", ", ".join(running))
+        for name in order:
             p = self.procs.get(name)
             if p is None or p.poll() is not None:
                 continue
