@@ -89,7 +89,8 @@ def stop_errors(text: str) -> list[str]:
     before it, a loaded host may rightly hold with an ERROR)."""
     at = text.find("launcher INFO telesurg.launcher: stopping ")
     assert at >= 0, f"the launcher never said it was stopping:\n{text[-3000:]}"
-    return errors(text[at:]) + [line for line in text.splitlines() if "not alive" in line and "ERROR" in line]
+    gone = [line for line in text.splitlines() if "master_capture not alive" in line and " ERROR " in line]
+    return errors(text[at:]) + gone
 
 
 def two_host_keys(tmp: Path) -> tuple[Path, Path]:
@@ -211,6 +212,7 @@ def test_the_plas_site_on_an_emulated_board_as_written(tmp_path: Path) -> None:
     for arm in ("arm1", "arm2"):
         assert f"[{arm}] teleop ENGAGING → ENABLED" in log, log[-4000:]
     assert "clutch pressed at start" not in log  # the operator's press is a press
+    assert not stop_errors(log), "an orderly stop logged errors:\n" + "\n".join(stop_errors(log))
     sent = re.search(r"master_capture .* sent (\d+) samples", log)
     assert sent and int(sent.group(1)) > 100, log[-3000:]
 
