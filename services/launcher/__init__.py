@@ -18,6 +18,8 @@ Examples::
 
     telesurg up --port 7447 --log-dir out/logs --set mapping.scale=0.3
     telesurg up --config-dir deploy/plas
+    telesurg up --seconds 30 --record run.mcap          # a session, recorded from its start
+    telesurg up --replay run.mcap --replay-json diff.json   # its master replayed into a fresh site
     telesurg up --site lab --port 7448 --services watchdog,slave_control,mapping \
         --listen tls/0.0.0.0:7447 --tls-ca certs/ca.pem --tls-cert certs/slave-site.pem \
         --tls-key certs/slave-site.key --mtls --acl deploy/slave-site/acl.json5
