@@ -4,9 +4,11 @@ Each service runs as its own OS process, a zenoh client of the site router on an
 loopback endpoint, with its table of the site file ``--config-dir``/site.toml (default: the
 packaged ``deploy/local``; docs/deploy.md#site-files). The launcher builds every service's config
 first: a missing site file, an unknown key or a wrong type stops it before anything starts.
-Ctrl-C (SIGINT) or SIGTERM stops the services in a safe order — the watchdog first (it revokes
-every lease), slave and router last — waits for them, and exits 0 if every process stopped cleanly. Children
-also stop by themselves if the launcher dies (they watch their parent PID).
+Once up, it waits for the master's first sample (:data:`MASTER_WAIT_S`) and otherwise stops, naming
+the cause (exit 1). Ctrl-C (SIGINT) or SIGTERM stops the services in a safe order — the watchdog
+first (it revokes every lease), slave and router last — waits for them, and exits 0 if every
+process stopped cleanly. Children also stop by themselves if the launcher dies (they watch their
+parent PID).
 
 A secured site (``deploy/slave-site.sh``) gives the router more listeners and its TLS / access
 control flags (``--listen``, ``--tls-*``, ``--mtls``, ``--acl``), which go to the router only.
