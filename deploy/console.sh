@@ -105,6 +105,31 @@ for f in ca.pem "$identity.pem" "$identity.key"; do
         exit 2
     fi
 done
+# this machine's keyring (it signs and verifies every message): one line saying what to do
+if ! why="$("$py" - "$site" "$keyring" 2>&1 <<'PY'
+import sys
+from pathlib import Path
+
+from telesurg.shared.auth import check_keyring_dir, default_keys_dir
+from telesurg.shared.errors import ConfigError
+
+site, given = sys.argv[1], sys.argv[2]
+d = Path(given) if given else default_keys_dir(site)
+try:
+    check_keyring_dir(d)
+except ConfigError as exc:
+    if d.exists() or d.is_symlink():
+        sys.exit(f"keyring: {exc}")
+    sys.exit(
+        f"no keyring at {d}: on the slave site run `telesurg keys export master_capture console "
+        f"--to console --site {site} --out console-keys`, copy console-keys/ here, then pass "
+        f"--keyring console-keys (or `telesurg keys import console-keys --site {site}`)"
+    )
+PY
+)"; then
+    echo "deploy/console.sh: ${why##*$'\n'}" >&2
+    exit 2
+fi
 [[ "$host" == *:* && "$host" != \[* ]] && host="[$host]"   # IPv6 literal
 bus=(--site "$site" --connect "$protocol/$host:$port" --tls-ca "$certs/ca.pem" --mtls
      --tls-cert "$certs/$identity.pem" --tls-key "$certs/$identity.key")

@@ -8,6 +8,7 @@ Examples::
     telesurg up --config-dir deploy/plas   # another site: deploy/plas/site.toml
     telesurg site init mysites          # the packaged site files and deploy scripts, to edit
     telesurg slave-control --help       # one service on its own
+    telesurg --version                  # the installed package's version
 """
 
 from __future__ import annotations
@@ -104,9 +105,21 @@ def missing_extra(extra: str) -> list[str]:
     return missing
 
 
+def version() -> str:
+    """The installed package's version (its metadata), e.g. ``0.1.0``."""
+    from importlib.metadata import PackageNotFoundError
+    from importlib.metadata import version as package_version
+
+    try:
+        return package_version("telesurg")
+    except PackageNotFoundError:  # a bare checkout on sys.path, never installed
+        return "unknown (not installed)"
+
+
 def usage() -> str:
     """Help text listing the subcommands."""
-    lines = ["usage: telesurg COMMAND [options]   (telesurg COMMAND --help for options)", ""]
+    lines = ["usage: telesurg COMMAND [options]   (telesurg COMMAND --help for options)"]
+    lines += ["       telesurg --version", ""]
     lines += [f"  {name:<15} {desc}" for name, (_, desc) in COMMANDS.items()]
     return "\n".join(lines)
 
@@ -116,6 +129,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = list(sys.argv[1:] if argv is None else argv)
     if not args or args[0] in ("-h", "--help"):
         print(usage())
+        return 0
+    if args[0] in ("-V", "--version"):
+        print(f"telesurg {version()}")
         return 0
     cmd, rest = args[0], args[1:]
     if cmd not in COMMANDS:

@@ -330,9 +330,15 @@ def open_session(cfg: BusConfig) -> zenoh.Session:
     try:
         return zenoh.open(zenoh_config(cfg))
     except zenoh.ZError as exc:
+        tls = tls_diagnosis(cfg)
+        if cfg.mode == "client" and not tls and "Unable to connect to any of" in str(exc):
+            where = ", ".join(cfg.connect) or "any router"
+            raise ConnectionError(
+                f"zenoh session failed: no router at {where}: start a site with `telesurg up`, "
+                "or pass --connect ENDPOINT"
+            ) from exc
         raise ConnectionError(
-            f"zenoh session failed ({cfg.mode}, connect={cfg.connect}, listen={cfg.listen}): {exc}"
-            + tls_diagnosis(cfg)
+            f"zenoh session failed ({cfg.mode}, connect={cfg.connect}, listen={cfg.listen}): {exc}" + tls
         ) from exc
 
 

@@ -1,6 +1,7 @@
 """The two-host key split on one machine (issue #39, acceptance 5): the console host holds only its
-own identities' keys (``telesurg keys export master_capture console --to console``) and a link to
-the slave site; the site's services run on the site's keyring, which no longer holds them.
+own identities' keys (docs/deploy.md's ``telesurg keys export …`` and ``keys import``, run as
+written) and a link to the slave site; the site's services run on the site's keyring, which no
+longer holds them.
 
 Real services (router, watchdog, slave_control on MuJoCo, mapping) on the site's keyring, the
 master on the console host's; the operator's console a node on the console host's keyring. What a
@@ -18,7 +19,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from telesurg.services.keys import export
 from telesurg.shared import auth
 from telesurg.shared.bus import BusConfig, Node, open_session
 from telesurg.shared.messages import (
@@ -33,14 +33,13 @@ from telesurg.shared.messages import (
     Sequencer,
 )
 from telesurg.tools.bench.harness import Pipeline, now_ns
+from test_docs_recipes import two_host_keys
 
 pytestmark = pytest.mark.process
 
 
 def test_a_console_host_with_only_its_own_keys(tmp_path: Path) -> None:
-    site_keys = auth.init_keyring(tmp_path / "site-keys", auth.IDENTITIES)
-    pack = tmp_path / "console-keys"
-    export(site_keys, ["master_capture", "console"], "console", "slave-site", pack)
+    site_keys, pack = two_host_keys(tmp_path)  # docs/deploy.md's export and import, as written
     pipe = Pipeline(tmp_path / "logs", mirror=False, impair=False)
     pipe.spec.keys_dir = site_keys
     pipe.spec.service_keys["master_capture"] = pack  # the master runs on the console host

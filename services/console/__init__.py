@@ -175,5 +175,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     except ConnectionError as exc:
         print(f"telesurg console: {exc}", file=sys.stderr)
         return 1
+    except TelesurgError as exc:  # e.g. no keyring: what to do, in one line
+        print(f"telesurg console: {exc}", file=sys.stderr)
+        return 2
     log.info("console %s (pid %d) stopped", cfg.service, os.getpid())
     return 0

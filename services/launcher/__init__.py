@@ -4,9 +4,11 @@ Each service runs as its own OS process, a zenoh client of the site router on an
 loopback endpoint, with its table of the site file ``--config-dir``/site.toml (default: the
 packaged ``deploy/local``; docs/deploy.md#site-files). The launcher builds every service's config
 first: a missing site file, an unknown key or a wrong type stops it before anything starts.
-Ctrl-C (SIGINT) or SIGTERM stops the services in a safe order — master first, slave and router
-last — waits for them, and exits 0 if every process stopped cleanly. Children
-also stop by themselves if the launcher dies (they watch their parent PID).
+Once up, it waits for the master's first sample (:data:`MASTER_WAIT_S`) and otherwise stops, naming
+the cause (exit 1). Ctrl-C (SIGINT) or SIGTERM stops the services in a safe order — the watchdog
+first (it revokes every lease), slave and router last — waits for them, and exits 0 if every
+process stopped cleanly. Children also stop by themselves if the launcher dies (they watch their
+parent PID).
 
 A secured site (``deploy/slave-site.sh``) gives the router more listeners and its TLS / access
 control flags (``--listen``, ``--tls-*``, ``--mtls``, ``--acl``), which go to the router only.
@@ -18,6 +20,8 @@ Examples::
 
     telesurg up --port 7447 --log-dir out/logs --set mapping.scale=0.3
     telesurg up --config-dir deploy/plas
+    telesurg up --seconds 30 --record run.mcap          # a session, recorded from its start
+    telesurg up --replay run.mcap --replay-json diff.json   # its master replayed into a fresh site
     telesurg up --site lab --port 7448 --services watchdog,slave_control,mapping \
         --listen tls/0.0.0.0:7447 --tls-ca certs/ca.pem --tls-cert certs/slave-site.pem \
         --tls-key certs/slave-site.key --mtls --acl deploy/slave-site/acl.json5
@@ -73,11 +77,16 @@ from telesurg.shared.timing import (
 
 log = logging.getLogger("telesurg.launcher")
 
+#: ``telesurg up`` and ``demo`` wait for the master's first sample once the site is up (a serial
+#: board resets for ~1.5 s when its port opens).
+MASTER_WAIT_S = 15.0
 #: The service table (:mod:`telesurg.shared.service_table`): one row per site process.
 TABLE = {s.name: s for s in SERVICE_ROWS}
 #: Start order (the router first, then these; :data:`ON_REQUEST` last).
 SERVICES = tuple(s.name for s in sorted(SERVICE_ROWS, key=lambda s: s.start) if s.start and not s.on_request)
-#: Stop order: master first; the mirror after the others, to record everything; the router last.
+#: Stop order: the console, then the watchdog, whose last word revokes every lease (the slave holds
+#: by permission, not on a fault), then the rest; the mirror after the others, to record
+#: everything; the router last.
 STOP_ORDER = tuple(s.name for s in sorted(SERVICE_ROWS, key=lambda s: s.stop))
 #: Started only when asked (``--master web`` / ``--console``), after the others: the web console
 #: (``telesurg console --web``), which with ``--master web`` is also the site's master.
@@ -253,6 +262,13 @@ class SiteSpec:
     # other ports its services will listen on, as (what, port, hint): checked with the router's
     # before anything starts (check_ports); 0 = a free one, not checked
     ports: tuple[tuple[str, int, str], ...] = ()
+    # s to wait, once every service is up, for master_capture's first sample; none by then stops
+    # the site with the reason master_capture gave (a refused or silent device). 0: no wait (a
+    # test that plugs its device in later); telesurg up / demo: MASTER_WAIT_S
+    master_wait_s: float = 0.0
+    # record the whole site into this MCAP file (telesurg record), from before any service starts
+    # to after every one stopped: a recording a replay can compare from its start (None: none)
+    record: Path | None = None
 
     @property
     def site_file(self) -> Path | None:
@@ -361,6 +377,13 @@ class Site:
             self._camera_first()
         session = open_session(self.spec.client_bus("launcher"))
         try:
+            if self.spec.record is not None:
+                self._spawn_tool("record", ["record", "--out", str(self.spec.record)])
+                if not self._wait_alive(session, keys.alive("record"), 30.0):
+                    raise SiteStartError(
+                        f"the recorder did not start (exit code {self.procs['record'].poll()})"
+                    )
+            wait_master = self._watch_master(session)
             for name in (*SERVICES, *ON_REQUEST):
                 if name not in self.spec.services:
                     continue
@@ -375,6 +398,8 @@ class Site:
                         if rc is None
                         else f"{name} exited with code {rc} before it came up (its log says why)"
                     )
+            if wait_master is not None:
+                wait_master()
         finally:
             session.close()  # type: ignore[no-untyped-call]
         if self.spec.log_dir:
@@ -457,6 +482,83 @@ class Site:
                 return True
             time.sleep(0.05)
         return False
+
+    def _watch_master(self, session: Any) -> Callable[[], None] | None:
+        """If ``up`` waits for the master (:attr:`SiteSpec.master_wait_s`): listen, before
+        master_capture starts, for its first sample and its ``master_device`` events (why it does
+        not publish: a refused board, …); return the wait, which raises SiteStartError naming
+        the cause when no sample came in time. None: no wait."""
+        from telesurg.shared.keys import Keys
+        from telesurg.shared.messages import SafetyEvent, decode
+
+        spec = self.spec
+        if "master_capture" not in spec.services or spec.master_wait_s <= 0 or spec.local_pki:
+            return None  # (a locked-down site's launcher may only ask for liveliness)
+        table = "master_capture"
+        cfg = load_config(config_class(table), spec.site_file, spec.overrides.get(table, []), table=table)
+        keys = Keys(spec.site)
+        got = threading.Event()
+        why: list[str] = []
+
+        def on_event(sample: Any) -> None:
+            with contextlib.suppress(Exception):  # (read for the message below only)
+                msg = decode(bytes(sample.payload))
+                if isinstance(msg, SafetyEvent) and msg.kind == "master_device":
+                    why.append(msg.text)
+
+        subs = [
+            session.declare_subscriber(keys.master(cfg.arm, "measured_cp"), lambda _s: got.set()),
+            session.declare_subscriber(keys.events(cfg.service), on_event),
+        ]
+
+        def wait() -> None:
+            try:
+                p = self.procs[table]
+                deadline = time.monotonic() + spec.master_wait_s
+                while not got.wait(0.1) and time.monotonic() < deadline and p.poll() is None:
+                    pass
+            finally:
+                for sub in subs:
+                    with contextlib.suppress(Exception):
+                        sub.undeclare()
+            if got.is_set():
+                return
+            where = f"; {spec.log_dir / (table + '.log')}" if spec.log_dir else ""
+            if p.poll() is not None:
+                raise SiteStartError(
+                    f"master_capture exited with code {p.returncode} (its log says why{where})"
+                )
+            cause = why[-1] if why else "its device gave no reading"
+            raise SiteStartError(
+                f"master_capture published nothing for master {cfg.arm} within "
+                f"{spec.master_wait_s:.0f} s: {cause}{where}"
+            )
+
+        return wait
+
+    def _spawn_tool(self, name: str, cli: list[str]) -> subprocess.Popen[bytes]:
+        """Start a telesurg tool (``telesurg record …``, ``replay …``) on this site's bus as
+        process ``name``: its log in the log folder (or the terminal), ended with the launcher."""
+        from telesurg.shared.session import die_with_parent
+
+        spec = self.spec
+        argv = [sys.executable, "-m", "telesurg.services.cli", *cli, "--connect", spec.endpoint]
+        if spec.keys_dir is not None:
+            argv += ["--keyring", str(spec.keys_dir)]
+        out: IO[bytes] | None = None
+        if spec.log_dir:
+            spec.log_dir.mkdir(parents=True, exist_ok=True)
+            out = (spec.log_dir / f"{name}.log").open("ab")
+            self._logs.append(out)
+        p = subprocess.Popen(
+            argv,
+            stderr=out,
+            start_new_session=True,
+            preexec_fn=functools.partial(die_with_parent, signal.SIGINT),
+        )
+        self.procs[name] = p
+        log.info("started %-15s pid %d", name, p.pid)
+        return p
 
     def _spawn(self, name: str) -> None:
         out: IO[bytes] | None = None
@@ -548,7 +650,10 @@ class Site:
         earlier was reported when it died; it is not part of a clean or unclean shutdown).
         """
         codes: dict[str, int] = {}
-        for name in STOP_ORDER:
+        order = (*STOP_ORDER[:-1], "record", "replay", STOP_ORDER[-1])  # the recorder, then the router
+        if running := [n for n in order if n in self.procs and self.procs[n].poll() is None]:
+            log.info("stopping %s", ", ".join(running))
+        for name in order:
             p = self.procs.get(name)
             if p is None or p.poll() is not None:
                 continue
@@ -716,6 +821,7 @@ def spec_from_args(args: argparse.Namespace, services: Sequence[str]) -> SiteSpe
         args.log_level,
         plugins=plugins,
         keys_dir=(args.keys or default_keys_dir(args.site)).resolve(),
+        master_wait_s=MASTER_WAIT_S,
     )
 
 
@@ -779,28 +885,41 @@ def announce_login(page_url: str, token: str) -> None:
     print(f"web surgeon console (one-time login): {login_url(page_url, token)}", flush=True)
 
 
-def run_site(spec: SiteSpec, seconds: float, stop: threading.Event, console: str = "") -> int:
+def run_site(
+    spec: SiteSpec, seconds: float, stop: threading.Event, console: str = "", replay: Sequence[str] = ()
+) -> int:
     """Run ``spec`` until ``stop`` or ``seconds``; 0 if every process stopped cleanly. ``console``:
-    the web console's page URL (its one-time login URL is printed once the site is up)."""
+    the web console's page URL (its one-time login URL is printed once the site is up).
+    ``replay``: ``telesurg replay`` arguments (the file first), run once the site is up; the site
+    stops when it ends, and its exit code is the result (docs/recording.md)."""
     deadline = time.monotonic() + seconds if seconds > 0 else float("inf")
+    replay_rc: int | None = None
     with Site(spec) as site:
         eps = ", ".join((spec.endpoint, *spec.listen))
         log.info("site %r up on %s; Ctrl-C stops everything", spec.site, eps)
         if console and site.login_token:
             announce_login(console, site.login_token)
+        player = site._spawn_tool("replay", ["replay", *replay, "--site", spec.site]) if replay else None
         reported: set[str] = set()
         while not stop.wait(0.2) and time.monotonic() < deadline:
+            if player is not None and (replay_rc := player.poll()) is not None:
+                break
             for name, rc in site.dead().items():
                 if name not in reported:
                     reported.add(name)
                     log.error("%s exited with code %d (the watchdog holds the slave)", name, rc)
         codes = site.stop()
+    if player is not None:
+        codes.pop("replay", None)
+        if replay_rc is None:
+            log.error("the replay did not finish")
+            replay_rc = 1
     bad = {n: c for n, c in codes.items() if c != 0}
     if bad:
         log.error("unclean exits: %s", bad)
-        return 1
+        return replay_rc or 1
     log.info("all processes stopped cleanly")
-    return 0
+    return replay_rc or 0
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -814,6 +933,20 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--no-mirror", action="store_true", help="do not start the mirror")
     parser.add_argument("--save", metavar="FILE.rrd", help="mirror writes this .rrd")
     parser.add_argument("--serve", action="store_true", help="mirror serves the rerun web viewer")
+    parser.add_argument(
+        "--record",
+        type=Path,
+        metavar="FILE.mcap",
+        help="record the whole session from before any service starts (telesurg record)",
+    )
+    parser.add_argument(
+        "--replay",
+        type=Path,
+        metavar="FILE.mcap",
+        help="a site without master_capture: replay FILE's master streams once it is up, compare, "
+        "stop; exits with telesurg replay's code (0: the slave did the same)",
+    )
+    parser.add_argument("--replay-json", type=Path, metavar="FILE", help="with --replay: its report as JSON")
     parser.add_argument(
         "--services",
         metavar="LIST",
@@ -863,8 +996,19 @@ def main(argv: Sequence[str] | None = None) -> int:
         if s in wanted and not (s == "mirror" and (args.no_mirror or not (args.save or args.serve)))
     ]
     services = with_console(args, services)
+    replay: list[str] = []
+    if (args.record or args.replay) and args.acl:
+        print("telesurg up: --record / --replay run on an open local site, not with --acl", file=sys.stderr)
+        return 2
+    if args.replay:
+        if not args.replay.is_file():
+            print(f"telesurg up: --replay {args.replay}: no such file", file=sys.stderr)
+            return 2
+        services = [s for s in services if s != "master_capture"]  # the replay takes its place
+        replay = [str(args.replay), *(["--json", str(args.replay_json)] if args.replay_json else [])]
     try:
         spec = spec_from_args(args, services)
+        spec.record = args.record
         spec.listen, spec.router_flags = tuple(args.listen), tuple(router_security_flags(args))
         if args.acl:  # a secured router: the local services authenticate too
             lock_down(spec, args.credentials_dir, args.tls_cert or "")
@@ -883,7 +1027,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     if "console" in spec.services:
         spec.ports = (("the web console's port", args.console_port, "--console-port 0 picks a free one"),)
     try:
-        return run_site(spec, args.seconds, stop, url)
+        return run_site(spec, args.seconds, stop, url, replay)
     except (TelesurgError, ConnectionError) as exc:  # (what had started is stopped: Site.__enter__)
         print(f"telesurg up: {exc}", file=sys.stderr)
         return 1

@@ -105,17 +105,24 @@ def run(cfg: MasterCaptureConfig, stop: threading.Event) -> None:
             mapping = [cfg.mapping_source]
             node.subscribe(k.mapping("*", "teleop_state"), TeleopState, on_teleop, sources=mapping)
         invalid_since: float | None = None  # time.monotonic() when the reading became invalid
+        invalid_kind = ""  # why (the device's status up to its first ':'), said again when it changes
         log.info("publishing master %s at %.0f Hz (%s)", cfg.arm, cfg.rate_hz, cfg.device)
         start_loop(cfg.rt_priority)
         while not stop.is_set():
             s = device.read(time.monotonic() - t0)
             if not s.valid:  # stale / unplugged / refused: publish nothing, the watchdog holds
-                if invalid_since is None:
-                    invalid_since = time.monotonic()
-                    outages += 1
-                    log.warning(
-                        "master %s: no fresh device reading; not publishing until one arrives", cfg.arm
-                    )
+                why = device_status(device)
+                if invalid_since is None or why.split(":", 1)[0] != invalid_kind:
+                    # an event, so a launcher waiting for the master's first sample can say why
+                    if invalid_since is None:
+                        invalid_since = time.monotonic()
+                        outages += 1
+                        text = f"master {cfg.arm}: no fresh device reading{f' ({why})' if why else ''}"
+                        text += "; not publishing until one arrives"
+                    else:
+                        text = f"master {cfg.arm}: device {why}; still not publishing"
+                    invalid_kind = why.split(":", 1)[0]
+                    node.event("master_device", text, severity="warning")
                 last_buttons = None  # buttons go out first thing when readings resume
                 timer.wait()
                 continue
@@ -143,6 +150,12 @@ def run(cfg: MasterCaptureConfig, stop: threading.Event) -> None:
             outages,
             f", {retry.retries} presses again after a refused engage" if retry is not None else "",
         )
+
+
+def device_status(device: object) -> str:
+    """The device's one-line status (``refused: …``, ``disconnected: …``), "" if it has none."""
+    status = getattr(device, "status", None)
+    return str(status()) if callable(status) else ""
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -20,6 +20,7 @@
 Examples::
 
     telesurg device emulate --pty --rate 500 --motion sine          # prints /dev/pts/N
+    telesurg device emulate --pty --config-dir deploy/plas --link ttyPLAS   # the board deploy/plas expects
     telesurg master-capture --set device=serial --set serial.port=/dev/pts/N
     telesurg device monitor --set serial.port=/dev/ttyACM0 --seconds 10
     telesurg device check spacemouse --set desk.deadband=0.15 --seconds 30
@@ -31,6 +32,7 @@ Examples::
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import logging
 import math
@@ -38,6 +40,7 @@ import sys
 import threading
 import time
 from collections.abc import Sequence
+from pathlib import Path
 from typing import TYPE_CHECKING, TextIO
 
 from telesurg.services.common import install_stop_handlers, setup_logging
@@ -49,7 +52,7 @@ from telesurg.shared.encoder_protocol import (
     decode_message,
     send_message,
 )
-from telesurg.shared.errors import MessageError, TelesurgError
+from telesurg.shared.errors import ConfigError, MessageError, TelesurgError
 from telesurg.shared.serial_link import SerialLink
 from telesurg.tools.emulate.emulator import MOTIONS, EmulatorOptions, run_pty
 from telesurg.tools.emulate.servo_emulator import FAULTS, ServoEmulatorOptions
@@ -89,16 +92,28 @@ def _parser() -> argparse.ArgumentParser:
     em.add_argument(
         "--clutch-repeat",
         type=float,
-        default=0.0,
+        default=EmulatorOptions().clutch_repeat_s,
         metavar="S",
-        help="release the clutch for 0.3 s every S seconds (re-clutching; 0: keep it pressed)",
+        help="the operator presses the clutch 1 s after the host opens the port and releases it for "
+        "0.3 s every S seconds (re-clutching; default 5; 0: keeps it pressed)",
+    )
+    em.add_argument(
+        "--link",
+        metavar="PATH",
+        help="also make PATH a symlink to the pty while it runs: a stable port name for the host",
+    )
+    em.add_argument(
+        "--config-dir",
+        type=Path,
+        metavar="DIR",
+        help="emulate the board this site's master_capture expects: the calibration of "
+        "DIR/site.toml, e.g. deploy/plas (default: master_capture's default calibration)",
     )
     em.add_argument(
         "--counts-per-rev",
         type=int,
-        default=400,
         metavar="N",
-        help="encoder counts per revolution (400, the thesis's encoder; 1600 = 400 lines decoded x4)",
+        help="encoder counts per revolution (default: the calibration's, 400; 1600 = 400 lines decoded x4)",
     )
     em.add_argument("--log-level", default="INFO", help="DEBUG, INFO, WARNING, ERROR")
     _slave_parser(sub)
@@ -292,16 +307,16 @@ def main(argv: Sequence[str] | None = None) -> int:
             garbage_every=args.garbage_every,
             drop_every=args.drop_every,
             seed=args.seed,
-            calibration=Calibration(counts_per_rev=args.counts_per_rev),
             clutch_repeat_s=args.clutch_repeat,
         )
         try:
+            opts.calibration = _emulated_calibration(args.config_dir, args.counts_per_rev)
             opts.validate()
-        except ValueError as exc:
+        except (ValueError, TelesurgError) as exc:
             print(f"telesurg device emulate: {exc}", file=sys.stderr)
             return 2
         install_stop_handlers(stop)
-        stats = run_pty(opts, stop, args.seconds)
+        stats = run_pty(opts, stop, args.seconds, args.link or "")
         log.info(
             "sent %d SAMPLEs, %d HELLOs; dropped %d, garbage %d, HELLO_REQUESTs %d, overflow %d bytes",
             stats.samples,
@@ -315,6 +330,21 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.command == "check":
         return _check_main(args, stop)
     return _monitor_main(args, stop)
+
+
+def _emulated_calibration(config_dir: Path | None, counts_per_rev: int | None) -> Calibration:
+    """The board to emulate: the calibration of ``config_dir``'s master_capture (its site file),
+    else the default one; ``counts_per_rev`` overrides."""
+    from telesurg.services.master_capture import MasterCaptureConfig
+    from telesurg.shared.config import SITE_FILE, load_config
+
+    cal = Calibration()
+    if config_dir is not None:
+        if not (config_dir / SITE_FILE).is_file():
+            raise ConfigError(f"site file {config_dir / SITE_FILE} not found (--config-dir)")
+        cfg = load_config(MasterCaptureConfig, config_dir / SITE_FILE, table="master_capture")
+        cal = cfg.serial.calibration
+    return cal if counts_per_rev is None else dataclasses.replace(cal, counts_per_rev=counts_per_rev)
 
 
 def _monitor_main(args: argparse.Namespace, stop: threading.Event) -> int:

@@ -14,14 +14,17 @@ Motions (``t`` in s since the emulator started):
   ±10 mm at 0.4 Hz; joint 1 (a switch on the real device) stays 0 and its switch released;
 * ``still`` — every joint at 0.
 
-Both press the clutch pedal from t = 1 s on (a restarted master never engages in its first second)
-and report the operator present.
+The pedal is an operator's: released until 1 s after the host opens the port (its HELLO_REQUEST;
+an operator presses once the console is there, so the press is seen as one, never as a pedal
+already held at start), then pressed, released for 0.3 s every ``clutch_repeat_s`` (5 s: a
+re-clutch, as an operator does when the arms hold); the operator is present.
 """
 
 from __future__ import annotations
 
 import logging
 import math
+import os
 import random
 import threading
 import time
@@ -70,9 +73,9 @@ def motion_joints(motion: str, t: float, joints: int = 6) -> tuple[float, ...]:
 
 
 def motion_switches(t: float, clutch_repeat_s: float = 0.0) -> int:
-    """``sw`` bits at ``t`` s: operator present always, clutch pressed from 1 s on; with
-    ``clutch_repeat_s`` > 0 the pedal is released for 0.3 s every that many seconds (re-clutching,
-    as an operator does, e.g. after a hold)."""
+    """``sw`` bits ``t`` s after the host opened the port (negative: not yet): operator present
+    always, clutch pressed from 1 s on; with ``clutch_repeat_s`` > 0 the pedal is released for
+    0.3 s every that many seconds (re-clutching, as an operator does, e.g. after a hold)."""
     pressed = t >= 1.0
     if pressed and clutch_repeat_s > 0.0 and (t - 1.0) % clutch_repeat_s > clutch_repeat_s - 0.3:
         pressed = False
@@ -89,7 +92,7 @@ class EmulatorOptions:
     drop_every: int = 0  # skip every N-th SAMPLE, its seq used up: the host sees a gap (0: never)
     hello_every_s: float = 1.0  # s: periodic HELLO (the firmware's HELLO_PERIOD_MS)
     seed: int = 0  # random garbage seed
-    clutch_repeat_s: float = 0.0  # s: if > 0, the clutch is released for 0.3 s every this long
+    clutch_repeat_s: float = 5.0  # s: if > 0, the clutch is released for 0.3 s every this long
     calibration: Calibration = field(default_factory=Calibration)  # joints → counts / ADC
     model: str = "plas-master"  # HELLO model
     fw: str = "emulator"  # HELLO firmware version
@@ -140,6 +143,7 @@ class BoardEmulator:
         self.stats = EmulatorStats()
         self.seq = 0
         self._t0 = time.monotonic()
+        self._host_at: float | None = None  # time.monotonic() of the host's last HELLO_REQUEST
         self._next_hello = 0.0
         self._rng = random.Random(self.opts.seed)
 
@@ -161,7 +165,7 @@ class BoardEmulator:
             t_us=int(t * 1e6) % T_US_MODULUS,
             counts=counts,
             pot=pot,
-            sw=motion_switches(t, self.opts.clutch_repeat_s),
+            sw=motion_switches(self._operator_s(), self.opts.clutch_repeat_s),
         )
         if self.opts.drop_every and n % self.opts.drop_every == 0:
             self.seq = (self.seq + 1) % SEQ_MODULUS  # as if lost on the wire
@@ -172,6 +176,10 @@ class BoardEmulator:
         if self.opts.garbage_every and n % self.opts.garbage_every == 0:
             self._send(self._rng.randbytes(self._rng.randint(1, 16)))
             self.stats.garbage += 1
+
+    def _operator_s(self) -> float:
+        """s since the host opened the port (its last HELLO_REQUEST); -1 before any."""
+        return -1.0 if self._host_at is None else time.monotonic() - self._host_at
 
     def send_hello(self) -> None:
         self._send(encode_message(self.hello, self._next_seq()))
@@ -189,8 +197,9 @@ class BoardEmulator:
             except MessageError as exc:
                 log.warning("ignored a frame from the host: %s", exc)
                 continue
-            if isinstance(msg, HelloRequest):
+            if isinstance(msg, HelloRequest):  # the host opened the port: the operator sits down
                 self.stats.requests += 1
+                self._host_at = time.monotonic()
                 self.send_hello()
             else:
                 log.warning(
@@ -201,10 +210,23 @@ class BoardEmulator:
         self.stats.overflow_bytes += self.port.write(data)
 
 
-def run_pty(opts: EmulatorOptions, stop: threading.Event, seconds: float = 0.0) -> EmulatorStats:
-    """Serve on a new pseudo-terminal (its device path printed on stdout) until ``stop``."""
+def run_pty(
+    opts: EmulatorOptions, stop: threading.Event, seconds: float = 0.0, link: str = ""
+) -> EmulatorStats:
+    """Serve on a new pseudo-terminal (its device path printed on stdout) until ``stop``. ``link``:
+    a symlink to that path, made at once and removed at the end (a stable name for the host, as
+    ``/dev/serial/by-id/…`` is for a real board)."""
     with pty_device() as (fd, path):
-        emulator = BoardEmulator(fd, opts)
-        log.info("emulating %s on %s: %.0f Hz, motion %s", opts.model, path, opts.rate_hz, opts.motion)
-        emulator.serve(stop, seconds)
-        return emulator.stats
+        if link:
+            tmp = f"{link}.{os.getpid()}.tmp"
+            os.symlink(path, tmp)
+            os.replace(tmp, link)
+        try:
+            emulator = BoardEmulator(fd, opts)
+            where = f"{path} ({link})" if link else path
+            log.info("emulating %s on %s: %.0f Hz, motion %s", opts.model, where, opts.rate_hz, opts.motion)
+            emulator.serve(stop, seconds)
+            return emulator.stats
+        finally:
+            if link and os.path.islink(link) and os.readlink(link) == path:
+                os.unlink(link)
