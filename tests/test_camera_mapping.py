@@ -18,8 +18,8 @@ from telesurg.services.camera.sources import Intrinsics, MujocoSource
 from telesurg.services.mapping import ArmMapping, MappingConfig
 from telesurg.shared import robots
 from telesurg.shared.bus import BusConfig, Node
-from telesurg.shared.kinematics.mh3f import MH3F, fk
 from telesurg.shared.messages import CartesianPose, Header, JointSetpoint, JointState, OperatingState
+from telesurg.shared.robots.mh3f.kinematics import MH3F, fk
 
 Q0 = (0.0, 0.2, 0.3, 0.0, -0.6, 0.0)
 H = Header("test", 0, 0)

@@ -24,7 +24,6 @@ from telesurg.services.slave_control.arm import ArmCore, ArmReading
 from telesurg.services.slave_control.control import Lease
 from telesurg.services.slave_control.elbow_jog import ElbowJog
 from telesurg.shared.errors import IKError
-from telesurg.shared.kinematics import vip
 from telesurg.shared.kinematics.elbow import (
     elbow_move,
     limit_margin,
@@ -34,6 +33,7 @@ from telesurg.shared.kinematics.elbow import (
 )
 from telesurg.shared.messages import Command, Header
 from telesurg.shared.robots import arm_profile
+from telesurg.shared.robots.vip import kinematics as vip
 
 G = vip.VIP_ARM1
 PROFILE = arm_profile("vip", "arm1")

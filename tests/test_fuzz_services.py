@@ -24,7 +24,7 @@ from telesurg.services.bench.fuzz import ROUTER_CAP, SERVICES, TARGETS, expected
 from telesurg.services.bench.fuzzgen import mutate, valid_template
 from telesurg.services.bench.harness import Pipeline
 from telesurg.shared.auth import PUT
-from telesurg.shared.kinematics import MH3F
+from telesurg.shared.robots.mh3f.kinematics import MH3F
 
 pytestmark = pytest.mark.process
 

@@ -172,7 +172,7 @@ def test_imports_are_read_as_python_runs_them(tmp_path: Path) -> None:
     (tmp_path / "__init__.py").write_text(
         "from typing import TYPE_CHECKING\n"
         "import telesurg.shared.bus\n"
-        "from telesurg.shared.kinematics import mh3f, MH3F\n"
+        "from telesurg.shared.robots.mh3f import kinematics, HERE\n"
         "from . import engage\n"
         "from .joints import VipMapping\n"
         "if TYPE_CHECKING:\n"
@@ -184,8 +184,8 @@ def test_imports_are_read_as_python_runs_them(tmp_path: Path) -> None:
     assert got == [
         ("typing", True),
         ("telesurg.shared.bus", True),
-        ("telesurg.shared.kinematics.mh3f", True),
-        ("telesurg.shared.kinematics", True),
+        ("telesurg.shared.robots.mh3f.kinematics", True),
+        ("telesurg.shared.robots.mh3f", True),
         (f"{MAPPING}.engage", True),
         (f"{MAPPING}.joints", True),
         ("telesurg.services.slave_control", False),

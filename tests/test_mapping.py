@@ -15,7 +15,6 @@ from telesurg.services.mapping.joints import AllJointsMapping
 from telesurg.services.mapping.master import master_point
 from telesurg.shared.bus import BusConfig, Node
 from telesurg.shared.errors import ConfigError
-from telesurg.shared.kinematics.mh3f import MH3F, fk
 from telesurg.shared.messages import (
     CartesianPose,
     Command,
@@ -27,6 +26,7 @@ from telesurg.shared.messages import (
     SafetyEvent,
     TeleopState,
 )
+from telesurg.shared.robots.mh3f.kinematics import MH3F, fk
 
 Q0 = (0.0, 0.2, 0.3, 0.0, -0.6, 0.0)
 H = Header("test", 0, 0)

@@ -1,4 +1,4 @@
-"""Tests for telesurg.shared.kinematics.plas (Shim 2015: PLAS slave, ergonomic master, Table-6 mapping)
+"""Tests for telesurg.shared.robots.plas.kinematics (Shim 2015: PLAS slave, ergonomic master, Table-6 mapping)
 and for the Section-4 reproduction in telesurg.services.experiment.shim."""
 
 from __future__ import annotations
@@ -11,7 +11,8 @@ import numpy as np
 import pytest
 from telesurg.services.experiment.shim import run
 from telesurg.shared.errors import KinematicsError
-from telesurg.shared.kinematics.plas import (
+from telesurg.shared.kinematics.transforms import FloatArray, rot_x, rotvec_from_matrix
+from telesurg.shared.robots.plas.kinematics import (
     PLAS_MASTER,
     PLAS_SLAVE,
     MappingConfig,
@@ -30,7 +31,6 @@ from telesurg.shared.kinematics.plas import (
     slave_tip_arm,
     tip_velocity_error,
 )
-from telesurg.shared.kinematics.transforms import FloatArray, rot_x, rotvec_from_matrix
 
 # Thesis dimensions [m] (Section 3.4), written out again so the tests do not read them back
 # from the module under test.

@@ -25,8 +25,8 @@ import numpy as np
 import pytest
 from telesurg.services.bench.harness import Pipeline
 from telesurg.shared.bus import BusConfig, Node
-from telesurg.shared.kinematics import plas
 from telesurg.shared.messages import JointSetpoint, JointState, OperatingState, SafetyEvent, SafetyState
+from telesurg.shared.robots.plas import kinematics as plas
 
 pytestmark = pytest.mark.process
 DEPLOY = Path(__file__).resolve().parents[1] / "deploy" / "plas"

@@ -29,8 +29,6 @@ from helpers import MasterHand, operator_command
 from telesurg.services.bench.harness import Pipeline
 from telesurg.services.experiment.jinno import STARTS
 from telesurg.shared.bus import BusConfig, Node
-from telesurg.shared.kinematics.mh3f import MH3F
-from telesurg.shared.kinematics.trocar import rcm_error
 from telesurg.shared.messages import (
     CommandReply,
     JointSetpoint,
@@ -39,6 +37,8 @@ from telesurg.shared.messages import (
     SafetyEvent,
     SafetyState,
 )
+from telesurg.shared.robots.mh3f.kinematics import MH3F
+from telesurg.shared.robots.mh3f.trocar import rcm_error
 
 pytestmark = pytest.mark.process
 
@@ -133,7 +133,7 @@ def site(
 ) -> Iterator[tuple[Pipeline, Node, Master, Record, Node]]:
     q = list(STARTS[request.param])
     overrides = {
-        "slave_control": [f"q_home={q}", "jog_speed_mm_s=40.0"],
+        "slave_control": [f"q_home={q}", "robot.jog_speed_mm_s=40.0"],
         "mapping": ["master_mode=virtual_trocar", "scale=0.5"],
     }
     with (

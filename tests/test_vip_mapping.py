@@ -24,9 +24,9 @@ from telesurg.services.launcher import free_port
 from telesurg.services.mapping import MappingConfig
 from telesurg.services.mapping.joints import VipMapping
 from telesurg.shared.bus import BusConfig, Node, open_session
-from telesurg.shared.kinematics import vip
 from telesurg.shared.kinematics.elbow import elbow_move, off_line, tangent
 from telesurg.shared.messages import Command, Header, JointSetpoint, JointState, OperatingState
+from telesurg.shared.robots.vip import kinematics as vip
 
 H = Header("test", 0, 0)
 G = vip.VIP_ARM1

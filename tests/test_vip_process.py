@@ -17,7 +17,6 @@ import pytest
 from helpers import operator_command
 from telesurg.services.bench.harness import Pipeline
 from telesurg.shared.bus import BusConfig, Node
-from telesurg.shared.kinematics import vip
 from telesurg.shared.messages import (
     CartesianPose,
     CommandReply,
@@ -25,6 +24,7 @@ from telesurg.shared.messages import (
     JointState,
     SafetyEvent,
 )
+from telesurg.shared.robots.vip import kinematics as vip
 
 pytestmark = pytest.mark.process
 DEPLOY = Path(__file__).resolve().parents[1] / "deploy" / "vip"

@@ -38,7 +38,6 @@ from helpers import operator_command
 from telesurg.services.bench.harness import Pipeline
 from telesurg.services.experiment.jang import FIG9_TARGET_OFFSET_M, paper_vip
 from telesurg.shared.bus import BusConfig, Node
-from telesurg.shared.kinematics import vip
 from telesurg.shared.kinematics.elbow import limit_margin, off_line
 from telesurg.shared.messages import (
     CartesianPose,
@@ -48,6 +47,7 @@ from telesurg.shared.messages import (
     SafetyEvent,
     TeleopState,
 )
+from telesurg.shared.robots.vip import kinematics as vip
 
 pytestmark = pytest.mark.process
 DEPLOY = Path(__file__).resolve().parents[1] / "deploy" / "vip"

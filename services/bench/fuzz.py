@@ -36,7 +36,6 @@ from telesurg.shared import jsonio
 from telesurg.shared.auth import PUT, Signer
 from telesurg.shared.bus import Node
 from telesurg.shared.errors import MessageError
-from telesurg.shared.kinematics import MH3F
 from telesurg.shared.messages import (
     CartesianPose,
     EStop,
@@ -51,6 +50,7 @@ from telesurg.shared.messages import (
     decode,
     decode_as,
 )
+from telesurg.shared.robots.mh3f.kinematics import MH3F
 
 #: key (under telesurg/<site>/) → (message type on it, services that subscribe with their sources)
 TARGETS: dict[str, tuple[type[Message], dict[str, str]]] = {

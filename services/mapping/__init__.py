@@ -53,6 +53,7 @@ import threading
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 from telesurg.services.common import service_main
@@ -68,7 +69,6 @@ from telesurg.shared.authority import Authority, AuthorityConfig, summary
 from telesurg.shared.bus import BusConfig, Node, Outlet, only
 from telesurg.shared.errors import AuthorityError, ConfigError, IKError
 from telesurg.shared.kinematics import matrix_from_quat, quat_from_matrix
-from telesurg.shared.kinematics.mh3f import MH3F, fk, ik
 from telesurg.shared.messages import (
     CartesianPose,
     Command,
@@ -81,12 +81,12 @@ from telesurg.shared.messages import (
     Sequencer,
 )
 from telesurg.shared.pairs import parse_pair
+from telesurg.shared.robots.mh3f.kinematics import MH3F, fk, ik
 from telesurg.shared.timing import check_rt_priority, start_loop
 
 log = logging.getLogger(__name__)
 ORIENTATION_MODES = ("follow", "fixed")
 MASTER_MODES = ("pen", "virtual_trocar")
-MAPPING_MODES = ("cartesian", "all_joints", "vip", "position")
 
 
 @dataclass
@@ -96,15 +96,14 @@ class MappingConfig:
     site: str = "local"  # key prefix telesurg/<site>
     service: str = "mapping"  # instance id (liveliness alive/<service>, header src)
     pairs: list[str] = field(default_factory=lambda: ["m1:arm1"])  # "master_arm:slave_arm"
-    # cartesian: master pose → slave tip (6-axis IK / trocar IK; model mh3f); all_joints: master
-    # joints → slave joints (PLAS, model plas); vip: master pose → wrist, elbow by VIP (model vip);
-    # position: master tip increments → slave tip position by damped least squares (any robot);
-    # the robot's registry entry says which modes fit it
+    # the mapping mode, one the robot's registry entry lists (`telesurg robots`): the robot's own
+    # strategies (mh3f: cartesian; plas: all_joints; vip: vip) or the generic position (master tip
+    # increments → slave tip position by damped least squares, any robot)
     mode: str = "cartesian"
-    model: str = "mh3f"  # slave robot model, a name in the robot registry (shared/robots.py)
-    all_joints_mode: str = "factor"  # all_joints: factor (Table 6) or tip_exact (DLS Jacobian)
-    d1_speed_mm_s: float = 10.0  # all_joints: slave d1 speed while the master's joint-1 switch is on
-    vip_ev_mm: float = 50.0  # vip: |EV| of the VIP chosen from the joints (20–50 mm)
+    model: str = "mh3f"  # slave robot model, a name in the robot registry (shared/robots)
+    # the robot's own knobs (its config dataclass, shared/robots/<model>/config.py; e.g.
+    # --set robot.vip_ev_mm=40): checked against the robot's config at start
+    robot: dict[str, Any] = field(default_factory=dict)
     scale: float = 0.5  # slave translation / master translation (motion scaling), 0 < scale <= 2
     orientation: str = "follow"  # follow: apply master rotation increments; fixed: keep engage pose
     # pen: the master position is the tip; virtual_trocar (Jinno 2014, Fig. 7): it is the handle of
@@ -133,9 +132,6 @@ class MappingConfig:
     target_hz: float = 100.0  # Hz: setpoint_cp (for display; servo_jp carries every sample)
     workspace_min_mm: tuple[float, float, float] = (150.0, -600.0, -200.0)  # target box, base frame
     workspace_max_mm: tuple[float, float, float] = (1100.0, 600.0, 800.0)
-    # mm: insertion depth range of the tip beyond the trocar in trocar-mode master–slave (the
-    # target is clamped into it; the upper end leaves the non-shaft 150 mm of the forceps out)
-    trocar_depth_mm: tuple[float, float] = (10.0, 350.0)
     # Only these services may publish the inputs (others are rejected and counted; "" = anyone).
     master_source: str = "master_capture"
     slave_source: str = "slave_control"
@@ -163,18 +159,13 @@ class MappingConfig:
             raise ConfigError(
                 f"orientation {self.orientation!r} invalid; valid: {', '.join(ORIENTATION_MODES)}"
             )
-        if self.mode not in MAPPING_MODES:
-            raise ConfigError(f"mode {self.mode!r} invalid; valid: {', '.join(MAPPING_MODES)}")
         robot = robots.get(self.model)
         if self.mode not in robot.mapping_modes:
             raise ConfigError(
                 f"mapping mode {self.mode!r} does not fit robot model {self.model!r}; "
                 f"modes that fit it: {', '.join(robot.mapping_modes)}"
             )
-        if self.all_joints_mode not in ("factor", "tip_exact"):
-            raise ConfigError(f"all_joints_mode {self.all_joints_mode!r} invalid; valid: factor, tip_exact")
-        if not 20.0 <= self.vip_ev_mm <= 50.0:
-            raise ConfigError(f"vip_ev_mm={self.vip_ev_mm} outside [20, 50] (Jang 2014, Step 5)")
+        robot.make_config(self.robot)
         if self.master_frame not in MASTER_FRAMES:
             raise ConfigError(
                 f"master_frame {self.master_frame!r} invalid; valid: {', '.join(MASTER_FRAMES)}"
@@ -183,8 +174,6 @@ class MappingConfig:
             raise ConfigError(f"master_mode {self.master_mode!r} invalid; valid: {', '.join(MASTER_MODES)}")
         if not 10.0 <= self.dummy_forceps_mm <= 1000.0:
             raise ConfigError(f"dummy_forceps_mm={self.dummy_forceps_mm} outside [10, 1000]")
-        if not 5.0 <= self.trocar_depth_mm[0] < self.trocar_depth_mm[1]:
-            raise ConfigError(f"trocar_depth_mm={self.trocar_depth_mm}: need 5 <= min < max")
         if any(a >= b for a, b in zip(self.workspace_min_mm, self.workspace_max_mm, strict=True)):
             raise ConfigError("workspace_min_mm must be below workspace_max_mm on every axis")
         for p in self.pairs:
@@ -217,7 +206,9 @@ class ArmMapping(EngageGate):
         self.ws_lo = [v / 1e3 for v in cfg.workspace_min_mm]
         self.ws_hi = [v / 1e3 for v in cfg.workspace_max_mm]
         self._clamping = False
-        self.trocar_clamp = TrocarClamp(node, slave, self.geom, cfg.trocar_depth_mm)
+        self.trocar_clamp = TrocarClamp(
+            node, slave, self.geom, robots.get(cfg.model).make_config(cfg.robot).trocar_depth_mm
+        )
         # Newest master sample not yet mapped. The zenoh callback only stores it; the service
         # loop maps it. If mapping ever falls behind, it maps the newest sample and skips the
         # rest (counted in ``conflated``) instead of queueing latency.

@@ -10,13 +10,16 @@ world frame, the point and frame of the slave's ``measured_cp``) goes out on
 ``slave/<arm>/setpoint_cp`` at ``target_hz``, as the Cartesian mapping's target does.
 
 * :class:`AllJointsMapping` (``mode = "all_joints"``): master ``measured_js`` increments become
-  slave joint increments, integrated per sample (:func:`telesurg.shared.kinematics.plas.map_step`, Table-6
+  slave joint increments, integrated per sample (:func:`telesurg.shared.robots.plas.kinematics.map_step`,
+  Table-6
   factors or the tip-exact alternative); the master's joint 1 is the on/off switch driving slave
   d1 at ``d1_speed_mm_s``; joint limits clamp and report (one event per clamping episode).
 * :class:`VipMapping` (``mode = "vip"``): master tip increments (``measured_cp``, scaled) move the
   wrist reference W; the elbow goes on the line W–V of the arm's virtual incision port V
-  (:func:`telesurg.shared.kinematics.vip.vip_ik`). V is chosen at the first engage from the current joints
-  (:func:`~telesurg.shared.kinematics.vip.select_vip`, ``vip_ev_mm``) and can be set or reallocated by an
+  (:func:`telesurg.shared.robots.vip.kinematics.vip_ik`). V is chosen at the first engage from the current
+  joints
+  (:func:`~telesurg.shared.robots.vip.kinematics.select_vip`, ``vip_ev_mm``) and can be set or reallocated
+  by an
   operator command on ``mapping/<arm>/command`` while the arm is not following and the slave runs
   no slave-side motion (a new V moves the elbow); every change is an event. ``reallocate_vip``
   takes the joints the slave measures: after an elbow jog on the slave (Step 2 of the paper,
@@ -49,7 +52,7 @@ from telesurg.shared.messages import (
     JointState,
     SafetyState,
 )
-from telesurg.shared.robots import arm_profile
+from telesurg.shared.robots import arm_profile, get
 
 if TYPE_CHECKING:
     from telesurg.services.mapping import MappingConfig
@@ -144,11 +147,12 @@ class AllJointsMapping(_JointBase):
     def __init__(
         self, cfg: MappingConfig, node: Node, master: str, slave: str, work: threading.Event
     ) -> None:
-        from telesurg.shared.kinematics import plas
+        from telesurg.shared.robots.plas import kinematics as plas
 
         super().__init__(cfg, node, master, slave, work)
         self.plas = plas
-        self.config = plas.MappingConfig(mode=cfg.all_joints_mode, d1_speed=cfg.d1_speed_mm_s / 1e3)  # type: ignore[arg-type]
+        rcfg = get(cfg.model).make_config(cfg.robot)
+        self.config = plas.MappingConfig(mode=rcfg.all_joints_mode, d1_speed=rcfg.d1_speed_mm_s / 1e3)
         self.pending: JointState | None = None
         self.qm_prev: np.ndarray | None = None
         self.t_prev = 0
@@ -236,10 +240,11 @@ class VipMapping(PoseJointBase):
     def __init__(
         self, cfg: MappingConfig, node: Node, master: str, slave: str, work: threading.Event
     ) -> None:
-        from telesurg.shared.kinematics import vip
+        from telesurg.shared.robots.vip import kinematics as vip
 
         super().__init__(cfg, node, master, slave, work)
         self.vip = vip
+        self.vip_ev_mm: float = get(cfg.model).make_config(cfg.robot).vip_ev_mm
         self.geom = vip.VIP_ARM1 if slave == "arm1" else vip.VIP_ARM2
         self.V: np.ndarray | None = None  # the virtual incision port, m, world frame
         self.vmax = np.array(self.profile.max_velocity)
@@ -248,7 +253,7 @@ class VipMapping(PoseJointBase):
     def _engaged(self) -> None:
         assert self.q_meas is not None and self.buttons is not None
         if self.V is None:
-            self.V = self.vip.select_vip(self.q_meas, self.cfg.vip_ev_mm / 1e3, self.geom)
+            self.V = self.vip.select_vip(self.q_meas, self.vip_ev_mm / 1e3, self.geom)
             self._vip_event("VIP chosen at the first engage from the current joints")
         self.ref = None  # taken from the next master sample
 
@@ -324,7 +329,7 @@ class VipMapping(PoseJointBase):
                 w = self.vip.fk(self.q_meas, self.geom).wrist
                 self.vip.vip_ik(w, V, self.geom, q4_ref=float(self.q_meas[3]))  # reachable from here?
             else:
-                ev = float(a.get("ev_mm", self.cfg.vip_ev_mm)) / 1e3
+                ev = float(a.get("ev_mm", self.vip_ev_mm)) / 1e3
                 V = self.vip.select_vip(self.q_meas, ev, self.geom)
         except KeyError as exc:
             return False, f"set_vip refused: missing {exc} (x=, y=, z= in mm)"

@@ -45,6 +45,7 @@ import threading
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 from telesurg.services.common import service_main
@@ -53,7 +54,6 @@ from telesurg.services.slave_control.backends import SlaveBackend, SlaveReading
 from telesurg.services.slave_control.elbow_jog import ElbowJog
 from telesurg.services.slave_control.factory import make_backend
 from telesurg.services.slave_control.serial_backend import SerialBackendConfig
-from telesurg.services.slave_control.teach import TeachConfig
 from telesurg.services.slave_control.trocar_arm import TrocarMotions
 from telesurg.services.slave_control.work_frame import CameraWorkFrame, ConfiguredWorkFrame
 from telesurg.shared import robots
@@ -75,9 +75,12 @@ class SlaveControlConfig:
     service: str = "slave_control"  # instance id (liveliness alive/<service>, header src)
     arm: str = "arm1"  # slave arm id in keys slave/<arm>/...
     backend: str = "mujoco"  # valid: mujoco, serial (a real arm's servo controller, docs/hardware.md)
-    # robot model (services/slave_control/models/<model>): mh3f (one forceps arm, trocar modes);
-    # plas, vip: two joint-space arms arm1/arm2 in one process (one arm core each, see arm.py)
+    # robot model, a name in the robot registry (shared/robots/<model>): mh3f (one forceps arm,
+    # trocar modes); plas, vip: two joint-space arms arm1/arm2 in one process (one arm core each)
     model: str = "mh3f"
+    # the robot's own knobs (its config dataclass, shared/robots/<model>/config.py; e.g.
+    # --set robot.jog_speed_mm_s=20): checked against the robot's config at start
+    robot: dict[str, Any] = field(default_factory=dict)
     # rad / m: MuJoCo start pose, every joint of the model ([] = the model's "home" keyframe, else
     # each arm's home: the MH3F's tip at (835, 0, 301) mm, forceps pitched 29° down)
     q_home: tuple[float, ...] = ()
@@ -108,14 +111,6 @@ class SlaveControlConfig:
     # rad: while following, a setpoint farther than this from the previous one is refused (a jump)
     max_setpoint_step_rad: float = 0.1
     setpoint_source: str = "mapping"  # only this service may publish servo_jp for this arm
-    # mm, base frame: the trocar (the scene's trocar site). The RCM error and insertion depth in
-    # operating_state are measured against it from the simulated arm's tip pose.
-    trocar_mm: tuple[float, float, float] = (500.0, 0.0, 200.0)
-    trocar_taught: bool = True  # the configured trocar counts as taught (teach_trocar replaces it)
-    # mm, base frame: the patient's body (the mh3f scene's torso under the drape). Every slave-side
-    # motion of the trocar arm is refused / stopped where the forceps would cross it outside the
-    # trocar, and every followed servo_jp step is clamped at its surface
-    # (shared/kinematics/keepout.py); the entry must be within 5 mm of the trocar
     # deg, roll/pitch/yaw of the work jog frame (the laparoscope's view: x image right, y image
     # down, z into the image) in the base frame; default: looking down, patient's head (+x) up
     work_frame_rpy_deg: tuple[float, float, float] = (180.0, 0.0, -90.0)
@@ -124,20 +119,15 @@ class SlaveControlConfig:
     # work_frame_rpy_deg; telesurg up sets it when a camera runs)
     camera: str = ""
     camera_source: str = "camera"  # the only publisher accepted on camera/<cam>/measured_cp
+    # mm, base frame: the patient's body (the mh3f scene's torso under the drape). Every slave-side
+    # motion of the trocar arm is refused / stopped where the forceps would cross it outside the
+    # trocar, and every followed servo_jp step is clamped at its surface
+    # (shared/robots/mh3f/keepout.py); the entry must be within 5 mm of the trocar
     # (default: the torso (260, -170, 136)-(740, 170, 196) mm with 5 mm on every side and 6 mm below,
     # and the top 2 mm under the trocar: the arm lags its command (a PTP within 0.8 mrad of its
     # joint line, docs/trocar.md), and a path is checked at 0.005 rad steps)
     patient_box_min_mm: tuple[float, float, float] = (255.0, -175.0, 130.0)
     patient_box_max_mm: tuple[float, float, float] = (745.0, 175.0, 198.0)
-    jog_speed_mm_s: float = 10.0  # mm/s: Cartesian jog, insert/remove and elbow (VIP) jog speed
-    jog_joint_speed_deg_s: float = 5.0  # deg/s: joint jog speed
-    ptp_speed_fraction: float = 0.2  # PTP moves (posture, playback) at this fraction of the joint limits
-    playback_speed_mm_s: float = 20.0  # mm/s: tip speed of a playback in trocar mode
-    playback_dwell_s: float = 0.3  # s: the arm rests this long at each taught point of a playback
-    # JSON file of taught trocars and programs ("" = kept in memory only); loaded at start, so a
-    # taught trocar (the current one) survives a restart
-    state_file: str = ""
-    teach: TeachConfig = field(default_factory=TeachConfig)  # direct-teach admittance
     # .npy written at exit: one row per setpoint the control loop applied (origin_ns of the master
     # sample, the setpoint's stamp, the wall time the loop first used it, the wall time the backend
     # stepped that period's command, the master time its interpolated reference played, ns; 0 =

@@ -38,6 +38,7 @@ import numpy as np
 from telesurg.services.slave_control.arm import ArmCore, ArmReading, AttachedSource, MotionError
 from telesurg.shared.kinematics.elbow import ElbowChain, elbow_move, limit_margin, midrange_direction, tangent
 from telesurg.shared.messages import Command
+from telesurg.shared.robots import get
 
 if TYPE_CHECKING:
     from telesurg.services.slave_control import SlaveControlConfig
@@ -83,7 +84,7 @@ class ElbowJog(AttachedSource):
             raise ValueError(f"arm {profile.arm} has no elbow")
         self.cfg, self.profile = cfg, profile
         self.chain: ElbowChain = profile.elbow
-        self.speed = cfg.jog_speed_mm_s / 1e3  # m/s
+        self.speed = get(cfg.model).make_config(cfg.robot).jog_speed_mm_s / 1e3  # m/s
         self.core: ArmCore | None = None
         self.jog: _Jog | None = None
 
