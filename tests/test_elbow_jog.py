@@ -20,9 +20,8 @@ import numpy as np
 import pytest
 from telesurg.services.experiment.jang import FIG9_TARGET_OFFSET_M, paper_vip
 from telesurg.services.slave_control import SlaveControlConfig
-from telesurg.services.slave_control.arm import ArmCore, ArmReading
+from telesurg.services.slave_control.arm import ArmCore
 from telesurg.services.slave_control.control import Lease
-from telesurg.services.slave_control.elbow_jog import ElbowJog
 from telesurg.shared.errors import IKError
 from telesurg.shared.kinematics.elbow import (
     elbow_move,
@@ -33,7 +32,9 @@ from telesurg.shared.kinematics.elbow import (
 )
 from telesurg.shared.messages import Command, Header
 from telesurg.shared.robots import arm_profile
+from telesurg.shared.robots.api import ArmReading
 from telesurg.shared.robots.vip import kinematics as vip
+from telesurg.shared.robots.vip.elbow_jog import ElbowJog
 
 G = vip.VIP_ARM1
 PROFILE = arm_profile("vip", "arm1")

@@ -15,13 +15,14 @@ import time
 import numpy as np
 import pytest
 from telesurg.services.slave_control import SlaveControlConfig
-from telesurg.services.slave_control.arm import ArmCore, ArmReading
+from telesurg.services.slave_control.arm import ArmCore
 from telesurg.services.slave_control.control import FollowController, Lease, Setpoint
-from telesurg.services.slave_control.trocar_arm import TrocarMotions
 from telesurg.shared.messages import Command, Header
 from telesurg.shared.robots import arm_profile
+from telesurg.shared.robots.api import ArmReading
 from telesurg.shared.robots.mh3f.keepout import PatientBox, clamp_step, pose_problem
 from telesurg.shared.robots.mh3f.kinematics import MH3F, fk, ik
+from telesurg.shared.robots.mh3f.motions import TrocarMotions
 from telesurg.shared.robots.mh3f.teach import TaughtPoint
 from telesurg.shared.robots.mh3f.trocar import posture_adjust
 

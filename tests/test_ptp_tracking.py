@@ -25,9 +25,9 @@ from telesurg.services.slave_control import SlaveControlConfig
 from telesurg.services.slave_control.arm import ArmCore
 from telesurg.services.slave_control.backends import MujocoBackend
 from telesurg.services.slave_control.control import Lease
-from telesurg.services.slave_control.trocar_arm import TrocarMotions
 from telesurg.shared.messages import Command, Header
 from telesurg.shared.robots import arm_profile
+from telesurg.shared.robots.mh3f.motions import TrocarMotions
 from telesurg.shared.robots.mh3f.trocar import posture_adjust
 from test_keepout_process import Patient
 

@@ -25,13 +25,13 @@ from telesurg.services.experiment.jinno import STARTS, TROCAR
 from telesurg.services.slave_control import SlaveControlConfig
 from telesurg.services.slave_control.arm import REPLAY_MAX_PERIODS
 from telesurg.services.slave_control.backends import MujocoBackend
-from telesurg.services.slave_control.trocar_arm import Internal, TrocarMotions
 from telesurg.shared.errors import IKError
 from telesurg.shared.limits import limit_step
 from telesurg.shared.robots import arm_profile
 from telesurg.shared.robots.mh3f.kinematics import MH3F, fk, ik
 from telesurg.shared.robots.mh3f.modes import Frame, Jog
 from telesurg.shared.robots.mh3f.motion import jog_step
+from telesurg.shared.robots.mh3f.motions import Internal, TrocarMotions
 from telesurg.shared.robots.mh3f.trocar import insertion_depth, posture_adjust, rcm_error
 
 DT = 0.001

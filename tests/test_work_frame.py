@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
-from telesurg.services.slave_control.work_frame import CameraWorkFrame, ConfiguredWorkFrame
+from telesurg.shared.kinematics.work_frame import CameraWorkFrame, ConfiguredWorkFrame
 from telesurg.shared.robots.mh3f.kinematics import fk
 from telesurg.shared.robots.mh3f.motion import jog_step
 

@@ -23,7 +23,7 @@ world frame, the point and frame of the slave's ``measured_cp``) goes out on
   operator command on ``mapping/<arm>/command`` while the arm is not following and the slave runs
   no slave-side motion (a new V moves the elbow); every change is an event. ``reallocate_vip``
   takes the joints the slave measures: after an elbow jog on the slave (Step 2 of the paper,
-  :mod:`telesurg.services.slave_control.elbow_jog`) the new VIP line goes through the moved elbow
+  :mod:`telesurg.shared.robots.vip.elbow_jog`) the new VIP line goes through the moved elbow
   (the reply says how far the elbow was off the previous line and how far the VIP moved). The
   operator's scale commands work as in the other modes. An IK failure (e.g. a joint limit) holds
   the last setpoint.

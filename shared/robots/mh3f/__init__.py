@@ -10,9 +10,13 @@ direct teach and playback. Knobs: :class:`~telesurg.shared.robots.mh3f.config.Mh
 from __future__ import annotations
 
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from telesurg.shared.robots.mh3f.config import Mh3fConfig
 from telesurg.shared.robots.registry import ArmProfile, FloatArray, RobotSpec, Sketch, register
+
+if TYPE_CHECKING:
+    from telesurg.shared.robots.api import MotionContext, MotionSource
 
 HERE = Path(__file__).resolve().parent
 
@@ -45,6 +49,13 @@ def _mh3f_sketch(arm: str, q: FloatArray) -> Sketch:
     return Sketch(frames[:6], frames[5:7], None)
 
 
+def _motions(ctx: MotionContext) -> MotionSource:
+    """The trocar modes, PTP posture adjustment, jog, direct teach and playback (:mod:`.motions`)."""
+    from telesurg.shared.robots.mh3f.motions import TrocarMotions
+
+    return TrocarMotions(ctx.cfg, ctx.profile, ctx.push)
+
+
 register(
     RobotSpec(
         "mh3f",
@@ -54,6 +65,7 @@ register(
         "trocar",
         _mh3f_sketch,
         "MOTOMAN-MH3F class 6-axis arm with straight forceps (Jinno 2014)",
+        motions=_motions,
         config=Mh3fConfig,
         catch_up=True,
         patient_keepout=True,

@@ -9,10 +9,14 @@ Knobs: :class:`~telesurg.shared.robots.vip.config.VipConfig`.
 from __future__ import annotations
 
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 from telesurg.shared.robots.registry import ArmProfile, FloatArray, RobotSpec, Sketch, register, two_arms
 from telesurg.shared.robots.vip.config import VipConfig
+
+if TYPE_CHECKING:
+    from telesurg.shared.robots.api import MotionContext, MotionSource
 
 HERE = Path(__file__).resolve().parent
 
@@ -65,6 +69,13 @@ def _vip_sketch(arm: str, q: FloatArray) -> Sketch:
     return Sketch(np.stack([pose.rcm, pose.elbow, pose.wrist]), None, pose.rcm)
 
 
+def _motions(ctx: MotionContext) -> MotionSource | None:
+    """The elbow (null-space) jog of an arm with an elbow (:mod:`.elbow_jog`)."""
+    from telesurg.shared.robots.vip.elbow_jog import ElbowJog
+
+    return ElbowJog(ctx.cfg, ctx.profile) if ctx.profile.elbow is not None else None
+
+
 register(
     RobotSpec(
         "vip",
@@ -74,6 +85,7 @@ register(
         "joint",
         _vip_sketch,
         "two conical-RCM arms with an elbow, VIP control (Jang 2014)",
+        motions=_motions,
         config=VipConfig,
     )
 )

@@ -19,12 +19,10 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import numpy as np
-from telesurg.services.slave_control.arm import ArmCore, ArmReading, AttachedSource, MotionError
-from telesurg.services.slave_control.backends import PUSH_POINTS
-from telesurg.services.slave_control.work_frame import ConfiguredWorkFrame, WorkFrame
 from telesurg.shared.errors import IKError, KinematicsError
+from telesurg.shared.kinematics.work_frame import ConfiguredWorkFrame, WorkFrame
 from telesurg.shared.messages import Command
-from telesurg.shared.robots import get
+from telesurg.shared.robots.api import PUSH_POINTS, ArmHandle, ArmReading, AttachedSource, MotionError
 from telesurg.shared.robots.mh3f.config import Mh3fConfig
 from telesurg.shared.robots.mh3f.keepout import PatientBox, clamp_step, path_problem, pose_problem
 from telesurg.shared.robots.mh3f.modes import ControlMode, ControlModes, Jog, MotionMode, Phase
@@ -45,12 +43,13 @@ from telesurg.shared.robots.mh3f.teach import (
 )
 from telesurg.shared.robots.mh3f.trocar import axis_angle_to_trocar, pose_to_trocar, posture_adjust
 from telesurg.shared.robots.mh3f.trocar_limits import remove_step
+from telesurg.shared.robots.registry import get
 
 if TYPE_CHECKING:
     from collections.abc import Callable
 
-    from telesurg.services.slave_control import SlaveControlConfig
-    from telesurg.shared.robots import ArmProfile
+    from telesurg.shared.robots.api import SlaveSettings
+    from telesurg.shared.robots.registry import ArmProfile
 
 
 class TrocarMotions(AttachedSource):
@@ -64,13 +63,13 @@ class TrocarMotions(AttachedSource):
 
     def __init__(
         self,
-        cfg: SlaveControlConfig,
+        cfg: SlaveSettings,
         profile: ArmProfile,
         push: Callable[[np.ndarray, float, str], None] | None = None,
     ) -> None:
         self.cfg, self.profile = cfg, profile
         self.rcfg: Mh3fConfig = get(cfg.model).make_config(cfg.robot)  # the robot's knobs
-        self.core: ArmCore | None = None  # set by attach()
+        self.core: ArmHandle | None = None  # set by attach()
         # control modes of Jinno 2014 and the slave-side motion sources (PTP, jog)
         self.modes = ControlModes()
         self.trocar = np.array(self.rcfg.trocar_mm) / 1e3
