@@ -59,7 +59,7 @@ import numpy as np
 from telesurg.services.common import service_main
 from telesurg.services.mapping.camera_frame import view_rotation
 from telesurg.services.mapping.engage import EngageGate
-from telesurg.services.mapping.joints import AllJointsMapping, VipMapping
+from telesurg.services.mapping.joints import AllJointsMapping, PoseJointBase, VipMapping
 from telesurg.services.mapping.master import master_point
 from telesurg.services.mapping.position import PositionMapping
 from telesurg.services.mapping.trocar import TrocarClamp
@@ -183,6 +183,8 @@ class MappingConfig:
 class ArmMapping(EngageGate):
     """Mapping state of one master → slave pair. Thread-safe: zenoh callbacks call in."""
 
+    MASTER_INPUT = ("measured_cp", CartesianPose)  # the master stream it maps
+
     def __init__(
         self, cfg: MappingConfig, node: Node, master: str, slave: str, work: threading.Event
     ) -> None:
@@ -268,6 +270,9 @@ class ArmMapping(EngageGate):
     def on_command(self, cmd: Command) -> CommandReply:
         """``state``, ``scale_up``, ``scale_down``, ``set_scale value=`` (the operator's motion scale)."""
         return self.scale_command(cmd, "")
+
+    def on_master(self, msg: CartesianPose, key: str) -> None:
+        self.on_master_pose(msg, key)
 
     def on_master_pose(self, msg: CartesianPose, key: str) -> None:
         with self.lock:
@@ -448,6 +453,15 @@ def guarded(
     return on_command
 
 
+#: mapping mode → the pair class that maps it (interim: the strategies are still service classes)
+PAIRS: dict[str, type[ArmMapping | AllJointsMapping | VipMapping | PositionMapping]] = {
+    "cartesian": ArmMapping,
+    "all_joints": AllJointsMapping,
+    "vip": VipMapping,
+    "position": PositionMapping,
+}
+
+
 def run(cfg: MappingConfig, stop: threading.Event) -> None:
     """Map until ``stop``."""
     cfg.validate()
@@ -463,36 +477,20 @@ def run(cfg: MappingConfig, stop: threading.Event) -> None:
                 only(cfg.slave_source),
                 only(cfg.watchdog_source),
             )
-            a: ArmMapping | AllJointsMapping | VipMapping | PositionMapping
-            if cfg.mode == "position":
-                a = PositionMapping(cfg, node, master, slave, work)
-                node.subscribe(
-                    k.master(master, "measured_cp"), CartesianPose, a.on_master_pose, sources=m_src
-                )
+            a = PAIRS[cfg.mode](cfg, node, master, slave, work)
+            stream, kind = a.MASTER_INPUT
+            on_master: Callable[[Any, str], None] = a.on_master
+            node.subscribe(k.master(master, stream), kind, on_master, sources=m_src)
+            if isinstance(a, (ArmMapping, PoseJointBase)):  # the pairs that serve commands
                 node.serve(k.mapping_command(slave), Command, guarded(node, authority, slave, a.on_command))
-            elif cfg.mode == "all_joints":
-                a = AllJointsMapping(cfg, node, master, slave, work)
-                node.subscribe(k.master(master, "measured_js"), JointState, a.on_master_js, sources=m_src)
-            elif cfg.mode == "vip":
-                a = VipMapping(cfg, node, master, slave, work)
+            if cfg.camera and isinstance(a, ArmMapping):
                 node.subscribe(
-                    k.master(master, "measured_cp"), CartesianPose, a.on_master_pose, sources=m_src
+                    k.camera(cfg.camera, "measured_cp"),
+                    CartesianPose,
+                    a.on_camera_pose,
+                    sources=only(cfg.camera_source),
+                    polled=True,
                 )
-                node.serve(k.mapping_command(slave), Command, guarded(node, authority, slave, a.on_command))
-            else:
-                a = ArmMapping(cfg, node, master, slave, work)
-                node.subscribe(
-                    k.master(master, "measured_cp"), CartesianPose, a.on_master_pose, sources=m_src
-                )
-                node.serve(k.mapping_command(slave), Command, guarded(node, authority, slave, a.on_command))
-                if cfg.camera:
-                    node.subscribe(
-                        k.camera(cfg.camera, "measured_cp"),
-                        CartesianPose,
-                        a.on_camera_pose,
-                        sources=only(cfg.camera_source),
-                        polled=True,
-                    )
             # The other inputs are read by the service loop (Node.poll) right before it maps a
             # sample: no callback thread per message contending for the GIL with the mapping.
             sub = node.subscribe

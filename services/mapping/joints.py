@@ -144,6 +144,8 @@ class _JointBase(EngageGate):
 class AllJointsMapping(_JointBase):
     """Master joints → slave joints by the Table-6 factors (see the module docstring)."""
 
+    MASTER_INPUT = ("measured_js", JointState)  # the master stream it maps
+
     def __init__(
         self, cfg: MappingConfig, node: Node, master: str, slave: str, work: threading.Event
     ) -> None:
@@ -156,6 +158,9 @@ class AllJointsMapping(_JointBase):
         self.pending: JointState | None = None
         self.qm_prev: np.ndarray | None = None
         self.t_prev = 0
+
+    def on_master(self, msg: JointState, key: str) -> None:
+        self.on_master_js(msg, key)
 
     def on_master_js(self, msg: JointState, key: str) -> None:
         if len(msg.position) != 6:
@@ -210,6 +215,8 @@ class PoseJointBase(_JointBase):
     ``ref = (master point, slave point)``; ``last`` is the latest such pair while following, the
     re-anchor when a scale changes."""
 
+    MASTER_INPUT = ("measured_cp", CartesianPose)  # the master stream it maps
+
     def __init__(
         self, cfg: MappingConfig, node: Node, master: str, slave: str, work: threading.Event
     ) -> None:
@@ -219,6 +226,9 @@ class PoseJointBase(_JointBase):
         self.pending: CartesianPose | None = None
         self.ref: tuple[np.ndarray, np.ndarray] | None = None  # (master point, slave point) anchor
         self.last: tuple[np.ndarray, np.ndarray] | None = None  # last (master point, slave target)
+
+    def on_master(self, msg: CartesianPose, key: str) -> None:
+        self.on_master_pose(msg, key)
 
     def on_master_pose(self, msg: CartesianPose, key: str) -> None:
         with self.lock:
