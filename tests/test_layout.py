@@ -174,7 +174,7 @@ def test_imports_are_read_as_python_runs_them(tmp_path: Path) -> None:
         "import telesurg.shared.bus\n"
         "from telesurg.shared.robots.mh3f import kinematics, HERE\n"
         "from . import engage\n"
-        "from .joints import VipMapping\n"
+        "from .position import PositionMapping\n"
         "if TYPE_CHECKING:\n"
         "    from telesurg.services.slave_control import SlaveControlConfig\n"
         "def f() -> None:\n"
@@ -187,7 +187,7 @@ def test_imports_are_read_as_python_runs_them(tmp_path: Path) -> None:
         ("telesurg.shared.robots.mh3f.kinematics", True),
         ("telesurg.shared.robots.mh3f", True),
         (f"{MAPPING}.engage", True),
-        (f"{MAPPING}.joints", True),
+        (f"{MAPPING}.position", True),
         ("telesurg.services.slave_control", False),
         ("telesurg.services.mirror.view", True),
     ]
@@ -198,7 +198,7 @@ def test_the_rules_catch_what_they_forbid() -> None:
     bad = [
         ("telesurg.shared.bus", "telesurg.services.common"),
         ("telesurg.services.watchdog", "telesurg.services.mapping"),
-        ("telesurg.services.mapping.joints", "telesurg.services.slave_control.control"),
+        ("telesurg.services.mapping.position", "telesurg.services.slave_control.control"),
         ("telesurg.services.launcher", "telesurg.services.mirror.view"),
         ("telesurg.services.common", "telesurg.services.mapping"),
         ("telesurg.services", "telesurg.services.watchdog"),
@@ -210,7 +210,7 @@ def test_the_rules_catch_what_they_forbid() -> None:
     good = [
         ("telesurg.shared.bus", "telesurg.shared.messages"),
         ("telesurg.services.watchdog", "telesurg.services.watchdog.logic"),
-        ("telesurg.services.mapping.joints", "telesurg.services.mapping.engage"),
+        ("telesurg.services.mapping.position", "telesurg.services.mapping.engage"),
         ("telesurg.services.mirror", "telesurg.services.common"),
         ("telesurg.services.bench.fuzz", "telesurg.services.mirror"),
         ("telesurg.services.experiment.jinno", "telesurg.services.bench.harness"),

@@ -41,12 +41,12 @@ from typing import Any
 import numpy as np
 from telesurg.services.experiment.client import ArmClient, ArmLog
 from telesurg.services.mapping import MappingConfig
-from telesurg.services.mapping.master import master_point
 from telesurg.shared import jsonio
 from telesurg.shared.bus import BusConfig, Node
 from telesurg.shared.messages import CartesianPose, MasterButtons
 from telesurg.shared.robots.mh3f.kinematics import MH3F, fk, jacobian
 from telesurg.shared.robots.mh3f.trocar import posture_adjust, rcm_error
+from telesurg.shared.teleop.master import master_point
 
 log = logging.getLogger(__name__)
 

@@ -7,7 +7,10 @@ registers (:class:`~telesurg.shared.robots.registry.RobotSpec`):
   for every robot) asks its arm's source each control period whether it drives the arm and for the
   joint target; the source sees the core as an :class:`ArmHandle` and the measurements as an
   :class:`ArmReading`. ``RobotSpec.motions(MotionContext)`` makes an arm's source (or None).
-* **mapping strategies** — ``RobotSpec.strategies[mode]``: see :mod:`telesurg.services.mapping`.
+* **mapping strategies** — :class:`MappingStrategy`: the mapping service's engage/clutch state
+  machine (one per master → slave pair, the same for every robot) composes the strategy of its
+  mode: ``RobotSpec.strategies[mode](PairContext)``. The strategy maps the master samples to
+  joint setpoints and publishes them; it sees the state machine as a :class:`PairContext`.
 
 Units: joints rad (m for prismatic joints), positions m, frames the robot's ``base`` frame (the
 world frame of its MuJoCo scene).
@@ -25,12 +28,24 @@ from __future__ import annotations
 import threading
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, Protocol, runtime_checkable
+from typing import TYPE_CHECKING, Any, Protocol, runtime_checkable
 
 import numpy as np
 from telesurg.shared.kinematics.transforms import quat_from_matrix
-from telesurg.shared.messages import Command
+from telesurg.shared.messages import (
+    Command,
+    CommandReply,
+    MasterButtons,
+    Message,
+    OperatingState,
+    SafetyState,
+    Sequencer,
+)
 from telesurg.shared.robots.registry import ArmProfile
+
+if TYPE_CHECKING:
+    from telesurg.shared.bus import Node
+    from telesurg.shared.teleop.settings import MappingSettings
 
 #: Points of the simulated hand (``MujocoBackend.push``): the forceps tip and the wrist.
 PUSH_POINTS = ("tip", "wrist")
@@ -84,6 +99,115 @@ class MotionContext:
     cfg: SlaveSettings
     profile: ArmProfile
     push: Callable[[np.ndarray, float, str], None] | None = None
+
+
+class PairContext(Protocol):
+    """The mapping service's engage state machine of one pair, as a mapping strategy sees it.
+
+    Thread safety: the strategy takes :attr:`lock` in its callbacks; the underscored methods
+    expect it held. The state machine decides engage/disengage (clutch, operator presence, lease,
+    stale streams); the strategy asks :meth:`_may_engage` at the sample it would engage on and
+    calls :meth:`_engaged_now` once it took its references.
+    """
+
+    lock: threading.Lock
+    buttons: MasterButtons | None  # the newest master buttons
+    q_meas: np.ndarray | None  # the slave's newest measured joints
+    slave_state: OperatingState | None  # the slave's newest operating state
+    master_rx: float  # monotonic s of the newest master sample (the strategy sets it)
+    scale: float  # the operator's motion scale
+    safety_scale: float  # the watchdog's factor on it (the strategy sets it on a safety state)
+    reply_seq: Sequencer  # sequence of the replies on mapping/<arm>/command
+    ik_failures: int  # counters the service logs at exit (the strategy counts)
+    conflated: int
+    clamped: int
+
+    @property
+    def cfg(self) -> MappingSettings: ...
+    @property
+    def node(self) -> Node: ...
+    @property
+    def master(self) -> str: ...
+    @property
+    def slave(self) -> str: ...
+    @property
+    def work(self) -> threading.Event:
+        """Set it when a master sample waits: the service loop then calls ``process``."""
+        ...
+
+    @property
+    def following(self) -> bool:
+        """Engaged: the slave follows the mapped master."""
+        ...
+
+    @property
+    def want_engage(self) -> bool:
+        """A new clutch press waits to engage at the next master sample."""
+        ...
+
+    def _may_engage(self) -> bool:
+        """Use up the press; True if the engage may go ahead (else HOLDING and an event)."""
+        ...
+
+    def _engaged_now(self, text: str) -> None:
+        """The strategy took its references: ENABLED, and an ``engage`` event with ``text``."""
+        ...
+
+    def _publish_state(self) -> None:
+        """Publish the teleop state now (after a scale change)."""
+        ...
+
+    def scale_command(self, cmd: Command, describe: str) -> CommandReply:
+        """Answer ``state`` and the operator's scale commands (``describe`` leads ``state``)."""
+        ...
+
+
+class MappingStrategy(Protocol):
+    """A robot's mapping of one pair: master samples → joint setpoints (``servo_jp``).
+
+    Made by ``RobotSpec.strategies[mode](gate)`` with the pair's :class:`PairContext`. The service
+    subscribes :attr:`MASTER_INPUT` to :meth:`on_master`, the watchdog's safety state to
+    :meth:`on_safety_state`, serves ``mapping/<arm>/command`` with :meth:`on_command` if the strategy
+    has one (:class:`CommandServer`) and the camera pose with ``on_camera_pose`` if it has one
+    (:class:`CameraFollower`), and calls :meth:`process` from its loop.
+    """
+
+    #: the master stream it maps: (key suffix under master/<arm>/, message type)
+    MASTER_INPUT: tuple[str, type[Message]]
+
+    def on_master(self, msg: Any, key: str) -> None:
+        """A master sample (zenoh thread): keep it, set ``gate.work``."""
+        ...
+
+    def on_safety_state(self, msg: SafetyState, key: str) -> None:
+        """The watchdog's safety state (its ``scale``): rescale without a jump."""
+        ...
+
+    def process(self) -> None:
+        """Map the newest master sample (the service loop): engage if due, publish servo_jp."""
+        ...
+
+    def rescaled(self) -> None:
+        """The operator's scale changed (lock held): re-anchor so it makes no jump."""
+        ...
+
+    def close(self) -> None:
+        """The service stops."""
+        ...
+
+
+@runtime_checkable
+class CommandServer(Protocol):
+    """A strategy that answers the operator's commands on ``mapping/<arm>/command``."""
+
+    def on_command(self, cmd: Command) -> CommandReply: ...
+
+
+@runtime_checkable
+class CameraFollower(Protocol):
+    """A strategy that maps in the endoscope camera's view (``camera`` set)."""
+
+    def on_camera_pose(self, msg: Any, key: str) -> None: ...
 
 
 @runtime_checkable

@@ -16,7 +16,7 @@ from telesurg.shared.robots.mh3f.config import Mh3fConfig
 from telesurg.shared.robots.registry import ArmProfile, FloatArray, RobotSpec, Sketch, register
 
 if TYPE_CHECKING:
-    from telesurg.shared.robots.api import MotionContext, MotionSource
+    from telesurg.shared.robots.api import MappingStrategy, MotionContext, MotionSource, PairContext
 
 HERE = Path(__file__).resolve().parent
 
@@ -56,6 +56,13 @@ def _motions(ctx: MotionContext) -> MotionSource:
     return TrocarMotions(ctx.cfg, ctx.profile, ctx.push)
 
 
+def _cartesian(gate: PairContext) -> MappingStrategy:
+    """The ``cartesian`` mapping (:mod:`.mapping`)."""
+    from telesurg.shared.robots.mh3f.mapping import CartesianMapping
+
+    return CartesianMapping(gate)
+
+
 register(
     RobotSpec(
         "mh3f",
@@ -66,6 +73,7 @@ register(
         _mh3f_sketch,
         "MOTOMAN-MH3F class 6-axis arm with straight forceps (Jinno 2014)",
         motions=_motions,
+        strategies={"cartesian": _cartesian},
         config=Mh3fConfig,
         catch_up=True,
         patient_keepout=True,

@@ -9,11 +9,15 @@ motion. Knobs: :class:`~telesurg.shared.robots.plas.config.PlasConfig`.
 from __future__ import annotations
 
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 from telesurg.shared.errors import KinematicsError
 from telesurg.shared.robots.plas.config import PlasConfig
 from telesurg.shared.robots.registry import ArmProfile, FloatArray, RobotSpec, Sketch, register, two_arms
+
+if TYPE_CHECKING:
+    from telesurg.shared.robots.api import MappingStrategy, PairContext
 
 HERE = Path(__file__).resolve().parent
 
@@ -68,6 +72,13 @@ def _plas_sketch(arm: str, q: FloatArray) -> Sketch:
     return Sketch(pts[:-1], pts[-2:], None)
 
 
+def _all_joints(gate: PairContext) -> MappingStrategy:
+    """The ``all_joints`` mapping (:mod:`.mapping`)."""
+    from telesurg.shared.robots.plas.mapping import AllJointsMapping
+
+    return AllJointsMapping(gate)
+
+
 register(
     RobotSpec(
         "plas",
@@ -77,6 +88,7 @@ register(
         "joint",
         _plas_sketch,
         "two-arm Y-type PLAS slave (Shim 2015)",
+        strategies={"all_joints": _all_joints},
         config=PlasConfig,
     )
 )

@@ -16,7 +16,7 @@ from telesurg.shared.robots.registry import ArmProfile, FloatArray, RobotSpec, S
 from telesurg.shared.robots.vip.config import VipConfig
 
 if TYPE_CHECKING:
-    from telesurg.shared.robots.api import MotionContext, MotionSource
+    from telesurg.shared.robots.api import MappingStrategy, MotionContext, MotionSource, PairContext
 
 HERE = Path(__file__).resolve().parent
 
@@ -76,6 +76,13 @@ def _motions(ctx: MotionContext) -> MotionSource | None:
     return ElbowJog(ctx.cfg, ctx.profile) if ctx.profile.elbow is not None else None
 
 
+def _vip(gate: PairContext) -> MappingStrategy:
+    """The ``vip`` mapping (:mod:`.mapping`)."""
+    from telesurg.shared.robots.vip.mapping import VipMapping
+
+    return VipMapping(gate)
+
+
 register(
     RobotSpec(
         "vip",
@@ -86,6 +93,7 @@ register(
         _vip_sketch,
         "two conical-RCM arms with an elbow, VIP control (Jang 2014)",
         motions=_motions,
+        strategies={"vip": _vip},
         config=VipConfig,
     )
 )
