@@ -29,6 +29,7 @@ import math
 import pathlib
 import re
 import sys
+import textwrap
 import threading
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
@@ -346,3 +347,24 @@ def two_arms(make: Callable[[str], ArmProfile]) -> Callable[[str], tuple[ArmProf
         return (make("arm1"), make("arm2"))
 
     return arms
+
+
+def config_help() -> str:
+    """The ``--help`` text of the ``robot`` table: every registered robot's knobs (its config)."""
+    from telesurg.shared.config import field_docs
+
+    lines = ["robot keys (the `robot` table: --set robot.KEY=VALUE; the model's own config):"]
+    for name in names():
+        cls = get(name).config
+        if cls is None:
+            continue
+        lines.append(f"  model {name}:")
+        for d in field_docs(cls, "robot."):
+            unit = f" [{d.unit}]" if d.unit else ""
+            lines.append(
+                f"    {d.key}  (table)"
+                if d.type == "table"
+                else f"    {d.key} : {d.type} = {d.default}{unit}"
+            )
+            lines += [f"        {w}" for w in textwrap.wrap(d.help, 92)]
+    return "\n".join(lines)
