@@ -45,9 +45,9 @@ if TYPE_CHECKING:
 
 FloatArray = npt.NDArray[np.float64]
 
-#: Slave motion families: ``trocar`` — a 6-axis arm with the slave-side motions (trocar modes,
-#: PTP, jog, teach/playback; one arm per process); ``joint`` — joint-space arms (N per process,
-#: setpoints interpolated to the control rate).
+#: Slave motion families, a description for listings (the services go by ``motions``,
+#: ``catch_up`` and ``patient_keepout``, never by the family): ``trocar`` — a 6-axis forceps arm with
+#: the trocar modes; ``joint`` — joint-space arms.
 SLAVE_FAMILIES = ("trocar", "joint")
 
 _NAME = re.compile(r"[a-z][a-z0-9_]{0,31}")

@@ -1,8 +1,11 @@
 """The master point the mapping maps to the slave tip (``master_mode``: ``pen`` or ``virtual_trocar``).
 
-Used by the Cartesian mapping (:class:`telesurg.services.mapping.ArmMapping`) and the VIP mapping
-(:class:`telesurg.shared.robots.joint_mapping.VipMapping`); a module of its own so that neither
-imports the other for it.
+Used by every mapping strategy that maps the master's tip (the MH3F's Cartesian mapping, the VIP
+mapping, the generic position mapping).
+
+Example::
+
+    master_point(cfg, (0.0, 0.0, 0.1))   # pen: the position itself, m, master frame
 """
 
 from __future__ import annotations
