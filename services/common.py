@@ -104,7 +104,12 @@ def service_main(
     parser = argparse.ArgumentParser(
         prog=f"telesurg {name}",
         description=description,
-        epilog=config_help(config_cls, table),
+        epilog=config_help(config_cls, table)
+        + (
+            f"\n\n{robots.config_help()}"
+            if "robot" in getattr(config_cls, "__dataclass_fields__", {})
+            else ""
+        ),
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     parser.add_argument(

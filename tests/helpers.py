@@ -247,11 +247,11 @@ def settled_tip(
 
 
 def feed_master(arm: Any, p: tuple[float, float, float], clutch: bool) -> None:
-    """One master sample into a mapping pair (``ArmMapping``, ``PositionMapping``, …) as its
+    """One master sample into a mapping pair (``telesurg.services.mapping.Pair``) as its
     zenoh callbacks would deliver it: the buttons, then the pose at ``p`` (m), then one
     ``process()`` of the mapping loop."""
     arm.on_buttons(MasterButtons(TEST_HEADER, clutch, True), "")
-    arm.on_master_pose(CartesianPose(TEST_HEADER, "master", p), "")
+    arm.on_master(CartesianPose(TEST_HEADER, "master", p), "")
     arm.process()
 
 

@@ -36,7 +36,7 @@ import numpy as np
 import pytest
 from telesurg.services.launcher import free_port
 from telesurg.services.slave_control import SlaveControlConfig
-from telesurg.services.slave_control.arm import ArmCore, ArmReading
+from telesurg.services.slave_control.arm import ArmCore
 from telesurg.services.slave_control.control import Lease
 from telesurg.shared.bus import BusConfig, Node, Outlet, open_session
 from telesurg.shared.messages import (
@@ -51,6 +51,7 @@ from telesurg.shared.messages import (
     SafetyLease,
 )
 from telesurg.shared.robots import ArmProfile, arm_profile
+from telesurg.shared.robots.api import ArmReading
 
 #: slave kind → (model, backend)
 KINDS = {

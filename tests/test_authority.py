@@ -9,7 +9,6 @@ from pathlib import Path
 
 import pytest
 from telesurg.services.mapping import MappingConfig, guarded
-from telesurg.services.mapping.scale import follow_step_problem
 from telesurg.services.slave_control import SlaveControlConfig
 from telesurg.services.watchdog import WatchdogConfig
 from telesurg.shared.authority import CONFIRM_ARG, MAX_PENDING, Authority, AuthorityConfig
@@ -17,6 +16,7 @@ from telesurg.shared.bus import BusConfig, Node
 from telesurg.shared.config import load_config
 from telesurg.shared.errors import AuthorityError, ConfigError, MessageError
 from telesurg.shared.messages import Command, CommandReply, Header
+from telesurg.shared.teleop.scale import follow_step_problem
 
 
 class Clock:

@@ -15,11 +15,11 @@ from conftest import wait_until
 from helpers import feed_master
 from telesurg.services.camera import pose_matrix, quat_xyzw
 from telesurg.services.camera.sources import Intrinsics, MujocoSource
-from telesurg.services.mapping import ArmMapping, MappingConfig
+from telesurg.services.mapping import MappingConfig, Pair
 from telesurg.shared import robots
 from telesurg.shared.bus import BusConfig, Node
-from telesurg.shared.kinematics.mh3f import MH3F, fk
 from telesurg.shared.messages import CartesianPose, Header, JointSetpoint, JointState, OperatingState
+from telesurg.shared.robots.mh3f.kinematics import MH3F, fk
 
 Q0 = (0.0, 0.2, 0.3, 0.0, -0.6, 0.0)
 H = Header("test", 0, 0)
@@ -43,14 +43,14 @@ def _pixel(T_cam: np.ndarray, k: Intrinsics, p: np.ndarray) -> np.ndarray:
 
 
 @pytest.fixture
-def rig(endpoint: str) -> Iterator[tuple[ArmMapping, list[JointSetpoint], MujocoSource]]:
+def rig(endpoint: str) -> Iterator[tuple[Pair, list[JointSetpoint], MujocoSource]]:
     bus = BusConfig(connect=[endpoint])
     setpoints: list[JointSetpoint] = []
     src = MujocoSource(robots.get("mh3f").scene, width=320, height=240)
     with Node(bus, "t", "mapping") as node, Node(bus, "t", "probe") as probe:
         probe.subscribe(probe.keys.slave("arm1", "servo_jp"), JointSetpoint, lambda m, k: setpoints.append(m))
         time.sleep(0.3)
-        arm = ArmMapping(MappingConfig(scale=0.5, camera="endo"), node, "m1", "arm1", threading.Event())
+        arm = Pair(MappingConfig(scale=0.5, camera="endo"), node, "m1", "arm1", threading.Event())
         arm.on_slave_js(JointState(H, MH3F.joint_names, Q0), "")
         arm.on_slave_state(OperatingState(H, "PAUSED", "non_trocar", False, True, "", 0), "")
         yield arm, setpoints, src
@@ -59,12 +59,12 @@ def rig(endpoint: str) -> Iterator[tuple[ArmMapping, list[JointSetpoint], Mujoco
 
 @pytest.mark.parametrize("roll_deg", [0.0, 90.0])
 def test_master_right_moves_the_tip_right_in_the_picture(
-    rig: tuple[ArmMapping, list[JointSetpoint], MujocoSource], roll_deg: float
+    rig: tuple[Pair, list[JointSetpoint], MujocoSource], roll_deg: float
 ) -> None:
     arm, setpoints, src = rig
     src.move(_rot_about_view(src.pose(), roll_deg))  # the endoscope turned about its axis
     T_cam = src.pose()
-    arm.on_camera_pose(_pose_msg(T_cam), "")
+    arm.strategy.on_camera_pose(_pose_msg(T_cam), "")
     feed_master(arm, (0.0, 0.0, 0.0), clutch=False)
     feed_master(arm, (0.0, 0.0, 0.0), clutch=True)
     assert arm.following
@@ -86,11 +86,11 @@ def test_master_right_moves_the_tip_right_in_the_picture(
 
 
 def test_a_camera_turn_while_engaged_does_not_move_the_slave(
-    rig: tuple[ArmMapping, list[JointSetpoint], MujocoSource],
+    rig: tuple[Pair, list[JointSetpoint], MujocoSource],
 ) -> None:
     arm, setpoints, src = rig
     T_cam = src.pose()
-    arm.on_camera_pose(_pose_msg(T_cam), "")
+    arm.strategy.on_camera_pose(_pose_msg(T_cam), "")
     feed_master(arm, (0.0, 0.0, 0.0), clutch=False)
     feed_master(arm, (0.0, 0.0, 0.0), clutch=True)
     feed_master(arm, (0.01, 0.005, 0.0), clutch=True)
@@ -98,7 +98,7 @@ def test_a_camera_turn_while_engaged_does_not_move_the_slave(
     before = fk(np.array(setpoints[-1].position))[:3, 3]
     turned = _rot_about_view(T_cam, 90.0)
     src.move(turned)
-    arm.on_camera_pose(_pose_msg(src.pose()), "")  # the camera turns 90° while following
+    arm.strategy.on_camera_pose(_pose_msg(src.pose()), "")  # the camera turns 90° while following
     assert arm.following
     for _ in range(5):  # the master holds still: the slave must not move
         feed_master(arm, (0.01, 0.005, 0.0), clutch=True)

@@ -19,11 +19,9 @@ import time
 import numpy as np
 import pytest
 from telesurg.services.slave_control import SlaveControlConfig
-from telesurg.services.slave_control.arm import ArmCore, ArmReading
+from telesurg.services.slave_control.arm import ArmCore
 from telesurg.services.slave_control.control import Lease
-from telesurg.services.slave_control.elbow_jog import ElbowJog
 from telesurg.shared.errors import IKError
-from telesurg.shared.kinematics import vip
 from telesurg.shared.kinematics.elbow import (
     elbow_move,
     limit_margin,
@@ -33,6 +31,9 @@ from telesurg.shared.kinematics.elbow import (
 )
 from telesurg.shared.messages import Command, Header
 from telesurg.shared.robots import arm_profile
+from telesurg.shared.robots.api import ArmReading
+from telesurg.shared.robots.vip import kinematics as vip
+from telesurg.shared.robots.vip.elbow_jog import ElbowJog
 from telesurg.tools.experiment.jang import FIG9_TARGET_OFFSET_M, paper_vip
 
 G = vip.VIP_ARM1

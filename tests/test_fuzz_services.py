@@ -21,7 +21,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from telesurg.shared.auth import PUT
-from telesurg.shared.kinematics import MH3F
+from telesurg.shared.robots.mh3f.kinematics import MH3F
 from telesurg.tools.bench.fuzz import ROUTER_CAP, SERVICES, TARGETS, expected_rejections, fuzz_signer
 from telesurg.tools.bench.fuzzgen import mutate, valid_template
 from telesurg.tools.bench.harness import Pipeline

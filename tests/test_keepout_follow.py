@@ -1,7 +1,7 @@
 """The patient keep-out for every motion source: followed setpoints (master–slave in every mode,
 any ``servo_jp``) clamped at the surface, and the slave-side jog, play and direct teach.
 
-The geometry (:func:`telesurg.shared.kinematics.keepout.clamp_step`), the follow controller that
+The geometry (:func:`telesurg.shared.robots.mh3f.keepout.clamp_step`), the follow controller that
 applies it each period, and the trocar arm's rule (the site's patient box and trocar). The
 forceps starts over the torso 150 mm from the trocar, pointing down; the master path goes 90 mm
 straight down (through the torso). The depth is judged by sampling the shaft against the box here,
@@ -15,15 +15,16 @@ import time
 import numpy as np
 import pytest
 from telesurg.services.slave_control import SlaveControlConfig
-from telesurg.services.slave_control.arm import ArmCore, ArmReading
+from telesurg.services.slave_control.arm import ArmCore
 from telesurg.services.slave_control.control import FollowController, Lease, Setpoint
-from telesurg.services.slave_control.teach import TaughtPoint
-from telesurg.services.slave_control.trocar_arm import TrocarMotions
-from telesurg.shared.kinematics.keepout import PatientBox, clamp_step, pose_problem
-from telesurg.shared.kinematics.mh3f import MH3F, fk, ik
-from telesurg.shared.kinematics.trocar import posture_adjust
 from telesurg.shared.messages import Command, Header
 from telesurg.shared.robots import arm_profile
+from telesurg.shared.robots.api import ArmReading
+from telesurg.shared.robots.mh3f.keepout import PatientBox, clamp_step, pose_problem
+from telesurg.shared.robots.mh3f.kinematics import MH3F, fk, ik
+from telesurg.shared.robots.mh3f.motions import TrocarMotions
+from telesurg.shared.robots.mh3f.teach import TaughtPoint
+from telesurg.shared.robots.mh3f.trocar import posture_adjust
 
 TROCAR = np.array([0.5, 0.0, 0.2])
 BOX = PatientBox((0.255, -0.175, 0.13), (0.745, 0.175, 0.198), (0.5, 0.0, 0.2))
@@ -167,7 +168,7 @@ def test_the_trocar_arm_clamps_followed_setpoints_with_its_box_and_trocar() -> N
 def test_the_fast_check_agrees_with_pose_problem() -> None:
     """clamp_step's message-free check (keepout._allowed) against pose_problem: random poses, and
     poses about the trocar (entering through it, beside it, tilted off it)."""
-    from telesurg.shared.kinematics.keepout import _allowed
+    from telesurg.shared.robots.mh3f.keepout import _allowed
 
     rng = np.random.default_rng(7)
     qa = posture_adjust(HOME, TROCAR)
@@ -191,7 +192,7 @@ def test_the_fast_check_agrees_with_pose_problem() -> None:
 
 
 def _trocar_core() -> tuple[ArmCore, TrocarMotions]:
-    cfg = SlaveControlConfig(model="mh3f", jog_speed_mm_s=40.0)
+    cfg = SlaveControlConfig(model="mh3f", robot={"jog_speed_mm_s": 40.0})
     profile = arm_profile("mh3f", "arm1")
     motions = TrocarMotions(cfg, profile)
     core = ArmCore(profile, np.arange(6), cfg, 0.001, motion=motions)

@@ -28,8 +28,8 @@ import numpy as np
 import pytest
 from helpers import GoalMaster, operator_command
 from telesurg.shared.bus import BusConfig, Node
-from telesurg.shared.kinematics.mh3f import fk
 from telesurg.shared.messages import CommandReply, JointSetpoint, JointState, OperatingState, SafetyEvent
+from telesurg.shared.robots.mh3f.kinematics import fk
 from telesurg.tools.bench.harness import Pipeline
 from test_keepout_process import Patient
 
@@ -100,10 +100,10 @@ def site(tmp_path: Path) -> Iterator[Site]:
     overrides = {
         "slave_control": [
             f"q_home={json.dumps(HOME)}",
-            f"state_file={json.dumps(str(store))}",
-            "jog_speed_mm_s=40.0",
-            "playback_dwell_s=0.02",
-            "ptp_speed_fraction=0.6",  # (the PTPs between the cases: shorter, fewer stopped by holds)
+            f"robot.state_file={json.dumps(str(store))}",
+            "robot.jog_speed_mm_s=40.0",
+            "robot.playback_dwell_s=0.02",
+            "robot.ptp_speed_fraction=0.6",  # (the PTPs between the cases: shorter, fewer stopped by holds)
         ]
     }
     with (

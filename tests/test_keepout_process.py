@@ -46,16 +46,16 @@ from pathlib import Path
 import mujoco
 import numpy as np
 import pytest
-import telesurg.services.slave_control as slave_control
 from helpers import MasterHand, operator_command
+from telesurg.shared import robots
 from telesurg.shared.bus import BusConfig, Node
-from telesurg.shared.kinematics.trocar import posture_adjust
 from telesurg.shared.messages import (
     CommandReply,
     JointState,
     OperatingState,
     SafetyEvent,
 )
+from telesurg.shared.robots.mh3f.trocar import posture_adjust
 from telesurg.tools.bench.harness import Pipeline
 
 # (long: every accepted motion runs; see docs/trocar.md for the time it took)
@@ -74,7 +74,7 @@ N_JOG_SEQUENCES = 100
 N_PROGRAMS = 32  # one-point programs with random joint targets (the teach store's maximum)
 SEED = 20
 TROCAR_SHARE = 0.15  # of the accepted posture adjustments: inserted, jogged in trocar mode, removed
-SCENE = Path(slave_control.__file__).parent / "models" / "mh3f" / "scene.xml"
+SCENE = Path(robots.get("mh3f").scene)
 FRAMES = ("base", "world", "work", "forceps", "joint")
 CARTESIAN = ("x", "y", "z", "rx", "ry", "rz")
 JOINTS = ("j1", "j2", "j3", "j4", "j5", "j6")
@@ -259,11 +259,11 @@ def site(tmp_path: Path) -> Iterator[Site]:
     )
     overrides = {
         "slave_control": [
-            f"state_file={json.dumps(str(store))}",
-            "ptp_speed_fraction=0.8",
-            "playback_dwell_s=0.02",
-            "jog_speed_mm_s=40.0",  # (trocar-mode jogs are paced: trocar_arm.TrocarMotions.paced)
-            "jog_joint_speed_deg_s=40.0",
+            f"robot.state_file={json.dumps(str(store))}",
+            "robot.ptp_speed_fraction=0.8",
+            "robot.playback_dwell_s=0.02",
+            "robot.jog_speed_mm_s=40.0",  # (trocar-mode jogs are paced: trocar_arm.TrocarMotions.paced)
+            "robot.jog_joint_speed_deg_s=40.0",
         ]
     }
     with (

@@ -20,7 +20,7 @@ from telesurg.shared.kinematics import (
     rotation_angle_between,
     rotvec_from_matrix,
 )
-from telesurg.shared.kinematics.mh3f import (
+from telesurg.shared.robots.mh3f.kinematics import (
     MH3F,
     MH3F_NO_TOOL,
     ArmGeometry,

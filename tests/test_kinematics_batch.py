@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from telesurg.shared.errors import IKError, KinematicsError
-from telesurg.shared.kinematics.mh3f import MH3F, fk, ik
-from telesurg.shared.kinematics.trocar import rcm_error, trocar_ik
+from telesurg.shared.robots.mh3f.kinematics import MH3F, fk, ik
+from telesurg.shared.robots.mh3f.trocar import rcm_error, trocar_ik
 from telesurg.tools.bench.ik_batch import ik_batch, trocar_ik_batch
 
 Q_HOME = np.array([0.0, 0.2, 0.3, 0.0, -0.6, 0.0])

@@ -169,9 +169,9 @@ def test_imports_are_read_as_python_runs_them(tmp_path: Path) -> None:
     (tmp_path / "__init__.py").write_text(
         "from typing import TYPE_CHECKING\n"
         "import telesurg.shared.bus\n"
-        "from telesurg.shared.kinematics import mh3f, MH3F\n"
+        "from telesurg.shared.robots.mh3f import kinematics, HERE\n"
         "from . import engage\n"
-        "from .joints import VipMapping\n"
+        "from .position import PositionMapping\n"
         "if TYPE_CHECKING:\n"
         "    from telesurg.services.slave_control import SlaveControlConfig\n"
         "def f() -> None:\n"
@@ -181,10 +181,10 @@ def test_imports_are_read_as_python_runs_them(tmp_path: Path) -> None:
     assert got == [
         ("typing", True),
         ("telesurg.shared.bus", True),
-        ("telesurg.shared.kinematics.mh3f", True),
-        ("telesurg.shared.kinematics", True),
+        ("telesurg.shared.robots.mh3f.kinematics", True),
+        ("telesurg.shared.robots.mh3f", True),
         (f"{MAPPING}.engage", True),
-        (f"{MAPPING}.joints", True),
+        (f"{MAPPING}.position", True),
         ("telesurg.services.slave_control", False),
         ("telesurg.services.mirror.view", True),
     ]
@@ -195,7 +195,7 @@ def test_the_rules_catch_what_they_forbid() -> None:
     bad = [
         ("telesurg.shared.bus", "telesurg.services.common"),
         ("telesurg.services.watchdog", "telesurg.services.mapping"),
-        ("telesurg.services.mapping.joints", "telesurg.services.slave_control.control"),
+        ("telesurg.services.mapping.position", "telesurg.services.slave_control.control"),
         ("telesurg.services.launcher", "telesurg.services.mirror.view"),
         ("telesurg.services.common", "telesurg.services.mapping"),
         ("telesurg.services", "telesurg.services.watchdog"),
@@ -207,7 +207,7 @@ def test_the_rules_catch_what_they_forbid() -> None:
     good = [
         ("telesurg.shared.bus", "telesurg.shared.messages"),
         ("telesurg.services.watchdog", "telesurg.services.watchdog.logic"),
-        ("telesurg.services.mapping.joints", "telesurg.services.mapping.engage"),
+        ("telesurg.services.mapping.position", "telesurg.services.mapping.engage"),
         ("telesurg.services.mirror", "telesurg.services.common"),
         ("telesurg.services.record.replay", "telesurg.services.mirror.view"),
         ("telesurg.services.cli", "importlib"),
@@ -292,3 +292,117 @@ def test_no_import_cycles() -> None:
     assert not unexpected, "\n".join(lines)
     stale = ALLOWED_CYCLES - set(found)
     assert not stale, f"allow-list cycles that no longer occur (delete them): {sorted(stale)}"
+
+
+# --------------------------------------------------------------------------- robots by registry only
+
+#: Fields whose values share a word with the registry without naming a robot: the trocar arm's
+#: ``control_mode`` ``trocar`` (an operating-state value), an event's ``kind`` ``vip``, the console's
+#: jog ``frame`` ``joint``. A comparison with one of these on the other side is not a robot branch.
+NOT_ROBOT_FIELDS = frozenset({"control_mode", "kind", "jog_frame", "frame"})
+
+
+def registry_words() -> frozenset[str]:
+    """Every robot name, mapping mode and slave family the registry knows (built-ins)."""
+    from telesurg.shared import robots
+
+    words = set(robots.names()) | set(robots.SLAVE_FAMILIES)
+    for name in robots.names():
+        words |= set(robots.get(name).mapping_modes)
+    return frozenset(words)
+
+
+def _last_name(node: ast.expr) -> str:
+    if isinstance(node, ast.Attribute):
+        return node.attr
+    if isinstance(node, ast.Name):
+        return node.id
+    if isinstance(node, ast.Subscript):
+        return _last_name(node.value)
+    return ""
+
+
+def _strings(node: ast.expr) -> list[str]:
+    if isinstance(node, ast.Constant) and isinstance(node.value, str):
+        return [node.value]
+    if isinstance(node, (ast.Tuple, ast.List, ast.Set)):
+        return [s for e in node.elts for s in _strings(e)]
+    return []
+
+
+def name_comparisons(tree: ast.AST, words: frozenset[str]) -> list[tuple[int, str]]:
+    """(line, word) of every ``if``/``elif``/conditional/``match`` that compares against a word."""
+    out: list[tuple[int, str]] = []
+    tests: list[ast.expr] = []
+    for node in ast.walk(tree):
+        if isinstance(node, (ast.If, ast.IfExp, ast.While)):
+            tests.append(node.test)
+        elif isinstance(node, ast.Match):
+            for case in node.cases:
+                for sub in ast.walk(case.pattern):
+                    if isinstance(sub, ast.MatchValue):
+                        out += [(node.lineno, s) for s in _strings(sub.value) if s in words]
+    for test in tests:
+        for cmp in (n for n in ast.walk(test) if isinstance(n, ast.Compare)):
+            sides = [cmp.left, *cmp.comparators]
+            if any(_last_name(s) in NOT_ROBOT_FIELDS for s in sides):
+                continue
+            out += [(cmp.lineno, w) for s in sides for w in _strings(s) if w in words]
+    return out
+
+
+def test_no_service_compares_a_robot_mode_or_family_name() -> None:
+    """Services find robots through the registry: no branch on a robot, mapping mode or family."""
+    words = registry_words()
+    assert {"mh3f", "plas", "vip", "cartesian", "all_joints", "trocar"} <= words
+    runtime = {m: p for m, p in MODULES.items() if within(m, SERVICES) and not is_tool(m)}
+    found = [
+        f"{path.relative_to(ROOT)}:{line}: compares against {word!r}"
+        for path in sorted(runtime.values())
+        for line, word in name_comparisons(ast.parse(path.read_text()), words)
+    ]
+    assert found == []
+
+
+def test_the_name_check_catches_what_it_forbids() -> None:
+    words = frozenset({"mh3f", "trocar", "cartesian"})
+    src = (
+        "if cfg.mode == 'cartesian': pass\n"
+        "elif spec.slave_family in ('trocar', 'joint'): pass\n"
+        "x = 1 if model != 'mh3f' else 2\n"
+        "match cfg.model:\n    case 'mh3f': pass\n"
+        "if st.control_mode == 'trocar': pass\n"  # a message field's value: allowed
+        "if cfg.backend == 'mujoco': pass\n"  # not a registry word
+    )
+    assert sorted(w for _, w in name_comparisons(ast.parse(src), words)) == [
+        "cartesian",
+        "mh3f",
+        "mh3f",
+        "trocar",
+    ]
+
+
+def _top_imports(folder: str) -> list[tuple[str, str]]:
+    """(file, imported top-level package under telesurg or the test tree) for every import."""
+    out = []
+    for path in sorted((ROOT / folder).rglob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text())):
+            names: list[str] = []
+            if isinstance(node, ast.Import):
+                names = [a.name for a in node.names]
+            elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+                names = [node.module]
+            for n in names:
+                parts = n.split(".")
+                top = parts[1] if parts[0] == "telesurg" and len(parts) > 1 else parts[0]
+                out.append((str(path.relative_to(ROOT)), top))
+    return out
+
+
+def test_runtime_floors_import_only_downward() -> None:
+    """shared imports nothing from services, tools or tests; services nothing from tools or tests
+    (tools/ may not exist yet: the check holds either way)."""
+    tests = TEST_NAMES
+    bad = [f"{f} imports {t}" for f, t in _top_imports("shared") if t in {"services", "tools"} | tests]
+    bad += [f"{f} imports {t}" for f, t in _top_imports("services") if t in {"tools"} | tests]
+    assert bad == []

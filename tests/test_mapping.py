@@ -10,12 +10,9 @@ import numpy as np
 import pytest
 from conftest import wait_until
 from helpers import feed_master
-from telesurg.services.mapping import ArmMapping, MappingConfig
-from telesurg.services.mapping.joints import AllJointsMapping
-from telesurg.services.mapping.master import master_point
+from telesurg.services.mapping import MappingConfig, Pair
 from telesurg.shared.bus import BusConfig, Node
 from telesurg.shared.errors import ConfigError
-from telesurg.shared.kinematics.mh3f import MH3F, fk
 from telesurg.shared.messages import (
     CartesianPose,
     Command,
@@ -27,13 +24,15 @@ from telesurg.shared.messages import (
     SafetyEvent,
     TeleopState,
 )
+from telesurg.shared.robots.mh3f.kinematics import MH3F, fk
+from telesurg.shared.teleop.master import master_point
 
 Q0 = (0.0, 0.2, 0.3, 0.0, -0.6, 0.0)
 H = Header("test", 0, 0)
 
 
 @pytest.fixture
-def rig(endpoint: str) -> Iterator[tuple[ArmMapping, list[JointSetpoint], list[SafetyEvent]]]:
+def rig(endpoint: str) -> Iterator[tuple[Pair, list[JointSetpoint], list[SafetyEvent]]]:
     bus = BusConfig(connect=[endpoint])
     setpoints: list[JointSetpoint] = []
     events: list[SafetyEvent] = []
@@ -41,14 +40,14 @@ def rig(endpoint: str) -> Iterator[tuple[ArmMapping, list[JointSetpoint], list[S
         probe.subscribe(probe.keys.slave("arm1", "servo_jp"), JointSetpoint, lambda m, k: setpoints.append(m))
         probe.subscribe(probe.keys.events(), SafetyEvent, lambda m, k: events.append(m))
         time.sleep(0.3)
-        arm = ArmMapping(MappingConfig(scale=0.5), node, "m1", "arm1", threading.Event())
+        arm = Pair(MappingConfig(scale=0.5), node, "m1", "arm1", threading.Event())
         arm.on_slave_js(JointState(H, MH3F.joint_names, Q0), "")
         arm.on_slave_state(OperatingState(H, "PAUSED", "non_trocar", False, True, "", 0), "")
         yield arm, setpoints, events
 
 
 def test_engage_needs_press_edge_then_scaled_motion_without_jump(
-    rig: tuple[ArmMapping, list[JointSetpoint], list[SafetyEvent]],
+    rig: tuple[Pair, list[JointSetpoint], list[SafetyEvent]],
 ) -> None:
     arm, setpoints, _ = rig
     feed_master(arm, (0.3, 0.0, 0.0), clutch=True)  # pedal already down at start: not an engage
@@ -66,7 +65,7 @@ def test_engage_needs_press_edge_then_scaled_motion_without_jump(
 
 
 def test_ik_failure_holds_last_setpoint_and_reports(
-    rig: tuple[ArmMapping, list[JointSetpoint], list[SafetyEvent]],
+    rig: tuple[Pair, list[JointSetpoint], list[SafetyEvent]],
 ) -> None:
     arm, setpoints, events = rig
     feed_master(arm, (0.0, 0.0, 0.0), clutch=False)
@@ -92,7 +91,7 @@ def test_ik_failure_holds_last_setpoint_and_reports(
     ids=["slave holding", "control mode change"],
 )
 def test_a_slave_hold_or_mode_change_disengages_and_needs_a_new_press(
-    rig: tuple[ArmMapping, list[JointSetpoint], list[SafetyEvent]], state: OperatingState, why: str
+    rig: tuple[Pair, list[JointSetpoint], list[SafetyEvent]], state: OperatingState, why: str
 ) -> None:
     arm, _, events = rig
     feed_master(arm, (0.0, 0.0, 0.0), clutch=False)
@@ -113,14 +112,14 @@ def test_a_slave_hold_or_mode_change_disengages_and_needs_a_new_press(
 
 
 def test_a_press_released_before_the_next_sample_does_not_engage(
-    rig: tuple[ArmMapping, list[JointSetpoint], list[SafetyEvent]],
+    rig: tuple[Pair, list[JointSetpoint], list[SafetyEvent]],
 ) -> None:
     # polled buttons: a stalled loop may read a press and its release before mapping a sample
     arm, setpoints, _ = rig
     feed_master(arm, (0.0, 0.0, 0.0), clutch=False)
     arm.on_buttons(MasterButtons(H, True, True), "")
     arm.on_buttons(MasterButtons(H, False, True), "")
-    arm.on_master_pose(CartesianPose(H, "master", (0.0, 0.0, 0.0)), "")
+    arm.on_master(CartesianPose(H, "master", (0.0, 0.0, 0.0)), "")
     arm.process()
     assert not arm.following
     wait_until(lambda: len(setpoints) >= 2, 3.0)
@@ -130,21 +129,21 @@ def test_a_press_released_before_the_next_sample_does_not_engage(
 
 
 def test_joint_space_mapping_follows_the_same_engage_rules(
-    rig: tuple[ArmMapping, list[JointSetpoint], list[SafetyEvent]],
+    rig: tuple[Pair, list[JointSetpoint], list[SafetyEvent]],
 ) -> None:
     # the PLAS all-joints mapping shares the clutch rules (services/mapping/engage.py)
     arm0, _, _ = rig
     cfg = MappingConfig(mode="all_joints", model="plas")
     cfg.validate()
-    arm = AllJointsMapping(cfg, arm0.node, "m1", "arm1", threading.Event())
-    names = arm.profile.joint_names
+    arm = Pair(cfg, arm0.node, "m1", "arm1", threading.Event())
+    names = arm.strategy.profile.joint_names
     arm.on_slave_js(JointState(H, names, tuple(0.0 for _ in names)), "")
     arm.on_slave_state(OperatingState(H, "PAUSED", "joint", False, True, "", 0), "")
 
     def sample(clutch: bool | None) -> None:
         if clutch is not None:
             arm.on_buttons(MasterButtons(H, clutch, True), "")
-        arm.on_master_js(JointState(H, tuple(f"m{i}" for i in range(6)), (0.0,) * 6), "")
+        arm.on_master(JointState(H, tuple(f"m{i}" for i in range(6)), (0.0,) * 6), "")
         arm.process()
 
     sample(True)  # pedal down at start: not an engage
@@ -184,14 +183,14 @@ def test_virtual_trocar_master_maps_the_dummy_tip_with_the_fulcrum_effect() -> N
 
 
 def test_operator_scale_commands_step_and_refuse_clearly(
-    rig: tuple[ArmMapping, list[JointSetpoint], list[SafetyEvent]],
+    rig: tuple[Pair, list[JointSetpoint], list[SafetyEvent]],
 ) -> None:
     arm, _, _ = rig
-    assert arm.on_command(Command(H, "arm1", "scale_up", ())).reason == "scale 0.5 → 0.7"
-    assert arm.on_command(Command(H, "arm1", "scale_down", ())).reason == "scale 0.7 → 0.5"
-    bad = arm.on_command(Command(H, "arm1", "set_scale", ("value=5",)))
+    assert arm.strategy.on_command(Command(H, "arm1", "scale_up", ())).reason == "scale 0.5 → 0.7"
+    assert arm.strategy.on_command(Command(H, "arm1", "scale_down", ())).reason == "scale 0.7 → 0.5"
+    bad = arm.strategy.on_command(Command(H, "arm1", "set_scale", ("value=5",)))
     assert not bad.accepted and "(0, 2]" in bad.reason and arm.scale == 0.5
-    assert not arm.on_command(Command(H, "arm2", "scale_up", ())).accepted
+    assert not arm.strategy.on_command(Command(H, "arm2", "scale_up", ())).accepted
 
 
 def states_seen(probe: Node, arm: str) -> tuple[list[TeleopState], Callable[[], list[str]]]:
@@ -205,7 +204,7 @@ def states_seen(probe: Node, arm: str) -> tuple[list[TeleopState], Callable[[], 
 
 
 def test_the_teleop_state_machine_is_published_on_every_change(
-    rig: tuple[ArmMapping, list[JointSetpoint], list[SafetyEvent]], endpoint: str
+    rig: tuple[Pair, list[JointSetpoint], list[SafetyEvent]], endpoint: str
 ) -> None:
     arm, _, _ = rig
     with Node(BusConfig(connect=[endpoint]), "t", "probe2") as probe:
@@ -223,7 +222,7 @@ def test_the_teleop_state_machine_is_published_on_every_change(
         assert arm.state == "IDLE"
         arm.on_buttons(MasterButtons(H, True, True), "")
         assert arm.state == "ENGAGING"  # the engage is tried at the next master sample
-        arm.on_master_pose(CartesianPose(H, "master", (0.0, 0.0, 0.0)), "")
+        arm.on_master(CartesianPose(H, "master", (0.0, 0.0, 0.0)), "")
         arm.process()
         assert arm.state == "ENABLED" and arm.following
         # a watchdog hold: the slave loses its lease → HOLDING, a new press needed
@@ -259,7 +258,7 @@ def test_the_teleop_state_machine_is_published_on_every_change(
 
 
 def test_a_late_joiner_gets_the_current_teleop_state_at_once(
-    rig: tuple[ArmMapping, list[JointSetpoint], list[SafetyEvent]], endpoint: str
+    rig: tuple[Pair, list[JointSetpoint], list[SafetyEvent]], endpoint: str
 ) -> None:
     # nobody calls publish_state here (the 10 Hz re-send): the last publication is before the
     # joiner subscribes, so only the mapping's answer to the joiner's query can bring the state
@@ -269,7 +268,7 @@ def test_a_late_joiner_gets_the_current_teleop_state_at_once(
     feed_master(arm, (0.0, 0.0, 0.0), clutch=False)
     feed_master(arm, (0.0, 0.0, 0.0), clutch=True)
     assert arm.state == "ENABLED"
-    arm.on_command(Command(H, "arm1", "set_scale", ("value=0.3",)))
+    arm.strategy.on_command(Command(H, "arm1", "set_scale", ("value=0.3",)))
     with Node(BusConfig(connect=[endpoint]), "t", "late") as late:
         got: list[TeleopState] = []
         late.subscribe(
@@ -284,7 +283,7 @@ def test_a_late_joiner_gets_the_current_teleop_state_at_once(
 
 
 def test_a_joint_space_mapping_publishes_the_controlled_point_of_its_setpoint(
-    rig: tuple[ArmMapping, list[JointSetpoint], list[SafetyEvent]], endpoint: str
+    rig: tuple[Pair, list[JointSetpoint], list[SafetyEvent]], endpoint: str
 ) -> None:
     # setpoint_cp of the PLAS all-joints mapping: the profile's tip of what servo_jp commands, in
     # the frame of the slave's measured_cp (the demo report's tracking reference)
@@ -297,8 +296,8 @@ def test_a_joint_space_mapping_publishes_the_controlled_point_of_its_setpoint(
         )
         got, _ = states_seen(probe, "arm1")  # declared after setpoint_cp: in place once one arrives
         assert wait_until(lambda: arm0.publish_state() is None and bool(got)), "probe not subscribed"
-        arm = AllJointsMapping(cfg, arm0.node, "m1", "arm1", threading.Event())
-        names = arm.profile.joint_names
+        arm = Pair(cfg, arm0.node, "m1", "arm1", threading.Event())
+        names = arm.strategy.profile.joint_names
         q0 = (0.0, 0.1, 0.2, 0.3, 0.0, 0.0)
         arm.on_slave_js(JointState(H, names, q0), "")
         arm.on_slave_state(OperatingState(H, "PAUSED", "joint", False, True, "", 0), "")
@@ -306,9 +305,7 @@ def test_a_joint_space_mapping_publishes_the_controlled_point_of_its_setpoint(
         def sample(clutch: bool, qm: float) -> None:
             arm.on_slave_js(JointState(H, names, q0), "")  # fresh slave joints
             arm.on_buttons(MasterButtons(H, clutch, True), "")
-            arm.on_master_js(
-                JointState(H, tuple(f"m{i}" for i in range(6)), (0.0, qm, 0.0, 0.0, 0.0, 0.0)), ""
-            )
+            arm.on_master(JointState(H, tuple(f"m{i}" for i in range(6)), (0.0, qm, 0.0, 0.0, 0.0, 0.0)), "")
             arm.process()
 
         sample(False, 0.0)
@@ -319,7 +316,7 @@ def test_a_joint_space_mapping_publishes_the_controlled_point_of_its_setpoint(
         assert wait_until(lambda: len(targets) >= 2), targets
         assert wait_until(lambda: any(s.follow and s.position != q0 for s in setpoints)), setpoints
         last = [s for s in setpoints if s.follow][-1]
-        tip = arm.profile.tip(np.array(last.position))
+        tip = arm.strategy.profile.tip(np.array(last.position))
         assert targets[-1].frame == "base"  # the frame of the slave's measured_cp
         np.testing.assert_allclose(targets[-1].position, tip, atol=1e-12)
         assert np.linalg.norm(np.subtract(targets[-1].position, targets[0].position)) > 1e-4  # it moved

@@ -9,7 +9,9 @@ from collections.abc import Callable
 from itertools import pairwise
 
 import pytest
-from telesurg.services.slave_control.modes import (
+from telesurg.shared.errors import ConfigError
+from telesurg.shared.messages import CONTROL_MODES, Header, OperatingState, decode
+from telesurg.shared.robots.mh3f.modes import (
     CARTESIAN_AXES,
     JOINT_AXES,
     ControlMode,
@@ -22,8 +24,6 @@ from telesurg.services.slave_control.modes import (
     PostureMethod,
     Reply,
 )
-from telesurg.shared.errors import ConfigError
-from telesurg.shared.messages import CONTROL_MODES, Header, OperatingState, decode
 
 DEG = math.radians(1.0)
 OUT = -0.100  # m: tip 100 mm before the trocar

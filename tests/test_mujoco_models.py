@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 from telesurg.services.slave_control.models import model_names, model_path
 
-MODELS_DIR = pathlib.Path(model_path("mh3f")).parent.parent
-SCENES = sorted(MODELS_DIR.glob("*/scene.xml"))
+MODELS_DIR = pathlib.Path(model_path("mh3f")).parent.parent  # shared/robots
+SCENES = sorted(MODELS_DIR.glob("*/scene.xml")) + sorted(MODELS_DIR.glob("*/*/scene.xml"))
 
 # Bent working pose (forceps pointing down-forward, towards the trocar).
 Q_BENT = np.array([0.0, 0.3, 0.2, 0.0, -0.8, 0.0])
@@ -75,7 +75,7 @@ def test_every_scene_is_registered() -> None:
     assert SCENES, "no scene.xml found"
     # every folder here is a model name and every model name of this folder has a folder (a
     # plugin's robot, e.g. tests/robots/tri3 once loaded, keeps its scene elsewhere)
-    here = {n for n in model_names() if model_path(n).parent.parent == MODELS_DIR}
+    here = {n for n in model_names() if MODELS_DIR in model_path(n).parents}
     assert {p.parent.name for p in SCENES} == here
     assert all(model_path(n).is_file() for n in model_names())
 

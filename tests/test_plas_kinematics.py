@@ -1,4 +1,4 @@
-"""Tests for telesurg.shared.kinematics.plas (Shim 2015: PLAS slave, ergonomic master, Table-6 mapping)
+"""Tests for telesurg.shared.robots.plas.kinematics (Shim 2015: PLAS slave, ergonomic master, Table-6 mapping)
 and for the Section-4 reproduction in telesurg.tools.experiment.shim."""
 
 from __future__ import annotations
@@ -10,7 +10,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 from telesurg.shared.errors import KinematicsError
-from telesurg.shared.kinematics.plas import (
+from telesurg.shared.kinematics.transforms import FloatArray, rot_x, rotvec_from_matrix
+from telesurg.shared.robots.plas.kinematics import (
     PLAS_MASTER,
     PLAS_SLAVE,
     MappingConfig,
@@ -29,7 +30,6 @@ from telesurg.shared.kinematics.plas import (
     slave_tip_arm,
     tip_velocity_error,
 )
-from telesurg.shared.kinematics.transforms import FloatArray, rot_x, rotvec_from_matrix
 from telesurg.tools.experiment.shim import run
 
 # Thesis dimensions [m] (Section 3.4), written out again so the tests do not read them back

@@ -7,8 +7,9 @@ import numpy as np
 import pytest
 from telesurg.services.slave_control.models import model_names, model_path
 from telesurg.shared.errors import KinematicsError
-from telesurg.shared.kinematics.plas import PLAS_MASTER, PLAS_SLAVE, master_fk, slave_fk
-from telesurg.shared.kinematics.plas_layout import (
+from telesurg.shared.kinematics.transforms import FloatArray
+from telesurg.shared.robots.plas.kinematics import PLAS_MASTER, PLAS_SLAVE, master_fk, slave_fk
+from telesurg.shared.robots.plas.layout import (
     ARM_BASES,
     ARM_NAMES,
     SHAFT_AXIS,
@@ -16,7 +17,6 @@ from telesurg.shared.kinematics.plas_layout import (
     arm_tip,
     arm_tip_pose,
 )
-from telesurg.shared.kinematics.transforms import FloatArray
 
 TOL = 1e-6  # [m] site vs analytic kinematics (they agree to ~1e-15)
 SETTLE_STEPS = 300  # 0.3 s at dt = 1 ms

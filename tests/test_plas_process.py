@@ -24,8 +24,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 from telesurg.shared.bus import BusConfig, Node
-from telesurg.shared.kinematics import plas
 from telesurg.shared.messages import JointSetpoint, JointState, OperatingState, SafetyEvent, SafetyState
+from telesurg.shared.robots.plas import kinematics as plas
 from telesurg.tools.bench.harness import Pipeline
 
 pytestmark = pytest.mark.process

@@ -12,8 +12,7 @@ import pytest
 from conftest import wait_until
 from helpers import feed_master
 from telesurg.services.launcher import free_port
-from telesurg.services.mapping import MappingConfig
-from telesurg.services.mapping.position import PositionMapping
+from telesurg.services.mapping import MappingConfig, Pair
 from telesurg.shared.bus import BusConfig, Node, open_session
 from telesurg.shared.errors import ConfigError
 from telesurg.shared.kinematics import solve_position
@@ -70,7 +69,7 @@ def test_solve_position_clamps_at_the_joint_limits() -> None:
 
 
 @pytest.fixture
-def rig() -> Iterator[tuple[PositionMapping, list[JointSetpoint], list[SafetyEvent]]]:
+def rig() -> Iterator[tuple[Pair, list[JointSetpoint], list[SafetyEvent]]]:
     ep = f"tcp/127.0.0.1:{free_port()}"
     router = open_session(BusConfig(mode="router", listen=[ep]))
     bus = BusConfig(connect=[ep])
@@ -85,9 +84,9 @@ def rig() -> Iterator[tuple[PositionMapping, list[JointSetpoint], list[SafetyEve
             time.sleep(0.3)
             cfg = MappingConfig(mode="position", model="vip", scale=0.5, max_joint_step_rad=0.2)
             cfg.validate()
-            arm = PositionMapping(cfg, node, "m1", "arm1", threading.Event())
-            names = arm.profile.joint_names
-            arm.on_slave_js(JointState(H, names, arm.profile.home), "")
+            arm = Pair(cfg, node, "m1", "arm1", threading.Event())
+            names = arm.strategy.profile.joint_names
+            arm.on_slave_js(JointState(H, names, arm.strategy.profile.home), "")
             arm.on_slave_state(OperatingState(H, "PAUSED", "joint", False, True, "", 0), "")
             yield arm, setpoints, events
     finally:
@@ -95,23 +94,23 @@ def rig() -> Iterator[tuple[PositionMapping, list[JointSetpoint], list[SafetyEve
 
 
 def test_position_mapping_engages_on_a_press_and_moves_the_tip_by_the_scaled_increment(
-    rig: tuple[PositionMapping, list[JointSetpoint], list[SafetyEvent]],
+    rig: tuple[Pair, list[JointSetpoint], list[SafetyEvent]],
 ) -> None:
     arm, setpoints, events = rig
-    home = np.array(arm.profile.home)
+    home = np.array(arm.strategy.profile.home)
     feed_master(arm, (0.1, 0.0, 0.0), clutch=True)  # pedal already down at start: not an engage
     assert not arm.following
     feed_master(arm, (0.1, 0.0, 0.0), clutch=False)
     feed_master(arm, (0.1, 0.0, 0.0), clutch=True)  # press edge → engage, anchored here
     assert arm.following
-    tip0 = arm.profile.tip(home)
+    tip0 = arm.strategy.profile.tip(home)
     for i in range(1, 11):  # master +1 mm in x and -0.5 mm in z per sample
         feed_master(arm, (0.1 + 0.001 * i, 0.0, -0.0005 * i), clutch=True)
     wait_until(lambda: len(setpoints) >= 13, 3.0)
     assert [s.follow for s in setpoints[:3]] == [False, False, True]
     np.testing.assert_allclose(setpoints[2].position, home, atol=1e-12)  # no jump at engage
     q = np.array(setpoints[12].position)
-    np.testing.assert_allclose(arm.profile.tip(q) - tip0, (0.005, 0.0, -0.0025), atol=1e-5)
+    np.testing.assert_allclose(arm.strategy.profile.tip(q) - tip0, (0.005, 0.0, -0.0025), atol=1e-5)
     feed_master(arm, (0.2, 0.0, 0.0), clutch=False)  # release: the slave holds where it is
     assert not arm.following
     wait_until(lambda: len(events) >= 2, 3.0)
@@ -119,17 +118,17 @@ def test_position_mapping_engages_on_a_press_and_moves_the_tip_by_the_scaled_inc
 
 
 def test_position_mapping_holds_on_a_large_joint_step(
-    rig: tuple[PositionMapping, list[JointSetpoint], list[SafetyEvent]],
+    rig: tuple[Pair, list[JointSetpoint], list[SafetyEvent]],
 ) -> None:
     arm, _, events = rig
     feed_master(arm, (0.0, 0.0, 0.0), clutch=False)
     feed_master(arm, (0.0, 0.0, 0.0), clutch=True)
     assert arm.following
-    q_before = arm.q_cmd.copy() if arm.q_cmd is not None else None
+    q_before = arm.strategy.q_cmd.copy() if arm.strategy.q_cmd is not None else None
     feed_master(arm, (0.2, 0.0, 0.0), clutch=True)  # 100 mm of slave motion in one sample
     assert arm.ik_failures == 1
-    assert arm.q_cmd is not None and q_before is not None
-    np.testing.assert_allclose(arm.q_cmd, q_before)  # held the last valid setpoint
+    assert arm.strategy.q_cmd is not None and q_before is not None
+    np.testing.assert_allclose(arm.strategy.q_cmd, q_before)  # held the last valid setpoint
     deadline = time.monotonic() + 3
     while not any(e.kind == "ik_failure" for e in events) and time.monotonic() < deadline:
         time.sleep(0.01)
@@ -137,20 +136,22 @@ def test_position_mapping_holds_on_a_large_joint_step(
 
 
 def test_operator_scale_commands_rescale_the_motion_without_a_jump(
-    rig: tuple[PositionMapping, list[JointSetpoint], list[SafetyEvent]],
+    rig: tuple[Pair, list[JointSetpoint], list[SafetyEvent]],
 ) -> None:
     arm, _, _ = rig
     feed_master(arm, (0.0, 0.0, 0.0), clutch=False)
     feed_master(arm, (0.0, 0.0, 0.0), clutch=True)
     feed_master(arm, (0.004, 0.0, 0.0), clutch=True)  # anchor at 0, then +4 mm → +2 mm at scale 0.5
-    assert arm.q_cmd is not None
-    tip_a = arm.profile.tip(arm.q_cmd)
-    r = arm.on_command(Command(H, "arm1", "scale_up", ()))
+    assert arm.strategy.q_cmd is not None
+    tip_a = arm.strategy.profile.tip(arm.strategy.q_cmd)
+    r = arm.strategy.on_command(Command(H, "arm1", "scale_up", ()))
     assert r.accepted and r.reason == "scale 0.5 → 0.7 while following (re-anchored)"
     feed_master(arm, (0.004, 0.0, 0.0), clutch=True)  # the same master point: no jump at the new scale
-    np.testing.assert_allclose(arm.profile.tip(arm.q_cmd), tip_a, atol=1e-6)
+    np.testing.assert_allclose(arm.strategy.profile.tip(arm.strategy.q_cmd), tip_a, atol=1e-6)
     feed_master(arm, (0.008, 0.0, 0.0), clutch=True)  # +4 mm more → +2.8 mm at 0.7
-    np.testing.assert_allclose(arm.profile.tip(arm.q_cmd) - tip_a, (0.0028, 0.0, 0.0), atol=1e-6)
-    assert not arm.on_command(Command(H, "arm1", "set_scale", ("value=5",))).accepted
-    assert not arm.on_command(Command(H, "arm2", "state", ())).accepted
-    assert "scale 0.7" in arm.on_command(Command(H, "arm1", "state", ())).reason
+    np.testing.assert_allclose(
+        arm.strategy.profile.tip(arm.strategy.q_cmd) - tip_a, (0.0028, 0.0, 0.0), atol=1e-6
+    )
+    assert not arm.strategy.on_command(Command(H, "arm1", "set_scale", ("value=5",))).accepted
+    assert not arm.strategy.on_command(Command(H, "arm2", "state", ())).accepted
+    assert "scale 0.7" in arm.strategy.on_command(Command(H, "arm1", "state", ())).reason

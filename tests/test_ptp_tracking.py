@@ -25,10 +25,10 @@ from telesurg.services.slave_control import SlaveControlConfig
 from telesurg.services.slave_control.arm import ArmCore
 from telesurg.services.slave_control.backends import MujocoBackend
 from telesurg.services.slave_control.control import Lease
-from telesurg.services.slave_control.trocar_arm import TrocarMotions
-from telesurg.shared.kinematics.trocar import posture_adjust
 from telesurg.shared.messages import Command, Header
 from telesurg.shared.robots import arm_profile
+from telesurg.shared.robots.mh3f.motions import TrocarMotions
+from telesurg.shared.robots.mh3f.trocar import posture_adjust
 from test_keepout_process import Patient
 
 DT = 0.001
@@ -45,7 +45,7 @@ def _cmd(name: str, *args: str) -> Command:
 def run(stop: str, stop_at: float, seconds: float) -> tuple[np.ndarray, np.ndarray]:
     """The posture PTP from ``START`` through the slave's core on MuJoCo; ``stop`` ("", "abort",
     "hold") at ``stop_at`` of its duration. (measured joints at every 1 ms, the PTP's target)."""
-    cfg = SlaveControlConfig(model="mh3f", ptp_speed_fraction=0.8)
+    cfg = SlaveControlConfig(model="mh3f", robot={"ptp_speed_fraction": 0.8})
     profile = arm_profile("mh3f", "arm1")
     motions = TrocarMotions(cfg, profile)
     core = ArmCore(profile, np.arange(6), cfg, DT, motion=motions)
@@ -72,7 +72,7 @@ def run(stop: str, stop_at: float, seconds: float) -> tuple[np.ndarray, np.ndarr
             if i % 10 == 0:
                 core.measure(reading)
             measured.append(reading.position.copy())
-    return np.array(measured), posture_adjust(START, np.array(cfg.trocar_mm) / 1e3)
+    return np.array(measured), posture_adjust(START, np.array(motions.rcfg.trocar_mm) / 1e3)
 
 
 def off_line_mrad(q: np.ndarray, q_to: np.ndarray) -> tuple[float, float]:

@@ -41,8 +41,8 @@ from telesurg.services.slave_control.serial_backend import (
 from telesurg.shared.config import load_config
 from telesurg.shared.errors import ConfigError, DeviceConnectionError, MessageError
 from telesurg.shared.kinematics import quat_from_matrix
-from telesurg.shared.kinematics.mh3f import MH3F, fk
 from telesurg.shared.robots import arms_of
+from telesurg.shared.robots.mh3f.kinematics import MH3F, fk
 from telesurg.shared.serial_link import Frame, FrameReader, SerialLink, decode_frame, encode_frame
 from telesurg.shared.servo_protocol import (
     Disable,

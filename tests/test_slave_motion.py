@@ -1,13 +1,13 @@
-"""Slave-side motion sources (telesurg.services.slave_control.motion): PTP and jog, pure kinematics."""
+"""Slave-side motion sources (telesurg.shared.robots.mh3f.motion): PTP and jog, pure kinematics."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
-from telesurg.services.slave_control.motion import PtpMotion, jog_step, ptp_duration
 from telesurg.shared.errors import IKError
-from telesurg.shared.kinematics.mh3f import MH3F, fk
-from telesurg.shared.kinematics.trocar import forceps_roll, posture_adjust, rcm_error, trocar_ik
+from telesurg.shared.robots.mh3f.kinematics import MH3F, fk
+from telesurg.shared.robots.mh3f.motion import PtpMotion, jog_step, ptp_duration
+from telesurg.shared.robots.mh3f.trocar import forceps_roll, posture_adjust, rcm_error, trocar_ik
 
 TROCAR = np.array([0.5, 0.0, 0.2])
 Q0 = np.array([0.0, -0.2, 0.6, 0.0, -0.3, 0.0])

@@ -8,9 +8,10 @@ import time
 
 import numpy as np
 from telesurg.services.slave_control import SlaveControlConfig
-from telesurg.services.slave_control.arm import ArmCore, ArmReading
+from telesurg.services.slave_control.arm import ArmCore
 from telesurg.shared.messages import Header, JointSetpoint, SafetyLease
 from telesurg.shared.robots import arm_profile
+from telesurg.shared.robots.api import ArmReading
 
 ARM = "arm1"
 

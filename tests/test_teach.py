@@ -7,7 +7,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from telesurg.services.slave_control.teach import (
+from telesurg.shared.errors import ConfigError, IKError
+from telesurg.shared.robots.mh3f.kinematics import MH3F, fk
+from telesurg.shared.robots.mh3f.teach import (
     MAX_POINTS,
     Playback,
     TaughtPoint,
@@ -17,9 +19,7 @@ from telesurg.services.slave_control.teach import (
     direct_teach_step,
     playback_problem,
 )
-from telesurg.shared.errors import ConfigError, IKError
-from telesurg.shared.kinematics.mh3f import MH3F, fk
-from telesurg.shared.kinematics.trocar import insertion_depth, posture_adjust, rcm_error, trocar_ik
+from telesurg.shared.robots.mh3f.trocar import insertion_depth, posture_adjust, rcm_error, trocar_ik
 
 TROCAR = np.array([0.5, 0.0, 0.2])
 START = np.array([0.0, -0.2, 0.6, 0.0, -0.3, 0.0])

@@ -15,8 +15,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 from telesurg.shared.bus import BusConfig, Node
-from telesurg.shared.kinematics.mh3f import MH3F, jacobian, wrist_center
-from telesurg.shared.kinematics.trocar import posture_adjust
+from telesurg.shared.robots.mh3f.kinematics import MH3F, jacobian, wrist_center
+from telesurg.shared.robots.mh3f.trocar import posture_adjust
 from telesurg.tools.bench.harness import Pipeline
 from telesurg.tools.experiment.client import ArmClient
 
@@ -32,7 +32,11 @@ def arm(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[ArmClient, P
     store = tmp / "arm1.json"
     overrides = {
         "master_capture": ["scripted.clutch=[]"],  # nobody engages master–slave in this test
-        "slave_control": [f"q_home={START}", "jog_speed_mm_s=40.0", f"state_file={json.dumps(str(store))}"],
+        "slave_control": [
+            f"q_home={START}",
+            "robot.jog_speed_mm_s=40.0",
+            f"robot.state_file={json.dumps(str(store))}",
+        ],
         # START's tip (z = 1,024 mm) lies above the local site's 800 mm workspace ceiling, and the
         # watchdog holds slave-side motions that leave the workspace (or go further out of it):
         # this test pushes the arm about there (up to z ≈ 1,100 mm) and plays back to START: its

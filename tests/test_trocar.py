@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 from telesurg.shared.errors import IKError, KinematicsError
 from telesurg.shared.kinematics import FloatArray, rot_x, rot_y, rot_z
-from telesurg.shared.kinematics.mh3f import MH3F, fk, ik, ik_all, within_limits, wrist_center
-from telesurg.shared.kinematics.trocar import (
+from telesurg.shared.robots.mh3f.kinematics import MH3F, fk, ik, ik_all, within_limits, wrist_center
+from telesurg.shared.robots.mh3f.trocar import (
     STRAIGHT_FORCEPS,
     TROCAR_MODE_DEPTH,
     Forceps,
@@ -460,7 +460,7 @@ def test_forceps_description() -> None:
 
 
 def test_pose_to_trocar_matches_the_kinematic_measures() -> None:
-    from telesurg.shared.kinematics.trocar import pose_to_trocar
+    from telesurg.shared.robots.mh3f.trocar import pose_to_trocar
 
     rng = np.random.default_rng(5)
     trocar = np.array([0.5, 0.0, 0.2])
@@ -476,7 +476,7 @@ def test_mujoco_arm_through_the_trocar_has_sub_mm_rcm_error() -> None:
     """Measured from MuJoCo's tip site (not from the command): a trocar-IK pose 60 mm deep."""
     from telesurg.services.slave_control.factory import make_backend
     from telesurg.shared.kinematics import matrix_from_quat
-    from telesurg.shared.kinematics.trocar import pose_to_trocar
+    from telesurg.shared.robots.mh3f.trocar import pose_to_trocar
 
     trocar = np.array([0.5, 0.0, 0.2])
     q_start = np.array([0.0, -0.2, 0.6, 0.0, -0.3, 0.0])  # a paper-like start (Fig. 10)

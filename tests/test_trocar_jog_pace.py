@@ -24,14 +24,14 @@ import pytest
 from telesurg.services.slave_control import SlaveControlConfig
 from telesurg.services.slave_control.arm import REPLAY_MAX_PERIODS
 from telesurg.services.slave_control.backends import MujocoBackend
-from telesurg.services.slave_control.modes import Frame, Jog
-from telesurg.services.slave_control.motion import jog_step
-from telesurg.services.slave_control.trocar_arm import Internal, TrocarMotions
 from telesurg.shared.errors import IKError
-from telesurg.shared.kinematics.mh3f import MH3F, fk, ik
-from telesurg.shared.kinematics.trocar import insertion_depth, posture_adjust, rcm_error
 from telesurg.shared.limits import limit_step
 from telesurg.shared.robots import arm_profile
+from telesurg.shared.robots.mh3f.kinematics import MH3F, fk, ik
+from telesurg.shared.robots.mh3f.modes import Frame, Jog
+from telesurg.shared.robots.mh3f.motion import jog_step
+from telesurg.shared.robots.mh3f.motions import Internal, TrocarMotions
+from telesurg.shared.robots.mh3f.trocar import insertion_depth, posture_adjust, rcm_error
 from telesurg.tools.experiment.jinno import STARTS, TROCAR
 
 DT = 0.001

@@ -11,15 +11,15 @@ import math
 import numpy as np
 import pytest
 from telesurg.shared.errors import IKError
-from telesurg.shared.kinematics.keepout import PatientBox, path_problem, pose_problem
-from telesurg.shared.kinematics.mh3f import MH3F, fk, wrist_center
-from telesurg.shared.kinematics.trocar import insertion_depth, posture_adjust, rcm_error, trocar_ik
-from telesurg.shared.kinematics.trocar_limits import TROCAR_SPEED_FRACTION, clamped_trocar_ik, remove_step
+from telesurg.shared.robots.mh3f.keepout import PatientBox, path_problem, pose_problem
+from telesurg.shared.robots.mh3f.kinematics import MH3F, fk, wrist_center
+from telesurg.shared.robots.mh3f.trocar import insertion_depth, posture_adjust, rcm_error, trocar_ik
+from telesurg.shared.robots.mh3f.trocar_limits import TROCAR_SPEED_FRACTION, clamped_trocar_ik, remove_step
 from telesurg.tools.experiment.jinno import STARTS, TROCAR
 
 DT = 1 / 250
 VMAX = np.array(MH3F.max_velocity)
-# the mh3f scene's patient torso (services/slave_control/models/mh3f/scene.xml), drape top 0.198 m
+# the mh3f scene's patient torso (shared/robots/mh3f/scene.xml), drape top 0.198 m
 BOX = PatientBox((0.26, -0.17, 0.13), (0.74, 0.17, 0.198), tuple(TROCAR.tolist()))
 
 
@@ -133,7 +133,7 @@ def test_experiment_starts_lie_inside_the_local_workspace_and_reach_the_trocar_o
     import tomllib
     from pathlib import Path
 
-    from telesurg.shared.kinematics.mh3f import ik
+    from telesurg.shared.robots.mh3f.kinematics import ik
 
     site = tomllib.loads((Path(__file__).parents[1] / "deploy/local/site.toml").read_text())["site"]
     lo, hi = np.array(site["workspace_min_mm"]) / 1e3, np.array(site["workspace_max_mm"]) / 1e3

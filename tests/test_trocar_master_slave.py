@@ -38,7 +38,7 @@ class Master(MasterHand):
 @pytest.fixture(scope="module")
 def site(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[Pipeline, Node, Master, Node]]:
     logs = tmp_path_factory.mktemp("trocar_ms") / "logs"
-    overrides = {"slave_control": ["q_home=[0.0, -0.2, 0.6, 0.0, -0.3, 0.0]", "jog_speed_mm_s=40.0"]}
+    overrides = {"slave_control": ["q_home=[0.0, -0.2, 0.6, 0.0, -0.3, 0.0]", "robot.jog_speed_mm_s=40.0"]}
     with (
         Pipeline(logs, mirror=False, impair=False, master=False, probe=False, overrides=overrides) as p,
         Node(BusConfig(connect=[p.spec.endpoint]), "local", "master_capture") as node,

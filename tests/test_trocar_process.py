@@ -80,7 +80,7 @@ def console(tmp_path: Path) -> Iterator[Console]:
     logs = tmp_path / "logs"
     overrides = {
         "master_capture": ["scripted.clutch=[]"],  # nobody engages master–slave in this test
-        "slave_control": [f"q_home={START}", "jog_speed_mm_s=40.0"],
+        "slave_control": [f"q_home={START}", "robot.jog_speed_mm_s=40.0"],
     }
     with (
         Pipeline(logs, mirror=False, impair=False, overrides=overrides) as p,

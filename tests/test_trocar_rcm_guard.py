@@ -10,14 +10,14 @@ runs while it does not stray further. The process-level case is
 from __future__ import annotations
 
 from telesurg.services.slave_control import SlaveControlConfig
-from telesurg.services.slave_control.modes import Frame, Jog, Phase
-from telesurg.services.slave_control.trocar_arm import (
+from telesurg.shared.robots import arm_profile
+from telesurg.shared.robots.mh3f.modes import Frame, Jog, Phase
+from telesurg.shared.robots.mh3f.motions import (
     RCM_STOP_MM,
     RCM_STOP_SLACK_MM,
     Internal,
     TrocarMotions,
 )
-from telesurg.shared.robots import arm_profile
 
 
 def _motions() -> TrocarMotions:

@@ -27,8 +27,6 @@ import numpy as np
 import pytest
 from helpers import MasterHand, operator_command
 from telesurg.shared.bus import BusConfig, Node
-from telesurg.shared.kinematics.mh3f import MH3F
-from telesurg.shared.kinematics.trocar import rcm_error
 from telesurg.shared.messages import (
     CommandReply,
     JointSetpoint,
@@ -37,6 +35,8 @@ from telesurg.shared.messages import (
     SafetyEvent,
     SafetyState,
 )
+from telesurg.shared.robots.mh3f.kinematics import MH3F
+from telesurg.shared.robots.mh3f.trocar import rcm_error
 from telesurg.tools.bench.harness import Pipeline
 from telesurg.tools.experiment.jinno import STARTS
 
@@ -133,7 +133,7 @@ def site(
 ) -> Iterator[tuple[Pipeline, Node, Master, Record, Node]]:
     q = list(STARTS[request.param])
     overrides = {
-        "slave_control": [f"q_home={q}", "jog_speed_mm_s=40.0"],
+        "slave_control": [f"q_home={q}", "robot.jog_speed_mm_s=40.0"],
         "mapping": ["master_mode=virtual_trocar", "scale=0.5"],
     }
     with (

@@ -108,7 +108,7 @@ def idle_master(node: Node, stop: threading.Event) -> None:
 
 @pytest.fixture
 def console(tmp_path: Path) -> Iterator[Console]:
-    overrides = {"slave_control": [f"q_home={list(STARTS['start_a'])}", "jog_speed_mm_s=40.0"]}
+    overrides = {"slave_control": [f"q_home={list(STARTS['start_a'])}", "robot.jog_speed_mm_s=40.0"]}
     with (
         Pipeline(
             tmp_path / "logs", mirror=False, impair=False, master=True, probe=False, overrides=overrides
@@ -201,7 +201,7 @@ class RcmConsole(Console):
 
 @pytest.fixture
 def rcm_console(tmp_path: Path) -> Iterator[RcmConsole]:
-    overrides = {"slave_control": [f"q_home={list(STARTS['start_a'])}", "jog_speed_mm_s=40.0"]}
+    overrides = {"slave_control": [f"q_home={list(STARTS['start_a'])}", "robot.jog_speed_mm_s=40.0"]}
     with (
         Pipeline(
             tmp_path / "logs", mirror=False, impair=False, master=False, probe=False, overrides=overrides

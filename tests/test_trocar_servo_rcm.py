@@ -34,9 +34,9 @@ from telesurg.services.slave_control.arm import (
 )
 from telesurg.services.slave_control.backends import MujocoBackend
 from telesurg.services.slave_control.control import FollowController, Lease, Setpoint, SetpointInterpolator
-from telesurg.shared.kinematics.mh3f import MH3F, fk, ik
-from telesurg.shared.kinematics.trocar import insertion_depth, posture_adjust, rcm_error, trocar_ik
-from telesurg.shared.kinematics.trocar_limits import TROCAR_SPEED_FRACTION, clamped_trocar_ik
+from telesurg.shared.robots.mh3f.kinematics import MH3F, fk, ik
+from telesurg.shared.robots.mh3f.trocar import insertion_depth, posture_adjust, rcm_error, trocar_ik
+from telesurg.shared.robots.mh3f.trocar_limits import TROCAR_SPEED_FRACTION, clamped_trocar_ik
 from telesurg.tools.experiment.jinno import STARTS, TROCAR
 
 DT = 0.001  # s: the slave's period (MuJoCo step)

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from telesurg.shared.errors import IKError, KinematicsError
 from telesurg.shared.kinematics.transforms import FloatArray
-from telesurg.shared.kinematics.vip import (
+from telesurg.shared.robots.vip.kinematics import (
     EV_MAX,
     EV_MIN,
     VIP_ARM,
@@ -34,7 +34,7 @@ from telesurg.shared.kinematics.vip import (
 TOL = 1e-9
 GEOMS = [VIP_ARM, VIP_ARM1, VIP_ARM2]
 GEOM_IDS = ["base", "arm1", "arm2"]
-MODEL_DIR = pathlib.Path(__file__).resolve().parent.parent / "services" / "slave_control" / "models" / "vip"
+MODEL_DIR = pathlib.Path(__file__).resolve().parent.parent / "shared" / "robots" / "vip"
 
 
 def _random_q(rng: np.random.Generator, n: int, geom: VipArmGeometry = VIP_ARM) -> list[FloatArray]:
@@ -315,7 +315,7 @@ def test_pseudo_inverse_elbow_wanders_vip_elbow_does_not() -> None:
 
 
 # --------------------------------------------------------------------------------------------
-# MuJoCo model services/slave_control/models/vip
+# MuJoCo model shared/robots/vip
 # --------------------------------------------------------------------------------------------
 
 ARMS = (("arm1", VIP_ARM1), ("arm2", VIP_ARM2))

@@ -21,12 +21,11 @@ import pytest
 from conftest import wait_until
 from helpers import feed_master
 from telesurg.services.launcher import free_port
-from telesurg.services.mapping import MappingConfig
-from telesurg.services.mapping.joints import VipMapping
+from telesurg.services.mapping import MappingConfig, Pair
 from telesurg.shared.bus import BusConfig, Node, open_session
-from telesurg.shared.kinematics import vip
 from telesurg.shared.kinematics.elbow import elbow_move, off_line, tangent
 from telesurg.shared.messages import Command, Header, JointSetpoint, JointState, OperatingState
+from telesurg.shared.robots.vip import kinematics as vip
 
 H = Header("test", 0, 0)
 G = vip.VIP_ARM1
@@ -37,7 +36,7 @@ def _cmd(name: str, *args: str) -> Command:
 
 
 @pytest.fixture
-def rig() -> Iterator[tuple[VipMapping, list[JointSetpoint]]]:
+def rig() -> Iterator[tuple[Pair, list[JointSetpoint]]]:
     ep = f"tcp/127.0.0.1:{free_port()}"
     router = open_session(BusConfig(mode="router", listen=[ep]))
     bus = BusConfig(connect=[ep])
@@ -50,7 +49,7 @@ def rig() -> Iterator[tuple[VipMapping, list[JointSetpoint]]]:
             time.sleep(0.3)
             cfg = MappingConfig(mode="vip", model="vip", scale=0.5)
             cfg.validate()
-            arm = VipMapping(cfg, node, "m1", "arm1", threading.Event())
+            arm = Pair(cfg, node, "m1", "arm1", threading.Event())
             arm.on_slave_js(JointState(H, G.joint_names, G.home), "")
             arm.on_slave_state(OperatingState(H, "PAUSED", "joint", False, True, "", 0), "")
             yield arm, setpoints
@@ -58,11 +57,13 @@ def rig() -> Iterator[tuple[VipMapping, list[JointSetpoint]]]:
         router.close()  # type: ignore[no-untyped-call]
 
 
-def test_engage_after_set_vip_starts_at_the_slave(rig: tuple[VipMapping, list[JointSetpoint]]) -> None:
+def test_engage_after_set_vip_starts_at_the_slave(rig: tuple[Pair, list[JointSetpoint]]) -> None:
     arm, setpoints = rig
     home = G.home_q
     V = vip.select_vip(home, 0.05, G) + np.array([0.0, 0.0, 0.01])  # a VIP 10 mm above: the elbow moves
-    ok, why = arm._command(_cmd("set_vip", *(f"{c}={v * 1e3}" for c, v in zip("xyz", V, strict=True))))
+    ok, why = arm.strategy._command(
+        _cmd("set_vip", *(f"{c}={v * 1e3}" for c, v in zip("xyz", V, strict=True)))
+    )
     assert ok and "the elbow moves" in why, why
     feed_master(arm, (0.0, 0.0, 0.0), clutch=False)
     for i in range(4):
@@ -79,33 +80,33 @@ def test_engage_after_set_vip_starts_at_the_slave(rig: tuple[VipMapping, list[Jo
 
 
 def test_reallocate_vip_waits_for_the_elbow_jog_and_takes_the_measured_joints(
-    rig: tuple[VipMapping, list[JointSetpoint]],
+    rig: tuple[Pair, list[JointSetpoint]],
 ) -> None:
     arm, _ = rig
-    chain = arm.profile.elbow
+    chain = arm.strategy.profile.elbow
     assert chain is not None
     home = G.home_q
-    ok, why = arm._command(_cmd("reallocate_vip"))
+    ok, why = arm.strategy._command(_cmd("reallocate_vip"))
     assert ok, why  # the first VIP, from the home pose
     W = vip.fk(home, G).wrist
     moved = elbow_move(chain, home, W, 0.010 * tangent(chain, home, W, np.array([0.0, 0.0, 1.0])))
     arm.on_slave_state(OperatingState(H, "ENABLED", "joint", False, True, "slave-side motion", 0), "")
     arm.on_slave_js(JointState(H, G.joint_names, tuple(moved)), "")
-    ok, why = arm._command(_cmd("reallocate_vip"))
+    ok, why = arm.strategy._command(_cmd("reallocate_vip"))
     assert not ok and "moving" in why
     arm.on_slave_state(OperatingState(H, "PAUSED", "joint", False, True, "", 0), "")
-    ok, why = arm._command(_cmd("reallocate_vip"))
+    ok, why = arm.strategy._command(_cmd("reallocate_vip"))
     assert ok, why
     m = re.search(r"the elbow was ([0-9.]+) mm off the previous VIP line", why)
     assert m and 9.5 <= float(m.group(1)) <= 10.0, why  # 10 mm swung on the forearm sphere
-    assert arm.V is not None
-    np.testing.assert_allclose(arm.V, vip.select_vip(moved, 0.05, G), atol=1e-12)
-    assert off_line(vip.fk(moved, G).elbow, W, arm.V) < 1e-9
+    assert arm.strategy.V is not None
+    np.testing.assert_allclose(arm.strategy.V, vip.select_vip(moved, 0.05, G), atol=1e-12)
+    assert off_line(vip.fk(moved, G).elbow, W, arm.strategy.V) < 1e-9
 
 
-def test_scale_commands_in_vip_mode(rig: tuple[VipMapping, list[JointSetpoint]]) -> None:
+def test_scale_commands_in_vip_mode(rig: tuple[Pair, list[JointSetpoint]]) -> None:
     arm, _ = rig
-    r = arm.on_command(_cmd("set_scale", "value=0.2"))
+    r = arm.strategy.on_command(_cmd("set_scale", "value=0.2"))
     assert r.accepted and arm.scale == pytest.approx(0.2)
-    r = arm.on_command(_cmd("set_scale", "value=3"))
+    r = arm.strategy.on_command(_cmd("set_scale", "value=3"))
     assert not r.accepted and arm.scale == pytest.approx(0.2)

@@ -16,7 +16,6 @@ import numpy as np
 import pytest
 from helpers import operator_command
 from telesurg.shared.bus import BusConfig, Node
-from telesurg.shared.kinematics import vip
 from telesurg.shared.messages import (
     CartesianPose,
     CommandReply,
@@ -24,6 +23,7 @@ from telesurg.shared.messages import (
     JointState,
     SafetyEvent,
 )
+from telesurg.shared.robots.vip import kinematics as vip
 from telesurg.tools.bench.harness import Pipeline
 
 pytestmark = pytest.mark.process

@@ -36,7 +36,6 @@ import numpy as np
 import pytest
 from helpers import operator_command
 from telesurg.shared.bus import BusConfig, Node
-from telesurg.shared.kinematics import vip
 from telesurg.shared.kinematics.elbow import limit_margin, off_line
 from telesurg.shared.messages import (
     CartesianPose,
@@ -46,6 +45,7 @@ from telesurg.shared.messages import (
     SafetyEvent,
     TeleopState,
 )
+from telesurg.shared.robots.vip import kinematics as vip
 from telesurg.tools.bench.harness import Pipeline
 from telesurg.tools.experiment.jang import FIG9_TARGET_OFFSET_M, paper_vip
 

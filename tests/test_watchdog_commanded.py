@@ -12,11 +12,11 @@ import numpy as np
 from telesurg.services.watchdog import WatchdogConfig
 from telesurg.services.watchdog.commanded import CommandedCheck
 from telesurg.services.watchdog.logic import ArmSafety
-from telesurg.shared.kinematics.keepout import PatientBox, pose_problem, shaft_inside_m
-from telesurg.shared.kinematics.mh3f import fk, ik
-from telesurg.shared.kinematics.trocar import posture_adjust, rcm_error
 from telesurg.shared.messages import Header, JointState, OperatingState
 from telesurg.shared.robots import arm_profile
+from telesurg.shared.robots.mh3f.keepout import PatientBox, pose_problem, shaft_inside_m
+from telesurg.shared.robots.mh3f.kinematics import fk, ik
+from telesurg.shared.robots.mh3f.trocar import posture_adjust, rcm_error
 from telesurg.tools.experiment.jinno import STARTS
 
 PROFILE = arm_profile("mh3f", "arm1")

@@ -27,8 +27,6 @@ import pytest
 from helpers import operator_command
 from telesurg.services.watchdog import WatchdogConfig
 from telesurg.shared.bus import BusConfig, Node
-from telesurg.shared.kinematics.keepout import PatientBox, shaft_inside_m
-from telesurg.shared.kinematics.mh3f import fk, ik
 from telesurg.shared.messages import (
     CartesianPose,
     CommandReply,
@@ -39,6 +37,8 @@ from telesurg.shared.messages import (
     SafetyState,
 )
 from telesurg.shared.robots import arm_profile
+from telesurg.shared.robots.mh3f.keepout import PatientBox, shaft_inside_m
+from telesurg.shared.robots.mh3f.kinematics import fk, ik
 from telesurg.tools.bench.harness import Pipeline
 
 pytestmark = pytest.mark.process
@@ -141,7 +141,7 @@ def console(tmp_path: Path, request: pytest.FixtureRequest) -> Iterator[Console]
     case = getattr(request, "param", "")
     overrides = {
         # the slave's own keep-out misses the patient
-        "slave_control": [f"q_home={start_pose()}", "jog_speed_mm_s=20.0", *AWAY],
+        "slave_control": [f"q_home={start_pose()}", "robot.jog_speed_mm_s=20.0", *AWAY],
         # the control case (blind_watchdog): the watchdog's misses it too
         "watchdog": list(AWAY) if case == "blind_watchdog" else [],
     }

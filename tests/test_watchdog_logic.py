@@ -7,8 +7,8 @@ import pytest
 from telesurg.services.watchdog import WatchdogConfig
 from telesurg.services.watchdog.logic import ArmSafety
 from telesurg.shared.errors import ConfigError
-from telesurg.shared.kinematics import MH3F
 from telesurg.shared.messages import EStop, Header, JointSetpoint, MasterButtons, OperatingState
+from telesurg.shared.robots.mh3f.kinematics import MH3F
 
 NAMES = MH3F.joint_names
 Q0 = (0.0, 0.2, 0.3, 0.0, -0.6, 0.0)

@@ -3,9 +3,9 @@
 from __future__ import annotations
 
 import numpy as np
-from telesurg.services.slave_control.motion import jog_step
-from telesurg.services.slave_control.work_frame import CameraWorkFrame, ConfiguredWorkFrame
-from telesurg.shared.kinematics.mh3f import fk
+from telesurg.shared.kinematics.work_frame import CameraWorkFrame, ConfiguredWorkFrame
+from telesurg.shared.robots.mh3f.kinematics import fk
+from telesurg.shared.robots.mh3f.motion import jog_step
 
 Q = np.array([0.0, -0.2, 0.6, 0.0, -0.3, 0.0])
 

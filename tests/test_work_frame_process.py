@@ -118,7 +118,7 @@ def site(tmp_path: Path, request: pytest.FixtureRequest) -> Iterator[tuple[Pipel
             camera=getattr(request, "param", False),
             overrides={
                 "mapping": ['master_frame="work"', "scale=0.5"],
-                "slave_control": ["jog_speed_mm_s=20.0"],
+                "slave_control": ["robot.jog_speed_mm_s=20.0"],
             },
         ) as p,
         Node(BusConfig(connect=[p.spec.endpoint]), "local", "master_capture") as node,

@@ -1,42 +1,15 @@
-"""mapping: master pose → slave joint setpoints (Cartesian incremental mapping with clutch).
+"""mapping: master samples → slave joint setpoints, through the robot's mapping strategy, with clutch.
 
-dVRK-style: on engage (a clutch-pedal press), the current master pose and the current slave tip
-pose become the references; afterwards
-``p_slave = p_slave0 + scale · R_ms · (p_master − p_master0)``
-and the slave orientation follows the master's rotation increment (``orientation="follow"``) or
-stays as it was at engage (``"fixed"``). Engaging or re-clutching therefore never makes the slave
-jump. The target goes through the 6-axis IK (nearest branch, joint limits); an IK failure or a
-branch flip holds the last valid setpoint and publishes an event.
-
-The slave target is clamped into the workspace box (``workspace_min_mm``/``workspace_max_mm``);
-each clamping episode is counted and reported as an event naming the axis and the change. The
-watchdog's ``safety/<arm>/state`` carries a motion-scale factor (< 1 while DEGRADED, e.g. over
-the latency budget); the mapping multiplies its scale by it, re-anchoring so the change makes no
-jump.
-
-The service publishes ``slave/<arm>/servo_jp`` for every master sample (``follow`` tells the
-slave whether to track it), ``slave/<arm>/setpoint_cp`` (the Cartesian target, at ``target_hz``
-for display) while following, and each pair's teleop state (DISABLED / IDLE / ENGAGING /
-ENABLED / HOLDING, its reason and the scales in use) on ``mapping/<arm>/teleop_state`` at 10 Hz
-and on every change (:mod:`telesurg.services.mapping.engage`).
-
-Master modes (``master_mode``): ``pen`` maps the master position as the tip; ``virtual_trocar``
-(Jinno 2014, Fig. 7) treats it as the handle of a dummy forceps pivoting in a virtual trocar on the
-console and maps the dummy tip beyond the fulcrum (:func:`master_point`), so the surgeon feels the
-same fulcrum effect as with the real forceps in the patient.
-
-Work frame (``master_frame = "work"``): master motion is mapped in the laparoscope's view frame
-(``work_frame_rpy_deg``, as the slave's ``work`` jogs), the master's axes as the surgeon sees the
-picture (:mod:`telesurg.services.mapping.work_frame`); with ``camera`` set, the camera's pose
-replaces it once it arrives.
-
-Camera frame (``camera`` set, Cartesian mode): master motion is mapped in the endoscope's view
-frame, the dVRK convention — the master frame is the surgeon's view (x right, y up, z toward the
-surgeon), so moving the hand to the right moves the instrument to the right *in the picture*.
-``R_ms`` is then the camera's rotation (``camera/<cam>/measured_cp``, optical frame) times
-``diag(1, −1, −1)``; until the first camera pose arrives, and at a site without a camera, the
-fixed ``master_to_slave_rpy_deg`` applies. A camera move re-anchors at the current target, so it
-makes no jump (:meth:`ArmMapping.on_camera_pose`).
+One pair per ``pairs`` entry (``"master_arm:slave_arm"``): the engage/clutch state machine
+(:class:`~telesurg.services.mapping.engage.EngageGate`, the same for every robot: DISABLED / IDLE /
+ENGAGING / ENABLED / HOLDING, published on ``mapping/<arm>/teleop_state``) composes the strategy
+of ``mode`` that the robot registers (:attr:`telesurg.shared.robots.RobotSpec.strategies`: mh3f
+``cartesian``, plas ``all_joints``, vip ``vip``) or the generic ``position`` mapping
+(:mod:`.position`, any robot). The strategy maps the master stream it names
+(``master/<m>/measured_cp`` or ``measured_js``) and publishes ``slave/<arm>/servo_jp`` for every
+sample (``follow`` tells the slave whether to track it) and ``slave/<arm>/setpoint_cp`` while
+following. The watchdog's ``safety/<arm>/state`` scale multiplies the motion (re-anchored, no
+jump); the operator's scale commands come on ``mapping/<arm>/command``.
 
 Engage needs a *new* pedal press: after any disengage not made by the operator (master stream
 stale, slave holding, operator absent) the pedal must be released and pressed again.
@@ -53,27 +26,19 @@ import threading
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
-import numpy as np
 from telesurg.services.common import service_main
-from telesurg.services.mapping.camera_frame import view_rotation
 from telesurg.services.mapping.engage import EngageGate
-from telesurg.services.mapping.joints import AllJointsMapping, VipMapping
-from telesurg.services.mapping.master import master_point
 from telesurg.services.mapping.position import PositionMapping
-from telesurg.services.mapping.trocar import TrocarClamp
-from telesurg.services.mapping.work_frame import MASTER_FRAMES, master_rotation
 from telesurg.shared import robots
 from telesurg.shared.authority import Authority, AuthorityConfig, summary
-from telesurg.shared.bus import BusConfig, Node, Outlet, only
-from telesurg.shared.errors import AuthorityError, ConfigError, IKError
-from telesurg.shared.kinematics import matrix_from_quat, quat_from_matrix
-from telesurg.shared.kinematics.mh3f import MH3F, fk, ik
+from telesurg.shared.bus import BusConfig, Node, only
+from telesurg.shared.errors import AuthorityError, ConfigError
 from telesurg.shared.messages import (
     CartesianPose,
     Command,
     CommandReply,
-    JointSetpoint,
     JointState,
     MasterButtons,
     OperatingState,
@@ -81,12 +46,13 @@ from telesurg.shared.messages import (
     Sequencer,
 )
 from telesurg.shared.pairs import parse_pair
+from telesurg.shared.robots.api import CameraFollower, CommandServer, MappingStrategy, PairContext
+from telesurg.shared.teleop.work_frame import MASTER_FRAMES
 from telesurg.shared.timing import check_rt_priority, start_loop
 
 log = logging.getLogger(__name__)
 ORIENTATION_MODES = ("follow", "fixed")
 MASTER_MODES = ("pen", "virtual_trocar")
-MAPPING_MODES = ("cartesian", "all_joints", "vip", "position")
 
 
 @dataclass
@@ -96,15 +62,14 @@ class MappingConfig:
     site: str = "local"  # key prefix telesurg/<site>
     service: str = "mapping"  # instance id (liveliness alive/<service>, header src)
     pairs: list[str] = field(default_factory=lambda: ["m1:arm1"])  # "master_arm:slave_arm"
-    # cartesian: master pose → slave tip (6-axis IK / trocar IK; model mh3f); all_joints: master
-    # joints → slave joints (PLAS, model plas); vip: master pose → wrist, elbow by VIP (model vip);
-    # position: master tip increments → slave tip position by damped least squares (any robot);
-    # the robot's registry entry says which modes fit it
+    # the mapping mode, one the robot's registry entry lists (`telesurg robots`): the robot's own
+    # strategies (mh3f: cartesian; plas: all_joints; vip: vip) or the generic position (master tip
+    # increments → slave tip position by damped least squares, any robot)
     mode: str = "cartesian"
-    model: str = "mh3f"  # slave robot model, a name in the robot registry (shared/robots.py)
-    all_joints_mode: str = "factor"  # all_joints: factor (Table 6) or tip_exact (DLS Jacobian)
-    d1_speed_mm_s: float = 10.0  # all_joints: slave d1 speed while the master's joint-1 switch is on
-    vip_ev_mm: float = 50.0  # vip: |EV| of the VIP chosen from the joints (20–50 mm)
+    model: str = "mh3f"  # slave robot model, a name in the robot registry (shared/robots)
+    # the robot's own knobs (its config dataclass, shared/robots/<model>/config.py; e.g.
+    # --set robot.vip_ev_mm=40): checked against the robot's config at start
+    robot: dict[str, Any] = field(default_factory=dict)
     scale: float = 0.5  # slave translation / master translation (motion scaling), 0 < scale <= 2
     orientation: str = "follow"  # follow: apply master rotation increments; fixed: keep engage pose
     # pen: the master position is the tip; virtual_trocar (Jinno 2014, Fig. 7): it is the handle of
@@ -133,9 +98,6 @@ class MappingConfig:
     target_hz: float = 100.0  # Hz: setpoint_cp (for display; servo_jp carries every sample)
     workspace_min_mm: tuple[float, float, float] = (150.0, -600.0, -200.0)  # target box, base frame
     workspace_max_mm: tuple[float, float, float] = (1100.0, 600.0, 800.0)
-    # mm: insertion depth range of the tip beyond the trocar in trocar-mode master–slave (the
-    # target is clamped into it; the upper end leaves the non-shaft 150 mm of the forceps out)
-    trocar_depth_mm: tuple[float, float] = (10.0, 350.0)
     # Only these services may publish the inputs (others are rejected and counted; "" = anyone).
     master_source: str = "master_capture"
     slave_source: str = "slave_control"
@@ -163,18 +125,14 @@ class MappingConfig:
             raise ConfigError(
                 f"orientation {self.orientation!r} invalid; valid: {', '.join(ORIENTATION_MODES)}"
             )
-        if self.mode not in MAPPING_MODES:
-            raise ConfigError(f"mode {self.mode!r} invalid; valid: {', '.join(MAPPING_MODES)}")
         robot = robots.get(self.model)
         if self.mode not in robot.mapping_modes:
             raise ConfigError(
                 f"mapping mode {self.mode!r} does not fit robot model {self.model!r}; "
                 f"modes that fit it: {', '.join(robot.mapping_modes)}"
             )
-        if self.all_joints_mode not in ("factor", "tip_exact"):
-            raise ConfigError(f"all_joints_mode {self.all_joints_mode!r} invalid; valid: factor, tip_exact")
-        if not 20.0 <= self.vip_ev_mm <= 50.0:
-            raise ConfigError(f"vip_ev_mm={self.vip_ev_mm} outside [20, 50] (Jang 2014, Step 5)")
+        strategy_factory(self.model, self.mode)
+        robot.make_config(self.robot)
         if self.master_frame not in MASTER_FRAMES:
             raise ConfigError(
                 f"master_frame {self.master_frame!r} invalid; valid: {', '.join(MASTER_FRAMES)}"
@@ -183,256 +141,10 @@ class MappingConfig:
             raise ConfigError(f"master_mode {self.master_mode!r} invalid; valid: {', '.join(MASTER_MODES)}")
         if not 10.0 <= self.dummy_forceps_mm <= 1000.0:
             raise ConfigError(f"dummy_forceps_mm={self.dummy_forceps_mm} outside [10, 1000]")
-        if not 5.0 <= self.trocar_depth_mm[0] < self.trocar_depth_mm[1]:
-            raise ConfigError(f"trocar_depth_mm={self.trocar_depth_mm}: need 5 <= min < max")
         if any(a >= b for a, b in zip(self.workspace_min_mm, self.workspace_max_mm, strict=True)):
             raise ConfigError("workspace_min_mm must be below workspace_max_mm on every axis")
         for p in self.pairs:
             robot.arm(parse_pair(p)[1])
-
-
-class ArmMapping(EngageGate):
-    """Mapping state of one master → slave pair. Thread-safe: zenoh callbacks call in."""
-
-    def __init__(
-        self, cfg: MappingConfig, node: Node, master: str, slave: str, work: threading.Event
-    ) -> None:
-        super().__init__(cfg, node, master, slave, work, MH3F.joint_names)
-        self.geom = MH3F
-        self.r_ms = master_rotation(cfg)  # (a camera pose replaces it: on_camera_pose)
-        self.r_ms_rows: list[list[float]] = self.r_ms.tolist()
-        self.camera_poses = 0  # camera view-frame changes applied (on_camera_pose)
-        self.servo_out: Outlet = node.outlet(node.keys.slave(slave, "servo_jp"))
-        self.target_out: Outlet = node.outlet(node.keys.slave(slave, "setpoint_cp"), control=False)
-        self.target_period = 1.0 / cfg.target_hz
-        self.target_next = 0.0
-        self.q_last: np.ndarray | None = None
-        # anchor of the engagement: master point, slave tip (floats), B = rm0ᵀ r_msᵀ rs0 (the target
-        # rotation is r_ms R(q) B) and the slave rotation rs0 (see _set_ref)
-        self.ref: tuple[list[float], list[float], np.ndarray, np.ndarray] | None = None
-        self.ik_streak = 0
-        self.last_pose: CartesianPose | None = None  # last master sample mapped while following
-        self.last_target: np.ndarray | None = None  # its slave target (4×4)
-        # workspace box, m, as floats (the per-sample clamp in _target)
-        self.ws_lo = [v / 1e3 for v in cfg.workspace_min_mm]
-        self.ws_hi = [v / 1e3 for v in cfg.workspace_max_mm]
-        self._clamping = False
-        self.trocar_clamp = TrocarClamp(node, slave, self.geom, cfg.trocar_depth_mm)
-        # Newest master sample not yet mapped. The zenoh callback only stores it; the service
-        # loop maps it. If mapping ever falls behind, it maps the newest sample and skips the
-        # rest (counted in ``conflated``) instead of queueing latency.
-        self.pending: CartesianPose | None = None
-        self.last_stamp_ns = 0  # header stamp of the last servo_jp sent (wall clock, ns)
-        self.pending_rx_ns = 0  # wall clock (ns) when ``pending`` reached the callback
-        # cfg.latency_log: (origin, received, mapping began, published) ns per servo_jp sent
-        self.trace: np.ndarray | None = np.zeros((300_000, 4), dtype=np.int64) if cfg.latency_log else None
-        self.traced = 0
-
-    # -- inputs -----------------------------------------------------------------------
-    def on_safety_state(self, msg: SafetyState, key: str) -> None:
-        with self.lock:
-            if msg.scale == self.safety_scale:
-                return
-            old, self.safety_scale = self.safety_scale, msg.scale
-            self._rescaled()
-            self._publish_state()
-        self.node.event(
-            "scale",
-            f"motion scale {self.scale * old:.3g} → {self.scale * msg.scale:.3g} "
-            f"(safety {msg.state}{': ' + '; '.join(msg.causes) if msg.causes else ''})",
-            arm=self.slave,
-            severity="warning" if msg.scale < 1.0 else "info",
-        )
-
-    def on_camera_pose(self, msg: CartesianPose, key: str) -> None:
-        """The camera's pose: map in its view frame from now on, re-anchored (no jump)."""
-        r = view_rotation(msg)
-        with self.lock:
-            if np.allclose(r, self.r_ms, atol=1e-9):
-                return
-            first = self.camera_poses == 0
-            self.camera_poses += 1
-            self.r_ms = r
-            self.r_ms_rows = r.tolist()
-            self._rescaled()
-        if first or self.following:
-            self.node.event(
-                "camera_frame",
-                f"master motion mapped in camera {self.cfg.camera}'s view"
-                + (" (re-anchored while following)" if self.following else ""),
-                arm=self.slave,
-            )
-
-    def _rescaled(self) -> None:
-        """Re-anchor at the current target: a new scale applies to motion from here on (lock held)."""
-        if self.following and self.last_pose is not None and self.last_target is not None:
-            lp, lt = self.last_pose, self.last_target
-            self._set_ref(
-                master_point(self.cfg, lp.position),
-                matrix_from_quat(np.array(lp.orientation)),
-                lt[:3, 3].copy(),
-                lt[:3, :3].copy(),
-            )
-
-    def on_command(self, cmd: Command) -> CommandReply:
-        """``state``, ``scale_up``, ``scale_down``, ``set_scale value=`` (the operator's motion scale)."""
-        return self.scale_command(cmd, "")
-
-    def on_master_pose(self, msg: CartesianPose, key: str) -> None:
-        with self.lock:
-            self.master_rx = time.monotonic()
-
-            if self.pending is not None:
-                self.conflated += 1
-            self.pending = msg
-            self.pending_rx_ns = time.time_ns()
-        self.work.set()
-
-    def process(self) -> None:
-        """Map the newest master sample, if any (older unprocessed ones are skipped)."""
-        with self.lock:
-            msg, self.pending = self.pending, None
-            if msg is None:
-                return
-            rx_ns, begin_ns = self.pending_rx_ns, time.time_ns()
-            if self.want_engage and not self.following:
-                self._try_engage(msg)
-            sent = self.servo_out.sent
-            self._publish(msg)
-            tr = self.trace
-            if tr is not None and self.servo_out.sent > sent and self.traced < len(tr):
-                tr[self.traced] = (msg.header.stamp_ns, rx_ns, begin_ns, self.last_stamp_ns)
-                self.traced += 1
-
-    # -- internals (lock held) ------------------------------------------------------------
-    def _try_engage(self, pose: CartesianPose) -> None:
-        if not self._may_engage():
-            return
-        assert self.q_meas is not None
-        t_s0 = fk(self.q_meas, self.geom)
-        self._set_ref(
-            master_point(self.cfg, pose.position),
-            matrix_from_quat(np.array(pose.orientation)),
-            t_s0[:3, 3].copy(),
-            t_s0[:3, :3].copy(),
-        )
-        self.q_last = self.q_meas.copy()
-        self.trocar_clamp.reset(pose.header.stamp_ns)
-        self.last_pose = self.last_target = None
-        self.ik_streak = 0
-        k = self.scale * self.safety_scale
-        self._engaged_now(f"engaged {self.master} → {self.slave} at scale {k:.3g}")
-
-    def _set_ref(self, pm0: np.ndarray, rm0: np.ndarray, ps0: np.ndarray, rs0: np.ndarray) -> None:
-        """Anchor at (master point, master rotation, slave tip, slave rotation), kept in the form
-        :meth:`_target` uses for every sample: floats for the positions, ``B = rm0ᵀ r_msᵀ rs0`` so
-        the target rotation is ``r_ms R(q) B``."""
-        self.ref = (pm0.tolist(), ps0.tolist(), rm0.T @ self.r_ms.T @ rs0, rs0)
-
-    def _target(self, pose: CartesianPose) -> np.ndarray:
-        # Runs for every master sample: plain floats for the 3-vectors (numpy on 3 values costs
-        # several µs per operation), numpy only for the two 3×3 products.
-        assert self.ref is not None
-        pm, ps, b_rot, rs0 = self.ref
-        r = self.r_ms_rows
-        m = pose.position if self.cfg.master_mode == "pen" else master_point(self.cfg, pose.position).tolist()
-        k = self.scale * self.safety_scale
-        d0, d1, d2 = m[0] - pm[0], m[1] - pm[1], m[2] - pm[2]
-        p = [ps[i] + k * (r[i][0] * d0 + r[i][1] * d1 + r[i][2] * d2) for i in range(3)]
-        clamped = [min(max(v, lo), hi) for v, lo, hi in zip(p, self.ws_lo, self.ws_hi, strict=True)]
-        t = np.eye(4)
-        if clamped != p:
-            self.clamped += 1
-            if not self._clamping:
-                self._clamping = True
-                moved = ", ".join(
-                    f"{ax} {a * 1e3:.1f}→{b * 1e3:.1f} mm"
-                    for ax, a, b in zip("xyz", p, clamped, strict=True)
-                    if a != b
-                )
-                self.node.event(
-                    "clamped",
-                    f"target clamped into the workspace: {moved}",
-                    arm=self.slave,
-                    severity="warning",
-                )
-        elif self._clamping:
-            self._clamping = False
-            self.node.event("clamped", "target back inside the workspace", arm=self.slave)
-        t[:3, 3] = clamped
-        if self.cfg.orientation == "follow":
-            t[:3, :3] = self.r_ms @ matrix_from_quat(pose.orientation) @ b_rot
-        else:
-            t[:3, :3] = rs0
-        return t
-
-    def _publish(self, pose: CartesianPose) -> None:
-        if self.following:
-            target = self._target(pose)
-            assert self.q_last is not None
-            try:
-                st = self.slave_state
-                if st is not None and st.control_mode == "trocar":
-                    # trocar mode: the tip follows the master; the forceps pivots about the
-                    # trocar (remote centre of motion), its roll kept continuous; a target out of
-                    # reach, depth or joint speed is brought to the nearest feasible one
-                    tc = self.trocar_clamp.solve(
-                        target[:3, 3], np.array(st.trocar), self.q_last, pose.header.stamp_ns
-                    )
-                    q, target[:3, 3] = tc.q, tc.tip
-                else:
-                    q = ik(target, self.q_last, self.geom)
-                step = max(abs(a - b) for a, b in zip(q.tolist(), self.q_last.tolist(), strict=True))
-                if step > self.cfg.max_joint_step_rad:
-                    raise IKError(f"branch flip: joint step {step:.3f} rad")
-            except IKError as exc:
-                self.ik_failures += 1
-                self.ik_streak += 1
-                if self.ik_streak == 1:
-                    self.node.event(
-                        "ik_failure",
-                        f"holding last valid setpoint: {exc}",
-                        arm=self.slave,
-                        severity="warning",
-                    )
-            else:
-                if self.ik_streak:
-                    self.node.event(
-                        "ik_recovered",
-                        f"IK valid again after {self.ik_streak} samples",
-                        arm=self.slave,
-                    )
-                self.ik_streak = 0
-                self.q_last = q
-                self.last_pose, self.last_target = pose, target
-                now = time.monotonic()
-                if now >= self.target_next:
-                    self.target_next = max(self.target_next + self.target_period, now)
-                    h = self.target_out.header()
-                    quat = quat_from_matrix(target[:3, :3])
-                    self.target_out.put(CartesianPose(h, "base", _vec3(target[:3, 3]), _quat(quat)))
-        q_pub = self.q_last if self.q_last is not None else self.q_meas
-        if q_pub is None:
-            return
-        h = self.servo_out.header()
-        self.last_stamp_ns = h.stamp_ns
-        self.servo_out.put(
-            JointSetpoint(
-                h,
-                self.geom.joint_names,
-                tuple(q_pub.tolist()),
-                follow=self.following,
-                origin_ns=pose.header.stamp_ns,
-            )
-        )
-
-
-def _vec3(v: np.ndarray) -> tuple[float, float, float]:
-    return (float(v[0]), float(v[1]), float(v[2]))
-
-
-def _quat(q: np.ndarray) -> tuple[float, float, float, float]:
-    return (float(q[0]), float(q[1]), float(q[2]), float(q[3]))
 
 
 def guarded(
@@ -457,6 +169,50 @@ def guarded(
     return on_command
 
 
+#: The mapping service's own modes, for any robot that lists them (mode → strategy factory).
+GENERIC_MODES: dict[str, Callable[[PairContext], MappingStrategy]] = {"position": PositionMapping}
+
+
+def strategy_factory(model: str, mode: str) -> Callable[[PairContext], MappingStrategy]:
+    """The factory of ``mode``'s strategy for robot ``model``: the robot's own, else a generic one.
+
+    Raises:
+        ConfigError: the robot lists the mode but nothing maps it.
+    """
+    spec = robots.get(model)
+    make = spec.strategies.get(mode) or GENERIC_MODES.get(mode)
+    if make is None:
+        raise ConfigError(
+            f"robot model {model!r} lists mapping mode {mode!r} but registers no strategy for it"
+        )
+    return make
+
+
+class Pair(EngageGate):
+    """One master → slave pair: the engage state machine composing its mapping strategy
+    (:attr:`strategy`). Thread-safe: zenoh callbacks call in."""
+
+    def __init__(
+        self, cfg: MappingConfig, node: Node, master: str, slave: str, work: threading.Event
+    ) -> None:
+        names = robots.arm_profile(cfg.model, slave).joint_names
+        super().__init__(cfg, node, master, slave, work, names)
+        self.strategy: MappingStrategy = strategy_factory(cfg.model, cfg.mode)(self)
+
+    def on_master(self, msg: Any, key: str) -> None:
+        self.strategy.on_master(msg, key)
+
+    def on_safety_state(self, msg: SafetyState, key: str) -> None:
+        self.strategy.on_safety_state(msg, key)
+
+    def process(self) -> None:
+        """Map the newest master sample, if any (the service loop)."""
+        self.strategy.process()
+
+    def _rescaled(self) -> None:
+        self.strategy.rescaled()
+
+
 def run(cfg: MappingConfig, stop: threading.Event) -> None:
     """Map until ``stop``."""
     cfg.validate()
@@ -472,36 +228,20 @@ def run(cfg: MappingConfig, stop: threading.Event) -> None:
                 only(cfg.slave_source),
                 only(cfg.watchdog_source),
             )
-            a: ArmMapping | AllJointsMapping | VipMapping | PositionMapping
-            if cfg.mode == "position":
-                a = PositionMapping(cfg, node, master, slave, work)
+            a = Pair(cfg, node, master, slave, work)
+            st = a.strategy
+            stream, kind = st.MASTER_INPUT
+            node.subscribe(k.master(master, stream), kind, a.on_master, sources=m_src)
+            if isinstance(st, CommandServer):
+                node.serve(k.mapping_command(slave), Command, guarded(node, authority, slave, st.on_command))
+            if cfg.camera and isinstance(st, CameraFollower):
                 node.subscribe(
-                    k.master(master, "measured_cp"), CartesianPose, a.on_master_pose, sources=m_src
+                    k.camera(cfg.camera, "measured_cp"),
+                    CartesianPose,
+                    st.on_camera_pose,
+                    sources=only(cfg.camera_source),
+                    polled=True,
                 )
-                node.serve(k.mapping_command(slave), Command, guarded(node, authority, slave, a.on_command))
-            elif cfg.mode == "all_joints":
-                a = AllJointsMapping(cfg, node, master, slave, work)
-                node.subscribe(k.master(master, "measured_js"), JointState, a.on_master_js, sources=m_src)
-            elif cfg.mode == "vip":
-                a = VipMapping(cfg, node, master, slave, work)
-                node.subscribe(
-                    k.master(master, "measured_cp"), CartesianPose, a.on_master_pose, sources=m_src
-                )
-                node.serve(k.mapping_command(slave), Command, guarded(node, authority, slave, a.on_command))
-            else:
-                a = ArmMapping(cfg, node, master, slave, work)
-                node.subscribe(
-                    k.master(master, "measured_cp"), CartesianPose, a.on_master_pose, sources=m_src
-                )
-                node.serve(k.mapping_command(slave), Command, guarded(node, authority, slave, a.on_command))
-                if cfg.camera:
-                    node.subscribe(
-                        k.camera(cfg.camera, "measured_cp"),
-                        CartesianPose,
-                        a.on_camera_pose,
-                        sources=only(cfg.camera_source),
-                        polled=True,
-                    )
             # The other inputs are read by the service loop (Node.poll) right before it maps a
             # sample: no callback thread per message contending for the GIL with the mapping.
             sub = node.subscribe
@@ -535,8 +275,7 @@ def run(cfg: MappingConfig, stop: threading.Event) -> None:
                 for a in arms:
                     a.check_timeouts()
         for a in arms:
-            if isinstance(a, ArmMapping) and a.trace is not None:
-                np.save(cfg.latency_log, a.trace[: a.traced])
+            a.strategy.close()
             log.info(
                 "%s → %s: %d IK failures, %d samples skipped (conflated), %d targets clamped",
                 a.master,

@@ -42,12 +42,6 @@ import time
 from typing import TYPE_CHECKING
 
 import numpy as np
-from telesurg.services.mapping.scale import (
-    SCALE_COMMANDS,
-    WHILE_FOLLOWING,
-    follow_step_problem,
-    new_scale,
-)
 from telesurg.shared.messages import (
     Command,
     CommandReply,
@@ -57,6 +51,12 @@ from telesurg.shared.messages import (
     Sequencer,
     TeleopState,
     now_ns,
+)
+from telesurg.shared.teleop.scale import (
+    SCALE_COMMANDS,
+    WHILE_FOLLOWING,
+    follow_step_problem,
+    new_scale,
 )
 
 if TYPE_CHECKING:
@@ -243,7 +243,7 @@ class EngageGate:
 
     def scale_command(self, cmd: Command, describe: str) -> CommandReply:
         """Answer ``state``, ``scale_up``, ``scale_down``, ``set_scale value=`` (the operator's motion
-        scale, :mod:`~telesurg.services.mapping.scale`) for every mapping mode: a new scale takes
+        scale, :mod:`~telesurg.shared.teleop.scale`) for every mapping mode: a new scale takes
         effect through :meth:`_rescaled` (the mode re-anchors, so it makes no jump) and is
         published in the teleop state at once. ``describe`` leads the ``state`` reply."""
         with self.lock:

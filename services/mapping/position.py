@@ -24,35 +24,27 @@ apply; the watchdog's workspace does.
 
 from __future__ import annotations
 
-import threading
-from typing import TYPE_CHECKING
-
 import numpy as np
-from telesurg.services.mapping.joints import PoseJointBase
-from telesurg.shared.bus import Node
 from telesurg.shared.errors import KinematicsError
 from telesurg.shared.kinematics import solve_position
 from telesurg.shared.messages import CartesianPose, Command, CommandReply
-
-if TYPE_CHECKING:
-    from telesurg.services.mapping import MappingConfig
+from telesurg.shared.robots.api import PairContext
+from telesurg.shared.robots.joint_mapping import PoseJointStrategy
 
 #: [m] a target further than this from what the solver reached counts as out of reach (clamped).
 REACH_TOL = 1e-3
 
 
-class PositionMapping(PoseJointBase):
+class PositionMapping(PoseJointStrategy):
     """Master tip → slave tip position by damped least squares (see the module docstring)."""
 
-    def __init__(
-        self, cfg: MappingConfig, node: Node, master: str, slave: str, work: threading.Event
-    ) -> None:
-        super().__init__(cfg, node, master, slave, work)
+    def __init__(self, gate: PairContext) -> None:
+        super().__init__(gate)
         self.ik_streak = 0
 
     def on_command(self, cmd: Command) -> CommandReply:
         """``state``, ``scale_up``, ``scale_down``, ``set_scale value=`` (the operator's motion scale)."""
-        return self.scale_command(cmd, "position mapping, ")
+        return self.gate.scale_command(cmd, "position mapping, ")
 
     # -- logic (lock held)
     def _engaged(self) -> None:
@@ -60,35 +52,37 @@ class PositionMapping(PoseJointBase):
         self.ik_streak = 0
 
     def process(self) -> None:
-        with self.lock:
+        with self.gate.lock:
             msg, self.pending = self.pending, None
-            if self.want_engage and not self.following:
+            if self.gate.want_engage and not self.gate.following:
                 self._try_engage()
             if msg is None:
                 return
-            if self.following and self.q_cmd is not None:
+            if self.gate.following and self.q_cmd is not None:
                 self._follow(msg)
             self._put(msg.header.stamp_ns)
 
     def _follow(self, msg: CartesianPose) -> None:
         assert self.q_cmd is not None
-        pm = self.master_point(self.cfg, msg.position)
+        pm = self.master_point(self.gate.cfg, msg.position)
         try:
             if self.ref is None:
                 self.ref = (pm, self.profile.tip(self.q_cmd))
             pm0, p0 = self.ref
-            target = p0 + self.scale * self.safety_scale * (self.r_ms @ (pm - pm0))
+            target = p0 + self.gate.scale * self.gate.safety_scale * (self.r_ms @ (pm - pm0))
             sol = solve_position(self.profile, self.q_cmd, target, self.lower, self.upper)
         except (KinematicsError, ValueError, np.linalg.LinAlgError) as exc:
             self._hold(f"holding last valid setpoint: {exc}")
             return
         step = float(np.max(np.abs(sol.q - self.q_cmd)))
-        if step > self.cfg.max_joint_step_rad:
-            self._hold(f"holding last valid setpoint: joint step {step:.3f} > {self.cfg.max_joint_step_rad}")
+        if step > self.gate.cfg.max_joint_step_rad:
+            self._hold(
+                f"holding last valid setpoint: joint step {step:.3f} > {self.gate.cfg.max_joint_step_rad}"
+            )
             return
         if self.ik_streak:
-            self.node.event(
-                "ik_recovered", f"target valid again after {self.ik_streak} samples", arm=self.slave
+            self.gate.node.event(
+                "ik_recovered", f"target valid again after {self.ik_streak} samples", arm=self.gate.slave
             )
             self.ik_streak = 0
         self.q_cmd = sol.q
@@ -99,7 +93,7 @@ class PositionMapping(PoseJointBase):
         self._report_clamp(why)
 
     def _hold(self, text: str) -> None:
-        self.ik_failures += 1
+        self.gate.ik_failures += 1
         self.ik_streak += 1
         if self.ik_streak == 1:
-            self.node.event("ik_failure", text, arm=self.slave, severity="warning")
+            self.gate.node.event("ik_failure", text, arm=self.gate.slave, severity="warning")

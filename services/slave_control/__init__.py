@@ -12,11 +12,11 @@ setpoint validation, e-stop, engage, speed limit, the catch-up after a stall and
 ``measured_cp`` are stated once, in :mod:`telesurg.services.slave_control.arm`. A backend fault
 (link lost, controller fault or watchdog, shadow divergence) holds every arm like a revoked
 lease, with the fault as the reason, until it clears and a new engage comes. An arm whose robot
-has the trocar motion family (the MH3F) gets the slave-side motions of Jinno 2014 as its motion
-source (:mod:`telesurg.services.slave_control.trocar_arm`); an arm with an elbow (the VIP arms)
-gets the elbow (null-space) jog (:mod:`telesurg.services.slave_control.elbow_jog`); the others
-follow servo_jp only. Every arm follows servo_jp interpolated to the control rate on the master's
-clock (the trocar arm too: a step answered joint by joint by the servos leaves the trocar's RCM;
+registers slave-side motions gets its motion source from the registry
+(:attr:`~telesurg.shared.robots.RobotSpec.motions`: the MH3F's trocar modes, PTP, jog,
+teach/playback; the VIP's elbow jog); the others follow servo_jp only. Every arm follows
+servo_jp interpolated to the control rate on the master's clock (the trocar arm too: a step
+answered joint by joint by the servos leaves the trocar's RCM;
 ``arm.ServoFollow``).
 
 The control loop runs at the backend period (1 ms for MuJoCo, in real time: missed periods are
@@ -45,23 +45,22 @@ import threading
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 from telesurg.services.common import service_main
 from telesurg.services.slave_control.arm import CATCHUP, REPLAY_MAX_PERIODS, ArmCore, MotionSource
 from telesurg.services.slave_control.backends import SlaveBackend, SlaveReading
-from telesurg.services.slave_control.elbow_jog import ElbowJog
 from telesurg.services.slave_control.factory import make_backend
 from telesurg.services.slave_control.serial_backend import SerialBackendConfig
-from telesurg.services.slave_control.teach import TeachConfig
-from telesurg.services.slave_control.trocar_arm import TrocarMotions
-from telesurg.services.slave_control.work_frame import CameraWorkFrame, ConfiguredWorkFrame
 from telesurg.shared import robots
 from telesurg.shared.authority import AuthorityConfig
 from telesurg.shared.bus import BusConfig, Node, only
 from telesurg.shared.errors import ConfigError
+from telesurg.shared.kinematics.work_frame import CameraWorkFrame, ConfiguredWorkFrame
 from telesurg.shared.messages import CartesianPose
 from telesurg.shared.robots import arms_of
+from telesurg.shared.robots.api import MotionContext, ViewFrameUser
 from telesurg.shared.timing import CycleTimer, check_rt_priority, start_loop
 
 log = logging.getLogger(__name__)
@@ -75,9 +74,12 @@ class SlaveControlConfig:
     service: str = "slave_control"  # instance id (liveliness alive/<service>, header src)
     arm: str = "arm1"  # slave arm id in keys slave/<arm>/...
     backend: str = "mujoco"  # valid: mujoco, serial (a real arm's servo controller, docs/hardware.md)
-    # robot model (services/slave_control/models/<model>): mh3f (one forceps arm, trocar modes);
-    # plas, vip: two joint-space arms arm1/arm2 in one process (one arm core each, see arm.py)
+    # robot model, a name in the robot registry (shared/robots/<model>): mh3f (one forceps arm,
+    # trocar modes); plas, vip: two joint-space arms arm1/arm2 in one process (one arm core each)
     model: str = "mh3f"
+    # the robot's own knobs (its config dataclass, shared/robots/<model>/config.py; e.g.
+    # --set robot.jog_speed_mm_s=20): checked against the robot's config at start
+    robot: dict[str, Any] = field(default_factory=dict)
     # rad / m: MuJoCo start pose, every joint of the model ([] = the model's "home" keyframe, else
     # each arm's home: the MH3F's tip at (835, 0, 301) mm, forceps pitched 29° down)
     q_home: tuple[float, ...] = ()
@@ -108,14 +110,6 @@ class SlaveControlConfig:
     # rad: while following, a setpoint farther than this from the previous one is refused (a jump)
     max_setpoint_step_rad: float = 0.1
     setpoint_source: str = "mapping"  # only this service may publish servo_jp for this arm
-    # mm, base frame: the trocar (the scene's trocar site). The RCM error and insertion depth in
-    # operating_state are measured against it from the simulated arm's tip pose.
-    trocar_mm: tuple[float, float, float] = (500.0, 0.0, 200.0)
-    trocar_taught: bool = True  # the configured trocar counts as taught (teach_trocar replaces it)
-    # mm, base frame: the patient's body (the mh3f scene's torso under the drape). Every slave-side
-    # motion of the trocar arm is refused / stopped where the forceps would cross it outside the
-    # trocar, and every followed servo_jp step is clamped at its surface
-    # (shared/kinematics/keepout.py); the entry must be within 5 mm of the trocar
     # deg, roll/pitch/yaw of the work jog frame (the laparoscope's view: x image right, y image
     # down, z into the image) in the base frame; default: looking down, patient's head (+x) up
     work_frame_rpy_deg: tuple[float, float, float] = (180.0, 0.0, -90.0)
@@ -124,20 +118,15 @@ class SlaveControlConfig:
     # work_frame_rpy_deg; telesurg up sets it when a camera runs)
     camera: str = ""
     camera_source: str = "camera"  # the only publisher accepted on camera/<cam>/measured_cp
+    # mm, base frame: the patient's body (the mh3f scene's torso under the drape). Every slave-side
+    # motion of the trocar arm is refused / stopped where the forceps would cross it outside the
+    # trocar, and every followed servo_jp step is clamped at its surface
+    # (shared/robots/mh3f/keepout.py); the entry must be within 5 mm of the trocar
     # (default: the torso (260, -170, 136)-(740, 170, 196) mm with 5 mm on every side and 6 mm below,
     # and the top 2 mm under the trocar: the arm lags its command (a PTP within 0.8 mrad of its
     # joint line, docs/trocar.md), and a path is checked at 0.005 rad steps)
     patient_box_min_mm: tuple[float, float, float] = (255.0, -175.0, 130.0)
     patient_box_max_mm: tuple[float, float, float] = (745.0, 175.0, 198.0)
-    jog_speed_mm_s: float = 10.0  # mm/s: Cartesian jog, insert/remove and elbow (VIP) jog speed
-    jog_joint_speed_deg_s: float = 5.0  # deg/s: joint jog speed
-    ptp_speed_fraction: float = 0.2  # PTP moves (posture, playback) at this fraction of the joint limits
-    playback_speed_mm_s: float = 20.0  # mm/s: tip speed of a playback in trocar mode
-    playback_dwell_s: float = 0.3  # s: the arm rests this long at each taught point of a playback
-    # JSON file of taught trocars and programs ("" = kept in memory only); loaded at start, so a
-    # taught trocar (the current one) survives a restart
-    state_file: str = ""
-    teach: TeachConfig = field(default_factory=TeachConfig)  # direct-teach admittance
     # .npy written at exit: one row per setpoint the control loop applied (origin_ns of the master
     # sample, the setpoint's stamp, the wall time the loop first used it, the wall time the backend
     # stepped that period's command, the master time its interpolated reference played, ns; 0 =
@@ -165,17 +154,10 @@ class SlaveControlConfig:
     bus: BusConfig = field(default_factory=BusConfig)  # zenoh session
 
 
-def motion_family(model: str) -> str:
-    """The slave motion family of robot ``model``, from the robot registry
-    (:attr:`~telesurg.shared.robots.RobotSpec.slave_family`): ``"trocar"`` (a 6-axis forceps arm
-    with the trocar control modes, PTP, jog, teach/playback: :mod:`.trocar_arm`) or ``"joint"``
-    (arms that follow servo_jp only, interpolated to the control rate)."""
-    return robots.get(model).slave_family
-
-
 def make_arms(cfg: SlaveControlConfig, backend: SlaveBackend) -> list[ArmCore]:
     """One arm core per arm of ``cfg.model`` on ``backend`` (after it was entered)."""
-    family = motion_family(cfg.model)
+    spec = robots.get(cfg.model)
+    spec.make_config(cfg.robot)  # the robot's knobs, checked before anything moves
     names = list(backend.joint_names)
     cores = []
     for p in arms_of(cfg.model, cfg.arm):
@@ -183,22 +165,21 @@ def make_arms(cfg: SlaveControlConfig, backend: SlaveBackend) -> list[ArmCore]:
         if missing:
             raise ConfigError(f"model {cfg.model} has no joints {missing} for arm {p.arm}")
         motion: MotionSource | None = None
-        if family == "trocar":
-            motion = TrocarMotions(cfg, p, getattr(backend, "push", None))
-        elif p.elbow is not None:  # an arm with an elbow (VIP): the elbow (null-space) jog
-            motion = ElbowJog(cfg, p)
+        if spec.motions is not None:  # the robot's slave-side motions (shared/robots/<model>)
+            motion = spec.motions(MotionContext(cfg, p, getattr(backend, "push", None)))
         idx = [names.index(j) for j in p.model_joints]
         contiguous = idx == list(range(idx[0], idx[0] + len(idx)))
         index = slice(idx[0], idx[0] + len(idx)) if contiguous else np.array(idx)
         # every arm interpolates its setpoints (the trocar arm too: its servos must never see a
-        # step, see arm.ServoFollow); the trocar arm makes up stalls (arm.CATCHUP): the joint-space
-        # arms keep their timeline (with the catch-up the PLAS slave left its commanded path)
-        catchup = CATCHUP if family == "trocar" else 1.0
+        # step, see arm.ServoFollow); a robot with catch_up (the MH3F) makes up stalls
+        # (arm.CATCHUP): the joint-space arms keep their timeline (with the catch-up the PLAS
+        # slave left its commanded path)
+        catchup = CATCHUP if spec.catch_up else 1.0
         cores.append(ArmCore(p, index, cfg, backend.dt, motion=motion, interpolate=True, catchup=catchup))
     return cores
 
 
-def follow_camera(node: Node, cfg: SlaveControlConfig, motion: TrocarMotions) -> None:
+def follow_camera(node: Node, cfg: SlaveControlConfig, motion: ViewFrameUser) -> None:
     """``work`` jogs of ``motion`` in the view of camera ``cfg.camera`` (its pose stream, read at
     the loop's poll); ``work_frame_rpy_deg`` until its first pose. The last pose holds however old
     (as in the mapping): the camera's pose changes only when it is moved, and a move is published
@@ -235,7 +216,7 @@ def run(cfg: SlaveControlConfig, stop: threading.Event) -> None:
         arms = make_arms(cfg, backend)
         for a in arms:
             a.connect(node)
-            if cfg.camera and isinstance(a.motion, TrocarMotions):
+            if cfg.camera and isinstance(a.motion, ViewFrameUser):
                 follow_camera(node, cfg, a.motion)
         servo_streams = [node.streams.get(k.slave(a.arm, "servo_jp")) for a in arms]
         # Sub-rate tasks run in different cycles (phases 0-3 below: with these periods of 4, 10,

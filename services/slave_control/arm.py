@@ -71,7 +71,7 @@ import logging
 import threading
 import time
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Protocol
+from typing import TYPE_CHECKING
 
 import numpy as np
 from telesurg.services.slave_control.control import (
@@ -83,7 +83,6 @@ from telesurg.services.slave_control.control import (
 )
 from telesurg.shared.authority import Authority, summary
 from telesurg.shared.errors import AuthorityError
-from telesurg.shared.kinematics.transforms import quat_from_matrix
 from telesurg.shared.limits import limit_step
 from telesurg.shared.messages import (
     CartesianPose,
@@ -97,12 +96,15 @@ from telesurg.shared.messages import (
     SafetyLease,
     Sequencer,
 )
+from telesurg.shared.robots.api import ArmReading, AttachedSource, MotionError, MotionSource
 
 if TYPE_CHECKING:
     from telesurg.services.slave_control import SlaveControlConfig
     from telesurg.services.slave_control.backends import SlaveReading
     from telesurg.shared.bus import Node, Outlet
     from telesurg.shared.robots import ArmProfile
+
+__all__ = ["ArmCore", "ArmReading", "AttachedSource", "MotionError", "MotionSource", "ServoFollow"]
 
 log = logging.getLogger(__name__)
 
@@ -126,128 +128,6 @@ PENDING_MAX = 256
 #: follows through (a lease lives 250 ms), so a paused timeline always resumes on kept setpoints
 #: (a timeline behind by more, after several stalls, keeps its unplayed ones: up to 4 windows).
 INTERP_WINDOW = 300
-
-
-class MotionError(Exception):
-    """A slave-side motion cannot go on (a joint limit, an unreachable pose): it is stopped."""
-
-
-@dataclass
-class ArmReading:
-    """One arm's share of a backend reading, and its measured controlled point.
-
-    Attributes:
-        position, velocity, effort: the arm's joints (rad or m, rad/s or m/s, N·m or A).
-        profile: the arm (its forward kinematics gives :attr:`tip_pose`).
-        external_torque: estimated external joint torques, N·m, or None.
-        fault: the backend's fault ("" = none).
-    """
-
-    position: np.ndarray
-    velocity: np.ndarray
-    effort: np.ndarray
-    profile: ArmProfile
-    external_torque: np.ndarray | None = None
-    fault: str = ""
-    _pose: np.ndarray | None = None
-
-    @property
-    def tip_pose(self) -> np.ndarray:
-        """(4, 4) the controlled point's pose from the FK of ``position``, m, base frame
-        (computed when first asked: the control period itself does not need it)."""
-        if self._pose is None:
-            self._pose = self.profile.pose(self.position)
-        return self._pose
-
-    @property
-    def tip_position(self) -> np.ndarray:
-        """m, base frame, (3,)."""
-        out: np.ndarray = self.tip_pose[:3, 3]
-        return out
-
-    @property
-    def tip_quat(self) -> tuple[float, float, float, float]:
-        """Orientation of the controlled point, unit quaternion (x, y, z, w)."""
-        x, y, z, w = quat_from_matrix(self.tip_pose[:3, :3]).tolist()
-        return (x, y, z, w)
-
-
-class AttachedSource:
-    """The :meth:`MotionSource.attach` half every slave-side motion source shares: it keeps the
-    core it is attached to, and :attr:`_core` returns it (an error before :meth:`attach`)."""
-
-    core: ArmCore | None = None
-
-    def attach(self, core: ArmCore) -> None:
-        self.core = core
-
-    @property
-    def _core(self) -> ArmCore:
-        assert self.core is not None, "attach() first"
-        return self.core
-
-
-class MotionSource(Protocol):
-    """A slave-side motion of one arm (trocar modes with PTP, jog, teach/playback, ...).
-
-    The core calls every method with its lock held except :meth:`next`, :meth:`braking`,
-    :meth:`measure` and :meth:`command` (which take :attr:`ArmCore.lock` themselves where they
-    need it).
-    """
-
-    def attach(self, core: ArmCore) -> None:
-        """The core this source drives (its lock, e-stop and node)."""
-        ...
-
-    def active(self) -> bool:
-        """A slave-side motion is commanded now (it, not servo_jp, drives the arm)."""
-        ...
-
-    def blocks_following(self) -> str:
-        """Why master-slave following is not allowed now ("" = allowed)."""
-        ...
-
-    def next(self, q_cmd: np.ndarray, reading: ArmReading, dt: float) -> np.ndarray:
-        """The joint target of this period (the core rate-limits it); raise :class:`MotionError`
-        to stop the motion, return ``q_cmd`` to stay."""
-        ...
-
-    def reached(self, q_out: np.ndarray, reading: ArmReading) -> None:
-        """After the rate limit: the command sent this period (completion events)."""
-        ...
-
-    def stop(self, reason: str) -> None:
-        """Cancel the motion (lease lost, e-stop, fault); the operator must command it again."""
-        ...
-
-    def braking(self, q_cmd: np.ndarray, dt: float, allowed: bool) -> np.ndarray | None:
-        """After a stop: this period's target of the stopped motion's controlled stop (a joint PTP
-        ramps its speed down along its checked path), or None: stand still. ``allowed`` False
-        (e-stop, fault) drops it."""
-        ...
-
-    def measure(self, reading: ArmReading, q_cmd: np.ndarray) -> None:
-        """Sub-rate (100 Hz) update from the measurements (mode machine, events)."""
-        ...
-
-    def follow_keepout(self, q_from: np.ndarray, q_to: np.ndarray) -> tuple[np.ndarray, str]:
-        """The followed step ``q_from → q_to`` (one period of ``servo_jp``, any source) clamped
-        by the arm's keep-out (the patient's body): the joints allowed and why it was clamped
-        ("" = not). Called from the control loop without the lock."""
-        ...
-
-    def command(self, cmd: Command) -> tuple[bool, str]:
-        """Answer an operator command for this arm."""
-        ...
-
-    @property
-    def control_mode(self) -> str:
-        """``operating_state.control_mode``."""
-        ...
-
-    def state_fields(self) -> tuple[float, tuple[float, float, float]]:
-        """(RCM error, mm; trocar, m base frame) for ``operating_state``."""
-        ...
 
 
 @dataclass

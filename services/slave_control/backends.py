@@ -18,6 +18,7 @@ from typing import Any, Protocol
 
 import numpy as np
 from telesurg.shared.errors import ConfigError
+from telesurg.shared.robots.api import PUSH_POINTS
 
 
 @dataclass(frozen=True)
@@ -73,10 +74,6 @@ class SlaveReading:
     # controller watchdog, shadow divergence. Non-empty → the arm cores hold (arm.FaultHold).
     fault: str = ""
     divergence: ShadowDivergence | None = None  # vs the MuJoCo shadow, if one runs
-
-
-#: Where the simulated hand can push the arm.
-PUSH_POINTS = ("tip", "wrist")
 
 
 class SlaveBackend(Protocol):

@@ -226,7 +226,7 @@ class ArmWatch:
         self.safety = ArmSafety(
             arm, cfg.policy(arm), profile.joint_names, tip_of=profile.tip, rule_settings=cfg.rules
         )
-        keepout = robot_spec(cfg.model).slave_family == "trocar"  # the forceps arm and its patient
+        keepout = robot_spec(cfg.model).patient_keepout  # the forceps arm and its patient
         self.commanded = CommandedCheck(
             self.safety,
             cfg.patient_box_min_mm if keepout else None,

@@ -13,7 +13,7 @@ rules of followed setpoints (:meth:`~telesurg.services.watchdog.logic.ArmSafety.
   a motion that starts with the tip outside the box (an arm started there) may move — back in —
   but not further out (the tip's distance outside may not grow by more than
   :data:`FURTHER_OUT_TOL_M`); leaving the box is a fault at once;
-* the **patient keep-out** (robots of the trocar family, :mod:`telesurg.shared.kinematics.keepout`):
+* the **patient keep-out** (robots of the trocar family, :mod:`telesurg.shared.robots.mh3f.keepout`):
   the forceps shaft may enter the patient box only through the trocar the slave reports
   (``operating_state.trocar``; none known yet: no entry anywhere). The joint path between two
   consecutive samples is checked at 0.005 rad steps by forward kinematics, so a sweep through
@@ -42,8 +42,8 @@ from dataclasses import dataclass, field
 import numpy as np
 from telesurg.services.watchdog.logic import ArmSafety, outside_limits
 from telesurg.shared.errors import KinematicsError
-from telesurg.shared.kinematics.keepout import PatientBox, path_problem, pose_problem, shaft_inside_m
 from telesurg.shared.messages import JointState, OperatingState
+from telesurg.shared.robots.mh3f.keepout import PatientBox, path_problem, pose_problem, shaft_inside_m
 
 #: s: samples further apart than this (source time) belong to different motions: the path between
 #: them is not checked (the arm held still in between), only each sample.

@@ -1,6 +1,6 @@
 """Elbow (null-space) motion of a redundant arm whose controlled point hangs from an elbow.
 
-For an arm like Jang 2014's (:mod:`telesurg.shared.kinematics.vip`) the controlled point W (the
+For an arm like Jang 2014's (:mod:`telesurg.shared.robots.vip.kinematics`) the controlled point W (the
 wrist) hangs a rigid forearm of length ``|EW|`` from the elbow E, and the joints are fixed by E
 and W together. With W held still, the elbow can still move on the sphere of radius ``|EW|``
 about W: the arm's null space (two-dimensional for the five-joint VIP arm). Step 2 of the paper's
@@ -63,7 +63,7 @@ class ElbowChain:
         wrist: joints ``(n,)`` → controlled point W ``(3,)`` [m], world frame.
         solve: (E ``(3,)``, W ``(3,)``, joints to stay near ``(n,)``) → joints ``(n,)`` within the
             joint limits; raises :class:`~telesurg.shared.errors.IKError` (a
-            :class:`~telesurg.shared.kinematics.vip.JointLimitError` names the joint) otherwise.
+            :class:`~telesurg.shared.robots.vip.kinematics.JointLimitError` names the joint) otherwise.
         lower, upper: joint limits (rad, m for prismatic joints).
     """
 

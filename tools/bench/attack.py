@@ -63,7 +63,6 @@ from typing import Any
 
 import numpy as np
 from telesurg.services.launcher import deploy_dir
-from telesurg.services.mapping.scale import WHILE_FOLLOWING
 from telesurg.shared import jsonio
 from telesurg.shared.bus import BusConfig, Node
 from telesurg.shared.errors import MessageError
@@ -80,6 +79,7 @@ from telesurg.shared.messages import (
     SafetyState,
     TeleopState,
 )
+from telesurg.shared.teleop.scale import WHILE_FOLLOWING
 from telesurg.tools.bench.harness import Pipeline, now_ns
 from telesurg.tools.bench.machine import machine, now
 
@@ -696,7 +696,7 @@ def _console_scale_follow(a: Attacker) -> dict[str, Any]:
 
 def answered_following(reply: str) -> bool:
     """Whether the mapping's answer to a scale change says the pair was following when it was
-    made (:data:`~telesurg.services.mapping.scale.WHILE_FOLLOWING`; the observer's view of the
+    made (:data:`~telesurg.shared.teleop.scale.WHILE_FOLLOWING`; the observer's view of the
     teleop state may lag on a busy host, the answer cannot)."""
     return WHILE_FOLLOWING in reply
 

@@ -33,7 +33,6 @@ from telesurg.shared import jsonio
 from telesurg.shared.auth import PUT, Signer
 from telesurg.shared.bus import Node
 from telesurg.shared.errors import MessageError
-from telesurg.shared.kinematics import MH3F
 from telesurg.shared.messages import (
     CartesianPose,
     EStop,
@@ -48,6 +47,7 @@ from telesurg.shared.messages import (
     decode,
     decode_as,
 )
+from telesurg.shared.robots.mh3f.kinematics import MH3F
 from telesurg.tools.bench.fuzzgen import FUZZ_KINDS, always_invalid, fuzz_cases, valid_template
 from telesurg.tools.bench.harness import Pipeline
 from telesurg.tools.bench.machine import machine, now

@@ -1,7 +1,7 @@
 """Vectorised (numpy) forms of the MH3F 6-axis IK and the trocar-mode IK: many targets per call.
 
-The same closed form as :func:`telesurg.shared.kinematics.mh3f.ik` and
-:func:`telesurg.shared.kinematics.trocar.trocar_ik`, evaluated on arrays: every target's 8 branches at
+The same closed form as :func:`telesurg.shared.robots.mh3f.kinematics.ik` and
+:func:`telesurg.shared.robots.mh3f.trocar.trocar_ik`, evaluated on arrays: every target's 8 branches at
 once, each joint's ``2πk`` variant inside its limits nearest the reference, then the branch
 nearest the reference (plain L2, the first on a tie, as the scalar solvers). For offline work —
 workspace maps, trajectory checks, the benchmark — where a Python call per target costs more than
@@ -19,7 +19,7 @@ from __future__ import annotations
 import numpy as np
 import numpy.typing as npt
 from telesurg.shared.errors import KinematicsError
-from telesurg.shared.kinematics.mh3f import (
+from telesurg.shared.robots.mh3f.kinematics import (
     MH3F,
     SHOULDER_SINGULAR_TOL,
     WRIST_SINGULAR_TOL,
@@ -27,7 +27,7 @@ from telesurg.shared.kinematics.mh3f import (
     _params,
     fk,
 )
-from telesurg.shared.kinematics.trocar import _POINT_TOL, MIN_TIP_DEPTH
+from telesurg.shared.robots.mh3f.trocar import _POINT_TOL, MIN_TIP_DEPTH
 
 TWO_PI = 2.0 * np.pi
 

@@ -685,10 +685,11 @@ def _time_batch(fn: Callable[[], Any], min_s: float = 0.3) -> float:
 
 def ik(a: argparse.Namespace) -> dict[str, Any]:
     from telesurg.shared.errors import IKError
-    from telesurg.shared.kinematics import plas, vip
-    from telesurg.shared.kinematics.mh3f import MH3F, fk
-    from telesurg.shared.kinematics.mh3f import ik as ik6
-    from telesurg.shared.kinematics.trocar import posture_adjust, rcm_error, trocar_ik
+    from telesurg.shared.robots.mh3f.kinematics import MH3F, fk
+    from telesurg.shared.robots.mh3f.kinematics import ik as ik6
+    from telesurg.shared.robots.mh3f.trocar import posture_adjust, rcm_error, trocar_ik
+    from telesurg.shared.robots.plas import kinematics as plas
+    from telesurg.shared.robots.vip import kinematics as vip
     from telesurg.tools.bench.ik_batch import ik_batch, trocar_ik_batch
 
     rng = np.random.default_rng(0)
@@ -790,8 +791,8 @@ def _mink_baseline(tips: list[np.ndarray], trocar: np.ndarray, q0: np.ndarray, n
             "note": "generic IK skipped: pip install -e '.[bench]' for mink",
         }
     from telesurg.services.slave_control.models import model_path
-    from telesurg.shared.kinematics.mh3f import MH3F, fk
-    from telesurg.shared.kinematics.trocar import rcm_error
+    from telesurg.shared.robots.mh3f.kinematics import MH3F, fk
+    from telesurg.shared.robots.mh3f.trocar import rcm_error
 
     model = mujoco.MjModel.from_xml_path(str(model_path("mh3f")))
     cfg = mink.Configuration(model)

@@ -1,7 +1,7 @@
 """Jang 2014's evaluation of Virtual-Incision-Port (VIP) control, in kinematics and in MuJoCo.
 
-Reproduces, with the arm of :mod:`telesurg.shared.kinematics.vip` and the two-arm model
-``services/slave_control/models/vip``:
+Reproduces, with the arm of :mod:`telesurg.shared.robots.vip.kinematics` and the two-arm model
+``shared/robots/vip``:
 
 * **Fig. 6** — a reference wrist trajectory (a 20 mm circle around the Table I initial wrist,
   with a ±5 mm depth swing) resolved with the paper's VIP (0.0420, -0.0554, -0.0803) m: the wrist
@@ -14,12 +14,13 @@ Reproduces, with the arm of :mod:`telesurg.shared.kinematics.vip` and the two-ar
 * **Fig. 9** — a target outside the working area of one VIP (the IK violates Table I) becomes
   reachable after reallocating the VIP with the paper's selection procedure.
 * **The central claim** — elbow excursion with VIP control against the pseudo-inverse Jacobian
-  resolution (:func:`~telesurg.shared.kinematics.vip.pinv_step`) on the same wrist trajectory.
+  resolution (:func:`~telesurg.shared.robots.vip.kinematics.pinv_step`) on the same wrist trajectory.
 
 The paper's VIP in the frame of ``vip.py``
 -------------------------------------------
 The paper gives the VIP in its "base coordinates": origin at the RCM point R, z1 up (the q1 axis).
-:data:`~telesurg.shared.kinematics.vip.VIP_ARM` uses the same origin and z1, but the direction of x1 (the
+:data:`~telesurg.shared.robots.vip.kinematics.VIP_ARM` uses the same origin and z1, but the direction of x1
+(the
 zero of q1) is a convention the paper never shows, and with the chosen α, β, forearm and Table I
 our arm can only put its elbow at azimuths 72°-172° about z1, never at the paper's -52.8°. The
 printed VIP is therefore turned about z1 by :data:`VIP_ROTATION_DEG` (the angle that brings it
@@ -53,7 +54,7 @@ from telesurg.services.slave_control.control import SetpointInterpolator
 from telesurg.services.slave_control.models import model_path
 from telesurg.shared import jsonio
 from telesurg.shared.kinematics.transforms import FloatArray, rot_z
-from telesurg.shared.kinematics.vip import (
+from telesurg.shared.robots.vip.kinematics import (
     EV_DEFAULT,
     EV_MAX,
     EV_MIN,

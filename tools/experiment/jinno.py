@@ -40,12 +40,12 @@ from typing import Any
 
 import numpy as np
 from telesurg.services.mapping import MappingConfig
-from telesurg.services.mapping.master import master_point
 from telesurg.shared import jsonio
 from telesurg.shared.bus import BusConfig, Node
-from telesurg.shared.kinematics.mh3f import MH3F, fk, jacobian
-from telesurg.shared.kinematics.trocar import posture_adjust, rcm_error
 from telesurg.shared.messages import CartesianPose, MasterButtons
+from telesurg.shared.robots.mh3f.kinematics import MH3F, fk, jacobian
+from telesurg.shared.robots.mh3f.trocar import posture_adjust, rcm_error
+from telesurg.shared.teleop.master import master_point
 from telesurg.tools.experiment.client import ArmClient, ArmLog
 
 log = logging.getLogger(__name__)
@@ -135,7 +135,7 @@ class Master(threading.Thread):
 
 def _write_store(path: Path) -> None:
     """Teach store with the trocar and one single-point program per start (joints → FK tip)."""
-    from telesurg.services.slave_control.teach import TaughtPoint, TeachStore
+    from telesurg.shared.robots.mh3f.teach import TaughtPoint, TeachStore
 
     store = TeachStore(None, "arm1")
     store.path = path
@@ -429,9 +429,9 @@ def run(out: Path, progress: Progress | None = None, *, keep_logs: bool = True) 
     overrides = {
         "slave_control": [
             f"q_home=[{', '.join(str(v) for v in STARTS['start_a'])}]",
-            "jog_speed_mm_s=40.0",
-            "jog_joint_speed_deg_s=20.0",
-            f"state_file={json.dumps(str(store))}",
+            "robot.jog_speed_mm_s=40.0",
+            "robot.jog_joint_speed_deg_s=20.0",
+            f"robot.state_file={json.dumps(str(store))}",
         ],
         "mapping": ["master_mode=virtual_trocar"],  # the master of the paper's Fig. 7
     }

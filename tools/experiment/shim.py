@@ -1,6 +1,6 @@
 """Shim 2015, Section 4, reproduced kinematically: Table-6 mapping vs master tip (no bus, no sim).
 
-Runs the reconstructed PLAS slave and ergonomic master of :mod:`telesurg.shared.kinematics.plas`
+Runs the reconstructed PLAS slave and ergonomic master of :mod:`telesurg.shared.robots.plas.kinematics`
 through the experiments of the thesis's Section 4 and writes ``metrics.json`` and three PNGs:
 
 * ``shim-joints.png`` — Figs. 20-22: master joint 2, 3 or 4 turned 0→30° alone.
@@ -30,7 +30,8 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from telesurg.shared import jsonio
-from telesurg.shared.kinematics.plas import (
+from telesurg.shared.kinematics.transforms import FloatArray
+from telesurg.shared.robots.plas.kinematics import (
     MappingConfig,
     MappingMode,
     eq29_vx_error,
@@ -38,7 +39,6 @@ from telesurg.shared.kinematics.plas import (
     master_tip_arm,
     slave_tip_arm,
 )
-from telesurg.shared.kinematics.transforms import FloatArray
 
 if TYPE_CHECKING:
     from matplotlib.axes import Axes

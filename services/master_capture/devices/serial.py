@@ -39,7 +39,7 @@ log = logging.getLogger(__name__)
 
 
 #: measured_js names of the all-joints master, in the order of
-#: ``telesurg.shared.kinematics.plas.PlasMasterGeometry.joint_names``.
+#: ``telesurg.shared.robots.plas.kinematics.PlasMasterGeometry.joint_names``.
 PLAS_MASTER_JOINTS = ("d1", "theta2", "theta3", "theta4", "theta5", "d6")
 _ORIGIN = (0.0, 0.0, 0.0)
 _IDENTITY = (0.0, 0.0, 0.0, 1.0)

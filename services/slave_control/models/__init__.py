@@ -1,8 +1,8 @@
-"""MuJoCo models of the slave arms (MJCF scenes shipped as package data).
+"""MuJoCo models by name: the registered robots' scenes and the other models the robots ship.
 
 A robot's scene comes from the robot registry (:attr:`telesurg.shared.robots.RobotSpec.scene`:
-the built-in ``mh3f``, ``plas``, ``vip`` in this folder, a plugin's wherever it keeps it); the
-folder also holds models that are not slave robots (``plas_master``, the PLAS master device).
+the built-in ``mh3f``, ``plas``, ``vip`` in ``shared/robots/<name>/``, a plugin's wherever it keeps
+it); ``plas_master`` is the PLAS master device's model (``shared/robots/plas/plas_master/``).
 """
 
 from __future__ import annotations
@@ -11,11 +11,11 @@ import pathlib
 
 from telesurg.shared import robots
 
-_MODELS_DIR = pathlib.Path(__file__).resolve().parent
+_MODELS_DIR = pathlib.Path(robots.__file__).resolve().parent
 
-#: Models here that are not registered robots, and their scene file, relative to this package.
+#: Models that are not registered robots, and their scene file, relative to shared/robots.
 _OTHER_SCENES: dict[str, str] = {
-    "plas_master": "plas_master/scene.xml",
+    "plas_master": "plas/plas_master/scene.xml",
 }
 
 

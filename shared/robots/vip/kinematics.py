@@ -90,7 +90,7 @@ resolution the paper compares against, with the analytic wrist :func:`jacobian`.
 Example::
 
     import numpy as np
-    from telesurg.shared.kinematics.vip import VIP_ARM, fk, select_vip, vip_ik
+    from telesurg.shared.robots.vip.kinematics import VIP_ARM, fk, select_vip, vip_ik
 
     q = VIP_ARM.home_q                            # joint readings (Table I initial pose)
     V = select_vip(q)                             # VIP from the readings, |EV| = 0.05 m

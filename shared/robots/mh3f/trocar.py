@@ -3,7 +3,7 @@
 After M. Jinno, "Master–slave manipulator for laparoscopic surgery using a 6-axis vertical
 articulated robot", ROBOMECH Journal 1:23 (2014). Units: metres and radians.
 
-The forceps axis is the TCP x axis of :func:`telesurg.shared.kinematics.mh3f.fk`; it passes through the
+The forceps axis is the TCP x axis of :func:`telesurg.shared.robots.mh3f.kinematics.fk`; it passes through the
 wrist centre W (J4, J5 and J6 intersect there, the paper's condition 1) and coincides with J6
 (condition 2). The trocar (the entry point into the abdominal wall) is a fixed point ``c`` in the
 base frame; in trocar mode the forceps axis must pass through it (remote centre of motion).
@@ -16,7 +16,8 @@ Trocar-mode IK (paper, Fig. 3, five steps)
    ``W = tip - (d6 + tool) d``.
 3. J1-J3 from W, 4. J4-J5 from the trocar direction, 5. J6 from the roll about ``d``.
 
-Steps 3-5 are exactly the decoupled analytic IK of :func:`~telesurg.shared.kinematics.mh3f.ik` applied to
+Steps 3-5 are exactly the decoupled analytic IK of :func:`~telesurg.shared.robots.mh3f.kinematics.ik`
+applied to
 the TCP pose ``[R, tip]`` with ``R[:, 0] = d``; :func:`trocar_ik` builds that pose (choosing the
 roll) and calls it, so the nearest branch to the current joints is kept.
 
@@ -48,7 +49,8 @@ from dataclasses import dataclass, replace
 import numpy as np
 import numpy.typing as npt
 from telesurg.shared.errors import IKError, KinematicsError
-from telesurg.shared.kinematics.mh3f import (
+from telesurg.shared.kinematics.transforms import FloatArray
+from telesurg.shared.robots.mh3f.kinematics import (
     LIMIT_TOL,
     MH3F,
     WRIST_SINGULAR_TOL,
@@ -58,7 +60,6 @@ from telesurg.shared.kinematics.mh3f import (
     ik,
     wrist_center,
 )
-from telesurg.shared.kinematics.transforms import FloatArray
 
 __all__ = [
     "MIN_TIP_DEPTH",
@@ -362,7 +363,8 @@ def trocar_ik(
 
     The forceps axis is the line trocar → tip (``d = unit(tip - trocar)``, the TCP x axis), the
     roll about it is ``roll`` (see the module docstring) or, if None, the one keeping the current
-    TCP y axis closest; the 6-axis analytic :func:`~telesurg.shared.kinematics.mh3f.ik` then returns the
+    TCP y axis closest; the 6-axis analytic :func:`~telesurg.shared.robots.mh3f.kinematics.ik` then returns
+    the
     solution nearest ``q_current``.
 
     The tip must lie at least ``min_depth`` beyond the trocar as seen from the current wrist

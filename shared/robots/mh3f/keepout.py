@@ -21,7 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 from telesurg.shared.errors import KinematicsError
-from telesurg.shared.kinematics.mh3f import MH3F, ArmGeometry, fk
+from telesurg.shared.robots.mh3f.kinematics import MH3F, ArmGeometry, fk
 
 __all__ = ["PatientBox", "clamp_step", "path_problem", "pose_problem", "shaft_inside_m"]
 

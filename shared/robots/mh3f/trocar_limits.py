@@ -5,7 +5,7 @@ remote centre of motion, RCM). A master target the arm cannot reach (wrist centr
 arm's reach, a joint limit, deeper than the forceps, at or behind the trocar) or cannot reach in
 one sample without exceeding the joint speeds of the paper's Table 1 must not make the slave
 hold: :func:`clamped_trocar_ik` returns the nearest feasible target on the way to it, solved by
-:func:`~telesurg.shared.kinematics.trocar.trocar_ik` so the RCM stays exact, and says what it
+:func:`~telesurg.shared.robots.mh3f.trocar.trocar_ik` so the RCM stays exact, and says what it
 clamped. :func:`remove_step` is one period of the removal (retraction along the forceps axis):
 where the straight retraction leaves the arm's reach it pivots the forceps about the trocar
 toward the arm while it keeps retracting, so removal never stops at the reach limit.
@@ -21,9 +21,9 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 from telesurg.shared.errors import IKError, KinematicsError
-from telesurg.shared.kinematics.mh3f import MH3F, ArmGeometry, fk, ik, within_limits
 from telesurg.shared.kinematics.transforms import FloatArray
-from telesurg.shared.kinematics.trocar import MIN_TIP_DEPTH, trocar_ik
+from telesurg.shared.robots.mh3f.kinematics import MH3F, ArmGeometry, fk, ik, within_limits
+from telesurg.shared.robots.mh3f.trocar import MIN_TIP_DEPTH, trocar_ik
 
 __all__ = ["TROCAR_SPEED_FRACTION", "ClampedTarget", "clamped_trocar_ik", "remove_step"]
 

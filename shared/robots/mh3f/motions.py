@@ -2,9 +2,9 @@
 
 :class:`TrocarMotions` is the :class:`~telesurg.services.slave_control.arm.MotionSource` of an
 arm whose robot has the trocar motion family (the MH3F): the control modes (non-trocar /
-transitional / trocar, :mod:`~telesurg.services.slave_control.modes`), the motion modes with their
-slave-side motions — PTP posture adjustment and jog (:mod:`~telesurg.services.slave_control.motion`),
-direct teach and playback (:mod:`~telesurg.services.slave_control.teach`) — and the operator
+transitional / trocar, :mod:`~telesurg.shared.robots.mh3f.modes`), the motion modes with their
+slave-side motions — PTP posture adjustment and jog (:mod:`~telesurg.shared.robots.mh3f.motion`),
+direct teach and playback (:mod:`~telesurg.shared.robots.mh3f.teach`) — and the operator
 commands on ``slave/<arm>/command`` that drive them. Lease, e-stop, faults, following the master
 and the speed limit are the arm core's (:mod:`~telesurg.services.slave_control.arm`): the core
 asks this source each period whether it drives the arm and for its joint target.
@@ -19,17 +19,21 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import numpy as np
-from telesurg.services.slave_control.arm import ArmCore, ArmReading, AttachedSource, MotionError
-from telesurg.services.slave_control.backends import PUSH_POINTS
-from telesurg.services.slave_control.modes import ControlMode, ControlModes, Jog, MotionMode, Phase
-from telesurg.services.slave_control.motion import (
+from telesurg.shared.errors import IKError, KinematicsError
+from telesurg.shared.kinematics.work_frame import ConfiguredWorkFrame, WorkFrame
+from telesurg.shared.messages import Command
+from telesurg.shared.robots.api import PUSH_POINTS, ArmHandle, ArmReading, AttachedSource, MotionError
+from telesurg.shared.robots.mh3f.config import Mh3fConfig
+from telesurg.shared.robots.mh3f.keepout import PatientBox, clamp_step, path_problem, pose_problem
+from telesurg.shared.robots.mh3f.modes import ControlMode, ControlModes, Jog, MotionMode, Phase
+from telesurg.shared.robots.mh3f.motion import (
     SUPPORTED_JOG_AXES,
     JointBrake,
     PtpMotion,
     jog_step,
     ptp_duration,
 )
-from telesurg.services.slave_control.teach import (
+from telesurg.shared.robots.mh3f.teach import (
     NAME_RE,
     Playback,
     TaughtPoint,
@@ -37,18 +41,15 @@ from telesurg.services.slave_control.teach import (
     direct_teach_step,
     playback_problem,
 )
-from telesurg.services.slave_control.work_frame import ConfiguredWorkFrame, WorkFrame
-from telesurg.shared.errors import IKError, KinematicsError
-from telesurg.shared.kinematics.keepout import PatientBox, clamp_step, path_problem, pose_problem
-from telesurg.shared.kinematics.trocar import axis_angle_to_trocar, pose_to_trocar, posture_adjust
-from telesurg.shared.kinematics.trocar_limits import remove_step
-from telesurg.shared.messages import Command
+from telesurg.shared.robots.mh3f.trocar import axis_angle_to_trocar, pose_to_trocar, posture_adjust
+from telesurg.shared.robots.mh3f.trocar_limits import remove_step
+from telesurg.shared.robots.registry import get
 
 if TYPE_CHECKING:
     from collections.abc import Callable
 
-    from telesurg.services.slave_control import SlaveControlConfig
-    from telesurg.shared.robots import ArmProfile
+    from telesurg.shared.robots.api import SlaveSettings
+    from telesurg.shared.robots.registry import ArmProfile
 
 
 class TrocarMotions(AttachedSource):
@@ -62,23 +63,24 @@ class TrocarMotions(AttachedSource):
 
     def __init__(
         self,
-        cfg: SlaveControlConfig,
+        cfg: SlaveSettings,
         profile: ArmProfile,
         push: Callable[[np.ndarray, float, str], None] | None = None,
     ) -> None:
         self.cfg, self.profile = cfg, profile
-        self.core: ArmCore | None = None  # set by attach()
+        self.rcfg: Mh3fConfig = get(cfg.model).make_config(cfg.robot)  # the robot's knobs
+        self.core: ArmHandle | None = None  # set by attach()
         # control modes of Jinno 2014 and the slave-side motion sources (PTP, jog)
         self.modes = ControlModes()
-        self.trocar = np.array(cfg.trocar_mm) / 1e3
-        self.trocar_taught = cfg.trocar_taught
+        self.trocar = np.array(self.rcfg.trocar_mm) / 1e3
+        self.trocar_taught = self.rcfg.trocar_taught
         self.ptp: PtpMotion | None = None
         self.playback: Playback | None = None
         # the controlled stop of a stopped joint PTP (posture PTP, playback outside trocar mode)
         self.brake: JointBrake | None = None
         self.playback_name = ""
         self.posture_target: np.ndarray | None = None  # joints after the posture adjustment
-        self.store = TeachStore(cfg.state_file or None, profile.arm)
+        self.store = TeachStore(self.rcfg.state_file or None, profile.arm)
         if self.store.current_trocar:
             self.trocar = np.array(self.store.trocars[self.store.current_trocar])
             self.trocar_taught = True
@@ -158,7 +160,7 @@ class TrocarMotions(AttachedSource):
 
     def next(self, q_cmd: np.ndarray, reading: ArmReading, dt: float) -> np.ndarray:
         """The joint target of this period's slave-side motion (PTP, jog, playback, direct teach)."""
-        cfg = self.cfg
+        rcfg = self.rcfg
         with self._core.lock:
             self.brake = None  # a motion drives the arm: no stop of an earlier one goes on
             motion = self.modes.motion
@@ -184,7 +186,7 @@ class TrocarMotions(AttachedSource):
                     return remove_step(
                         q_cmd,
                         self.trocar,
-                        f * cfg.jog_speed_mm_s / 1e3 * dt,
+                        f * rcfg.jog_speed_mm_s / 1e3 * dt,
                         pivot_rad=f * REMOVE_PIVOT_RAD_S * dt,
                     )
 
@@ -205,8 +207,8 @@ class TrocarMotions(AttachedSource):
                         jog.axis,
                         jog.direction,
                         dt,
-                        speed_m_s=f * cfg.jog_speed_mm_s / 1e3,
-                        joint_speed_rad_s=f * np.radians(cfg.jog_joint_speed_deg_s),
+                        speed_m_s=f * rcfg.jog_speed_mm_s / 1e3,
+                        joint_speed_rad_s=f * np.radians(rcfg.jog_joint_speed_deg_s),
                         trocar=self.trocar if job.mode == "trocar" else None,
                         work=self.work_frame.rotation(),
                     ), False
@@ -226,7 +228,7 @@ class TrocarMotions(AttachedSource):
                     tau,
                     dt,
                     "posture" if job.phase is Phase.POSTURE else job.mode,
-                    cfg.teach,
+                    rcfg.teach,
                     trocar=self.trocar,
                     posture_target=self.posture_target,
                 )
@@ -261,7 +263,7 @@ class TrocarMotions(AttachedSource):
     def follow_keepout(self, q_from: np.ndarray, q_to: np.ndarray) -> tuple[np.ndarray, str]:
         """Master–slave in every control mode, and any ``servo_jp`` (a policy): the followed step
         is clamped at the patient box's surface unless the forceps enters through the trocar
-        (:func:`~telesurg.shared.kinematics.keepout.clamp_step`; trocar-mode setpoints, RCM-exact
+        (:func:`~telesurg.shared.robots.mh3f.keepout.clamp_step`; trocar-mode setpoints, RCM-exact
         by the trocar IK, pass)."""
         q, why = clamp_step(q_from, q_to, self.patient_box(), explain=not self._follow_clamped)
         self._follow_clamped = why is not None  # (where it crosses: said once, at the clamp's start)
@@ -488,7 +490,7 @@ class TrocarMotions(AttachedSource):
         j45 = np.degrees(target[3:5] - self.q_cmd[3:5])
         to_go = f"J4 {j45[0]:+.1f}°, J5 {j45[1]:+.1f}° to go"
         if method == "ptp":
-            duration = ptp_duration(self.q_cmd, target, self.cfg.ptp_speed_fraction)
+            duration = ptp_duration(self.q_cmd, target, self.rcfg.ptp_speed_fraction)
             self.ptp = PtpMotion(self.q_cmd.copy(), target, duration)
             return True, f"{r.reason}; PTP of J4/J5 over {duration:.1f} s"
         if method == "playback":
@@ -504,9 +506,9 @@ class TrocarMotions(AttachedSource):
             list(self.store.programs[program]),
             mode,
             self.trocar.copy() if mode == "trocar" else None,
-            self._vmax * self.cfg.ptp_speed_fraction,
-            self.cfg.playback_speed_mm_s / 1e3,
-            self.cfg.playback_dwell_s,
+            self._vmax * self.rcfg.ptp_speed_fraction,
+            self.rcfg.playback_speed_mm_s / 1e3,
+            self.rcfg.playback_dwell_s,
         )
 
     def _program_command(self, name: str, program: str) -> tuple[bool, str]:

@@ -1,8 +1,9 @@
 """Placement of the two PLAS arms in the world frame of the MuJoCo model ``plas``.
 
-:func:`telesurg.shared.kinematics.plas.slave_fk` gives one arm's tip in *its* base frame (``z0`` along the
+:func:`telesurg.shared.robots.plas.kinematics.slave_fk` gives one arm's tip in *its* base frame (``z0``
+along the
 shaft, pointing into the patient; ``x0`` the direction the arm points at ``θ2 = 0``). The model
-``services/slave_control/models/plas`` puts two such arms side by side on one common body (the
+``shared/robots/plas`` puts two such arms side by side on one common body (the
 insertion part, thesis Fig. 7) that passes through a single port; this module is the fixed
 transform of each arm (:data:`ARM_BASES`) and the world-frame tip (:func:`arm_tip`), which equal
 the model's ``armN_base`` bodies and ``armN_tip`` sites. The README of the model derives them.
@@ -35,8 +36,8 @@ import math
 import numpy as np
 import numpy.typing as npt
 from telesurg.shared.errors import KinematicsError
-from telesurg.shared.kinematics.plas import PLAS_SLAVE, PlasSlaveGeometry, slave_fk, slave_jacobian
 from telesurg.shared.kinematics.transforms import FloatArray
+from telesurg.shared.robots.plas.kinematics import PLAS_SLAVE, PlasSlaveGeometry, slave_fk, slave_jacobian
 
 __all__ = [
     "ARM_BASES",
@@ -132,7 +133,7 @@ def arm_tip(
 def arm_jacobian(arm: str, q: npt.ArrayLike, geom: PlasSlaveGeometry = PLAS_SLAVE) -> FloatArray:
     """Geometric Jacobian ``(6, 6)`` of :func:`arm_tip_pose` in the world frame.
 
-    ``[v; ω] = J @ qdot`` (:func:`~telesurg.shared.kinematics.plas.slave_jacobian` turned by the
+    ``[v; ω] = J @ qdot`` (:func:`~telesurg.shared.robots.plas.kinematics.slave_jacobian` turned by the
     arm base's fixed rotation; the common body's insertion does not change it).
     """
     R = arm_base(arm)[:3, :3]

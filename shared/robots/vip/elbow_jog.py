@@ -35,13 +35,14 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import numpy as np
-from telesurg.services.slave_control.arm import ArmCore, ArmReading, AttachedSource, MotionError
 from telesurg.shared.kinematics.elbow import ElbowChain, elbow_move, limit_margin, midrange_direction, tangent
 from telesurg.shared.messages import Command
+from telesurg.shared.robots.api import ArmHandle, ArmReading, AttachedSource, MotionError
+from telesurg.shared.robots.registry import get
 
 if TYPE_CHECKING:
-    from telesurg.services.slave_control import SlaveControlConfig
-    from telesurg.shared.robots import ArmProfile
+    from telesurg.shared.robots.api import SlaveSettings
+    from telesurg.shared.robots.registry import ArmProfile
 
 #: Operator commands of an arm with an elbow.
 COMMANDS = ("state", "elbow_jog", "stop", "abort")
@@ -78,13 +79,13 @@ class _Jog:
 class ElbowJog(AttachedSource):
     """The elbow jog of one arm (a :class:`~telesurg.services.slave_control.arm.MotionSource`)."""
 
-    def __init__(self, cfg: SlaveControlConfig, profile: ArmProfile) -> None:
+    def __init__(self, cfg: SlaveSettings, profile: ArmProfile) -> None:
         if profile.elbow is None:
             raise ValueError(f"arm {profile.arm} has no elbow")
         self.cfg, self.profile = cfg, profile
         self.chain: ElbowChain = profile.elbow
-        self.speed = cfg.jog_speed_mm_s / 1e3  # m/s
-        self.core: ArmCore | None = None
+        self.speed = get(cfg.model).make_config(cfg.robot).jog_speed_mm_s / 1e3  # m/s
+        self.core: ArmHandle | None = None
         self.jog: _Jog | None = None
 
     # -- MotionSource ---------------------------------------------------------------------------

@@ -3,7 +3,7 @@
 In trocar mode the mapping solves the trocar IK (the forceps pivots about the trocar). A master
 target beyond the arm's reach, its joint limits, the insertion depth range or, within one master
 sample, its joint speeds (Jinno 2014, Table 1) is not held: it is brought to the nearest feasible
-target by :func:`~telesurg.shared.kinematics.trocar_limits.clamped_trocar_ik` (the RCM stays
+target by :func:`~telesurg.shared.robots.mh3f.trocar_limits.clamped_trocar_ik` (the RCM stays
 exact), and each clamping episode is an event ``trocar_clamped`` saying what was clamped and by
 how much, with another when the target is feasible again.
 """
@@ -12,8 +12,8 @@ from __future__ import annotations
 
 import numpy as np
 from telesurg.shared.bus import Node
-from telesurg.shared.kinematics.mh3f import ArmGeometry
-from telesurg.shared.kinematics.trocar_limits import ClampedTarget, clamped_trocar_ik
+from telesurg.shared.robots.mh3f.kinematics import ArmGeometry
+from telesurg.shared.robots.mh3f.trocar_limits import ClampedTarget, clamped_trocar_ik
 
 FIRST_DT_S = 0.004  # s: the engage sample has no predecessor; one 250 Hz period
 QUIET_SAMPLES = 50  # an episode ends after this many unclamped samples (no event per jitter blip)

@@ -1,8 +1,11 @@
 """The master point the mapping maps to the slave tip (``master_mode``: ``pen`` or ``virtual_trocar``).
 
-Used by the Cartesian mapping (:class:`telesurg.services.mapping.ArmMapping`) and the VIP mapping
-(:class:`telesurg.services.mapping.joints.VipMapping`); a module of its own so that neither
-imports the other for it.
+Used by every mapping strategy that maps the master's tip (the MH3F's Cartesian mapping, the VIP
+mapping, the generic position mapping).
+
+Example::
+
+    master_point(cfg, (0.0, 0.0, 0.1))   # pen: the position itself, m, master frame
 """
 
 from __future__ import annotations
@@ -12,10 +15,10 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 if TYPE_CHECKING:
-    from telesurg.services.mapping import MappingConfig
+    from telesurg.shared.teleop.settings import MappingSettings
 
 
-def master_point(cfg: MappingConfig, position: tuple[float, float, float]) -> np.ndarray:
+def master_point(cfg: MappingSettings, position: tuple[float, float, float]) -> np.ndarray:
     """The master point that is mapped to the slave tip, m, master frame.
 
     ``pen``: the master position itself. ``virtual_trocar``: the position is the handle of a dummy

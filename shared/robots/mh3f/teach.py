@@ -12,7 +12,7 @@ What moves depends on the control mode (:func:`direct_teach_step`):
 * ``trocar``: J1–J3 follow the push; J4/J5 are then set by :func:`posture_adjust` so the
   forceps axis goes from the new wrist centre through the trocar (the RCM holds by construction);
   J6 keeps its angle. A push that would pull the tip out of the trocar (shallower than
-  :data:`~telesurg.shared.kinematics.trocar.MIN_TIP_DEPTH`) is not followed;
+  :data:`~telesurg.shared.robots.mh3f.trocar.MIN_TIP_DEPTH`) is not followed;
 * ``posture`` (transitional, method direct_teach): J4/J5 only, each only toward its posture
   target and never past it (Jinno: "direct teach limited to J4/J5 toward the target").
 
@@ -38,11 +38,11 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
-from telesurg.services.slave_control.motion import SMOOTH_PEAK, JointBrake, smooth
 from telesurg.shared import jsonio
 from telesurg.shared.errors import ConfigError, IKError
-from telesurg.shared.kinematics.mh3f import MH3F, fk
-from telesurg.shared.kinematics.trocar import (
+from telesurg.shared.robots.mh3f.kinematics import MH3F, fk
+from telesurg.shared.robots.mh3f.motion import SMOOTH_PEAK, JointBrake, smooth
+from telesurg.shared.robots.mh3f.trocar import (
     MIN_TIP_DEPTH,
     insertion_depth,
     posture_adjust,

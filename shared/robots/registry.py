@@ -3,61 +3,51 @@
 A robot is one :class:`RobotSpec` registered under its name (:func:`register`, :func:`get`,
 :func:`names`): its arms (an :class:`ArmProfile` each: joint names, limits, speeds, home, the
 MuJoCo tip site, FK as :meth:`ArmProfile.pose`, the Jacobian, an optional IK), its MuJoCo scene,
-the mapping modes that fit it, its slave motion family and what the mirror draws of it
-(:meth:`RobotSpec.sketch`). Services take the robot from here and never compare robot names:
-slave_control splits the model's joints into arms (``slave/<arm>/…`` streams carry the arm's own
-joint names) and picks its loop by :attr:`RobotSpec.slave_family`; the watchdog checks setpoints
-(limits, speeds, workspace by FK); the mapping checks that its mode fits; the mirror recognises an
-arm by its joint names and draws its sketch; ``device emulate --model`` offers :func:`names`.
-Pure and cheap: the kinematics modules are imported on first use.
-
-Built in (the per-robot maths stays in :mod:`telesurg.shared.kinematics`):
-
-* ``mh3f`` — one MOTOMAN-MH3F class 6-axis arm with straight forceps (Jinno 2014); the arm id is
-  configurable (default ``arm1``), the tip is the forceps tip. Slave family ``trocar``.
-* ``plas`` — the two-arm Y-type PLAS slave (Shim 2015), arms ``arm1``/``arm2`` with joints
-  ``d1 theta2 theta3 theta4 d5 theta6``; the tip is the arm's tip in the port frame.
-* ``vip`` — two conical-RCM arms with an elbow (Jang 2014), arms ``arm1``/``arm2`` with joints
-  ``q1 … q5``; the "tip" is the wrist W (the controlled point), port frame.
-
+its config dataclass (the robot's own knobs, :meth:`RobotSpec.make_config`), its mapping
+strategies by mode name, its slave-side motion sources and what the mirror draws of it
+(:meth:`RobotSpec.sketch`). Services take the robot from here and never compare robot names.
 More robots come from plugins: :func:`load_plugin` imports a Python file (every service's
-``--plugin FILE``) whose import calls :func:`register`. docs/architecture.md, "Adding a robot".
+``--plugin FILE``) whose import calls :func:`register` (docs/extending.md, "Add a robot").
 
 Frame convention (one for every robot): :meth:`ArmProfile.pose` is the pose ``(4, 4)`` of the
 arm's controlled point in the **world frame of the robot's MuJoCo scene**, equal to the pose of
-the MuJoCo site :attr:`ArmProfile.tip_site` (``site_xpos``, ``site_xmat``), with its real
-orientation (the site's axes). :meth:`ArmProfile.jacobian` is the geometric Jacobian ``(6, n)``
-of that point in the same frame: ``[v; ω] = J @ qdot``, rows ``v`` (the controlled point's
-linear velocity, m/s) then ``ω`` (the site frame's angular velocity, rad/s), world coordinates;
-``qdot`` in rad/s (m/s for prismatic joints). For ``mh3f`` the world frame is the robot base
-frame (the model puts the base at the world origin); for ``plas`` and ``vip`` it is the port frame.
+the MuJoCo site :attr:`ArmProfile.tip_site` (``site_xpos``, ``site_xmat``). :meth:`ArmProfile.jacobian`
+is the geometric Jacobian ``(6, n)`` of that point in the same frame: ``[v; ω] = J @ qdot``, rows
+``v`` (m/s) then ``ω`` (rad/s), world coordinates; ``qdot`` in rad/s (m/s for prismatic joints).
+
+Example::
+
+    from telesurg.shared import robots
+    robots.get("mh3f").arm("arm1").pose(robots.get("mh3f").arm("arm1").home)
 """
 
 from __future__ import annotations
 
+import dataclasses
 import importlib.util
 import math
 import pathlib
 import re
 import sys
+import textwrap
 import threading
-from collections.abc import Callable
-from dataclasses import dataclass
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
 from functools import cache
-from typing import TYPE_CHECKING, NamedTuple
+from typing import TYPE_CHECKING, Any, NamedTuple
 
 import numpy as np
 import numpy.typing as npt
-from telesurg.shared.errors import ConfigError, IKError, KinematicsError
+from telesurg.shared.errors import ConfigError, IKError
 
 if TYPE_CHECKING:
     from telesurg.shared.kinematics.elbow import ElbowChain
 
 FloatArray = npt.NDArray[np.float64]
 
-#: Slave motion families: ``trocar`` — a 6-axis arm with the slave-side motions (trocar modes,
-#: PTP, jog, teach/playback; one arm per process); ``joint`` — joint-space arms (N per process,
-#: setpoints interpolated to the control rate).
+#: Slave motion families, a description for listings (the services go by ``motions``,
+#: ``catch_up`` and ``patient_keepout``, never by the family): ``trocar`` — a 6-axis forceps arm with
+#: the trocar modes; ``joint`` — joint-space arms.
 SLAVE_FAMILIES = ("trocar", "joint")
 
 _NAME = re.compile(r"[a-z][a-z0-9_]{0,31}")
@@ -171,6 +161,20 @@ class RobotSpec:
         slave_family: one of :data:`SLAVE_FAMILIES`.
         sketch: (arm id, joints) → :class:`Sketch`, what the mirror draws.
         description: one line for listings.
+        config: the robot's config dataclass (its own knobs, the ``robot`` table of the mapping
+            and slave_control configs; every field has a default), or None: no knobs.
+        strategies: mapping mode → factory of the robot's own mapping strategy
+            (:class:`~telesurg.shared.robots.api.MappingStrategy`); a mode in
+            :attr:`mapping_modes` without a factory is a generic mode of the mapping service
+            (``position``).
+        motions: factory of an arm's slave-side motion source
+            (:class:`~telesurg.shared.robots.api.MotionSource`), or None for an arm that follows
+            ``servo_jp`` only (the factory may return None for such an arm too).
+        catch_up: an arm of this robot makes up a stall of its setpoint timeline at up to 2× the
+            master's pace (the MH3F: its servos must stay on the trocar's RCM); False: the arm
+            keeps its timeline (the joint-space arms).
+        patient_keepout: the watchdog checks the arm against the patient's body (the MH3F forceps
+            arm above its torso, :mod:`telesurg.shared.robots.mh3f.keepout`).
     """
 
     name: str
@@ -180,6 +184,11 @@ class RobotSpec:
     slave_family: str
     sketch: Callable[[str, FloatArray], Sketch]
     description: str = ""
+    config: type[Any] | None = None
+    strategies: Mapping[str, Callable[..., Any]] = field(default_factory=dict)
+    motions: Callable[..., Any] | None = None
+    catch_up: bool = False
+    patient_keepout: bool = False
 
     def __post_init__(self) -> None:
         if not _NAME.fullmatch(self.name):
@@ -193,6 +202,26 @@ class RobotSpec:
             raise ConfigError(f"robot {self.name!r} names no mapping mode")
         if not pathlib.Path(self.scene).is_file():
             raise ConfigError(f"robot {self.name!r}: scene {self.scene} is not a file")
+        extra = sorted(set(self.strategies) - set(self.mapping_modes))
+        if extra:
+            raise ConfigError(f"robot {self.name!r}: strategies for modes {extra} not in mapping_modes")
+        if self.config is not None and not dataclasses.is_dataclass(self.config):
+            raise ConfigError(f"robot {self.name!r}: config {self.config!r} is not a dataclass")
+
+    def make_config(self, data: Mapping[str, Any] | None = None) -> Any:
+        """The robot's config from a ``robot`` table (``{}``: the defaults), type-checked; None for a
+        robot without knobs.
+
+        Raises:
+            ConfigError: an unknown key (the message lists the valid ones) or a wrong type.
+        """
+        from telesurg.shared.config import from_dict
+
+        if self.config is None:
+            if data:
+                raise ConfigError(f"robot {self.name!r} has no config keys; got {', '.join(sorted(data))}")
+            return None
+        return from_dict(self.config, dict(data or {}), "robot")
 
     def arm(self, arm: str) -> ArmProfile:
         """The profile of ``arm`` (a single-arm robot takes any arm id).
@@ -311,179 +340,31 @@ def recognise(arm: str, joint_names: tuple[str, ...]) -> tuple[RobotSpec, ArmPro
     return None
 
 
-# --------------------------------------------------------------------------- built-in robots
+def two_arms(make: Callable[[str], ArmProfile]) -> Callable[[str], tuple[ArmProfile, ...]]:
+    """The arms of a two-arm robot (``arm1``, ``arm2``; the arm id it is given is ignored)."""
 
-#: The built-in models' folder (``services/slave_control/models``, a sibling package of shared in
-#: the checkout and in the installed ``telesurg`` package alike).
-BUILTIN_MODELS = pathlib.Path(__file__).resolve().parent.parent / "services" / "slave_control" / "models"
-
-
-def _mh3f(arm: str) -> tuple[ArmProfile, ...]:
-    from telesurg.shared.kinematics import mh3f
-
-    g = mh3f.MH3F
-
-    def pose(q: FloatArray) -> FloatArray:
-        return mh3f.fk(q, g)
-
-    def jacobian(q: FloatArray) -> FloatArray:
-        return mh3f.jacobian(q, g)
-
-    def ik(T: FloatArray, q_near: FloatArray) -> FloatArray:
-        return mh3f.ik(T, q_near, g)
-
-    home = (0.0, 0.2, 0.3, 0.0, -0.6, 0.0)
-    names = g.joint_names
-    return (ArmProfile(arm, names, names, g.lower, g.upper, g.max_velocity, home, "tip", pose, jacobian, ik),)
-
-
-def _mh3f_sketch(arm: str, q: FloatArray) -> Sketch:
-    """:func:`~telesurg.shared.kinematics.mh3f.fk_frames`: base, J2, J3, J4, wrist centre,
-    flange; the forceps from the flange to its tip (TCP)."""
-    from telesurg.shared.kinematics.mh3f import fk_frames
-
-    frames = fk_frames(q)
-    return Sketch(frames[:6], frames[5:7], None)
-
-
-#: PLAS joint speeds (the thesis gives none): 50 mm/s for the slides, 2 rad/s for the joints.
-PLAS_MAX_VELOCITY = (0.05, 2.0, 2.0, 2.0, 0.05, 2.0)
-#: VIP arm joint speeds (the paper gives none): 2 rad/s, 0.1 m/s for the prismatic q3.
-VIP_MAX_VELOCITY = (2.0, 2.0, 0.1, 2.0, 2.0)
-
-
-def _plas_arm(arm: str) -> ArmProfile:
-    from telesurg.shared.kinematics.plas import PLAS_SLAVE
-    from telesurg.shared.kinematics.plas_layout import arm_jacobian, arm_tip_pose
-
-    def pose(q: FloatArray) -> FloatArray:
-        return arm_tip_pose(arm, q)
-
-    def jacobian(q: FloatArray) -> FloatArray:
-        return arm_jacobian(arm, q)
-
-    names = PLAS_SLAVE.joint_names
-    return ArmProfile(
-        arm,
-        names,
-        tuple(f"{arm}_{n}" for n in names),
-        PLAS_SLAVE.lower,
-        PLAS_SLAVE.upper,
-        PLAS_MAX_VELOCITY,
-        (0.0,) * 6,
-        f"{arm}_tip",
-        pose,
-        jacobian,
-    )
-
-
-def _plas_sketch(arm: str, q: FloatArray) -> Sketch:
-    """The DH chain of :class:`~telesurg.shared.kinematics.plas.PlasSlaveGeometry` placed by
-    :func:`~telesurg.shared.kinematics.plas_layout.arm_base`: the shaft channel from the skin down
-    to the arm base, the chain up to the pitch axis; the forceps (pillar) from the pitch axis to
-    the tip (= :func:`~telesurg.shared.kinematics.plas_layout.arm_tip`)."""
-    from telesurg.shared.kinematics.plas import PLAS_SLAVE
-    from telesurg.shared.kinematics.plas_layout import arm_base
-
-    if len(q) != 6:
-        raise KinematicsError(f"plas arm needs 6 joints, got {len(q)}")
-    T = arm_base(arm)
-    skin = T[:3, 3].copy()
-    skin[2] = 0.0  # the channel enters the port at the skin, straight above the arm base
-    points = [skin, T[:3, 3].copy()]
-    for row, qi in zip(PLAS_SLAVE.dh, q, strict=True):
-        T = T @ row.transform(float(qi))
-        if np.linalg.norm(T[:3, 3] - points[-1]) > 1e-9:
-            points.append(T[:3, 3].copy())
-    pts = np.asarray(points)
-    return Sketch(pts[:-1], pts[-2:], None)
-
-
-def _vip_arm(arm: str) -> ArmProfile:
-    from telesurg.shared.kinematics import vip
-    from telesurg.shared.kinematics.elbow import ElbowChain
-
-    geom = vip.VIP_ARM1 if arm == "arm1" else vip.VIP_ARM2
-
-    def pose(q: FloatArray) -> FloatArray:
-        return vip.fk(q, geom).wrist_frame
-
-    def jacobian(q: FloatArray) -> FloatArray:
-        return vip.wrist_jacobian(q, geom)
-
-    def elbow(q: FloatArray) -> FloatArray:
-        return vip.fk(q, geom).elbow
-
-    def wrist(q: FloatArray) -> FloatArray:
-        return vip.fk(q, geom).wrist
-
-    def solve(E: FloatArray, W: FloatArray, q_near: FloatArray) -> FloatArray:
-        return vip.ik(E, W, geom, q4_ref=float(q_near[3]))
-
-    names = geom.joint_names
-    return ArmProfile(
-        arm,
-        names,
-        tuple(f"{arm}_{n}" for n in names),
-        geom.lower,
-        geom.upper,
-        VIP_MAX_VELOCITY,
-        geom.home,
-        f"{arm}_wrist",
-        pose,
-        jacobian,
-        elbow=ElbowChain(elbow, wrist, solve, geom.lower, geom.upper),
-    )
-
-
-def _vip_sketch(arm: str, q: FloatArray) -> Sketch:
-    """:func:`telesurg.shared.kinematics.vip.fk`: R–E–W; the RCM is R."""
-    from telesurg.shared.kinematics import vip
-
-    pose = vip.fk(q, vip.VIP_ARM1 if arm == "arm1" else vip.VIP_ARM2)
-    return Sketch(np.stack([pose.rcm, pose.elbow, pose.wrist]), None, pose.rcm)
-
-
-def _two(make: Callable[[str], ArmProfile]) -> Callable[[str], tuple[ArmProfile, ...]]:
     def arms(arm: str) -> tuple[ArmProfile, ...]:
         return (make("arm1"), make("arm2"))
 
     return arms
 
 
-register(
-    RobotSpec(
-        "mh3f",
-        _mh3f,
-        BUILTIN_MODELS / "mh3f" / "scene.xml",
-        ("cartesian", "position"),
-        "trocar",
-        _mh3f_sketch,
-        "MOTOMAN-MH3F class 6-axis arm with straight forceps (Jinno 2014)",
-    )
-)
-register(
-    RobotSpec(
-        "plas",
-        _two(_plas_arm),
-        BUILTIN_MODELS / "plas" / "scene.xml",
-        ("all_joints", "position"),
-        "joint",
-        _plas_sketch,
-        "two-arm Y-type PLAS slave (Shim 2015)",
-    )
-)
-register(
-    RobotSpec(
-        "vip",
-        _two(_vip_arm),
-        BUILTIN_MODELS / "vip" / "scene.xml",
-        ("vip", "position"),
-        "joint",
-        _vip_sketch,
-        "two conical-RCM arms with an elbow, VIP control (Jang 2014)",
-    )
-)
+def config_help() -> str:
+    """The ``--help`` text of the ``robot`` table: every registered robot's knobs (its config)."""
+    from telesurg.shared.config import field_docs
 
-#: The built-in robots (plugins add to :func:`names`).
-MODELS = ("mh3f", "plas", "vip")
+    lines = ["robot keys (the `robot` table: --set robot.KEY=VALUE; the model's own config):"]
+    for name in names():
+        cls = get(name).config
+        if cls is None:
+            continue
+        lines.append(f"  model {name}:")
+        for d in field_docs(cls, "robot."):
+            unit = f" [{d.unit}]" if d.unit else ""
+            lines.append(
+                f"    {d.key}  (table)"
+                if d.type == "table"
+                else f"    {d.key} : {d.type} = {d.default}{unit}"
+            )
+            lines += [f"        {w}" for w in textwrap.wrap(d.help, 92)]
+    return "\n".join(lines)

@@ -78,7 +78,7 @@ from enum import StrEnum
 from typing import TypeVar
 
 from telesurg.shared.errors import ConfigError
-from telesurg.shared.kinematics.trocar import TROCAR_MODE_DEPTH
+from telesurg.shared.robots.mh3f.trocar import TROCAR_MODE_DEPTH
 
 __all__ = [
     "BASIC_MOTION_MODES",

@@ -23,9 +23,9 @@ from dataclasses import dataclass
 
 import numpy as np
 from telesurg.shared.errors import IKError
-from telesurg.shared.kinematics.mh3f import MH3F, fk, ik
 from telesurg.shared.kinematics.transforms import matrix_from_rotvec
-from telesurg.shared.kinematics.trocar import forceps_roll, trocar_ik
+from telesurg.shared.robots.mh3f.kinematics import MH3F, fk, ik
+from telesurg.shared.robots.mh3f.trocar import forceps_roll, trocar_ik
 
 _AXES = {"x": 0, "y": 1, "z": 2, "rx": 0, "ry": 1, "rz": 2}
 #: Jog axes this slave can execute.

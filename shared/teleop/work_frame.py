@@ -6,7 +6,7 @@ rotation ``master_to_slave_rpy_deg``. ``master_frame = "work"``: master motion i
 image's right, y down the image, z into the image; ``work_frame_rpy_deg`` in the base frame, the
 default a laparoscope looking straight down with the patient's head up in the image). The master
 is held in front of the picture, so as for the camera frame
-(:mod:`telesurg.services.mapping.camera_frame`) the master's axes are the surgeon's view of that
+(:mod:`telesurg.shared.teleop.camera_frame`) the master's axes are the surgeon's view of that
 frame: master +x = work +x (image right), master +y = work −y (image up), master +z = work −z
 (toward the surgeon), i.e. ``R_ms = R_work · diag(1, −1, −1)``. Where the site has an endoscope
 camera (``camera`` set), its published pose replaces the configured work frame as soon as it
@@ -18,17 +18,17 @@ from __future__ import annotations
 from typing import TYPE_CHECKING
 
 import numpy as np
-from telesurg.services.mapping.camera_frame import VIEW_TO_OPTICAL
 from telesurg.shared.kinematics.transforms import rpy_matrix
+from telesurg.shared.teleop.camera_frame import VIEW_TO_OPTICAL
 
 if TYPE_CHECKING:
-    from telesurg.services.mapping import MappingConfig
+    from telesurg.shared.teleop.settings import MappingSettings
 
 #: Valid ``master_frame`` values.
 MASTER_FRAMES = ("fixed", "work")
 
 
-def master_rotation(cfg: MappingConfig) -> np.ndarray:
+def master_rotation(cfg: MappingSettings) -> np.ndarray:
     """``(3, 3)`` the master frame's axes in the slave base frame (columns), before any camera pose."""
     if cfg.master_frame == "work":
         out: np.ndarray = rpy_matrix(cfg.work_frame_rpy_deg) @ VIEW_TO_OPTICAL
