@@ -151,6 +151,7 @@ def test_bench_latency_and_soak(tmp_path: Path) -> None:
     assert r.returncode == 2 and "new or empty directory" in r.stderr, r.stderr
 
 
+@pytest.mark.process
 @pytest.mark.skipif(bool(schedtrace.unavailable()), reason=schedtrace.unavailable() or "-")
 def test_bench_latency_traces_the_scheduler(tmp_path: Path) -> None:
     keep = tmp_path / "kept"

@@ -108,6 +108,7 @@ def test_keepout_allows_the_trocar_and_refuses_the_patient_elsewhere() -> None:
     assert path_problem(np.array(STARTS["start_a"]), outside, BOX) is None
 
 
+@pytest.mark.slow
 def test_random_ptp_paths_through_the_patient_are_found() -> None:
     """500 random PTP targets from random postures: the path check refuses every sweep through
     the patient (judged again at 5× finer steps) and names the reason."""
