@@ -45,6 +45,7 @@ def run_suite(tmp_path: Path, flaky: int, *args: str) -> subprocess.CompletedPro
     )
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("flaky", [1, 4])
 def test_reruns_over_the_budget_fail_the_run_and_are_listed(tmp_path: Path, flaky: int) -> None:
     r = run_suite(tmp_path, flaky)
@@ -58,6 +59,7 @@ def test_reruns_over_the_budget_fail_the_run_and_are_listed(tmp_path: Path, flak
     assert "unit tests: 1 in" in r.stdout and f"process tests: {flaky} in" in r.stdout, r.stdout[-3000:]
 
 
+@pytest.mark.slow
 def test_in_parallel_the_controller_alone_counts_and_records_and_the_parts_add_up(tmp_path: Path) -> None:
     """make test runs the unit part, then the process part; with ``-n 2`` (pytest-xdist) a run
     has the same verdict and list, and one record; the second part names both and their sum."""

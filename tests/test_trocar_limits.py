@@ -71,6 +71,7 @@ def test_unreachable_target_is_pivoted_to_the_reach_limit_with_a_reason() -> Non
     assert "depth" in deep.clamped and np.linalg.norm(deep.tip - TROCAR) == pytest.approx(0.35)
 
 
+@pytest.mark.slow
 def test_remove_gets_out_where_the_straight_way_leaves_the_reach() -> None:
     """Axis tilted away from the arm: retracting straight would take the wrist out of reach."""
     rng = np.random.default_rng(3)
