@@ -19,11 +19,15 @@ from telesurg.shared.bus import BusConfig, open_session
 # this process, after other tests imported mujoco (the camera service sets it itself)
 os.environ.setdefault("MUJOCO_GL", gl_backend() or "egl")
 _KEYRING: list[str] = []
+#: True in a pytest-xdist worker (``-n 2``): the controller alone counts the run and records it
+#: (it receives every worker's reports)
+_WORKER: list[bool] = [False]
 
 
 def pytest_configure(config: pytest.Config) -> None:
     """Every Node of the tests (in-process or a started service) signs and verifies with one
     throw-away keyring with the site's identities; any other adds its own key on first use."""
+    _WORKER[0] = hasattr(config, "workerinput")
     d = tempfile.mkdtemp(prefix="telesurg-test-keys-")
     init_keyring(os.path.join(d, "keys"), IDENTITIES)
     os.environ[KEYS_ENV] = os.path.join(d, "keys")
@@ -37,7 +41,8 @@ PROCESS_RERUNS = 1
 #: More reruns than this in one run fail the run: a rerun hides a flake, many reruns hide a defect.
 #: Every rerun is listed with its first failure; the last runs' reruns are counted across runs.
 RERUN_BUDGET = 3
-#: Seconds the unit tests (``make test-fast``: ``-m "not process"``) may take, and the whole run.
+#: Seconds the unit tests (``make test-fast``: ``-m "not process and not slow" -n 2``) may take,
+#: and the whole run (``make test``: the unit part, then the process part).
 FAST_BUDGET_S = 90.0
 SUITE_BUDGET_S = 15 * 60.0
 _HISTORY = "telesurg/runs"  # pytest's cache key of the per-run records (.pytest_cache)
@@ -56,6 +61,8 @@ _START = time.monotonic()
 
 
 def pytest_runtest_logreport(report: pytest.TestReport) -> None:
+    if _WORKER[0]:
+        return
     kind = "process" if "process" in report.keywords else "unit"
     _SECONDS[kind] += report.duration
     if report.outcome != "rerun" and (
@@ -72,6 +79,8 @@ def _rerun_ids() -> list[str]:
 
 def pytest_sessionfinish(session: pytest.Session, exitstatus: int) -> None:
     """Over the rerun budget → the run fails; the run's record goes to pytest's cache."""
+    if _WORKER[0]:
+        return
     if len(_rerun_ids()) > RERUN_BUDGET and exitstatus == pytest.ExitCode.OK:
         session.exitstatus = pytest.ExitCode.TESTS_FAILED
     cache = session.config.cache
@@ -81,6 +90,8 @@ def pytest_sessionfinish(session: pytest.Session, exitstatus: int) -> None:
             {
                 "finished": time.strftime("%Y-%m-%dT%H:%M:%S"),
                 "wall_s": round(time.monotonic() - _START, 1),
+                "marks": session.config.option.markexpr or "",
+                "workers": _workers(session.config),
                 "unit": {"tests": _COUNT["unit"], "s": round(_SECONDS["unit"], 1)},
                 "process": {"tests": _COUNT["process"], "s": round(_SECONDS["process"], 1)},
                 "reruns": _rerun_ids(),
@@ -89,16 +100,30 @@ def pytest_sessionfinish(session: pytest.Session, exitstatus: int) -> None:
         cache.set(_HISTORY, runs[-20:])
 
 
+def _workers(config: pytest.Config) -> int:
+    """pytest-xdist's worker count (``-n``), 0 without it."""
+    n = getattr(config.option, "numprocesses", None)
+    return int(n) if isinstance(n, int) else 0
+
+
 def pytest_terminal_summary(terminalreporter: pytest.TerminalReporter) -> None:
     """The run's split (unit / process seconds against their budgets), its reruns against the
     budget with why each failed the first time, and the reruns of the last recorded runs."""
     tr = terminalreporter
+    if _WORKER[0]:
+        return
     tr.section("telesurg suite")
     unit, proc = _SECONDS["unit"], _SECONDS["process"]
+    n = _workers(tr.config)
     tr.write_line(
         f"unit tests: {_COUNT['unit']} in {unit:.0f} s (make test-fast budget {FAST_BUDGET_S:.0f} s); "
         f"process tests: {_COUNT['process']} in {proc:.0f} s; "
         f"total {unit + proc:.0f} s (budget {SUITE_BUDGET_S:.0f} s)"
+    )
+    tr.write_line(
+        f"this run: -m {tr.config.option.markexpr or '(all)'!r}, "
+        + (f"{n} workers (test seconds summed over them), " if n else "")
+        + f"{time.monotonic() - _START:.0f} s wall"
     )
     ids = _rerun_ids()
     verdict = "over the budget: the run fails" if len(ids) > RERUN_BUDGET else "within the budget"
@@ -110,6 +135,13 @@ def pytest_terminal_summary(terminalreporter: pytest.TerminalReporter) -> None:
             tr.write_line(f"      {line}")
     cache = tr.config.cache
     runs = cache.get(_HISTORY, []) if cache is not None else []
+    if len(runs) > 1 and runs[-1].get("marks") == "process" and runs[-2].get("marks") == "not process":
+        # make test: the unit part (in parallel), then the process part (serial), one after the other
+        w_unit, w_proc = runs[-2]["wall_s"], runs[-1]["wall_s"]
+        tr.write_line(
+            f"make test: unit part {w_unit:.0f} s + process part {w_proc:.0f} s = "
+            f"{w_unit + w_proc:.0f} s wall (budget {SUITE_BUDGET_S:.0f} s)"
+        )
     if len(runs) > 1:
         counts: dict[str, int] = {}
         for run in runs:

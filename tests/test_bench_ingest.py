@@ -20,8 +20,12 @@ def test_each_kind_sends_its_entity_at_the_rate_asked(kind: str, tmp_path: Path)
 
     out = tmp_path / f"{kind}.rrd"
     view = RerunView("test", save=str(out))
+    t0 = time.monotonic()
     with Feeder(view, kind, rate=20.0).running() as feeder:
-        time.sleep(1.0)
+        deadline = t0 + 30.0  # (a loaded host may starve the feeder's thread: its figure, not a fault)
+        while feeder.sent < 20 and time.monotonic() < deadline:
+            time.sleep(0.01)
+    elapsed = time.monotonic() - t0
     sent = feeder.sent
     view.close()
     entity = {
@@ -34,7 +38,9 @@ def test_each_kind_sends_its_entity_at_the_rate_asked(kind: str, tmp_path: Path)
     for c in RrdReader(str(out)).stream():
         if c.entity_path == entity and not c.is_static:
             rows += c.num_rows
-    assert 15 <= sent <= 22, sent  # ~20 frames in 1 s
+    # paced at the rate asked: frame k + 1 goes out no earlier than k / 20 s after the first (how
+    # fast a starved host keeps up is the bench's figure: telesurg bench ingest)
+    assert 20 <= sent <= 20.0 * elapsed + 1, (sent, elapsed)
     # a Transform3D row per MH3F body (9); a 10-row joint block; one row otherwise
     per_frame = {"poses": 9, "series": 10}.get(kind, 1)
     assert rows == sent * per_frame, (rows, sent)

@@ -30,6 +30,7 @@ def bench(tmp_path: Path, *args: str) -> dict:  # type: ignore[type-arg]
     return data
 
 
+@pytest.mark.slow
 def test_bench_sim_and_ik(tmp_path: Path) -> None:
     sim = bench(tmp_path, "sim", "--seconds", "0.3")
     assert set(sim) >= {"mh3f", "plas", "vip"} and all(
@@ -44,6 +45,7 @@ def test_bench_sim_and_ik(tmp_path: Path) -> None:
     assert ik["trocar_ik"]["batch_solves_per_s"] > 0 and ik["ik_6axis"]["batch_solves_per_s"] > 0
 
 
+@pytest.mark.slow
 def test_bench_decode(tmp_path: Path) -> None:
     dec = bench(tmp_path, "decode", "--n", "200", "--repeat", "2")
     rows = dec["messages"]
@@ -151,6 +153,7 @@ def test_bench_latency_and_soak(tmp_path: Path) -> None:
     assert r.returncode == 2 and "new or empty directory" in r.stderr, r.stderr
 
 
+@pytest.mark.process
 @pytest.mark.skipif(bool(schedtrace.unavailable()), reason=schedtrace.unavailable() or "-")
 def test_bench_latency_traces_the_scheduler(tmp_path: Path) -> None:
     keep = tmp_path / "kept"
@@ -226,6 +229,7 @@ def test_the_stages_join_each_setpoint_across_the_logs() -> None:
     assert figs["end_to_end_used"]["n"] == 2
 
 
+@pytest.mark.slow
 def test_bench_wakeup(tmp_path: Path) -> None:
     from telesurg.shared.timing import fair_slice_us
 
@@ -261,6 +265,7 @@ def test_bench_wakeup_refuses_what_it_cannot_measure(args: list[str], why: str) 
     assert r.returncode == 2 and why in r.stderr, r.stderr
 
 
+@pytest.mark.slow
 def test_busy_processes_end_with_a_bench_that_is_killed(tmp_path: Path) -> None:
     import psutil
 

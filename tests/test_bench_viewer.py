@@ -78,6 +78,7 @@ def test_an_unknown_rasteriser_is_refused_by_name() -> None:
         _flags([], "gpu")
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(("gl", "renderer"), [("swiftshader", "SwiftShader"), ("llvmpipe", "llvmpipe")])
 def test_the_bench_browser_draws_with_the_rasteriser_it_names(tmp_path: Path, gl: str, renderer: str) -> None:
     """What ``bench viewer --gl`` reports is what the page gets: a real headless Chromium asked for
@@ -102,6 +103,7 @@ def test_the_bench_browser_draws_with_the_rasteriser_it_names(tmp_path: Path, gl
     )
 
 
+@pytest.mark.slow
 def test_the_bench_browser_runs_the_executable_it_is_given(tmp_path: Path) -> None:
     """``bench viewer --browser PATH`` (another Chromium build) is the executable that draws: a
     wrapper given as the browser leaves its mark and the page answers through it; a path with no

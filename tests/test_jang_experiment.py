@@ -16,6 +16,10 @@ from telesurg.tools.experiment.jang import PAPER_VIP_M, SIM_TRACK_TOL_MM, run
 FIGURES = ("jang-fig6.png", "jang-fig9.png", "jang-elbow.png", "jang-sim.png")
 
 
+#: the module runs telesurg experiment jang-vip once (MuJoCo): make test runs it, make test-fast does not
+pytestmark = pytest.mark.slow
+
+
 @pytest.fixture(scope="module")
 def result(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, dict[str, Any]]:
     out = tmp_path_factory.mktemp("jang")

@@ -426,6 +426,7 @@ def test_tip_exact_step_reproduces_the_master_tip_displacement() -> None:
 # --------------------------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_shim_experiment_writes_metrics_and_figures(tmp_path: Path) -> None:
     stages: list[tuple[str, float]] = []
     metrics = run(tmp_path, progress=lambda s, f: stages.append((s, f)))

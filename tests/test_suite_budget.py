@@ -3,6 +3,8 @@ summary lists each rerun with its first failure and the unit/process split of th
 
 from __future__ import annotations
 
+import json
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -28,19 +30,22 @@ def test_unit_passes():
 """
 
 
-def run_suite(tmp_path: Path, flaky: int) -> subprocess.CompletedProcess[str]:
+def run_suite(tmp_path: Path, flaky: int, *args: str) -> subprocess.CompletedProcess[str]:
     (tmp_path / "conftest.py").write_text(CONFTEST.read_text())
     (tmp_path / "test_flaky.py").write_text(FLAKY.format(n=flaky))
     (tmp_path / "pytest.ini").write_text("[pytest]\nmarkers =\n    process: real services\n")
     return subprocess.run(
-        [sys.executable, "-m", "pytest", "-q", "-p", "no:randomly", str(tmp_path)],
+        [sys.executable, "-m", "pytest", "-q", "-p", "no:randomly", *args, str(tmp_path)],
         cwd=tmp_path,
+        # as from a shell, also when this test runs in a pytest-xdist worker
+        env={k: v for k, v in os.environ.items() if not k.startswith(("PYTEST_XDIST", "PYTEST_CURRENT"))},
         capture_output=True,
         text=True,
         timeout=120,
     )
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("flaky", [1, 4])
 def test_reruns_over_the_budget_fail_the_run_and_are_listed(tmp_path: Path, flaky: int) -> None:
     r = run_suite(tmp_path, flaky)
@@ -52,3 +57,21 @@ def test_reruns_over_the_budget_fail_the_run_and_are_listed(tmp_path: Path, flak
         assert f"rerun test_flaky.py::test_fails_once[{i}] (call), first failure:" in r.stdout
         assert f"first attempt of {i} fails" in r.stdout
     assert "unit tests: 1 in" in r.stdout and f"process tests: {flaky} in" in r.stdout, r.stdout[-3000:]
+
+
+@pytest.mark.slow
+def test_in_parallel_the_controller_alone_counts_and_records_and_the_parts_add_up(tmp_path: Path) -> None:
+    """make test runs the unit part, then the process part; with ``-n 2`` (pytest-xdist) a run
+    has the same verdict and list, and one record; the second part names both and their sum."""
+    unit = run_suite(tmp_path, 4, "-m", "not process")
+    assert unit.returncode == 0 and "this run: -m 'not process'" in unit.stdout, unit.stdout[-3000:]
+    r = run_suite(tmp_path, 4, "-m", "process", "-n", "2")
+    assert r.returncode != 0 and "reruns: 4 of a budget of 3" in r.stdout, r.stdout[-3000:]
+    for i in range(4):
+        assert f"rerun test_flaky.py::test_fails_once[{i}] (call), first failure:" in r.stdout
+    assert "unit tests: 0 in" in r.stdout and "process tests: 4 in" in r.stdout, r.stdout[-3000:]
+    assert "2 workers" in r.stdout and "make test: unit part " in r.stdout, r.stdout[-3000:]
+    assert " s wall (budget 900 s)" in r.stdout, r.stdout[-3000:]
+    runs = json.loads((tmp_path / ".pytest_cache/v/telesurg/runs").read_text())
+    assert [(run["marks"], run["workers"]) for run in runs] == [("not process", 0), ("process", 2)], runs
+    assert runs[1]["process"]["tests"] == 4 and len(runs[1]["reruns"]) == 4, runs

@@ -71,6 +71,7 @@ def test_unreachable_target_is_pivoted_to_the_reach_limit_with_a_reason() -> Non
     assert "depth" in deep.clamped and np.linalg.norm(deep.tip - TROCAR) == pytest.approx(0.35)
 
 
+@pytest.mark.slow
 def test_remove_gets_out_where_the_straight_way_leaves_the_reach() -> None:
     """Axis tilted away from the arm: retracting straight would take the wrist out of reach."""
     rng = np.random.default_rng(3)
@@ -108,6 +109,7 @@ def test_keepout_allows_the_trocar_and_refuses_the_patient_elsewhere() -> None:
     assert path_problem(np.array(STARTS["start_a"]), outside, BOX) is None
 
 
+@pytest.mark.slow
 def test_random_ptp_paths_through_the_patient_are_found() -> None:
     """500 random PTP targets from random postures: the path check refuses every sweep through
     the patient (judged again at 5× finer steps) and names the reason."""

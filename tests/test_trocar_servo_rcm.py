@@ -39,6 +39,9 @@ from telesurg.shared.robots.mh3f.trocar import insertion_depth, posture_adjust, 
 from telesurg.shared.robots.mh3f.trocar_limits import TROCAR_SPEED_FRACTION, clamped_trocar_ik
 from telesurg.tools.experiment.jinno import STARTS, TROCAR
 
+#: 12 s of 1 kHz MuJoCo per run: make test runs them, make test-fast does not
+pytestmark = pytest.mark.slow
+
 DT = 0.001  # s: the slave's period (MuJoCo step)
 MASTER_DT = 0.004  # s: 250 Hz master, one servo_jp per mapped sample
 T_END = 11.6  # s: 0.3 s still, the 5 s circle, the 6 s figure-eight, 0.3 s still

@@ -40,7 +40,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     )
     ap.add_argument("name", choices=sorted(EXPERIMENTS), help="which experiment")
     ap.add_argument("--out", type=Path, required=True, help="output directory (created)")
+    ap.add_argument("--quick", action="store_true", help="jinno-insertion: a short protocol (the tests')")
     a = ap.parse_args(argv)
+    if a.quick and a.name != "jinno-insertion":
+        ap.error("--quick: only jinno-insertion has a short protocol")
     from rich.console import Console
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
@@ -55,7 +58,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             bar.update(task, completed=fraction, description=f"{a.name}: {text}")
 
         try:
-            metrics = module.run(a.out, progress)
+            metrics = module.run(a.out, progress, **({"quick": True} if a.quick else {}))
         except (RuntimeError, TimeoutError, OSError) as exc:
             console.print(f"[red]telesurg experiment {a.name} failed:[/red] {exc}")
             return 1

@@ -418,8 +418,24 @@ class Experiment:
         return run
 
 
-def run(out: Path, progress: Progress | None = None, *, keep_logs: bool = True) -> dict[str, Any]:
-    """Run the experiment; write ``metrics.json`` and figures into ``out``; return the metrics."""
+#: the protocol: (run name, start, posture method, trace after the insertion)
+PLAN: tuple[tuple[str, str, str, bool], ...] = (
+    ("fig9_ptp", "start_b", "ptp", False),
+    ("fig9_jog", "start_b", "jog", False),
+    ("fig9_direct_teach", "start_b", "direct_teach", False),
+    ("fig10_a", "start_a", "ptp", False),
+    ("fig10_c", "start_c", "ptp", False),
+    ("trace", "start_a", "ptp", True),
+)
+#: ``--quick``: each posture method once (PTP from the third start), then the trace
+QUICK_PLAN = tuple(r for r in PLAN if r[0] in ("fig9_jog", "fig9_direct_teach", "fig10_c", "trace"))
+
+
+def run(
+    out: Path, progress: Progress | None = None, *, keep_logs: bool = True, quick: bool = False
+) -> dict[str, Any]:
+    """Run the experiment (``quick``: :data:`QUICK_PLAN`); write ``metrics.json`` and figures into
+    ``out``; return the metrics."""
     from telesurg.tools.bench.harness import Pipeline
 
     out.mkdir(parents=True, exist_ok=True)
@@ -435,14 +451,7 @@ def run(out: Path, progress: Progress | None = None, *, keep_logs: bool = True) 
         ],
         "mapping": ["master_mode=virtual_trocar"],  # the master of the paper's Fig. 7
     }
-    plan = [
-        ("fig9_ptp", "start_b", "ptp", False),
-        ("fig9_jog", "start_b", "jog", False),
-        ("fig9_direct_teach", "start_b", "direct_teach", False),
-        ("fig10_a", "start_a", "ptp", False),
-        ("fig10_c", "start_c", "ptp", False),
-        ("trace", "start_a", "ptp", True),
-    ]
+    plan = QUICK_PLAN if quick else PLAN
     t_begin = time.monotonic()
     say("starting the services", 0.0)
     with (
