@@ -13,10 +13,12 @@ running, ``deploy/console.sh`` without a keyring.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import re
 import shutil
+import signal
 import subprocess
 import sys
 from importlib.metadata import version
@@ -28,7 +30,16 @@ ROOT = Path(__file__).resolve().parents[1]
 DOCS = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
 BIN = Path(sys.executable).parent
 RECIPE = re.compile(r"^```+\s*(\w+)\s+.*\brecipe=([\w-]+)")
-NAMES = ("record-replay", "plas-pty", "messages-node", "messages-codec", "two-host-keys")
+NAMES = (
+    "record-replay",
+    "plas-pty",
+    "messages-node",
+    "messages-codec",
+    "two-host-keys",
+    "plugin-robot",
+    "plugin-device",
+    "plugin-rule",
+)
 
 
 def recipe(name: str) -> tuple[str, list[str]]:
@@ -71,13 +82,25 @@ def in_netns(script: str, tmp: Path, timeout: float) -> subprocess.CompletedProc
     if os.geteuid() != 0 or not shutil.which("unshare") or not shutil.which("ip"):
         pytest.skip("needs root, unshare and ip: a private loopback where port 7447 is free")
     full = f'set -u\nip link set lo up\ncd "$WORK"\n{script}'
-    return subprocess.run(
+    with subprocess.Popen(
         ["unshare", "--net", "bash", "-c", full],
         env=checkout(tmp),
-        capture_output=True,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
         text=True,
-        timeout=timeout,
-    )
+        start_new_session=True,  # its own process group: a timeout ends everything it started
+    ) as p:
+        try:
+            out, err = p.communicate(timeout=timeout)
+        except subprocess.TimeoutExpired:
+            for sig, grace in ((signal.SIGINT, 15.0), (signal.SIGKILL, 5.0)):
+                with contextlib.suppress(ProcessLookupError):
+                    os.killpg(p.pid, sig)
+                with contextlib.suppress(subprocess.TimeoutExpired):
+                    out, err = p.communicate(timeout=grace)
+                    break
+            raise AssertionError(f"the recipe did not end within {timeout} s:\n{script}") from None
+    return subprocess.CompletedProcess(p.args, p.returncode, out, err)
 
 
 def errors(text: str) -> list[str]:
@@ -215,6 +238,47 @@ def test_the_plas_site_on_an_emulated_board_as_written(tmp_path: Path) -> None:
     assert not stop_errors(log), "an orderly stop logged errors:\n" + "\n".join(stop_errors(log))
     sent = re.search(r"master_capture .* sent (\d+) samples", log)
     assert sent and int(sent.group(1)) > 100, log[-3000:]
+
+
+# --------------------------------------------------------------------------- plugins
+
+PLUGIN_SCRIPT = """
+ln -s {root}/tests tests
+{up} > up.log 2>&1 &
+UP=$!
+for i in $(seq 450); do
+  grep -qF {until} up.log && break
+  kill -0 $UP 2>/dev/null || break
+  sleep 0.2
+done
+sleep 1
+kill -INT $UP; wait $UP
+echo "up exit $?"
+"""
+
+
+@pytest.mark.process
+@pytest.mark.timeout(400)
+def test_the_plugin_examples_as_written(tmp_path: Path) -> None:
+    """docs/extending.md: each plugin's ``telesurg up`` line as written in a checkout — the
+    fourth robot follows its master through its own mapping, the plugin device drives the arm,
+    the plugin rule holds it with its cause; Ctrl-C stops each site cleanly."""
+    cases = {
+        "plugin-robot": "'[arm1] teleop ENGAGING → ENABLED'",
+        "plugin-device": "'[arm1] teleop ENGAGING → ENABLED'",
+        "plugin-rule": "'tip left its sphere'",
+    }
+    for name, until in cases.items():
+        (line,) = commands(name)
+        work = tmp_path / name
+        work.mkdir()
+        r = in_netns(PLUGIN_SCRIPT.format(root=ROOT, up=line, until=until), work, 130)
+        log = (work / "up.log").read_text()
+        assert "up exit 0" in r.stdout, f"{name}: {r.stdout}{r.stderr}\n{log[-4000:]}"
+        assert until.strip("'") in log, f"{name}:\n{log[-4000:]}"
+        assert not stop_errors(log), f"{name}: an orderly stop logged errors:\n" + "\n".join(stop_errors(log))
+        if name == "plugin-robot":
+            assert re.search(r"mapping \S+ → arm1 \(reach\)", log), log[-3000:]
 
 
 # --------------------------------------------------------------------------- messages.md

@@ -10,7 +10,6 @@ import os
 import random
 import subprocess
 import sys
-import time
 from collections.abc import Iterable, Iterator
 from pathlib import Path
 
@@ -214,15 +213,12 @@ def test_case_shapes(templates: tuple[Message, ...]) -> None:
                 decode(c.payload)
 
 
-def test_generation_is_fast(templates: tuple[Message, ...]) -> None:
-    """Lenient floor (the target is >= 20 000 cases/s on a slow core; see the module report)."""
-    list(fuzz_cases(random.Random(0), templates, 500))  # warm caches
+def test_generation_streams_every_case_asked(templates: tuple[Message, ...]) -> None:
+    """20 000 cases come out one at a time, each with a payload (the rate is the bench's figure:
+    ``telesurg bench fuzz`` prints it)."""
     n = 20_000
-    t0 = time.perf_counter()
-    for _ in fuzz_cases(random.Random(1), templates, n):
-        pass
-    rate = n / (time.perf_counter() - t0)
-    assert rate > 5_000, f"{rate:.0f} cases/s"
+    count = sum(1 for c in fuzz_cases(random.Random(1), templates, n) if c.payload is not None)
+    assert count == n
 
 
 # --------------------------------------------------------------------------- the decoder under fuzz
