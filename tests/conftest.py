@@ -40,7 +40,7 @@ def pytest_configure(config: pytest.Config) -> None:
 PROCESS_RERUNS = 1
 #: More reruns than this in one run fail the run: a rerun hides a flake, many reruns hide a defect.
 #: Every rerun is listed with its first failure; the last runs' reruns are counted across runs.
-RERUN_BUDGET = 3
+RERUN_BUDGET = 5
 #: Seconds the unit tests (``make test-fast``: ``-m "not process and not slow" -n 2``) may take,
 #: and the whole run (``make test``: the unit part, then the process part).
 FAST_BUDGET_S = 90.0
