@@ -16,7 +16,7 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -244,6 +244,20 @@ def settled_tip(
             break
     with lock:
         return tips[-1][1].copy()
+
+
+def wait_first(lock: Any, site: Any, pred: Callable[[], float | None], timeout: float) -> float | None:
+    """Poll ``pred()`` under ``lock`` every 50 ms until it gives a time (returned) or ``timeout`` s
+    pass (None); a dead service of ``site`` fails at once."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        with lock:
+            t = pred()
+        if t is not None:
+            return float(t)
+        assert not site.dead(), f"a service died: {site.dead()}"
+        time.sleep(0.05)
+    return None
 
 
 def feed_master(arm: Any, p: tuple[float, float, float], clutch: bool) -> None:

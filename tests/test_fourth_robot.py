@@ -27,6 +27,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import wait_first
 from telesurg.services.launcher import CONTROL_SERVICES, Site, SiteSpec, free_port
 from telesurg.shared import robots
 from telesurg.shared.bus import BusConfig, Node
@@ -133,21 +134,13 @@ def run(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[Log, Path, d
             node.subscribe(k.safety("arm1", "state"), SafetyState, on_safety)
             node.subscribe(k.events(), SafetyEvent, on_event)
 
-            def first(pred: object, timeout: float) -> float | None:
-                deadline = time.monotonic() + timeout
-                while time.monotonic() < deadline:
-                    with log.lock:
-                        t = pred()  # type: ignore[operator]
-                    if t is not None:
-                        return float(t)
-                    if site.dead():
-                        raise AssertionError(f"a service died: {site.dead()}")
-                    time.sleep(0.05)
-                return None
-
-            t_engage = first(lambda: next((t for t, _, f, _ in log.setpoints if f), None), 45.0)
+            t_engage = wait_first(
+                log.lock, site, lambda: next((t for t, _, f, _ in log.setpoints if f), None), 45.0
+            )
             assert t_engage is not None, "the mapping never engaged"
-            t_hold_or_none = first(
+            t_hold_or_none = wait_first(
+                log.lock,
+                site,
                 lambda: next(
                     (
                         t

@@ -26,7 +26,7 @@ from typing import Any
 
 import numpy as np
 import pytest
-from helpers import operator_command
+from helpers import operator_command, wait_first
 from telesurg.services.launcher import CONTROL_SERVICES, Site, SiteSpec, free_port
 from telesurg.shared import robots
 from telesurg.shared.bus import BusConfig, Node
@@ -59,15 +59,7 @@ class Log:
 
 
 def _wait(log: Log, site: Site, pred: Callable[[], float | None], timeout: float) -> float | None:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        with log.lock:
-            t = pred()
-        if t is not None:
-            return t
-        assert not site.dead(), f"a service died: {site.dead()}"
-        time.sleep(0.05)
-    return None
+    return wait_first(log.lock, site, pred, timeout)
 
 
 @pytest.fixture(scope="module")
