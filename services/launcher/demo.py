@@ -148,6 +148,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         report["summary"],
     )
     if args.report:
-        Path(args.report).write_text(jsonio.dumps(report, indent=2))
+        out = Path(args.report)
+        out.parent.mkdir(parents=True, exist_ok=True)  # as record --out: a fresh checkout has no out/
+        out.write_text(jsonio.dumps(report, indent=2))
         log.info("report written to %s", args.report)
     return 0 if all(c == 0 for c in codes.values()) else 1
