@@ -427,6 +427,7 @@ class Node:
         self._subscribed: set[str] = set()
         self._polled: list[tuple[Any, Callable[[Any, int], None]]] = []  # (subscriber, on_sample)
         self._last_poll_ns = 0
+        self._polled_ns = 0  # when the last poll() finished (heartbeat's polled_s)
         self._closed = False
         self.session = open_session(bus)
         # presence by authenticated session (shared/presence.py): the token carries this node's sid
@@ -639,6 +640,7 @@ class Node:
             while (sample := sub.try_recv()) is not None:
                 on_sample(sample, since)
                 n += 1
+        self._polled_ns = time.monotonic_ns()
         return n
 
     def serve(
@@ -865,6 +867,7 @@ class Node:
                         self.service,
                         time.monotonic() - self._start,
                         self.rejected,
+                        (time.monotonic_ns() - self._polled_ns) / 1e9 if self._polled_ns else -1.0,
                     )
                 )
             except Exception:  # session closing under us

@@ -2,7 +2,7 @@
 
 Every payload is a MessagePack map with a common header::
 
-    {"v": 2, "type": "joint_state", "src": "slave_control", "seq": 42, "ts": 1700000000000000000,
+    {"v": 3, "type": "joint_state", "src": "slave_control", "seq": 42, "ts": 1700000000000000000,
      ...body fields...}
 
 * ``v``    schema version (int, must equal :data:`SCHEMA_VERSION`)
@@ -59,7 +59,7 @@ from typing import Any, ClassVar, TypeVar
 import msgpack
 from telesurg.shared.errors import MessageError
 
-SCHEMA_VERSION = 2  # 2: safety fields (origin_ns, latency, scale, rcm, clipped), estop
+SCHEMA_VERSION = 3  # 2: safety fields (origin_ns, latency, scale, rcm, clipped), estop; 3: heartbeat polled_s
 #: Largest payload accepted by :func:`decode`, bytes.
 MAX_PAYLOAD_BYTES = 64 * 1024
 #: Largest joint count in any joint-space message.
@@ -985,6 +985,13 @@ class Heartbeat(Message):
     service: str = fld("", "service instance id", nonempty=True)
     uptime_s: float = fld(0.0, "time since the service started (monotonic clock)", unit="s", ge=0.0)
     rejected: int = fld(0, "messages this service's strict decoder rejected so far (all keys)")
+    polled_s: float = fld(
+        -1.0,
+        "time since the service's loop last took in its buffered streams (-1: it buffers none); "
+        "a count above is final for what was sent before then",
+        unit="s",
+        ge=-1.0,
+    )
 
 
 def _key_value_args(args: tuple[str, ...]) -> None:

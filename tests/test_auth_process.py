@@ -152,7 +152,10 @@ def test_seq_zero_poisoning_leaves_the_loss_counters_alone(pipe: Pipeline) -> No
         time.sleep(1.5)
         lost = pipe.p.lost()
         print(f"seq-0 poisoning: probe losses before {lost0}, after {lost}")
-        assert lost == lost0
+        # a poisoned counter jumps by the genuine sequence (thousands); an observer on a busy host
+        # may miss the odd genuine sample, which is not what this is about
+        added = {k: n - lost0.get(k, 0) for k, n in lost.items()}
+        assert all(n <= 5 for n in added.values()), added
         with pipe.p.lock:
             states = [(s[1], s[2]) for s in pipe.p.safety if s[0] >= t0]
         assert states and not any("loss" in " ".join(c) for _, c in states), states

@@ -82,6 +82,8 @@ class Probe:
     clutch: list[tuple[int, bool]] = field(default_factory=list)
     events: list[tuple[int, str, str, str]] = field(default_factory=list)
     heartbeats: dict[str, int] = field(default_factory=dict)  # service → rejected so far
+    # service → when (this process's monotonic clock) its loop last took in its buffered streams
+    polled_at: dict[str, float] = field(default_factory=dict)
     joints: list[tuple[float, ...]] = field(default_factory=list)  # slave measured_js positions
 
     def __post_init__(self) -> None:
@@ -145,6 +147,8 @@ class Probe:
     def _on_heartbeat(self, m: Heartbeat, key: str) -> None:
         with self.lock:
             self.heartbeats[m.service] = m.rejected
+            if m.polled_s >= 0:
+                self.polled_at[m.service] = time.monotonic() - m.polled_s
 
     # -- queries ------------------------------------------------------------------------------
     def following(self) -> bool:
@@ -312,19 +316,23 @@ class Pipeline:
         return False
 
     def settled_heartbeats(self, timeout: float = 20.0) -> dict[str, int]:
-        """Rejection counters once every service has caught up (unchanged over two heartbeats).
+        """Rejection counters once every service has caught up with what was sent before the call.
 
         A service that fell behind under load is still working through its queue for a while
-        after the last message was sent; its heartbeat count settles when it is done.
+        after the last message was sent: the counts are taken once each service that buffers
+        streams has taken them in since the call (its heartbeat's ``polled_s``) and the counts
+        are unchanged over two heartbeats.
         """
-        deadline = time.monotonic() + timeout
+        since = time.monotonic()
+        deadline = since + timeout
         last: dict[str, int] = {}
         stable = 0
         while time.monotonic() < deadline:
             time.sleep(0.6)  # heartbeats are 2 Hz
             with self.p.lock:
                 now = dict(self.p.heartbeats)
-            stable = stable + 1 if now == last else 0
+                behind = [s for s, t in self.p.polled_at.items() if t < since]
+            stable = stable + 1 if now == last and not behind else 0
             if stable >= 2:
                 break
             last = now
