@@ -83,7 +83,7 @@ def pytest_sessionfinish(session: pytest.Session, exitstatus: int) -> None:
         return
     if len(_rerun_ids()) > RERUN_BUDGET and exitstatus == pytest.ExitCode.OK:
         session.exitstatus = pytest.ExitCode.TESTS_FAILED
-    cache = session.config.cache
+    cache = getattr(session.config, "cache", None)  # absent under -p no:cacheprovider
     if cache is not None and _COUNT["unit"] + _COUNT["process"] > 0:
         runs = cache.get(_HISTORY, [])
         runs.append(
@@ -133,7 +133,7 @@ def pytest_terminal_summary(terminalreporter: pytest.TerminalReporter) -> None:
         tr.write_line(f"  rerun {r.nodeid} ({r.when}), first failure:")
         for line in lines[-25:]:
             tr.write_line(f"      {line}")
-    cache = tr.config.cache
+    cache = getattr(tr.config, "cache", None)
     runs = cache.get(_HISTORY, []) if cache is not None else []
     if len(runs) > 1 and runs[-1].get("marks") == "process" and runs[-2].get("marks") == "not process":
         # make test: the unit part (in parallel), then the process part (serial), one after the other
