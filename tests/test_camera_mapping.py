@@ -42,11 +42,20 @@ def _pixel(T_cam: np.ndarray, k: Intrinsics, p: np.ndarray) -> np.ndarray:
     return np.array([k.fx * pc[0] / pc[2] + k.cx, k.fy * pc[1] / pc[2] + k.cy])
 
 
+@pytest.fixture(scope="module")
+def endoscope() -> Iterator[MujocoSource]:
+    """One simulated endoscope for the module (its GL context takes seconds to make)."""
+    src = MujocoSource(robots.get("mh3f").scene, width=320, height=240)
+    yield src
+    src.close()
+
+
 @pytest.fixture
-def rig(endpoint: str) -> Iterator[tuple[Pair, list[JointSetpoint], MujocoSource]]:
+def rig(endpoint: str, endoscope: MujocoSource) -> Iterator[tuple[Pair, list[JointSetpoint], MujocoSource]]:
     bus = BusConfig(connect=[endpoint])
     setpoints: list[JointSetpoint] = []
-    src = MujocoSource(robots.get("mh3f").scene, width=320, height=240)
+    src = endoscope
+    home = src.pose()
     with Node(bus, "t", "mapping") as node, Node(bus, "t", "probe") as probe:
         probe.subscribe(probe.keys.slave("arm1", "servo_jp"), JointSetpoint, lambda m, k: setpoints.append(m))
         time.sleep(0.3)
@@ -54,7 +63,7 @@ def rig(endpoint: str) -> Iterator[tuple[Pair, list[JointSetpoint], MujocoSource
         arm.on_slave_js(JointState(H, MH3F.joint_names, Q0), "")
         arm.on_slave_state(OperatingState(H, "PAUSED", "non_trocar", False, True, "", 0), "")
         yield arm, setpoints, src
-    src.close()
+    src.move(home)  # the next test starts from the scene's endoscope pose
 
 
 @pytest.mark.parametrize("roll_deg", [0.0, 90.0])
