@@ -39,7 +39,7 @@ def check_hold(row: dict[str, object], detect_max_ms: float) -> None:
     assert isinstance(row["detect_ms"], float) and row["detect_ms"] < detect_max_ms, row
     assert isinstance(row["motion_after_detect_mm"], float) and row["motion_after_detect_mm"] < 0.5, row
     assert row["recovered"], f"{row['fault']}: never followed again"
-    assert row["reengage_needed"], f"{row['fault']}: resumed without a new clutch press"
+    assert row["reengage_needed"], f"{row['fault']}: resumed without a new clutch press: {row.get('seen')}"
     assert isinstance(row["motion_before_reengage_mm"], float) and row["motion_before_reengage_mm"] < 0.5
 
 

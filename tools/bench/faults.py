@@ -178,6 +178,16 @@ def run_fault(pipe: Pipeline, f: Fault, lead_s: float = 1.0, recover_s: float = 
         # may reach the probe before the press does)
         t_fol_pub = fol[1][8] if fol else t_fol
         row["reengage_needed"] = p.press_between(t_hold, t_fol_pub)
+        if not row["reengage_needed"]:  # what the probe saw, ms from the hold: to tell why
+            with p.lock:
+                row["seen"] = {
+                    "clutch": [(round((t - t_hold) / 1e6), on) for t, on in p.clutch if t >= t_hold - 5e9],
+                    "op": [
+                        (round((r[0] - t_hold) / 1e6), round((r[8] - t_hold) / 1e6), r[1], r[4], r[3])
+                        for r in p.op
+                        if t_hold - 1e9 <= r[0] <= t_fol + 1e9
+                    ][:40],
+                }
         # The slave must stay put from the hold until the new engage: until the press (the
         # follow's state is published at a lower rate than the tip, which may already move)
         with p.lock:
