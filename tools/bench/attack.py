@@ -316,9 +316,10 @@ def _rejected(pipe: Pipeline, service: str) -> int:
 
 
 def _settle_rejections(pipe: Pipeline, services: Sequence[str], before: dict[str, int]) -> dict[str, int]:
-    """Rejections per service since ``before``, once the heartbeats have caught up (≥ 1.2 s)."""
-    time.sleep(1.2)  # heartbeats are 2 Hz
-    return {s: max(0, _rejected(pipe, s) - before.get(s, 0)) for s in services}
+    """Rejections per service since ``before``, once every service has caught up
+    (:meth:`Pipeline.settled_heartbeats`)."""
+    settled = pipe.settled_heartbeats()
+    return {s: max(0, settled.get(s, 0) - before.get(s, 0)) for s in services}
 
 
 def _motion(pipe: Pipeline, t0: int, t1: int) -> float | None:

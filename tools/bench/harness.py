@@ -84,6 +84,7 @@ class Probe:
     heartbeats: dict[str, int] = field(default_factory=dict)  # service → rejected so far
     # service → when (this process's monotonic clock) its loop last took in its buffered streams
     polled_at: dict[str, float] = field(default_factory=dict)
+    beat_at: dict[str, float] = field(default_factory=dict)  # service → its last heartbeat's arrival
     joints: list[tuple[float, ...]] = field(default_factory=list)  # slave measured_js positions
 
     def __post_init__(self) -> None:
@@ -147,8 +148,9 @@ class Probe:
     def _on_heartbeat(self, m: Heartbeat, key: str) -> None:
         with self.lock:
             self.heartbeats[m.service] = m.rejected
+            self.beat_at[m.service] = t = time.monotonic()
             if m.polled_s >= 0:
-                self.polled_at[m.service] = time.monotonic() - m.polled_s
+                self.polled_at[m.service] = t - m.polled_s
 
     # -- queries ------------------------------------------------------------------------------
     def following(self) -> bool:
@@ -320,8 +322,8 @@ class Pipeline:
 
         A service that fell behind under load is still working through its queue for a while
         after the last message was sent: the counts are taken once each service that buffers
-        streams has taken them in since the call (its heartbeat's ``polled_s``) and the counts
-        are unchanged over two heartbeats.
+        streams and still beats has taken them in since the call (its heartbeat's ``polled_s``)
+        and the counts are unchanged over two heartbeats.
         """
         since = time.monotonic()
         deadline = since + timeout
@@ -331,7 +333,9 @@ class Pipeline:
             time.sleep(0.6)  # heartbeats are 2 Hz
             with self.p.lock:
                 now = dict(self.p.heartbeats)
-                behind = [s for s, t in self.p.polled_at.items() if t < since]
+                # (a service silent for three heartbeats is gone: nothing to wait for)
+                alive = time.monotonic() - 1.5
+                behind = [s for s, t in self.p.polled_at.items() if t < since and self.p.beat_at[s] > alive]
             stable = stable + 1 if now == last and not behind else 0
             if stable >= 2:
                 break
