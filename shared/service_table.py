@@ -8,7 +8,7 @@ package ``services/<name>/`` (docs/extending.md, "Add a service").
 Example::
 
     Service("mirror", "stream everything to rerun (web viewer or .rrd)", "MirrorConfig",
-            start=4, stop=7, best_effort=True)
+            start=1, stop=7, best_effort=True)
 """
 
 from __future__ import annotations
@@ -31,7 +31,7 @@ class Service:
     name: str  # package and site-file table name, e.g. "slave_control"
     help: str  # one line for ``telesurg --help``
     config: str  # its config dataclass, in its package
-    start: int  # start order (the router is 0: first)
+    start: int  # start stage (the router is 0: first); one stage's services start together
     stop: int  # stop order (1 stops first)
     control: bool = False  # control path: the launcher raises its priority (CONTROL_NICE)
     zid: bool = False  # the router waits for its session when a control stream's subscriber lags
@@ -70,7 +70,7 @@ SERVICES: tuple[Service, ...] = (
         "slave_control",
         "run the slave arm (MuJoCo) under a lease",
         "SlaveControlConfig",
-        start=2,
+        start=1,
         stop=5,
         control=True,
         zid=True,
@@ -79,7 +79,7 @@ SERVICES: tuple[Service, ...] = (
         "mapping",
         "master pose → slave joint setpoints (clutch, scale, IK)",
         "MappingConfig",
-        start=3,
+        start=1,
         stop=4,
         control=True,
         zid=True,
@@ -88,7 +88,7 @@ SERVICES: tuple[Service, ...] = (
         "mirror",
         "stream everything to rerun (web viewer or .rrd)",
         "MirrorConfig",
-        start=4,
+        start=1,
         stop=7,
         best_effort=True,
     ),
@@ -96,7 +96,7 @@ SERVICES: tuple[Service, ...] = (
         "master_capture",
         "publish a master device's pose and buttons",
         "MasterCaptureConfig",
-        start=5,
+        start=2,
         stop=3,
         control=True,
         zid=True,
@@ -105,7 +105,7 @@ SERVICES: tuple[Service, ...] = (
         "camera",
         "the endoscope view: MuJoCo render or a real camera → JPEG frames",
         "CameraConfig",
-        start=6,
+        start=3,
         stop=6,
         best_effort=True,
         optional=True,
@@ -117,7 +117,7 @@ SERVICES: tuple[Service, ...] = (
         "console",
         "operator console (terminal UI): state, clutch, commands, e-stop",
         "ConsoleConfig",
-        start=7,
+        start=4,
         stop=1,
         on_request=True,
         args=("--web",),

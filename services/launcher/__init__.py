@@ -34,6 +34,7 @@ import contextlib
 import functools
 import importlib
 import importlib.resources
+import itertools
 import json
 import logging
 import os
@@ -345,11 +346,11 @@ class Site:
         self.login_token = ""
 
     def start(self) -> None:
-        """Start the router, wait for it, then every service, one at a time.
-
-        Each service is started once the previous one is on the bus (its liveliness token is
-        seen): six Python processes importing at once saturate a 2-core host for seconds, long
-        enough for the watchdog's deadlines to fire before the first engage.
+        """Start the router, wait for it, then the services stage by stage (the service table's
+        ``start``): a stage's services start together and the next stage once each is on the bus
+        (its liveliness token is seen). The master starts after the services that follow it: six
+        Python processes importing at once saturate a 2-core host for a second or two, and a
+        master engaging then would meet a mapping not yet listening.
         """
         control_slice_us(), best_effort_nice()  # a bad environment stops here, before any start
         if self.spec.keys_dir is None:
@@ -384,11 +385,14 @@ class Site:
                         f"the recorder did not start (exit code {self.procs['record'].poll()})"
                     )
             wait_master = self._watch_master(session)
-            for name in (*SERVICES, *ON_REQUEST):
-                if name not in self.spec.services:
-                    continue
-                self._spawn(name)
-                if not self._wait_alive(session, keys.alive(name), 30.0):
+            names = [n for n in (*SERVICES, *ON_REQUEST) if n in self.spec.services]
+            for _stage, group in itertools.groupby(names, key=lambda n: TABLE[n].start):
+                stage = list(group)
+                for name in stage:  # a stage's services start together, then each must be up
+                    self._spawn(name)
+                for name in stage:
+                    if self._wait_alive(session, keys.alive(name), 30.0):
+                        continue
                     rc = self.procs[name].poll()
                     if name in OPTIONAL:
                         self._without(name, rc)
