@@ -136,9 +136,9 @@ def read_recording(path: Path, arm: str | None) -> Recording:
                 continue
             if role != "slave":
                 continue
-            if not rec.arm and stream == "measured_js" and isinstance(msg, JointState):
-                if arm is None or who == arm:
-                    rec.arm, rec.names = who, msg.names
+            mine = arm is None or who == arm
+            if not rec.arm and mine and stream == "measured_js" and isinstance(msg, JointState):
+                rec.arm, rec.names = who, msg.names
             if who != (rec.arm or arm):
                 continue
             t = msg.header.stamp_ns
@@ -205,7 +205,7 @@ def episodes_of(
             continue
         firsts = [on, rec.target.t[i]] + [s.t[0] for s in streams if s is not rec.target]
         t0 = max(firsts)
-        n = int(math.floor((off - 1 - t0) / period_ns)) + 1 if off > t0 else 0
+        n = math.floor((off - 1 - t0) / period_ns) + 1 if off > t0 else 0
         if n <= 0:
             continue
         times = t0 + np.round(np.arange(n) * period_ns).astype(np.int64)
@@ -323,7 +323,8 @@ def to_lerobot(
     for r in recs:
         if r.names != first.names or r.arm != first.arm:
             raise DatasetError(
-                f"{r.path}: arm {r.arm} {list(r.names)} differs from {first.path}'s {first.arm} {list(first.names)}"
+                f"{r.path}: arm {r.arm} {list(r.names)} differs from "
+                f"{first.path}'s {first.arm} {list(first.names)}"
             )
         for c in cams:
             if c not in r.images:
@@ -420,7 +421,7 @@ def _write(
         path.parent.mkdir(parents=True, exist_ok=True)
         rate = _rate(fps)
         with av.open(str(path), "w") as container:
-            stream = container.add_stream(VIDEO_CODEC, rate=rate)
+            stream: Any = container.add_stream(VIDEO_CODEC, rate=rate)
             stream.width, stream.height, stream.pix_fmt = w, h, "yuv420p"
             stream.options = {"crf": "18", "g": "2", "preset": "veryfast"}
             pts = 0
@@ -544,10 +545,10 @@ def _write(
             "sources": [str(r.path) for r in recs],
             "frame": "base (the slave robot's base frame, the MuJoCo scene's world); m, rad, N, N·m",
             "alignment": (
-                f"frame k of an episode is at start_ns + k/fps on the recording's clock (header "
-                f"stamps; camera frames by capture_ns); each feature holds the newest sample stamped "
-                f"at or before it (zero-order hold); an episode is one run of the slave's "
-                f"operating_state.follow, from the first instant every stream has a sample of it"
+                "frame k of an episode is at start_ns + k/fps on the recording's clock (header "
+                "stamps; camera frames by capture_ns); each feature holds the newest sample stamped "
+                "at or before it (zero-order hold); an episode is one run of the slave's "
+                "operating_state.follow, from the first instant every stream has a sample of it"
             ),
             "action": "slave/<arm>/setpoint_cp: the tip pose the mapping commanded (x y z, qx qy qz qw)",
         },
