@@ -505,10 +505,33 @@ def parser() -> argparse.ArgumentParser:
     return p
 
 
+#: the flags of parser() that take no value
+FLAGS = frozenset({"--no-video", "-h", "--help"})
+
+
+def _positionals_first(argv: list[str]) -> list[str]:
+    """``argv`` with the recordings and OUT first (``A.mcap B.mcap --to lerobot OUT`` as
+    ``A.mcap B.mcap OUT --to lerobot``): argparse gives a ``+`` positional only the words before
+    the first option."""
+    pos: list[str] = []
+    opts: list[str] = []
+    it = iter(argv)
+    for a in it:
+        if a == "--":
+            pos.extend(it)
+        elif a.startswith("-") and a not in FLAGS and "=" not in a:
+            opts.extend((a, next(it, "")))
+        elif a.startswith("-"):
+            opts.append(a)
+        else:
+            pos.append(a)
+    return pos + opts
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point; 0 on success, 1 on bad input (one line on stderr, nothing written), 2 on bad flags."""
     p = parser()
-    args = p.parse_intermixed_args(argv)
+    args = p.parse_args(_positionals_first(sys.argv[1:] if argv is None else list(argv)))
     logging.basicConfig(
         level=args.log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s"
     )
