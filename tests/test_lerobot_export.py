@@ -41,8 +41,9 @@ def _jpeg(level: int) -> bytes:
 def make_recording(
     path: Path, *, engaged: tuple[tuple[int, int], ...] = ENGAGED, camera: bool = True
 ) -> None:
-    """6 s of an arm: joints 500 Hz (j1 = t in s), tip and state 100 Hz, the mapping's target 100 Hz
-    while engaged (x = 1 + t), the camera at 20 Hz (grey level = frame number × 10)."""
+    """6 s of an arm: joints 250 Hz (j1 = t in s; a look-alike publisher's too), tip and state 50 Hz,
+    the mapping's target 50 Hz while engaged (x = 1 + t), the camera at 20 Hz (grey level = frame
+    number × 10)."""
     seq: dict[str, int] = {}
 
     def put(key: str, make: object, t_ms: float, src: str) -> None:
@@ -53,15 +54,15 @@ def make_recording(
         rec.push(msg.encode(), PREFIX + key, stamp + 100_000)
 
     with Recorder(path, "t") as rec:
-        for k in range(0, 6000 * 2):
-            t = k / 2  # ms
+        for t in range(0, 6000, 4):  # ms
             put(
                 "slave/arm1/measured_js",
                 lambda h, t=t: JointState(h, JOINTS, (t / 1e3,) + (0.0,) * 5),
                 t,
                 "slave_control",
             )
-            if k % 20 == 0:
+            if t % 20 == 0:
+                put("slave/arm1/measured_js", lambda h: JointState(h, JOINTS, (0.0,) * 6), t, "impostor")
                 follow = any(a <= t < b for a, b in engaged)
                 put(
                     "slave/arm1/measured_cp",
@@ -88,8 +89,8 @@ def make_recording(
                         t,
                         "mapping",
                     )
-            if camera and k % 100 == 0:
-                i = k // 100
+            if camera and t % 50 == 0:
+                i = t // 50
                 put(
                     "camera/endo/image",
                     lambda h, i=i, t=t: CameraImage(
@@ -98,7 +99,6 @@ def make_recording(
                     t,
                     "camera",
                 )
-            put("slave/arm1/measured_js", lambda h: JointState(h, JOINTS, (0.0,) * 6), t, "impostor")
 
 
 @pytest.fixture(scope="module")
@@ -152,7 +152,7 @@ def test_two_engagements_make_two_episodes_read_back_with_pyarrow_and_pyav(
         rows = ep == e["episode_index"]
         t_ms = a + ts[rows] * 1e3
         assert np.allclose(ts[rows], np.arange(15) / 10, atol=1e-6)
-        # joints: the newest 500 Hz sample at or before the frame (j1 = t); tip x = t (100 Hz)
+        # joints: the newest sample at or before the frame (j1 = t); tip x = t
         assert np.allclose(state[rows, 0], t_ms / 1e3, atol=1e-6)
         assert np.allclose(state[rows, 6], t_ms / 1e3, atol=1e-6)
         assert np.allclose(action[rows, 0], 1.0 + t_ms / 1e3, atol=1e-6)
