@@ -280,7 +280,8 @@ class TeleopReachEnv(gymnasium.Env[dict[str, np.ndarray], np.ndarray]):
         self.backend.reset(qa)
 
     def _measured(self) -> np.ndarray:
-        q: np.ndarray = self.backend.read().position[self.index]
+        """The arm's joints now (what the backend's reading gives, without its torque estimate)."""
+        q: np.ndarray = self.backend._d.qpos[self.index].copy()
         return q
 
     def _master_msg(self) -> Message:
@@ -349,16 +350,16 @@ class TeleopReachEnv(gymnasium.Env[dict[str, np.ndarray], np.ndarray]):
             d.ctrl[self.index] = self.q_cmd
             mj.mj_step(m, d)
         obs = self._obs()
-        dist = float(np.linalg.norm(obs["tip"] - self.goal))
-        return obs, -dist, dist < self.success, False, self._info()
-
-    def _tip(self) -> np.ndarray:
-        return np.asarray(self.profile.tip(self._measured()), dtype=float)
+        info = self._info()
+        dist = info["distance_m"]
+        return obs, -dist, dist < self.success, False, info
 
     def _obs(self) -> dict[str, np.ndarray]:
+        q = self._measured()
+        self._tip_now = np.asarray(self.profile.tip(q), dtype=float)
         out = {
-            "joints": np.clip(self._measured(), self.lower, self.upper).astype(np.float32),
-            "tip": self._tip().astype(np.float32),
+            "joints": np.clip(q, self.lower, self.upper).astype(np.float32),
+            "tip": self._tip_now.astype(np.float32),
             "goal": self.goal.astype(np.float32),
         }
         if self.image:
@@ -366,7 +367,8 @@ class TeleopReachEnv(gymnasium.Env[dict[str, np.ndarray], np.ndarray]):
         return out
 
     def _info(self) -> dict[str, Any]:
-        tip = self._tip()
+        """(after :meth:`_obs`)"""
+        tip = self._tip_now
         info: dict[str, Any] = {
             "t": self.t,
             "tip_m": tip,

@@ -143,7 +143,7 @@ def _service_tips(env: TeleopReachEnv, actions: np.ndarray) -> np.ndarray:
     return np.array(tips)
 
 
-@pytest.mark.parametrize("env_id", ["telesurg/MH3F-Reach-v0", "telesurg/VIP-Reach-v0"])
+@pytest.mark.parametrize("env_id", IDS)
 def test_the_trajectory_is_the_services_for_the_same_actions(env_id: str) -> None:
     env = gymnasium.make(env_id).unwrapped
     assert isinstance(env, TeleopReachEnv)
