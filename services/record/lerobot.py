@@ -182,6 +182,7 @@ class Episode:
     times_ns: np.ndarray  # (n,) the frames' instants on the recording's clock
     columns: dict[str, np.ndarray]  # feature → (n, dim) float32
     frames: dict[str, list[int]]  # camera → index into the recording's images, per frame
+    image_age_ms: dict[str, float] = field(default_factory=dict)  # camera → its oldest frame's age
 
 
 def episodes_of(
@@ -225,7 +226,22 @@ def episodes_of(
             )
         cols["action"] = np.array([rec.target.v[rec.target.at(int(t))] for t in times], dtype=np.float32)
         frames = {c: [rec.images[c].at(int(t)) for t in times] for c in cameras}
-        out.append(Episode(rec.path, int(t0), times, cols, frames))
+        ages = {
+            c: max((int(t) - rec.images[c].t[i]) / 1e6 for t, i in zip(times, frames[c], strict=True))
+            for c in cameras
+        }
+        for c, age in ages.items():
+            if age > 1e3 / fps:
+                log.warning(
+                    "%s: camera %s delivered frames up to %.0f ms old in the episode at %d ns "
+                    "(slower than %g fps: a starved camera, or --fps above its rate)",
+                    rec.path,
+                    c,
+                    age,
+                    t0,
+                    fps,
+                )
+        out.append(Episode(rec.path, int(t0), times, cols, frames, ages))
     return out
 
 
@@ -497,6 +513,8 @@ def _write(
         for k, s in stats.items():
             for name, value in s.items():
                 row[f"stats/{k}/{name}"] = value
+        for c in cams:
+            row[f"telesurg/max_image_age_ms/observation.images.{c}"] = ep.image_age_ms[c]
         row["telesurg/source"] = str(ep.source)
         row["telesurg/start_ns"] = ep.start_ns
         ep_rows.append(row)
