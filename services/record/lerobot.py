@@ -313,9 +313,13 @@ def to_lerobot(
     Raises:
         DatasetError: bad input (nothing is written).
     """
-    import pyarrow as pa
-    import pyarrow.parquet as pq
-
+    try:
+        import pyarrow as pa
+        import pyarrow.parquet as pq
+    except ImportError as e:
+        raise DatasetError(
+            f"--to lerobot needs the 'learn' extra ({e}): pip install 'telesurg[learn]'"
+        ) from e
     if not (fps > 0 and math.isfinite(fps)):
         raise DatasetError(f"fps must be > 0 (got {fps:g})")
     out = Path(out)
