@@ -16,12 +16,12 @@ $(STAMP): pyproject.toml
 demo: $(STAMP)
 	$(BIN)/telesurg demo
 
-## test: ruff, mypy (shared/, services/, tools/) and pytest
+## test: ruff, mypy (shared/, services/, tools/, gym/) and pytest
 test: lint typecheck pytest
 
 lint: $(STAMP)
-	$(BIN)/ruff check shared services tools tests
-	$(BIN)/ruff format --check shared services tools tests
+	$(BIN)/ruff check shared services tools gym tests
+	$(BIN)/ruff format --check shared services tools gym tests
 
 # mypy checks the sources under their installed names (telesurg.shared, telesurg.services, telesurg.tools): a tree
 # of links in the venv maps the user's folders under the telesurg namespace, as pyproject does.
@@ -30,6 +30,7 @@ typecheck: $(STAMP)
 	ln -sfn ../../../shared $(VENV)/typecheck/telesurg/shared
 	ln -sfn ../../../services $(VENV)/typecheck/telesurg/services
 	ln -sfn ../../../tools $(VENV)/typecheck/telesurg/tools
+	ln -sfn ../../../gym $(VENV)/typecheck/telesurg/gym
 	MYPYPATH=$(VENV)/typecheck $(BIN)/mypy $(VENV)/typecheck/telesurg
 
 # the unit tests on both cores (pytest-xdist), then the process tests one at a time: they run real

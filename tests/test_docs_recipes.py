@@ -24,6 +24,7 @@ import sys
 from importlib.metadata import version
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -39,6 +40,7 @@ NAMES = (
     "plugin-robot",
     "plugin-device",
     "plugin-rule",
+    "learning",
 )
 
 
@@ -279,6 +281,61 @@ def test_the_plugin_examples_as_written(tmp_path: Path) -> None:
         assert not stop_errors(log), f"{name}: an orderly stop logged errors:\n" + "\n".join(stop_errors(log))
         if name == "plugin-robot":
             assert re.search(r"mapping \S+ → arm1 \(reach\)", log), log[-3000:]
+
+
+# --------------------------------------------------------------------------- learning.md
+
+
+@pytest.mark.process
+@pytest.mark.timeout(420)
+def test_recording_to_dataset_to_a_policy_run_as_written(tmp_path: Path) -> None:
+    """docs/learning.md: a site with two clutch presses (and its camera) recorded, exported as a
+    LeRobotDataset and read back by pyarrow and PyAV (tests/lerobot_check.py); then the dataset's
+    first episode, as a policy, drives a fresh site: its slave follows the policy and moves."""
+    from lerobot_check import check_dataset
+    from telesurg.services.record import iter_decoded, open_mcap
+    from telesurg.shared.messages import CartesianPose, OperatingState
+
+    record, export, policy = commands("learning")
+    script = f"""
+{record} > record.log 2>&1
+echo "record exit $?"
+{export} > export.log 2>&1
+echo "export exit $?"
+{policy} > policy.log 2>&1
+echo "policy exit $?"
+"""
+    r = in_netns(script, tmp_path, 400)
+    logs = {
+        n: (tmp_path / f"{n}.log").read_text()
+        for n in ("record", "export", "policy")
+        if (tmp_path / f"{n}.log").exists()
+    }
+    for n in ("record", "export", "policy"):
+        assert f"{n} exit 0" in r.stdout, f"{r.stdout}{r.stderr}\n{logs.get(n, '')[-4000:]}"
+    print(logs["export"].strip().splitlines()[-1])
+    figures = check_dataset(tmp_path / "run.mcap", tmp_path / "dataset", 10.0)
+    print(figures)
+    assert not stop_errors(logs["policy"]), "\n".join(stop_errors(logs["policy"]))
+    assert "policy telesurg.gym.policies:replay at 30 Hz" in logs["policy"], logs["policy"][-3000:]
+    follow, tips = False, []
+    with open_mcap(tmp_path / "policy.mcap") as reader:
+        for topic, _lt, _pt, _d, msg in iter_decoded(reader, lambda t: "/slave/arm1/" in t):
+            if isinstance(msg, OperatingState) and msg.header.source == "slave_control":
+                follow = msg.follow
+            elif follow and isinstance(msg, CartesianPose) and topic.endswith("/measured_cp"):
+                tips.append(msg.position)
+    assert tips, "the slave never followed the policy"
+    travel = float(np.max(np.linalg.norm(np.array(tips) - tips[0], axis=1)))
+    from telesurg.gym.policies import episode_targets
+
+    targets, _fps = episode_targets(tmp_path / "dataset", 0)
+    recorded = float(np.max(np.linalg.norm(targets - targets[0], axis=1)))
+    print(
+        f"policy run: the slave followed the replayed episode, its tip moved up to {travel * 1e3:.1f} mm "
+        f"(the episode's target {recorded * 1e3:.1f} mm)"
+    )
+    assert travel > 0.5 * recorded > 5e-3
 
 
 # --------------------------------------------------------------------------- messages.md

@@ -23,9 +23,9 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 #: the user's folders and the files the build reads
-SOURCES = ("pyproject.toml", "setup.py", "README.md", "shared", "services", "tools", "deploy")
+SOURCES = ("pyproject.toml", "setup.py", "README.md", "shared", "services", "tools", "gym", "deploy")
 #: the folders mapped under ``telesurg`` (pyproject.toml [tool.setuptools.package-dir])
-FOLDERS = ("shared", "services", "tools", "deploy")
+FOLDERS = ("shared", "services", "tools", "gym", "deploy")
 SITES = ("local", "plas", "vip", "serial", "slave-site", "console")
 
 

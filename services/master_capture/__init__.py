@@ -5,7 +5,8 @@ devices with joints, ``master/<arm>/measured_js``; ``master/<arm>/buttons`` (Mas
 before the pose on every change and at least at ``buttons_hz``. While the device's reading is not
 valid (``DeviceSample.valid``) nothing is published, so the watchdog holds. A device with an
 ``engage_retry`` (the scripted pedal) is told of the mapping's refused engages of this master
-(``mapping/*/teleop_state`` ENGAGING → HOLDING). Devices: :mod:`.devices`.
+(``mapping/*/teleop_state`` ENGAGING → HOLDING); a device with a ``connect(node)`` (the ``policy``
+device) is given the node to subscribe what it observes. Devices: :mod:`.devices`.
 
 Examples::
 
@@ -73,6 +74,9 @@ def run(cfg: MasterCaptureConfig, stop: threading.Event) -> None:
     device = devices.open_device(cfg.device, cfg)
     with device, Node(cfg.bus, cfg.site, cfg.service) as node:
         k = node.keys
+        connect = getattr(device, "connect", None)
+        if callable(connect):  # a device that reads the bus (policy: the slave's measurements)
+            connect(node)
         pose_out = node.outlet(k.master(cfg.arm, "measured_cp"))
         buttons_out = node.outlet(k.master(cfg.arm, "buttons"))
         js_out = node.outlet(k.master(cfg.arm, "measured_js")) if device.joint_names else None

@@ -14,6 +14,8 @@ well-known schemas:
   rerun's URDF decoder read), the endoscope video (``foxglove.CompressedImage``, the JPEG frames
   as recorded) and events and state changes (``foxglove.Log``).
 * ``--to rerun OUT.rrd`` — the mirror's own drawing (what ``telesurg replay --to-rerun`` does).
+* ``--to lerobot OUT/`` — one or more recordings as a LeRobotDataset v3.0 for robot learning
+  (:mod:`.lerobot`: an episode per engaged period, resampled at ``--fps``).
 
 Example::
 
@@ -21,6 +23,7 @@ Example::
     telesurg export run.mcap --to foxglove run.foxglove.mcap
     rerun run.foxglove.mcap                       # or open it in Foxglove
     telesurg export run.mcap --to rerun run.rrd
+    telesurg export run.mcap run2.mcap --to lerobot dataset/ --fps 30
 
 Only the messages of the mirror's trusted sources are exported on ``master/``, ``slave/`` and
 ``safety/`` keys, as the mirror draws them; undecodable payloads are counted and skipped.
@@ -56,7 +59,7 @@ from telesurg.shared.messages import (
 
 log = logging.getLogger("telesurg.export")
 
-TARGETS = ("foxglove", "rerun")
+TARGETS = ("foxglove", "rerun", "lerobot")
 #: the world frame of the exported transforms and slave poses (the MuJoCo scene's world)
 WORLD = "world"
 #: ROS 2 type store of the CDR messages (std_msgs/String, sensor_msgs/JointState)
@@ -474,34 +477,95 @@ def parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="telesurg export", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
-    p.add_argument("file", metavar="FILE.mcap", help="recording made with telesurg record")
     p.add_argument(
-        "--to", required=True, choices=TARGETS, help="foxglove (MCAP, well-known schemas) or rerun (.rrd)"
+        "file",
+        metavar="FILE.mcap",
+        nargs="+",
+        help="recording made with telesurg record (several for --to lerobot: one dataset)",
     )
-    p.add_argument("out", metavar="OUT", help="file to write (.mcap for foxglove, .rrd for rerun)")
+    p.add_argument(
+        "--to",
+        required=True,
+        choices=TARGETS,
+        help="foxglove (MCAP, well-known schemas), rerun (.rrd) or lerobot (a LeRobotDataset v3.0 folder)",
+    )
+    p.add_argument("out", metavar="OUT", help="file to write (.mcap, .rrd), or the dataset's new folder")
+    p.add_argument("--fps", type=float, default=30.0, help="lerobot: frames a second (default 30)")
+    p.add_argument(
+        "--camera",
+        action="append",
+        metavar="CAM",
+        help="lerobot: a camera to export as video (repeatable; default: every recorded camera)",
+    )
+    p.add_argument("--no-video", action="store_true", help="lerobot: no camera videos")
+    p.add_argument("--task", default="", help="lerobot: the episodes' task text")
+    p.add_argument("--arm", default=None, help="lerobot: the slave arm (default: the first recorded)")
     p.add_argument("--json", metavar="FILE", help="also write the counts as JSON")
     p.add_argument("--log-level", default="INFO", help="DEBUG, INFO, WARNING, ERROR")
     return p
 
 
+#: the flags of parser() that take no value
+FLAGS = frozenset({"--no-video", "-h", "--help"})
+
+
+def _positionals_first(argv: list[str]) -> list[str]:
+    """``argv`` with the recordings and OUT first (``A.mcap B.mcap --to lerobot OUT`` as
+    ``A.mcap B.mcap OUT --to lerobot``): argparse gives a ``+`` positional only the words before
+    the first option."""
+    pos: list[str] = []
+    opts: list[str] = []
+    it = iter(argv)
+    for a in it:
+        if a == "--":
+            pos.extend(it)
+        elif a.startswith("-") and a not in FLAGS and "=" not in a:
+            opts.extend((a, next(it, "")))
+        elif a.startswith("-"):
+            opts.append(a)
+        else:
+            pos.append(a)
+    return pos + opts
+
+
 def main(argv: Sequence[str] | None = None) -> int:
-    """Entry point; 0 on success, 1 on an unreadable recording, 2 on bad flags."""
-    args = parser().parse_args(argv)
+    """Entry point; 0 on success, 1 on bad input (one line on stderr, nothing written), 2 on bad flags."""
+    p = parser()
+    args = p.parse_args(_positionals_first(sys.argv[1:] if argv is None else list(argv)))
     logging.basicConfig(
         level=args.log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s"
     )
-    src = Path(args.file)
-    if not src.is_file():
-        print(f"telesurg export: no such recording: {src}", file=sys.stderr)
-        return 1
+    srcs = [Path(f) for f in args.file]
     out = Path(args.out)
-    try:  # (both write OUT whole or not at all: written_whole)
+    if args.to != "lerobot" and len(srcs) > 1:
+        p.error(f"--to {args.to} converts one recording (several only for --to lerobot)")
+    for src in srcs:
+        if not src.is_file():
+            print(f"telesurg export: no such recording: {src}", file=sys.stderr)
+            return 1
+    src = srcs[0]
+    try:  # (each writes OUT whole or not at all)
         if args.to == "foxglove":
             counts: dict[str, Any] = to_foxglove(src, out)
-        else:
+        elif args.to == "rerun":
             from telesurg.services.record.replay import to_rerun
 
             counts = dict(to_rerun(src, out))
+        else:
+            from telesurg.services.record.lerobot import DEFAULT_TASK, DatasetError, to_lerobot
+
+            try:
+                counts = to_lerobot(
+                    srcs,
+                    out,
+                    fps=args.fps,
+                    cameras=[] if args.no_video else args.camera,
+                    task=args.task or DEFAULT_TASK,
+                    arm=args.arm,
+                )
+            except DatasetError as e:
+                print(f"telesurg export: {e} ({out} not written)", file=sys.stderr)
+                return 1
     except Exception as e:  # a damaged file: say which and why
         print(
             f"telesurg export: cannot export {src}: {type(e).__name__}: {e} ({out} not written)",

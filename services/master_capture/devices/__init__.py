@@ -5,7 +5,8 @@ A device subclasses :class:`MasterDevice`, names itself (``name``), says where i
 (``config``: a dataclass; ``table``: the master_capture config table holding them, by default the
 free-form ``[master_capture.device_options]``) and is registered with :func:`register`. A plugin
 file (``--plugin FILE``) registers its own the same way. ``docs/extending.md``, "Add a master
-device".
+device". A device that reads the bus (the ``policy`` device: the slave's measurements) has a
+``connect(node)`` method; master_capture calls it with its node once the node is open.
 
 Example::
 
@@ -142,6 +143,6 @@ def open_device(name: str, settings: object | None = None) -> MasterDevice:
 
 
 #: the built-in devices, one module each (importing one registers it), in the order names() lists them
-BUILT_IN = ("scripted", "serial", "spacemouse", "touch", "omega7", "gamepad")
+BUILT_IN = ("scripted", "serial", "spacemouse", "touch", "omega7", "gamepad", "policy")
 for _module in BUILT_IN:
     importlib.import_module(f"{__name__}.{_module}")

@@ -1,0 +1,125 @@
+"""A LeRobotDataset exported from a live recording, checked against that recording by readers
+that are not telesurg's writer: pyarrow (the Parquet files) and PyAV (the MP4). Used by
+``tests/test_docs_recipes.py`` (docs/learning.md's worked example: a live site with two clutch
+presses and the camera, recorded, exported at 10 fps).
+
+What a user of the dataset relies on: one episode per engaged period, each (engaged time × fps
+± 1) frames; every row's joints the slave's measured joints at the row's instant; every video
+frame the camera frame of its instant within one frame period (where the camera sent one in that
+period: it runs best-effort, and a loaded host starves it — then the newest frame it had, and the
+count of such frames is printed); every action the mapping's recorded target within 0.01 mm.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+from telesurg.services.record import iter_decoded, open_mcap
+from telesurg.shared.messages import CameraImage, CartesianPose, JointState, OperatingState
+
+
+def _recorded(run: Path) -> dict[str, list[tuple[int, object]]]:
+    """topic (relative) → [(stamp ns, message)] of the trusted publishers."""
+    got: dict[str, list[tuple[int, object]]] = {}
+    with open_mcap(run) as reader:
+        for topic, _lt, _pt, _d, msg in iter_decoded(reader):
+            if msg is None or msg.header.source not in ("slave_control", "mapping", "camera"):
+                continue
+            t = msg.capture_ns if isinstance(msg, CameraImage) and msg.capture_ns else msg.header.stamp_ns
+            got.setdefault(topic.split("/", 2)[2], []).append((t, msg))
+    return got
+
+
+def _at(series: list[tuple[int, object]], t: int) -> tuple[int, object]:
+    times = [s for s, _ in series]
+    i = int(np.searchsorted(times, t, side="right")) - 1
+    assert i >= 0
+    return series[i]
+
+
+def check_dataset(run: Path, out: Path, fps: float) -> dict[str, float]:
+    """Assert what the module doc says of the dataset ``out`` made from ``run``; the figures."""
+    import av
+    import pyarrow.parquet as pq
+    import simplejpeg
+
+    rec = _recorded(run)
+    js = sorted((t, m) for t, m in rec["slave/arm1/measured_js"] if isinstance(m, JointState))
+    target = sorted((t, m) for t, m in rec["slave/arm1/setpoint_cp"] if isinstance(m, CartesianPose))
+    images = sorted((t, m) for t, m in rec.get("camera/endo/image", []) if isinstance(m, CameraImage))
+    states = sorted((t, m) for t, m in rec["slave/arm1/operating_state"] if isinstance(m, OperatingState))
+    # the engaged periods, from the slave's follow flag as recorded
+    periods, on = [], None
+    for t, m in states:
+        if m.follow and on is None:
+            on = t
+        elif not m.follow and on is not None:
+            periods.append((on, t))
+            on = None
+    assert len(periods) == 2, f"expected the two clutch presses to engage twice: {periods}"
+    cameras = bool(images)
+
+    info = json.loads((out / "meta/info.json").read_text())
+    data = pq.read_table(out / info["data_path"].format(chunk_index=0, file_index=0)).to_pydict()
+    eps = pq.read_table(out / "meta/episodes/chunk-000/file-000.parquet").to_pylist()
+    assert info["total_episodes"] == 2 and len(eps) == 2 and info["fps"] == fps
+    assert ("observation.images.endo" in info["features"]) == cameras
+    ep_col = np.array(data["episode_index"])
+    ts = np.array(data["timestamp"], dtype=float)
+    state = np.array(data["observation.state"], dtype=float)
+    action = np.array(data["action"], dtype=float)
+    frames: list[np.ndarray] = []
+    if cameras:
+        video = out / info["video_path"].format(
+            video_key="observation.images.endo", chunk_index=0, file_index=0
+        )
+        with av.open(str(video)) as c:
+            frames = [f.to_ndarray(format="rgb24").astype(np.float32) for f in c.decode(video=0)]
+        assert len(frames) == info["total_frames"]
+    decoded = [simplejpeg.decode_jpeg(m.data, colorspace="RGB").astype(np.float32) for _t, m in images]
+    period_ns = 1e9 / fps
+    worst_video = worst_state = worst_action = 0.0
+    gaps = 0  # frames in a camera gap (no camera frame in their period)
+    for e, (a, b) in zip(eps, periods, strict=True):
+        rows = np.flatnonzero(ep_col == e["episode_index"])
+        duration = (b - a) / 1e9
+        print(f"episode {e['episode_index']}: engaged {duration:.2f} s, {len(rows)} frames at {fps:g} fps")
+        assert abs(len(rows) - duration * fps) <= 1, (len(rows), duration)
+        start = e["telesurg/start_ns"]
+        assert a <= start < a + period_ns
+        for r in rows:
+            t = start + round(ts[r] * 1e9)
+            # the state: the measured joints the slave had at the frame's instant
+            t_js, m_js = _at(js, t)
+            assert np.allclose(state[r, :6], m_js.position, atol=1e-6)  # type: ignore[attr-defined]
+            worst_state = max(worst_state, (t - t_js) / 1e6)
+            # the action: the mapping's target at the frame's instant, within 0.01 mm
+            _t_tg, m_tg = _at(target, t)
+            err = float(np.linalg.norm(action[r, :3] - np.array(m_tg.position)))  # type: ignore[attr-defined]
+            worst_action = max(worst_action, err * 1e3)
+            if not cameras:
+                continue
+            # the video frame: the camera frame nearest in content (indistinguishable ones: a still
+            # arm), captured within one frame period — unless the camera sent nothing in that period
+            # (it runs best-effort: a loaded host starves it), when it is the newest one before
+            f = frames[r]
+            mse = np.array([np.mean((f - d) ** 2) for d in decoded])
+            close = np.flatnonzero(mse <= mse.min() + 0.5)
+            lag = min(abs(t - images[i][0]) for i in close) / 1e6
+            if lag >= period_ns / 1e6:
+                newest = max(i for i, (ti, _m) in enumerate(images) if ti <= t)
+                assert newest in close and t - images[newest][0] >= period_ns, (r, lag)
+                gaps += 1
+            else:
+                worst_video = max(worst_video, lag)
+    print(
+        f"alignment: joint state ≤ {worst_state:.1f} ms before the frame, video ≤ {worst_video:.1f} ms "
+        f"({gaps} of {len(ts)} frames in a camera gap: its newest frame), "
+        f"action ≤ {worst_action:.5f} mm from the recorded target"
+    )
+    assert worst_state < period_ns / 1e6
+    assert worst_video < period_ns / 1e6
+    assert worst_action < 0.01
+    return {"state_ms": worst_state, "video_ms": worst_video, "camera_gaps": gaps, "action_mm": worst_action}
