@@ -21,10 +21,14 @@ def kept(order: tuple[str, ...], names: tuple[str, ...]) -> tuple[str, ...]:
 def test_rows_are_unique_and_ordered() -> None:
     names = [s.name for s in SERVICES]
     assert len(set(names)) == len(names)
-    assert len({s.start for s in SERVICES}) == len(SERVICES), "two rows share a start position"
     assert len({s.stop for s in SERVICES}) == len(SERVICES), "two rows share a stop position"
     (router,) = [s for s in SERVICES if s.name == ROUTER]
-    assert router.start == min(s.start for s in SERVICES) and router.stop == max(s.stop for s in SERVICES)
+    assert router.stop == max(s.stop for s in SERVICES)
+    # start stages: the router alone first; the master once the services it drives listen
+    stage = {s.name: s.start for s in SERVICES}
+    assert [n for n, k in stage.items() if k <= stage[ROUTER]] == [ROUTER]
+    assert stage["master_capture"] > max(stage[n] for n in ("watchdog", "slave_control", "mapping"))
+    assert all(s.start > stage["master_capture"] for s in SERVICES if s.on_request)
 
 
 @pytest.mark.parametrize("row", SERVICES, ids=lambda s: s.name)
