@@ -26,6 +26,7 @@ from collections.abc import Callable, Sequence
 from typing import Any, Protocol, TypeVar
 
 from telesurg.shared.bus import BusConfig, add_bus_args, bus_from_args
+from telesurg.shared.clock import set_skew_ms
 from telesurg.shared.config import config_help, load_config, service_table, site_plugins
 from telesurg.shared.errors import TelesurgError
 
@@ -145,6 +146,7 @@ def service_main(
             cfg.site = args.site
         cfg.bus = bus_from_args(args, cfg.bus)
         cfg.bus.validate()
+        set_skew_ms(cfg.bus.clock_skew_ms)
     except TelesurgError as exc:
         print(f"telesurg {name}: {exc}", file=sys.stderr)
         return 2

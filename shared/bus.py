@@ -59,10 +59,20 @@ from telesurg.shared.auth import (
     default_keys_dir,
     verify,
 )
+from telesurg.shared.clock import MAX_SKEW_MS, ClockSample, wall_ns
 from telesurg.shared.errors import AuthorityError, ConfigError, MessageError
 from telesurg.shared.fresh import MAX_AGE_MS, TOLERANCE_MS, Freshness, SenderWindow
 from telesurg.shared.keys import Keys, check_id
-from telesurg.shared.messages import Header, Heartbeat, Message, SafetyEvent, Sequencer, decode_as
+from telesurg.shared.messages import (
+    ClockProbe,
+    ClockReply,
+    Header,
+    Heartbeat,
+    Message,
+    SafetyEvent,
+    Sequencer,
+    decode_as,
+)
 from telesurg.shared.presence import Presence
 from telesurg.shared.streams import StreamStats, StreamTable
 
@@ -117,6 +127,9 @@ class BusConfig:
     max_age_ms: int = MAX_AGE_MS
     # ms of clock offset between two hosts tolerated by the freshness rules (one host: scheduling)
     clock_tolerance_ms: int = TOLERANCE_MS
+    # ms added to this process's wall clock (shared/clock.py): a test or bench playing a host
+    # whose clock is off; 0 in a real site
+    clock_skew_ms: float = 0.0
 
     @property
     def secured(self) -> bool:
@@ -133,6 +146,8 @@ class BusConfig:
             raise ConfigError(f"bus max_age_ms={self.max_age_ms} outside [100, 600000]")
         if not 0 <= self.clock_tolerance_ms <= 60_000:
             raise ConfigError(f"bus clock_tolerance_ms={self.clock_tolerance_ms} outside [0, 60000]")
+        if not abs(self.clock_skew_ms) <= MAX_SKEW_MS:
+            raise ConfigError(f"bus clock_skew_ms={self.clock_skew_ms} outside ±{MAX_SKEW_MS:g}")
         if self.zid and not valid_zid(self.zid):
             raise ConfigError(f"bus zid {self.zid!r} invalid: 1-32 lowercase hex digits, no leading 0")
         if self.mode == "client" and not self.connect:
@@ -438,8 +453,11 @@ class Node:
         )
         self._events = self.outlet(self.keys.events(service), control=False)
         self._heartbeat = self.outlet(self.keys.heartbeat(service), control=False)
-        # Echo: answers at once, so a peer on another host can measure the round-trip time.
-        self._echo: Any = self.session.declare_queryable(self.keys.echo(service), self._on_echo)
+        # Echo: answers clock probes at once (signed), so a peer on another host can measure the
+        # round trip and this host's clock offset (shared/clock.py)
+        self._probe_seq = Sequencer(service)  # the probes this node sends
+        self._reply_seq = Sequencer(service)  # its answers (on zenoh's threads)
+        self.serve(self.keys.echo(service), ClockProbe, self._on_clock_probe)
         self._hb_stop = threading.Event()
         self._hb_thread = threading.Thread(target=self._heartbeat_loop, daemon=True)
         self._hb_thread.start()
@@ -569,7 +587,7 @@ class Node:
                 if queried and win.sid == who.sid and h.seq <= win.top:
                     return  # a queried current value the subscription has delivered already
                 why = self.fresh.put_problem(
-                    who.signer, win, who.sid, h.seq, h.stamp_ns, time.time_ns(), bound=queried
+                    who.signer, win, who.sid, h.seq, h.stamp_ns, wall_ns(), bound=queried
                 )
                 fresh = False
                 if why and win.sid == who.sid and h.seq in stats.seq.holes and stats.source == who.signer:
@@ -685,7 +703,7 @@ class Node:
                         query.reply_err(b"rejected: signer is not the header src")
                     return
                 h = req.header
-                if why := self.fresh.query_problem(who.signer, who.sid, h.seq, h.stamp_ns, time.time_ns()):
+                if why := self.fresh.query_problem(who.signer, who.sid, h.seq, h.stamp_ns, wall_ns()):
                     with self._lock:
                         stats.rejected += 1
                         stats.replayed += 1
@@ -762,7 +780,7 @@ class Node:
                 out = decode_as(body, reply_cls)
                 if out.header.source != who.signer:
                     raise AuthError(f"reply signed by {who.signer!r} claims src {out.header.source!r}")
-                if why := self.fresh.reply_problem(who.signer, out.header.stamp_ns, time.time_ns()):
+                if why := self.fresh.reply_problem(who.signer, out.header.stamp_ns, wall_ns()):
                     problem = AuthError(f"reply on {k} from {who.signer!r}: {why}")
                     with self._lock:
                         stats.rejected += 1
@@ -802,17 +820,33 @@ class Node:
             self._handles.append(sub)
         self.presence.run(self.presence.watch(lambda s: service in ("*", s), callback))
 
-    def _on_echo(self, query: Any) -> None:
-        with contextlib.suppress(Exception):  # the querier may be gone
-            query.reply(query.key_expr, b"")
+    def _on_clock_probe(self, probe: ClockProbe) -> ClockReply:
+        received = wall_ns()
+        return ClockReply(
+            header=self._reply_seq.next(),
+            probe_ns=probe.header.stamp_ns,
+            received_ns=received,
+            sent_ns=wall_ns(),
+        )
+
+    def clock_probe(self, service: str, timeout: float = 0.5) -> ClockSample | None:
+        """One clock probe of ``service`` (its echo queryable): the four timestamps, or None if no
+        signed answer came within ``timeout`` s."""
+        probe = ClockProbe(header=self._probe_seq.next())
+        try:
+            reply = self.request(self.keys.echo(service), probe, ClockReply, timeout=timeout)
+        except (TimeoutError, MessageError):  # (AuthError is a MessageError: a forged answer)
+            return None
+        t4 = wall_ns()
+        if reply.probe_ns != probe.header.stamp_ns:
+            return None  # (signed for this query, yet not about it: not a sample)
+        return ClockSample(probe.header.stamp_ns, reply.received_ns, reply.sent_ns, t4)
 
     def echo_rtt(self, service: str, timeout: float = 0.5) -> float | None:
-        """Round-trip time to ``service``'s echo queryable, s (None: no reply within timeout)."""
-        t0 = time.monotonic()
-        for reply in self.session.get(self.keys.echo(service), timeout=timeout):
-            if reply.ok is not None:
-                return time.monotonic() - t0
-        return None
+        """Round-trip time to ``service``'s echo queryable, s, the responder's own time taken out
+        (None: no signed answer within timeout)."""
+        s = self.clock_probe(service, timeout)
+        return None if s is None else s.delay_ns / 1e9
 
     @property
     def rejected(self) -> int:
@@ -884,8 +918,6 @@ class Node:
             with contextlib.suppress(Exception):  # already undeclared
                 h.undeclare()
         self._closed = True
-        with contextlib.suppress(Exception):
-            self._echo.undeclare()
         self._token.undeclare()
         for h in self._handles:
             with contextlib.suppress(Exception):

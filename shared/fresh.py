@@ -28,18 +28,18 @@ signer. Example::
 
     fresh = Freshness(max_age_ms=5000, tolerance_ms=500)
     win = SenderWindow()
-    if not (why := fresh.put_problem("watchdog", win, sid, seq, stamp_ns, time.time_ns())):
+    if not (why := fresh.put_problem("watchdog", win, sid, seq, stamp_ns, wall_ns())):
         fresh.took(win, sid, seq, stamp_ns)
 """
 
 from __future__ import annotations
 
 import threading
-import time
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
+from telesurg.shared.clock import wall_ns
 from telesurg.shared.errors import ConfigError
 
 #: default bound of a message's age, ms (the receiver's wall clock minus the header stamp)
@@ -66,7 +66,7 @@ class Freshness:
 
     max_age_ms: float = MAX_AGE_MS
     tolerance_ms: float = TOLERANCE_MS
-    clock: Callable[[], int] = time.time_ns
+    clock: Callable[[], int] = wall_ns
     start_ns: int = 0  # when the receiver started, its wall clock (0 = now)
     # signer -> how far its clock runs ahead of ours, ns (the hook for a site's estimate)
     offsets: dict[str, int] = field(default_factory=dict)

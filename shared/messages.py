@@ -49,7 +49,6 @@ from __future__ import annotations
 import dataclasses
 import math
 import re
-import time
 import types
 import typing
 from collections.abc import Callable, Sequence
@@ -57,9 +56,10 @@ from dataclasses import dataclass, field
 from typing import Any, ClassVar, TypeVar
 
 import msgpack
+from telesurg.shared.clock import wall_ns
 from telesurg.shared.errors import MessageError
 
-SCHEMA_VERSION = 3  # 2: safety fields (origin_ns, latency, scale, rcm, clipped), estop; 3: heartbeat polled_s
+SCHEMA_VERSION = 4  # 2: safety fields, estop; 3: heartbeat polled_s; 4: clock probes, clock_offset_ms
 #: Largest payload accepted by :func:`decode`, bytes.
 MAX_PAYLOAD_BYTES = 64 * 1024
 #: Largest joint count in any joint-space message.
@@ -85,8 +85,8 @@ _I64_MAX = 2**63 - 1
 
 
 def now_ns() -> int:
-    """Source timestamp for headers: wall clock, ns since the Unix epoch."""
-    return time.time_ns()
+    """Source timestamp for headers: wall clock, ns since the Unix epoch (:func:`clock.wall_ns`)."""
+    return wall_ns()
 
 
 @dataclass(frozen=True, slots=True)
@@ -936,6 +936,12 @@ class SafetyState(Message):
     latency_p90_ms: float = fld(0.0, "90th percentile of that latency", unit="ms", ge=0.0)
     latency_p99_ms: float = fld(0.0, "99th percentile of that latency", unit="ms", ge=0.0)
     latency_samples: int = fld(0, "latency samples in that window")
+    clock_offset_ms: float = fld(
+        0.0,
+        "the master host's clock minus the watchdog's, estimated over the bus (clock probes); the "
+        "latency above is corrected by it (0 while unknown)",
+        unit="ms",
+    )
 
 
 ESTOP_ACTIONS = frozenset({"estop", "reset"})
@@ -992,6 +998,22 @@ class Heartbeat(Message):
         unit="s",
         ge=-1.0,
     )
+
+
+@message("clock_probe")
+@dataclass(frozen=True, slots=True)
+class ClockProbe(Message):
+    """A clock probe (query on ``echo/<service>``): its header ``ts`` is when it left (NTP's t1)."""
+
+
+@message("clock_reply")
+@dataclass(frozen=True, slots=True)
+class ClockReply(Message):
+    """The answer to a :class:`ClockProbe` (``shared/clock.py``), on the responder's clock."""
+
+    probe_ns: int = fld(0, "the probe's `ts`, echoed (t1, the prober's clock)", unit="ns")
+    received_ns: int = fld(0, "when the probe arrived (t2)", unit="ns")
+    sent_ns: int = fld(0, "when this answer left (t3)", unit="ns")
 
 
 def _key_value_args(args: tuple[str, ...]) -> None:
@@ -1189,6 +1211,8 @@ AnyMessage = (
     | Command
     | CommandReply
     | Heartbeat
+    | ClockProbe
+    | ClockReply
     | TeleopState
     | CameraImage
     | VideoState

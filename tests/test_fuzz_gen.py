@@ -35,8 +35,8 @@ ROOT = Path(__file__).resolve().parents[1]
 
 #: Found by this generator: a registered type with two unexpected keys, one str and one bytes (b""
 #: passes ``strict_map_key`` and ``max_bin_len=0``), made ``decode`` raise TypeError from
-#: ``sorted(extra)`` instead of MessageError. {"v": 3, "type": "heartbeat", "x": 0, b"": 0}
-MIXED_KEY_BUG = bytes.fromhex("84a17603a474797065a9686561727462656174a17800c40000")
+#: ``sorted(extra)`` instead of MessageError. {"v": 4, "type": "heartbeat", "x": 0, b"": 0}
+MIXED_KEY_BUG = bytes.fromhex("84a17604a474797065a9686561727462656174a17800c40000")
 
 
 @pytest.fixture(autouse=True)
@@ -298,7 +298,7 @@ def test_mutate_never_raises_on_arbitrary_bytes(seed: int, data: bytes) -> None:
 
 
 def test_regression_mixed_str_and_bytes_extra_keys() -> None:
-    expected = {"v": 3, "type": "heartbeat", "x": 0, b"": 0}
+    expected = {"v": 4, "type": "heartbeat", "x": 0, b"": 0}
     assert msgpack.unpackb(MIXED_KEY_BUG, strict_map_key=False) == expected
     with pytest.raises(MessageError, match="unexpected fields"):
         decode(MIXED_KEY_BUG)

@@ -17,6 +17,8 @@ from telesurg.shared.messages import (
     CameraImage,
     CartesianPose,
     CartesianWrench,
+    ClockProbe,
+    ClockReply,
     Command,
     CommandReply,
     EStop,
@@ -60,6 +62,8 @@ EXAMPLES = [
         H, "endo", 5, 320, 240, "jpeg", "mono", 0.0, 290.0, 290.0, 160.0, 120.0, 14.0, 0.4, 0, b"\xff\xd8"
     ),
     VideoState(H, "arm1", "endo", "OK", 40.0, 23.0, 22.0, 31.0, 12.0, 240, 0),
+    ClockProbe(H),
+    ClockReply(H, 1_700_000_000_000_000_000, 1_700_000_000_300_100_000, 1_700_000_000_300_150_000),
 ]
 
 
@@ -108,7 +112,7 @@ def _pack(d: object) -> bytes:
         (lambda d: d.update(seq=-1), "outside"),
         (lambda d: d.update(seq=1.5), "must be an integer"),
         (lambda d: d.update(v=1), "unknown schema version"),
-        (lambda d: d.update(v=4), "unknown schema version"),
+        (lambda d: d.update(v=5), "unknown schema version"),
         (lambda d: d.pop("v"), "unknown schema version"),
         (lambda d: d.update(type="nope"), "unknown message type"),
         (lambda d: d.update(extra=1), "unexpected fields"),
@@ -149,7 +153,7 @@ def test_rejects_unknown_enum_values() -> None:
     d["state"] = "RUNNING"
     with pytest.raises(MessageError, match="not one of"):
         decode(_pack(d))
-    assert SCHEMA_VERSION == 3
+    assert SCHEMA_VERSION == 4
 
 
 @settings(max_examples=300, deadline=None)

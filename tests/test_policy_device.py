@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from telesurg.services.master_capture import MasterCaptureConfig
-from telesurg.services.master_capture.devices import open_device
+from telesurg.services.master_capture.devices import DeviceSample, open_device
 from telesurg.services.master_capture.devices.policy import PolicyDevice, load_policy
 from telesurg.shared.errors import ConfigError
 from telesurg.shared.messages import CartesianPose, Header, JointState, OperatingState
@@ -39,13 +39,20 @@ def _measure(d: PolicyDevice, following: bool) -> None:
     d._on_state(OperatingState(H, "ENABLED", "joint", follow=following), "")
 
 
+def read(d: PolicyDevice, t: float, following: bool) -> DeviceSample:
+    """One read at ``t``, the slave's measurements kept fresh as a live slave's 250 Hz would keep
+    them (the staleness rule reads the real clock: a loaded host must not age them)."""
+    _measure(d, following)
+    return d.read(t)
+
+
 def test_it_publishes_only_while_the_policy_acts_and_presses_again_after_a_pause(tmp_path: Path) -> None:
     d = _device(tmp_path, speed_mm_s=30.0)
     with d:
         s = d.read(0.0)
         assert not s.valid and "no measurements" in d.status()  # nothing seen yet: nothing published
         _measure(d, following=True)
-        samples = [d.read(k / 500) for k in range(1, 1001)]  # 2 s at master_capture's 500 Hz
+        samples = [read(d, k / 500, following=True) for k in range(1, 1001)]  # 2 s at 500 Hz
         assert all(s.valid for s in samples[20:])  # from the first call at 30 Hz
         assert not samples[0].clutch and samples[-1].clutch  # pressed from press_at_s (1 s)
         # 30 mm/s along x for 2 s, in 30 Hz steps of 1 mm
@@ -55,7 +62,7 @@ def test_it_publishes_only_while_the_policy_acts_and_presses_again_after_a_pause
         assert not any(s.valid for s in paused[20:]) and "returned None" in d.status()
         (tmp_path / "pause").unlink()
         _measure(d, following=False)
-        again = [d.read(2.2 + k / 500) for k in range(1, 501)]
+        again = [read(d, 2.2 + k / 500, following=False) for k in range(1, 501)]
         first = next(i for i, s in enumerate(again) if s.valid)
         # the pedal is released for repress_s (0.5 s) after the policy acts again: a new press
         assert not any(s.clutch for s in again[first : first + 200])

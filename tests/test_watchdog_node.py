@@ -7,7 +7,7 @@ import threading
 import time
 
 from conftest import wait_until
-from telesurg.services.watchdog import Watchdog, WatchdogConfig, _echo_loop
+from telesurg.services.watchdog import Watchdog, WatchdogConfig, _probe_loop
 from telesurg.shared.bus import BusConfig, Node
 from telesurg.shared.messages import EStop, SafetyLease
 
@@ -25,7 +25,7 @@ def test_echo_latency_source_and_estop(endpoint: str) -> None:
     ):
         wd = Watchdog(cfg, node)
         master.subscribe(master.keys.safety("arm1", "lease"), SafetyLease, lambda m, k: leases.append(m))
-        echo = threading.Thread(target=_echo_loop, args=(wd, cfg, stop), daemon=True)
+        echo = threading.Thread(target=_probe_loop, args=(wd, cfg, stop), daemon=True)
         echo.start()
         loop = threading.Thread(target=wd.serve, args=(stop,), daemon=True)
         loop.start()
@@ -59,6 +59,30 @@ def test_echo_latency_source_and_estop(endpoint: str) -> None:
             stop.set()
             echo.join(2.0)
             loop.join(2.0)
+
+
+def test_the_clock_source_probes_the_masters_clock(endpoint: str) -> None:
+    """With ``latency_source = "clock"`` the watchdog probes master_capture's clock over the bus
+    (signed clock probes): on one host the offset it finds is ~0 and the round trip is short."""
+    bus = BusConfig(connect=[endpoint])
+    cfg = WatchdogConfig(site="t", echo_hz=50.0, bus=bus)
+    cfg.validate()
+    stop = threading.Event()
+    with Node(bus, "t", "watchdog") as node, Node(bus, "t", "master_capture"):
+        wd = Watchdog(cfg, node)
+        probes = threading.Thread(target=_probe_loop, args=(wd, cfg, stop), daemon=True)
+        probes.start()
+        try:
+            assert wait_until(lambda: wd.clock.samples >= 10, 5.0)
+            delay = wd.clock.delay_ns()
+            assert delay is not None and 0 < delay < 20e6
+            assert abs(wd.clock_offset_ns) < 2e6  # one clock: only the path's asymmetry is left
+            assert node.fresh.offsets["master_capture"] == wd.clock_offset_ns
+            # nobody answers for a service that is not there: no sample, nothing changes
+            assert node.clock_probe("nobody", timeout=0.2) is None
+        finally:
+            stop.set()
+            probes.join(2.0)
 
 
 def test_an_estop_never_waits_for_the_loop(endpoint: str) -> None:

@@ -32,6 +32,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 from telesurg.services.common import gl_backend
+from telesurg.shared.clock import wall_ns
 from telesurg.shared.errors import ConfigError
 
 FloatArray = npt.NDArray[np.float64]
@@ -174,7 +175,7 @@ class MujocoSource(CameraSource):
 
     def grab(self, joints: dict[str, float] | None = None) -> Frame:
         t0 = time.perf_counter()
-        capture_ns = time.time_ns()
+        capture_ns = wall_ns()
         if joints:
             self.set_joints(joints)
         self._mj.mj_kinematics(self.model, self.data)
@@ -276,7 +277,7 @@ class VideoSource(CameraSource):
             frame = next(self._frames)
         except self._av.FFmpegError as exc:
             raise CameraError(f"{self.url!r}: {exc}") from None
-        capture_ns = time.time_ns()
+        capture_ns = wall_ns()
         rgb: npt.NDArray[np.uint8] = np.asarray(
             frame.to_ndarray(format="rgb24", width=self.width, height=self.height), dtype=np.uint8
         )

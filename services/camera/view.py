@@ -28,6 +28,7 @@ from urllib.parse import parse_qs
 
 from telesurg.services.common import duration_s, install_stop_handlers, setup_logging, tcp_port
 from telesurg.shared.bus import Node, add_bus_args, bus_from_args
+from telesurg.shared.clock import wall_ns
 from telesurg.shared.door import Door
 from telesurg.shared.errors import TelesurgError
 from telesurg.shared.messages import CameraImage
@@ -57,7 +58,7 @@ class Latest:
         now = time.monotonic()
         with self.cond:
             self.msg = msg
-            self.age_ms = (time.time_ns() - msg.capture_ns) / 1e6
+            self.age_ms = (wall_ns() - msg.capture_ns) / 1e6
             self.arrivals = [t for t in self.arrivals if now - t < 2.0] + [now]
             self.cond.notify_all()
 

@@ -137,6 +137,7 @@ def arm_text(a: ArmState, console_clutch: bool, cfg: ConsoleConfig, now: float) 
         if s.latency_samples:
             t.append(f"p50 {s.latency_p50_ms:.1f} ms  p99 {s.latency_p99_ms:.1f} ms")
             t.append(f" ({s.latency_samples} samples)", style="dim")
+            t.append(f" · master clock {s.clock_offset_ms:+.1f} ms", style="dim")
         else:
             t.append("unknown", style="dim")
         if now - a.safety_rx > cfg.stale_s:

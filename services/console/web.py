@@ -67,6 +67,7 @@ from telesurg.services.console.control import Control
 from telesurg.services.console.model import ConsoleConfig, ConsoleModel
 from telesurg.shared import robots
 from telesurg.shared.bus import Node, only
+from telesurg.shared.clock import wall_ns
 from telesurg.shared.door import LOGIN_ENV, Door
 from telesurg.shared.errors import ConfigError
 from telesurg.shared.messages import CameraImage, CartesianPose, JointState, MasterButtons
@@ -180,7 +181,7 @@ class WebConsole:
 
     def _on_frame(self, m: CameraImage, key: str) -> None:
         with self.lock:
-            self.frames[m.camera] = (m, time.time_ns())
+            self.frames[m.camera] = (m, wall_ns())
 
     def latest_frame(self, camera: str = "") -> CameraImage | None:
         """The newest frame of ``camera`` ("" = the first camera seen), None if none yet."""
@@ -192,7 +193,7 @@ class WebConsole:
 
     def _video_state(self) -> dict[str, Any]:
         """Per camera: image size, frame age at arrival and now (ms), sequence, layout."""
-        now = time.time_ns()
+        now = wall_ns()
         with self.lock:
             frames = dict(self.frames)
         return {
@@ -211,7 +212,7 @@ class WebConsole:
     # -- browser masters ---------------------------------------------------------------------
     def feed(self, conn: object, obj: dict[str, Any], clock: ClockMap) -> str:
         """An admitted ``sample`` frame; "" when taken, else why it was not (FrameError if invalid)."""
-        received = time.time_ns()
+        received = wall_ns()
         s = parse_sample(obj, tuple(self.masters))
         stamp = clock.stamp_ns(s.t_ms, received)
         now = time.monotonic()
@@ -326,6 +327,7 @@ class WebConsole:
                     "p50_ms": _r(s.latency_p50_ms, 1),
                     "p99_ms": _r(s.latency_p99_ms, 1),
                     "samples": s.latency_samples,
+                    "clock_offset_ms": _r(s.clock_offset_ms, 1),
                     "stale": now - a.safety_rx > stale,
                 }
             )

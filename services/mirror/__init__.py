@@ -69,6 +69,7 @@ from telesurg.services.mirror.view import (
 )
 from telesurg.shared import robots
 from telesurg.shared.bus import BusConfig, Node
+from telesurg.shared.clock import wall_ns
 from telesurg.shared.errors import ConfigError, KinematicsError
 from telesurg.shared.malloc import Trimmer
 from telesurg.shared.messages import (
@@ -325,7 +326,7 @@ class Inbox:
 
     def on_message(self, msg: Message, key: str) -> None:
         """Node.subscribe callback: buffer the decoded message."""
-        rx = time.time_ns()
+        rx = wall_ns()
         with self._lock:
             if len(self._items) == self._items.maxlen:
                 self.dropped += 1
@@ -936,7 +937,7 @@ class FrameTap:
 
     def on_frame(self, msg: CameraImage, key: str) -> None:
         with self.lock:
-            self.newest[msg.camera] = (msg, time.time_ns())
+            self.newest[msg.camera] = (msg, wall_ns())
 
     def draw(self, view: RerunView) -> None:
         now = time.monotonic()

@@ -53,6 +53,7 @@ from telesurg.services.common import install_stop_handlers, setup_logging
 from telesurg.shared import jsonio
 from telesurg.shared.auth import PUT, AuthError, Keyring, verify
 from telesurg.shared.bus import BusConfig, Node, add_bus_args, bus_from_args
+from telesurg.shared.clock import wall_ns
 from telesurg.shared.errors import ConfigError, MessageError, TelesurgError
 from telesurg.shared.keys import Keys, check_id
 from telesurg.shared.messages import (
@@ -330,7 +331,7 @@ class Recorder:
         self._schemas: dict[str, int] = {}
         self._subscribers: list[Any] = []
         self._closed = False
-        self._started_ns = time.time_ns()
+        self._started_ns = wall_ns()
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self._file: IO[bytes] = self.path.open("wb")
         try:
@@ -354,7 +355,7 @@ class Recorder:
                 )
                 self._writer.add_attachment(
                     create_time=p.stat().st_mtime_ns,
-                    log_time=time.time_ns(),
+                    log_time=wall_ns(),
                     name=str(a),
                     media_type=media,
                     data=data,
@@ -394,7 +395,7 @@ class Recorder:
                 except AuthError:
                     self.unauthenticated += 1
                     return
-            push(payload, k, time.time_ns())
+            push(payload, k, wall_ns())
 
         self._subscribers.append(session.declare_subscriber(key, on_sample))
 
@@ -484,7 +485,7 @@ class Recorder:
                 meta["_recording"] = jsonio.dumps(
                     {
                         "started_ns": self._started_ns,
-                        "stopped_ns": time.time_ns(),
+                        "stopped_ns": wall_ns(),
                         "messages": sum(s.messages for s in self.stats.values()),
                         "keys": len(self.stats),
                         "dropped_backlog_full": self.dropped,

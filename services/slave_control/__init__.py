@@ -56,6 +56,7 @@ from telesurg.services.slave_control.serial_backend import SerialBackendConfig
 from telesurg.shared import robots
 from telesurg.shared.authority import AuthorityConfig
 from telesurg.shared.bus import BusConfig, Node, only
+from telesurg.shared.clock import wall_ns
 from telesurg.shared.errors import ConfigError
 from telesurg.shared.kinematics.work_frame import CameraWorkFrame, ConfiguredWorkFrame
 from telesurg.shared.messages import CartesianPose
@@ -245,7 +246,7 @@ def run(cfg: SlaveControlConfig, stop: threading.Event) -> None:
         def stepped() -> None:
             """The backend stepped: the latency log's "acts" time (latency_log only)."""
             if cfg.latency_log:
-                t = time.time_ns()
+                t = wall_ns()
                 for a in arms:
                     a.stepped(t)
 

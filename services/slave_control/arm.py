@@ -82,6 +82,7 @@ from telesurg.services.slave_control.control import (
     SetpointInterpolator,
 )
 from telesurg.shared.authority import Authority, summary
+from telesurg.shared.clock import wall_ns
 from telesurg.shared.errors import AuthorityError
 from telesurg.shared.limits import limit_step
 from telesurg.shared.messages import (
@@ -386,7 +387,7 @@ class ArmCore:
                 if not lo <= v <= hi
             ]
             return f"outside joint limits: {', '.join(bad)}"
-        age_ms = (time.time_ns() - msg.header.stamp_ns) / 1e6
+        age_ms = (wall_ns() - msg.header.stamp_ns) / 1e6
         if abs(age_ms) > self.cfg.setpoint_max_age_ms:
             when = f"{age_ms:.0f} ms ago" if age_ms > 0 else f"{-age_ms:.0f} ms in the future"
             return f"stale: stamped {when} (limit {self.cfg.setpoint_max_age_ms:g} ms)"
@@ -476,7 +477,7 @@ class ArmCore:
             blocked = motion.blocks_following() if motion is not None else ""
         lease, sp = self._stamp_age(lease, sp)
         if arrived and self._sp_max_age_ns:  # the stamp-age rule for every one the timeline gets
-            wall = time.time_ns()
+            wall = wall_ns()
             arrived = [a for a in arrived if not a.stamp_ns or wall - a.stamp_ns <= self._sp_max_age_ns]
         logged = self._log_applied(sp)
         if reading.fault or self.held.active:
@@ -539,7 +540,7 @@ class ArmCore:
         the stamps are as old as they are), a lease older than its lifetime +
         ``lease_stamp_slack_ms`` is revoked and a setpoint older than ``setpoint_max_age_ms`` is
         dropped (the controller sees no setpoint: stale), however recently they arrived."""
-        wall = time.time_ns()
+        wall = wall_ns()
         if lease.allow and lease.stamp_ns:
             age = wall - lease.stamp_ns
             if age > lease.valid_ns + self._lease_slack_ns:
@@ -587,7 +588,7 @@ class ArmCore:
         new = a is not None and sp is not None and sp is not self._last_sp and self._n_applied < len(a)
         if new:
             assert a is not None and sp is not None
-            a[self._n_applied] = (sp.origin_ns, sp.stamp_ns, time.time_ns(), 0, 0)
+            a[self._n_applied] = (sp.origin_ns, sp.stamp_ns, wall_ns(), 0, 0)
             self._step_row = self._n_applied
             self._n_applied += 1
         self._last_sp = sp

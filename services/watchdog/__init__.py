@@ -6,7 +6,8 @@ Per arm it combines into OK / DEGRADED / HOLD / ESTOP (:mod:`telesurg.services.w
 * its own measurements: the liveliness tokens ``alive/<service>`` of ``required_services``; the
   staleness of each control stream against its deadline (``*_deadline_ms``); lost and reordered
   control messages per second; the command-path latency (p50/p90/p99: ``servo_jp``'s age since
-  its master sample, or half the round trip to the master's echo queryable); with
+  its master sample, the master host's clock offset taken out — :mod:`telesurg.shared.clock`,
+  probed over the bus —, or half the round trip to the master's echo queryable); with
   ``video_camera`` set, the endoscope video's freshness (:mod:`telesurg.services.watchdog.video`);
 * the safety rules (:mod:`telesurg.services.watchdog.rules`, one file each; plugins add more) on
   ``servo_jp``, the slave's ``operating_state`` and the master's buttons;
@@ -42,6 +43,7 @@ from telesurg.services.watchdog.logic import ArmSafety, Policy, Verdict
 from telesurg.services.watchdog.video import VideoPolicy, VideoWatch
 from telesurg.shared.authority import Authority, AuthorityConfig
 from telesurg.shared.bus import BusConfig, Node, Outlet, only
+from telesurg.shared.clock import ClockFilter, ClockSample, offset_text, wall_ns
 from telesurg.shared.errors import ConfigError
 from telesurg.shared.messages import (
     CameraImage,
@@ -91,9 +93,11 @@ class WatchdogConfig:
     # older than this → HOLD (counted from the motion's start at the earliest)
     setpoint_js_deadline_ms: float = 100.0
     max_loss_per_s: int = 10  # lost + reordered control messages per second above this → DEGRADED
-    latency_source: str = "clock"  # clock: servo_jp origin stamps (one host); echo: RTT/2
-    echo_service: str = "master_capture"  # whose echo queryable is probed (latency_source=echo)
-    echo_hz: float = 20.0  # Hz: echo probes (latency_source=echo)
+    # clock: servo_jp's age since its master sample's stamp, on this host's clock (the master
+    # host's offset, from the clock probes, taken out); echo: half the probes' round trip
+    latency_source: str = "clock"
+    echo_service: str = "master_capture"  # whose clock / round trip the probes measure
+    echo_hz: float = 20.0  # Hz: clock probes (signed queries to echo/<echo_service>)
     latency_budget_ms: float = 100.0  # ms: p90 above → DEGRADED, motion scale × degraded_scale
     latency_limit_ms: float = 250.0  # ms: p50 above → HOLD (out of follow until re-engage)
     latency_window_s: float = 1.0  # s: window of the latency percentiles
@@ -265,6 +269,9 @@ class Watchdog:
         # transport the loop's put needs (a deadlock; zenoh advises no blocking call in a callback).
         self.urgent = threading.Event()
         self.last_tick: dict[str, int] = {}
+        # the echo_service's host clock minus this one's, ns, as the clock probes estimate it
+        self.clock = ClockFilter()
+        self.clock_offset_ns = 0
         self.arms = [ArmWatch(node, cfg, *parse_pair(p)) for p in cfg.pairs]
         k = node.keys
         m, mp, sl = only(cfg.master_source), only(cfg.mapping_source), only(cfg.slave_source)
@@ -307,7 +314,8 @@ class Watchdog:
 
     def _on_servo(self, a: ArmWatch, msg: JointSetpoint, key: str) -> None:
         self.last_tick[key] = self.ticks
-        wall = time.time_ns() if self.cfg.latency_source == "clock" else None
+        # the master's stamp on this host's clock: its host's offset taken out (the clock probes)
+        wall = wall_ns() + self.clock_offset_ns if self.cfg.latency_source == "clock" else None
         with self.lock:
             a.safety.on_servo(msg, time.monotonic(), wall)
 
@@ -332,7 +340,7 @@ class Watchdog:
     def _on_frame(self, msg: CameraImage, key: str) -> None:
         now = time.monotonic()
         if self.cfg.latency_source == "clock":  # one host, one clock: arrival − capture
-            age_ms = (time.time_ns() - msg.capture_ns) / 1e6
+            age_ms = (wall_ns() - msg.capture_ns) / 1e6
         else:  # across hosts: the camera's own time + the command path's one-way estimate
             with self.lock:
                 one_way = self.arms[0].verdict.latency_p50_ms if self.arms else 0.0
@@ -376,6 +384,28 @@ class Watchdog:
         with self.lock:
             for a in self.arms:
                 a.safety.add_latency(rtt_s * 500.0 if rtt_s is not None else 1e4, now)
+
+    def add_clock_sample(self, sample: ClockSample | None) -> None:
+        """Take one clock probe of the echo_service: its latency (echo) or its host's offset
+        (clock: the servo_jp origin stamps are moved onto this host's clock by it)."""
+        if self.cfg.latency_source == "echo":
+            self.add_echo_latency(None if sample is None else sample.delay_ns / 1e9)
+            return
+        if sample is None or not self.clock.add(sample, time.monotonic()):
+            return
+        theta = self.clock.offset_ns(time.monotonic())
+        if theta is None:
+            return
+        first = self.clock.samples == 1
+        self.clock_offset_ns = round(theta)
+        # the freshness rules age the master's messages on this host's clock too
+        self.node.fresh.offsets[self.cfg.echo_service] = self.clock_offset_ns
+        if first or (self.clock.samples % 600 == 0 and abs(theta) > 1e6):
+            log.info(
+                "%s's clock: %s",
+                self.cfg.echo_service,
+                offset_text(theta, self.clock.delay_ns()),
+            )
 
     # -- decision ---------------------------------------------------------------------------
     def hold_causes(self, a: ArmWatch) -> list[str]:
@@ -497,6 +527,7 @@ class Watchdog:
                 round(v.latency_p90_ms, 3),
                 round(v.latency_p99_ms, 3),
                 v.latency_samples,
+                round(self.clock_offset_ns / 1e6, 3),
             )
         )
         if a.video_out is not None and self.video is not None:
@@ -521,18 +552,18 @@ class Watchdog:
             a.video_out.put(msg)
 
 
-def _echo_loop(wd: Watchdog, cfg: WatchdogConfig, stop: threading.Event) -> None:
-    """Probe at ``echo_hz`` on a fixed schedule: the time a reply takes is not added to the period,
-    so the window gets its samples at any round-trip time below the period."""
+def _probe_loop(wd: Watchdog, cfg: WatchdogConfig, stop: threading.Event) -> None:
+    """Probe the echo_service's clock at ``echo_hz`` on a fixed schedule (the time an answer
+    takes is not added to the period, so the window gets its samples at any round trip below it)."""
     period = 1.0 / cfg.echo_hz
     next_t = time.monotonic() + period
     while not stop.wait(max(0.0, next_t - time.monotonic())):
         next_t = max(next_t + period, time.monotonic())
         try:
-            rtt = wd.node.echo_rtt(cfg.echo_service, timeout=cfg.latency_limit_ms / 1e3)
+            sample = wd.node.clock_probe(cfg.echo_service, timeout=cfg.latency_limit_ms / 1e3)
         except Exception:  # session closing
             return
-        wd.add_echo_latency(rtt)
+        wd.add_clock_sample(sample)
 
 
 def run(cfg: WatchdogConfig, stop: threading.Event) -> None:
@@ -540,8 +571,7 @@ def run(cfg: WatchdogConfig, stop: threading.Event) -> None:
     cfg.validate()
     with Node(cfg.bus, cfg.site, cfg.service) as node:
         wd = Watchdog(cfg, node)
-        if cfg.latency_source == "echo":
-            threading.Thread(target=_echo_loop, args=(wd, cfg, stop), daemon=True).start()
+        threading.Thread(target=_probe_loop, args=(wd, cfg, stop), daemon=True).start()
         log.info("watching %s; required services: %s", cfg.pairs, cfg.required_services)
         settle_gc()
         wd.serve(stop)

@@ -256,6 +256,7 @@ function armHtml(a) {
   rows.push(["slave", op ? `${st(op.state)} · mode <b class="control-mode">${esc(op.control_mode)}</b> · ${op.follow ? "following" : "holding"}${op.reason ? " — " + esc(op.reason) : ""}${op.stale ? ' <span class="bad">STALE</span>' : ""}` : '<span class="dim">no operating state</span>']);
   rows.push(["safety", s ? `${st(s.state)} ${s.causes.length ? '<span class="warn">' + esc(s.causes.join("; ")) + "</span>" : ""}${s.stale ? ' <span class="bad">STALE</span>' : ""}` : '<span class="dim">no safety state</span>']);
   rows.push(["latency", s && s.samples ? `p50 <b class="p50">${fmt(s.p50_ms)}</b> ms · p99 <b class="p99">${fmt(s.p99_ms)}</b> ms <span class="dim">(${s.samples})</span>` : '<span class="dim">—</span>']);
+  rows.push(["master clock", s ? `<span class="clock">${s.clock_offset_ms >= 0 ? "+" : ""}${fmt(s.clock_offset_ms)}</span> ms <span class="dim">(its host's clock − the slave site's, as the watchdog measures it)</span>` : '<span class="dim">—</span>']);
   rows.push(["scale", `operator <b class="op-scale">${tp ? fmt(tp.scale, 2) : "—"}</b> · watchdog factor <b class="wd-scale">${s ? fmt(s.scale, 2) : "—"}</b>`]);
   rows.push(["tip mm", a.tip_mm ? `<span class="tip">${a.tip_mm.map((v) => fmt(v)).join(", ")}</span>` : "—"]);
   if (op && op.control_mode && op.control_mode !== "non_trocar" && op.rcm_error_mm !== null) rows.push(["RCM error", `${fmt(op.rcm_error_mm, 2)} mm`]);

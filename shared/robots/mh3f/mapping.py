@@ -23,6 +23,7 @@ import time
 
 import numpy as np
 from telesurg.shared.bus import Outlet
+from telesurg.shared.clock import wall_ns
 from telesurg.shared.errors import IKError
 from telesurg.shared.kinematics import matrix_from_quat, quat_from_matrix
 from telesurg.shared.messages import (
@@ -139,7 +140,7 @@ class CartesianMapping:
             if self.pending is not None:
                 self.gate.conflated += 1
             self.pending = msg
-            self.pending_rx_ns = time.time_ns()
+            self.pending_rx_ns = wall_ns()
         self.gate.work.set()
 
     def process(self) -> None:
@@ -148,7 +149,7 @@ class CartesianMapping:
             msg, self.pending = self.pending, None
             if msg is None:
                 return
-            rx_ns, begin_ns = self.pending_rx_ns, time.time_ns()
+            rx_ns, begin_ns = self.pending_rx_ns, wall_ns()
             if self.gate.want_engage and not self.gate.following:
                 self._try_engage(msg)
             sent = self.servo_out.sent
