@@ -108,6 +108,31 @@ function setLink() {
   const l = $("#link");
   l.textContent = wsOpen ? "console connected" : refusedWhy ? "console " + refusedWhy : "console link lost — reconnecting";
   l.className = wsOpen ? "ok" : "bad";
+  if (!wsOpen) setBanner("none", "NO LINK", "the page lost the console: the state shown is old");
+}
+
+// The safety banner (always on screen): the worst watchdog state of the arms and its causes.
+const RANK = { OK: 1, DEGRADED: 2, HOLD: 3, ESTOP: 4 };
+function setBanner(cls, state, cause) {
+  const b = $("#banner");
+  b.className = "b-" + cls;
+  $("#banner-state").textContent = state;
+  $("#banner-cause").textContent = cause;
+  b.title = state + " " + cause;
+}
+function banner(m) {
+  let worst = null;
+  for (const a of m.arms) {
+    const s = a.safety;
+    const state = !s ? "NO STATE" : s.stale ? "STALE" : s.state;
+    const rank = !s || s.stale ? 3.5 : RANK[s.state] || 3.5;
+    const cause = !s ? "no watchdog state yet" : s.stale ? "the watchdog's state is old" : s.causes.join("; ");
+    if (!worst || rank > worst.rank) worst = { rank, state, cause, arm: a.arm };
+  }
+  if (!worst) { setBanner("none", "NO ARMS", "the site reports no arm"); return; }
+  const cls = RANK[worst.state] ? worst.state : "none";
+  const who = m.arms.length > 1 ? worst.arm + ": " : "";
+  setBanner(cls, worst.state, worst.cause ? "— " + who + worst.cause : m.arms.length > 1 ? "— every arm" : "");
 }
 
 // ------------------------------------------------------------------ mouse and keyboard
@@ -303,6 +328,7 @@ function render(m) {
     }
     d.innerHTML = armHtml(a);
   }
+  banner(m);
   for (const n of m.notices || []) logLine(n.severity, n.text);
   scope(m.video || {});
   askConfirm(m.confirm);
