@@ -200,6 +200,9 @@ def mouse(cdp: DevTools, s: str, kind: str, x: float, y: float, buttons: int = 1
 
 
 def click(cdp: DevTools, s: str, selector: str) -> None:
+    """Click the element's centre, scrolled into the middle of the view first (as a user would:
+    the fixed E-STOP / CLUTCH dock covers what is scrolled under it)."""
+    js(cdp, s, f"document.querySelector({json.dumps(selector)}).scrollIntoView({{block: 'center'}})")
     x, y = centre(cdp, s, selector)
     mouse(cdp, s, "mousePressed", x, y)
     mouse(cdp, s, "mouseReleased", x, y, 0)
@@ -757,7 +760,7 @@ def test_estop_clutch_and_the_safety_banner_stay_on_screen(tmp_path: Path) -> No
                 print(f"{w}×{h}{' phone' if phone else ''} scrolled {y}/{room} px: {seen}")
                 assert all(inside and uncovered for inside, uncovered in seen.values()), (w, h, y, seen)
         assert max(scrolled) > 200, f"no viewport made the page scroll ({scrolled}): the check proved nothing"
-        save_shot(screenshot(cdp, s), "console-phone-scrolled.png", tmp_path)
+        (tmp_path / "console-phone-scrolled.png").write_bytes(screenshot(cdp, s))  # (not a docs picture)
         # scrolled to the bottom of the phone page: the e-stop click latches, and the banner says so
         t_click = time.monotonic()
         click(cdp, s, "#estop")
