@@ -1,6 +1,6 @@
 """A LeRobotDataset exported from a live recording, checked against that recording by readers
 that are not telesurg's writer: pyarrow (the Parquet files) and PyAV (the MP4). Used by
-``tests/test_docs_recipes.py`` (docs/learning.md's worked example: a live site with two clutch
+``tests/test_docs_recipes.py`` (docs/recording.md's worked example: a live site with two clutch
 presses and the camera, recorded, exported at 10 fps).
 
 What a user of the dataset relies on: one episode per engaged period, each (engaged time × fps

@@ -283,13 +283,13 @@ def test_the_plugin_examples_as_written(tmp_path: Path) -> None:
             assert re.search(r"mapping \S+ → arm1 \(reach\)", log), log[-3000:]
 
 
-# --------------------------------------------------------------------------- learning.md
+# ------------------------------------------------------------ recording.md: robot learning
 
 
 @pytest.mark.process
 @pytest.mark.timeout(420)
 def test_recording_to_dataset_to_a_policy_run_as_written(tmp_path: Path) -> None:
-    """docs/learning.md: a site with two clutch presses (and its camera) recorded, exported as a
+    """docs/recording.md: a site with two clutch presses (and its camera) recorded, exported as a
     LeRobotDataset and read back by pyarrow and PyAV (tests/lerobot_check.py); then the dataset's
     first episode, as a policy, drives a fresh site: its slave follows the policy and moves."""
     from lerobot_check import check_dataset
