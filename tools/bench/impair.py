@@ -695,6 +695,7 @@ class LinkImpairer:
 
 # --------------------------------------------------------------------- packet link (root)
 
+_RT_PRIORITY = 20  # SCHED_FIFO priority of the packet link's thread (below the kernel's threads)
 _TUNSETIFF = 0x400454CA
 _IFF_TUN = 0x0001
 _IFF_NO_PI = 0x1000
@@ -776,6 +777,8 @@ class PacketLink:
         addr_a, addr_b: IPv4 addresses of the two ends.
         name: device-name stem (``<name>a``, ``<name>b``; at most 14 characters).
         seed: seed of the random parts (reproducible drops and jitter for a given packet sequence).
+        realtime: run the forwarding thread at SCHED_FIFO priority (if allowed): on a loaded host
+            its wake-up latency would add to every delay.
 
     Raises:
         OSError: not root, no TUN support, or the namespaces do not exist.
@@ -790,8 +793,10 @@ class PacketLink:
         addr_b: str = "10.251.0.2",
         name: str = "",
         seed: int | None = None,
+        realtime: bool = True,
     ) -> None:
         self.addr_a, self.addr_b = addr_a, addr_b
+        self._realtime = realtime
         stem = name or f"tsl{os.getpid() % 100000}"
         if len(stem) > 14:
             raise ValueError(f"device name stem {stem!r} longer than 14 characters")
@@ -917,6 +922,11 @@ class PacketLink:
         fa, fb = self._fds
         # by destination: a heap of (due, arrival number, packet): a reordered packet leaves late
         queues: dict[int, list[tuple[float, int, bytes]]] = {fa: [], fb: []}
+        if self._realtime:  # the link's own wake-up is delay it adds: run ahead of other work
+            try:
+                os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(_RT_PRIORITY))
+            except OSError as exc:
+                log.debug("packetlink %s: no real-time priority: %s", self.name, exc)
         sel = selectors.SelectSelector()  # select(2) takes a µs timeout; epoll rounds up to whole ms
         sel.register(fa, selectors.EVENT_READ, fb)
         sel.register(fb, selectors.EVENT_READ, fa)

@@ -1,8 +1,9 @@
 """A UDP datagram flow for measuring a link: a sender stamps each datagram, a receiver records it.
 
-Both ends stamp CLOCK_MONOTONIC, which network namespaces share, so the receiver's rows give the
-one-way delay of every datagram. Used by the link-profile tests and benches, run inside the
-namespaces of a :class:`~telesurg.tools.bench.impair.PacketLink`::
+Both ends read CLOCK_REALTIME, which network namespaces share — the sender just before the send,
+the receiver's kernel when the datagram arrives (``SO_TIMESTAMPNS``: the receiver's own wake-up
+is not counted) — so the rows give the one-way delay of every datagram. Used by the link-profile
+tests, run inside the namespaces of a :class:`~telesurg.tools.bench.impair.PacketLink`::
 
     ip netns exec B python -m telesurg.tools.bench.udpflow recv 10.251.0.2 9000 --out rows.npy
     ip netns exec A python -m telesurg.tools.bench.udpflow send 10.251.0.2 9000 --count 2000 \\
@@ -27,7 +28,9 @@ from pathlib import Path
 
 import numpy as np
 
-HEADER = struct.Struct("<qq")  # sequence number, send time (CLOCK_MONOTONIC ns)
+HEADER = struct.Struct("<qq")  # sequence number, send time (CLOCK_REALTIME ns)
+_TIMESPEC = struct.Struct("@ll")  # struct timespec of SO_TIMESTAMPNS
+_SO_TIMESTAMPNS = getattr(socket, "SO_TIMESTAMPNS", 35)  # Linux; Python 3.11 does not name it
 IP_UDP_OVERHEAD = 28  # bytes of IPv4 + UDP header around each datagram
 
 
@@ -42,7 +45,7 @@ def send(addr: str, port: int, count: int, interval_ms: float, size: int) -> int
             if wait > 0:
                 time.sleep(wait)
             with contextlib.suppress(OSError):  # ENOBUFS: the device queue is full; it is lost
-                sock.sendto(HEADER.pack(seq, time.monotonic_ns()) + pad, (addr, port))
+                sock.sendto(HEADER.pack(seq, time.time_ns()) + pad, (addr, port))
     print(f"sent {count}", flush=True)
     return 0
 
@@ -59,6 +62,7 @@ def recv(addr: str, port: int, out: Path, idle_s: float, max_s: float) -> int:
     rows: list[tuple[int, int, int, int]] = []
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
         sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4 << 20)
+        sock.setsockopt(socket.SOL_SOCKET, _SO_TIMESTAMPNS, 1)
         sock.bind((addr, port))
         sock.settimeout(0.05)
         print("ready", flush=True)
@@ -66,13 +70,17 @@ def recv(addr: str, port: int, out: Path, idle_s: float, max_s: float) -> int:
         last = 0.0
         while not stop[0] and time.monotonic() < deadline:
             try:
-                data = sock.recv(65536)
+                data, anc, _, _ = sock.recvmsg(65536, 64)
             except TimeoutError:
                 if rows and time.monotonic() - last > idle_s:
                     break
                 continue
-            now = time.monotonic_ns()
-            last = now / 1e9
+            last = time.monotonic()
+            now = time.time_ns()
+            for level, kind, value in anc:
+                if level == socket.SOL_SOCKET and kind == _SO_TIMESTAMPNS:
+                    sec, nsec = _TIMESPEC.unpack_from(value)
+                    now = sec * 1_000_000_000 + nsec
             seq, sent = HEADER.unpack_from(data)
             rows.append((seq, sent, now, len(data)))
     np.save(out, np.array(rows, dtype=np.int64).reshape(-1, 4))
