@@ -17,7 +17,8 @@ from pathlib import Path
 
 import pytest
 from telesurg.shared.errors import ConfigError
-from telesurg.tools.bench.impair import LinkImpairer
+from telesurg.tools.bench import transport
+from telesurg.tools.bench.impair import LinkImpairer, control_command
 from telesurg.tools.bench.netprofile import (
     PROFILES,
     LinkModel,
@@ -209,3 +210,34 @@ def test_link_impairer_applies_delay_jitter_not_loss() -> None:
                     times.append(time.monotonic() - t0)
     srv.close()
     assert min(times) >= 0.015  # 20 ms − 5 ms of jitter at least, one way
+
+
+def test_gilbert_elliott_from_transition_probabilities() -> None:
+    p = LinkProfile.from_transitions(0.01, 0.25)
+    assert p.loss == pytest.approx(0.01 / 0.26) and p.burst == pytest.approx(4.0)
+    assert (p.p_good_bad, p.p_bad_good) == (pytest.approx(0.01), pytest.approx(0.25))
+    with pytest.raises(ConfigError):
+        LinkProfile.from_transitions(0.0, 0.5)
+
+
+def test_transport_bench_rejects_a_bad_profile_before_anything_runs(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    assert transport.main(["--profile", "mars"]) == 2
+    assert transport.main(["--profile", "lan", "--loss", "0,1.5"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == [
+        f"telesurg bench transport: unknown link profile 'mars'; valid: {', '.join(PROFILES)}",
+        "telesurg bench transport: bad link profile: loss must be in [0, 1), got 1.5",
+    ]
+
+
+def test_control_command_applies_a_profile() -> None:
+    srv = socket.create_server(("127.0.0.1", 0))
+    with LinkImpairer(srv.getsockname()[:2]) as link:
+        assert control_command(link, "profile fibre-30km") == "ok delay 13.5"
+        assert control_command(link, "profile mars").startswith(
+            "error unknown link profile 'mars'; valid: lan"
+        )
+        assert link.delay_ms == 13.5
+    srv.close()

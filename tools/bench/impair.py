@@ -39,7 +39,12 @@ loss and the kernel's own retransmission (``tools/bench/transport.py`` uses it):
     with NetNamespace("ts-a") as a, NetNamespace("ts-b") as b, PacketLink(a.name, b.name) as link:
         link.set_delay(10)      # ms one way
         link.set_loss(0.02)     # 2 % of packets, each direction, independently
+        link.set_profile(profile("5g-microhand", burst=3))   # or a whole network profile
         subprocess.run(a.cmd(["python", "-m", "..."]))   # reaches b at link.addr_b
+
+Network profiles (delay, jitter, bursty loss, bandwidth cap, reordering, outages; the named ones
+of issue #41) are :mod:`telesurg.tools.bench.netprofile`; ``telesurg impair --profile NAME`` applies
+what a TCP proxy can of one (delay, jitter, cap).
 """
 
 from __future__ import annotations
@@ -73,6 +78,7 @@ from telesurg.tools.bench.netprofile import (
     LinkModel,
     LinkProfile,
     add_profile_args,
+    profile,
     profile_from_args,
 )
 
@@ -1030,7 +1036,8 @@ def _hostport_arg(text: str) -> tuple[str, int]:
 def control_command(link: LinkImpairer, line: str) -> str:
     """Apply one text command to ``link``; the reply line (``ok <state> <delay ms>`` or ``error ...``).
 
-    Commands: ``cut``, ``restore``, ``delay MS``, ``reset``, ``stats``.
+    Commands: ``cut``, ``restore``, ``delay MS``, ``profile NAME`` (its delay, jitter and cap),
+    ``reset``, ``stats``.
     """
     words = line.split()
     try:
@@ -1041,13 +1048,18 @@ def control_command(link: LinkImpairer, line: str) -> str:
                 link.restore()
             case ["delay", ms]:
                 link.set_delay(float(ms))
+            case ["profile", name]:
+                link.set_profile(profile(name))
             case ["reset"]:
                 link.reset_connections()
             case ["stats"]:
                 return "ok " + " ".join(f"{k}={v}" for k, v in link.stats().items())
             case _:
-                return f"error unknown command {line.strip()!r}; valid: cut, restore, delay MS, reset, stats"
-    except (ValueError, RuntimeError) as exc:
+                return (
+                    f"error unknown command {line.strip()!r}; valid: cut, restore, delay MS, "
+                    "profile NAME, reset, stats"
+                )
+    except (ValueError, RuntimeError) as exc:  # (ConfigError is a ValueError)
         return f"error {exc}"
     return f"ok {link.state} {link.delay_ms:g}"
 
@@ -1093,8 +1105,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument(
         "--control",
         action="store_true",
-        help="read commands on stdin (cut, restore, delay MS, reset, stats); EOF stops the impairer",
+        help="read commands on stdin (cut, restore, delay MS, profile NAME, reset, stats); "
+        "EOF stops the impairer",
     )
+    parser.add_argument("--seed", type=int, help="seed of the jitter (default: a fresh one)")
     parser.add_argument("--log-level", default="INFO", help="DEBUG, INFO, WARNING, ERROR")
     args = parser.parse_args(argv)
     try:
@@ -1118,7 +1132,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             previous[sig] = signal.signal(sig, on_signal)
     try:
         try:
-            link = LinkImpairer(target=args.target, listen=args.listen)
+            link = LinkImpairer(target=args.target, listen=args.listen, seed=args.seed)
         except OSError as exc:
             print(f"telesurg impair: {exc}", file=sys.stderr)
             return 1

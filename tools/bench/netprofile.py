@@ -93,6 +93,25 @@ class LinkProfile:
         """Gilbert–Elliott P(bad → good) per packet."""
         return 1.0 / self.burst
 
+    @classmethod
+    def from_transitions(
+        cls, p_good_bad: float, p_bad_good: float, **others: float | int | str
+    ) -> LinkProfile:
+        """The profile of a Gilbert–Elliott chain given by its transition probabilities per packet
+        (every packet lost in the bad state, none in the good one): mean loss
+        p_gb / (p_gb + p_bg), mean burst 1 / p_bg.
+
+        Raises:
+            ConfigError: a probability outside (0, 1], or a mean loss of 1.
+        """
+        if not (0.0 < p_good_bad <= 1.0 and 0.0 < p_bad_good <= 1.0):
+            raise ConfigError(
+                "Gilbert–Elliott transition probabilities must be in (0, 1], "
+                f"got {p_good_bad!r}, {p_bad_good!r}"
+            )
+        loss = p_good_bad / (p_good_bad + p_bad_good)
+        return cls(loss=loss, burst=1.0 / p_bad_good, **others)  # type: ignore[arg-type]
+
     def describe(self) -> str:
         """One line: the non-default values, e.g. ``delay 57 ms, loss 1.2 %``."""
         parts = [f"delay {self.delay_ms:g} ms"]
