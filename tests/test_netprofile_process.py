@@ -49,7 +49,7 @@ class Flow:
         me = [sys.executable, "-m", "telesurg.tools.bench.udpflow"]
         opts = ["--interval-ms", f"{interval_ms:g}", "--size", str(size)]
         recv = subprocess.Popen(
-            self.b.cmd([*me, "recv", ADDR_B, str(port), "--out", str(out), "--idle-s", "1.0"]),
+            self.b.cmd([*me, "recv", ADDR_B, str(port), "--out", str(out), "--idle-s", "0.5"]),
             stdout=subprocess.PIPE,
             text=True,
             env=self.env,
@@ -106,7 +106,7 @@ def test_delay_and_jitter_match_the_lindbergh_profile(flow: Flow) -> None:
     assert abs(d.mean() - prof.delay_ms) < 1.0
     assert abs(d.std() - sigma) < 0.15 * sigma
     assert d.min() >= prof.delay_ms - prof.jitter_ms - 0.2
-    assert d.max() <= prof.delay_ms + prof.jitter_ms + 3.0  # + the host's scheduling
+    assert d.max() <= prof.delay_ms + prof.jitter_ms + 5.0  # + the host's scheduling
 
 
 def test_jitter_keeps_order_and_reordering_breaks_it(flow: Flow) -> None:
@@ -197,6 +197,6 @@ def test_an_outage_drops_everything_for_its_length(flow: Flow) -> None:
     outage = flow.link.counts["outage"] - before["outage"]
     print(f"outage: sends {[round(g, 1) for g in gaps]} ms apart across the gaps; {outage} dropped")
     assert gaps, "no outage seen"
-    assert all(300 <= g <= 312 for g in gaps), gaps
+    assert all(300 <= g <= 315 for g in gaps), gaps
     assert flow.link.counts["lost"] == before["lost"] and flow.link.counts["queue"] == before["queue"]
     assert 2500 - len(rows) == outage  # every datagram not delivered was dropped by an outage
