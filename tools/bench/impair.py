@@ -1145,8 +1145,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             )
             if applied != prof:
                 log.warning(
-                    "a TCP proxy cannot lose, reorder or drop packets: applied %s; the rest (%s) "
-                    "needs the packet link (tools/bench/impair.py PacketLink, root)",
+                    "a TCP proxy cannot lose, reorder or drop packets: applied %s of %s; loss, "
+                    "reordering and outages need the packet link (tools/bench/impair.py PacketLink, root)",
                     applied.describe(),
                     prof.describe(),
                 )
