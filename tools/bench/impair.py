@@ -39,7 +39,12 @@ loss and the kernel's own retransmission (``tools/bench/transport.py`` uses it):
     with NetNamespace("ts-a") as a, NetNamespace("ts-b") as b, PacketLink(a.name, b.name) as link:
         link.set_delay(10)      # ms one way
         link.set_loss(0.02)     # 2 % of packets, each direction, independently
+        link.set_profile(profile("5g-microhand", burst=3))   # or a whole network profile
         subprocess.run(a.cmd(["python", "-m", "..."]))   # reaches b at link.addr_b
+
+Network profiles (delay, jitter, bursty loss, bandwidth cap, reordering, outages; the named ones
+of issue #41) are :mod:`telesurg.tools.bench.netprofile`; ``telesurg impair --profile NAME`` applies
+what a TCP proxy can of one (delay, jitter, cap).
 """
 
 from __future__ import annotations
@@ -48,6 +53,7 @@ import argparse
 import contextlib
 import errno
 import fcntl
+import heapq
 import logging
 import math
 import os
@@ -63,8 +69,18 @@ import threading
 import time
 from collections import deque
 from collections.abc import Callable, Sequence
+from dataclasses import replace
 from types import FrameType, TracebackType
 from typing import Any
+
+from telesurg.shared.errors import ConfigError
+from telesurg.tools.bench.netprofile import (
+    LinkModel,
+    LinkProfile,
+    add_profile_args,
+    profile,
+    profile_from_args,
+)
 
 log = logging.getLogger(__name__)
 
@@ -81,7 +97,7 @@ _WAKE = object()  # selector key data of the wake-up socket
 class _Pipe:
     """One direction of a forwarded connection: chunks read from the source wait here until due."""
 
-    __slots__ = ("blocked", "eof", "queue", "queued", "up")
+    __slots__ = ("blocked", "eof", "queue", "queued", "shaped_at", "up")
 
     def __init__(self, up: bool) -> None:
         self.up = up  # client → target
@@ -89,6 +105,7 @@ class _Pipe:
         self.queued = 0  # bytes in ``queue``
         self.eof = False  # the source closed: close the pair once ``queue`` is drained
         self.blocked = False  # last send was partial: wait until the destination is writable
+        self.shaped_at = 0.0  # when the bandwidth cap lets the newest chunk go (monotonic s)
 
 
 class _Pair:
@@ -131,12 +148,15 @@ class LinkImpairer:
     Args:
         target: ``(host, port)`` to forward to, e.g. the zenoh router's listen address.
         listen: ``(host, port)`` to listen on; port 0 picks a free port.
+        seed: seed of the jitter (reproducible per-chunk delays).
 
     Raises:
         OSError: the listen address cannot be bound or a host name cannot be resolved.
     """
 
-    def __init__(self, target: tuple[str, int], listen: tuple[str, int] = ("127.0.0.1", 0)) -> None:
+    def __init__(
+        self, target: tuple[str, int], listen: tuple[str, int] = ("127.0.0.1", 0), seed: int | None = None
+    ) -> None:
         family, _, _, _, addr = socket.getaddrinfo(target[0], target[1], type=socket.SOCK_STREAM)[0]
         self._target_family = family
         self._target_addr: Any = addr
@@ -170,6 +190,9 @@ class LinkImpairer:
         # state: written by the loop thread only (or by the caller while no loop runs)
         self._cut = False
         self._delay_s = 0.0
+        self._jitter_s = 0.0  # ± uniform per chunk, in order (a byte stream cannot reorder)
+        self._rate_bps = 0.0  # bandwidth cap, bytes/s (0: none)
+        self._rng = random.Random(seed)
         # counters
         self._accepted = 0
         self._refused = 0
@@ -203,7 +226,7 @@ class LinkImpairer:
         """``"cut"`` while cut, else ``"delay"`` if a delay is set, else ``"pass"``."""
         if self._cut:
             return "cut"
-        return "delay" if self._delay_s > 0 else "pass"
+        return "delay" if self._delay_s > 0 or self._jitter_s > 0 or self._rate_bps > 0 else "pass"
 
     @property
     def delay_ms(self) -> float:
@@ -302,9 +325,34 @@ class LinkImpairer:
         delay_s = ms / 1000.0
         self._control(lambda: self._apply_link(delay_s, release=False))
 
+    def set_profile(self, prof: LinkProfile) -> LinkProfile:
+        """Apply what a TCP proxy can of ``prof``: delay, jitter (uniform, in order), bandwidth cap.
+
+        A byte stream cannot lose or reorder packets (TCP below retransmits) and a cut holds bytes
+        rather than dropping them: loss, reordering and outages are left out (use
+        :class:`PacketLink`). Ends a cut.
+
+        Returns:
+            The profile applied (``prof`` without loss, reordering and outages).
+        """
+        applied = replace(prof, loss=0.0, burst=1.0, reorder=0.0, outage_ms=0.0)
+        delay_s, jitter_s, rate = prof.delay_ms / 1000.0, prof.jitter_ms / 1000.0, prof.rate_kbps * 125.0
+
+        def apply() -> None:
+            self._jitter_s, self._rate_bps = jitter_s, rate
+            self._apply_link(delay_s, release=False)
+
+        self._control(apply)
+        return applied
+
     def restore(self) -> None:
         """Back to pass-through (no cut, no delay); everything held back flows now, in order."""
-        self._control(lambda: self._apply_link(0.0, release=True))
+
+        def apply() -> None:
+            self._jitter_s = self._rate_bps = 0.0
+            self._apply_link(0.0, release=True)
+
+        self._control(apply)
 
     def reset_connections(self) -> None:
         """Reset (RST) every current connection pair, both sides; the listener stays up."""
@@ -545,7 +593,13 @@ class LinkImpairer:
                 self._close_pair(pair)
             return
         now = time.monotonic()
-        due = now + self._delay_s
+        start = now
+        if self._rate_bps > 0:
+            start = max(now, pipe.shaped_at) + len(data) / self._rate_bps
+            pipe.shaped_at = start
+        due = start + self._delay_s
+        if self._jitter_s > 0:
+            due = max(start, due + self._rng.uniform(-self._jitter_s, self._jitter_s))
         if pipe.queue and pipe.queue[-1][0] > due:
             due = pipe.queue[-1][0]  # the delay went down: never overtake earlier chunks
         pipe.queue.append((due, memoryview(data)))
@@ -647,6 +701,7 @@ class LinkImpairer:
 
 # --------------------------------------------------------------------- packet link (root)
 
+_RT_PRIORITY = 20  # SCHED_FIFO priority of the packet link's thread (below the kernel's threads)
 _TUNSETIFF = 0x400454CA
 _IFF_TUN = 0x0001
 _IFF_NO_PI = 0x1000
@@ -716,16 +771,20 @@ class PacketLink:
 
     A TUN device is made in each namespace (``addr_a`` in ``ns_a``, ``addr_b`` in ``ns_b``, a /32
     route to each other); one thread (``packetlink-<name>``) reads every IP packet from one device
-    and writes it to the other no earlier than its read time plus the one-way delay, in order.
-    Each packet is dropped with probability ``loss`` (independently, per direction), and every
-    packet is dropped while the link is cut — as on a real link, the endpoints' own TCP (or
-    QUIC) retransmits, UDP datagrams are gone. Root only; the devices vanish on :meth:`close`.
+    and writes it to the other when a :class:`~telesurg.tools.bench.netprofile.LinkModel` of the
+    link's :class:`~telesurg.tools.bench.netprofile.LinkProfile` says (one model per direction):
+    delay and jitter (in order unless reordering is asked), random or bursty loss, a bandwidth
+    cap with a tail-drop queue, scheduled outages. Every packet is dropped while the link is cut
+    — as on a real link, the endpoints' own TCP (or QUIC) retransmits, UDP datagrams are gone.
+    Root only; the devices vanish on :meth:`close`.
 
     Args:
         ns_a, ns_b: existing network namespaces (e.g. :class:`NetNamespace`).
         addr_a, addr_b: IPv4 addresses of the two ends.
         name: device-name stem (``<name>a``, ``<name>b``; at most 14 characters).
-        seed: seed of the loss generator (reproducible drops for a given packet sequence).
+        seed: seed of the random parts (reproducible drops and jitter for a given packet sequence).
+        realtime: run the forwarding thread at SCHED_FIFO priority (if allowed): on a loaded host
+            its wake-up latency would add to every delay.
 
     Raises:
         OSError: not root, no TUN support, or the namespaces do not exist.
@@ -740,20 +799,28 @@ class PacketLink:
         addr_b: str = "10.251.0.2",
         name: str = "",
         seed: int | None = None,
+        realtime: bool = True,
     ) -> None:
         self.addr_a, self.addr_b = addr_a, addr_b
+        self._realtime = realtime
         stem = name or f"tsl{os.getpid() % 100000}"
         if len(stem) > 14:
             raise ValueError(f"device name stem {stem!r} longer than 14 characters")
         self.name = stem
-        self._rng = random.Random(seed)
+        self._seed = seed
         self._lock = threading.Lock()
-        self._delay_s = 0.0
-        self._loss = 0.0
+        self._profile = LinkProfile()
+        self._version = 0  # bumped on every profile change: the loop thread reconfigures its models
+        self._since = time.monotonic()  # when the profile last changed: outages count from here
+        self._models: dict[int, LinkModel] = {}  # by source device: one per direction
+        self._model_version: dict[int, int] = {}
+        self._arrivals = 0
         self._cut = False
         self._stop = False
         self._thread: threading.Thread | None = None
-        self.counts = {"forwarded": 0, "lost": 0, "cut": 0}
+        #: packets forwarded; dropped by loss, by the full queue of the bandwidth cap, by a
+        #: scheduled outage, by a cut
+        self.counts = {"forwarded": 0, "lost": 0, "queue": 0, "outage": 0, "cut": 0}
         self._fds: list[int] = []
         try:
             for ns, dev, mine, peer in (
@@ -775,24 +842,45 @@ class PacketLink:
 
     @property
     def state(self) -> str:
-        """``cut``, else ``impaired`` (delay or loss set), else ``pass``."""
+        """``cut``, else ``impaired`` (a profile other than a perfect link), else ``pass``."""
         if self._cut:
             return "cut"
-        return "impaired" if self._delay_s > 0 or self._loss > 0 else "pass"
+        return "impaired" if self._profile != LinkProfile() else "pass"
+
+    @property
+    def profile(self) -> LinkProfile:
+        """The profile each direction applies now."""
+        return self._profile
+
+    def set_profile(self, prof: LinkProfile) -> None:
+        """Apply ``prof`` to both directions (each with its own random state); ends a cut.
+
+        Packets already queued keep their times; outages count from now.
+        """
+        with self._lock:
+            self._profile = prof
+            self._cut = False
+            self._version += 1
+            self._since = time.monotonic()
 
     def set_delay(self, ms: float) -> None:
         """One-way delay per direction, ms (finite, >= 0); packets already queued keep theirs."""
         if not math.isfinite(ms) or ms < 0:
             raise ValueError(f"delay must be a finite number of ms >= 0, got {ms!r}")
         with self._lock:
-            self._delay_s = ms / 1000.0
+            self._profile = replace(self._profile, delay_ms=ms)
+            self._version += 1
+            self._since = time.monotonic()
 
     def set_loss(self, probability: float) -> None:
-        """Drop each packet with this probability (0 <= p < 1), each direction independently."""
+        """Drop each packet with this probability (0 <= p < 1), each direction independently
+        (in bursts if the profile has a burst length)."""
         if not 0.0 <= probability < 1.0:
             raise ValueError(f"loss probability must be in [0, 1), got {probability!r}")
         with self._lock:
-            self._loss = probability
+            self._profile = replace(self._profile, loss=probability)
+            self._version += 1
+            self._since = time.monotonic()
 
     def cut(self) -> None:
         """Drop every packet, both ways, until :meth:`restore` (queued packets are dropped too)."""
@@ -800,11 +888,12 @@ class PacketLink:
             self._cut = True
 
     def restore(self) -> None:
-        """No cut, no delay, no loss."""
+        """No cut and a perfect link (no delay, no loss, no profile)."""
         with self._lock:
             self._cut = False
-            self._delay_s = 0.0
-            self._loss = 0.0
+            self._profile = LinkProfile()
+            self._version += 1
+            self._since = time.monotonic()
 
     def start(self) -> None:
         """Start forwarding (idempotent)."""
@@ -837,8 +926,14 @@ class PacketLink:
 
     def _run(self) -> None:
         fa, fb = self._fds
-        queues: dict[int, deque[tuple[float, bytes]]] = {fa: deque(), fb: deque()}  # by destination
-        sel = selectors.DefaultSelector()
+        # by destination: a heap of (due, arrival number, packet): a reordered packet leaves late
+        queues: dict[int, list[tuple[float, int, bytes]]] = {fa: [], fb: []}
+        if self._realtime:  # the link's own wake-up is delay it adds: run ahead of other work
+            try:
+                os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(_RT_PRIORITY))
+            except OSError as exc:
+                log.debug("packetlink %s: no real-time priority: %s", self.name, exc)
+        sel = selectors.SelectSelector()  # select(2) takes a µs timeout; epoll rounds up to whole ms
         sel.register(fa, selectors.EVENT_READ, fb)
         sel.register(fb, selectors.EVENT_READ, fa)
         sel.register(self._wake_r, selectors.EVENT_READ, None)
@@ -854,7 +949,7 @@ class PacketLink:
                 now = time.monotonic()
                 for dst, q in queues.items():
                     while q and q[0][0] <= now:
-                        pkt = q.popleft()[1]
+                        pkt = heapq.heappop(q)[2]
                         with contextlib.suppress(OSError):  # ENOBUFS etc.: the packet is lost
                             os.write(dst, pkt)
         except Exception:
@@ -862,12 +957,24 @@ class PacketLink:
         finally:
             sel.close()
 
-    def _drain(self, src: int, queue: deque[tuple[float, bytes]]) -> None:
+    def _model(self, src: int, version: int, prof: LinkProfile, since: float) -> LinkModel:
+        """The model of the direction read from ``src``, reconfigured if the profile changed."""
+        model = self._models.get(src)
+        if model is None:
+            seed = None if self._seed is None else f"{self._seed}-{self._fds.index(src)}"
+            model = self._models[src] = LinkModel(prof, seed=seed, start=since)
+        elif self._model_version.get(src) != version:
+            model.reconfigure(prof, start=since)
+        self._model_version[src] = version
+        return model
+
+    def _drain(self, src: int, queue: list[tuple[float, int, bytes]]) -> None:
         with self._lock:
-            cut, loss, delay = self._cut, self._loss, self._delay_s
+            cut, prof, version, since = self._cut, self._profile, self._version, self._since
         if cut:
             queue.clear()
         now = time.monotonic()
+        model = self._model(src, version, prof, since)
         while True:
             try:
                 pkt = os.read(src, 65536)
@@ -877,12 +984,14 @@ class PacketLink:
                 return
             if cut:
                 self.counts["cut"] += 1
-            elif loss > 0 and self._rng.random() < loss:
-                self.counts["lost"] += 1
+                continue
+            due = model.admit(now, len(pkt))
+            if isinstance(due, str):
+                self.counts["lost" if due == "loss" else due] += 1
             else:
                 self.counts["forwarded"] += 1
-                due = max(now + delay, queue[-1][0]) if queue else now + delay
-                queue.append((due, pkt))
+                self._arrivals += 1
+                heapq.heappush(queue, (due, self._arrivals, pkt))
 
 
 # --------------------------------------------------------------------- CLI
@@ -927,7 +1036,8 @@ def _hostport_arg(text: str) -> tuple[str, int]:
 def control_command(link: LinkImpairer, line: str) -> str:
     """Apply one text command to ``link``; the reply line (``ok <state> <delay ms>`` or ``error ...``).
 
-    Commands: ``cut``, ``restore``, ``delay MS``, ``reset``, ``stats``.
+    Commands: ``cut``, ``restore``, ``delay MS``, ``profile NAME`` (its delay, jitter and cap),
+    ``reset``, ``stats``.
     """
     words = line.split()
     try:
@@ -938,13 +1048,18 @@ def control_command(link: LinkImpairer, line: str) -> str:
                 link.restore()
             case ["delay", ms]:
                 link.set_delay(float(ms))
+            case ["profile", name]:
+                link.set_profile(profile(name))
             case ["reset"]:
                 link.reset_connections()
             case ["stats"]:
                 return "ok " + " ".join(f"{k}={v}" for k, v in link.stats().items())
             case _:
-                return f"error unknown command {line.strip()!r}; valid: cut, restore, delay MS, reset, stats"
-    except (ValueError, RuntimeError) as exc:
+                return (
+                    f"error unknown command {line.strip()!r}; valid: cut, restore, delay MS, "
+                    "profile NAME, reset, stats"
+                )
+    except (ValueError, RuntimeError) as exc:  # (ConfigError is a ValueError)
         return f"error {exc}"
     return f"ok {link.state} {link.delay_ms:g}"
 
@@ -965,11 +1080,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         argv: command-line arguments without the program name (default ``sys.argv[1:]``).
 
     Returns:
-        0 after a requested stop, 1 if the listen address cannot be bound.
+        0 after a requested stop, 1 if the listen address cannot be bound, 2 on a bad profile.
     """
     parser = argparse.ArgumentParser(
         prog="telesurg impair",
-        description="TCP link impairer: forward --listen to --target, optionally with added latency.",
+        description="TCP link impairer: forward --listen to --target, optionally with a link profile's "
+        "delay, jitter and bandwidth cap (a TCP proxy cannot lose packets).",
     )
     parser.add_argument(
         "--listen",
@@ -985,22 +1101,21 @@ def main(argv: Sequence[str] | None = None) -> int:
         metavar="HOST:PORT",
         help="address to forward to, e.g. the zenoh router (default 127.0.0.1:7447)",
     )
-    parser.add_argument(
-        "--delay-ms",
-        type=float,
-        default=0.0,
-        metavar="MS",
-        help="one-way added latency per direction, ms (default 0)",
-    )
+    add_profile_args(parser, delay_default=0.0)
     parser.add_argument(
         "--control",
         action="store_true",
-        help="read commands on stdin (cut, restore, delay MS, reset, stats); EOF stops the impairer",
+        help="read commands on stdin (cut, restore, delay MS, profile NAME, reset, stats); "
+        "EOF stops the impairer",
     )
+    parser.add_argument("--seed", type=int, help="seed of the jitter (default: a fresh one)")
     parser.add_argument("--log-level", default="INFO", help="DEBUG, INFO, WARNING, ERROR")
     args = parser.parse_args(argv)
-    if not math.isfinite(args.delay_ms) or args.delay_ms < 0:
-        parser.error("--delay-ms must be a finite number >= 0")
+    try:
+        prof = profile_from_args(args)
+    except ConfigError as exc:
+        print(f"telesurg impair: {exc}", file=sys.stderr)
+        return 2
     logging.basicConfig(
         level=getattr(logging, str(args.log_level).upper(), logging.INFO),
         format="%(asctime)s impair %(levelname)s %(name)s: %(message)s",
@@ -1017,18 +1132,24 @@ def main(argv: Sequence[str] | None = None) -> int:
             previous[sig] = signal.signal(sig, on_signal)
     try:
         try:
-            link = LinkImpairer(target=args.target, listen=args.listen)
+            link = LinkImpairer(target=args.target, listen=args.listen, seed=args.seed)
         except OSError as exc:
             print(f"telesurg impair: {exc}", file=sys.stderr)
             return 1
         with link:
-            if args.delay_ms > 0:
-                link.set_delay(args.delay_ms)
+            applied = link.set_profile(prof) if prof != LinkProfile() else prof
             print(
                 f"impair: {link.endpoint} -> {_format_endpoint(*link.target)} ({link.state}, "
                 f"{link.delay_ms:g} ms)",
                 flush=True,
             )
+            if applied != prof:
+                log.warning(
+                    "a TCP proxy cannot lose, reorder or drop packets: applied %s of %s; loss, "
+                    "reordering and outages need the packet link (tools/bench/impair.py PacketLink, root)",
+                    applied.describe(),
+                    prof.describe(),
+                )
             if args.control:
                 threading.Thread(target=_control_loop, args=(link, stop), daemon=True).start()
             stop.wait()

@@ -23,6 +23,12 @@ Example::
 
     telesurg bench transport --json docs/data/transport.json
     telesurg bench transport --transports tls,udp --loss 0,0.02 --delay-ms 20 --seconds 10
+    telesurg bench transport --profile 5g-microhand --transports tcp,tls,udp,quic \\
+        --json docs/data/transport-5g-microhand.json
+
+``--profile NAME`` (and ``--jitter-ms``, ``--burst``, ``--rate-kbps``, ``--outage``, ...: see
+:mod:`telesurg.tools.bench.netprofile`) sets the whole link; its loss is the one loss rate run
+unless ``--loss`` lists others.
 """
 
 from __future__ import annotations
@@ -37,16 +43,18 @@ import tempfile
 import threading
 import time
 from collections.abc import Sequence
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import IO, Any
 
 import numpy as np
 from telesurg.shared import jsonio
 from telesurg.shared.bus import BusConfig, open_session
+from telesurg.shared.errors import ConfigError
 from telesurg.shared.timing import CycleTimer
 from telesurg.tools.bench.impair import NetNamespace, PacketLink, netns_available
 from telesurg.tools.bench.machine import machine, now
+from telesurg.tools.bench.netprofile import LinkProfile, add_profile_args, profile_from_args
 
 #: name → (endpoint scheme, endpoint suffix, mutual TLS, best-effort publisher)
 TRANSPORTS: dict[str, tuple[str, str, bool, bool]] = {
@@ -70,6 +78,8 @@ class RunResult:
     transport: str
     loss: float  # packet-loss probability per direction
     delay_ms: float  # one-way delay added by the link
+    profile: str = ""  # the link profile's name ("" without one)
+    link_profile: str = ""  # what the link did, one line (LinkProfile.describe)
     sent: int = 0  # samples published (after the warm-up)
     received: int = 0  # distinct samples delivered
     latency_ms: dict[str, float] = field(default_factory=dict)  # p50, p99, max of one-way latency
@@ -223,7 +233,8 @@ def measure(
     transport: str,
     loss: float,
     *,
-    delay_ms: float,
+    prof: LinkProfile,
+    profile_name: str = "",
     seconds: float,
     rate_hz: float,
     size: int,
@@ -232,8 +243,10 @@ def measure(
     work: Path,
     seed: int,
 ) -> RunResult:
-    """One run: fresh namespaces and link, router+subscriber, publisher, loss on after 1 s."""
-    result = RunResult(transport, loss, delay_ms)
+    """One run: fresh namespaces and link, router+subscriber, publisher; ``prof`` without its loss
+    and outages from the start, with ``loss`` (and the outages) from 1 s on."""
+    lossy = replace(prof, loss=loss)
+    result = RunResult(transport, loss, prof.delay_ms, profile_name, lossy.describe())
     tag = f"{os.getpid() % 100000}"
     me = [sys.executable, "-m", "telesurg.tools.bench.transport"]
     common = ["--transport", transport, "--certs", str(certs)]
@@ -243,7 +256,7 @@ def measure(
         NetNamespace(f"tsb-sub-{tag}") as ns_sub,
         PacketLink(ns_pub.name, ns_sub.name, addr_a=ADDR_PUB, addr_b=ADDR_SUB, seed=seed) as link,
     ):
-        link.set_delay(delay_ms)
+        link.set_profile(replace(prof, loss=0.0, outage_ms=0.0))
         env = dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[2]))
         sub = subprocess.Popen(
             ns_sub.cmd([*me, "--role", "sub", *common, "--out", str(out)]),
@@ -267,7 +280,7 @@ def measure(
             assert pub.stdout is not None
             _readline(pub.stdout, "started", 30.0)
             time.sleep(warm_s)
-            link.set_loss(loss)
+            link.set_profile(lossy)
             before = dict(link.counts)
             line = _readline(pub.stdout, "sent", seconds + 30.0)
             result.sent = int(line.split()[1]) - int(rate_hz * warm_s)
@@ -329,14 +342,14 @@ def main(argv: Sequence[str] | None = None) -> int:
         default="tcp,tls,udp,quic,quic-dgram",
         help=f"comma-separated, from {', '.join(TRANSPORTS)} (default: tcp,tls,udp,quic,quic-dgram)",
     )
-    ap.add_argument("--loss", default="0,0.01,0.05", help="loss probabilities (default 0,0.01,0.05)")
-    ap.add_argument("--delay-ms", type=float, default=10.0, help="one-way link delay, ms (default 10)")
+    ap.add_argument("--loss", help="loss probabilities (default: the profile's, else 0,0.01,0.05)")
     ap.add_argument("--seconds", type=float, default=10.0, help="measured seconds per run (default 10)")
     ap.add_argument("--rate-hz", type=float, default=1000.0, help="stream rate (default 1000)")
     ap.add_argument("--size", type=int, default=128, help="payload bytes (default 128)")
     ap.add_argument("--stall-ms", type=float, default=20.0, help="a receive gap above this is a stall")
     ap.add_argument("--seed", type=int, default=1, help="seed of the link's loss generator")
     ap.add_argument("--json", type=Path, help="write the results here")
+    add_profile_args(ap, delay_default=10.0, loss=False)
     # internal: the two ends, started inside the namespaces
     ap.add_argument("--role", choices=("sub", "pub"), help=argparse.SUPPRESS)
     ap.add_argument("--transport", choices=tuple(TRANSPORTS), help=argparse.SUPPRESS)
@@ -353,7 +366,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     if bad:
         print(f"telesurg bench transport: unknown {bad}; valid: {', '.join(TRANSPORTS)}", file=sys.stderr)
         return 2
-    losses = [float(x) for x in args.loss.split(",")]
+    try:
+        prof = profile_from_args(args, delay_default=10.0, loss=False)
+        default_loss = f"{prof.loss:g}" if args.profile else "0,0.01,0.05"
+        losses = [float(x) for x in (args.loss or default_loss).split(",")]
+        for loss in losses:
+            replace(prof, loss=loss)  # validates
+    except (ConfigError, ValueError) as exc:
+        print(f"telesurg bench transport: {exc}", file=sys.stderr)
+        return 2
     if why := netns_available():
         print(f"telesurg bench transport: {why}", file=sys.stderr)
         return 2
@@ -365,7 +386,8 @@ def main(argv: Sequence[str] | None = None) -> int:
                 r = measure(
                     t,
                     loss,
-                    delay_ms=args.delay_ms,
+                    prof=prof,
+                    profile_name=args.profile,
                     seconds=args.seconds,
                     rate_hz=args.rate_hz,
                     size=args.size,
@@ -376,9 +398,10 @@ def main(argv: Sequence[str] | None = None) -> int:
                 )
                 results.append(r)
                 print(table([r], args.stall_ms).splitlines()[-1], flush=True)
+    named = f"profile {args.profile}: " if args.profile else ""
     header = (
-        f"{args.rate_hz:g} Hz × {args.size} B, {args.seconds:g} s per run, one-way delay "
-        f"{args.delay_ms:g} ms, independent loss per packet and direction, {os.cpu_count()} CPUs"
+        f"{args.rate_hz:g} Hz × {args.size} B, {args.seconds:g} s per run, {named}{prof.describe()} "
+        f"(loss per packet and direction as in the table), {os.cpu_count()} CPUs"
     )
     print(f"\n{header}\n\n{table(results, args.stall_ms)}")
     if args.json:
