@@ -54,7 +54,8 @@ CAUSE = "tip left its sphere"
 
 
 def test_unknown_master_device_lists_the_known_ones() -> None:
-    with pytest.raises(ConfigError, match="valid: scripted, serial, spacemouse, touch, omega7, gamepad"):
+    known = "valid: scripted, serial, spacemouse, touch, omega7, gamepad, touch_sim"
+    with pytest.raises(ConfigError, match=known):
         master_devices.open_device("phantom", MasterCaptureConfig())
 
 

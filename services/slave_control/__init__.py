@@ -22,7 +22,7 @@ answered joint by joint by the servos leaves the trocar's RCM;
 The control loop runs at the backend period (1 ms for MuJoCo, in real time: missed periods are
 replayed, and counted; ``serial.rate_hz`` for a serial arm). Setpoints arrive on
 ``slave/<arm>/servo_jp``. Each arm publishes ``measured_js`` and its controlled point's
-``measured_cp`` (full pose, ``base`` frame) at ``publish_hz``, the estimated external wrench at
+``measured_cp`` (full pose, ``base`` frame) at ``publish_hz``, the external wrench at
 that point ``measured_cf`` (for masters with force feedback; backends that estimate external
 torques) at ``wrench_hz``, and its ``operating_state`` at ``state_hz`` and on change; while a
 slave-side motion drives an arm, its commanded joints go out on ``setpoint_js`` at
@@ -84,7 +84,9 @@ class SlaveControlConfig:
     # each arm's home: the MH3F's tip at (835, 0, 301) mm, forceps pitched 29° down)
     q_home: tuple[float, ...] = ()
     publish_hz: float = 250.0  # Hz: measured_js and measured_cp
-    wrench_hz: float = 50.0  # Hz: measured_cf (estimated tip wrench; MuJoCo and torque-sensing arms)
+    # Hz: measured_cf (the tip wrench: MuJoCo's contact forces on the instrument, or the estimate of a
+    # torque-sensing arm); 500: a haptic master's force stream (docs/haptics.md) needs ≥ 500 Hz
+    wrench_hz: float = 500.0
     state_hz: float = 20.0  # Hz: operating_state (also sent on every change)
     # Hz: setpoint_js, the commanded joints while a slave-side motion drives the arm (PTP, jog,
     # playback, insert/remove, direct teach), checked by the watchdog; the watchdog checks the
@@ -219,10 +221,10 @@ def run(cfg: SlaveControlConfig, stop: threading.Event) -> None:
             if cfg.camera and isinstance(a.motion, ViewFrameUser):
                 follow_camera(node, cfg, a.motion)
         servo_streams = [node.streams.get(k.slave(a.arm, "servo_jp")) for a in arms]
-        # Sub-rate tasks run in different cycles (phases 0-3 below: with these periods of 4, 10,
-        # 20 and 50 cycles no two of them ever share a cycle), so no cycle carries the sum of their
-        # work: measured_js/cp at phase 0, motion sources' measurements 1, measured_cf 2,
-        # operating_state 3.
+        # Sub-rate tasks run in different cycles where they can (phases 0-3 below: with periods of
+        # 4, 10 and 50 cycles these three never share one), so no cycle carries the sum of their
+        # work: measured_js/cp at phase 0, motion sources' measurements 1, operating_state 3;
+        # measured_cf (every 2nd cycle at 500 Hz, a few µs: one small message) at phase 2.
         dt = backend.dt
         timer = CycleTimer(1.0 / dt)
         pub_every = max(1, round(1.0 / (dt * cfg.publish_hz)))
