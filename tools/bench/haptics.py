@@ -85,7 +85,7 @@ class Channel:
 
 class TipFollower:
     """The slave's tip follows a target (m, base frame) at a fixed orientation (damped least
-    squares on the arm's Jacobian, joint step ≤ 3 rad/s)."""
+    squares on the arm's Jacobian; tip ≤ 0.5 m/s, joints ≤ 3 rad/s)."""
 
     def __init__(self, backend: MujocoBackend, model: str = "mh3f", arm: str = "arm1") -> None:
         self.profile = registry.arm_profile(model, arm)
@@ -98,9 +98,14 @@ class TipFollower:
 
     def follow(self, target: np.ndarray) -> None:
         jac = self.profile.jacobian(self.q)
-        err = np.r_[target - self.tip(), np.zeros(3)]
+        step = target - self.tip()
+        n = float(np.linalg.norm(step))
+        if n > 0.0005:  # at most 0.5 m/s: a far target is approached along a line
+            step *= 0.0005 / n
+        err = np.r_[step, np.zeros(3)]
         dq = np.linalg.solve(jac.T @ jac + 1e-6 * np.eye(len(self.q)), jac.T @ err)
-        self.q = self.q + np.clip(dq, -0.003, 0.003)
+        big = float(np.max(np.abs(dq)))
+        self.q = self.q + (dq * (0.003 / big) if big > 0.003 else dq)
         self.backend.command(self.q)
         self.backend.step(1)
 
