@@ -29,7 +29,9 @@ def slave() -> tuple[MujocoBackend, TipFollower, float]:
         yield backend, follower, contact_height(backend, follower)
 
 
-def test_tissue_pushes_back_with_its_published_stiffness(slave: tuple[MujocoBackend, TipFollower, float]) -> None:
+def test_tissue_pushes_back_with_its_published_stiffness(
+    slave: tuple[MujocoBackend, TipFollower, float],
+) -> None:
     """Pressing the forceps tip 3 then 6 mm into the tissue: the contact force on the instrument
     points up, out of the tissue, and grows at the scene's 0.4 N/mm (the spring) within 20 %
     (the hard contact's own give in series); nothing sideways."""
