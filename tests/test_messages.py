@@ -108,7 +108,7 @@ def _pack(d: object) -> bytes:
         (lambda d: d.update(seq=-1), "outside"),
         (lambda d: d.update(seq=1.5), "must be an integer"),
         (lambda d: d.update(v=1), "unknown schema version"),
-        (lambda d: d.update(v=4), "unknown schema version"),
+        (lambda d: d.update(v=5), "unknown schema version"),
         (lambda d: d.pop("v"), "unknown schema version"),
         (lambda d: d.update(type="nope"), "unknown message type"),
         (lambda d: d.update(extra=1), "unexpected fields"),
@@ -149,7 +149,7 @@ def test_rejects_unknown_enum_values() -> None:
     d["state"] = "RUNNING"
     with pytest.raises(MessageError, match="not one of"):
         decode(_pack(d))
-    assert SCHEMA_VERSION == 3
+    assert SCHEMA_VERSION == 4
 
 
 @settings(max_examples=300, deadline=None)
