@@ -24,7 +24,7 @@ this machine's certificate and starts, by default, the web surgeon console (tele
 --web; open the URL it prints; the page is the master m1). With --master scripted: master_capture
 (the site file's scripted or serial device) and the terminal console (telesurg console) in the
 foreground. Configs from console/site.toml beside this script. Guide: docs/deploy.md,
-docs/console.md.
+docs/quickstart.md.
 
 options:
   --port N             the slave site's TLS port (default: 7447)

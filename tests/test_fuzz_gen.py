@@ -44,7 +44,6 @@ ROOT = Path(__file__).resolve().parents[1]
 #: Found by this generator: a registered type with two unexpected keys, one str and one bytes (b""
 #: passes ``strict_map_key`` and ``max_bin_len=0``), made ``decode`` raise TypeError from
 #: ``sorted(extra)`` instead of MessageError. {"v": SCHEMA_VERSION, "type": "heartbeat", "x": 0, b"": 0}
-# {"v": SCHEMA_VERSION, "type": "heartbeat", "x": 0, b"": 0} (the version byte follows "a176")
 MIXED_KEY_BUG = bytes.fromhex(f"84a176{SCHEMA_VERSION:02x}a474797065a9686561727462656174a17800c40000")
 
 

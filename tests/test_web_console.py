@@ -13,7 +13,7 @@ leaves the checkout untouched): input-to-``servo_jp`` latency (the browser's eve
 click → watchdog ESTOP, tab closed → watchdog HOLD.
 
 ``TELESURG_SCREENSHOTS=docs/img`` saves the page's screenshots there (``console-desktop.png``,
-``console-phone.png``) for ``docs/console.md``.
+``console-phone.png``) for ``docs/quickstart.md``.
 """
 
 from __future__ import annotations

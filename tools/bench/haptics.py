@@ -16,17 +16,21 @@ while pressing, overshoot = peak / steady), oscillation (RMS of the contact forc
 in contact), the observed energy at each port (the minima of W_m and W_s), the master–slave drift,
 the stiffness the master feels vs the tissue's (after the scales), the largest device force, the
 free-space master force, and a verdict (``stable``: overshoot ≤ 1.5, no sustained oscillation,
-observers ≥ −1 mJ; ``unstable``: overshoot > 3× or the oscillation grows).
+observers ≥ −1 mJ; ``unstable``: overshoot > 3×, a growing oscillation, an oscillation above
+0.5 N rms, or a network that generated more than 10 mJ — an observer below −10 mJ: the energy the
+hand and tissue receive grows beyond what they put in; ``marginal`` otherwise).
 
 Example::
 
     telesurg bench haptics --json docs/data/haptics.json --plot docs/img/haptics.png
     telesurg bench haptics --quick   # 3 round trips, no impairment
+    telesurg bench haptics --diagram docs/img/haptics-architecture.png
 """
 
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 import random
 import time
@@ -297,7 +301,18 @@ def summarise(
         zero = after[after[:, 12] < 1e-3]
         row["faded_to_zero_s"] = round(float(zero[0, 0] - cut_back_at), 3) if len(zero) else None
     growing = (row["osc_growth"] or 0) > 1.5 and late > 0.05  # a growing oscillation worth feeling
-    unstable = overshoot > 3.0 or growing or osc > 0.5
+    why = [
+        reason
+        for reason, hit in (
+            ("overshoot > 3× steady", overshoot > 3.0),
+            ("growing oscillation", growing),
+            ("oscillation > 0.5 N rms", osc > 0.5),
+            ("the network generated > 10 mJ", min(w_m, w_s) < -10e-3),
+        )
+        if hit
+    ]
+    row["unstable_because"] = why
+    unstable = bool(why)
     stable = (
         np.isfinite(overshoot) and overshoot <= 1.5 and osc < 0.2 and not growing and min(w_m, w_s) >= -1e-3
     )
@@ -345,13 +360,73 @@ def plot(rows: list[dict[str, Any]], logs: dict[tuple[str, float], np.ndarray], 
     plt.close(fig)
 
 
+def diagram(out: Path) -> None:
+    """The architecture picture of docs/haptics.md (``--diagram FILE``)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.patches import FancyBboxPatch
+
+    fig, ax = plt.subplots(figsize=(11, 4.2))
+    ax.set_xlim(0, 11.3)
+    ax.set_ylim(0, 4.2)
+    ax.axis("off")
+    boxes = {
+        "hand": (0.2, 1.6, "operator's hand\n(spring-damper to\nthe scripted intent)"),
+        "device": (2.0, 1.6, "touch_sim device\n45 g, 0.1 N friction\nlimit 3.3 N"),
+        "loop": (3.9, 1.6, "haptic loop 1 kHz\ncheck · fade · rate\nlimit · master PC"),
+        "net": (5.9, 1.6, "network\ndelay ± jitter, loss\n(bench: in-process)"),
+        "slave": (7.7, 1.6, "slave side\nslave PC · drift comp.\ntip follower 1 kHz"),
+        "mujoco": (9.5, 1.6, "MuJoCo MH3F\ntissue 0.4 N/mm\ncontact wrench"),
+    }
+    for x, y, text in boxes.values():
+        ax.add_patch(FancyBboxPatch((x, y), 1.5, 1.1, boxstyle="round,pad=0.05", fc="#eaf2f8", ec="#20639b"))
+        ax.text(x + 0.75, y + 0.55, text, ha="center", va="center", fontsize=7.5)
+    names = list(boxes)
+    for a, b in itertools.pairwise(names):
+        xa, ya, _ = boxes[a]
+        xb, _, _ = boxes[b]
+        ax.annotate(
+            "", (xb, ya + 0.8), (xa + 1.5, ya + 0.8), arrowprops={"arrowstyle": "->", "color": "#173f5f"}
+        )
+        ax.annotate(
+            "", (xa + 1.5, ya + 0.3), (xb, ya + 0.3), arrowprops={"arrowstyle": "->", "color": "#ed553b"}
+        )
+    ax.text(5.5, 3.3, "x_m, E_in_m  →  (measured_cp.energy_in_j)", ha="center", color="#173f5f", fontsize=9)
+    ax.text(
+        5.5,
+        1.0,
+        "←  f_e, E_in_s  (measured_cf at 500 Hz, .energy_in_j)",
+        ha="center",
+        color="#ed553b",
+        fontsize=9,
+    )
+    ax.text(
+        5.5,
+        0.4,
+        "observers W_m = E_in_s(k−D_b) − E_out_m,  W_s = E_in_m(k−D_f) − E_out_s;  "
+        "watchdog: tip_force rule on measured_cf (DEGRADED → HOLD)",
+        ha="center",
+        fontsize=8,
+    )
+    fig.tight_layout()
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out, dpi=100)
+    plt.close(fig)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="telesurg bench haptics", description=__doc__.split("\n\n")[0])
     ap.add_argument("--json", type=Path, help="write the rows here")
     ap.add_argument("--plot", type=Path, help="write the figure here (PNG)")
     ap.add_argument("--quick", action="store_true", help="0, 100 and 400 ms, clean channel only")
     ap.add_argument("--controllers", default=",".join(CONTROLLERS), help="comma-separated subset")
+    ap.add_argument("--diagram", type=Path, help="only draw the architecture picture (PNG) here")
     args = ap.parse_args(argv)
+    if args.diagram:
+        diagram(args.diagram)
+        return 0
     ctrls = [c for c in args.controllers.split(",") if c]
     bad = [c for c in ctrls if c not in CONTROLLERS]
     if bad:
