@@ -14,8 +14,8 @@ import threading
 import time
 
 import msgpack
-import pytest
 import numpy as np
+import pytest
 from conftest import wait_until
 from telesurg.services.master_capture.devices.touch_sim.model import HeldDevice, TouchModel, press_and_slide
 from telesurg.shared import auth
@@ -82,7 +82,7 @@ def test_master_capture_renders_the_slave_force_and_fades_it(
     from telesurg.services import master_capture
     from telesurg.services.master_capture import devices
     from telesurg.services.master_capture.devices.touch_sim import TouchSim, TouchSimConfig
-    from telesurg.shared.messages import Header, SafetyState
+    from telesurg.shared.messages import SafetyState
 
     dev = TouchSim(TouchSimConfig(surface_mm=-1000.0))  # the hand stays put: no contact in its script
     monkeypatch.setattr(devices, "open_device", lambda name, settings=None: dev)
