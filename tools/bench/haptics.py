@@ -16,7 +16,9 @@ while pressing, overshoot = peak / steady), oscillation (RMS of the contact forc
 in contact), the observed energy at each port (the minima of W_m and W_s), the master–slave drift,
 the stiffness the master feels vs the tissue's (after the scales), the largest device force, the
 free-space master force, and a verdict (``stable``: overshoot ≤ 1.5, no sustained oscillation,
-observers ≥ −1 mJ; ``unstable``: overshoot > 3×, a growing oscillation, an oscillation above
+observers ≥ −1 mJ; ``unstable``: overshoot > 3×, a growing oscillation (above 2 Hz: more at the
+end of the final hold than at the end of the press, still above 0.05 N rms in its last 0.25 s and
+not decaying there), an oscillation above
 0.5 N rms, or a network that generated more than 10 mJ — an observer below −10 mJ: the energy the
 hand and tissue receive grows beyond what they put in; ``marginal`` otherwise).
 
@@ -234,10 +236,12 @@ def _window(log: np.ndarray, a: float, b: float) -> np.ndarray:
 
 
 def _hp_rms(x: np.ndarray, hz: float = 2.0) -> float:
-    """RMS of ``x`` (sampled at 1 kHz) above ``hz``."""
+    """RMS of ``x`` (sampled at 1 kHz) above ``hz``, its linear trend removed first (in a short
+    window a ramp would otherwise count as content above 2 Hz)."""
     if len(x) < 8:
         return 0.0
-    spec = np.fft.rfft(x - np.mean(x))
+    t = np.arange(len(x))
+    spec = np.fft.rfft(x - np.polyval(np.polyfit(t, x, 1), t))
     freqs = np.fft.rfftfreq(len(x), DT)
     spec[freqs < hz] = 0.0
     return float(np.sqrt(np.mean(np.fft.irfft(spec, len(x)) ** 2)))
@@ -300,7 +304,12 @@ def summarise(
         row["fade_max_rate_n_per_s"] = round(float(np.max(rate)), 2) if len(rate) else None
         zero = after[after[:, 12] < 1e-3]
         row["faded_to_zero_s"] = round(float(zero[0, 0] - cut_back_at), 3) if len(zero) else None
-    growing = (row["osc_growth"] or 0) > 1.5 and late > 0.05  # a growing oscillation worth feeling
+    # sustained: still above 0.05 N rms in the last quarter second of the final hold and not
+    # decaying there (a transient the slide left, dying out, is not an oscillation that grows)
+    last = _hp_rms(_window(log, SLIDE[1] - 0.25, SLIDE[1])[:, 6])
+    before = _hp_rms(_window(log, SLIDE[1] - 0.5, SLIDE[1] - 0.25)[:, 6])
+    row["osc_end_n"] = round(last, 4)
+    growing = (row["osc_growth"] or 0) > 1.5 and last > 0.05 and last >= 0.8 * before
     why = [
         reason
         for reason, hit in (
