@@ -118,6 +118,7 @@ def test_touch_sim_is_a_master_device_that_takes_a_force() -> None:
     assert dev.read(0.5).position[2] > first.position[2]  # pushed up, against a hand at rest
 
 
+@pytest.mark.slow
 def test_zero_delay_feels_the_tissue_and_nothing_in_free_space() -> None:
     """Acceptance 1: at zero delay the stiffness felt at the master is the tissue's × the scales
     within 20 %; in free space the master force is < 0.1 N."""
@@ -127,6 +128,7 @@ def test_zero_delay_feels_the_tissue_and_nothing_in_free_space() -> None:
     assert row["max_device_force_n"] <= row["device_limit_n"]
 
 
+@pytest.mark.slow
 def test_naive_goes_unstable_where_tdpa_stays_passive() -> None:
     """Acceptance 2 at two points: the naive loop at 100 ms round trip generates energy and
     oscillates; TDPA at 200 ms with ±20 % jitter and 5 % loss stays passive and settles."""
