@@ -2,7 +2,7 @@
 
 Every payload is a MessagePack map with a common header::
 
-    {"v": 3, "type": "joint_state", "src": "slave_control", "seq": 42, "ts": 1700000000000000000,
+    {"v": 4, "type": "joint_state", "src": "slave_control", "seq": 42, "ts": 1700000000000000000,
      ...body fields...}
 
 * ``v``    schema version (int, must equal :data:`SCHEMA_VERSION`)
@@ -59,7 +59,9 @@ import msgpack
 from telesurg.shared.clock import wall_ns
 from telesurg.shared.errors import MessageError
 
-SCHEMA_VERSION = 4  # 2: safety fields, estop; 3: heartbeat polled_s; 4: clock probes, clock_offset_ms
+# 2: safety fields (origin_ns, latency, scale, rcm, clipped), estop; 3: heartbeat polled_s;
+# 4: clock probes, safety_state.clock_offset_ms; pose / wrench energy_in_j (docs/haptics.md)
+SCHEMA_VERSION = 4
 #: Largest payload accepted by :func:`decode`, bytes.
 MAX_PAYLOAD_BYTES = 64 * 1024
 #: Largest joint count in any joint-space message.
@@ -787,6 +789,14 @@ class CartesianPose(Message):
     orientation: tuple[float, float, float, float] = fld(
         (0.0, 0.0, 0.0, 1.0), "orientation `[x, y, z, w]` (scalar last)", unit_quat=True
     )
+    energy_in_j: float = fld(
+        0.0,
+        "bilateral force feedback (docs/haptics.md): energy that has flowed into the network at the "
+        "master port since the pair engaged, `E_in_m`, for the slave's passivity observer "
+        "(0: no haptic master)",
+        unit="J",
+        ge=0.0,
+    )
 
 
 @message("wrench")
@@ -798,6 +808,14 @@ class CartesianWrench(Message):
     force: tuple[float, float, float] = fld((0.0, 0.0, 0.0), "force `[fx, fy, fz]` at the tip", unit="N")
     torque: tuple[float, float, float] = fld(
         (0.0, 0.0, 0.0), "torque `[tx, ty, tz]` about the tip", unit="N·m"
+    )
+    energy_in_j: float = fld(
+        0.0,
+        "bilateral force feedback (docs/haptics.md): energy that has flowed into the network at the "
+        "slave port since the pair engaged, `E_in_s` (master units), for the master's passivity "
+        "observer (0: no bilateral controller)",
+        unit="J",
+        ge=0.0,
     )
 
 

@@ -41,8 +41,9 @@ def test_each_kind_sends_its_entity_at_the_rate_asked(kind: str, tmp_path: Path)
     # paced at the rate asked: frame k + 1 goes out no earlier than k / 20 s after the first (how
     # fast a starved host keeps up is the bench's figure: telesurg bench ingest)
     assert 20 <= sent <= 20.0 * elapsed + 1, (sent, elapsed)
-    # a Transform3D row per MH3F body (9); a 10-row joint block; one row otherwise
-    per_frame = {"poses": 9, "series": 10}.get(kind, 1)
+    # a Transform3D row per body of the MH3F scene the mirror draws; a 10-row joint block; one row
+    # otherwise
+    per_frame = {"poses": len(feeder.geo.bodies), "series": 10}.get(kind, 1)
     assert rows == sent * per_frame, (rows, sent)
 
 

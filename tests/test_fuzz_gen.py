@@ -19,7 +19,15 @@ import telesurg.tools.bench.fuzzgen as fz
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from telesurg.shared.errors import MessageError
-from telesurg.shared.messages import MAX_JOINTS, MAX_PAYLOAD_BYTES, MESSAGE_TYPES, Message, decode, decode_as
+from telesurg.shared.messages import (
+    MAX_JOINTS,
+    MAX_PAYLOAD_BYTES,
+    MESSAGE_TYPES,
+    SCHEMA_VERSION,
+    Message,
+    decode,
+    decode_as,
+)
 from telesurg.tools.bench.fuzzgen import (
     ALWAYS_INVALID_KINDS,
     FUZZ_KINDS,
@@ -35,8 +43,8 @@ ROOT = Path(__file__).resolve().parents[1]
 
 #: Found by this generator: a registered type with two unexpected keys, one str and one bytes (b""
 #: passes ``strict_map_key`` and ``max_bin_len=0``), made ``decode`` raise TypeError from
-#: ``sorted(extra)`` instead of MessageError. {"v": 4, "type": "heartbeat", "x": 0, b"": 0}
-MIXED_KEY_BUG = bytes.fromhex("84a17604a474797065a9686561727462656174a17800c40000")
+#: ``sorted(extra)`` instead of MessageError. {"v": SCHEMA_VERSION, "type": "heartbeat", "x": 0, b"": 0}
+MIXED_KEY_BUG = bytes.fromhex(f"84a176{SCHEMA_VERSION:02x}a474797065a9686561727462656174a17800c40000")
 
 
 @pytest.fixture(autouse=True)
@@ -298,7 +306,7 @@ def test_mutate_never_raises_on_arbitrary_bytes(seed: int, data: bytes) -> None:
 
 
 def test_regression_mixed_str_and_bytes_extra_keys() -> None:
-    expected = {"v": 4, "type": "heartbeat", "x": 0, b"": 0}
+    expected = {"v": SCHEMA_VERSION, "type": "heartbeat", "x": 0, b"": 0}
     assert msgpack.unpackb(MIXED_KEY_BUG, strict_map_key=False) == expected
     with pytest.raises(MessageError, match="unexpected fields"):
         decode(MIXED_KEY_BUG)

@@ -101,6 +101,10 @@ def test_scene_steps_cleanly(scene: pathlib.Path) -> None:
     assert np.all(np.isfinite(data.act))
 
 
+#: the MH3F arm's joints in the scene's qpos (the tissue's indentation joint follows them)
+ARM = slice(0, 6)
+
+
 def test_mh3f_tip_at_zero(mh3f: mujoco.MjModel) -> None:
     data = mujoco.MjData(mh3f)
     mujoco.mj_kinematics(mh3f, data)
@@ -113,10 +117,10 @@ def test_mh3f_tip_at_zero(mh3f: mujoco.MjModel) -> None:
 def test_mh3f_fk_matches_chain(mh3f: mujoco.MjModel) -> None:
     data = mujoco.MjData(mh3f)
     rng = np.random.default_rng(2014)
-    lo, hi = mh3f.jnt_range[:, 0], mh3f.jnt_range[:, 1]
+    lo, hi = mh3f.jnt_range[ARM, 0], mh3f.jnt_range[ARM, 1]
     for _ in range(100):
         q = rng.uniform(lo, hi)
-        data.qpos[:] = q
+        data.qpos[ARM] = q
         mujoco.mj_kinematics(mh3f, data)
         expected = mh3f_tip(q)
         np.testing.assert_allclose(data.site("tip").xpos, expected[:3, 3], atol=1e-9)
@@ -126,16 +130,18 @@ def test_mh3f_fk_matches_chain(mh3f: mujoco.MjModel) -> None:
 def test_mh3f_limits_and_actuators(mh3f: mujoco.MjModel) -> None:
     deg = np.deg2rad
     expected = deg([[-160, 160], [-85, 90], [-105, 260], [-170, 170], [-120, 120], [-360, 360]])
-    np.testing.assert_allclose(mh3f.jnt_range, expected, atol=1e-6)
+    np.testing.assert_allclose(mh3f.jnt_range[ARM], expected, atol=1e-6)
     np.testing.assert_allclose(mh3f.actuator_ctrlrange, expected, atol=1e-6)
     names = [mh3f.actuator(i).name for i in range(mh3f.nu)]
     assert names == [f"j{i}" for i in range(1, 7)]
     assert all(mh3f.jnt_limited)
+    # the scene's one other joint is the tissue's indentation, unactuated (not the robot's)
+    assert [mh3f.joint(j).name for j in range(6, mh3f.njnt)] == ["tissue_indent"]
 
 
 def test_mh3f_static_setpoint(mh3f: mujoco.MjModel) -> None:
     data = mujoco.MjData(mh3f)
-    data.qpos[:] = Q_BENT + np.array([0.02, -0.02, 0.02, 0.03, -0.03, 0.05])
+    data.qpos[ARM] = Q_BENT + np.array([0.02, -0.02, 0.02, 0.03, -0.03, 0.05])
     data.ctrl[:] = Q_BENT
     for _ in range(500):
         mujoco.mj_step(mh3f, data)
@@ -149,7 +155,7 @@ def test_mh3f_tracks_smooth_setpoints(mh3f: mujoco.MjModel) -> None:
     data = mujoco.MjData(mh3f)
     amp = 0.4 * np.array([0.06, 0.05, 0.05, 0.15, 0.08, 0.2])
     freq = np.array([0.13, 0.17, 0.11, 0.19, 0.23, 0.29])
-    data.qpos[:] = Q_BENT
+    data.qpos[ARM] = Q_BENT
     data.ctrl[:] = Q_BENT
     worst = 0.0
     dt = mh3f.opt.timestep

@@ -54,7 +54,8 @@ CAUSE = "tip left its sphere"
 
 
 def test_unknown_master_device_lists_the_known_ones() -> None:
-    with pytest.raises(ConfigError, match="valid: scripted, serial, spacemouse, touch, omega7, gamepad"):
+    known = "valid: scripted, serial, spacemouse, touch, omega7, gamepad, policy, touch_sim"
+    with pytest.raises(ConfigError, match=known):
         master_devices.open_device("phantom", MasterCaptureConfig())
 
 
@@ -74,7 +75,7 @@ def test_a_plugin_device_is_registered_and_reads_its_settings() -> None:
 
 def test_unknown_rule_settings_name_the_known_rules() -> None:
     with pytest.raises(
-        ConfigError, match="valid: joint_limits, workspace, joint_speed, rcm, operator_present"
+        ConfigError, match="valid: joint_limits, workspace, joint_speed, rcm, operator_present, tip_force"
     ):
         WatchdogConfig(rules={"tip_spehre": {"radius_mm": 1.0}}).validate()
     with pytest.raises(ConfigError, match="modes"):

@@ -6,23 +6,28 @@ before the pose on every change and at least at ``buttons_hz``. While the device
 valid (``DeviceSample.valid``) nothing is published, so the watchdog holds. A device with an
 ``engage_retry`` (the scripted pedal) is told of the mapping's refused engages of this master
 (``mapping/*/teleop_state`` ENGAGING → HOLDING); a device with a ``connect(node)`` (the ``policy``
-device) is given the node to subscribe what it observes. Devices: :mod:`.devices`.
+device) is given the node to subscribe what it observes. Devices: :mod:`.devices`. With
+``haptics.slave_arm`` set and a device that takes a force (``touch_sim``), it renders that slave's
+``measured_cf`` every period (:class:`HapticLoop`, docs/haptics.md).
 
 Examples::
 
     telesurg master-capture --connect tcp/127.0.0.1:7447 --set arm=m1 --set scripted.radius=0.03
     telesurg master-capture --set device=serial --set serial.port=/dev/ttyACM0
+    telesurg master-capture --set device=touch_sim --set rate_hz=1000 --set haptics.slave_arm=arm1
 """
 
 from __future__ import annotations
 
 import logging
+import math
 import threading
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
+import numpy as np
 from telesurg.services.common import service_main
 from telesurg.services.master_capture import devices
 from telesurg.services.master_capture.devices.desk import DeskConfig
@@ -30,10 +35,33 @@ from telesurg.services.master_capture.devices.scripted import EngageRetry, Scrip
 from telesurg.services.master_capture.devices.serial import SerialMasterConfig
 from telesurg.shared.bus import BusConfig, Node
 from telesurg.shared.errors import ConfigError
-from telesurg.shared.messages import CartesianPose, JointState, MasterButtons, TeleopState
+from telesurg.shared.haptics import BilateralConfig, ForceRenderer, RenderConfig, SlavePacket, make_bilateral
+from telesurg.shared.messages import (
+    CartesianPose,
+    CartesianWrench,
+    JointState,
+    MasterButtons,
+    SafetyState,
+    TeleopState,
+)
 from telesurg.shared.timing import CycleTimer, check_rt_priority, start_loop
 
 log = logging.getLogger(__name__)
+
+
+@dataclass
+class HapticsConfig:
+    """``[master_capture.haptics]``: force feedback for a device that takes a force (docs/haptics.md)."""
+
+    slave_arm: str = ""  # slave arm whose measured_cf this master renders ("": no force feedback)
+    slave_source: str = "slave_control"  # service id: the only sender of measured_cf taken
+    watchdog_source: str = "watchdog"  # service id: its safety/<slave_arm>/state HOLD/ESTOP fades the force
+    controller: str = "tdpa"  # none / naive / tdpa / wave (master side; shared/haptics/tdpa.py)
+    force_scale: float = 0.5  # master force per slave contact force
+    limit_n: float = 3.3  # N: the device's force limit (Touch: 3.3 N peak)
+    rate_n_per_s: float = 200.0  # N/s: largest change of the force while the stream is fresh
+    fade_n_per_s: float = 10.0  # N/s: fade to zero when the stream is stale or the watchdog holds
+    stale_ms: float = 20.0  # ms: no measured_cf for this long → fade (slave_control sends at 500 Hz)
 
 
 @dataclass
@@ -63,6 +91,7 @@ class MasterCaptureConfig:
     # SCHED_FIFO priority of the sampling loop's thread, 1-99 (0: the normal scheduler): a FIFO
     # loop is not preempted by the other processes' threads; needs root or CAP_SYS_NICE (docs/deploy.md)
     rt_priority: int = 0
+    haptics: HapticsConfig = field(default_factory=HapticsConfig)  # force feedback (off unless slave_arm)
     bus: BusConfig = field(default_factory=BusConfig)  # zenoh session
 
 
@@ -108,6 +137,7 @@ def run(cfg: MasterCaptureConfig, stop: threading.Event) -> None:
 
             mapping = [cfg.mapping_source]
             node.subscribe(k.mapping("*", "teleop_state"), TeleopState, on_teleop, sources=mapping)
+        haptic = HapticLoop(cfg, device, node) if cfg.haptics.slave_arm else None
         invalid_since: float | None = None  # time.monotonic() when the reading became invalid
         invalid_kind = ""  # why (the device's status up to its first ':'), said again when it changes
         log.info("publishing master %s at %.0f Hz (%s)", cfg.arm, cfg.rate_hz, cfg.device)
@@ -143,7 +173,8 @@ def run(cfg: MasterCaptureConfig, stop: threading.Event) -> None:
             if buttons != last_buttons or timer.cycles % buttons_every == 0:
                 last_buttons = buttons
                 buttons_out.put(MasterButtons(buttons_out.header(), *buttons))
-            pose_out.put(CartesianPose(pose_out.header(), "master", s.position, s.orientation))
+            energy = haptic.step(s.position, time.monotonic()) if haptic is not None else 0.0
+            pose_out.put(CartesianPose(pose_out.header(), "master", s.position, s.orientation, energy))
             if js_out is not None:
                 js_out.put(JointState(js_out.header(), device.joint_names, s.joints))
             timer.wait()
@@ -154,6 +185,63 @@ def run(cfg: MasterCaptureConfig, stop: threading.Event) -> None:
             outages,
             f", {retry.retries} presses again after a refused engage" if retry is not None else "",
         )
+
+
+class HapticLoop:
+    """The console side of force feedback, once per sampling period: the newest ``measured_cf`` of
+    ``haptics.slave_arm`` (from ``slave_source`` only: forged, replayed and malformed ones never get
+    here) through the bilateral controller's master side and the force renderer (check, fade when
+    stale or held, rate limit, device limit) to the device's ``write_force``. The slave's force is
+    rendered in the master frame as is (no rotation between the frames yet). Returns the master
+    port's input energy for ``measured_cp.energy_in_j``."""
+
+    def __init__(self, cfg: MasterCaptureConfig, device: object, node: Node) -> None:
+        h = cfg.haptics
+        write = getattr(device, "write_force", None)
+        if not callable(write):
+            raise ConfigError(
+                f"haptics.slave_arm is set but device {cfg.device!r} takes no force "
+                "(one with write_force, e.g. touch_sim)"
+            )
+        self.write = write
+        self.bil = make_bilateral(BilateralConfig(controller=h.controller, force_scale=h.force_scale))
+        self.renderer = ForceRenderer(RenderConfig(h.limit_n, h.rate_n_per_s, h.fade_n_per_s, h.stale_ms))
+        self.lock = threading.Lock()
+        self.packet: SlavePacket | None = None
+        self.rx_at = -math.inf  # monotonic s: newest measured_cf
+        self.hold = False
+        self.x_prev: np.ndarray | None = None
+        self.t_prev = 0.0
+        k = node.keys
+
+        def on_wrench(m: CartesianWrench, key: str) -> None:
+            with self.lock:
+                self.packet = SlavePacket(m.header.seq, np.array(m.force), m.energy_in_j)
+                self.rx_at = time.monotonic()
+
+        def on_safety(m: SafetyState, key: str) -> None:
+            self.hold = m.state in ("HOLD", "ESTOP")
+
+        node.subscribe(
+            k.slave(h.slave_arm, "measured_cf"), CartesianWrench, on_wrench, sources=[h.slave_source]
+        )
+        node.subscribe(k.safety(h.slave_arm, "state"), SafetyState, on_safety, sources=[h.watchdog_source])
+
+    def step(self, position: tuple[float, float, float], now: float) -> float:
+        x = np.array(position)
+        dt = max(now - self.t_prev, 1e-4) if self.x_prev is not None else 1e-3
+        v = (x - self.x_prev) / dt if self.x_prev is not None else np.zeros(3)
+        self.x_prev, self.t_prev = x, now
+        with self.lock:
+            packet, self.packet, rx_at = self.packet, None, self.rx_at
+        force = self.bil.master_step(x, v, packet, dt)
+        self.renderer.offer(force, rx_at)
+        shaped = self.renderer.step(now, dt, self.hold)
+        if not self.renderer.fading:
+            shaped = self.bil.master_passivity(shaped, v, dt)
+        applied = np.asarray(self.write(shaped), dtype=float)
+        self.bil.master_sent(applied, x, v, dt)
+        return self.bil.master.e_in
 
 
 def device_status(device: object) -> str:

@@ -22,9 +22,10 @@ answered joint by joint by the servos leaves the trocar's RCM;
 The control loop runs at the backend period (1 ms for MuJoCo, in real time: missed periods are
 replayed, and counted; ``serial.rate_hz`` for a serial arm). Setpoints arrive on
 ``slave/<arm>/servo_jp``. Each arm publishes ``measured_js`` and its controlled point's
-``measured_cp`` (full pose, ``base`` frame) at ``publish_hz``, the estimated external wrench at
+``measured_cp`` (full pose, ``base`` frame) at ``publish_hz``, the external wrench at
 that point ``measured_cf`` (for masters with force feedback; backends that estimate external
-torques) at ``wrench_hz``, and its ``operating_state`` at ``state_hz`` and on change; while a
+torques) at ``wrench_hz`` (from the contact forces on the instrument, when the backend measures
+them, at ``contact_wrench_hz``), and its ``operating_state`` at ``state_hz`` and on change; while a
 slave-side motion drives an arm, its commanded joints go out on ``setpoint_js`` at
 ``setpoint_js_hz`` for the watchdog, which checks them as it checks followed ``servo_jp``. Rates count
 periods of real time, so they hold when the loop wakes late and catches up.
@@ -85,7 +86,10 @@ class SlaveControlConfig:
     # each arm's home: the MH3F's tip at (835, 0, 301) mm, forceps pitched 29° down)
     q_home: tuple[float, ...] = ()
     publish_hz: float = 250.0  # Hz: measured_js and measured_cp
-    wrench_hz: float = 50.0  # Hz: measured_cf (estimated tip wrench; MuJoCo and torque-sensing arms)
+    wrench_hz: float = 50.0  # Hz: measured_cf from the external-torque estimate (MuJoCo without contacts)
+    # Hz: measured_cf when the backend measures the contact forces on the instrument (the MH3F scene's
+    # tissue): a haptic master's force stream (docs/haptics.md) needs ≥ 500 Hz
+    contact_wrench_hz: float = 500.0
     state_hz: float = 20.0  # Hz: operating_state (also sent on every change)
     # Hz: setpoint_js, the commanded joints while a slave-side motion drives the arm (PTP, jog,
     # playback, insert/remove, direct teach), checked by the watchdog; the watchdog checks the
@@ -220,19 +224,20 @@ def run(cfg: SlaveControlConfig, stop: threading.Event) -> None:
             if cfg.camera and isinstance(a.motion, ViewFrameUser):
                 follow_camera(node, cfg, a.motion)
         servo_streams = [node.streams.get(k.slave(a.arm, "servo_jp")) for a in arms]
-        # Sub-rate tasks run in different cycles (phases 0-3 below: with these periods of 4, 10,
-        # 20 and 50 cycles no two of them ever share a cycle), so no cycle carries the sum of their
-        # work: measured_js/cp at phase 0, motion sources' measurements 1, measured_cf 2,
-        # operating_state 3.
+        # Sub-rate tasks run in different cycles where they can (phases 0-3 below: with periods of
+        # 4, 10 and 50 cycles these three never share one), so no cycle carries the sum of their
+        # work: measured_js/cp at phase 0, motion sources' measurements 1, operating_state 3;
+        # measured_cf at phase 2 (with contacts every 2nd cycle at 500 Hz: a few µs, one small message).
         dt = backend.dt
         timer = CycleTimer(1.0 / dt)
         pub_every = max(1, round(1.0 / (dt * cfg.publish_hz)))
         measure_every = max(1, round(0.01 / dt))  # 100 Hz
-        wrench_every = max(1, round(1.0 / (dt * cfg.wrench_hz)))
         state_every = max(1, round(1.0 / (dt * cfg.state_hz)))
         commanded_every = max(1, round(1.0 / (dt * cfg.setpoint_js_hz)))
         shadow_every = max(1, round(cfg.shadow_report_s / dt))
         reading = backend.read()
+        wrench_hz = cfg.contact_wrench_hz if reading.contact_wrench is not None else cfg.wrench_hz
+        wrench_every = max(1, round(1.0 / (dt * wrench_hz)))
         for a in arms:  # the first operating_state already carries the measurements
             a.start(a.arm_reading(reading))
         q_cmd = reading.position.copy()

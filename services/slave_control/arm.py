@@ -454,7 +454,9 @@ class ArmCore:
         i = self.index
         q = r.position[i]
         tau = None if r.external_torque is None else r.external_torque[i]
-        return ArmReading(q, r.velocity[i], r.effort[i], self.profile, tau, r.fault)
+        # the contact wrench is the tip arm's (a MuJoCo scene with one instrument)
+        touch = r.contact_wrench if self.profile.tip_site == "tip" else None
+        return ArmReading(q, r.velocity[i], r.effort[i], self.profile, tau, r.fault, touch)
 
     def start(self, reading: ArmReading) -> None:
         """Before the first period: start from the measured joints (MuJoCo: the home pose; a real
@@ -637,10 +639,16 @@ class ArmCore:
         out.put(JointState(out.header(), self.profile.joint_names, tuple(self.q_cmd.tolist()), (), ()))
 
     def publish_wrench(self, r: ArmReading) -> None:
-        """measured_cf, when the backend estimates external torques."""
-        if r.external_torque is None:
+        """measured_cf: the contact wrench on the instrument when the backend measures contacts
+        (MuJoCo with a touchable scene: what a tip force sensor reads), else the estimate from
+        the external joint torques; nothing when the backend has neither."""
+        if r.contact_wrench is not None:
+            w = r.contact_wrench
+            f, m = (float(w[0]), float(w[1]), float(w[2])), (float(w[3]), float(w[4]), float(w[5]))
+        elif r.external_torque is not None:
+            f, m = tip_wrench(self.profile.jacobian(r.position), r.external_torque)
+        else:
             return
-        f, m = tip_wrench(self.profile.jacobian(r.position), r.external_torque)
         out = self.outlets["measured_cf"]
         out.put(CartesianWrench(out.header(), FRAME, f, m))
 

@@ -74,6 +74,9 @@ class SlaveReading:
     # controller watchdog, shadow divergence. Non-empty → the arm cores hold (arm.FaultHold).
     fault: str = ""
     divergence: ShadowDivergence | None = None  # vs the MuJoCo shadow, if one runs
+    # (6,) N, N·m: what the scene's contacts exert on the instrument (geoms of contype bit
+    # INSTRUMENT), force and torque about the tip, base frame; None: the backend has no contacts
+    contact_wrench: np.ndarray | None = None
 
 
 class SlaveBackend(Protocol):
@@ -105,6 +108,34 @@ class SlaveBackend(Protocol):
         exc: BaseException | None,
         tb: TracebackType | None,
     ) -> None: ...
+
+
+#: contype bit of an instrument's contact geoms (robot.xml) and the conaffinity bit of the tissue
+#: they touch (scene.xml): the contacts whose forces make the measured tip wrench.
+INSTRUMENT = 2
+
+
+def contact_wrench(m: Any, d: Any, mujoco: Any, point: np.ndarray) -> np.ndarray:
+    """(6,) force (N) and torque about ``point`` (N·m), base frame, that the contacts exert on
+    the instrument geoms (``contype & INSTRUMENT``) — the force a tip sensor would measure."""
+    out = np.zeros(6)
+    if d.ncon == 0:
+        return out
+    f6 = np.empty(6)
+    for i in range(d.ncon):
+        c = d.contact[i]
+        g1, g2 = int(c.geom1), int(c.geom2)
+        on1, on2 = bool(m.geom_contype[g1] & INSTRUMENT), bool(m.geom_contype[g2] & INSTRUMENT)
+        if on1 == on2:
+            continue
+        mujoco.mj_contactForce(m, d, i, f6)
+        frame = c.frame.reshape(3, 3)  # rows: normal (geom1 → geom2), tangents
+        f = frame.T @ f6[:3]  # the force on geom2, world frame
+        if on1:
+            f = -f
+        out[:3] += f
+        out[3:] += np.cross(c.pos - point, f)
+    return out
 
 
 class MujocoBackend:
@@ -143,16 +174,27 @@ class MujocoBackend:
 
         m = mujoco.MjModel.from_xml_path(str(self.scene))
         d = mujoco.MjData(m)
-        self.joint_names = tuple(m.joint(i).name for i in range(m.njnt))
+        # the robot's joints are the actuated ones (one position actuator each); an unactuated
+        # joint belongs to the scene (the MH3F tissue's indentation) and is not reported
+        driven = {
+            int(m.actuator_trnid[a, 0])
+            for a in range(m.nu)
+            if m.actuator_trntype[a] == mujoco.mjtTrn.mjTRN_JOINT
+        }
+        joints = [j for j in range(m.njnt) if j in driven] if driven else list(range(m.njnt))
+        self._qadr = np.array([int(m.jnt_qposadr[j]) for j in joints])
+        self._dadr = np.array([int(m.jnt_dofadr[j]) for j in joints])
+        self.joint_names = tuple(m.joint(j).name for j in joints)
+        n = len(joints)
         if len(self.q_home) == 0:  # the model's own start pose: keyframe "home", else `home`
             if "home" in {m.key(i).name for i in range(m.nkey)}:
                 mujoco.mj_resetDataKeyframe(m, d, m.key("home").id)
-            elif len(self.home) == m.nq:
-                d.qpos[:] = self.home
-            self.q_home = d.qpos.copy()
-        if len(self.q_home) != m.nq:
-            raise ConfigError(f"q_home has {len(self.q_home)} values, model has {m.nq} joints")
-        d.qpos[:] = self.q_home
+            elif len(self.home) == n:
+                d.qpos[self._qadr] = self.home
+            self.q_home = d.qpos[self._qadr].copy()
+        if len(self.q_home) != n:
+            raise ConfigError(f"q_home has {len(self.q_home)} values, model has {n} joints")
+        d.qpos[self._qadr] = self.q_home
         d.ctrl[:] = self.q_home
         mujoco.mj_forward(m, d)
         self.dt = float(m.opt.timestep)
@@ -164,6 +206,10 @@ class MujocoBackend:
         self._tip_body = int(m.site_bodyid[self._tip])
         self._wrist_body = m.body("link6").id if "link6" in _names(m, "body") else self._tip_body
         self._mq = np.zeros(m.nv)
+        # the scene has an instrument that can touch something: measure its contact wrench
+        self._touches = bool(np.any(m.geom_contype & INSTRUMENT)) and bool(
+            np.any(m.geom_conaffinity & INSTRUMENT)
+        )
         self._m, self._d, self._mj = m, d, mujoco
         return self
 
@@ -181,8 +227,8 @@ class MujocoBackend:
     def reset(self, q: np.ndarray) -> None:
         """Put the arm at rest at joints ``q`` (rad), commanded to stay there (the shadow's re-sync)."""
         d = self._d
-        d.qpos[:] = q
-        d.qvel[:] = 0.0
+        d.qpos[self._qadr] = q
+        d.qvel[self._dadr] = 0.0
         d.ctrl[:] = q
         self._mj.mj_forward(self._m, d)
 
@@ -217,16 +263,17 @@ class MujocoBackend:
         quat = np.empty(4)
         mj.mju_mat2Quat(quat, d.site_xmat[self._tip])  # (w, x, y, z)
         mj.mj_mulM(m, d, self._mq, d.qacc)
-        tau_ext = self._mq + d.qfrc_bias - d.qfrc_passive - d.qfrc_actuator - d.qfrc_constraint
+        tau_ext = (self._mq + d.qfrc_bias - d.qfrc_passive - d.qfrc_actuator - d.qfrc_constraint)[self._dadr]
         return SlaveReading(
-            d.qpos.copy(),
-            d.qvel.copy(),
+            d.qpos[self._qadr],
+            d.qvel[self._dadr],
             d.actuator_force.copy(),
             d.site_xpos[self._tip].copy(),
             np.array([quat[1], quat[2], quat[3], quat[0]]),
             float(d.time),
             tau_ext,
             d.site_xpos[self._site_ids].copy() if self._site_ids else None,
+            contact_wrench=contact_wrench(m, d, mj, d.site_xpos[self._tip]) if self._touches else None,
         )
 
 

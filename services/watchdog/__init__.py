@@ -48,6 +48,7 @@ from telesurg.shared.errors import ConfigError
 from telesurg.shared.messages import (
     CameraImage,
     CartesianPose,
+    CartesianWrench,
     EStop,
     JointSetpoint,
     JointState,
@@ -284,6 +285,13 @@ class Watchdog:
             sub(k.slave(a.arm, "measured_js"), JointState, self._on_stream, sources=sl, polled=True)
             sub(k.slave(a.arm, "operating_state"), OperatingState, self._bind(a, self._on_slave), sources=sl)
             sub(k.slave(a.arm, "setpoint_js"), JointState, self._bind(a, self._on_commanded), sources=sl)
+            sub(
+                k.slave(a.arm, "measured_cf"),
+                CartesianWrench,
+                self._bind(a, self._on_wrench),
+                sources=sl,
+                polled=True,
+            )
         node.subscribe(k.estop, EStop, self._on_estop)
         self.video: VideoWatch | None = None
         if cfg.video_camera:
@@ -318,6 +326,10 @@ class Watchdog:
         wall = wall_ns() + self.clock_offset_ns if self.cfg.latency_source == "clock" else None
         with self.lock:
             a.safety.on_servo(msg, time.monotonic(), wall)
+
+    def _on_wrench(self, a: ArmWatch, msg: CartesianWrench, key: str) -> None:
+        with self.lock:
+            a.safety.on_wrench(msg, time.monotonic())
 
     def _on_slave(self, a: ArmWatch, msg: OperatingState, key: str) -> None:
         self.last_tick[key] = self.ticks

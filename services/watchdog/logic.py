@@ -34,7 +34,7 @@ from telesurg.services.watchdog import rules as safety_rules
 from telesurg.services.watchdog.rules import HOLD, ArmContext, Finding, Rule
 from telesurg.services.watchdog.rules.joint_limits import outside_limits
 from telesurg.services.watchdog.rules.workspace import Workspace, outside_box
-from telesurg.shared.messages import EStop, JointSetpoint, MasterButtons, OperatingState
+from telesurg.shared.messages import CartesianWrench, EStop, JointSetpoint, MasterButtons, OperatingState
 
 __all__ = ["STATES", "ArmSafety", "Policy", "Verdict", "outside_limits"]
 log = logging.getLogger(__name__)
@@ -182,6 +182,11 @@ class ArmSafety:
             return
         for r in self.rules:
             self._found(r, self._ask(r, r.on_servo, msg, now), now)
+
+    def on_wrench(self, msg: CartesianWrench, now: float) -> None:
+        """Run the rules on one slave tip wrench."""
+        for r in self.rules:
+            self._found(r, self._ask(r, r.on_wrench, msg, now), now)
 
     def on_slave_state(self, msg: OperatingState, now: float) -> None:
         """Run the rules on one slave operating state."""

@@ -231,6 +231,8 @@ class ArmReading:
         profile: the arm (its forward kinematics gives :attr:`tip_pose`).
         external_torque: estimated external joint torques, N·m, or None.
         fault: the backend's fault ("" = none).
+        contact_wrench: (6,) what the scene's contacts exert on the instrument, force (N) and
+            torque about the tip (N·m), base frame; None when the backend measures no contact.
     """
 
     position: np.ndarray
@@ -239,6 +241,7 @@ class ArmReading:
     profile: ArmProfile
     external_torque: np.ndarray | None = None
     fault: str = ""
+    contact_wrench: np.ndarray | None = None
     _pose: np.ndarray | None = None
 
     @property

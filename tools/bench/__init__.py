@@ -16,6 +16,7 @@ Subcommands::
     telesurg bench memory [--seconds 300] [--set SERVICE.KEY=VALUE] [--json FILE] [--plot FILE]
     telesurg bench wakeup [--seconds 10] [--blocks 2] [--slice-us 100] [--load cpu:2] [--json FILE]
     telesurg bench links [--pairs 4] [--seconds 20] [--rate 1000] [--json FILE]
+    telesurg bench haptics [--quick] [--json FILE] [--plot FILE]
 """
 
 from __future__ import annotations
@@ -63,6 +64,10 @@ BENCHES = {
     "links": (
         "telesurg.tools.bench.links",
         "the bare relay over a TCP loopback link vs a Unix socket: CPU and latency",
+    ),
+    "haptics": (
+        "telesurg.tools.bench.haptics",
+        "bilateral force feedback (none/naive/TDPA/wave) vs round trip, jitter, loss (in-process)",
     ),
     "transport": (
         "telesurg.tools.bench.transport",

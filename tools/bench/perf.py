@@ -796,11 +796,19 @@ def _mink_baseline(tips: list[np.ndarray], trocar: np.ndarray, q0: np.ndarray, n
 
     model = mujoco.MjModel.from_xml_path(str(model_path("mh3f")))
     cfg = mink.Configuration(model)
+    # the arm's joints in the scene's qpos (the scene has more: the tissue's spring)
+    arm = np.array([model.jnt_qposadr[j] for j in model.actuator_trnid[:, 0]])
+
+    def full(q_arm: np.ndarray) -> np.ndarray:
+        q = np.array(model.qpos0, dtype=float)
+        q[arm] = q_arm
+        return q
+
     task = mink.FrameTask("tip", "site", position_cost=1.0, orientation_cost=1.0)
     m = min(n, 50)  # mink is slow: a subset of the targets
     errs, rcms, t_total, iters_total = [], [], 0.0, 0
     for tip in tips[:m]:
-        cfg.update(q0.copy())
+        cfg.update(full(q0))
         # target: tip position, orientation with x along trocar → tip (the RCM constraint as a pose)
         x = (tip - trocar) / np.linalg.norm(tip - trocar)
         T0 = fk(q0, MH3F)
@@ -816,7 +824,7 @@ def _mink_baseline(tips: list[np.ndarray], trocar: np.ndarray, q0: np.ndarray, n
             iters += 1
             vel = mink.solve_ik(cfg, [task], 0.01, "daqp", 1e-3)
             cfg.integrate_inplace(vel, 0.01)
-            q = cfg.q.copy()
+            q = cfg.q[arm].copy()
             if np.linalg.norm(fk(q, MH3F)[:3, 3] - tip) < 1e-6:
                 break
         t_total += time.perf_counter() - t

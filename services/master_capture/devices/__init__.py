@@ -143,6 +143,6 @@ def open_device(name: str, settings: object | None = None) -> MasterDevice:
 
 
 #: the built-in devices, one module each (importing one registers it), in the order names() lists them
-BUILT_IN = ("scripted", "serial", "spacemouse", "touch", "omega7", "gamepad", "policy")
+BUILT_IN = ("scripted", "serial", "spacemouse", "touch", "omega7", "gamepad", "policy", "touch_sim")
 for _module in BUILT_IN:
     importlib.import_module(f"{__name__}.{_module}")

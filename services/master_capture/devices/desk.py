@@ -12,7 +12,7 @@ the base class of each desk device's file (``spacemouse.py`` …).
 
 A device's binding imports its library when the device is opened; without it the open fails with
 a :class:`~telesurg.shared.errors.DeviceConnectionError` naming the package and the vendor SDK.
-None of the bindings has been run against hardware (docs/console.md).
+None of the bindings has been run against hardware (docs/console.md, "Desk devices").
 """
 
 from __future__ import annotations

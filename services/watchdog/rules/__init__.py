@@ -2,7 +2,8 @@
 
 A rule subclasses :class:`Rule`, names itself (``name``), states the ``cause`` text it reports,
 takes the inputs it needs by overriding ``on_servo`` (``slave/<arm>/servo_jp``), ``on_slave_state``
-(``slave/<arm>/operating_state``) or ``on_buttons`` (``master/<m>/buttons``), and is registered with
+(``slave/<arm>/operating_state``), ``on_buttons`` (``master/<m>/buttons``) or ``on_wrench``
+(``slave/<arm>/measured_cf``, the tip wrench), and is registered with
 :func:`register`. The verdict:
 
 * a :class:`Finding` returned by an input method is a message-level fault: the arm holds (or runs
@@ -36,7 +37,7 @@ from typing import TYPE_CHECKING, Any, ClassVar, TypeVar
 import numpy as np
 from telesurg.shared.config import from_dict
 from telesurg.shared.errors import ConfigError
-from telesurg.shared.messages import JointSetpoint, MasterButtons, OperatingState
+from telesurg.shared.messages import CartesianWrench, JointSetpoint, MasterButtons, OperatingState
 
 if TYPE_CHECKING:
     from telesurg.services.watchdog.logic import Policy
@@ -98,6 +99,10 @@ class Rule:
         """One master buttons message."""
         return None
 
+    def on_wrench(self, msg: CartesianWrench, now: float) -> Finding | None:
+        """One slave tip wrench (``measured_cf``: what the tissue exerts on the instrument)."""
+        return None
+
     def check(self, now: float) -> Finding | None:
         """At every lease tick: a level verdict (holds while returned)."""
         return None
@@ -151,6 +156,6 @@ def make_rules(arm: ArmContext, settings: dict[str, dict[str, Any]] | None = Non
 
 
 #: the built-in rules, one module each (importing one registers it), in the order they run
-BUILT_IN = ("joint_limits", "workspace", "joint_speed", "rcm", "operator_present")
+BUILT_IN = ("joint_limits", "workspace", "joint_speed", "rcm", "operator_present", "tip_force")
 for _module in BUILT_IN:
     importlib.import_module(f"{__name__}.{_module}")

@@ -1,0 +1,141 @@
+"""Bilateral force feedback: the tissue you can touch, the force renderer, the controllers.
+
+The slave is the real MuJoCo MH3F scene (``MujocoBackend``); the master is the simulated Touch and
+hand (``touch_sim``); the controllers and the renderer are ``shared/haptics``. Delay-sweep figures
+are ``telesurg bench haptics``'s; here only what a user would notice.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from telesurg.services.master_capture.devices import open_device
+from telesurg.services.master_capture.devices.touch_sim.model import HeldDevice, TouchModel, press_and_slide
+from telesurg.services.slave_control.backends import MujocoBackend
+from telesurg.shared.errors import ConfigError, MessageError
+from telesurg.shared.haptics import BilateralConfig, ForceRenderer, RenderConfig, check_force
+from telesurg.shared.robots import registry
+from telesurg.tools.bench.haptics import TipFollower, contact_height, run_one
+
+DT = 0.001
+
+
+@pytest.fixture(scope="module")
+def slave() -> tuple[MujocoBackend, TipFollower, float]:
+    with MujocoBackend("mh3f", registry.arm_profile("mh3f", "arm1").home) as backend:
+        follower = TipFollower(backend)
+        yield backend, follower, contact_height(backend, follower)
+
+
+def test_tissue_pushes_back_with_its_published_stiffness(
+    slave: tuple[MujocoBackend, TipFollower, float],
+) -> None:
+    """Pressing the forceps tip 3 then 6 mm into the tissue: the contact force on the instrument
+    points up, out of the tissue, and grows at the scene's 0.4 N/mm (the spring) within 20 %
+    (the hard contact's own give in series); nothing sideways."""
+    backend, follower, z_c = slave
+    x0 = follower.tip().copy()
+    forces, depths = [], []
+    for mm in (3.0, 6.0):
+        for _ in range(500):
+            follower.follow(np.array([x0[0], x0[1], z_c - mm / 1e3]))
+        r = backend.read()
+        assert r.contact_wrench is not None
+        forces.append(r.contact_wrench[:3].copy())
+        depths.append(z_c - r.tip_position[2])
+    k = (forces[1][2] - forces[0][2]) / (depths[1] - depths[0])
+    assert 0.8 * 400 <= k <= 1.2 * 400, f"tissue stiffness {k:.0f} N/m"
+    assert forces[1][2] > 1.5
+    assert abs(forces[1][0]) < 0.2 * forces[1][2] and abs(forces[1][1]) < 0.2 * forces[1][2]
+    for _ in range(800):  # lifted off: no force
+        follower.follow(np.array([x0[0], x0[1], z_c + 0.01]))
+    assert np.linalg.norm(backend.read().contact_wrench[:3]) < 1e-6  # type: ignore[index]
+
+
+def test_scene_joint_is_not_the_robots() -> None:
+    """The tissue's indentation joint is the scene's: the backend reports the arm's six joints."""
+    with MujocoBackend("mh3f", registry.arm_profile("mh3f", "arm1").home) as backend:
+        assert backend.joint_names == registry.arm_profile("mh3f", "arm1").joint_names
+        assert backend.read().position.shape == (6,)
+
+
+def test_bad_forces_are_refused_counted_and_never_reach_the_device() -> None:
+    device = HeldDevice(TouchModel(), press_and_slide())
+    r = ForceRenderer(RenderConfig())
+    assert r.offer((0.0, 0.0, 1.0), 0.0)
+    for bad in ((math.nan, 0, 0), (0, math.inf, 0), (0, 0, 1e6), (1, 2), "three", None):
+        assert not r.offer(bad, 0.001)
+    assert r.rejected == 6
+    outs = [device.write_force(r.step(0.001 * k, DT)) for k in range(1, 30)]
+    assert np.all(np.isfinite(outs)) and max(np.linalg.norm(outs, axis=1)) <= 1.0 + 1e-9
+    with pytest.raises(MessageError, match="not finite"):
+        check_force((math.nan, 0.0, 0.0), 100.0)
+
+
+def test_device_force_never_exceeds_its_limit() -> None:
+    """However large the force asked (within what a message may carry), the renderer and the
+    device's amplifier keep it within 3.3 N, rising at the rate limit."""
+    device = HeldDevice(TouchModel(), press_and_slide())
+    r = ForceRenderer(RenderConfig(limit_n=3.3, rate_n_per_s=200.0))
+    outs = []
+    for k in range(200):
+        r.offer((0.0, 60.0, 80.0), k * DT)
+        outs.append(np.linalg.norm(device.write_force(r.step(k * DT, DT))))
+    assert max(outs) <= 3.3 + 1e-9 and max(np.diff(outs)) <= 200.0 * DT + 1e-9
+    assert r.clipped > 0
+    assert np.linalg.norm(device.write_force(np.array([0.0, 0.0, 50.0]))) == pytest.approx(3.3)
+
+
+def test_stale_stream_and_hold_fade_the_force_to_zero_at_a_bounded_rate() -> None:
+    r = ForceRenderer(RenderConfig(fade_n_per_s=10.0, stale_ms=20.0))
+    for k in range(100):  # a steady 2 N, fresh
+        r.offer((0.0, 0.0, 2.0), k * DT)
+        r.step(k * DT, DT)
+    out = [np.linalg.norm(r.step(0.1 + k * DT, DT)) for k in range(400)]  # the stream stops
+    assert out[0] == pytest.approx(2.0)  # not before it is stale
+    assert max(abs(np.diff(out))) <= 10.0 * DT + 1e-9  # never a step
+    assert out[-1] == 0.0
+    r.offer((0.0, 0.0, 2.0), 0.6)  # fresh again, but the watchdog holds
+    held = [np.linalg.norm(r.step(0.6 + k * DT, DT, hold=True)) for k in range(10)]
+    assert max(held) == 0.0
+
+
+def test_unknown_controller_is_refused_with_the_valid_ones() -> None:
+    with pytest.raises(ConfigError, match="valid: none, naive, tdpa, wave"):
+        BilateralConfig(controller="magic")
+    with pytest.raises(ConfigError, match="force_scale"):
+        BilateralConfig(force_scale=math.nan)
+
+
+def test_touch_sim_is_a_master_device_that_takes_a_force() -> None:
+    dev = open_device("touch_sim")
+    first = dev.read(0.0)
+    assert first.clutch and first.operator_present
+    applied = dev.write_force(np.array([0.0, 0.0, 10.0]))  # type: ignore[attr-defined]
+    assert np.linalg.norm(applied) == pytest.approx(3.3)
+    assert dev.read(0.5).position[2] > first.position[2]  # pushed up, against a hand at rest
+
+
+@pytest.mark.slow
+def test_zero_delay_feels_the_tissue_and_nothing_in_free_space() -> None:
+    """Acceptance 1: at zero delay the stiffness felt at the master is the tissue's × the scales
+    within 20 %; in free space the master force is < 0.1 N."""
+    row = run_one("tdpa", 0.0)
+    assert row["felt_stiffness_n_per_mm"] == pytest.approx(row["expected_stiffness_n_per_mm"], rel=0.2)
+    assert row["free_space_force_n"] < 0.1
+    assert row["max_device_force_n"] <= row["device_limit_n"]
+
+
+@pytest.mark.slow
+def test_naive_goes_unstable_where_tdpa_stays_passive() -> None:
+    """Acceptance 2 at two points: the naive loop at 100 ms round trip generates energy and
+    oscillates; TDPA at 200 ms with ±20 % jitter and 5 % loss stays passive and settles."""
+    naive = run_one("naive", 100.0)
+    tdpa = run_one("tdpa", 200.0, 0.2, 0.05)
+    assert naive["verdict"] == "unstable", naive
+    assert min(naive["min_observed_master_mj"], naive["min_observed_slave_mj"]) < -10.0
+    assert tdpa["verdict"] == "stable", tdpa
+    assert min(tdpa["min_observed_master_mj"], tdpa["min_observed_slave_mj"]) >= -1.0
+    assert tdpa["overshoot"] <= 1.5
