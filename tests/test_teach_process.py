@@ -65,19 +65,13 @@ def test_a_push_moves_the_arm_and_it_stays_when_released(arm: tuple[ArmClient, P
     moved = c.settle() - before
     print(f"without direct teach the push moved the tip {np.linalg.norm(moved) * 1e3:.3f} mm")
     assert np.linalg.norm(moved) < 0.5e-3  # the servo holds against 20 N
-    # the slave's tip wrench estimate (measured_cf) saw the push: 20 N along +y while it lasted
+    # measured_cf is what the tissue exerts on the instrument (its contacts, docs/haptics.md): a
+    # hand pushing the forceps is not a tissue contact, and the watchdog's tip-force rule does not
+    # hold on it (direct teach below is exactly a hand pushing the forceps)
     with c.log.lock:
         f = np.array([w[1:] for w in c.log.forces if w[0] >= t0])
-    pushed = f[np.linalg.norm(f, axis=1) > 5.0]
-    print(f"measured_cf during the push: mean {pushed.mean(axis=0).round(2)} N over {len(pushed)} samples")
-    assert len(pushed) > 25 and np.allclose(pushed.mean(axis=0), [0.0, 20.0, 0.0], atol=1.0)  # 1 s at 50 Hz
-
-    def released() -> bool:  # and nothing once it ended (a stalled slave may end it a little late)
-        with c.log.lock:
-            last = np.array([w[1:] for w in c.log.forces[-10:]])
-        return len(last) == 10 and float(np.linalg.norm(last, axis=1).max()) < 1.0
-
-    assert c.wait(released, 5), "measured_cf still shows a force after the push"
+    print(f"measured_cf during the push: max {np.linalg.norm(f, axis=1).max():.3f} N over {len(f)} samples")
+    assert len(f) > 100 and float(np.linalg.norm(f, axis=1).max()) < 1.0
 
     assert c.send("set_motion_mode", "mode=direct_teach").accepted
     before = c.settle()
