@@ -270,9 +270,7 @@ class Watchdog:
         # transport the loop's put needs (a deadlock; zenoh advises no blocking call in a callback).
         self.urgent = threading.Event()
         self.last_tick: dict[str, int] = {}
-        # the echo_service's host clock minus this one's, ns, as the clock probes estimate it
-        self.clock = ClockFilter()
-        self.clock_offset_ns = 0
+        self.clock = ClockFilter()  # the clock probes of the echo_service
         self.arms = [ArmWatch(node, cfg, *parse_pair(p)) for p in cfg.pairs]
         k = node.keys
         m, mp, sl = only(cfg.master_source), only(cfg.mapping_source), only(cfg.slave_source)
@@ -397,6 +395,12 @@ class Watchdog:
             for a in self.arms:
                 a.safety.add_latency(rtt_s * 500.0 if rtt_s is not None else 1e4, now)
 
+    @property
+    def clock_offset_ns(self) -> int:
+        """The echo_service's host clock minus this one's, ns, as the clock probes estimate it
+        (0 before the first probe)."""
+        return self.node.fresh.offset_ns(self.cfg.echo_service)
+
     def add_clock_sample(self, sample: ClockSample | None) -> None:
         """Take one clock probe of the echo_service: its latency (echo) or its host's offset
         (clock: the servo_jp origin stamps are moved onto this host's clock by it)."""
@@ -409,9 +413,8 @@ class Watchdog:
         if theta is None:
             return
         first = self.clock.samples == 1
-        self.clock_offset_ns = round(theta)
-        # the freshness rules age the master's messages on this host's clock too
-        self.node.fresh.offsets[self.cfg.echo_service] = self.clock_offset_ns
+        # one place for it: the latency and the freshness rules both read it from there
+        self.node.fresh.offsets[self.cfg.echo_service] = round(theta)
         if first or (self.clock.samples % 600 == 0 and abs(theta) > 1e6):
             log.info(
                 "%s's clock: %s",
