@@ -76,7 +76,7 @@ def test_a_policy_drives_the_site_and_the_operator_the_estop_and_the_deadline_st
 
             # 1. the operator holds the clutch: the slave follows the policy
             console.held = True
-            assert p.wait_following(15), "the slave never followed the policy"
+            assert p.wait_following(15), "the slave never followed the policy\n" + p.diagnose()
             t1 = now_ns()
             time.sleep(1.5)
             moved = p.p.motion_after(t1, 1.5)
@@ -101,7 +101,7 @@ def test_a_policy_drives_the_site_and_the_operator_the_estop_and_the_deadline_st
 
             # 3. the policy pauses: nothing is published, the arm holds within the master deadline
             console.held = True
-            assert p.wait_following(10), "the slave did not follow again after a new press"
+            assert p.wait_following(10), "the slave did not follow again after a new press\n" + p.diagnose()
             time.sleep(0.5)
             pause.touch()
             assert p.wait(lambda: masters and now_ns() - masters[-1] > 500_000_000, 5)

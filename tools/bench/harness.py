@@ -346,6 +346,28 @@ class Pipeline:
         """Wait until the slave follows the master."""
         return self.wait(self.p.following, timeout)
 
+    def diagnose(self, lines: int = 12) -> str:
+        """What a failed wait needs to be understood: the slave's and the watchdog's last states,
+        the last clutch state and the tail of each service's log (for an assertion's message)."""
+        out = []
+        if self.probe is not None:
+            with self.p.lock:
+                op = self.p.op[-1] if self.p.op else None
+                safety = self.p.safety[-1] if self.p.safety else None
+                clutch = self.p.clutch[-1] if self.p.clutch else None
+            if op is not None:
+                out.append(f"slave: follow={op[1]} lease_ok={op[2]} reason={op[3]!r} state={op[4]!r}")
+            if safety is not None:
+                out.append(f"watchdog: {safety[1]} causes={list(safety[2])}")
+            out.append(f"clutch: {clutch[1] if clutch else 'never published'}")
+        for name in self.spec.services:
+            log = self.log_dir / f"{name}.log"
+            if log.exists():
+                tail = log.read_text(errors="replace").splitlines()[-lines:]
+                out.append(f"--- {name}.log (last {len(tail)} lines)")
+                out.extend(tail)
+        return "\n".join(out)
+
     # -- faults: each returns the injection time on the probe's clock ---------------------------
     def kill(self, name: str) -> int:
         """SIGKILL service ``name``."""
