@@ -74,7 +74,10 @@ def test_a_policy_drives_the_site_and_the_operator_the_estop_and_the_deadline_st
             assert p.wait(lambda: len(masters) > 100, 30), "the policy master never published"
             assert not p.p.following()  # nobody holds the clutch: the policy alone does not engage
 
-            # 1. the operator holds the clutch: the slave follows the policy
+            # 1. the operator holds the clutch once the console says the arm is ready (a press
+            # before it, while the site still starts, is refused and needs a new one): the slave
+            # follows the policy
+            assert p.wait_ready(30), "the mapping never became ready to engage\n" + p.diagnose()
             console.held = True
             assert p.wait_following(15), "the slave never followed the policy\n" + p.diagnose()
             t1 = now_ns()
@@ -100,6 +103,7 @@ def test_a_policy_drives_the_site_and_the_operator_the_estop_and_the_deadline_st
             assert len(masters) - n_before > 300  # the policy goes on; the slave no longer takes it
 
             # 3. the policy pauses: nothing is published, the arm holds within the master deadline
+            assert p.wait_ready(10), "the mapping was not ready again after the release\n" + p.diagnose()
             console.held = True
             assert p.wait_following(10), "the slave did not follow again after a new press\n" + p.diagnose()
             time.sleep(0.5)

@@ -43,6 +43,7 @@ from telesurg.shared.messages import (
     SafetyEvent,
     SafetyLease,
     SafetyState,
+    TeleopState,
 )
 from telesurg.tools.bench.impair import LinkImpairer
 
@@ -86,6 +87,7 @@ class Probe:
     polled_at: dict[str, float] = field(default_factory=dict)
     beat_at: dict[str, float] = field(default_factory=dict)  # service → its last heartbeat's arrival
     joints: list[tuple[float, ...]] = field(default_factory=list)  # slave measured_js positions
+    teleop: tuple[str, str] = ("", "")  # the mapping's last teleop state and its reason
 
     def __post_init__(self) -> None:
         k = self.node.keys
@@ -96,6 +98,8 @@ class Probe:
         sub(k.safety(self.arm, "state"), SafetyState, self._on_safety, sources=["watchdog"])
         sub(k.master(self.master, "buttons"), MasterButtons, self._on_buttons, sources=master)
         sub(k.events(), SafetyEvent, self._on_event)
+        teleop = k.mapping(self.arm, "teleop_state")
+        sub(teleop, TeleopState, self._on_teleop, sources=["mapping"], latest=True)
         sub(k.master(self.master, "measured_cp"), CartesianPose, lambda m, k: None, sources=master)
         sub(k.slave(self.arm, "servo_jp"), JointSetpoint, lambda m, k: None, sources=["mapping"])
         # (counted only: forged leases that reach a subscriber show in its unauthenticated count)
@@ -107,6 +111,10 @@ class Probe:
     def _on_tip(self, m: CartesianPose, key: str) -> None:
         with self.lock:
             self.tip.append((now_ns(), *m.position))
+
+    def _on_teleop(self, m: TeleopState, key: str) -> None:
+        with self.lock:
+            self.teleop = (m.state, m.reason)
 
     def _on_js(self, m: JointState, key: str) -> None:
         with self.lock:
@@ -346,6 +354,11 @@ class Pipeline:
         """Wait until the slave follows the master."""
         return self.wait(self.p.following, timeout)
 
+    def wait_ready(self, timeout: float) -> bool:
+        """Wait until the mapping is ready to engage (teleop state IDLE: what the console shows
+        an operator before he presses; a press made earlier is refused and needs a new one)."""
+        return self.wait(lambda: self.p.teleop[0] == "IDLE", timeout)
+
     def diagnose(self, lines: int = 12) -> str:
         """What a failed wait needs to be understood: the slave's and the watchdog's last states,
         the last clutch state and the tail of each service's log (for an assertion's message)."""
@@ -360,6 +373,7 @@ class Pipeline:
             if safety is not None:
                 out.append(f"watchdog: {safety[1]} causes={list(safety[2])}")
             out.append(f"clutch: {clutch[1] if clutch else 'never published'}")
+            out.append(f"teleop: {self.p.teleop[0] or 'never published'} ({self.p.teleop[1]})")
         for name in self.spec.services:
             log = self.log_dir / f"{name}.log"
             if log.exists():
