@@ -812,8 +812,9 @@ class CartesianWrench(Message):
     energy_in_j: float = fld(
         0.0,
         "bilateral force feedback (docs/haptics.md): energy that has flowed into the network at the "
-        "slave port since the pair engaged, `E_in_s` (master units), for the master's passivity "
-        "observer (0: no bilateral controller)",
+        "slave port since the slave started, `E_in_s` in slave units (the environment's work on "
+        "the instrument along its motion; the master multiplies it by force_scale / position_scale), "
+        "for the master's passivity observer (0: a slave that measures no force)",
         unit="J",
         ge=0.0,
     )

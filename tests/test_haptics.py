@@ -15,7 +15,7 @@ from telesurg.services.master_capture.devices import open_device
 from telesurg.services.master_capture.devices.touch_sim.model import HeldDevice, TouchModel, press_and_slide
 from telesurg.services.slave_control.backends import MujocoBackend
 from telesurg.shared.errors import ConfigError, MessageError
-from telesurg.shared.haptics import BilateralConfig, ForceRenderer, RenderConfig, check_force
+from telesurg.shared.haptics import BilateralConfig, ForceRenderer, RenderConfig, SlavePortWork, check_force
 from telesurg.shared.robots import registry
 from telesurg.tools.bench.haptics import TipFollower, contact_height, run_one
 
@@ -116,6 +116,36 @@ def test_touch_sim_is_a_master_device_that_takes_a_force() -> None:
     applied = dev.write_force(np.array([0.0, 0.0, 10.0]))  # type: ignore[attr-defined]
     assert np.linalg.norm(applied) == pytest.approx(3.3)
     assert dev.read(0.5).position[2] > first.position[2]  # pushed up, against a hand at rest
+
+
+def test_the_slave_port_counts_only_the_work_the_tissue_gives_back() -> None:
+    """E_in_s (the slave's half of the observers, sent on measured_cf): pressing into the tissue
+    puts energy into it (not counted), the tissue pushing the instrument back returns it."""
+    port, up = SlavePortWork(), np.array([0.0, 0.0, 2.0])  # the tissue pushes up with 2 N
+    port.add(up, np.array([0.0, 0.0, 0.0]))
+    assert port.add(up, np.array([0.0, 0.0, -0.005])) == 0.0  # pressed 5 mm in: work into the tissue
+    assert port.add(up, np.array([0.0, 0.0, -0.002])) == pytest.approx(0.006)  # 3 mm back: 6 mJ out
+    assert port.add(np.zeros(3), np.array([0.01, 0.0, 0.0])) == pytest.approx(0.006)  # free space
+
+
+def test_touch_sim_as_an_operator_at_a_site_presses_when_ready_and_moves_while_engaged() -> None:
+    from telesurg.services.master_capture.devices.touch_sim import TouchSim, TouchSimConfig
+
+    with pytest.raises(ConfigError, match="valid: script, site"):
+        TouchSimConfig(operator="robot")
+    dev = TouchSim(TouchSimConfig(operator="site", surface_mm=-10.0))
+    assert not dev.read(0.0).clutch  # no teleop state yet: the pedal stays up
+    for state in ("DISABLED", "IDLE", "ENGAGING"):
+        dev._teleop = state
+        assert dev.read(1.0).clutch == (state != "DISABLED")
+        assert dev.read(2.0).position == (0.0, 0.0, 0.0)  # not engaged: the hand keeps still
+    dev._teleop = "ENABLED"
+    z = [dev.read(2.0 + 0.1 * k).position[2] for k in range(25)]  # the script: reach down
+    assert z[-1] < -0.003  # it moved down towards the tissue
+    dev._teleop = "HOLDING"  # held: the pedal goes up and the script pauses
+    sample = dev.read(5.0)
+    assert not sample.clutch
+    assert dev.read(9.0).position[2] == pytest.approx(sample.position[2], abs=1e-4)
 
 
 @pytest.mark.slow

@@ -31,7 +31,7 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO, Any
@@ -84,12 +84,14 @@ def _emit(**rec: Any) -> None:
         sys.stdout.flush()
 
 
-def probe_main(endpoint: str, creds: str = "") -> int:
+def probe_main(endpoint: str, creds: str = "", *flags: str) -> int:
     """Print what the slave site shows, one JSON line per record, until SIGINT/SIGTERM; ``creds``:
-    the locked-down site's local credentials (the operator identity on its local listener)."""
+    the locked-down site's local credentials (the operator identity on its local listener).
+    ``--haptics``: also every contact force (``cf``) and master pose with its energy (``mp``)."""
     from telesurg.shared.bus import Node
     from telesurg.shared.messages import (
         CartesianPose,
+        CartesianWrench,
         MasterButtons,
         OperatingState,
         SafetyEvent,
@@ -102,6 +104,7 @@ def probe_main(endpoint: str, creds: str = "") -> int:
     last_tip = [0]
     last_master = [0]  # receive time of the newest master pose: when the link went silent
     clutch: list[bool] = []
+    haptics = "--haptics" in flags
     bus = _bus(endpoint, None, "")
     if creds:
         from telesurg.services.launcher.lockdown import LocalPki
@@ -134,6 +137,11 @@ def probe_main(endpoint: str, creds: str = "") -> int:
 
         def on_master(m: CartesianPose, key: str) -> None:
             last_master[0] = time.monotonic_ns()
+            if haptics:
+                _emit(k="mp", p=list(m.position), e=m.energy_in_j)
+
+        def on_cf(m: CartesianWrench, key: str) -> None:
+            _emit(k="cf", f=list(m.force))
 
         def on_safety(m: SafetyState, key: str) -> None:
             _emit(k="safety", state=m.state, causes=list(m.causes), scale=m.scale, p50=m.latency_p50_ms)
@@ -154,6 +162,8 @@ def probe_main(endpoint: str, creds: str = "") -> int:
         sub(k.safety("arm1", "state"), SafetyState, on_safety, sources=["watchdog"])
         sub(k.master("m1", "buttons"), MasterButtons, on_buttons, sources=["master_capture"])
         sub(k.events(), SafetyEvent, on_event)
+        if haptics:
+            sub(k.slave("arm1", "measured_cf"), CartesianWrench, on_cf, sources=["slave_control"])
         time.sleep(0.3)
         _emit(k="ready")
         stop.wait()
@@ -426,14 +436,22 @@ def _log_tail(logs: Path) -> str:
     return "\n".join(parts)
 
 
-@pytest.fixture(scope="module")
-def hosts(tmp_path_factory: pytest.TempPathFactory) -> Iterator[TwoHosts]:
+def needs_two_hosts() -> None:
+    """Skip unless network namespaces and the certificate maker are there."""
     if why := netns_available():
         pytest.skip(f"two-host test {why}")
     pytest.importorskip("cryptography", reason="telesurg certs needs the cryptography package")
+
+
+@contextlib.contextmanager
+def two_hosts(
+    tmp: Path, *, site_flags: Sequence[str] = (), probe_flags: Sequence[str] = ()
+) -> Iterator[TwoHosts]:
+    """The slave site and the impairer in one namespace, the console's namespace beside it, the
+    probe on the slave site's local listener (the module doc); ``site_flags`` go to
+    deploy/slave-site.sh (e.g. ``--set``), ``probe_flags`` to the probe (``--haptics``)."""
     from telesurg.services.certs import CertsConfig, make_certs
 
-    tmp = tmp_path_factory.mktemp("two_hosts")
     certs, other, logs = tmp / "certs", tmp / "other-ca", tmp / "logs"
     logs.mkdir()
     make_certs(CertsConfig(out=certs, hosts=("localhost", "127.0.0.1", SLAVE_ADDR)))
@@ -477,6 +495,7 @@ def hosts(tmp_path_factory: pytest.TempPathFactory) -> Iterator[TwoHosts]:
                 str(logs / "slave"),
                 "--credentials-dir",
                 str(tmp / "local-creds"),
+                *site_flags,
             ]
             h.spawn("slave-site", ns_s, site)
             imp = [sys.executable, "-m", "telesurg.tools.bench.impair", "--control"]
@@ -496,6 +515,7 @@ def hosts(tmp_path_factory: pytest.TempPathFactory) -> Iterator[TwoHosts]:
                 "probe",
                 f"tls/127.0.0.1:{LOCAL_PORT}",
                 str(tmp / "local-creds"),
+                *probe_flags,
             ]
             probe = h.spawn("probe", ns_s, probe_argv, pipe=True)
             assert probe.stdout is not None
@@ -510,6 +530,13 @@ def hosts(tmp_path_factory: pytest.TempPathFactory) -> Iterator[TwoHosts]:
             for p in h.procs.values():  # anything left in the namespaces' process groups
                 with contextlib.suppress(ProcessLookupError):
                     os.killpg(p.pid, signal.SIGKILL)
+
+
+@pytest.fixture(scope="module")
+def hosts(tmp_path_factory: pytest.TempPathFactory) -> Iterator[TwoHosts]:
+    needs_two_hosts()
+    with two_hosts(tmp_path_factory.mktemp("two_hosts")) as h:
+        yield h
 
 
 def _console(h: TwoHosts) -> subprocess.Popen[str]:
@@ -823,7 +850,7 @@ def test_scripts_stop_cleanly(hosts: TwoHosts) -> None:
 
 if __name__ == "__main__":
     if sys.argv[1] == "probe":
-        sys.exit(probe_main(*sys.argv[2:4]))
+        sys.exit(probe_main(*sys.argv[2:]))
     if sys.argv[1] == "identities":
         sys.exit(identities_main(sys.argv[2], Path(sys.argv[3]), Path(sys.argv[4])))
     if sys.argv[1] == "udpecho":

@@ -212,12 +212,27 @@ class HapticLoop:
         self.hold = False
         self.x_prev: np.ndarray | None = None
         self.t_prev = 0.0
+        # the slave's E_in_s (slave units) when this loop took its first measured_cf: the observer
+        # counts what flowed in since then, as its own E_out_m; and the mapping's motion scale
+        # (its teleop state: the operator's scale × the watchdog's), which turns slave energy into
+        # master units (× force_scale / position_scale)
+        self.e_in_s0: float | None = None
+        self.position_scale = 1.0
         k = node.keys
 
         def on_wrench(m: CartesianWrench, key: str) -> None:
             with self.lock:
-                self.packet = SlavePacket(m.header.seq, np.array(m.force), m.energy_in_j)
+                if self.e_in_s0 is None:
+                    self.e_in_s0 = m.energy_in_j
+                g = h.force_scale / self.position_scale
+                energy = g * max(0.0, m.energy_in_j - self.e_in_s0)
+                self.packet = SlavePacket(m.header.seq, np.array(m.force), energy)
                 self.rx_at = time.monotonic()
+
+        def on_teleop(m: TeleopState, key: str) -> None:
+            if m.scale * m.safety_scale > 0.0:
+                with self.lock:
+                    self.position_scale = m.scale * m.safety_scale
 
         def on_safety(m: SafetyState, key: str) -> None:
             self.hold = m.state in ("HOLD", "ESTOP")
@@ -226,6 +241,13 @@ class HapticLoop:
             k.slave(h.slave_arm, "measured_cf"), CartesianWrench, on_wrench, sources=[h.slave_source]
         )
         node.subscribe(k.safety(h.slave_arm, "state"), SafetyState, on_safety, sources=[h.watchdog_source])
+        node.subscribe(
+            k.mapping(h.slave_arm, "teleop_state"),
+            TeleopState,
+            on_teleop,
+            sources=[cfg.mapping_source],
+            latest=True,
+        )
 
     def step(self, position: tuple[float, float, float], now: float) -> float:
         x = np.array(position)

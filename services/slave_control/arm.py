@@ -84,6 +84,7 @@ from telesurg.services.slave_control.control import (
 from telesurg.shared.authority import Authority, summary
 from telesurg.shared.clock import wall_ns
 from telesurg.shared.errors import AuthorityError
+from telesurg.shared.haptics import SlavePortWork
 from telesurg.shared.limits import limit_step
 from telesurg.shared.messages import (
     CartesianPose,
@@ -265,6 +266,9 @@ class ArmCore:
     _n_applied: int = 0
     _last_sp: Setpoint | None = None
     _step_row: int | None = None  # latency-log row waiting for its step time (stepped)
+    # the slave port's E_in_s for bilateral force feedback (docs/haptics.md, "Energy"), published
+    # on measured_cf
+    port_work: SlavePortWork = field(default_factory=SlavePortWork)
 
     def __post_init__(self) -> None:
         p, cfg = self.profile, self.cfg
@@ -649,8 +653,9 @@ class ArmCore:
             f, m = tip_wrench(self.profile.jacobian(r.position), r.external_torque)
         else:
             return
+        energy = self.port_work.add(np.array(f), r.tip_pose[:3, 3])
         out = self.outlets["measured_cf"]
-        out.put(CartesianWrench(out.header(), FRAME, f, m))
+        out.put(CartesianWrench(out.header(), FRAME, f, m, energy))
 
     def publish_state(self, force: bool, servo_rejected: int) -> None:
         """operating_state on change, or when ``force`` (its sub-rate)."""

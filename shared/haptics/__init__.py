@@ -22,6 +22,7 @@ from telesurg.shared.haptics.tdpa import (
     BilateralConfig,
     MasterPacket,
     SlavePacket,
+    SlavePortWork,
     make_bilateral,
 )
 
@@ -33,6 +34,7 @@ __all__ = [
     "MasterPacket",
     "RenderConfig",
     "SlavePacket",
+    "SlavePortWork",
     "check_force",
     "make_bilateral",
 ]

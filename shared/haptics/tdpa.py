@@ -113,6 +113,27 @@ class PortEnergy:
             self.e_out -= p_in * dt
 
 
+class SlavePortWork:
+    """``E_in_s`` of a slave that measures the environment's force, in slave units (J): the work
+    the environment has done on the instrument along its motion, summed over the samples where it
+    is positive (the tissue pushing the instrument back). A master turns it into master units with
+    ``force_scale / position_scale``."""
+
+    def __init__(self) -> None:
+        self.e_in = 0.0
+        self._x: Vec | None = None
+
+    def add(self, f_e: Vec, x_s: Vec) -> float:
+        """Take the force ``f_e`` (N) measured with the instrument at ``x_s`` (m); returns E_in."""
+        x = np.array(x_s, dtype=float)
+        if self._x is not None:
+            work = float(np.dot(np.asarray(f_e, dtype=float), x - self._x))
+            if work > 0.0:
+                self.e_in += work
+        self._x = x
+        return self.e_in
+
+
 class Bilateral:
     """Position forward / force back without a controller on the energy (``naive``); the
     subclasses change what each side computes. One instance per side (or one for both in a

@@ -7,16 +7,32 @@ the device's limit, as a real amplifier would). The haptic loop (``docs/haptics.
 pose and writes its force every period; ``telesurg bench haptics`` drives it against the MuJoCo
 slave.
 
+Who works the pedal (``operator``): ``"script"`` (the bench's) presses it throughout and plays
+the script from the device's start; ``"site"`` plays an operator at a running site: it watches the
+mapping's teleop state of ``arm`` (``mapping/<arm>/teleop_state``, what the console shows), presses
+the pedal when the arm is ready to engage (IDLE) and keeps it down while engaging and engaged,
+releases it when the mapping holds or refuses (a new press then engages again), and plays the
+script only while engaged: the hand keeps still otherwise.
+
 Example: ``telesurg master-capture --set device=touch_sim --set device_options.press_mm=8``.
 """
 
 from __future__ import annotations
 
+import threading
 from dataclasses import dataclass
 
 import numpy as np
 from telesurg.services.master_capture.devices import DeviceSample, MasterDevice, register
 from telesurg.services.master_capture.devices.touch_sim.model import HeldDevice, TouchModel, press_and_slide
+from telesurg.shared.bus import Node
+from telesurg.shared.errors import ConfigError
+from telesurg.shared.messages import TeleopState
+
+#: Who works the pedal (module doc).
+OPERATORS = ("script", "site")
+#: The teleop states in which an operator at the site keeps the pedal down (IDLE: ready to engage).
+PEDAL_DOWN = frozenset({"IDLE", "ENGAGING", "ENABLED"})
 
 
 @dataclass
@@ -31,6 +47,15 @@ class TouchSimConfig:
     press_mm: float = 11.0  # mm: how far the hand means to press beyond the surface
     slide_mm: float = 20.0  # mm: how far it slides along x while pressing
     step_s: float = 0.001  # s: simulation step (the device's servo period)
+    # who works the pedal: "script" (pressed throughout, the script from the start) or "site"
+    # (presses when the mapping says the arm is ready; the script plays while engaged)
+    operator: str = "script"
+    arm: str = "arm1"  # operator "site": the slave arm whose teleop state it watches
+    mapping_source: str = "mapping"  # operator "site": the only sender of that teleop state taken
+
+    def __post_init__(self) -> None:
+        if self.operator not in OPERATORS:
+            raise ConfigError(f"touch_sim: operator {self.operator!r} invalid; valid: {', '.join(OPERATORS)}")
 
 
 @register
@@ -49,12 +74,36 @@ class TouchSim(MasterDevice):
             hand_damping=cfg.hand_damping,
         )
         self.sim = HeldDevice(model, press_and_slide(cfg.surface_mm, cfg.press_mm, cfg.slide_mm))
+        self._teleop = ""  # operator "site": the mapping's last teleop state of cfg.arm
+        self._lock = threading.Lock()
+        self._last_t: float | None = None  # device time of the previous read
+        self._played = 0.0  # s of device time the script has played (operator "site")
+
+    def connect(self, node: Node) -> None:
+        """Operator "site": watch the mapping's teleop state (master_capture calls this)."""
+        if self.cfg.operator == "site":
+            key = node.keys.mapping(self.cfg.arm, "teleop_state")
+            node.subscribe(key, TeleopState, self._on_teleop, sources=[self.cfg.mapping_source], latest=True)
+
+    def _on_teleop(self, m: TeleopState, key: str) -> None:
+        with self._lock:
+            self._teleop = m.state
 
     def read(self, t: float) -> DeviceSample:
+        pedal = True
+        if self.cfg.operator == "site":
+            with self._lock:
+                state = self._teleop
+            pedal = state in PEDAL_DOWN
+            # the script's clock runs while engaged only: the hand keeps still otherwise
+            if state == "ENABLED" and self._last_t is not None:
+                self._played += max(0.0, t - self._last_t)
+            self._last_t = t
+            t = self._played
         while self.sim.t + self.cfg.step_s <= t:  # catch the simulation up to t
             self.sim.step(self.cfg.step_s)
         x = self.sim.x
-        return DeviceSample((float(x[0]), float(x[1]), float(x[2])), (0.0, 0.0, 0.0, 1.0), True, True)
+        return DeviceSample((float(x[0]), float(x[1]), float(x[2])), (0.0, 0.0, 0.0, 1.0), pedal, True)
 
     def write_force(self, force: np.ndarray) -> np.ndarray:
         """Command the device's force (N, master frame); returns the force applied (≤ the limit)."""
