@@ -18,7 +18,8 @@ Root and ``ip netns`` are required (those tests skip otherwise). Without root, t
 control is checked on loopback in one process (every identity's puts, queries and subscriptions,
 strangers refused) along with the secured-bus configuration errors; with root, also the packet
 link of ``tools/bench/impair.py`` (delay, loss, cut). The helpers that run inside the namespaces are
-this file run as a script: ``python tests/test_two_hosts.py probe|identities|udpecho|udpping ...``.
+this file run as a script (``python tests/test_two_hosts.py identities|udpecho|udpping ...``)
+and the probe, ``tests/two_hosts_probe.py``.
 """
 
 from __future__ import annotations
@@ -46,6 +47,7 @@ from helpers import clutch_flags  # noqa: E402
 from telesurg.services.keys import export  # noqa: E402
 from telesurg.shared.auth import IDENTITIES, KEYS_ENV, init_keyring  # noqa: E402
 from telesurg.tools.bench.impair import NetNamespace, netns_available  # noqa: E402
+from two_hosts_probe import _bus  # noqa: E402
 
 pytestmark = [pytest.mark.process, pytest.mark.timeout(240)]
 
@@ -59,115 +61,6 @@ DEGRADED_SCALE = 0.5  # the watchdog degraded_scale default (likewise)
 
 
 # ============================================================================ helpers (namespaces)
-
-
-def _bus(endpoint: str, certs: Path | None, ident: str, ca: Path | None = None) -> Any:
-    from telesurg.shared.bus import BusConfig
-
-    cfg = BusConfig(connect=[endpoint])
-    if certs is not None:
-        cfg.tls_root_ca = str(ca or certs / "ca.pem")
-        if ident:
-            cfg.tls_cert, cfg.tls_key = str(certs / f"{ident}.pem"), str(certs / f"{ident}.key")
-            cfg.mtls = True
-    return cfg
-
-
-_EMIT_LOCK = threading.Lock()
-
-
-def _emit(**rec: Any) -> None:
-    """One JSON line on stdout; zenoh callbacks run on several threads: one write each, locked."""
-    line = json.dumps({"t": time.monotonic_ns(), **rec}) + "\n"
-    with _EMIT_LOCK:
-        sys.stdout.write(line)
-        sys.stdout.flush()
-
-
-def probe_main(endpoint: str, creds: str = "", *flags: str) -> int:
-    """Print what the slave site shows, one JSON line per record, until SIGINT/SIGTERM; ``creds``:
-    the locked-down site's local credentials (the operator identity on its local listener).
-    ``--haptics``: also every contact force (``cf``) and master pose with its energy (``mp``)."""
-    from telesurg.shared.bus import Node
-    from telesurg.shared.messages import (
-        CartesianPose,
-        CartesianWrench,
-        MasterButtons,
-        OperatingState,
-        SafetyEvent,
-        SafetyState,
-    )
-
-    stop = threading.Event()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: stop.set())
-    last_tip = [0]
-    last_master = [0]  # receive time of the newest master pose: when the link went silent
-    clutch: list[bool] = []
-    haptics = "--haptics" in flags
-    bus = _bus(endpoint, None, "")
-    if creds:
-        from telesurg.services.launcher.lockdown import LocalPki
-
-        pki = LocalPki(Path(creds))
-        bus.tls_root_ca, bus.tls_cert, bus.tls_key = (
-            str(pki.ca),
-            str(pki.cert("operator")),
-            str(pki.key("operator")),
-        )
-        bus.mtls = True
-    with Node(bus, SITE, "probe") as node:
-        k, sub = node.keys, node.subscribe
-
-        def on_tip(m: CartesianPose, key: str) -> None:
-            now = time.monotonic_ns()
-            if now - last_tip[0] >= 10_000_000:  # 100 Hz is plenty
-                last_tip[0] = now
-                _emit(k="tip", p=list(m.position))
-
-        def on_op(m: OperatingState, key: str) -> None:
-            _emit(
-                k="op",
-                follow=m.follow,
-                lease=m.lease_ok,
-                state=m.state,
-                reason=m.reason,
-                m_last=last_master[0],
-            )
-
-        def on_master(m: CartesianPose, key: str) -> None:
-            last_master[0] = time.monotonic_ns()
-            if haptics:
-                _emit(k="mp", p=list(m.position), e=m.energy_in_j)
-
-        def on_cf(m: CartesianWrench, key: str) -> None:
-            _emit(k="cf", f=list(m.force))
-
-        def on_safety(m: SafetyState, key: str) -> None:
-            _emit(k="safety", state=m.state, causes=list(m.causes), scale=m.scale, p50=m.latency_p50_ms)
-
-        def on_buttons(m: MasterButtons, key: str) -> None:
-            if m.header.seq % 25 == 0:
-                _emit(k="btn", seq=m.header.seq, v=m.clutch)
-            if not clutch or clutch[-1] != m.clutch:
-                clutch.append(m.clutch)
-                _emit(k="clutch", v=m.clutch)
-
-        def on_event(m: SafetyEvent, key: str) -> None:
-            _emit(k="event", src=m.header.source, kind=m.kind, text=m.text)
-
-        sub(k.slave("arm1", "measured_cp"), CartesianPose, on_tip, sources=["slave_control"])
-        sub(k.slave("arm1", "operating_state"), OperatingState, on_op, sources=["slave_control"])
-        sub(k.master("m1", "measured_cp"), CartesianPose, on_master, sources=["master_capture"])
-        sub(k.safety("arm1", "state"), SafetyState, on_safety, sources=["watchdog"])
-        sub(k.master("m1", "buttons"), MasterButtons, on_buttons, sources=["master_capture"])
-        sub(k.events(), SafetyEvent, on_event)
-        if haptics:
-            sub(k.slave("arm1", "measured_cf"), CartesianWrench, on_cf, sources=["slave_control"])
-        time.sleep(0.3)
-        _emit(k="ready")
-        stop.wait()
-    return 0
 
 
 def _try_open(cfg: Any) -> str:
@@ -511,8 +404,7 @@ def two_hosts(
                 time.sleep(0.2)
             probe_argv = [
                 sys.executable,
-                __file__,
-                "probe",
+                str(Path(__file__).with_name("two_hosts_probe.py")),
                 f"tls/127.0.0.1:{LOCAL_PORT}",
                 str(tmp / "local-creds"),
                 *probe_flags,
@@ -849,8 +741,6 @@ def test_scripts_stop_cleanly(hosts: TwoHosts) -> None:
 
 
 if __name__ == "__main__":
-    if sys.argv[1] == "probe":
-        sys.exit(probe_main(*sys.argv[2:]))
     if sys.argv[1] == "identities":
         sys.exit(identities_main(sys.argv[2], Path(sys.argv[3]), Path(sys.argv[4])))
     if sys.argv[1] == "udpecho":
