@@ -148,6 +148,37 @@ def test_touch_sim_as_an_operator_at_a_site_presses_when_ready_and_moves_while_e
     assert dev.read(9.0).position[2] == pytest.approx(sample.position[2], abs=1e-4)
 
 
+def test_touch_sim_at_a_site_makes_up_for_the_motion_the_slave_did_not_take() -> None:
+    """Engaged again after a hold, the simulated operator aims where the slave's tip should be:
+    the motion lost while the slave held is added to its hand's goal (as a surgeon would, looking
+    at the video)."""
+    from telesurg.services.master_capture.devices.touch_sim import TouchSim, TouchSimConfig
+
+    dev = TouchSim(TouchSimConfig(operator="site", surface_mm=-10.0))
+    s0 = np.array([0.8, 0.0, 0.3])
+    dev._teleop, dev._scale, dev._tip = "ENABLED", 0.5, s0.copy()
+    dev.read(0.0)
+    for k in range(1, 9):
+        dev.read(0.1 * k)  # 0.8 s of the script: the hand reaches down
+    x_hold = np.array(dev.sim.x)
+    dev._teleop = "HOLDING"
+    dev.read(1.0)
+    # the slave took none of the master's way down before it held (a hold at once)
+    dev._tip = s0.copy()
+    dev._teleop = "ENABLED"
+    dev.read(1.1)
+    # its goal now: the script plus the whole way the slave did not take
+    assert x_hold[2] < -0.001
+    assert dev.sim.offset == pytest.approx(x_hold, abs=1e-6)
+    # had the slave taken it all (0.5 × the master's way), nothing would be added
+    dev._teleop = "HOLDING"
+    dev.read(1.2)
+    x_now = np.array(dev.sim.x)
+    dev._tip, dev._teleop = s0 + 0.5 * x_now, "ENABLED"
+    dev.read(1.3)
+    assert dev.sim.offset == pytest.approx(np.zeros(3), abs=1e-6)
+
+
 @pytest.mark.slow
 def test_zero_delay_feels_the_tissue_and_nothing_in_free_space() -> None:
     """Acceptance 1: at zero delay the stiffness felt at the master is the tissue's × the scales

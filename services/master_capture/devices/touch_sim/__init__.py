@@ -12,7 +12,10 @@ the script from the device's start; ``"site"`` plays an operator at a running si
 mapping's teleop state of ``arm`` (``mapping/<arm>/teleop_state``, what the console shows), presses
 the pedal when the arm is ready to engage (IDLE) and keeps it down while engaging and engaged,
 releases it when the mapping holds or refuses (a new press then engages again), and plays the
-script only while engaged: the hand keeps still otherwise.
+script only while engaged: the hand keeps still otherwise. It watches the slave's tip too, as a
+surgeon watches the video: the script says where the slave's tip should go (from where it was at
+the first engage, × the mapping's scale), and at every new engage (and change of scale: the mapping
+re-anchors then) the hand adds what the slave did not take while it held to where it means to go.
 
 Example: ``telesurg master-capture --set device=touch_sim --set device_options.press_mm=8``.
 """
@@ -24,10 +27,14 @@ from dataclasses import dataclass
 
 import numpy as np
 from telesurg.services.master_capture.devices import DeviceSample, MasterDevice, register
-from telesurg.services.master_capture.devices.touch_sim.model import HeldDevice, TouchModel, press_and_slide
+from telesurg.services.master_capture.devices.touch_sim.model import (
+    HeldDevice,
+    TouchModel,
+    press_and_slide,
+)
 from telesurg.shared.bus import Node
 from telesurg.shared.errors import ConfigError
-from telesurg.shared.messages import TeleopState
+from telesurg.shared.messages import CartesianPose, TeleopState
 
 #: Who works the pedal (module doc).
 OPERATORS = ("script", "site")
@@ -50,8 +57,9 @@ class TouchSimConfig:
     # who works the pedal: "script" (pressed throughout, the script from the start) or "site"
     # (presses when the mapping says the arm is ready; the script plays while engaged)
     operator: str = "script"
-    arm: str = "arm1"  # operator "site": the slave arm whose teleop state it watches
+    arm: str = "arm1"  # operator "site": the slave arm whose teleop state and tip it watches
     mapping_source: str = "mapping"  # operator "site": the only sender of that teleop state taken
+    slave_source: str = "slave_control"  # operator "site": the only sender of that tip taken
 
     def __post_init__(self) -> None:
         if self.operator not in OPERATORS:
@@ -75,26 +83,56 @@ class TouchSim(MasterDevice):
         )
         self.sim = HeldDevice(model, press_and_slide(cfg.surface_mm, cfg.press_mm, cfg.slide_mm))
         self._teleop = ""  # operator "site": the mapping's last teleop state of cfg.arm
+        self._scale = 0.0  # and its motion scale (the operator's × the watchdog's)
+        self._tip: np.ndarray | None = None  # the slave's last tip seen (m, base frame)
         self._lock = threading.Lock()
         self._last_t: float | None = None  # device time of the previous read
         self._played = 0.0  # s of device time the script has played (operator "site")
+        self._engaged: tuple[float, ...] | None = None  # (scale,) of the engagement being played
+        self._s0: np.ndarray | None = None  # the slave's tip at the first engage
 
     def connect(self, node: Node) -> None:
-        """Operator "site": watch the mapping's teleop state (master_capture calls this)."""
+        """Operator "site": watch the mapping's teleop state and the slave's tip (master_capture
+        calls this)."""
         if self.cfg.operator == "site":
-            key = node.keys.mapping(self.cfg.arm, "teleop_state")
-            node.subscribe(key, TeleopState, self._on_teleop, sources=[self.cfg.mapping_source], latest=True)
+            k = node.keys
+            teleop = k.mapping(self.cfg.arm, "teleop_state")
+            node.subscribe(
+                teleop, TeleopState, self._on_teleop, sources=[self.cfg.mapping_source], latest=True
+            )
+            tip = k.slave(self.cfg.arm, "measured_cp")
+            node.subscribe(tip, CartesianPose, self._on_tip, sources=[self.cfg.slave_source])
 
     def _on_teleop(self, m: TeleopState, key: str) -> None:
         with self._lock:
-            self._teleop = m.state
+            self._teleop, self._scale = m.state, m.scale * m.safety_scale
+
+    def _on_tip(self, m: CartesianPose, key: str) -> None:
+        with self._lock:
+            self._tip = np.array(m.position)
+
+    def _reanchor(self, scale: float, tip: np.ndarray | None) -> None:
+        """A new engagement (or scale) from the mapping: aim the hand so that the slave's tip goes
+        where the script meant it to (module doc)."""
+        if tip is None or scale <= 0.0:
+            return
+        if self._s0 is None:
+            self._s0 = tip.copy()
+            return
+        # engaged now: slave = tip + scale (x − x_now); the script wants s0 + scale · script(t),
+        # so the hand goes to script(t) + x_now + (s0 − tip) / scale
+        self.sim.offset = self.sim.x + (self._s0 - tip) / scale
 
     def read(self, t: float) -> DeviceSample:
         pedal = True
         if self.cfg.operator == "site":
             with self._lock:
-                state = self._teleop
+                state, scale, tip = self._teleop, self._scale, self._tip
             pedal = state in PEDAL_DOWN
+            engaged = (scale,) if state == "ENABLED" else None
+            if engaged is not None and engaged != self._engaged:
+                self._reanchor(scale, tip)
+            self._engaged = engaged
             # the script's clock runs while engaged only: the hand keeps still otherwise
             if state == "ENABLED" and self._last_t is not None:
                 self._played += max(0.0, t - self._last_t)

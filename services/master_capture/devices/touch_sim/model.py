@@ -86,6 +86,9 @@ class HeldDevice:
         self.motor = np.zeros(3)  # N: the force the device applies (after its limit)
         self.t = 0.0
         self.largest_motor_n = 0.0  # N: the largest motor force it ever applied
+        # m, (3,): added to the script's intent (an operator making up for motion the slave did
+        # not take, e.g. while it held: touch_sim's "site" operator)
+        self.offset = np.zeros(3)
 
     def write_force(self, force: np.ndarray) -> np.ndarray:
         """Command the motor force (N); returns what the device applies (within its limit)."""
@@ -102,7 +105,8 @@ class HeldDevice:
     def hand_force(self) -> np.ndarray:
         """N: the hand's muscle force this instant."""
         m = self.model
-        out: np.ndarray = m.hand_stiffness * (intent(self.script, self.t) - self.x) - m.hand_damping * self.v
+        goal = intent(self.script, self.t) + self.offset
+        out: np.ndarray = m.hand_stiffness * (goal - self.x) - m.hand_damping * self.v
         return out
 
     def step(self, dt: float) -> None:
