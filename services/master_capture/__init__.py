@@ -212,21 +212,21 @@ class HapticLoop:
         self.hold = False
         self.x_prev: np.ndarray | None = None
         self.t_prev = 0.0
-        # the slave's E_in_s (slave units) when this loop took its first measured_cf: the observer
-        # counts what flowed in since then, as its own E_out_m; and the mapping's motion scale
-        # (its teleop state: the operator's scale × the watchdog's), which turns slave energy into
-        # master units (× force_scale / position_scale)
-        self.e_in_s0: float | None = None
+        # E_in_s in master units, summed from this loop's first measured_cf on (as its own
+        # E_out_m): each increase of the slave's sum (slave units) × force_scale / position_scale
+        # at the time, the position scale being the mapping's (its teleop state: the operator's
+        # scale × the watchdog's)
+        self.e_in_s_slave: float | None = None  # the slave's last sum, slave units
+        self.e_in_s = 0.0
         self.position_scale = 1.0
         k = node.keys
 
         def on_wrench(m: CartesianWrench, key: str) -> None:
             with self.lock:
-                if self.e_in_s0 is None:
-                    self.e_in_s0 = m.energy_in_j
-                g = h.force_scale / self.position_scale
-                energy = g * max(0.0, m.energy_in_j - self.e_in_s0)
-                self.packet = SlavePacket(m.header.seq, np.array(m.force), energy)
+                if self.e_in_s_slave is not None and m.energy_in_j > self.e_in_s_slave:
+                    self.e_in_s += h.force_scale / self.position_scale * (m.energy_in_j - self.e_in_s_slave)
+                self.e_in_s_slave = m.energy_in_j
+                self.packet = SlavePacket(m.header.seq, np.array(m.force), self.e_in_s)
                 self.rx_at = time.monotonic()
 
         def on_teleop(m: TeleopState, key: str) -> None:

@@ -15,7 +15,8 @@ releases it when the mapping holds or refuses (a new press then engages again), 
 script only while engaged: the hand keeps still otherwise. It watches the slave's tip too, as a
 surgeon watches the video: the script says where the slave's tip should go (from where it was at
 the first engage, × the mapping's scale), and at every new engage (and change of scale: the mapping
-re-anchors then) the hand adds what the slave did not take while it held to where it means to go.
+re-anchors then) in free space the hand adds what the slave did not take while it held to where it
+means to go; in contact (a force on the hand) it goes on by feel.
 
 Example: ``telesurg master-capture --set device=touch_sim --set device_options.press_mm=8``.
 """
@@ -40,6 +41,8 @@ from telesurg.shared.messages import CartesianPose, TeleopState
 OPERATORS = ("script", "site")
 #: The teleop states in which an operator at the site keeps the pedal down (IDLE: ready to engage).
 PEDAL_DOWN = frozenset({"IDLE", "ENGAGING", "ENABLED"})
+#: N: a force on the hand above this is contact: the operator then goes by feel, not by the video
+FEEL_N = 0.1
 
 
 @dataclass
@@ -119,6 +122,8 @@ class TouchSim(MasterDevice):
         if self._s0 is None:
             self._s0 = tip.copy()
             return
+        if float(np.linalg.norm(self.sim.motor)) > FEEL_N:
+            return  # in contact the operator presses by feel, not to a place on the video
         # engaged now: slave = tip + scale (x − x_now); the script wants s0 + scale · script(t),
         # so the hand goes to script(t) + x_now + (s0 − tip) / scale
         self.sim.offset = self.sim.x + (self._s0 - tip) / scale
