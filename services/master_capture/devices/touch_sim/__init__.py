@@ -43,6 +43,9 @@ OPERATORS = ("script", "site")
 PEDAL_DOWN = frozenset({"IDLE", "ENGAGING", "ENABLED"})
 #: N: a force on the hand above this is contact: the operator then goes by feel, not by the video
 FEEL_N = 0.1
+#: s: the time constant of the operator's correction after a new engage (a hand's corrective
+#: sub-movement takes a few hundred ms)
+REAIM_S = 0.3
 
 
 @dataclass
@@ -93,6 +96,7 @@ class TouchSim(MasterDevice):
         self._played = 0.0  # s of device time the script has played (operator "site")
         self._engaged: tuple[float, ...] | None = None  # (scale,) of the engagement being played
         self._s0: np.ndarray | None = None  # the slave's tip at the first engage
+        self._aim = np.zeros(3)  # the offset the hand's goal is blended towards (m)
 
     def connect(self, node: Node) -> None:
         """Operator "site": watch the mapping's teleop state and the slave's tip (master_capture
@@ -125,8 +129,9 @@ class TouchSim(MasterDevice):
         if float(np.linalg.norm(self.sim.motor)) > FEEL_N:
             return  # in contact the operator presses by feel, not to a place on the video
         # engaged now: slave = tip + scale (x − x_now); the script wants s0 + scale · script(t),
-        # so the hand goes to script(t) + x_now + (s0 − tip) / scale
-        self.sim.offset = self.sim.x + (self._s0 - tip) / scale
+        # so the hand goes to script(t) + x_now + (s0 − tip) / scale (blended in over REAIM_S, as
+        # a hand corrects a movement, not in a jump)
+        self._aim = self.sim.x + (self._s0 - tip) / scale
 
     def read(self, t: float) -> DeviceSample:
         pedal = True
@@ -143,7 +148,10 @@ class TouchSim(MasterDevice):
                 self._played += max(0.0, t - self._last_t)
             self._last_t = t
             t = self._played
+        blend = self.cfg.step_s / REAIM_S
         while self.sim.t + self.cfg.step_s <= t:  # catch the simulation up to t
+            if self.cfg.operator == "site":
+                self.sim.offset += blend * (self._aim - self.sim.offset)
             self.sim.step(self.cfg.step_s)
         x = self.sim.x
         return DeviceSample((float(x[0]), float(x[1]), float(x[2])), (0.0, 0.0, 0.0, 1.0), pedal, True)
