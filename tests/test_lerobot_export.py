@@ -200,7 +200,10 @@ def test_each_frame_gets_the_image_captured_nearest_to_it_and_the_offsets_are_ke
     eps = pq.read_table(out / "meta/episodes/chunk-000/file-000.parquet").to_pylist()
     starts = [e["telesurg/start_ns"] for e in eps]
     frame_ms = np.array(
-        [(starts[e] - T0) / MS + k * 100 for e, k in zip(times["episode_index"], times["frame_index"])]
+        [
+            (starts[e] - T0) / MS + k * 100
+            for e, k in zip(times["episode_index"], times["frame_index"], strict=True)
+        ]
     )
     capture_ms = (np.array(times["capture_ns"]) - T0) / MS
     offset = np.array(times["offset_ms"])

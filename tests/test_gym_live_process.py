@@ -1,0 +1,186 @@
+"""An environment episode moves the slave as the live services do for the same action sequence.
+
+The same step-and-hold action sequence (a still start, then four straight master moves, each
+followed by a hold) is played twice:
+
+* **live**: a real site (router, watchdog, slave_control on MuJoCo, mapping, master_capture) whose
+  master is the ``policy`` device running ``tests/policies/steps.py``, which moves the master as
+  ``env.step`` interprets an action — ``action × max_step_mm`` a call, one call per environment
+  step (100 Hz), from the slave's engagement on;
+* **environment**: :class:`~telesurg.gym.env.TeleopReachEnv` with the site's robot, mapping mode
+  and scale (the MH3F's Cartesian mapping at scale 0.5: the default site, which starts at home,
+  not inserted through the trocar as ``MH3F-Reach-v0`` does), started where the live slave stood
+  when it engaged (``reset(options={"joints": …})``).
+
+A live site's timing jitters by milliseconds, so the comparison is what a user calls "the same
+trajectory": the settled tip at the end of every hold, and the symmetric distance between the two
+tip paths (each sample's distance to the other path's polyline); both within 0.1 mm.
+
+The watchdog runs with ``degraded_scale = 1``: on a loaded host its latency rule may call the link
+DEGRADED and halve the motion scale mid-run, which the environment (no bus) does not model. A run
+the watchdog interrupted (a HOLD: the slave stopped following) is not a comparison: the site is
+started afresh, up to three times.
+"""
+
+from __future__ import annotations
+
+import threading
+from pathlib import Path
+
+import numpy as np
+import pytest
+from telesurg.gym.env import RobotTask, TeleopReachEnv
+from telesurg.services.mapping import MappingConfig
+from telesurg.shared.messages import CartesianPose, JointState
+from telesurg.tools.bench.harness import Pipeline, now_ns
+
+STEPS = Path(__file__).with_name("policies") / "steps.py"
+TOLERANCE_MM = 0.1
+MAX_STEP_MM = 2.0  # the environment's default: an action of 1 moves the master 2 mm
+CONTROL_HZ = 100.0  # the environment's step rate = the policy's call rate
+HOLD = 100  # steps (1 s) of every hold: the slave settles
+MOVES = ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, -1.0), (-1.0, -1.0, 1.0))
+SPEED = 0.1  # action per axis while moving: 0.2 mm a step, 20 mm/s at the master, 10 at the tip
+
+
+def action_sequence() -> tuple[np.ndarray, list[int]]:
+    """(n, 3) actions, and the index of the last step of each hold (the settled waypoints)."""
+    rows: list[np.ndarray] = [np.zeros((50, 3))]
+    ends = [49]
+    for m in MOVES:
+        rows.append(np.tile(np.array(m) * SPEED, (100, 1)))
+        rows.append(np.zeros((HOLD, 3)))
+        ends.append(sum(len(r) for r in rows) - 1)
+    return np.concatenate(rows).astype(np.float32), ends
+
+
+def env_run(q_start: np.ndarray, actions: np.ndarray) -> np.ndarray:
+    """The environment's tip after each action (m, base frame)."""
+    env = TeleopReachEnv(
+        RobotTask("mh3f", "cartesian", scale=MappingConfig().scale),
+        control_hz=CONTROL_HZ,
+        max_step_mm=MAX_STEP_MM,
+    )
+    try:
+        env.reset(seed=0, options={"joints": q_start})
+        tips = []
+        for a in actions:
+            _obs, _r, _term, _trunc, info = env.step(a)
+            tips.append(info["tip_m"])  # (the observation's is float32)
+        return np.array(tips)
+    finally:
+        env.close()
+
+
+def distance_to_polyline(points: np.ndarray, line: np.ndarray) -> np.ndarray:
+    """Each point's distance to the polyline through ``line`` (both (n, 3), m)."""
+    a, b = line[:-1], line[1:]
+    ab = b - a
+    den = np.maximum((ab**2).sum(axis=1), 1e-30)
+    out = np.empty(len(points))
+    for i in range(0, len(points), 256):
+        p = points[i : i + 256, None, :]
+        u = np.clip(((p - a) * ab).sum(axis=2) / den, 0.0, 1.0)
+        closest = a + u[..., None] * ab
+        out[i : i + 256] = np.linalg.norm(p - closest, axis=2).min(axis=1)
+    return out
+
+
+def live_run(tmp: Path, actions_file: Path) -> dict[str, object] | None:
+    """One live run; None if the watchdog interrupted it (the slave stopped following)."""
+    done = tmp / "done"
+    options = [
+        'device="policy"',
+        f'device_options.policy="{STEPS}:make"',
+        f"device_options.rate_hz={CONTROL_HZ}",
+        f'device_options.options.actions="{actions_file}"',
+        f"device_options.options.max_step_mm={MAX_STEP_MM}",
+        f'device_options.options.done_file="{done}"',
+    ]
+    overrides = {"master_capture": options, "watchdog": ["degraded_scale=1.0"]}
+    with Pipeline(tmp / "logs", mirror=False, impair=False, overrides=overrides) as p:
+        masters: list[tuple[float, ...]] = []  # (receive ns, x, y, z)
+        joints: list[tuple[int, tuple[float, ...]]] = []  # (receive ns, the slave's measured joints)
+        lock = threading.Lock()
+
+        def on_master(m: CartesianPose, key: str) -> None:
+            with lock:
+                masters.append((now_ns(), *m.position))
+
+        def on_joints(m: JointState, key: str) -> None:
+            with lock:
+                joints.append((now_ns(), m.position))
+
+        k = p.node.keys
+        p.node.subscribe(k.master("m1", "measured_cp"), CartesianPose, on_master, sources=["master_capture"])
+        p.node.subscribe(k.slave("arm1", "measured_js"), JointState, on_joints, sources=["slave_control"])
+        assert p.wait_following(60), "the slave never followed the policy\n" + p.diagnose()
+        # generous: the 8.5 s sequence at 100 calls a second, stretched by a loaded host
+        assert p.wait(done.exists, 120), "the policy never finished its sequence\n" + p.diagnose()
+        t_done = now_ns()
+        p.wait(lambda: False, 0.3)  # the last samples arrive
+        if done.read_text() != "done":
+            print(f"run interrupted (the slave stopped following): {p.diagnose(4)}")
+            return None
+        with p.p.lock:
+            op = list(p.p.op)
+            tips = np.array(p.p.tip, dtype=float)
+        engaged = next(r[0] for r in op if r[1])
+        if any(not r[1] for r in op if engaged <= r[0] <= t_done):
+            print("run interrupted: the follow flag dropped during the sequence")
+            return None
+        with lock:
+            master = np.array(masters, dtype=float)
+            # where the slave stood when it engaged (still: it moves only once the policy acts)
+            q_start = np.array(next(q for t, q in reversed(joints) if t < engaged))
+    return {"tips": tips, "master": master, "q_start": q_start, "engaged": engaged, "t_done": t_done}
+
+
+@pytest.mark.process
+@pytest.mark.timeout(900)
+def test_an_episode_moves_the_slave_as_the_live_services_do(tmp_path: Path) -> None:
+    actions, hold_ends = action_sequence()
+    actions_file = tmp_path / "actions.npy"
+    np.save(actions_file, actions)
+    run = None
+    for attempt in range(3):
+        run = live_run(tmp_path / f"run{attempt}", actions_file)
+        if run is not None:
+            break
+    assert run is not None, "three live runs were interrupted by the watchdog"
+    live_tips: np.ndarray = run["tips"]  # type: ignore[assignment]
+    master: np.ndarray = run["master"]  # type: ignore[assignment]
+    q_start: np.ndarray = run["q_start"]  # type: ignore[assignment]
+    engaged, t_done = int(run["engaged"]), int(run["t_done"])  # type: ignore[call-overload]
+
+    env_tips = env_run(q_start, actions)
+    # the master's waypoints, as env.step sums them
+    waypoints = np.cumsum(np.clip(actions, -1, 1).astype(float) * (MAX_STEP_MM / 1e3), axis=0)[hold_ends]
+
+    # the settled tips: live, the median over the last 200 ms (from 250 ms before) of each hold —
+    # the hold of waypoint j ends when the master leaves it (the last: when the policy finished)
+    settled_err = []
+    for j, (w, end) in enumerate(zip(waypoints, hold_ends, strict=True)):
+        at_w = master[np.linalg.norm(master[:, 1:] - w, axis=1) < 1e-9, 0]
+        at_w = at_w[at_w >= engaged]
+        assert at_w.size, f"the live master never stood at waypoint {j} ({w * 1e3} mm)"
+        t_end = t_done if j == len(waypoints) - 1 else at_w.max()
+        sel = (live_tips[:, 0] >= t_end - 250e6) & (live_tips[:, 0] <= t_end - 50e6)
+        assert sel.sum() >= 5, f"too few live tips at the end of hold {j}"
+        live_settled = np.median(live_tips[sel, 1:], axis=0)
+        settled_err.append(float(np.linalg.norm(live_settled - env_tips[end])) * 1e3)
+    # the paths: the live tips from the engagement to the end, the environment's from its start
+    live_path = live_tips[(live_tips[:, 0] >= engaged) & (live_tips[:, 0] <= t_done), 1:]
+    env_path = np.vstack([env_tips[:1], env_tips])
+    d_live = distance_to_polyline(live_path, env_path) * 1e3
+    d_env = distance_to_polyline(env_path, live_path) * 1e3
+    travel = float(np.linalg.norm(np.diff(env_path, axis=0), axis=1).sum()) * 1e3
+    print(
+        f"live services vs environment, {len(actions)} actions ({travel:.1f} mm of tip path): settled tips "
+        f"at the {len(waypoints)} waypoints off by {', '.join(f'{e:.4f}' for e in settled_err)} mm; "
+        f"path distance live→env max {d_live.max():.4f} mm (median {np.median(d_live):.4f}, "
+        f"{len(live_path)} samples), env→live max {d_env.max():.4f} mm ({len(env_path)} samples)"
+    )
+    assert travel > 60.0  # the sequence moved the tip (10 + 10 + 10 + 17 mm and back)
+    assert max(settled_err) <= TOLERANCE_MM
+    assert d_live.max() <= TOLERANCE_MM and d_env.max() <= TOLERANCE_MM
