@@ -245,13 +245,11 @@ def episodes_of(
         cols["action"] = np.array([rec.target.v[rec.target.at(int(t))] for t in times], dtype=np.float32)
         frames = {c: [rec.images[c].nearest(int(t)) for t in times] for c in cameras}
         offsets = {
-            c: np.array(
-                [(rec.images[c].t[i] - int(t)) / 1e6 for t, i in zip(times, frames[c], strict=True)]
-            )
+            c: np.array([(rec.images[c].t[i] - int(t)) / 1e6 for t, i in zip(times, frames[c], strict=True)])
             for c in cameras
         }
-        for c, off in offsets.items():
-            late = int(np.count_nonzero(np.abs(off) > 1e3 / fps))
+        for c, offset in offsets.items():
+            late = int(np.count_nonzero(np.abs(offset) > 1e3 / fps))
             if late:
                 log.warning(
                     "%s: camera %s: %d of %d frames of the episode at %d ns have no image within one "
@@ -262,7 +260,7 @@ def episodes_of(
                     n,
                     t0,
                     1e3 / fps,
-                    float(np.abs(off).max()),
+                    float(np.abs(offset).max()),
                 )
         out.append(Episode(rec.path, int(t0), times, cols, frames, offsets))
     return out

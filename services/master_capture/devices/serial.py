@@ -1,5 +1,5 @@
 """The ``serial`` master device: the all-joints (PLAS) master's encoder board
-(:mod:`telesurg.shared.encoder_protocol` over :mod:`telesurg.shared.serial_link`, ``docs/robots.md`` (Hardware)),
+(:mod:`telesurg.shared.encoder_protocol` over :mod:`telesurg.shared.serial_link`; docs/robots.md, Hardware),
 read in a background thread, with automatic reconnection. A reading older than ``stale_ms`` is
 invalid (``DeviceSample.valid``): master_capture then publishes nothing and the watchdog holds.
 
