@@ -8,12 +8,14 @@ pedal anew: a new engagement) and the sequence starts over at the next engagemen
 ``--set master_capture.device_options.policy=tests/policies/steps.py:make`` with
 ``device_options.options.actions=FILE.npy`` (shape (n, 3)), ``options.max_step_mm`` (the
 environment's, 2) and ``options.done_file=PATH``: written once a whole sequence was played, as JSON:
-the slave's joints when that engagement began and the number of interrupted attempts before it.
+for the engagement that played it, the slave's joints and the master's position (m) when it began
+and when that was (``start_ns``, wall clock), and the number of interrupted attempts before it.
 """
 
 from __future__ import annotations
 
 import json
+import time
 from pathlib import Path
 
 import numpy as np
@@ -25,7 +27,7 @@ def make(actions: str, max_step_mm: float = 2.0, done_file: str = ""):  # type: 
     steps = np.clip(np.load(actions).astype(np.float32), -1.0, 1.0).astype(float) * (max_step_mm / 1e3)
     done = Path(done_file) if done_file else None
     # k: the next action (-1: waiting for an engagement; len(steps): finished)
-    state: dict[str, object] = {"k": -1, "joints": [], "interrupted": 0}
+    state: dict[str, object] = {"k": -1, "joints": [], "origin": [], "start_ns": 0, "interrupted": 0}
 
     def policy(obs: PolicyObservation) -> np.ndarray | None:
         k = int(state["k"])  # type: ignore[call-overload]
@@ -40,10 +42,13 @@ def make(actions: str, max_step_mm: float = 2.0, done_file: str = ""):  # type: 
             return np.zeros(3)
         if k < 0:  # a new engagement: the slave stands where the mapping anchored it
             state["joints"] = [float(v) for v in obs.joints]
+            state["origin"] = [float(v) for v in obs.master]
+            state["start_ns"] = time.time_ns()
             k = 0
         state["k"] = k + 1
         if k + 1 == len(steps) and done is not None:
-            done.write_text(json.dumps({"joints": state["joints"], "interrupted": state["interrupted"]}))
+            keys = ("joints", "origin", "start_ns", "interrupted")
+            done.write_text(json.dumps({n: state[n] for n in keys}))
         out: np.ndarray = steps[k]
         return out
 
