@@ -29,7 +29,6 @@ from __future__ import annotations
 
 import json
 import threading
-import time
 from pathlib import Path
 from typing import Any
 
@@ -37,8 +36,8 @@ import numpy as np
 import pytest
 from telesurg.gym.env import RobotTask, TeleopReachEnv
 from telesurg.services.mapping import MappingConfig
-from telesurg.shared.messages import CartesianPose
-from telesurg.tools.bench.harness import Pipeline, now_ns
+from telesurg.shared.messages import CartesianPose, OperatingState
+from telesurg.tools.bench.harness import Pipeline
 
 STEPS = Path(__file__).with_name("policies") / "steps.py"
 TOLERANCE_MM = 0.1
@@ -108,8 +107,9 @@ def distance_to_polyline(points: np.ndarray, line: np.ndarray) -> np.ndarray:
 
 
 def live_run(tmp: Path, actions_file: Path) -> dict[str, Any]:
-    """The live run: the probe's tips, the master's poses, the engagement that played the whole
-    sequence (its start on the probe's clock, the slave's joints then) and when it ended."""
+    """The live run: the slave's tips and the master's poses by their publishers' stamps (wall clock,
+    one host: no receive jitter), and the engagement that played the whole sequence (when it began
+    and ended, the slave's joints and the master's position then)."""
     done = tmp / "done.json"
     options = [
         'device="policy"',
@@ -121,39 +121,55 @@ def live_run(tmp: Path, actions_file: Path) -> dict[str, Any]:
     ]
     overrides = {"master_capture": options, **{k: list(v) for k, v in RELAXED.items()}}
     with Pipeline(tmp / "logs", mirror=False, impair=False, overrides=overrides) as p:
-        masters: list[tuple[float, ...]] = []  # (receive ns, x, y, z)
+        masters: list[tuple[float, ...]] = []  # (stamp ns, x, y, z)
+        tips: list[tuple[float, ...]] = []
+        follow: list[tuple[int, bool]] = []  # (stamp ns, the slave follows)
         lock = threading.Lock()
 
-        def on_master(m: CartesianPose, key: str) -> None:
-            with lock:
-                masters.append((now_ns(), *m.position))
+        def on_pose(into: list[tuple[float, ...]]) -> Any:
+            def put(m: CartesianPose, key: str) -> None:
+                with lock:
+                    into.append((m.header.stamp_ns, *m.position))
 
-        k = p.node.keys
-        p.node.subscribe(k.master("m1", "measured_cp"), CartesianPose, on_master, sources=["master_capture"])
+            return put
+
+        def on_state(m: OperatingState, key: str) -> None:
+            with lock:
+                follow.append((m.header.stamp_ns, m.follow))
+
+        k, src = p.node.keys, {"sources": ["slave_control"]}
+        p.node.subscribe(
+            k.master("m1", "measured_cp"), CartesianPose, on_pose(masters), sources=["master_capture"]
+        )
+        p.node.subscribe(k.slave("arm1", "measured_cp"), CartesianPose, on_pose(tips), **src)
+        p.node.subscribe(k.slave("arm1", "operating_state"), OperatingState, on_state, **src)
         assert p.wait_following(180), "the slave never followed the policy\n" + p.diagnose()
-        # generous: the 8.5 s sequence at 100 calls a second, stretched by a loaded host, and
-        # started over after each HOLD
+        # generous: the sequence at 100 calls a second, stretched by a loaded host, and started
+        # over after each HOLD
         assert p.wait(done.exists, 300), "the policy never played its whole sequence\n" + p.diagnose()
-        t_done = now_ns()
-        wall_minus_probe = time.time_ns() - now_ns()  # (one host: the policy's wall clock → the probe's)
-        p.wait(lambda: False, 0.3)  # the last samples arrive
-        with p.p.lock:
-            op = [(r[0], r[1]) for r in p.p.op]
-            tips = np.array(p.p.tip, dtype=float)
+        report = json.loads(done.read_text())
+        end = int(report["end_ns"])
+
+        def caught_up() -> bool:  # (on a loaded host the callbacks may lag behind)
+            with lock:
+                return bool(masters and tips) and min(masters[-1][0], tips[-1][0]) > end
+
+        assert p.wait(caught_up, 30), "the master's and the slave's samples of the end never came"
         with lock:
-            master = np.array(masters, dtype=float)
-    report = json.loads(done.read_text())
-    engaged = int(report["start_ns"]) - wall_minus_probe  # the policy's first step, probe clock
-    drops = sum(1 for t, f in op if engaged + 100_000_000 <= t <= t_done and not f)
+            master = np.array(sorted(masters), dtype=float)
+            tip = np.array(sorted(tips), dtype=float)
+            states = sorted(follow)
+    start = int(report["start_ns"])
+    drops = sum(1 for t, f in states if start + 100_000_000 <= t <= end and not f)
     return {
-        "tips": tips,
+        "tips": tip,
         "master": master,
         "q_start": np.array(report["joints"]),
         "origin": np.array(report["origin"]),
         "interrupted": report["interrupted"],
         "drops": drops,
-        "engaged": engaged,
-        "t_done": t_done,
+        "engaged": start,
+        "t_done": end,
     }
 
 

@@ -8,8 +8,9 @@ pedal anew: a new engagement) and the sequence starts over at the next engagemen
 ``--set master_capture.device_options.policy=tests/policies/steps.py:make`` with
 ``device_options.options.actions=FILE.npy`` (shape (n, 3)), ``options.max_step_mm`` (the
 environment's, 2) and ``options.done_file=PATH``: written once a whole sequence was played, as JSON:
-for the engagement that played it, the slave's joints and the master's position (m) when it began
-and when that was (``start_ns``, wall clock), and the number of interrupted attempts before it.
+for the engagement that played it, the slave's joints and the master's position (m) when it began,
+when it began and ended (``start_ns``, ``end_ns``: wall clock), and the number of interrupted
+attempts before it.
 """
 
 from __future__ import annotations
@@ -48,7 +49,8 @@ def make(actions: str, max_step_mm: float = 2.0, done_file: str = ""):  # type: 
         state["k"] = k + 1
         if k + 1 == len(steps) and done is not None:
             keys = ("joints", "origin", "start_ns", "interrupted")
-            done.write_text(json.dumps({n: state[n] for n in keys}))
+            report = {n: state[n] for n in keys} | {"end_ns": time.time_ns()}
+            done.write_text(json.dumps(report))
         out: np.ndarray = steps[k]
         return out
 
