@@ -14,7 +14,8 @@ followed by a hold) is played twice:
 
 A live site's timing jitters by milliseconds, so the comparison is what a user calls "the same
 trajectory": the settled tip at the end of every hold, and the symmetric distance between the two
-tip paths (each sample's distance to the other path's polyline); both within 0.1 mm.
+tip paths (each sample's distance to the other path's polyline); both within 0.1 mm. The live samples
+are placed in time by their publishers' stamps (one host's wall clock), not by when the test got them.
 
 The site's safety timing is relaxed for the comparison (``RELAXED``: the watchdog's deadlines 300 ms,
 its lease 1 s, its latency limits 0.5 / 1 s, ``degraded_scale = 1``; the mapping's and the slave's
