@@ -1,4 +1,4 @@
-"""``telesurg.gym``: Gymnasium environments of the telesurg slaves (``docs/recording.md``).
+"""``telesurg.gym``: Gymnasium environments of the telesurg slaves (``docs/learning.md``).
 
 Importing it registers, per robot and task:
 

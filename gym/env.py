@@ -312,20 +312,37 @@ class TeleopReachEnv(gymnasium.Env[dict[str, np.ndarray], np.ndarray]):
         self, *, seed: int | None = None, options: dict[str, Any] | None = None
     ) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
         super().reset(seed=seed)
-        self._set_arm(self.q0)
+        q_start = self._start_joints(options)
+        self._set_arm(q_start)
         self.t = 0.0
         self.master = np.zeros_like(self.master)
-        self.q_cmd = self.q0.copy()
+        self.q_cmd = q_start.copy()
         self.interp = SetpointInterpolator(0.1)
         self.pair = _Pair(self.cfg, self.task.arm)
         self.strategy = self.make_strategy(self.pair)
         self._map()  # the engage sample: the references, a setpoint where the slave is
         self._push()
-        tip0 = self.profile.tip(self.q0)
+        tip0 = self.profile.tip(q_start)
         v = self.np_random.normal(size=3)
         v *= self.goal_radius * self.np_random.uniform(0.3, 1.0) / np.linalg.norm(v)
         self.goal = tip0 + v
         return self._obs(), self._info()
+
+    def _start_joints(self, options: dict[str, Any] | None) -> np.ndarray:
+        """The episode's start joints: ``options["joints"]`` (e.g. where a live slave stood when it
+        engaged; rad / m, within the limits) or the task's start pose."""
+        unknown = sorted(set(options or {}) - {"joints"})
+        if unknown:
+            raise ValueError(f"reset options {unknown} unknown; valid: joints")
+        if not options or options.get("joints") is None:
+            return self.q0.copy()
+        q = np.asarray(options["joints"], dtype=float).reshape(-1)
+        n = len(self.profile.joint_names)
+        if q.shape != (n,) or not np.all(np.isfinite(q)):
+            raise ValueError(f"reset options joints: {n} finite values expected ({self.profile.joint_names})")
+        if np.any(q < self.lower) or np.any(q > self.upper):
+            raise ValueError(f"reset options joints {q.tolist()} outside the joint limits")
+        return q
 
     def _push(self) -> None:
         q = self._map() if self.pair is not None else None

@@ -1,4 +1,4 @@
-"""Policies for the ``policy`` master device (``docs/recording.md``), usable as ``module:function``.
+"""Policies for the ``policy`` master device (``docs/learning.md``), usable as ``module:function``.
 
 :func:`replay` makes a policy from a LeRobotDataset written by ``telesurg export --to lerobot``: it
 plays one episode's commanded tip motion (the ``action`` feature: the mapping's target, base

@@ -7,7 +7,7 @@ The host (slave_control's ``serial`` backend) sends setpoints at its control rat
 servoes the joints, streams its measured state and stops on its own when the setpoints stop (a
 second, hardware-side watchdog). Pure module: no I/O, no threads; :mod:`telesurg.shared.serial_link` and
 :mod:`telesurg.shared.robots` are imported lazily. Reference firmware: ``firmware/servo_controller``;
-emulator: ``telesurg device emulate-slave``; bring-up of a real arm: ``docs/hardware.md``.
+emulator: ``telesurg device emulate-slave``; bring-up of a real arm: ``docs/robots.md`` (Hardware).
 
 Frame layout (from :mod:`telesurg.shared.serial_link`, frame version 1)
 --------------------------------------------------------------

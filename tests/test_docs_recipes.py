@@ -220,7 +220,7 @@ echo "board exit $?"
 @pytest.mark.process
 @pytest.mark.timeout(420)
 def test_the_plas_site_on_an_emulated_board_as_written(tmp_path: Path) -> None:
-    """docs/hardware.md: the emulated board the PLAS site expects, then ``up``: both arms follow
+    """docs/robots.md (Hardware): the emulated board the PLAS site expects, then ``up``: both arms follow
     the master once its operator presses the pedal; Ctrl-C stops it cleanly. The same with a
     board the site does not expect (the default calibration): ``up`` exits 1 naming the cause."""
     board, up = commands("plas-pty")
@@ -283,13 +283,13 @@ def test_the_plugin_examples_as_written(tmp_path: Path) -> None:
             assert re.search(r"mapping \S+ → arm1 \(reach\)", log), log[-3000:]
 
 
-# ------------------------------------------------------------ recording.md: robot learning
+# ------------------------------------------------------------- learning.md: robot learning
 
 
 @pytest.mark.process
 @pytest.mark.timeout(420)
 def test_recording_to_dataset_to_a_policy_run_as_written(tmp_path: Path) -> None:
-    """docs/recording.md: a site with two clutch presses (and its camera) recorded, exported as a
+    """docs/learning.md: a site with two clutch presses (and its camera) recorded, exported as a
     LeRobotDataset and read back by pyarrow and PyAV (tests/lerobot_check.py); then the dataset's
     first episode, as a policy, drives a fresh site: its slave follows the policy and moves."""
     from lerobot_check import check_dataset

@@ -180,3 +180,24 @@ def test_the_image_observation_is_the_endoscope_view() -> None:
     assert env.observation_space.contains(obs)
     assert obs["image"].std() > 1.0  # a picture, not a blank
     env.close()
+
+
+def test_reset_starts_at_the_given_joints_and_bad_ones_are_refused() -> None:
+    env = gymnasium.make("telesurg/VIP-Reach-v0").unwrapped
+    assert isinstance(env, TeleopReachEnv)
+    q = (env.q0 + 0.5 * env.lower + 0.5 * env.upper) / 2  # between the start pose and mid-range
+    obs, info = env.reset(seed=0, options={"joints": q})
+    assert np.allclose(obs["joints"], q, atol=1e-6)
+    assert np.allclose(info["tip_m"], env.profile.tip(q), atol=1e-9)
+    obs, _r, _t, _tr, _i = env.step(np.zeros(3, dtype=np.float32))  # a still master: the arm stays
+    assert np.linalg.norm(obs["tip"] - info["tip_m"]) < 1e-4
+    n = len(env.profile.joint_names)
+    with pytest.raises(ValueError, match=f"{n} finite values"):
+        env.reset(options={"joints": [0.0] * (n - 1)})
+    with pytest.raises(ValueError, match="outside the joint limits"):
+        env.reset(options={"joints": env.upper + 0.1})
+    with pytest.raises(ValueError, match="unknown; valid: joints"):
+        env.reset(options={"pose": q})
+    obs, _ = env.reset(seed=0)  # no options: the task's start pose
+    assert np.allclose(obs["joints"], env.q0, atol=1e-6)
+    env.close()

@@ -3,12 +3,13 @@ LeRobotDataset v3.0, read back with pyarrow and PyAV (the ``lerobot-dataset`` re
 and cannot install beside telesurg's); and bad input: one line on stderr, exit 1, nothing written.
 
 The live-site version (two clutch engagements of a real site with its camera) is
-``tests/test_lerobot_process.py``.
+``tests/test_docs_recipes.py`` (``test_recording_to_dataset_to_a_policy_run_as_written``).
 """
 
 from __future__ import annotations
 
 import json
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
@@ -39,12 +40,17 @@ def _jpeg(level: int) -> bytes:
 
 
 def make_recording(
-    path: Path, *, engaged: tuple[tuple[int, int], ...] = ENGAGED, camera: bool = True
+    path: Path,
+    *,
+    engaged: tuple[tuple[int, int], ...] = ENGAGED,
+    camera: bool = True,
+    camera_ms: Sequence[int] = range(0, 6000, 50),
 ) -> None:
     """6 s of an arm: joints 250 Hz (j1 = t in s; a look-alike publisher's too), tip and state 50 Hz,
-    the mapping's target 50 Hz while engaged (x = 1 + t), the camera at 20 Hz (grey level = frame
-    number × 10)."""
+    the mapping's target 50 Hz while engaged (x = 1 + t), the camera captured at ``camera_ms``
+    (multiples of 4 ms; default 20 Hz; grey level = capture ms // 50 × 10, at most 250)."""
     seq: dict[str, int] = {}
+    captures = set(camera_ms)
 
     def put(key: str, make: object, t_ms: float, src: str) -> None:
         n = seq.get(key, 0)
@@ -89,7 +95,7 @@ def make_recording(
                         t,
                         "mapping",
                     )
-            if camera and t % 50 == 0:
+            if camera and t in captures:
                 i = t // 50
                 put(
                     "camera/endo/image",
@@ -170,6 +176,54 @@ def test_two_engagements_make_two_episodes_read_back_with_pyarrow_and_pyav(
     assert stats["observation.state"]["count"] == [30]
     assert np.allclose(stats["action"]["min"][:3], action[:, :3].min(axis=0), atol=1e-6)
     assert "wrote" in capsys.readouterr().out
+
+
+def test_each_frame_gets_the_image_captured_nearest_to_it_and_the_offsets_are_kept(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A 10 Hz camera that captures 28 ms after each frame instant, silent for 0.3 s in the first
+    episode: every frame shows the image nearest to it (not the newest earlier one, 72 ms older);
+    the frames in the silence are counted (warning, episode metadata, info.json) and each frame's
+    offset is in meta/telesurg/image_times.parquet."""
+    import pyarrow.parquet as pq
+
+    gap = (1428, 1528, 1628)
+    run = tmp_path / "late.mcap"
+    make_recording(run, camera_ms=[t for t in range(28, 6000, 100) if t not in gap])
+    out = tmp_path / "ds"
+    with caplog.at_level("WARNING", logger="telesurg.export"):
+        assert main([str(run), "--to", "lerobot", str(out), "--fps", "10"]) == 0
+    warned = [r.getMessage() for r in caplog.records if "within one frame period" in r.getMessage()]
+    assert len(warned) == 1 and "2 of 15 frames" in warned[0], warned
+    times = pq.read_table(out / "meta/telesurg/image_times.parquet").to_pydict()
+    assert len(times["index"]) == 30 and set(times["camera"]) == {"endo"}
+    eps = pq.read_table(out / "meta/episodes/chunk-000/file-000.parquet").to_pylist()
+    starts = [e["telesurg/start_ns"] for e in eps]
+    frame_ms = np.array(
+        [
+            (starts[e] - T0) / MS + k * 100
+            for e, k in zip(times["episode_index"], times["frame_index"], strict=True)
+        ]
+    )
+    capture_ms = (np.array(times["capture_ns"]) - T0) / MS
+    offset = np.array(times["offset_ms"])
+    assert np.allclose(capture_ms - frame_ms, offset)
+    # outside the silence: the image 28 ms after the frame; in it, the nearest on either side
+    silent = {1400: -72.0, 1500: -172.0, 1600: 128.0}
+    expect = np.array([silent.get(int(f), 28.0) for f in frame_ms])
+    assert np.allclose(offset, expect), (frame_ms, offset)
+    frames = _read_frames(out / "videos/observation.images.endo/chunk-000/file-000.mp4")
+    got = np.array([f.mean() for f in frames])
+    assert np.max(np.abs(got - np.minimum(250, capture_ms // 50 * 10))) < 3
+    key = "observation.images.endo"
+    assert [e[f"telesurg/images_beyond_one_period/{key}"] for e in eps] == [2, 0]
+    assert [e[f"telesurg/max_image_offset_ms/{key}"] for e in eps] == pytest.approx([172.0, 28.0])
+    info = json.loads((out / "meta/info.json").read_text())
+    assert info["telesurg"]["images"][key] == {
+        "max_offset_ms": 172.0,
+        "frames_beyond_one_period": 2,
+        "per_frame": "meta/telesurg/image_times.parquet",
+    }
 
 
 def test_several_recordings_make_one_dataset(recording: Path, tmp_path: Path) -> None:

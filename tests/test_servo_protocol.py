@@ -138,8 +138,8 @@ def test_documented_setpoint_bytes() -> None:
     assert wire.hex(" ") == expected
     doc = " ".join((sp.__doc__ or "").split())
     assert expected[:80] in doc and expected[81:] in doc  # the module docstring shows these bytes
-    hardware = " ".join((REPO / "docs" / "hardware.md").read_text(encoding="utf-8").split())
-    assert expected[:80] in hardware  # and so does docs/hardware.md
+    robots = " ".join((REPO / "docs" / "robots.md").read_text(encoding="utf-8").split())
+    assert expected[:80] in robots  # and so does docs/robots.md (Hardware)
     assert decode_message(decode_frame(wire)) == sp.Setpoint(7, (0.5, -0.25), 100)
 
 

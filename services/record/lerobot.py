@@ -3,10 +3,14 @@
 Each engaged period of a recording — the slave's ``operating_state.follow`` true: the mapping
 commands it and it tracks — is one episode. Episodes are resampled at ``fps`` on the recording's
 own clock (the header stamps, wall clock ns; a camera frame by its ``capture_ns``): frame ``k`` of an
-episode is at ``t0 + k / fps`` and holds, for every stream, the **newest sample stamped at or before
-it** (zero-order hold: what a policy running at ``fps`` would have seen). ``t0`` is the first
-instant of the engaged period at which every exported stream has a sample of that period; the
-episode ends before the follow flag drops.
+episode is at ``t0 + k / fps`` and holds, for every joint, pose and wrench stream, the **newest
+sample stamped at or before it** (zero-order hold: what a policy running at ``fps`` would have seen),
+and for every camera the **image captured nearest to it** (the camera runs best-effort, off the
+control loops' clock: a newest-earlier image would be up to a camera period old even when the
+camera keeps its rate). Each frame's image offset (capture − frame instant) is kept in
+``meta/telesurg/image_times.parquet``; the export warns about frames without an image within one
+frame period. ``t0`` is the first instant of the engaged period at which every exported stream has
+a sample of that period; the episode ends before the follow flag drops.
 
 Features (all float32, SI units, the slave's ``base`` frame):
 
@@ -21,8 +25,10 @@ Features (all float32, SI units, the slave's ``base`` frame):
 Layout (LeRobotDataset v3.0): ``meta/info.json`` (features, fps, paths), ``meta/tasks.parquet``,
 ``meta/episodes/chunk-000/file-000.parquet`` (per episode: length, tasks, index ranges, video
 timestamps, statistics, and the source file and start time), ``meta/stats.json``,
-``data/chunk-000/file-000.parquet`` (one row a frame) and
-``videos/observation.images.<cam>/chunk-000/file-000.mp4`` (every episode's frames in order).
+``data/chunk-000/file-000.parquet`` (one row a frame),
+``videos/observation.images.<cam>/chunk-000/file-000.mp4`` (every episode's frames in order) and,
+telesurg's own, ``meta/telesurg/image_times.parquet`` (per frame and camera: the image's capture time
+and its offset from the frame's instant).
 
 The dataset is written into a temporary folder beside ``OUT`` and renamed when complete: bad input
 leaves nothing behind.
@@ -65,6 +71,8 @@ CODEBASE_VERSION = "v3.0"
 DATA_PATH = "data/chunk-{chunk_index:03d}/file-{file_index:03d}.parquet"
 VIDEO_PATH = "videos/{video_key}/chunk-{chunk_index:03d}/file-{file_index:03d}.mp4"
 EPISODES_PATH = "meta/episodes/chunk-000/file-000.parquet"
+#: per frame and camera: the chosen image's capture time and offset (telesurg's, not LeRobot's)
+IMAGE_TIMES_PATH = "meta/telesurg/image_times.parquet"
 CHUNKS_SIZE = 1000  # files per chunk folder (LeRobot's default; one file here)
 #: the services whose slave/, mapping and camera streams are exported (as the mirror trusts them)
 TRUSTED = frozenset({"slave_control", "mapping", "camera"})
@@ -99,6 +107,15 @@ class Series:
     def at(self, t: int) -> int:
         """Index of the newest sample stamped at or before ``t`` (-1: none)."""
         return bisect_right(self.t, t) - 1
+
+    def nearest(self, t: int) -> int:
+        """Index of the sample stamped nearest to ``t`` (the earlier of two as near; -1: none)."""
+        i = bisect_right(self.t, t)
+        if i == 0:
+            return 0 if self.t else -1
+        if i < len(self.t) and self.t[i] - t < t - self.t[i - 1]:
+            return i
+        return i - 1
 
 
 @dataclass
@@ -182,7 +199,8 @@ class Episode:
     times_ns: np.ndarray  # (n,) the frames' instants on the recording's clock
     columns: dict[str, np.ndarray]  # feature → (n, dim) float32
     frames: dict[str, list[int]]  # camera → index into the recording's images, per frame
-    image_age_ms: dict[str, float] = field(default_factory=dict)  # camera → its oldest frame's age
+    # camera → per frame: its image's capture time − the frame's instant (ms; < 0: older)
+    image_offset_ms: dict[str, np.ndarray] = field(default_factory=dict)
 
 
 def episodes_of(
@@ -225,23 +243,26 @@ def episodes_of(
                 [[rec.op.v[rec.op.at(int(t))][1]] for t in times], dtype=np.float32
             )
         cols["action"] = np.array([rec.target.v[rec.target.at(int(t))] for t in times], dtype=np.float32)
-        frames = {c: [rec.images[c].at(int(t)) for t in times] for c in cameras}
-        ages = {
-            c: max((int(t) - rec.images[c].t[i]) / 1e6 for t, i in zip(times, frames[c], strict=True))
+        frames = {c: [rec.images[c].nearest(int(t)) for t in times] for c in cameras}
+        offsets = {
+            c: np.array([(rec.images[c].t[i] - int(t)) / 1e6 for t, i in zip(times, frames[c], strict=True)])
             for c in cameras
         }
-        for c, age in ages.items():
-            if age > 1e3 / fps:
+        for c, offset in offsets.items():
+            late = int(np.count_nonzero(np.abs(offset) > 1e3 / fps))
+            if late:
                 log.warning(
-                    "%s: camera %s delivered frames up to %.0f ms old in the episode at %d ns "
-                    "(slower than %g fps: a starved camera, or --fps above its rate)",
+                    "%s: camera %s: %d of %d frames of the episode at %d ns have no image within one "
+                    "frame period (%.0f ms; up to %.0f ms off): a starved camera, or --fps above its rate",
                     rec.path,
                     c,
-                    age,
+                    late,
+                    n,
                     t0,
-                    fps,
+                    1e3 / fps,
+                    float(np.abs(offset).max()),
                 )
-        out.append(Episode(rec.path, int(t0), times, cols, frames, ages))
+        out.append(Episode(rec.path, int(t0), times, cols, frames, offsets))
     return out
 
 
@@ -518,7 +539,11 @@ def _write(
             for name, value in s.items():
                 row[f"stats/{k}/{name}"] = value
         for c in cams:
-            row[f"telesurg/max_image_age_ms/observation.images.{c}"] = ep.image_age_ms[c]
+            off = np.abs(ep.image_offset_ms[c])
+            row[f"telesurg/max_image_offset_ms/observation.images.{c}"] = float(off.max())
+            row[f"telesurg/images_beyond_one_period/observation.images.{c}"] = int(
+                np.count_nonzero(off > 1e3 / fps)
+            )
         row["telesurg/source"] = str(ep.source)
         row["telesurg/start_ns"] = ep.start_ns
         ep_rows.append(row)
@@ -541,6 +566,31 @@ def _write(
     pq.write_table(
         pa.table({"task_index": pa.array([0], pa.int64()), "task": [task]}), root / "meta/tasks.parquet"
     )
+    if cams:  # per frame and camera: the image's capture time and its offset from the frame
+        t_rows: dict[str, list[Any]] = {
+            k: [] for k in ("index", "episode_index", "frame_index", "camera", "capture_ns", "offset_ms")
+        }
+        first_index = 0
+        for e, ep in enumerate(episodes):
+            n = len(ep.times_ns)
+            rec = next(r for r in recs if r.path == ep.source)
+            for c in cams:
+                t_rows["index"].extend(range(first_index, first_index + n))
+                t_rows["episode_index"].extend([e] * n)
+                t_rows["frame_index"].extend(range(n))
+                t_rows["camera"].extend([c] * n)
+                t_rows["capture_ns"].extend(rec.images[c].t[i] for i in ep.frames[c])
+                t_rows["offset_ms"].extend(ep.image_offset_ms[c].tolist())
+            first_index += n
+        (root / IMAGE_TIMES_PATH).parent.mkdir(parents=True)
+        pq.write_table(pa.table(t_rows), root / IMAGE_TIMES_PATH)
+    image_figures = {
+        c: (
+            float(max(np.abs(ep.image_offset_ms[c]).max() for ep in episodes)),
+            sum(int(np.count_nonzero(np.abs(ep.image_offset_ms[c]) > 1e3 / fps)) for ep in episodes),
+        )
+        for c in cams
+    }
     stats_all = {k: _merge_stats(v) for k, v in all_stats.items() if v}
     (root / "meta/stats.json").write_text(json.dumps(stats_all, indent=2) + "\n")
 
@@ -568,15 +618,29 @@ def _write(
             "frame": "base (the slave robot's base frame, the MuJoCo scene's world); m, rad, N, N·m",
             "alignment": (
                 "frame k of an episode is at start_ns + k/fps on the recording's clock (header "
-                "stamps; camera frames by capture_ns); each feature holds the newest sample stamped "
-                "at or before it (zero-order hold); an episode is one run of the slave's "
+                "stamps; camera frames by capture_ns); each state, wrench and action feature holds "
+                "the newest sample stamped at or before it (zero-order hold), each image is the "
+                "camera frame captured nearest to it; an episode is one run of the slave's "
                 "operating_state.follow, from the first instant every stream has a sample of it"
             ),
+            "images": {
+                f"observation.images.{c}": {
+                    "max_offset_ms": round(worst, 3),
+                    "frames_beyond_one_period": late,
+                    "per_frame": IMAGE_TIMES_PATH,
+                }
+                for c, (worst, late) in image_figures.items()
+            },
             "action": "slave/<arm>/setpoint_cp: the tip pose the mapping commanded (x y z, qx qy qz qw)",
         },
     }
     (root / "meta/info.json").write_text(json.dumps(info, indent=2) + "\n")
-    return {"episodes": len(episodes), "frames": index, "cameras": cams, "fps": fps}
+    summary: dict[str, Any] = {"episodes": len(episodes), "frames": index, "cameras": cams, "fps": fps}
+    for c, (worst, late) in image_figures.items():
+        summary[f"images {c}"] = (
+            f"within {worst:.1f} ms of their frames, {late} beyond one frame period ({1e3 / fps:.0f} ms)"
+        )
+    return summary
 
 
 def _rate(fps: float) -> Any:

@@ -3,7 +3,7 @@
 The robot (``model``, :mod:`telesurg.shared.robots`) is the MuJoCo simulation
 (``backend = "mujoco"``) or a real arm's joint-servo controller on a serial port
 (``backend = "serial"``, :mod:`telesurg.services.slave_control.serial_backend`,
-``docs/hardware.md``), optionally with the MuJoCo model as its shadow. Every arm of the robot
+``docs/robots.md`` (Hardware)), optionally with the MuJoCo model as its shadow. Every arm of the robot
 (the MH3F's one forceps arm, PLAS's and VIP's two arms) is an
 :class:`~telesurg.services.slave_control.arm.ArmCore` of its own — its own lease
 (``safety/<arm>/lease``), ``servo_jp``, follow/hold logic, e-stop latch and outputs; one arm
@@ -75,7 +75,7 @@ class SlaveControlConfig:
     site: str = "local"  # key prefix telesurg/<site>
     service: str = "slave_control"  # instance id (liveliness alive/<service>, header src)
     arm: str = "arm1"  # slave arm id in keys slave/<arm>/...
-    backend: str = "mujoco"  # valid: mujoco, serial (a real arm's servo controller, docs/hardware.md)
+    backend: str = "mujoco"  # valid: mujoco, serial (a real arm's servo controller, docs/robots.md, Hardware)
     # robot model, a name in the robot registry (shared/robots/<model>): mh3f (one forceps arm,
     # trocar modes); plas, vip: two joint-space arms arm1/arm2 in one process (one arm core each)
     model: str = "mh3f"

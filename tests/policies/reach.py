@@ -1,4 +1,4 @@
-"""A scripted policy for the policy master device (``docs/recording.md``): it moves the master tip
+"""A scripted policy for the policy master device (``docs/learning.md``): it moves the master tip
 along one axis at a constant speed and pauses (returns None) while a flag file exists.
 
 ``--set master_capture.device_options.policy=tests/policies/reach.py:make`` with

@@ -1,5 +1,5 @@
 """``telesurg device``: tools for the master's encoder board and the slave's servo controller
-(``docs/hardware.md``).
+(``docs/robots.md`` (Hardware)).
 
 * ``emulate --pty`` — an emulated encoder board on a new pseudo-terminal: prints the device path
   (e.g. ``/dev/pts/7``) as the first line on stdout, then serves HELLO and SAMPLE frames of a

@@ -1,5 +1,5 @@
 """The ``serial`` master device: the all-joints (PLAS) master's encoder board
-(:mod:`telesurg.shared.encoder_protocol` over :mod:`telesurg.shared.serial_link`, ``docs/hardware.md``),
+(:mod:`telesurg.shared.encoder_protocol` over :mod:`telesurg.shared.serial_link`; docs/robots.md, Hardware),
 read in a background thread, with automatic reconnection. A reading older than ``stale_ms`` is
 invalid (``DeviceSample.valid``): master_capture then publishes nothing and the watchdog holds.
 
@@ -47,7 +47,7 @@ _IDENTITY = (0.0, 0.0, 0.0, 1.0)
 
 @dataclass
 class SerialMasterConfig:
-    """Serial master: the all-joints master's encoder board (``docs/hardware.md``)."""
+    """Serial master: the all-joints master's encoder board (``docs/robots.md`` (Hardware))."""
 
     # serial port or pyserial URL: /dev/ttyACM0, /dev/serial/by-id/... (survives re-plugging),
     # /dev/pts/N (the emulator), loop://, socket://host:port
