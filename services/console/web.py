@@ -70,7 +70,13 @@ from telesurg.shared.bus import Node, only
 from telesurg.shared.clock import wall_ns
 from telesurg.shared.door import LOGIN_ENV, Door
 from telesurg.shared.errors import ConfigError
-from telesurg.shared.messages import CameraImage, CartesianPose, JointState, MasterButtons
+from telesurg.shared.messages import (
+    CameraImage,
+    CartesianPose,
+    CartesianWrench,
+    JointState,
+    MasterButtons,
+)
 from telesurg.shared.timing import CycleTimer, start_loop
 
 log = logging.getLogger(__name__)
@@ -97,6 +103,8 @@ class ArmView:
     tip: CartesianPose | None = None
     setpoint: CartesianPose | None = None
     setpoint_rx: float = 0.0
+    cf: CartesianWrench | None = None  # the tissue's force on the instrument (measured_cf)
+    cf_rx: float = -math.inf  # monotonic s: when the newest measured_cf arrived
 
 
 class Counters:
@@ -150,6 +158,10 @@ class WebConsole:
             node.subscribe(
                 k.slave(arm, "setpoint_cp"), CartesianPose, self._on_setpoint, sources=m_src, polled=True
             )
+            # the tip force (500 Hz on the MH3F): the page's force overlay and gamepad rumble
+            node.subscribe(
+                k.slave(arm, "measured_cf"), CartesianWrench, self._on_cf, sources=s_src, polled=True
+            )
         # the endoscope picture (camera service, docs/video.md): the newest frame of each camera,
         # served to the page as an MJPEG stream (/video.mjpg); nothing is queued behind it
         self.frames: dict[str, tuple[CameraImage, int]] = {}  # camera → (frame, receive time ns)
@@ -178,6 +190,28 @@ class WebConsole:
         with self.lock:
             v = self.views[key.rsplit("/", 2)[-2]]
             v.setpoint, v.setpoint_rx = m, time.monotonic()
+
+    def _on_cf(self, m: CartesianWrench, key: str) -> None:
+        rx = self.node.received(key)  # (polled: the earliest it can have come)
+        with self.lock:
+            v = self.views[key.rsplit("/", 2)[-2]]
+            v.cf, v.cf_rx = m, rx
+
+    def _force(self, v: ArmView, now: float) -> dict[str, Any] | None:
+        """The tip force for the page's overlay and rumble: the vector (N, in ``frame``), its
+        magnitude, the tissue limit it is drawn against, its age and whether it is stale."""
+        if v.cf is None:
+            return None
+        f = v.cf.force
+        age_ms = (now - v.cf_rx) * 1e3
+        return {
+            "n": [_r(x) for x in f],
+            "mag": _r(math.sqrt(sum(x * x for x in f))),
+            "frame": v.cf.frame,
+            "limit_n": self.web.force_limit_n,
+            "age_ms": round(age_ms, 1),
+            "stale": age_ms > self.web.force_stale_ms,
+        }
 
     def _on_frame(self, m: CameraImage, key: str) -> None:
         with self.lock:
@@ -339,6 +373,7 @@ class WebConsole:
                 else None
             )
             d["sketch"] = self._sketch(a.arm, v)
+            d["force"] = self._force(v, now)
             d["events"] = [
                 {"t": round(t, 3), "src": src, "kind": kind, "text": text}
                 for t, src, kind, text in list(a.events)[-self.cfg.events_per_arm :]
