@@ -644,20 +644,25 @@ class Node:
         that is the previous poll, the earliest it can have come; now if nothing is recorded."""
         return self.streams.get(key).last_rx_ns / 1e9 or time.monotonic()
 
-    def poll(self) -> int:
+    def poll(self, limit: int | None = None) -> int:
         """Deliver what the ``polled`` subscriptions buffered since the last call; returns the count.
 
         A buffered message counts as received at the previous poll (the earliest it can have
-        come), so a stream's age is never under-estimated by the polling interval. Call it from
-        one thread at a time (each service polls from its own loop)."""
+        come), so a stream's age is never under-estimated by the polling interval. ``limit``: at
+        most this many messages per subscription in this call (the rest wait for the next; beyond
+        the buffer the oldest are dropped and counted lost) — a process starved of CPU whose
+        streams arrive faster than it checks them still returns; None: until each is empty. Call
+        it from one thread at a time (each service polls from its own loop)."""
         now = time.monotonic_ns()
         since = self._last_poll_ns or now
         self._last_poll_ns = now
         n = 0
         for sub, on_sample in self._polled:
-            while (sample := sub.try_recv()) is not None:
+            k = 0
+            while (limit is None or k < limit) and (sample := sub.try_recv()) is not None:
                 on_sample(sample, since)
-                n += 1
+                k += 1
+            n += k
         self._polled_ns = time.monotonic_ns()
         return n
 

