@@ -512,6 +512,7 @@ class Node:
         sources: Collection[str] | Callable[[str, str], bool] | None = None,
         polled: bool = False,
         latest: bool = False,
+        keep: int = POLL_CAPACITY,
     ) -> None:
         """Subscribe with strict decoding; ``callback(msg, key)`` runs on a zenoh thread.
 
@@ -523,7 +524,9 @@ class Node:
         oldest dropped beyond it, and counted as lost) until :meth:`poll`, which runs the same
         checks and calls ``callback`` on the polling thread. For a service that looks at a stream
         at its own tick (staleness, counts): no thread wake-up and GIL hand-over per message,
-        which costs more CPU here than the message's own handling.
+        which costs more CPU here than the message's own handling. ``keep``: the buffer's size — a
+        fast stream read for its newest value at a slower tick keeps a few (the rest are dropped
+        unread: neither checked nor decoded, counted as lost by the sequence).
 
         ``latest``: also query ``key`` once, right after subscribing, and deliver the replies of
         ``latest`` outlets (``outlet(..., latest=True)``) through the same checks: a state stream's
@@ -616,7 +619,9 @@ class Node:
         if polled:
             import zenoh
 
-            sub = self.session.declare_subscriber(key, zenoh.handlers.RingChannel(POLL_CAPACITY))
+            if not 1 <= keep <= POLL_CAPACITY:
+                raise ValueError(f"subscribe: keep={keep} outside [1, {POLL_CAPACITY}]")
+            sub = self.session.declare_subscriber(key, zenoh.handlers.RingChannel(keep))
             self._polled.append((sub, on_sample))
             self._inputs.append(sub)
         else:

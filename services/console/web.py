@@ -163,9 +163,10 @@ class WebConsole:
             node.subscribe(
                 k.slave(arm, "setpoint_cp"), CartesianPose, self._on_setpoint, sources=m_src, polled=True
             )
-            # the tip force (500 Hz on the MH3F): the page's force overlay and gamepad rumble
+            # the tip force (500 Hz on the MH3F) for the page's force overlay and gamepad rumble:
+            # only its newest few are checked at each state (20 Hz), not all 500 a second
             node.subscribe(
-                k.slave(arm, "measured_cf"), CartesianWrench, self._on_cf, sources=s_src, polled=True
+                k.slave(arm, "measured_cf"), CartesianWrench, self._on_cf, sources=s_src, polled=True, keep=4
             )
         # the endoscope picture (camera service, docs/video.md): the newest frame of each camera,
         # served to the page as an MJPEG stream (/video.mjpg); nothing is queued behind it
