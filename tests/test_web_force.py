@@ -143,18 +143,25 @@ def steady(cdp: DevTools, s: str, forces: Forces, label: str) -> tuple[float, fl
     median over ~1 s of readings of the page; the page value compared with the bus's force over the
     0.2 s before each reading."""
     time.sleep(0.8)
-    rows = []
+    rows, live = [], []
     for _ in range(12):
         t = time.monotonic()
         f = page_force(cdp, s)
         bus = forces.over(t - 0.2, t)
         rows.append((float(np.median(bus)), float(f["value"]), float(f["rumble"])))
-        if f["why"]:
+        if f["why"]:  # (a hold for another cause, on this loaded host): quiet, so no rumble
             print(f"{label}: the overlay is quiet: {f['why']}")
+            assert f["rumble"] == 0, f
+        else:
+            live.append(float(f["rumble"]))
         time.sleep(0.08)
-    bus_n, page_n, rumble = (float(np.median([r[i] for r in rows])) for i in range(3))
+    bus_n, page_n = (float(np.median([r[i] for r in rows])) for i in range(2))
+    rumble = float(np.median(live)) if live else 0.0
     worst = max(abs(b - p) for b, p, _ in rows)
-    print(f"{label}: bus {bus_n:.3f} N, page {page_n:.3f} N (worst |Δ| {worst:.3f} N), rumble {rumble:.3f}")
+    print(
+        f"{label}: bus {bus_n:.3f} N, page {page_n:.3f} N (worst |Δ| {worst:.3f} N), "
+        f"rumble {rumble:.3f} ({len(live)} of {len(rows)} readings live)"
+    )
     assert worst <= 0.05 + 0.05 * bus_n, f"{label}: the overlay showed {rows} (bus, page, rumble)"
     return bus_n, page_n, rumble
 
@@ -198,7 +205,7 @@ def test_force_overlay_and_rumble_follow_the_tip_force(tmp_path: Path) -> None:
         bus1, page1, rumble1 = steady(cdp, s, forces, "light press")
         press_to(cdp, s, forces, probe, 0.7 * LIMIT_N)
         bus2, page2, rumble2 = steady(cdp, s, forces, "firm press")
-        for page, rumble in ((page1, rumble1), (page2, rumble2)):
+        for page, rumble in ((page1, rumble1), (page2, rumble2)):  # (live readings: ≥ 1 of 12)
             assert rumble == pytest.approx(page / LIMIT_N, abs=0.03), (page, rumble)
         assert bus2 > bus1 + 0.3 and rumble2 > rumble1 + 0.15  # the rumble rises with the force
         assert page_force(cdp, s)["cls"] == "f-warn"  # past half the limit: amber
@@ -206,9 +213,10 @@ def test_force_overlay_and_rumble_follow_the_tip_force(tmp_path: Path) -> None:
         # the tab hidden: the rumble stops inside the event's own dispatch
         last = hide_page(cdp, s, True)
         assert last is not None and last["type"] == "reset", last
-        assert page_force(cdp, s)["rumble"] == 0
-        time.sleep(0.3)
         assert page_force(cdp, s)["rumble"] == 0 and page_force(cdp, s)["why"] == "page hidden"
+        time.sleep(0.3)
+        hidden = page_force(cdp, s)
+        assert hidden["rumble"] == 0 and hidden["why"] == "page hidden" and hidden["cls"] == "f-quiet"
         hide_page(cdp, s, False)  # (back: the page's samples stopped, so engage afresh)
         pad(cdp, s, rt=0.0)
         wait_page(cdp, s, "#arm-arm1 .v.safety .state", lambda t: t in ("OK", "DEGRADED"), 30.0)

@@ -265,7 +265,7 @@ function showForce(m) {
   const s = a.safety;
   const held = !s || s.stale || s.state === "HOLD" || s.state === "ESTOP";
   Object.assign(force, { arm: a.arm, n: f.n, mag: f.mag, limit: f.limit_n, rx: now() });
-  force.quiet = f.stale ? `force stream stale (${fmt(f.age_ms, 0)} ms old)` :
+  force.quiet = master.hidden ? "page hidden" : f.stale ? `force stream stale (${fmt(f.age_ms, 0)} ms old)` :
     held ? "watchdog " + (!s ? "state unknown" : s.stale ? "state stale" : s.state) : "";
   force.k = f.stale ? 0 : Math.min(1, f.mag / f.limit_n);
   if (force.k < 0.02) force.k = 0;
@@ -308,7 +308,11 @@ document.addEventListener("visibilitychange", () => {
   master.hidden = document.visibilityState === "hidden";
   master.key = master.pedal = master.pad = false;
   pedal.classList.remove("on");
-  if (master.hidden) { rumble(0, now()); send({ type: "hidden", master: MASTER }); }
+  if (master.hidden) {
+    rumble(0, now());
+    force.quiet = "page hidden"; $("#force-why").textContent = force.quiet; $("#force").className = "f-quiet";
+    send({ type: "hidden", master: MASTER });
+  }
 });
 window.addEventListener("pagehide", () => { master.hidden = true; rumble(0, now()); send({ type: "hidden", master: MASTER }); });
 
