@@ -233,7 +233,7 @@ def test_force_overlay_and_rumble_follow_the_tip_force(tmp_path: Path) -> None:
             return [st for st, c in states if any("tip force above the tissue limit" in x for x in c)]
 
         while "HOLD" not in tissue_states():
-            assert time.monotonic() < deadline, f"no HOLD for the tissue pressing past the limit: {probe.safety[-3:]}"
+            assert time.monotonic() < deadline, f"no tissue HOLD past the limit: {probe.safety[-3:]}"
             if teleop(cdp, s) != "ENABLED" and not tissue_states():  # a hold for load: engage again
                 print("pressing interrupted:", text(cdp, s, "#arm-arm1 .v.teleop"))
                 pad(cdp, s, lt=0.0)
