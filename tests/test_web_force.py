@@ -143,14 +143,14 @@ def steady(cdp: DevTools, s: str, forces: Forces, label: str) -> tuple[float, fl
     median over ~1 s of readings of the page; the page value compared with the bus's force over the
     0.2 s before each reading."""
     time.sleep(0.8)
-    rows, live = [], []
+    rows, live, quiet = [], [], set()
     for _ in range(12):
         t = time.monotonic()
         f = page_force(cdp, s)
         bus = forces.over(t - 0.2, t)
         rows.append((float(np.median(bus)), float(f["value"]), float(f["rumble"])))
-        if f["why"]:  # (a hold for another cause, on this loaded host): quiet, so no rumble
-            print(f"{label}: the overlay is quiet: {f['why']}")
+        if f["why"]:  # (a hold, for the tissue or for load): quiet, so no rumble
+            quiet.add(f["why"])
             assert f["rumble"] == 0, f
         else:
             live.append(float(f["rumble"]))
@@ -160,7 +160,7 @@ def steady(cdp: DevTools, s: str, forces: Forces, label: str) -> tuple[float, fl
     worst = max(abs(b - p) for b, p, _ in rows)
     print(
         f"{label}: bus {bus_n:.3f} N, page {page_n:.3f} N (worst |Δ| {worst:.3f} N), "
-        f"rumble {rumble:.3f} ({len(live)} of {len(rows)} readings live)"
+        f"rumble {rumble:.3f} ({len(live)} of {len(rows)} readings live; quiet: {sorted(quiet)})"
     )
     assert worst <= 0.05 + 0.05 * bus_n, f"{label}: the overlay showed {rows} (bus, page, rumble)"
     return bus_n, page_n, rumble
