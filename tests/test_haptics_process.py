@@ -221,8 +221,9 @@ def test_killing_slave_control_fades_the_master_force_and_the_watchdog_holds(
                     time.sleep(0.3)
                     hand.clutch = True
                     pipe.wait(lambda: seen.follow, 5)
+                step = -0.001 if hand.force() < 0.5 else -0.0002  # slowly once touching
                 with hand.lock:
-                    hand.goal = hand.goal + np.array([0.0, 0.0, -0.001 if hand.force() < 0.5 else -0.0002])
+                    hand.goal = hand.goal + np.array([0.0, 0.0, step])
                 time.sleep(0.03)
             time.sleep(0.3)
             before = hand.force()
