@@ -212,25 +212,25 @@ def test_killing_slave_control_fades_the_master_force_and_the_watchdog_holds(
                     break
             assert seen.follow, "no engage"
             # press down (master −z, the slave at scale 0.5) until the hand feels 1 N (the tissue
-            # 2 N: below the watchdog's 4 N limit), at most 160 mm of master travel
-            for _ in range(160):
-                if hand.force() >= 1.0:
-                    break
+            # 2 N: below the watchdog's 4 N limit) while the slave follows — a hold for load on
+            # this shared host fades the hand's force: engage again and go on
+            deadline = time.monotonic() + 60.0
+            while not (seen.follow and hand.force() >= 1.0):
+                assert time.monotonic() < deadline, f"no 1 N press in 60 s: {hand.force():.2f} N"
                 if not seen.follow:
                     hand.clutch = False
                     time.sleep(0.3)
                     hand.clutch = True
                     pipe.wait(lambda: seen.follow, 5)
+                    continue
                 step = -0.001 if hand.force() < 0.5 else -0.0002  # slowly once touching
                 with hand.lock:
                     hand.goal = hand.goal + np.array([0.0, 0.0, step])
                 time.sleep(0.03)
-            time.sleep(0.3)
             before = hand.force()
             with seen.lock:
                 fz = seen.force[-1][1]
             print(f"pressing: the tissue pushes {fz:.2f} N, the hand feels {before:.2f} N")
-            assert before >= 0.9
             t_kill = time.monotonic()
             pipe.kill("slave_control")
             assert pipe.wait(lambda: hand.force() == 0.0, 5), f"the force did not fade: {hand.force()} N"
