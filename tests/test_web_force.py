@@ -92,12 +92,14 @@ class Forces:
 
 
 def page_force(cdp: DevTools, s: str) -> dict[str, Any]:
-    """What the overlay shows (value, limit, why it is quiet, its class) and the rumble playing."""
+    """What the overlay shows (value, limit, why it is quiet, its class) and the rumble's intensity
+    as last commanded (0 after a stop; each effect also ends by itself 150 ms after it was renewed,
+    which a page starved on this shared host may let happen)."""
     got = js(
         cdp,
         s,
         """(() => { const r = window.__rumble, last = r[r.length - 1];
-        const on = last && last.type !== 'reset' && performance.now() - last.t < last.ms;
+        const on = last && last.type !== 'reset';
         return {value: document.querySelector('#force-value').textContent,
           limit: document.querySelector('#force-limit').textContent,
           why: document.querySelector('#force-why').textContent,

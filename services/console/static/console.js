@@ -253,9 +253,16 @@ function forceQuiet(t) {
   if (t - force.rx > STATE_QUIET_MS) return "no state from the console";
   return force.quiet;
 }
+let shownWhy = "";
 function tickRumble(t) {
   const why = forceQuiet(t);
   rumble(why || !inControl ? 0 : force.k, t);
+  if (why !== shownWhy && force.arm) { // the overlay says why it is quiet, whichever side found it
+    shownWhy = why;
+    $("#force-why").textContent = why;
+    const frac = force.mag / force.limit;
+    $("#force").className = why ? "f-quiet" : frac >= 1 ? "f-over" : frac >= 0.5 ? "f-warn" : "f-ok";
+  }
 }
 function showForce(m) {
   const a = m.arms.find((x) => x.master === MASTER) || m.arms[0];
@@ -274,7 +281,7 @@ function showForce(m) {
   box.className = force.quiet ? "f-quiet" : frac >= 1 ? "f-over" : frac >= 0.5 ? "f-warn" : "f-ok";
   $("#force-value").textContent = fmt(f.mag, 2);
   $("#force-limit").textContent = fmt(f.limit_n, 1);
-  $("#force-why").textContent = force.quiet;
+  $("#force-why").textContent = shownWhy = force.quiet;
   dial(f, frac, !!force.quiet);
   tickRumble(now());
 }
@@ -310,7 +317,7 @@ document.addEventListener("visibilitychange", () => {
   pedal.classList.remove("on");
   if (master.hidden) {
     rumble(0, now());
-    force.quiet = "page hidden"; $("#force-why").textContent = force.quiet; $("#force").className = "f-quiet";
+    force.quiet = shownWhy = "page hidden"; $("#force-why").textContent = force.quiet; $("#force").className = "f-quiet";
     send({ type: "hidden", master: MASTER });
   }
 });
