@@ -512,6 +512,7 @@ class Node:
         sources: Collection[str] | Callable[[str, str], bool] | None = None,
         polled: bool = False,
         latest: bool = False,
+        keep: int = POLL_CAPACITY,
     ) -> None:
         """Subscribe with strict decoding; ``callback(msg, key)`` runs on a zenoh thread.
 
@@ -523,7 +524,9 @@ class Node:
         oldest dropped beyond it, and counted as lost) until :meth:`poll`, which runs the same
         checks and calls ``callback`` on the polling thread. For a service that looks at a stream
         at its own tick (staleness, counts): no thread wake-up and GIL hand-over per message,
-        which costs more CPU here than the message's own handling.
+        which costs more CPU here than the message's own handling. ``keep``: the buffer's size — a
+        fast stream read for its newest value at a slower tick keeps a few (the rest are dropped
+        unread: neither checked nor decoded, counted as lost by the sequence).
 
         ``latest``: also query ``key`` once, right after subscribing, and deliver the replies of
         ``latest`` outlets (``outlet(..., latest=True)``) through the same checks: a state stream's
@@ -616,7 +619,9 @@ class Node:
         if polled:
             import zenoh
 
-            sub = self.session.declare_subscriber(key, zenoh.handlers.RingChannel(POLL_CAPACITY))
+            if not 1 <= keep <= POLL_CAPACITY:
+                raise ValueError(f"subscribe: keep={keep} outside [1, {POLL_CAPACITY}]")
+            sub = self.session.declare_subscriber(key, zenoh.handlers.RingChannel(keep))
             self._polled.append((sub, on_sample))
             self._inputs.append(sub)
         else:
@@ -644,20 +649,25 @@ class Node:
         that is the previous poll, the earliest it can have come; now if nothing is recorded."""
         return self.streams.get(key).last_rx_ns / 1e9 or time.monotonic()
 
-    def poll(self) -> int:
+    def poll(self, limit: int | None = None) -> int:
         """Deliver what the ``polled`` subscriptions buffered since the last call; returns the count.
 
         A buffered message counts as received at the previous poll (the earliest it can have
-        come), so a stream's age is never under-estimated by the polling interval. Call it from
-        one thread at a time (each service polls from its own loop)."""
+        come), so a stream's age is never under-estimated by the polling interval. ``limit``: at
+        most this many messages per subscription in this call (the rest wait for the next; beyond
+        the buffer the oldest are dropped and counted lost) — a process starved of CPU whose
+        streams arrive faster than it checks them still returns; None: until each is empty. Call
+        it from one thread at a time (each service polls from its own loop)."""
         now = time.monotonic_ns()
         since = self._last_poll_ns or now
         self._last_poll_ns = now
         n = 0
         for sub, on_sample in self._polled:
-            while (sample := sub.try_recv()) is not None:
+            k = 0
+            while (limit is None or k < limit) and (sample := sub.try_recv()) is not None:
                 on_sample(sample, since)
-                n += 1
+                k += 1
+            n += k
         self._polled_ns = time.monotonic_ns()
         return n
 

@@ -177,3 +177,38 @@ def test_a_latest_outlet_gives_a_late_subscriber_the_current_value_once(endpoint
             assert (stats.received, stats.gaps, stats.reordered, stats.rejected) == (2, 0, 0, 0)
         with pytest.raises(ValueError, match="latest and polled"):
             pub.subscribe(key, TeleopState, lambda m, k: None, latest=True, polled=True)
+
+
+def test_a_polled_stream_keeps_its_newest_few_and_a_poll_can_be_bounded(endpoint: str) -> None:
+    """``keep``: a 500 Hz stream read at a 20 Hz tick checks only its newest few (the rest dropped
+    unread, a gap once the stream is known); ``poll(limit)``: at most that many per stream a call."""
+    from telesurg.shared.messages import CartesianWrench
+
+    bus = BusConfig(connect=[endpoint])
+    with Node(bus, "t", "slave_control") as pub, Node(bus, "t", "console") as sub:
+        fast, slow = pub.keys.slave("arm1", "measured_cf"), pub.keys.slave("arm2", "measured_cf")
+        got: dict[str, list[float]] = {fast: [], slow: []}
+
+        def on(m: CartesianWrench, k: str) -> None:
+            got[k].append(m.force[2])
+
+        sub.subscribe(fast, CartesianWrench, on, sources=["slave_control"], polled=True, keep=4)
+        sub.subscribe(slow, CartesianWrench, on, sources=["slave_control"], polled=True)
+        with pytest.raises(ValueError, match="keep=0 outside"):
+            sub.subscribe(fast, CartesianWrench, on, polled=True, keep=0)
+        time.sleep(0.3)
+        outs = {k: pub.outlet(k) for k in (fast, slow)}
+        for i in range(1, 21):
+            for out in outs.values():
+                out.put(CartesianWrench(out.header(), "base", (0.0, 0.0, float(i))))
+        time.sleep(0.5)
+        assert sub.poll(limit=8) == 4 + 8
+        assert got[fast] == [17.0, 18.0, 19.0, 20.0]  # the newest four, in order
+        assert got[slow] == [float(i) for i in range(1, 9)]  # the first eight; the rest wait
+        assert sub.poll() == 12 and got[slow][-1] == 20.0
+        for i in range(21, 41):  # once the stream is known, the dropped ones show as a gap
+            outs[fast].put(CartesianWrench(outs[fast].header(), "base", (0.0, 0.0, float(i))))
+        time.sleep(0.5)
+        assert sub.poll() == 4 and got[fast][-1] == 40.0
+        stats = sub.streams.get(fast)
+        assert stats.received == 8 and stats.gaps >= 1, stats

@@ -16,6 +16,7 @@ from telesurg.services.master_capture.devices.touch_sim.model import HeldDevice,
 from telesurg.services.slave_control.backends import MujocoBackend
 from telesurg.shared.errors import ConfigError, MessageError
 from telesurg.shared.haptics import BilateralConfig, ForceRenderer, RenderConfig, SlavePortWork, check_force
+from telesurg.shared.haptics.tdpa import MasterPacket, make_bilateral
 from telesurg.shared.robots import registry
 from telesurg.tools.bench.haptics import TipFollower, contact_height, run_one
 
@@ -202,3 +203,39 @@ def test_naive_goes_unstable_where_tdpa_stays_passive() -> None:
     assert tdpa["verdict"] == "stable", tdpa
     assert min(tdpa["min_observed_master_mj"], tdpa["min_observed_slave_mj"]) >= -1.0
     assert tdpa["overshoot"] <= 1.5
+
+
+def _slave_port(controller: str, energy_in_m: float, seconds: float = 1.0) -> tuple[float, float, float]:
+    """The slave half alone: master packets command a descent at 10 mm/s into a 400 N/m tissue
+    (top at 0), carrying ``energy_in_m`` as the master's input energy (0: none arrived — the
+    master's energy is late, or forged low). Returns (lowest W_s J, depth reached m, energy the
+    slave passivity controller dissipated J)."""
+    b = make_bilateral(BilateralConfig(controller=controller))
+    k_tissue, w_min, depth = 400.0, math.inf, 0.0
+    for i in range(1, int(seconds / DT) + 1):
+        x_m = np.array([0.0, 0.0, -0.010 * i * DT])
+        z = float(b.x_s[2])
+        f_e = np.array([0.0, 0.0, k_tissue * max(0.0, -z)])  # the tissue pushes up when indented
+        b.slave_step(MasterPacket(i, x_m, energy_in_m), f_e, DT)
+        w_min, depth = min(w_min, b.observed_slave), min(depth, float(b.x_s[2]))
+    return w_min, depth, b.dissipated_s
+
+
+def test_slave_passivity_controller_keeps_the_slave_port_passive() -> None:
+    """The slave half of TDPA (position channel): with no master energy to spend, pressing into
+    the tissue would take energy out of the network at the slave port; the slave PC backs the
+    instrument off just enough that W_s never goes below zero (naive: −10 mJ at 10 mm deep);
+    with the master's energy in hand it follows the master exactly and dissipates nothing."""
+    w_naive, depth_naive, _ = _slave_port("naive", 0.0)
+    w_tdpa, depth_tdpa, dissipated = _slave_port("tdpa", 0.0)
+    print(
+        f"no master energy: naive W_s ≥ {w_naive * 1e3:.3f} mJ, {depth_naive * 1e3:.1f} mm deep; "
+        f"tdpa W_s ≥ {w_tdpa * 1e3:.4f} mJ, {depth_tdpa * 1e3:.2f} mm deep, "
+        f"PC dissipated {dissipated * 1e3:.3f} mJ"
+    )
+    assert w_naive < -0.5e-3 and depth_naive == pytest.approx(-0.010, abs=1e-4)
+    assert w_tdpa >= -1e-6  # passive: never more out than the master put in
+    assert depth_tdpa > depth_naive + 0.005  # it backed off
+    assert dissipated > 0.0
+    w_fed, depth_fed, dissipated_fed = _slave_port("tdpa", 1.0)  # 1 J from the master: ample
+    assert w_fed > 0.99 and depth_fed == pytest.approx(depth_naive, abs=1e-6) and dissipated_fed == 0.0

@@ -116,13 +116,33 @@ def running_console(tmp: Path, camera: bool = False) -> Iterator[tuple[str, str,
     web console as the master; deploy/local; ``camera``: the endoscope camera too) and a probe:
     (the one-time login URL the launcher prints, endpoint, probe). A controlling page gone for 1 s
     may be replaced by a page that takes control (``web.control_grace_s``)."""
+    with console_site(tmp, camera) as (url, endpoint, probe, site):
+        yield url, endpoint, probe
+        assert not site.dead(), f"services died: {site.dead()}"
+
+
+@contextmanager
+def console_site(
+    tmp: Path, camera: bool = False, overrides: dict[str, list[str]] | None = None
+) -> Iterator[tuple[str, str, Probe, Site]]:
+    """:func:`running_console` with more ``overrides`` (service → ``key=value`` settings) and the
+    :class:`Site` itself (to kill or restart a service); the console must stop cleanly."""
     web_port = free_port()
+    more = dict(overrides or {})
     spec = SiteSpec(
         port=free_port(),
         config_dir=default_config_dir(),
         services=("watchdog", "slave_control", "mapping", *(("camera",) if camera else ()), "console"),
         # (web.rt_priority: the publisher under SCHED_FIFO, as master_capture in deploy/local)
-        overrides={"console": [f"web.port={web_port}", "web.rt_priority=20", "web.control_grace_s=1"]},
+        overrides={
+            **more,
+            "console": [
+                f"web.port={web_port}",
+                "web.rt_priority=20",
+                "web.control_grace_s=1",
+                *more.get("console", []),
+            ],
+        },
         log_dir=tmp / "logs",
     )
     probe = Probe()
@@ -147,8 +167,7 @@ def running_console(tmp: Path, camera: bool = False) -> Iterator[tuple[str, str,
                 return False
 
         assert wait_until(up, 30.0), "the web console did not serve its page within 30 s"
-        yield login_url(url, site.login_token), spec.endpoint, probe
-        assert not site.dead(), f"services died: {site.dead()}"
+        yield login_url(url, site.login_token), spec.endpoint, probe, site
         codes = site.stop()
         assert codes.get("console") == 0, f"web console exit codes {codes}"
 

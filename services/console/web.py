@@ -66,14 +66,25 @@ from telesurg.services.console.browser import (
 from telesurg.services.console.control import Control
 from telesurg.services.console.model import ConsoleConfig, ConsoleModel
 from telesurg.shared import robots
-from telesurg.shared.bus import Node, only
+from telesurg.shared.bus import POLL_CAPACITY, Node, only
 from telesurg.shared.clock import wall_ns
 from telesurg.shared.door import LOGIN_ENV, Door
 from telesurg.shared.errors import ConfigError
-from telesurg.shared.messages import CameraImage, CartesianPose, JointState, MasterButtons
+from telesurg.shared.messages import (
+    CameraImage,
+    CartesianPose,
+    CartesianWrench,
+    JointState,
+    MasterButtons,
+)
 from telesurg.shared.timing import CycleTimer, start_loop
 
 log = logging.getLogger(__name__)
+
+
+#: messages per polled stream checked for one state: a full buffer (what waited while no page
+#: was open) in one go, and still a bound when a starved process cannot keep up with its streams
+POLL_LIMIT = POLL_CAPACITY
 
 
 def static_dir() -> Path:
@@ -97,6 +108,8 @@ class ArmView:
     tip: CartesianPose | None = None
     setpoint: CartesianPose | None = None
     setpoint_rx: float = 0.0
+    cf: CartesianWrench | None = None  # the tissue's force on the instrument (measured_cf)
+    cf_rx: float = -math.inf  # monotonic s: when the newest measured_cf arrived
 
 
 class Counters:
@@ -150,6 +163,11 @@ class WebConsole:
             node.subscribe(
                 k.slave(arm, "setpoint_cp"), CartesianPose, self._on_setpoint, sources=m_src, polled=True
             )
+            # the tip force (500 Hz on the MH3F) for the page's force overlay and gamepad rumble:
+            # only its newest few are checked at each state (20 Hz), not all 500 a second
+            node.subscribe(
+                k.slave(arm, "measured_cf"), CartesianWrench, self._on_cf, sources=s_src, polled=True, keep=4
+            )
         # the endoscope picture (camera service, docs/video.md): the newest frame of each camera,
         # served to the page as an MJPEG stream (/video.mjpg); nothing is queued behind it
         self.frames: dict[str, tuple[CameraImage, int]] = {}  # camera → (frame, receive time ns)
@@ -178,6 +196,28 @@ class WebConsole:
         with self.lock:
             v = self.views[key.rsplit("/", 2)[-2]]
             v.setpoint, v.setpoint_rx = m, time.monotonic()
+
+    def _on_cf(self, m: CartesianWrench, key: str) -> None:
+        rx = self.node.received(key)  # (polled: the earliest it can have come)
+        with self.lock:
+            v = self.views[key.rsplit("/", 2)[-2]]
+            v.cf, v.cf_rx = m, rx
+
+    def _force(self, v: ArmView, now: float) -> dict[str, Any] | None:
+        """The tip force for the page's overlay and rumble: the vector (N, in ``frame``), its
+        magnitude, the tissue limit it is drawn against, its age and whether it is stale."""
+        if v.cf is None:
+            return None
+        f = v.cf.force
+        age_ms = (now - v.cf_rx) * 1e3
+        return {
+            "n": [_r(x) for x in f],
+            "mag": _r(math.sqrt(sum(x * x for x in f))),
+            "frame": v.cf.frame,
+            "limit_n": self.web.force_limit_n,
+            "age_ms": round(age_ms, 1),
+            "stale": age_ms > self.web.force_stale_ms,
+        }
 
     def _on_frame(self, m: CameraImage, key: str) -> None:
         with self.lock:
@@ -265,7 +305,9 @@ class WebConsole:
     def state(self) -> dict[str, Any]:
         """Everything the page draws, as JSON-ready data."""
         with self._poll_lock:  # (the polled slave streams: one thread at a time)
-            self.node.poll()
+            # (bounded: on a CPU-starved host whose streams — measured_cf at 500 Hz — come
+            # faster than they are checked, the state still goes out)
+            self.node.poll(limit=POLL_LIMIT)
         arms, clutch, alive = self.model.snapshot()
         now = time.monotonic()
         stale = self.cfg.stale_s
@@ -339,6 +381,7 @@ class WebConsole:
                 else None
             )
             d["sketch"] = self._sketch(a.arm, v)
+            d["force"] = self._force(v, now)
             d["events"] = [
                 {"t": round(t, 3), "src": src, "kind": kind, "text": text}
                 for t, src, kind, text in list(a.events)[-self.cfg.events_per_arm :]
@@ -526,9 +569,11 @@ class Server:
 
         return web.FileResponse(static_dir() / "index.html")
 
-    def state(self) -> dict[str, Any]:
-        """The console's state with the door's and the control's."""
-        st = self.wc.state()
+    async def state(self) -> dict[str, Any]:
+        """The console's state with the door's and the control's. The console's part (which polls
+        the slave streams and checks their signatures) is made on a worker thread: the event loop
+        keeps relaying the browser's master samples meanwhile."""
+        st = await asyncio.to_thread(self.wc.state)
         holder, request = self.ctl.snapshot()
         st["control"] = {"holder": holder, "request": request}
         st["door"] = {"refused": self.door.counts()}
@@ -537,7 +582,7 @@ class Server:
     async def _api_state(self, request: Any) -> Any:
         from aiohttp import web
 
-        return web.json_response(self.state())
+        return web.json_response(await self.state())
 
     async def _api_stats(self, request: Any) -> Any:
         from aiohttp import web
@@ -624,7 +669,7 @@ class Server:
         self._control_event(self.ctl.join(page))
         peer = request.remote
         log.info("page %s connected from %s", page, peer)
-        await ws.send_json(self.state())
+        await ws.send_json(await self.state())
         await self.tell_roles()
         told: dict[str, int] = {}
         try:
@@ -763,7 +808,7 @@ class Server:
         while not stop.is_set():
             notices = self.wc.model.drain()
             if self.sockets:
-                state = self.state()
+                state = await self.state()
                 state["notices"] = [
                     {"t": n.stamp, "severity": n.severity, "text": n.text, "toast": n.toast} for n in notices
                 ]

@@ -38,6 +38,12 @@ class WebConfig:
     max_rejects: int = 50  # refused frames after which a connection is closed as abusive
     mouse_mm_per_px: float = 0.2  # mm of master motion per dragged pixel (the page's mouse master)
     record_dir: str = "out/recordings"  # where record start puts its .mcap files
+    # N: the tissue-force limit the page's force overlay marks and its gamepad rumble is scaled by
+    # (full rumble at the limit); keep it equal to the watchdog's rules.tip_force.limit_n
+    force_limit_n: float = 4.0
+    # ms: a tip force (measured_cf, 500 Hz on the MH3F) older than this is stale: the overlay greys
+    # and the rumble stops
+    force_stale_ms: float = 100.0
     # SCHED_FIFO priority of the thread publishing the browser masters, 1-99 (0: the normal
     # scheduler), as master_capture's rt_priority; needs root or CAP_SYS_NICE
     rt_priority: int = 0
@@ -72,5 +78,9 @@ class WebConfig:
             raise ConfigError(f"web.max_frames_hz={self.max_frames_hz} outside [10, 10000]")
         if self.max_rejects < 1:
             raise ConfigError("web.max_rejects must be >= 1")
+        if not 0.1 <= self.force_limit_n <= 100.0:
+            raise ConfigError(f"web.force_limit_n={self.force_limit_n} outside [0.1, 100] N")
+        if not 10.0 <= self.force_stale_ms <= 5000.0:
+            raise ConfigError(f"web.force_stale_ms={self.force_stale_ms} outside [10, 5000]")
         if not 0.01 <= self.mouse_mm_per_px <= 10.0:
             raise ConfigError(f"web.mouse_mm_per_px={self.mouse_mm_per_px} outside [0.01, 10]")

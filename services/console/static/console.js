@@ -215,16 +215,115 @@ function pollPad(t) {
   if (rt > 0.5 || dz(g.axes[0] || 0) || dz(g.axes[1] || 0)) master.device = "gamepad";
 }
 
+// ------------------------------------------------------------------ tip force: overlay and rumble
+// The slave's tip force (measured_cf of the arm this page's master drives, pushed in the state at
+// web.state_hz) is drawn over the picture — magnitude, direction, the tissue limit — and played on
+// the gamepad's rumble (Gamepad API vibrationActuator, "dual-rumble"), intensity |F| / limit.
+// Quiet — the force stream stale, the watchdog holding (or its state stale), no state from the
+// console for STATE_QUIET_MS, the page hidden or not in control — greys the overlay and stops the
+// rumble at once (reset()); each effect lasts only RUMBLE_MS, so a page that stops being updated
+// stops rumbling by itself.
+const RUMBLE_MS = 150, RUMBLE_EVERY_MS = 60, STATE_QUIET_MS = 250;
+const force = { arm: null, mag: 0, limit: 0, k: 0, quiet: "no force yet", rx: 0 };
+let rumbling = 0, rumbledAt = 0; // the intensity playing (0: stopped), when it was last (re)started
+window.consoleForce = force;
+function actuator() {
+  const pads = navigator.getGamepads ? [...navigator.getGamepads()].filter((p) => p && p.connected) : [];
+  const a = pads.length ? pads[0].vibrationActuator : null;
+  return a && typeof a.playEffect === "function" ? a : null;
+}
+function rumble(k, t) {
+  const act = actuator();
+  if (!act) { rumbling = 0; return; }
+  if (k <= 0) {
+    if (rumbling > 0) { // stop at once
+      rumbling = 0;
+      if (typeof act.reset === "function") act.reset().catch(() => {});
+      else act.playEffect("dual-rumble", { startDelay: 0, duration: 1, strongMagnitude: 0, weakMagnitude: 0 }).catch(() => {});
+    }
+    return;
+  }
+  if (Math.abs(k - rumbling) < 0.02 && t - rumbledAt < RUMBLE_EVERY_MS) return;
+  rumbling = k; rumbledAt = t;
+  act.playEffect("dual-rumble", { startDelay: 0, duration: RUMBLE_MS, strongMagnitude: k, weakMagnitude: k }).catch(() => {});
+}
+function forceQuiet(t) {
+  if (master.hidden) return "page hidden";
+  if (!wsOpen) return "no link to the console";
+  if (t - force.rx > STATE_QUIET_MS) return "no state from the console";
+  return force.quiet;
+}
+let shownWhy = "";
+function tickRumble(t) {
+  const why = forceQuiet(t);
+  rumble(why || !inControl ? 0 : force.k, t);
+  if (why !== shownWhy && force.arm) { // the overlay says why it is quiet, whichever side found it
+    shownWhy = why;
+    $("#force-why").textContent = why;
+    const frac = force.mag / force.limit;
+    $("#force").className = why ? "f-quiet" : frac >= 1 ? "f-over" : frac >= 0.5 ? "f-warn" : "f-ok";
+  }
+}
+function showForce(m) {
+  const a = m.arms.find((x) => x.master === MASTER) || m.arms[0];
+  const box = $("#force");
+  const f = a && a.force;
+  if (!f) { box.hidden = true; force.quiet = "no force stream"; force.k = 0; return; }
+  const s = a.safety;
+  const held = !s || s.stale || s.state === "HOLD" || s.state === "ESTOP";
+  Object.assign(force, { arm: a.arm, n: f.n, mag: f.mag, limit: f.limit_n, rx: now() });
+  force.quiet = master.hidden ? "page hidden" : f.stale ? `force stream stale (${fmt(f.age_ms, 0)} ms old)` :
+    held ? "watchdog " + (!s ? "state unknown" : s.stale ? "state stale" : s.state) : "";
+  force.k = f.stale ? 0 : Math.min(1, f.mag / f.limit_n);
+  if (force.k < 0.02) force.k = 0;
+  box.hidden = false;
+  const frac = f.mag / f.limit_n;
+  box.className = force.quiet ? "f-quiet" : frac >= 1 ? "f-over" : frac >= 0.5 ? "f-warn" : "f-ok";
+  $("#force-value").textContent = fmt(f.mag, 2);
+  $("#force-limit").textContent = fmt(f.limit_n, 1);
+  $("#force-why").textContent = shownWhy = force.quiet;
+  dial(f, frac, !!force.quiet);
+  tickRumble(now());
+}
+// The dial: the force's direction in the side view (x →, z ↑ of the arm's base frame, as the arm
+// view's right panel) with the tissue limit as the red ring; below, the magnitude on a bar to
+// 1.5 × the limit with the limit marked.
+function dial(f, frac, quiet) {
+  const c = $("#force-dial"), g = c.getContext("2d");
+  const W = c.width, R = 54, cx = W / 2, cy = 62;
+  g.clearRect(0, 0, W, c.height);
+  const col = quiet ? "#888" : frac >= 1 ? "#ff4040" : frac >= 0.5 ? "#f0c040" : "#5fd35f";
+  g.strokeStyle = "#ff4040"; g.lineWidth = 2; g.setLineDash([4, 3]);
+  g.beginPath(); g.arc(cx, cy, R / 1.5, 0, 7); g.stroke(); g.setLineDash([]);
+  const h = Math.hypot(f.n[0], f.n[2]) || 1, len = Math.min(1.5, frac) / 1.5 * R;
+  const ux = f.n[0] / h, uy = -f.n[2] / h;
+  if (len > 1) {
+    const ex = cx + ux * len, ey = cy + uy * len;
+    g.strokeStyle = g.fillStyle = col; g.lineWidth = 4;
+    g.beginPath(); g.moveTo(cx, cy); g.lineTo(ex, ey); g.stroke();
+    g.beginPath(); g.moveTo(ex + ux * 8, ey + uy * 8);
+    g.lineTo(ex - uy * 6, ey + ux * 6); g.lineTo(ex + uy * 6, ey - ux * 6); g.fill();
+  }
+  const bx = 6, bw = W - 12, by = 132;
+  g.fillStyle = "#333b44"; g.fillRect(bx, by, bw, 10);
+  g.fillStyle = col; g.fillRect(bx, by, bw * Math.min(1.5, frac) / 1.5, 10);
+  g.fillStyle = "#ff4040"; g.fillRect(bx + bw / 1.5 - 1, by - 4, 3, 18);
+}
+
 // ------------------------------------------------------------------ the quiet browser
 document.addEventListener("visibilitychange", () => {
   master.hidden = document.visibilityState === "hidden";
   master.key = master.pedal = master.pad = false;
   pedal.classList.remove("on");
-  if (master.hidden) send({ type: "hidden", master: MASTER });
+  if (master.hidden) {
+    rumble(0, now());
+    force.quiet = shownWhy = "page hidden"; $("#force-why").textContent = force.quiet; $("#force").className = "f-quiet";
+    send({ type: "hidden", master: MASTER });
+  }
 });
-window.addEventListener("pagehide", () => send({ type: "hidden", master: MASTER }));
+window.addEventListener("pagehide", () => { master.hidden = true; rumble(0, now()); send({ type: "hidden", master: MASTER }); });
 
-setInterval(() => { const t = now(); pollPad(t); sendSample(t); }, SEND_MS);
+setInterval(() => { const t = now(); pollPad(t); tickRumble(t); sendSample(t); }, SEND_MS);
 
 // ------------------------------------------------------------------ controls
 function estop() { send({ type: "estop", arm: "*" }); logLine("warning", "E-STOP sent"); }
@@ -333,6 +432,7 @@ function render(m) {
   scope(m.video || {});
   askConfirm(m.confirm);
   draw(m);
+  showForce(m);
 }
 
 // A motion-starting command is carried out only once the operator confirms the server's question.
@@ -388,6 +488,11 @@ function draw(m) {
       if (sk && sk.rcm) { for (const p of sk.rcm) { const q = P(p); g.strokeStyle = "#4dabf7"; g.lineWidth = 2; g.strokeRect(q[0] - 5, q[1] - 5, 10, 10); } }
       if (a.ghost_mm) { const q = P(a.ghost_mm); g.strokeStyle = "#f06595"; g.lineWidth = 2; g.beginPath(); g.arc(q[0], q[1], 9, 0, 7); g.stroke(); }
       if (a.tip_mm) { const q = P(a.tip_mm); g.fillStyle = "#5fd35f"; g.beginPath(); g.arc(q[0], q[1], 5, 0, 7); g.fill(); }
+      if (a.tip_mm && a.force && a.force.mag > 0.01) { // the tip force, 15 px per N, from the tip
+        const q = P(a.tip_mm), f = a.force.n;
+        g.strokeStyle = a.force.stale ? "#888" : a.force.mag >= a.force.limit_n ? "#ff4040" : "#f0c040"; g.lineWidth = 3;
+        g.beginPath(); g.moveTo(q[0], q[1]); g.lineTo(q[0] + f[u] * 15, q[1] - f[v] * 15); g.stroke();
+      }
     }
     g.lineWidth = 1;
   });
