@@ -114,14 +114,23 @@ def test_master_capture_renders_the_slave_force_and_fades_it(
                 time.sleep(0.002)
 
         push(0.6, 2.0)
-        assert force() == pytest.approx(1.0, abs=0.05)  # 0.5 × 2 N
+        # 0.5 × 2 N (the loop runs in a thread of this process: on a busy host give it the time)
+        end = time.monotonic() + 3.0
+        while force() != pytest.approx(1.0, abs=0.05) and time.monotonic() < end:
+            push(0.05, 2.0)
+        assert force() == pytest.approx(1.0, abs=0.05)
         samples.clear()
         assert wait_until(lambda: force() == 0.0, timeout=2.0)  # the stream stopped: faded out
+        # a fade, not a step: any two readings during it (however few a busy host lets this
+        # thread take) fall at no more than 10 N/s
         fade = [(t, f) for t, f in samples if 0.0 < f < 0.99]
-        assert len(fade) > 5
+        assert len(fade) >= 2, samples[:5]
         (t0, f0), (t1, f1) = fade[0], fade[-1]
-        assert (f0 - f1) / (t1 - t0) <= 10.0 * 1.2  # ≤ 10 N/s (a fade, not a step)
+        assert (f0 - f1) / (t1 - t0) <= 10.0 * 1.2  # ≤ 10 N/s
+        end = time.monotonic() + 3.0
         push(0.4, 2.0)
+        while force() != pytest.approx(1.0, abs=0.05) and time.monotonic() < end:
+            push(0.05, 2.0)
         assert force() == pytest.approx(1.0, abs=0.05)
         held = watchdog.outlet(watchdog.keys.safety("arm1", "state"))
         held.put(SafetyState(held.header(), "arm1", "HOLD", ("test hold",)))
