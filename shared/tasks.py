@@ -26,7 +26,6 @@ from typing import Any
 
 import numpy as np
 import numpy.typing as npt
-
 from telesurg.shared.errors import ConfigError
 
 KINDS = ("targets", "path")
@@ -265,7 +264,7 @@ class TrialScore:
     completion_time_s: float  # go (the slave first follows) → task done; NaN if not done
     path_length_mm: float  # the tip's path over the trial
     ideal_length_mm: float  # the task's shortest path
-    economy: float  # ideal / actual path length (1 = no wasted motion)
+    economy: float  # ideal / actual path length (1 = no wasted motion); NaN if not done
     errors: dict[str, int]  # kind → count (ERROR_KINDS)
     peak_force_n: float  # tissue force over the trial
     mean_force_n: float  # mean tissue force while in contact (|F| > 0.05 N); 0 without contact
@@ -356,7 +355,7 @@ def score(task: TaskSpec, streams: Streams, t_end: float | None = None) -> Trial
         completion_time_s=(t1 - t0) if prog.done else float("nan"),
         path_length_mm=length * 1e3,
         ideal_length_mm=ideal * 1e3,
-        economy=ideal / length if length > 0 else float("nan"),
+        economy=ideal / length if length > 0 and prog.done else float("nan"),
         errors=errors,
         peak_force_n=float(f.max()) if f.size else 0.0,
         mean_force_n=float(f[contact].mean()) if contact.any() else 0.0,

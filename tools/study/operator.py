@@ -11,7 +11,9 @@ It sees what a surgeon sees — the slave's tip, as the bus brings it (so late b
   at least its own estimate of the lag (learned from when its moves begin to show) — then
   corrects from what it sees; so a longer delay makes it slower, as it does a person;
 * a small hand **tremor** (``tremor_mm``, per step);
-* a **dwell** at targets: it holds still while it sees the tip inside.
+* a **dwell** at targets: it holds still while it sees the tip inside;
+* a **new press** when it sees the slave stop following (the watchdog held it): it lifts its foot
+  off the pedal (the policy pauses one step: the device releases it) and presses again.
 
 For a path task it plans the same way along via points every ``path_step_mm`` of the wire (each
 sub-movement aimed from where it sees the tip, so back toward the wire), going on to the next as
@@ -31,10 +33,11 @@ from collections import deque
 from collections.abc import Callable
 
 import numpy as np
-
 from telesurg.services.master_capture.devices.policy import PolicyObservation
 from telesurg.shared import tasks as tasks_mod
 from telesurg.shared.tasks import Goal, TaskSpec
+
+LIFT_M = 0.008  # m: a target is approached from this high above it
 
 
 def min_jerk(s: float) -> float:
@@ -44,9 +47,14 @@ def min_jerk(s: float) -> float:
 
 
 def via_points(task: TaskSpec, step_m: float) -> list[Goal]:
-    """The goals the operator aims at in turn: the targets, or the wire every ``step_m``."""
+    """The goals the operator aims at in turn: each target after a point ``LIFT_M`` above it (it
+    lifts the tip off the tissue between touches), or the wire every ``step_m``."""
     if task.kind == "targets":
-        return list(task.goals)
+        out = []
+        for g in task.goals:
+            x, y, z = g.position
+            out += [Goal((x, y, z + LIFT_M), g.radius_m), g]
+        return out
     wire = np.array(task.path)
     seg = np.linalg.norm(np.diff(wire, axis=0), axis=1)
     cum = np.concatenate([[0.0], np.cumsum(seg)])
@@ -77,6 +85,7 @@ class Operator:
         path_step_mm: float = 12.0,
         settle_mm_s: float = 8.0,
         max_wait_s: float = 3.0,
+        repress_s: float = 1.5,
     ) -> None:
         self.task, self.scale, self.dt = task, scale, 1.0 / rate_hz
         self.rng = np.random.default_rng(seed)
@@ -93,6 +102,8 @@ class Operator:
         self.lag = 0.0  # s: its estimate of the time from a command to seeing it
         self.move_shown = False
         self.dwell_since: float | None = None
+        self.repress_s = repress_s  # s: not following this long after it followed → a new press
+        self.followed_until: float | None = None  # when it last saw the slave follow
 
     # -- what it sees ---------------------------------------------------------------------------
     def _speed(self, now: float, window: float = 0.15) -> float:
@@ -130,9 +141,8 @@ class Operator:
         if self.i >= len(self.goals):
             self.phase = "done"
             return
-        goal = self.goals[self.i]
-        if self.task.kind == "path" and goal.dwell_s == 0.0 and self.i > 1:
-            self.phase, self.until = "react", t  # along the wire: one continuous intent, no new reaction
+        if self.goals[self.i - 1].dwell_s == 0.0:  # from a via point: one intent, no new reaction
+            self.phase, self.until = "react", t
         else:
             self.phase, self.until = "react", t + self.reaction_s * self.rng.uniform(0.8, 1.2)
 
@@ -147,14 +157,20 @@ class Operator:
             seen = max(0.0, t - t0 - 0.15 * T)  # (the min-jerk start is slow: 1 mm shows late)
             self.lag = 0.7 * self.lag + 0.3 * seen if self.lag else seen
 
-    def __call__(self, obs: PolicyObservation) -> np.ndarray:
+    def __call__(self, obs: PolicyObservation) -> np.ndarray | None:
         t, tip = obs.t, np.asarray(obs.tip, dtype=float)
         self.seen.append((t, tip))
         out = np.zeros(3)
         if not obs.following:  # not engaged (yet, or the watchdog held): hands still, start over
             if self.phase not in ("wait", "done"):
                 self.phase = "wait"
+            if self.followed_until is not None and t - self.followed_until >= self.repress_s:
+                # held and not following again: lift the foot off the pedal (the device releases it
+                # while the policy does not act) and press anew (``repress_s`` of the device later)
+                self.followed_until = t
+                return None
             return out
+        self.followed_until = t
         self._see_move(t, tip)
         if self.phase == "wait":
             self.phase, self.until = "react", t + self.reaction_s * self.rng.uniform(0.8, 1.2)
@@ -186,7 +202,7 @@ class Operator:
     def _settle(self, t: float, tip: np.ndarray) -> None:
         """After a sub-movement: on along the wire, or wait to see the tip stop, then judge."""
         waited, goal = t - self.until, self.goals[self.i]
-        flowing = self.task.kind == "path" and self.i < len(self.goals) - 1
+        flowing = goal.dwell_s == 0.0 and self.i < len(self.goals) - 1  # a via point, passed through
         if flowing and self.move_shown and self._inside(tip, goal, 1.5) and waited >= 0.5 * self.lag:
             self._next_goal(t)  # along the wire: on to the next via point once it sees the tip near
             return
@@ -206,7 +222,7 @@ class Operator:
 
 def make(
     task: str, scale: float = 0.5, rate_hz: float = 50.0, seed: int = 0, **knobs: float
-) -> Callable[[PolicyObservation], np.ndarray]:
+) -> Callable[[PolicyObservation], np.ndarray | None]:
     """The operator performing the registered task ``task`` at motion scale ``scale`` (the
     mapping's: slave / master), asked at ``rate_hz`` (the policy device's); ``knobs``: the
     :class:`Operator`'s human-like parameters."""
