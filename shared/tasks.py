@@ -29,7 +29,8 @@ import numpy.typing as npt
 from telesurg.shared.errors import ConfigError
 
 KINDS = ("targets", "path")
-#: error kinds a trial counts (a rising crossing each; ``watchdog_hold`` an entry into HOLD/ESTOP)
+#: error kinds a trial counts (an excursion over the limit each, :func:`excursions`; a path exit;
+#: ``watchdog_hold`` an entry into HOLD/ESTOP)
 ERROR_KINDS = ("tissue_force", "path_exit", "rcm_error", "watchdog_hold")
 HELD_STATES = ("HOLD", "ESTOP")
 
@@ -289,6 +290,22 @@ def _window(a: np.ndarray, t0: float, t1: float) -> np.ndarray:
     return a[(a[:, 0] >= t0) & (a[:, 0] <= t1)] if len(a) else a
 
 
+def excursions(series: np.ndarray, limit: float, release: float = 0.8, gap_s: float = 0.25) -> int:
+    """Excursions of a series (t, value) above ``limit``: one starts when the value passes the
+    limit and ends once it has stayed below ``release`` × limit for ``gap_s`` (a contact's chatter
+    around the limit is one error, not one per sample)."""
+    n, above, low_since = 0, False, None
+    for t, v in series:
+        if v > limit:
+            n += 0 if above else 1
+            above, low_since = True, None
+        elif above and v < release * limit:
+            low_since = t if low_since is None else low_since
+            if t - low_since >= gap_s:
+                above = False
+    return n
+
+
 def rising(values: np.ndarray) -> int:
     """Number of False → True transitions in a boolean series (a series starting True counts 1)."""
     v = np.asarray(values, dtype=bool)
@@ -345,9 +362,9 @@ def score(task: TaskSpec, streams: Streams, t_end: float | None = None) -> Trial
         held = np.vstack([[t0, before[-1, 1]], held])
     clutch = streams.clutch[streams.clutch[:, 0] <= t1] if len(streams.clutch) else streams.clutch
     errors = {
-        "tissue_force": rising(f > task.force_limit_n),
+        "tissue_force": excursions(force, task.force_limit_n) if len(force) else 0,
         "path_exit": len(prog.exits),
-        "rcm_error": rising(trocar[:, 1] > task.rcm_limit_mm) if len(trocar) else 0,
+        "rcm_error": excursions(trocar[:, :2], task.rcm_limit_mm) if len(trocar) else 0,
         "watchdog_hold": rising(held[:, 1] > 0.5) if len(held) else 0,
     }
     return TrialScore(

@@ -83,7 +83,12 @@ def main(argv: Sequence[str] | None = None) -> int:
             except TrialFailed as e:
                 print(f"telesurg study: {e}\nrun the same command again to resume", file=sys.stderr)
                 return 1
-            with where.results.open("a") as f:
+            with where.results.open("a+") as f:
+                f.seek(0, 2)
+                if f.tell() > 0:  # a line torn by a crash mid-write ends here, not in this one
+                    f.seek(f.tell() - 1)
+                    if f.read(1) != "\n":
+                        f.write("\n")
                 f.write(json.dumps(row) + "\n")
                 f.flush()
             score = "done" if row["completed"] else "not done"

@@ -47,14 +47,15 @@ def min_jerk(s: float) -> float:
 
 
 def via_points(task: TaskSpec, step_m: float) -> list[Goal]:
-    """The goals the operator aims at in turn: each target after a point ``LIFT_M`` above it (it
-    lifts the tip off the tissue between touches), or the wire every ``step_m``."""
+    """The goals the operator aims at in turn: each target between points ``LIFT_M`` above it (it
+    lifts the tip off the tissue before it moves on), or the wire every ``step_m``."""
     if task.kind == "targets":
         out = []
         for g in task.goals:
             x, y, z = g.position
-            out += [Goal((x, y, z + LIFT_M), g.radius_m), g]
-        return out
+            above = Goal((x, y, z + LIFT_M), g.radius_m)
+            out += [above, g, above]
+        return out[:-1]
     wire = np.array(task.path)
     seg = np.linalg.norm(np.diff(wire, axis=0), axis=1)
     cum = np.concatenate([[0.0], np.cumsum(seg)])
@@ -85,7 +86,7 @@ class Operator:
         path_step_mm: float = 12.0,
         settle_mm_s: float = 8.0,
         max_wait_s: float = 3.0,
-        repress_s: float = 1.5,
+        repress_s: float = 3.0,
     ) -> None:
         self.task, self.scale, self.dt = task, scale, 1.0 / rate_hz
         self.rng = np.random.default_rng(seed)
@@ -164,7 +165,7 @@ class Operator:
         if not obs.following:  # not engaged (yet, or the watchdog held): hands still, start over
             if self.phase not in ("wait", "done"):
                 self.phase = "wait"
-            if self.followed_until is not None and t - self.followed_until >= self.repress_s:
+            if self.followed_until is not None and t - self.followed_until >= self.repress_s + 2 * self.lag:
                 # held and not following again: lift the foot off the pedal (the device releases it
                 # while the policy does not act) and press anew (``repress_s`` of the device later)
                 self.followed_until = t

@@ -167,6 +167,20 @@ def overrides(trial: Trial, margin_ms: float = 0.0) -> dict[str, list[str]]:
     }
 
 
+def record_keys(k: Keys, arm: str = "arm1", master: str = "m1") -> list[str]:
+    """What a trial records: the master's streams (a replay's input), the slave's measurements and
+    state, the watchdog's and the mapping's states and every event — not the 500 Hz setpoints the
+    mapping derives from the master, the leases or the heartbeats (a loaded host's CPU)."""
+    slave = ("measured_cp", "measured_cf", "measured_js", "operating_state")
+    return [
+        f"{k.prefix}/master/{master}/**",
+        *(k.slave(arm, s) for s in slave),
+        k.safety(arm, "state"),
+        k.mapping(arm, "teleop_state"),
+        f"{k.prefix}/events/**",
+    ]
+
+
 def _rows(rows: list[tuple[float, ...]], cols: int) -> np.ndarray:
     return np.array(rows, dtype=float).reshape(-1, cols)
 
@@ -227,7 +241,8 @@ def run_trial(trial: Trial, where: Where, margin_ms: float = 0.0) -> dict[str, A
         info = {"trial": str(trial.index), "task": trial.task, "condition": c.name}
         watch = Watch(p.node)
         with Recorder(part, p.spec.site, info=info) as rec:
-            rec.subscribe(p.node.session, p.node.keys.all, p.node.keyring)
+            for key in record_keys(p.node.keys):
+                rec.subscribe(p.node.session, key, p.node.keyring)
             t_go, t_end, why = watch.run(p.site, task)
             time.sleep(AFTER_DONE_S)
         if why:
