@@ -63,7 +63,8 @@ def via_points(task: TaskSpec, step_m: float) -> list[Goal]:
     for s in np.arange(0.0, cum[-1], step_m)[1:]:
         p = np.array([np.interp(s, cum, wire[:, i]) for i in range(3)])
         out.append(Goal((float(p[0]), float(p[1]), float(p[2])), task.tube_radius_m * 0.5))
-    out.insert(0, Goal(tuple(wire[0]), task.tube_radius_m * 0.4))  # type: ignore[arg-type]
+    w0 = (float(wire[0, 0]), float(wire[0, 1]), float(wire[0, 2]))
+    out.insert(0, Goal(w0, task.tube_radius_m * 0.4))
     out.append(Goal(task.goals[-1].position, task.goals[-1].radius_m * 0.5, 0.0))
     return out
 

@@ -169,14 +169,14 @@ def parse(text: str, source: str = "<protocol>") -> Protocol:
             raise fail(f"[study] unknown task {t!r}; known: {', '.join(known)}", "study", "tasks")
     if len(set(task_names)) != len(task_names):
         raise fail("[study] a task is listed twice", "study", "tasks")
-    for key, lo, hi in (("repetitions", 1, 1000), ("practice", 0, 100)):
+    for key, lo_n, hi_n in (("repetitions", 1, 1000), ("practice", 0, 100)):
         v = study.get(key, 0)
-        if isinstance(v, bool) or not isinstance(v, int) or not lo <= v <= hi:
-            raise fail(f"[study] {key} must be an integer in [{lo}, {hi}], got {v!r}", "study", key)
+        if isinstance(v, bool) or not isinstance(v, int) or not lo_n <= v <= hi_n:
+            raise fail(f"[study] {key} must be an integer in [{lo_n}, {hi_n}], got {v!r}", "study", key)
     num: dict[str, float] = {}
-    for key, hi in (("pause_s", 3600.0), ("host_margin_ms", 2000.0)):
+    for key, upper in (("pause_s", 3600.0), ("host_margin_ms", 2000.0)):
         try:
-            num[key] = _number(study.get(key, 0.0), key, 0.0, hi)
+            num[key] = _number(study.get(key, 0.0), key, 0.0, upper)
         except ValueError as e:
             raise fail(f"[study] {e}", "study", key) from e
     blinded = study.get("blinded", True)

@@ -24,7 +24,7 @@ SCORES = (
 PLOTTED = ("completion_time_s", "path_length_mm", "economy")
 
 
-def _stats(v: list[float]) -> tuple[float, float, int]:
+def _stats(v: list[Any]) -> tuple[float, float, int]:
     a = np.array([x for x in v if x is not None and math.isfinite(x)], dtype=float)
     if a.size == 0:
         return math.nan, math.nan, 0
@@ -89,8 +89,8 @@ def plot(rows: list[dict[str, Any]], conditions: list[str], out: Path, title: st
             ax = axes[i][j]
             means, sds = [], []
             for x, cond in enumerate(conditions):
-                v = [r.get(key) for r in scored if r["task"] == task and r["condition"] == cond]
-                v = [y for y in v if y is not None and math.isfinite(y)]
+                got = [r.get(key) for r in scored if r["task"] == task and r["condition"] == cond]
+                v = [float(y) for y in got if y is not None and math.isfinite(y)]
                 ax.scatter(x + rng.uniform(-0.08, 0.08, len(v)), v, s=14, color="#7f8c8d", zorder=2)
                 m, sd, _ = _stats(v)
                 means.append(m)
@@ -108,6 +108,50 @@ def plot(rows: list[dict[str, Any]], conditions: list[str], out: Path, title: st
         fig.suptitle(title, fontsize=10)
     fig.tight_layout()
     out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out, dpi=110)
+    plt.close(fig)
+
+
+def plot_tasks(traces: dict[str, np.ndarray], out: Path) -> None:
+    """The tasks from above and from the side (mm, the slave's base frame): goals with their
+    radius, the wire with its tube, and one trial's tip path each (``traces``: task → (n, 4) t,
+    x, y, z in m)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.patches import Circle
+    from telesurg.shared import tasks
+
+    names = list(traces)
+    fig, axes = plt.subplots(2, len(names), figsize=(4.6 * len(names), 6.4), squeeze=False)
+    for j, name in enumerate(names):
+        task, tip = tasks.get(name), traces[name] * 1e3
+        for i, (a, b, view) in enumerate(((1, 2, "from above"), (1, 3, "from the side"))):
+            ax = axes[i][j]
+            if task.kind == "path":
+                wire = np.array(task.path) * 1e3
+                r = task.tube_radius_m * 1e3
+                ax.plot(wire[:, a - 1], wire[:, b - 1], color="#c0392b", lw=1.5, label="wire")
+                ax.fill_between(
+                    wire[:, 0], wire[:, b - 1] - r, wire[:, b - 1] + r, color="#c0392b", alpha=0.15, lw=0
+                ) if a == 1 else None
+            for k, g in enumerate(task.goals):
+                p = np.array(g.position) * 1e3
+                ax.add_patch(Circle((p[a - 1], p[b - 1]), g.radius_m * 1e3, color="#27ae60", alpha=0.3))
+                if task.kind == "targets" and k < 2:
+                    ax.annotate("AB"[k], (p[a - 1], p[b - 1]), ha="center", va="center", fontsize=8)
+            s = np.array(task.start_tip) * 1e3
+            ax.plot(tip[:, a], tip[:, b], color="#20639b", lw=0.8, label="tip")
+            ax.plot(s[a - 1], s[b - 1], "k^", ms=6, label="start")
+            ax.set_aspect("equal", adjustable="datalim")
+            ax.set_xlabel("x (mm)", fontsize=8)
+            ax.set_ylabel(("y", "z")[i] + " (mm)", fontsize=8)
+            ax.set_title(f"{name}, {view}", fontsize=9)
+            ax.grid(alpha=0.3)
+            if i == 0 and j == 0:
+                ax.legend(fontsize=7, loc="upper left")
+    fig.tight_layout()
     fig.savefig(out, dpi=110)
     plt.close(fig)
 
@@ -132,4 +176,21 @@ def write(out_dir: Path, rows: list[dict[str, Any]], conditions: list[str], titl
     js.write_text(json.dumps(_clean({"title": title, "summary": summary}), indent=1, allow_nan=False) + "\n")
     png = out_dir / "report.png"
     plot(rows, conditions, png, title)
-    return [md, js, png]
+    written = [md, js, png]
+    traces = {}
+    for r in rows:  # the first finished trial of each task at the first condition: its tip path
+        if (
+            r["task"] not in traces
+            and r["completed"]
+            and r["condition"] == conditions[0]
+            and "recording" in r
+        ):
+            from telesurg.tools.study.runner import streams_from_mcap
+
+            rec = out_dir / r["recording"]
+            if rec.exists():
+                traces[r["task"]] = streams_from_mcap(rec).tip
+    if traces:
+        plot_tasks(traces, out_dir / "tasks.png")
+        written.append(out_dir / "tasks.png")
+    return written

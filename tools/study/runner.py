@@ -31,6 +31,7 @@ from typing import Any
 import numpy as np
 from telesurg.services.record import Recorder, iter_decoded, open_mcap
 from telesurg.shared import tasks
+from telesurg.shared.errors import SiteStartError
 from telesurg.shared.keys import Keys
 from telesurg.shared.messages import (
     CartesianPose,
@@ -237,7 +238,11 @@ def run_trial(trial: Trial, where: Where, margin_ms: float = 0.0) -> dict[str, A
     assert pipe.impairer is not None
     pipe.impairer.set_profile(LinkProfile(delay_ms=c.delay_ms, jitter_ms=c.jitter_ms))
     part = mcap.with_name(mcap.name + ".part")
-    with pipe as p:
+    try:
+        p = pipe.__enter__()  # (closes what it started if it fails)
+    except SiteStartError as e:  # (a loaded host: a service that did not come up in time)
+        raise TrialFailed(f"trial {trial.index}: the site did not start: {e}") from e
+    try:
         info = {"trial": str(trial.index), "task": trial.task, "condition": c.name}
         watch = Watch(p.node)
         with Recorder(part, p.spec.site, info=info) as rec:
@@ -247,6 +252,8 @@ def run_trial(trial: Trial, where: Where, margin_ms: float = 0.0) -> dict[str, A
             time.sleep(AFTER_DONE_S)
         if why:
             raise TrialFailed(f"trial {trial.index}: {why}\n{p.diagnose(6)}")
+    finally:
+        p.close()
     os.replace(part, mcap)
     s = tasks.score(task, streams_from_mcap(mcap))
     row = {
