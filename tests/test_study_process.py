@@ -23,7 +23,7 @@ name = "ci"
 seed = 3
 tasks = ["mh3f-targets", "mh3f-wire"]
 repetitions = 1
-host_margin_ms = 300
+host_margin_ms = 500
 
 [[condition]]
 name = "0 ms"

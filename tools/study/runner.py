@@ -48,6 +48,9 @@ OPERATOR = "telesurg.tools.study.operator:make"
 POLICY_HZ = 50.0  # Hz: the synthetic operator is asked this often
 ENGAGE_TIMEOUT_S = 90.0  # s: a site whose slave never follows by then fails the trial (a loaded host)
 AFTER_DONE_S = 0.5  # s recorded after the task is done
+#: a trial ends at its task's time limit of time following (the watchdog's holds on a loaded host
+#: do not count), and at this many times the limit whatever happened
+WALL_LIMIT = 4.0
 #: the watchdog's freshness deadlines (its defaults, ms) that the protocol's host_margin_ms lengthens
 WATCHDOG_DEADLINES = {
     "lease_valid_ms": 250.0,
@@ -288,7 +291,7 @@ class Watch:
             self.tips.append((time.monotonic(), *m.position))
 
     def _on_op(self, m: OperatingState, key: str) -> None:
-        self.following = m.follow
+        self.following = m.follow  # (a bool: set atomically from the bus thread)
 
     def run(self, site: Any, task: tasks.TaskSpec) -> tuple[float, float, str]:
         """Wait for the go (the slave follows), then until the task is done or its time limit:
@@ -299,13 +302,17 @@ class Watch:
                 why = f"services exited: {dead}" if dead else "the slave never followed the operator"
                 return math.nan, math.nan, why
             time.sleep(0.05)
-        go = time.monotonic()
+        go = last = time.monotonic()
+        active = 0.0  # s the slave followed since the go: the time limit counts these
         while True:
             time.sleep(0.5)
             now = time.monotonic()
+            active += (now - last) if self.following else 0.0
+            last = now
             if dead := site.dead():
                 return go, now, f"services exited: {dead}"
             with self.lock:
                 tips = np.array(self.tips, dtype=float).reshape(-1, 4)
-            if tasks.evaluate(task, tips[tips[:, 0] >= go]).done or now - go > task.time_limit_s:
+            over = active > task.time_limit_s or now - go > WALL_LIMIT * task.time_limit_s
+            if tasks.evaluate(task, tips[tips[:, 0] >= go]).done or over:
                 return go, now, ""
