@@ -62,6 +62,9 @@ OTHER_COMMANDS: tuple[Command, ...] = (
         "reproduce a paper's evaluation (figures + metrics.json)",
         extra="lab",
     ),
+    Command(
+        "study", f"{_T}.study", "a user study: tasks × conditions, synthetic operator, report", True, "lab"
+    ),
     Command("impair", f"{_T}.bench.impair", "userspace TCP link impairer (cut / delay) for fault tests"),
     Command("device", f"{_T}.emulate", "serial device tools: emulate an encoder board on a pty, monitor one"),
 )

@@ -319,7 +319,7 @@ def test_rerun_shows_the_arm_from_the_export(exported: tuple[Path, Path], tmp_pa
     assert arm > 2000, "rerun drew no arm from the export's URDF and transforms"
 
 
-if __name__ == "__main__":  # the picture of docs/recording.md from an existing export
+if __name__ == "__main__":  # the picture of docs/console.md from an existing export
     import tempfile
 
     with tempfile.TemporaryDirectory() as d:

@@ -164,7 +164,7 @@ def test_mirror_shows_the_teleop_state_of_each_pair(tmp_path: Path) -> None:
 def test_the_mirror_file_has_no_footer_and_rerun_can_add_one(tmp_path: Path) -> None:
     """rerun keeps a footer's chunk manifest in memory for the whole session, so the mirror's
     .rrd is written without one by default (``rrd_footer``); the file still opens, and rerun's
-    CLI adds the footer afterwards, as docs/recording.md says."""
+    CLI adds the footer afterwards, as docs/console.md says."""
     import warnings
 
     from rerun.chunk import RrdReader

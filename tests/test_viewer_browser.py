@@ -10,7 +10,7 @@ page, the arm and the plots drawn in colour.
 
 Needs ``/usr/bin/chromium`` (Debian: ``apt-get install -y chromium``); skipped without it.
 
-Also a script, to refresh the screenshot of ``docs/recording.md`` (a 20 s session, the time
+Also a script, to refresh the screenshot of ``docs/console.md`` (a 20 s session, the time
 cursor put at 60 % of it)::
 
     .venv/bin/python tests/test_viewer_browser.py docs/img/viewer.png 0.6
@@ -233,7 +233,7 @@ def _click(cdp: DevTools, session: str, x: float, y: float) -> None:
 
 
 def docs_screenshot(out: Path, at: float) -> None:
-    """The screenshot of ``docs/recording.md``: a 20 s demo session, fully loaded, with the time
+    """The screenshot of ``docs/console.md``: a 20 s demo session, fully loaded, with the time
     cursor at ``at`` (fraction of the recording: mid-session rather than its shutdown)."""
     with tempfile.TemporaryDirectory() as tmp, served_demo(Path(tmp), session_s=20.0) as (url, _rrd, _mirror):
         history: list[dict[str, float]] = []

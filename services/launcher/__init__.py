@@ -895,7 +895,7 @@ def run_site(
     """Run ``spec`` until ``stop`` or ``seconds``; 0 if every process stopped cleanly. ``console``:
     the web console's page URL (its one-time login URL is printed once the site is up).
     ``replay``: ``telesurg replay`` arguments (the file first), run once the site is up; the site
-    stops when it ends, and its exit code is the result (docs/recording.md)."""
+    stops when it ends, and its exit code is the result (docs/console.md)."""
     deadline = time.monotonic() + seconds if seconds > 0 else float("inf")
     replay_rc: int | None = None
     with Site(spec) as site:

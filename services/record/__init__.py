@@ -17,7 +17,7 @@ re-encoded) and writes it to the MCAP file:
 * attachments: files given with ``--attach`` (e.g. the run's TOML configs).
 
 SIGINT / SIGTERM (or ``--seconds``) close the file cleanly, with its summary and index. Replay and
-conversion to rerun: :mod:`telesurg.services.record.replay`. Layout and examples: ``docs/recording.md``.
+conversion to rerun: :mod:`telesurg.services.record.replay`. Layout and examples: ``docs/console.md``.
 
 Examples::
 

@@ -30,7 +30,7 @@ Pre-flight and verdict (a replay that means nothing says so and exits non-zero):
 mirror's entity paths (``/slave/<arm>/...``, ``/master/<arm>/...``, ``/safety/...``, ``/events``)
 and its two timelines, ``source_time`` (header stamp) and ``receive_time`` (log time).
 
-Examples (a pipeline without master_capture: docs/recording.md §3)::
+Examples (a pipeline without master_capture: docs/console.md, "Replay")::
 
     telesurg replay run.mcap --connect tcp/127.0.0.1:7447 --json diff.json
     telesurg replay run.mcap --step --keys 'master/*/buttons' --connect tcp/127.0.0.1:7447

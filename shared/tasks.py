@@ -1,0 +1,386 @@
+"""Surgical training tasks and their scores: pure functions over a trial's recorded streams.
+
+A task (:class:`TaskSpec`) is what the operator must do with the slave's controlled point, in the
+slave's base frame: reach a sequence of goals (a Fitts-style target task: each goal reached when
+the tip stays within its radius for its dwell time) or follow a wire (a path task: a polyline and
+the tube around it; leaving the tube is an error). A robot's folder declares its tasks
+(``shared/robots/<robot>/tasks.py``, :func:`register`); :func:`get` finds one by name.
+
+:func:`evaluate` runs the success rule over the tip samples (the study harness calls it live to
+end a trial, and again on the recording); :func:`score` turns a trial's :class:`Streams` (read
+from its MCAP recording) into a :class:`TrialScore`. Numpy in, numbers out: no bus, no I/O.
+
+Example::
+
+    task = get("mh3f-targets")
+    prog = evaluate(task, tips)          # tips (n, 4): t s, x, y, z m
+    s = score(task, streams)             # completion time, path length, errors by kind, …
+"""
+
+from __future__ import annotations
+
+import importlib
+import math
+from dataclasses import asdict, dataclass, field
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+from telesurg.shared.errors import ConfigError
+
+KINDS = ("targets", "path")
+#: error kinds a trial counts (an excursion over the limit each, :func:`excursions`; a path exit;
+#: ``watchdog_hold`` an entry into HOLD/ESTOP)
+ERROR_KINDS = ("tissue_force", "path_exit", "rcm_error", "watchdog_hold")
+HELD_STATES = ("HOLD", "ESTOP")
+
+Vec3 = tuple[float, float, float]
+
+
+@dataclass(frozen=True)
+class Goal:
+    """One point to reach: tip within ``radius_m`` of ``position`` (m, base frame) for ``dwell_s``."""
+
+    position: Vec3
+    radius_m: float
+    dwell_s: float = 0.0
+
+
+@dataclass(frozen=True)
+class TaskSpec:
+    """A task of one robot.
+
+    Attributes:
+        name: registered name, ``<robot>-<task>`` (``mh3f-targets``).
+        robot: the robot registry name it runs on.
+        kind: ``targets`` (reach ``goals`` in order) or ``path`` (follow ``path`` in its tube).
+        instructions: what the operator is told (one or two sentences).
+        goals: targets: the sequence; path: the wire's end (the last goal ends the trial).
+        path: path: the wire, polyline of points, m, base frame.
+        tube_radius_m: path: the ring's radius; the tip farther than this from the wire is out.
+        start_tip: m, base frame: where the tip is at the start (the site's home pose).
+        force_limit_n: N: tissue force above this is an error (below the watchdog's own limit).
+        rcm_limit_mm: mm: RCM error above this (in trocar mode) is an error.
+        time_limit_s: s: a trial not done by then ends incomplete.
+    """
+
+    name: str
+    robot: str
+    kind: str
+    instructions: str
+    goals: tuple[Goal, ...]
+    start_tip: Vec3
+    path: tuple[Vec3, ...] = ()
+    tube_radius_m: float = 0.0
+    force_limit_n: float = 2.0
+    rcm_limit_mm: float = 2.0
+    time_limit_s: float = 90.0
+
+    def __post_init__(self) -> None:
+        if self.kind not in KINDS:
+            raise ConfigError(f"task {self.name}: kind {self.kind!r} invalid; valid: {', '.join(KINDS)}")
+        if not self.goals:
+            raise ConfigError(f"task {self.name}: no goals")
+        if self.kind == "path" and (len(self.path) < 2 or self.tube_radius_m <= 0):
+            raise ConfigError(f"task {self.name}: a path task needs >= 2 points and tube_radius_m > 0")
+
+    def ideal_length_m(self) -> float:
+        """The shortest tip path that does the task (m): straight lines start → each goal
+        (targets); start → the wire's start, then along the wire (path)."""
+        if self.kind == "targets":
+            pts = np.array([self.start_tip, *(g.position for g in self.goals)])
+            return float(np.linalg.norm(np.diff(pts, axis=0), axis=1).sum())
+        wire = np.array(self.path)
+        return float(
+            np.linalg.norm(wire[0] - np.array(self.start_tip))
+            + np.linalg.norm(np.diff(wire, axis=0), axis=1).sum()
+        )
+
+
+_TASKS: dict[str, TaskSpec] = {}
+
+
+def register(task: TaskSpec) -> None:
+    """Make ``task`` known by its name (a robot folder's ``tasks.py`` calls it at import)."""
+    _TASKS[task.name] = task
+
+
+def _load_all() -> None:
+    from telesurg.shared.robots import registry
+
+    for robot in registry.names():
+        try:
+            importlib.import_module(f"telesurg.shared.robots.{robot}.tasks")
+        except ModuleNotFoundError as e:
+            if not (e.name or "").endswith(".tasks"):
+                raise
+
+
+def names() -> tuple[str, ...]:
+    """Every registered task's name, sorted."""
+    _load_all()
+    return tuple(sorted(_TASKS))
+
+
+def get(name: str) -> TaskSpec:
+    """The task ``name``; ConfigError naming the known ones."""
+    _load_all()
+    if name not in _TASKS:
+        raise ConfigError(f"unknown task {name!r}; known: {', '.join(sorted(_TASKS)) or 'none'}")
+    return _TASKS[name]
+
+
+# --------------------------------------------------------------------------- geometry
+
+
+def distance_to_path(points: npt.ArrayLike, path: npt.ArrayLike) -> tuple[np.ndarray, np.ndarray]:
+    """Distance (m) of each point to the polyline and the arc length (m) of its nearest point.
+
+    Args:
+        points: (n, 3) m.
+        path: (k, 3) m, k >= 2.
+    Returns:
+        (n,) distances and (n,) arc lengths along the path.
+    """
+    p = np.asarray(points, dtype=float).reshape(-1, 3)
+    w = np.asarray(path, dtype=float)
+    a, b = w[:-1], w[1:]
+    ab = b - a
+    seg_len = np.linalg.norm(ab, axis=1)
+    cum = np.concatenate([[0.0], np.cumsum(seg_len)])[:-1]
+    ap = p[:, None, :] - a[None, :, :]
+    s = np.clip((ap * ab[None]).sum(-1) / np.maximum(seg_len**2, 1e-18)[None], 0.0, 1.0)
+    nearest = a[None] + s[..., None] * ab[None]
+    d = np.linalg.norm(p[:, None, :] - nearest, axis=2)
+    j = d.argmin(axis=1)
+    rows = np.arange(len(p))
+    return d[rows, j], cum[j] + s[rows, j] * seg_len[j]
+
+
+# --------------------------------------------------------------------------- the success rule
+
+
+@dataclass
+class Progress:
+    """How far a trial got (times in the tips' clock, s)."""
+
+    reached: list[float] = field(default_factory=list)  # when each goal was reached, in order
+    done_t: float | None = None  # when the last goal was reached (the task done)
+    entered_t: float | None = None  # path: when the tip first entered the tube at the wire's start
+    exits: list[float] = field(default_factory=list)  # path: when the tip left the tube
+
+    @property
+    def done(self) -> bool:
+        """The task is complete."""
+        return self.done_t is not None
+
+
+def evaluate(task: TaskSpec, tips: npt.ArrayLike) -> Progress:
+    """Run the task's success rule over tip samples (n, 4): t s, x, y, z m (time order).
+
+    Targets: goal i is reached once the tip has stayed within its radius for its dwell (then the
+    next goal counts). Path: the trial is on the wire from the first sample within the tube at its
+    start; each move out of the tube from then is an exit; done when the tip, having covered 90 %
+    of the wire's length, is within the last goal's radius.
+    """
+    tips = np.asarray(tips, dtype=float).reshape(-1, 4)
+    prog = Progress()
+    if task.kind == "targets":
+        i, since = 0, None
+        for t, *p in tips:
+            g = task.goals[i]
+            inside = math.dist(p, g.position) <= g.radius_m
+            if not inside:
+                since = None
+                continue
+            since = t if since is None else since
+            if t - since >= g.dwell_s:
+                prog.reached.append(float(t))
+                i, since = i + 1, None
+                if i == len(task.goals):
+                    prog.done_t = float(t)
+                    break
+        return prog
+    if len(tips) == 0:
+        return prog
+    d, s = distance_to_path(tips[:, 1:], task.path)
+    wire = np.array(task.path)
+    length = float(np.linalg.norm(np.diff(wire, axis=0), axis=1).sum())
+    end = task.goals[-1]
+    start_ok = np.linalg.norm(tips[:, 1:] - wire[0], axis=1) <= task.tube_radius_m
+    if not start_ok.any():
+        return prog
+    k0 = int(np.argmax(start_ok))
+    prog.entered_t = float(tips[k0, 0])
+    inside = True
+    covered = 0.0
+    for k in range(k0, len(tips)):
+        now_in = d[k] <= task.tube_radius_m
+        if inside and not now_in:
+            prog.exits.append(float(tips[k, 0]))
+        inside = now_in
+        if now_in:
+            covered = max(covered, float(s[k]))
+        if covered >= 0.9 * length and math.dist(tips[k, 1:], end.position) <= end.radius_m:
+            prog.done_t = float(tips[k, 0])
+            prog.reached.append(prog.done_t)
+            break
+    return prog
+
+
+# --------------------------------------------------------------------------- scores
+
+
+@dataclass
+class Streams:
+    """A trial's recorded streams, each in time order on one clock (s).
+
+    Attributes:
+        tip: (n, 4) t, x, y, z (m): the slave's measured_cp.
+        force: (n, 2) t, |F| (N): measured_cf.
+        rcm: (n, 3) t, RCM error (mm), 1 in trocar mode else 0: operating_state.
+        follow: (n, 2) t, 1 while the slave follows: operating_state.
+        clutch: (n, 2) t, 1 pressed: the master's buttons.
+        safety: (n, 2) t, 1 while the watchdog holds (HOLD / ESTOP): its state.
+    """
+
+    tip: np.ndarray
+    force: np.ndarray
+    rcm: np.ndarray
+    follow: np.ndarray
+    clutch: np.ndarray
+    safety: np.ndarray
+
+    @staticmethod
+    def empty() -> Streams:
+        """No samples at all."""
+        return Streams(*(np.zeros((0, c)) for c in (4, 2, 3, 2, 2, 2)))
+
+
+@dataclass
+class TrialScore:
+    """One trial's score (the study's JSON line; docs/study.md defines each)."""
+
+    completed: bool
+    completion_time_s: float  # go (the slave first follows) → task done; NaN if not done
+    path_length_mm: float  # the tip's path over the trial
+    ideal_length_mm: float  # the task's shortest path
+    economy: float  # ideal / actual path length (1 = no wasted motion); NaN if not done
+    errors: dict[str, int]  # kind → count (ERROR_KINDS)
+    peak_force_n: float  # tissue force over the trial
+    mean_force_n: float  # mean tissue force while in contact (|F| > 0.05 N); 0 without contact
+    contact_time_s: float  # time in contact with the tissue
+    rcm_error_max_mm: float  # NaN when the arm was never in trocar mode
+    rcm_error_mean_mm: float
+    clutch_count: int  # clutch presses from the trial's start
+    time_held_s: float  # the watchdog held (HOLD / ESTOP) this long in the trial
+    goals_reached: int
+    path_exits: list[float]  # path: s after go of each exit
+
+    def row(self) -> dict[str, Any]:
+        """As a JSON-ready dict (NaN → None)."""
+        out = asdict(self)
+        for k, v in out.items():
+            if isinstance(v, float) and not math.isfinite(v):
+                out[k] = None
+        return out
+
+
+def _window(a: np.ndarray, t0: float, t1: float) -> np.ndarray:
+    return a[(a[:, 0] >= t0) & (a[:, 0] <= t1)] if len(a) else a
+
+
+def excursions(series: np.ndarray, limit: float, release: float = 0.8, gap_s: float = 0.25) -> int:
+    """Excursions of a series (t, value) above ``limit``: one starts when the value passes the
+    limit and ends once it has stayed below ``release`` × limit for ``gap_s`` (a contact's chatter
+    around the limit is one error, not one per sample)."""
+    n, above, low_since = 0, False, None
+    for t, v in series:
+        if v > limit:
+            n += 0 if above else 1
+            above, low_since = True, None
+        elif above and v < release * limit:
+            low_since = t if low_since is None else low_since
+            if t - low_since >= gap_s:
+                above = False
+    return n
+
+
+def rising(values: np.ndarray) -> int:
+    """Number of False → True transitions in a boolean series (a series starting True counts 1)."""
+    v = np.asarray(values, dtype=bool)
+    if v.size == 0:
+        return 0
+    return int(v[0]) + int(np.count_nonzero(v[1:] & ~v[:-1]))
+
+
+def time_true(series: np.ndarray, t0: float, t1: float) -> float:
+    """Seconds within [t0, t1] that a step series (t, 0/1) is 1 (each value holds until the next)."""
+    if len(series) == 0 or t1 <= t0:
+        return 0.0
+    t = np.clip(np.append(series[:, 0], t1), t0, t1)
+    return float((np.diff(t) * (series[:, 1] > 0.5)).sum())
+
+
+def start_time(streams: Streams) -> float | None:
+    """The go time: the slave's first following state (None if it never followed)."""
+    f = streams.follow
+    on = np.flatnonzero(f[:, 1] > 0.5) if len(f) else np.zeros(0, dtype=int)
+    return float(f[on[0], 0]) if on.size else None
+
+
+def score(task: TaskSpec, streams: Streams, t_end: float | None = None) -> TrialScore:
+    """Score one trial from its streams (see :class:`TrialScore`).
+
+    The trial runs from the go (:func:`start_time`) to the task's completion, else to ``t_end``
+    (the harness's stop) or the last tip sample.
+    """
+    t0 = start_time(streams)
+    tip_all = streams.tip
+    if t0 is None or len(tip_all) == 0:
+        nan = float("nan")
+        return TrialScore(
+            False, nan, 0.0, task.ideal_length_m() * 1e3, nan, dict.fromkeys(ERROR_KINDS, 0), 0.0, 0.0,
+            0.0, nan, nan, 0, 0.0, 0, [],
+        )  # fmt: skip
+    last = float(tip_all[-1, 0]) if t_end is None else t_end
+    prog = evaluate(task, tip_all[tip_all[:, 0] >= t0])
+    t1 = prog.done_t if prog.done_t is not None else last
+    tip = _window(tip_all, t0, t1)
+    length = float(np.linalg.norm(np.diff(tip[:, 1:], axis=0), axis=1).sum()) if len(tip) > 1 else 0.0
+    ideal = task.ideal_length_m()
+    force = _window(streams.force, t0, t1)
+    f = force[:, 1] if len(force) else np.zeros(0)
+    contact = f > 0.05
+    contact_s = time_true(np.column_stack([force[:, 0], contact]) if len(force) else force, t0, t1)
+    rcm = _window(streams.rcm, t0, t1)
+    trocar = rcm[rcm[:, 2] > 0.5] if len(rcm) else rcm
+    held = _window(streams.safety, t0, t1)
+    # the state at t0 holds until its first change inside the window
+    before = streams.safety[streams.safety[:, 0] < t0] if len(streams.safety) else streams.safety
+    if len(before):
+        held = np.vstack([[t0, before[-1, 1]], held])
+    clutch = streams.clutch[streams.clutch[:, 0] <= t1] if len(streams.clutch) else streams.clutch
+    errors = {
+        "tissue_force": excursions(force, task.force_limit_n) if len(force) else 0,
+        "path_exit": len(prog.exits),
+        "rcm_error": excursions(trocar[:, :2], task.rcm_limit_mm) if len(trocar) else 0,
+        "watchdog_hold": rising(held[:, 1] > 0.5) if len(held) else 0,
+    }
+    return TrialScore(
+        completed=prog.done,
+        completion_time_s=(t1 - t0) if prog.done else float("nan"),
+        path_length_mm=length * 1e3,
+        ideal_length_mm=ideal * 1e3,
+        economy=ideal / length if length > 0 and prog.done else float("nan"),
+        errors=errors,
+        peak_force_n=float(f.max()) if f.size else 0.0,
+        mean_force_n=float(f[contact].mean()) if contact.any() else 0.0,
+        contact_time_s=contact_s,
+        rcm_error_max_mm=float(trocar[:, 1].max()) if len(trocar) else float("nan"),
+        rcm_error_mean_mm=float(trocar[:, 1].mean()) if len(trocar) else float("nan"),
+        clutch_count=rising(clutch[:, 1] > 0.5) if len(clutch) else 0,
+        time_held_s=time_true(held, t0, t1),
+        goals_reached=len(prog.reached),
+        path_exits=[round(t - t0, 3) for t in prog.exits],
+    )

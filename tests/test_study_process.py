@@ -1,0 +1,71 @@
+"""``telesurg study`` through the real services (docs/study.md): a protocol of both MH3F tasks at
+0 and 300 ms of added delay each way, one repetition, the synthetic operator as the participant.
+
+Each trial is a real site — router, watchdog, slave_control on MuJoCo, mapping, master_capture
+with the policy device — whose master reaches it through the link impairer. What a user notices:
+every trial completes and has its JSON line and its recording (the slave's tip in it), the report
+is written, and the operator is slower at 300 ms than at 0 ms (its time following, without the
+time the watchdog held the arm: on a loaded host a hold is the host's, not the delay's).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import pytest
+from telesurg.tools import study
+from telesurg.tools.study.runner import streams_from_mcap
+
+PROTOCOL = """\
+[study]
+name = "ci"
+seed = 3
+tasks = ["mh3f-targets", "mh3f-wire"]
+repetitions = 1
+host_margin_ms = 500
+
+[[condition]]
+name = "0 ms"
+delay_ms = 0
+
+[[condition]]
+name = "300 ms"
+delay_ms = 300
+"""
+
+
+@pytest.mark.process
+@pytest.mark.timeout(1200)
+@pytest.mark.skipif(
+    not os.environ.get("TELESURG_SLOW"),
+    reason="issue #44 acceptance 2 in small, a slow test (4 trials on real sites, 5-10 min; not yet "
+    "seen to pass on a loaded host): TELESURG_SLOW=1 runs it",
+)
+def test_a_study_runs_on_real_sites_and_delay_slows_the_operator(tmp_path: Path) -> None:
+    proto = tmp_path / "ci.toml"
+    proto.write_text(PROTOCOL)
+    out = tmp_path / "out"
+    assert study.main([str(proto), "--out", str(out)]) == 0
+    rows = [json.loads(line) for line in (out / "results.jsonl").read_text().splitlines()]
+    assert sorted((r["task"], r["condition"]) for r in rows) == [
+        ("mh3f-targets", "0 ms"), ("mh3f-targets", "300 ms"), ("mh3f-wire", "0 ms"), ("mh3f-wire", "300 ms"),
+    ]  # fmt: skip
+    active = {}
+    for r in rows:
+        print(
+            f"{r['task']} {r['condition']}: done={r['completed']} in {r['completion_time_s']} s "
+            f"(held {r['time_held_s']:.1f} s), path {r['path_length_mm']:.0f} mm, "
+            f"errors {r['errors']}, peak force {r['peak_force_n']:.2f} N, clutch {r['clutch_count']}"
+        )
+        assert r["completed"], r
+        s = streams_from_mcap(out / r["recording"])
+        assert len(s.tip) > 250 and len(s.follow) > 20  # the recording holds the trial
+        active[(r["task"], r["condition"])] = r["completion_time_s"] - r["time_held_s"]
+    assert (out / "report.png").stat().st_size > 10_000
+    assert "| mh3f-wire | 300 ms | 1 | 1 |" in (out / "report.md").read_text()
+    slow = sum(active[(t, "300 ms")] for t in ("mh3f-targets", "mh3f-wire"))
+    fast = sum(active[(t, "0 ms")] for t in ("mh3f-targets", "mh3f-wire"))
+    print(f"time following, both tasks: {fast:.1f} s at 0 ms, {slow:.1f} s at 300 ms")
+    assert slow > fast

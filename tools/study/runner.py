@@ -1,0 +1,318 @@
+"""Run a study: each trial on a real site, recorded, scored from its recording, appended.
+
+A trial is one :class:`~telesurg.tools.bench.harness.Pipeline` — router, watchdog, slave_control
+(MuJoCo), mapping, master_capture with the ``policy`` device driven by the synthetic operator
+(:mod:`telesurg.tools.study.operator`) — whose console side reaches the site through the
+:class:`~telesurg.tools.bench.impair.LinkImpairer` that adds the condition's delay and jitter each
+way. The whole bus is recorded (:class:`~telesurg.services.record.Recorder`, MCAP) from before the
+operator engages until the task is done (or its time limit), then scored from that file
+(:func:`streams_from_mcap`, :func:`telesurg.shared.tasks.score`).
+
+The study directory holds ``plan.json`` (the protocol's digest and the participant's schedule),
+``results.jsonl`` (one line per finished trial, appended and flushed when the trial is scored),
+``trials/NNN.mcap`` and ``trials/NNN/`` (the services' logs). A study run again resumes after its
+last finished trial; a trial cut short (Ctrl-C, a service that died) leaves no line and is run
+again.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import os
+import shutil
+import threading
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from telesurg.services.record import Recorder, iter_decoded, open_mcap
+from telesurg.shared import tasks
+from telesurg.shared.errors import SiteStartError
+from telesurg.shared.keys import Keys
+from telesurg.shared.messages import (
+    CartesianPose,
+    CartesianWrench,
+    MasterButtons,
+    OperatingState,
+    SafetyState,
+)
+from telesurg.tools.study.protocol import Protocol, Trial, schedule
+
+log = logging.getLogger(__name__)
+
+OPERATOR = "telesurg.tools.study.operator:make"
+POLICY_HZ = 50.0  # Hz: the synthetic operator is asked this often
+ENGAGE_TIMEOUT_S = 90.0  # s: a site whose slave never follows by then fails the trial (a loaded host)
+AFTER_DONE_S = 0.5  # s recorded after the task is done
+#: a trial ends at its task's time limit of time following (the watchdog's holds on a loaded host
+#: do not count), and at this many times the limit whatever happened
+WALL_LIMIT = 4.0
+#: the watchdog's freshness deadlines (its defaults, ms) that the protocol's host_margin_ms lengthens
+WATCHDOG_DEADLINES = {
+    "lease_valid_ms": 250.0,
+    "master_deadline_ms": 80.0,
+    "buttons_deadline_ms": 200.0,
+    "servo_deadline_ms": 80.0,
+    "slave_deadline_ms": 100.0,
+    "slave_state_deadline_ms": 250.0,
+}
+
+
+class StudyError(Exception):
+    """The study cannot go on (the message says why and what to do)."""
+
+
+class TrialFailed(StudyError):
+    """One trial could not be run to its end (a service died, the slave never followed)."""
+
+
+@dataclass(frozen=True)
+class Where:
+    """A study's files."""
+
+    out: Path
+
+    @property
+    def plan(self) -> Path:
+        return self.out / "plan.json"
+
+    @property
+    def results(self) -> Path:
+        return self.out / "results.jsonl"
+
+    def mcap(self, index: int) -> Path:
+        return self.out / "trials" / f"{index:03d}.mcap"
+
+    def logs(self, index: int) -> Path:
+        return self.out / "trials" / f"{index:03d}"
+
+
+def finished(path: Path) -> dict[int, dict[str, Any]]:
+    """The trials already in ``results.jsonl`` (index → row); a torn last line is ignored."""
+    out: dict[int, dict[str, Any]] = {}
+    if not path.exists():
+        return out
+    for line in path.read_text().splitlines():
+        try:
+            row = json.loads(line)
+        except json.JSONDecodeError:
+            continue  # (a line torn by a crash mid-write: that trial is run again)
+        if isinstance(row, dict) and isinstance(row.get("trial"), int):
+            out[row["trial"]] = row
+    return out
+
+
+def prepare(protocol: Protocol, participant: str, out: Path) -> tuple[list[Trial], dict[int, dict[str, Any]]]:
+    """The schedule and the trials already done; writes ``plan.json`` on a new study.
+
+    Raises:
+        StudyError: ``out`` holds a study of another protocol or participant.
+    """
+    where = Where(out)
+    trials = schedule(protocol, participant)
+    plan = {
+        "protocol": protocol.name,
+        "digest": protocol.digest(),
+        "participant": participant,
+        "trials": [
+            {"trial": t.index, "task": t.task, "condition": t.condition.name, "repetition": t.repetition,
+             "practice": t.practice, "code": t.code}
+            for t in trials
+        ],
+    }  # fmt: skip
+    if where.plan.exists():
+        old = json.loads(where.plan.read_text())
+        if (old.get("digest"), old.get("participant")) != (plan["digest"], participant):
+            raise StudyError(
+                f"{out} holds study {old.get('protocol')!r} (protocol {old.get('digest')}, participant "
+                f"{old.get('participant')!r}), not this one ({plan['digest']}, {participant!r}): "
+                "choose another --out, or --restart to discard it"
+            )
+    else:
+        out.mkdir(parents=True, exist_ok=True)
+        where.plan.write_text(json.dumps(plan, indent=1) + "\n")
+    return trials, finished(where.results)
+
+
+def overrides(trial: Trial, margin_ms: float = 0.0) -> dict[str, list[str]]:
+    """The site's settings for one trial: the operator as the master, the condition's scale, the
+    watchdog's latency limits above the condition's delay (the study measures the delay, not the
+    watchdog's answer to it), and ``margin_ms`` (the protocol's ``host_margin_ms``) added to every
+    freshness deadline of the watchdog and the mapping."""
+    c = trial.condition
+    # (the latency the watchdog sees is the round trip plus the host's own; on a loaded host the
+    # latter alone can pass the defaults, 100 / 250 ms)
+    rtt = 2.0 * (c.delay_ms + c.jitter_ms)
+    budget = max(100.0, rtt + 100.0) + margin_ms
+    opts = {"task": trial.task, "scale": c.scale, "rate_hz": POLICY_HZ, "seed": trial.seed}
+    master = [
+        'device="policy"',
+        f'device_options.policy="{OPERATOR}"',
+        'device_options.clutch="policy"',
+        f"device_options.rate_hz={POLICY_HZ}",
+        "device_options.max_step_mm=20.0",
+        "device_options.press_at_s=0.5",
+        # ms: what it sees may be this old before it stops acting (a loaded host delays it too)
+        "device_options.stale_ms=1000.0",
+    ] + [f"device_options.options.{k}={json.dumps(v)}" for k, v in opts.items()]
+    return {
+        "master_capture": master,
+        "mapping": [
+            f"scale={c.scale}",
+            f"master_timeout_ms={100.0 + margin_ms}",
+            f"slave_timeout_ms={100.0 + margin_ms}",
+        ],
+        "watchdog": [f"latency_budget_ms={budget}", f"latency_limit_ms={budget + 150.0}"]
+        + [f"{k}={v + margin_ms}" for k, v in WATCHDOG_DEADLINES.items()],
+    }
+
+
+def record_keys(k: Keys, arm: str = "arm1", master: str = "m1") -> list[str]:
+    """What a trial records: the master's streams (a replay's input), the slave's measurements and
+    state, the watchdog's and the mapping's states and every event — not the 500 Hz setpoints the
+    mapping derives from the master, the leases or the heartbeats (a loaded host's CPU)."""
+    slave = ("measured_cp", "measured_cf", "measured_js", "operating_state")
+    return [
+        f"{k.prefix}/master/{master}/**",
+        *(k.slave(arm, s) for s in slave),
+        k.safety(arm, "state"),
+        k.mapping(arm, "teleop_state"),
+        f"{k.prefix}/events/**",
+    ]
+
+
+def _rows(rows: list[tuple[float, ...]], cols: int) -> np.ndarray:
+    return np.array(rows, dtype=float).reshape(-1, cols)
+
+
+def streams_from_mcap(path: Path, arm: str = "arm1", master: str = "m1") -> tasks.Streams:
+    """A trial's :class:`~telesurg.shared.tasks.Streams` from its recording (receive time, s)."""
+    with open_mcap(path) as reader:
+        from telesurg.services.record import recording_site
+
+        k = Keys(recording_site(reader))
+        keys = {
+            k.slave(arm, "measured_cp"): "tip",
+            k.slave(arm, "measured_cf"): "force",
+            k.slave(arm, "operating_state"): "op",
+            k.master(master, "buttons"): "clutch",
+            k.safety(arm, "state"): "safety",
+        }
+        got: dict[str, list[tuple[float, ...]]] = {n: [] for n in ("tip", "force", "op", "clutch", "safety")}
+        rcm: list[tuple[float, ...]] = []
+        for topic, log_ns, _pub, _payload, msg in iter_decoded(reader, lambda t: t in keys):
+            t, what = log_ns / 1e9, keys[topic]
+            if what == "tip" and isinstance(msg, CartesianPose):
+                got["tip"].append((t, *msg.position))
+            elif what == "force" and isinstance(msg, CartesianWrench):
+                got["force"].append((t, math.hypot(*msg.force)))
+            elif what == "op" and isinstance(msg, OperatingState):
+                got["op"].append((t, float(msg.follow)))
+                rcm.append((t, msg.rcm_error_mm, float(msg.control_mode == "trocar")))
+            elif what == "clutch" and isinstance(msg, MasterButtons):
+                got["clutch"].append((t, float(msg.clutch)))
+            elif what == "safety" and isinstance(msg, SafetyState):
+                got["safety"].append((t, float(msg.state in tasks.HELD_STATES)))
+    return tasks.Streams(
+        tip=_rows(got["tip"], 4),
+        force=_rows(got["force"], 2),
+        rcm=_rows(rcm, 3),
+        follow=_rows(got["op"], 2),
+        clutch=_rows(got["clutch"], 2),
+        safety=_rows(got["safety"], 2),
+    )
+
+
+def run_trial(trial: Trial, where: Where, margin_ms: float = 0.0) -> dict[str, Any]:
+    """Run one trial on a fresh site and return its result row (raises TrialFailed)."""
+    from telesurg.tools.bench.harness import Pipeline
+    from telesurg.tools.bench.netprofile import LinkProfile
+
+    task = tasks.get(trial.task)
+    logs, mcap = where.logs(trial.index), where.mcap(trial.index)
+    shutil.rmtree(logs, ignore_errors=True)
+    mcap.unlink(missing_ok=True)
+    c = trial.condition
+    pipe = Pipeline(logs, mirror=False, impair=True, probe=False, overrides=overrides(trial, margin_ms))
+    assert pipe.impairer is not None
+    pipe.impairer.set_profile(LinkProfile(delay_ms=c.delay_ms, jitter_ms=c.jitter_ms))
+    part = mcap.with_name(mcap.name + ".part")
+    try:
+        p = pipe.__enter__()  # (closes what it started if it fails)
+    except SiteStartError as e:  # (a loaded host: a service that did not come up in time)
+        raise TrialFailed(f"trial {trial.index}: the site did not start: {e}") from e
+    try:
+        info = {"trial": str(trial.index), "task": trial.task, "condition": c.name}
+        watch = Watch(p.node)
+        with Recorder(part, p.spec.site, info=info) as rec:
+            for key in record_keys(p.node.keys):
+                rec.subscribe(p.node.session, key, p.node.keyring)
+            t_go, t_end, why = watch.run(p.site, task)
+            time.sleep(AFTER_DONE_S)
+        if why:
+            raise TrialFailed(f"trial {trial.index}: {why}\n{p.diagnose(6)}")
+    finally:
+        p.close()
+    os.replace(part, mcap)
+    s = tasks.score(task, streams_from_mcap(mcap))
+    row = {
+        "trial": trial.index,
+        "task": trial.task,
+        "condition": c.name,
+        "code": trial.code,
+        "repetition": trial.repetition,
+        "practice": trial.practice,
+        **{f"cond_{k}": v for k, v in asdict(c).items() if k != "name"},
+        "seed": trial.seed,
+        "recording": str(mcap.relative_to(where.out)),
+        "wall_s": round(t_end - t_go, 3),
+        **s.row(),
+    }
+    return row
+
+
+class Watch:
+    """What the harness follows live: the slave's tip and whether it follows (monotonic s)."""
+
+    def __init__(self, node: Any, arm: str = "arm1") -> None:
+        self.lock = threading.Lock()
+        self.tips: list[tuple[float, float, float, float]] = []
+        self.following = False
+        src = ["slave_control"]
+        node.subscribe(node.keys.slave(arm, "measured_cp"), CartesianPose, self._on_tip, sources=src)
+        node.subscribe(node.keys.slave(arm, "operating_state"), OperatingState, self._on_op, sources=src)
+
+    def _on_tip(self, m: CartesianPose, key: str) -> None:
+        with self.lock:
+            self.tips.append((time.monotonic(), *m.position))
+
+    def _on_op(self, m: OperatingState, key: str) -> None:
+        self.following = m.follow  # (a bool: set atomically from the bus thread)
+
+    def run(self, site: Any, task: tasks.TaskSpec) -> tuple[float, float, str]:
+        """Wait for the go (the slave follows), then until the task is done or its time limit:
+        (go, end, "" or why the trial failed), monotonic s."""
+        deadline = time.monotonic() + ENGAGE_TIMEOUT_S
+        while not self.following:
+            if (dead := site.dead()) or time.monotonic() > deadline:
+                why = f"services exited: {dead}" if dead else "the slave never followed the operator"
+                return math.nan, math.nan, why
+            time.sleep(0.05)
+        go = last = time.monotonic()
+        active = 0.0  # s the slave followed since the go: the time limit counts these
+        while True:
+            time.sleep(0.5)
+            now = time.monotonic()
+            active += (now - last) if self.following else 0.0
+            last = now
+            if dead := site.dead():
+                return go, now, f"services exited: {dead}"
+            with self.lock:
+                tips = np.array(self.tips, dtype=float).reshape(-1, 4)
+            over = active > task.time_limit_s or now - go > WALL_LIMIT * task.time_limit_s
+            if tasks.evaluate(task, tips[tips[:, 0] >= go]).done or over:
+                return go, now, ""
