@@ -109,10 +109,13 @@ def _load_all() -> None:
     from telesurg.shared.robots import registry
 
     for robot in registry.names():
+        package = f"telesurg.shared.robots.{robot}"
         try:
-            importlib.import_module(f"telesurg.shared.robots.{robot}.tasks")
+            importlib.import_module(f"{package}.tasks")
         except ModuleNotFoundError as e:
-            if not (e.name or "").endswith(".tasks"):
+            # a robot without tasks, or a plugin robot whose folder is elsewhere (its own
+            # tasks, if any, register when its plugin imports them)
+            if e.name not in (package, f"{package}.tasks"):
                 raise
 
 
