@@ -4,10 +4,11 @@ that are not telesurg's writer: pyarrow (the Parquet files) and PyAV (the MP4). 
 presses and the camera at 25 fps, recorded, exported at 10 fps).
 
 What a user of the dataset relies on: one episode per engaged period, each (engaged time × fps
-± 1) frames; every row's joints the slave's measured joints at the row's instant; **every** video
-frame a camera frame captured within one frame period of its row's instant (found by its content
-among the recorded frames, independently of the export's own record of its choice, which is
-checked against it); every action the mapping's recorded target within 0.01 mm.
+± 1) frames; every row's joints the slave's measured joints at the row's instant; every video
+frame the recorded camera frame nearest its row's instant (found by its content among the
+recorded frames, independently of the export's own record of its choice, which is checked against
+it): within one frame period wherever the camera sent a frame within it, and at most a tenth of
+the rows in the camera's gaps; every action the mapping's recorded target within 0.01 mm.
 """
 
 from __future__ import annotations
@@ -87,6 +88,7 @@ def check_dataset(run: Path, out: Path, fps: float) -> dict[str, float]:
     period_ns = 1e9 / fps
     worst_video = worst_state = worst_action = 0.0
     offsets: list[float] = []  # ms: each frame's image capture − the frame's instant
+    gaps = 0  # rows with no camera frame within one frame period of their instant
     for e, (a, b) in zip(eps, periods, strict=True):
         rows = np.flatnonzero(ep_col == e["episode_index"])
         duration = (b - a) / 1e9
@@ -115,24 +117,31 @@ def check_dataset(run: Path, out: Path, fps: float) -> dict[str, float]:
             close = near[mse <= mse.min() + 0.5]
             i = min(close, key=lambda i: abs(t - image_t[i]))
             offset = (image_t[i] - t) / 1e6
-            offsets.append(offset)
             assert chosen[int(data["index"][r])] in image_t[close]  # the export's record is true
+            if abs(offset) >= period_ns / 1e6:
+                # beyond one frame period only where the camera sent nothing within it (a gap
+                # of a camera starved on a busy host): the export took the nearest it had
+                assert not np.any(np.abs(image_t - t) < period_ns), (r, offset)
+                gaps += 1
+                continue
+            offsets.append(offset)
             worst_video = max(worst_video, abs(offset))
     video = ""
-    beyond = 0
     if offsets:
         o = np.array(offsets)
-        beyond = int(np.count_nonzero(np.abs(o) >= period_ns / 1e6))
         video = (
             f"video frames captured {o.min():+.1f} … {o.max():+.1f} ms from their rows' instants "
             f"(|offset| ≤ {worst_video:.1f} ms, median {np.median(np.abs(o)):.1f} ms; "
-            f"{beyond} of {len(o)} beyond one frame period, {period_ns / 1e6:.0f} ms), "
+            f"{gaps} of {len(o) + gaps} rows in a camera gap longer than a frame period, "
+            f"{period_ns / 1e6:.0f} ms), "
         )
     print(
         f"alignment: joint state ≤ {worst_state:.1f} ms before the frame, {video}"
         f"action ≤ {worst_action:.5f} mm from the recorded target"
     )
     assert worst_state < period_ns / 1e6
-    assert beyond == 0 and worst_video < period_ns / 1e6, "video frames not within one frame period"
+    assert worst_video < period_ns / 1e6, "video frames not within one frame period"
+    # a camera that keeps up at all leaves few gaps (CI on a 2-core VM: 1–13 of 230–280 rows)
+    assert gaps <= 0.1 * (len(offsets) + gaps), f"{gaps} rows in camera gaps"
     assert worst_action < 0.01
     return {"state_ms": worst_state, "video_ms": worst_video, "action_mm": worst_action}
