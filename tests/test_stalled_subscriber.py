@@ -26,30 +26,52 @@ from telesurg.shared.errors import ConfigError
 from telesurg.tools.bench.harness import Pipeline, now_ns
 from telesurg.tools.bench.load import Load
 
-#: pedal pressed from 0.5 s on and held: one engage, so any HOLD ends the following for good
-HELD_PEDAL = ["scripted.clutch=[[0.5, 1e9]]", "scripted.clutch_repeat_s=0.0"]
+#: the operator presses the pedal for 3 s of every 4 s, as a surgeon re-engages after a hold
+PEDAL = ["scripted.clutch=[[0.5, 3.5]]", "scripted.clutch_repeat_s=4.0"]
 #: s the stalled subscriber stays on the bus while the slave is watched
 WINDOW_S = 12.0
 #: share of the slave's joint samples that reach the test's own subscriber when nothing stalls
 KEPT = 0.8
+#: s: the longest hold a busy host's scheduling causes here is ~0.1 s (a stream a few tens of ms
+#: past the watchdog's 80 ms); the stalled subscriber's hazard stops the streams for seconds
+STALL_S = 0.5
 
 
-def watch(tmp: Path, router: list[str]) -> tuple[list[str], int, bool]:
-    """Holds seen by the probe, slave joint samples received, and whether the slave still
-    follows, over WINDOW_S with a stalled subscriber on the bus."""
-    overrides = {"master_capture": HELD_PEDAL, "router": router}
+def hold_episodes(safety: list[tuple], t0: int, t1: int) -> list[tuple[float, str]]:  # type: ignore[type-arg]
+    """(length s, causes) of each watchdog HOLD in [t0, t1] ns, until its next other state (or t1)."""
+    out, start, why = [], None, ""
+    for rec in safety:
+        if rec[0] < t0 or rec[0] > t1:
+            continue
+        if rec[1] == "HOLD" and start is None:
+            start, why = rec[0], " ".join(rec[2])
+        elif rec[1] != "HOLD" and start is not None:
+            out.append(((rec[0] - start) / 1e9, why))
+            start = None
+    if start is not None:
+        out.append(((t1 - start) / 1e9, why))
+    return out
+
+
+def watch(tmp: Path, router: list[str]) -> tuple[list[tuple[float, str]], int, bool, str]:
+    """The watchdog's holds (length, causes), slave joint samples received, whether the slave
+    followed in the window's last pedal period, over WINDOW_S with a stalled subscriber on the
+    bus; and the pipeline's diagnosis."""
+    overrides = {"master_capture": PEDAL, "router": router}
     with Pipeline(tmp / "logs", mirror=False, impair=False, overrides=overrides) as p:
-        assert p.wait_following(30), "the slave never followed"
+        assert p.wait_following(30), "the slave never followed\n" + p.diagnose()
         with Load.parse("stalled").running(p.spec.endpoint, tmp):
             t0 = now_ns()
             n0 = len(p.p.joints)
             time.sleep(WINDOW_S)
+            t1 = now_ns()
             with p.p.lock:
-                holds = [" ".join(s[2]) for s in p.p.safety if s[0] >= t0 and s[1] == "HOLD"]
+                holds = hold_episodes(p.p.safety, t0, t1)
+                followed = any(r[1] for r in p.p.op if r[0] >= t1 - 4_000_000_000)
             joints = len(p.p.joints) - n0
-            following = p.p.following()
+            why = p.diagnose()
         p.close()
-    return holds, joints, following
+    return holds, joints, followed, why
 
 
 def test_zenoh_ids_are_checked_before_zenoh_sees_them() -> None:
@@ -91,10 +113,11 @@ def test_rules_drop_for_everyone_then_block_for_the_control_sessions() -> None:
 
 @pytest.mark.process
 def test_a_stalled_subscriber_does_not_stall_the_control_path(tmp_path: Path) -> None:
-    holds, joints, following = watch(tmp_path, router=[])
-    print(f"holds {holds[:3]}, slave joint samples {joints} in {WINDOW_S} s, following {following}")
-    assert not holds, f"the watchdog held while a subscriber stalled: {holds[:3]}"
-    assert following, "the slave stopped following"
+    holds, joints, followed, why = watch(tmp_path, router=[])
+    print(f"holds {holds[:3]}, slave joint samples {joints} in {WINDOW_S} s, followed {followed}")
+    long = [h for h in holds if h[0] > STALL_S]
+    assert not long, f"the control streams stalled while a subscriber did: {long[:3]}\n{why}"
+    assert followed, f"the slave stopped following\n{why}"
     assert joints > KEPT * 250 * WINDOW_S  # the slave's measured_js (250 Hz) kept coming
 
 
@@ -104,6 +127,7 @@ def test_without_control_ids_the_stalled_subscriber_stalls_the_streams(tmp_path:
     router waits for the stalled subscriber, up to 5 s a sample, and the other subscribers' streams
     stop with it — the slave's joints for seconds, and the watchdog HOLDs when it is the mapping's
     or the master's stream that waits."""
-    holds, joints, following = watch(tmp_path, router=["control_zids=[]"])
-    print(f"holds {holds[:3]}, slave joint samples {joints} in {WINDOW_S} s, following {following}")
-    assert holds or joints < KEPT * 250 * WINDOW_S, "the stalled subscriber held nothing up"
+    holds, joints, followed, _ = watch(tmp_path, router=["control_zids=[]"])
+    print(f"holds {holds[:3]}, slave joint samples {joints} in {WINDOW_S} s, followed {followed}")
+    long = [h for h in holds if h[0] > STALL_S]
+    assert long or joints < KEPT * 250 * WINDOW_S, "the stalled subscriber held nothing up"
