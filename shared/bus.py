@@ -912,6 +912,8 @@ class Node:
                         time.monotonic() - self._start,
                         self.rejected,
                         (time.monotonic_ns() - self._polled_ns) / 1e9 if self._polled_ns else -1.0,
+                        self.streams.replayed,
+                        self.streams.lost,
                     )
                 )
             except Exception:  # session closing under us

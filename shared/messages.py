@@ -2,7 +2,7 @@
 
 Every payload is a MessagePack map with a common header::
 
-    {"v": 4, "type": "joint_state", "src": "slave_control", "seq": 42, "ts": 1700000000000000000,
+    {"v": 5, "type": "joint_state", "src": "slave_control", "seq": 42, "ts": 1700000000000000000,
      ...body fields...}
 
 * ``v``    schema version (int, must equal :data:`SCHEMA_VERSION`)
@@ -60,8 +60,9 @@ from telesurg.shared.clock import wall_ns
 from telesurg.shared.errors import MessageError
 
 # 2: safety fields (origin_ns, latency, scale, rcm, clipped), estop; 3: heartbeat polled_s;
-# 4: clock probes, safety_state.clock_offset_ms; pose / wrench energy_in_j (docs/haptics.md)
-SCHEMA_VERSION = 4
+# 4: clock probes, safety_state.clock_offset_ms; pose / wrench energy_in_j (docs/haptics.md);
+# 5: heartbeat replayed, lost
+SCHEMA_VERSION = 5
 #: Largest payload accepted by :func:`decode`, bytes.
 MAX_PAYLOAD_BYTES = 64 * 1024
 #: Largest joint count in any joint-space message.
@@ -1017,6 +1018,13 @@ class Heartbeat(Message):
         unit="s",
         ge=-1.0,
     )
+    replayed: int = fld(
+        0,
+        "of ``rejected``, those the freshness rules refused (replayed, or late: a receiver that "
+        "fell behind sees its oldest messages too old)",
+        ge=0,
+    )
+    lost: int = fld(0, "sequence numbers this service's subscriptions never saw so far (all keys)", ge=0)
 
 
 @message("clock_probe")

@@ -290,6 +290,11 @@ class StreamTable:
         return sum(s.rejected for s in self.streams.values())
 
     @property
+    def replayed(self) -> int:
+        """Total messages the freshness rules refused (also in :attr:`rejected`), over all streams."""
+        return sum(s.replayed for s in self.streams.values())
+
+    @property
     def lost(self) -> int:
         """Total numbers jumped over and not seen, over all streams."""
         return sum(s.lost for s in self.streams.values())

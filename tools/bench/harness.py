@@ -83,6 +83,8 @@ class Probe:
     clutch: list[tuple[int, bool]] = field(default_factory=list)
     events: list[tuple[int, str, str, str]] = field(default_factory=list)
     heartbeats: dict[str, int] = field(default_factory=dict)  # service → rejected so far
+    hb_replayed: dict[str, int] = field(default_factory=dict)  # service → of those, refused as not fresh
+    hb_lost: dict[str, int] = field(default_factory=dict)  # service → sequence numbers it never saw
     # service → when (this process's monotonic clock) its loop last took in its buffered streams
     polled_at: dict[str, float] = field(default_factory=dict)
     beat_at: dict[str, float] = field(default_factory=dict)  # service → its last heartbeat's arrival
@@ -156,6 +158,8 @@ class Probe:
     def _on_heartbeat(self, m: Heartbeat, key: str) -> None:
         with self.lock:
             self.heartbeats[m.service] = m.rejected
+            self.hb_replayed[m.service] = m.replayed
+            self.hb_lost[m.service] = m.lost
             self.beat_at[m.service] = t = time.monotonic()
             if m.polled_s >= 0:
                 self.polled_at[m.service] = t - m.polled_s
@@ -349,6 +353,12 @@ class Pipeline:
                 break
             last = now
         return last
+
+    def tallies(self) -> dict[str, tuple[int, int, int]]:
+        """Each service's last heartbeat: rejected, of those replayed (refused as not fresh), lost."""
+        p = self.p
+        with p.lock:
+            return {s: (n, p.hb_replayed.get(s, 0), p.hb_lost.get(s, 0)) for s, n in p.heartbeats.items()}
 
     def wait_following(self, timeout: float) -> bool:
         """Wait until the slave follows the master."""
