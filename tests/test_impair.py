@@ -15,7 +15,8 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import pytest
-from telesurg.tools.bench.impair import LinkImpairer, parse_hostport
+from telesurg.tools.bench.impair import ImpairerProcess, LinkImpairer, parse_hostport
+from telesurg.tools.bench.netprofile import LinkProfile
 
 pytestmark = pytest.mark.timeout(30)
 
@@ -471,3 +472,32 @@ def test_cli_runs_until_sigint(echo: EchoServer) -> None:
         for stream in (proc.stdout, proc.stderr):
             if stream is not None:
                 stream.close()
+
+
+# ------------------------------------------------------------------ in a process of its own
+
+
+def test_a_process_impairer_delays_cuts_and_refuses_bad_commands(echo: EchoServer) -> None:
+    with ImpairerProcess(echo.address) as link:
+        port = int(link.endpoint.rsplit(":", 1)[1])
+        with socket.create_connection(("127.0.0.1", port), timeout=5.0) as sock:
+            assert round_trip(sock, b"warm") == b"warm"
+            link.set_delay(50)
+            t0 = time.monotonic()
+            assert round_trip(sock, b"ping") == b"ping"
+            assert time.monotonic() - t0 >= 0.090  # 50 ms each way
+            assert link.set_profile(LinkProfile(delay_ms=20, jitter_ms=5)) == LinkProfile(20, 5)
+            with pytest.raises(RuntimeError, match="error"):
+                link.set_delay(-1)  # refused by the process; the link keeps its profile
+            link.cut()
+            sock.sendall(b"held")
+            sock.settimeout(0.3)
+            with pytest.raises(TimeoutError):
+                sock.recv(4)
+            link.restore()
+            sock.settimeout(5.0)
+            assert recv_exact(sock, 4) == b"held"
+        with pytest.raises(RuntimeError, match="unknown command"):
+            link.command("teleport")
+    with pytest.raises(RuntimeError, match="not started"):
+        link.cut()

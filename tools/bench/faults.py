@@ -177,7 +177,11 @@ def run_fault(pipe: Pipeline, f: Fault, lead_s: float = 1.0, recover_s: float = 
         # (by publication times: the follow is the slave's answer to the press, and its state
         # may reach the probe before the press does)
         t_fol_pub = fol[1][8] if fol else t_fol
-        row["reengage_needed"] = p.press_between(t_hold, t_fol_pub)
+        # (the press may reach the probe after the follow it caused: a second to come)
+        deadline = time.monotonic() + 1.0
+        while not (pressed := p.press_between(t_hold, t_fol_pub)) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        row["reengage_needed"] = pressed
         if not row["reengage_needed"]:  # what the probe saw, ms from the hold: to tell why
             with p.lock:
                 row["seen"] = {

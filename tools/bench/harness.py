@@ -4,8 +4,9 @@ Used by ``telesurg bench faults`` / ``bench fuzz`` and by the process-level safe
 the figures in ``docs/safety.md`` and the test assertions come from the same code.
 
 The console side (master_capture) reaches the slave-side router through a
-:class:`~telesurg.tools.bench.impair.LinkImpairer` on loopback, so a link cut or delay can be
-injected between the two sides. The probe is a zenoh client that records, on its own monotonic
+:class:`~telesurg.tools.bench.impair.LinkImpairer` in a process of its own
+(:class:`~telesurg.tools.bench.impair.ImpairerProcess`) on loopback, so a link cut or delay can
+be injected between the two sides. The probe is a zenoh client that records, on its own monotonic
 clock, what a user would look at: the slave tip (from MuJoCo), the slave's operating state, the
 watchdog's state, the clutch pedal and every event.
 
@@ -45,7 +46,7 @@ from telesurg.shared.messages import (
     SafetyState,
     TeleopState,
 )
-from telesurg.tools.bench.impair import LinkImpairer
+from telesurg.tools.bench.impair import ImpairerProcess
 
 log = logging.getLogger(__name__)
 
@@ -242,7 +243,8 @@ class Pipeline:
     ) -> None:
         self.log_dir = log_dir
         port = free_port()
-        self.impairer = LinkImpairer(("127.0.0.1", port)) if impair else None
+        # (its own process: the test's, busy with its subscriptions, would delay the link)
+        self.impairer = ImpairerProcess(("127.0.0.1", port)) if impair else None
         ov: dict[str, list[str]] = {"master_capture": list(BENCH_CLUTCH)}
         if mirror:  # the mirror records the whole run next to the logs
             ov["mirror"] = [f"save={json.dumps(str(log_dir / 'session.rrd'))}"]

@@ -1036,8 +1036,8 @@ def _hostport_arg(text: str) -> tuple[str, int]:
 def control_command(link: LinkImpairer, line: str) -> str:
     """Apply one text command to ``link``; the reply line (``ok <state> <delay ms>`` or ``error ...``).
 
-    Commands: ``cut``, ``restore``, ``delay MS``, ``profile NAME`` (its delay, jitter and cap),
-    ``reset``, ``stats``.
+    Commands: ``cut``, ``restore``, ``delay MS``, ``link MS JITTER_MS`` (delay and jitter),
+    ``profile NAME`` (its delay, jitter and cap), ``reset``, ``stats``.
     """
     words = line.split()
     try:
@@ -1048,6 +1048,8 @@ def control_command(link: LinkImpairer, line: str) -> str:
                 link.restore()
             case ["delay", ms]:
                 link.set_delay(float(ms))
+            case ["link", ms, jitter]:
+                link.set_profile(LinkProfile(delay_ms=float(ms), jitter_ms=float(jitter)))
             case ["profile", name]:
                 link.set_profile(profile(name))
             case ["reset"]:
@@ -1057,11 +1059,114 @@ def control_command(link: LinkImpairer, line: str) -> str:
             case _:
                 return (
                     f"error unknown command {line.strip()!r}; valid: cut, restore, delay MS, "
-                    "profile NAME, reset, stats"
+                    "link MS JITTER_MS, profile NAME, reset, stats"
                 )
     except (ValueError, RuntimeError) as exc:  # (ConfigError is a ValueError)
         return f"error {exc}"
     return f"ok {link.state} {link.delay_ms:g}"
+
+
+class ImpairerProcess:
+    """A :class:`LinkImpairer` in a process of its own (``telesurg impair --control``), driven
+    over its stdin: the same calls, none of the caller's CPU or GIL. A test process busy with its
+    own subscriptions would otherwise delay the link it impairs (a 25 ms link measured 360 ms).
+
+    Example::
+
+        with ImpairerProcess(target=("127.0.0.1", 7447)) as link:
+            console = BusConfig(mode="client", connect=[link.endpoint])
+            link.set_delay(20)
+    """
+
+    def __init__(self, target: tuple[str, int], listen: tuple[str, int] = ("127.0.0.1", 0)) -> None:
+        self._target, self._listen = target, listen
+        self._proc: subprocess.Popen[str] | None = None
+        self._endpoint = ""
+        self._lock = threading.Lock()
+
+    @property
+    def endpoint(self) -> str:
+        """The zenoh endpoint to connect to instead of the target (after :meth:`start`)."""
+        if not self._endpoint:
+            raise RuntimeError("impairer not started")
+        return self._endpoint
+
+    def start(self) -> None:
+        """Start the process; returns once it listens."""
+        argv = [sys.executable, "-m", "telesurg.tools.bench.impair", "--control", "--log-level", "WARNING"]
+        (lh, lp), (th, tp) = self._listen, self._target
+        argv += ["--listen", f"{lh}:{lp}", "--target", f"{th}:{tp}"]
+        pipe = subprocess.PIPE
+        self._proc = subprocess.Popen(argv, stdin=pipe, stdout=pipe, text=True, bufsize=1)
+        assert self._proc.stdout is not None
+        line = self._proc.stdout.readline()
+        if not line.startswith("impair: "):
+            self.close()
+            raise RuntimeError(f"telesurg impair did not start: {line.strip() or 'no output'}")
+        self._endpoint = line.split()[1]
+
+    def command(self, line: str) -> str:
+        """Send one control command; its reply (``ok ...``), or RuntimeError with the error."""
+        proc = self._proc
+        if proc is None or proc.stdin is None or proc.stdout is None:
+            raise RuntimeError("impairer not started")
+        with self._lock:
+            proc.stdin.write(line + "\n")
+            proc.stdin.flush()
+            reply = proc.stdout.readline().strip()
+        if not reply.startswith("ok"):
+            raise RuntimeError(f"impairer: {line}: {reply or 'exited'}")
+        return reply
+
+    def cut(self) -> None:
+        """Stop forwarding (bytes wait in the kernel buffers)."""
+        self.command("cut")
+
+    def restore(self) -> None:
+        """Forward again, no delay."""
+        self.command("restore")
+
+    def set_delay(self, ms: float) -> None:
+        """Delay every chunk ``ms`` each way."""
+        self.command(f"delay {float(ms)!r}")
+
+    def set_profile(self, prof: LinkProfile) -> LinkProfile:
+        """Apply a profile's delay and jitter (what this process applies of a profile)."""
+        self.command(f"link {prof.delay_ms!r} {prof.jitter_ms!r}")
+        return LinkProfile(delay_ms=prof.delay_ms, jitter_ms=prof.jitter_ms)
+
+    def reset_connections(self) -> None:
+        """Reset (RST) every forwarded connection."""
+        self.command("reset")
+
+    def close(self) -> None:
+        """End the process (EOF on its stdin, then SIGTERM, then SIGKILL)."""
+        proc, self._proc = self._proc, None
+        if proc is None:
+            return
+        with contextlib.suppress(OSError, ValueError):
+            if proc.stdin is not None:
+                proc.stdin.close()
+        try:
+            proc.wait(timeout=5.0)
+        except subprocess.TimeoutExpired:
+            proc.terminate()
+            try:
+                proc.wait(timeout=5.0)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait()
+        if proc.stdout is not None:
+            proc.stdout.close()
+
+    def __enter__(self) -> ImpairerProcess:
+        self.start()
+        return self
+
+    def __exit__(
+        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None:
+        self.close()
 
 
 def _control_loop(link: LinkImpairer, stop: threading.Event) -> None:
