@@ -7,7 +7,9 @@ here without the bus) stepping the same MuJoCo scene at 1 kHz, and the tips agre
 
 from __future__ import annotations
 
+import json
 import time
+from pathlib import Path
 
 import gymnasium
 import numpy as np
@@ -201,3 +203,21 @@ def test_reset_starts_at_the_given_joints_and_bad_ones_are_refused() -> None:
     obs, _ = env.reset(seed=0)  # no options: the task's start pose
     assert np.allclose(obs["joints"], env.q0, atol=1e-6)
     env.close()
+
+
+def test_the_gym_bench_writes_each_environments_step_cost(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from telesurg.gym import ENVIRONMENTS
+    from telesurg.tools.bench.gym import main
+
+    out = tmp_path / "gym.json"
+    assert main(["--steps", "5", "--runs", "2", "--json", str(out)]) == 0
+    r = json.loads(out.read_text())
+    assert set(r["environments"]) == set(ENVIRONMENTS)
+    for e in r["environments"].values():
+        c = e["step_ms"]
+        assert len(e["step_ms_per_run"]) == 2 and 0 < c["min"] <= c["median"] <= c["max"]
+    bad = tmp_path / "bad.json"
+    assert main(["--steps", "0", "--json", str(bad)]) == 2
+    assert "--steps and --runs must be positive" in capsys.readouterr().err and not bad.exists()

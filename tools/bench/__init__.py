@@ -17,6 +17,7 @@ Subcommands::
     telesurg bench wakeup [--seconds 10] [--blocks 2] [--slice-us 100] [--load cpu:2] [--json FILE]
     telesurg bench links [--pairs 4] [--seconds 20] [--rate 1000] [--json FILE]
     telesurg bench haptics [--quick] [--json FILE] [--plot FILE]
+    telesurg bench gym [--steps 2000] [--runs 3] [--json FILE]
 """
 
 from __future__ import annotations
@@ -69,6 +70,7 @@ BENCHES = {
         "telesurg.tools.bench.haptics",
         "bilateral force feedback (none/naive/TDPA/wave) vs round trip, jitter, loss (in-process)",
     ),
+    "gym": ("telesurg.tools.bench.gym", "ms per step of each Gymnasium environment, no rendering"),
     "transport": (
         "telesurg.tools.bench.transport",
         "zenoh links for a 1 kHz stream under packet loss (root)",
