@@ -209,7 +209,7 @@ def test_the_gym_bench_writes_each_environments_step_cost(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     from telesurg.gym import ENVIRONMENTS
-    from telesurg.tools.bench.gym import main
+    from telesurg.gym.bench import main
 
     out = tmp_path / "gym.json"
     assert main(["--steps", "5", "--runs", "2", "--json", str(out)]) == 0

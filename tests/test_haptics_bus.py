@@ -77,12 +77,13 @@ def test_master_capture_renders_the_slave_force_and_fades_it(
     endpoint: str, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     """master_capture with the touch_sim device and haptics on (its real loop, in a thread, on a
-    real bus): the device pushes with force_scale × the slave's contact force; when the stream
-    stops it fades to zero no faster than 10 N/s; a watchdog HOLD fades it too."""
+    real bus): nothing while the pair is not engaged; engaged, the device pushes with force_scale
+    × the slave's contact force; when the stream stops it fades to zero no faster than 10 N/s; a
+    watchdog HOLD fades it too, and so does a clutch release."""
     from telesurg.services import master_capture
     from telesurg.services.master_capture import devices
     from telesurg.services.master_capture.devices.touch_sim import TouchSim, TouchSimConfig
-    from telesurg.shared.messages import SafetyState
+    from telesurg.shared.messages import SafetyState, TeleopState
 
     dev = TouchSim(TouchSimConfig(surface_mm=-1000.0))  # the hand stays put: no contact in its script
     monkeypatch.setattr(devices, "open_device", lambda name, settings=None: dev)
@@ -101,9 +102,18 @@ def test_master_capture_renders_the_slave_force_and_fades_it(
         samples.append((time.monotonic(), f))
         return f
 
-    with Node(bus, "local", "slave_control") as slave, Node(bus, "local", "watchdog") as watchdog:
+    with (
+        Node(bus, "local", "slave_control") as slave,
+        Node(bus, "local", "watchdog") as watchdog,
+        Node(bus, "local", "mapping") as mapping,
+    ):
         thread.start()
         out = slave.outlet(slave.keys.slave("arm1", "measured_cf"))
+        teleop = mapping.outlet(mapping.keys.mapping("arm1", "teleop_state"))
+
+        def pair(state: str) -> None:
+            teleop.put(TeleopState(teleop.header(), "m1", "arm1", state))
+
         time.sleep(0.5)
 
         def push(seconds: float, fz: float) -> None:
@@ -114,6 +124,9 @@ def test_master_capture_renders_the_slave_force_and_fades_it(
                 time.sleep(0.002)
 
         push(0.6, 2.0)
+        assert force() == 0.0  # not engaged: the slave's contact is not the master's to feel
+        pair("ENABLED")
+        push(0.3, 2.0)
         # 0.5 × 2 N (the loop runs in a thread of this process: on a busy host give it the time)
         end = time.monotonic() + 3.0
         while force() != pytest.approx(1.0, abs=0.05) and time.monotonic() < end:
@@ -135,6 +148,14 @@ def test_master_capture_renders_the_slave_force_and_fades_it(
         held = watchdog.outlet(watchdog.keys.safety("arm1", "state"))
         held.put(SafetyState(held.header(), "arm1", "HOLD", ("test hold",)))
         push(0.4, 2.0)  # the slave still sends: the hold alone fades it
+        assert force() < 0.99 - 0.2
+        held.put(SafetyState(held.header(), "arm1", "OK", ()))
+        end = time.monotonic() + 3.0
+        while force() != pytest.approx(1.0, abs=0.05) and time.monotonic() < end:
+            push(0.05, 2.0)
+        assert force() == pytest.approx(1.0, abs=0.05)
+        pair("IDLE")  # the operator clutched out
+        push(0.4, 2.0)
         assert force() < 0.99 - 0.2
         stop.set()
         thread.join(timeout=5)

@@ -123,6 +123,15 @@ def _video(d: dict[str, Any]) -> str:
     )
 
 
+def _gym(d: dict[str, Any]) -> str:
+    rows = []
+    for env_id, e in d["environments"].items():
+        c = e["step_ms"]
+        name = env_id.split("/")[-1]
+        rows.append(f"{name} {c['min']:.2f} / {c['median']:.2f} / {c['max']:.2f} ms")
+    return f"one step (10 ms simulated), min / median / max of {d['runs']} runs: " + "; ".join(rows)
+
+
 def _viewer(d: dict[str, Any]) -> str:
     lag, wd = d["lag_s"], d["watchdog"]["arm1"]
     return (
@@ -235,6 +244,12 @@ RESULTS: tuple[Result, ...] = (
     ),
     Result("Inverse kinematics", f"{P}/ik.json", f"telesurg bench ik --n 1000 --json {P}/ik.json", _ik),
     Result("MuJoCo, unpaced", f"{P}/sim.json", f"telesurg bench sim --seconds 3 --json {P}/sim.json", _sim),
+    Result(
+        "Gymnasium environments, no rendering",
+        f"{P}/gym.json",
+        f"telesurg bench gym --steps 2000 --runs 5 --json {P}/gym.json",
+        _gym,
+    ),
     Result(
         "Strict decode / encode",
         f"{P}/decode.json",

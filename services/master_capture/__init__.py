@@ -191,7 +191,9 @@ class HapticLoop:
     """The console side of force feedback, once per sampling period: the newest ``measured_cf`` of
     ``haptics.slave_arm`` (from ``slave_source`` only: forged, replayed and malformed ones never get
     here) through the bilateral controller's master side and the force renderer (check, fade when
-    stale or held, rate limit, device limit) to the device's ``write_force``. The slave's force is
+    stale, held or not engaged, rate limit, device limit) to the device's ``write_force``. The
+    force is rendered only while the mapping says the pair is engaged (teleop ``ENABLED``): a
+    master clutched out, or not yet engaged, is not pushed by a slave it does not move. The slave's force is
     rendered in the master frame as is (no rotation between the frames yet). Returns the master
     port's input energy for ``measured_cp.energy_in_j``."""
 
@@ -210,6 +212,7 @@ class HapticLoop:
         self.packet: SlavePacket | None = None
         self.rx_at = -math.inf  # monotonic s: newest measured_cf
         self.hold = False
+        self.engaged = False  # the mapping's teleop state is ENABLED
         self.x_prev: np.ndarray | None = None
         self.t_prev = 0.0
         # E_in_s in master units, summed from this loop's first measured_cf on (as its own
@@ -230,6 +233,7 @@ class HapticLoop:
                 self.rx_at = time.monotonic()
 
         def on_teleop(m: TeleopState, key: str) -> None:
+            self.engaged = m.state == "ENABLED"
             if m.scale * m.safety_scale > 0.0:
                 with self.lock:
                     self.position_scale = m.scale * m.safety_scale
@@ -258,7 +262,7 @@ class HapticLoop:
             packet, self.packet, rx_at = self.packet, None, self.rx_at
         force = self.bil.master_step(x, v, packet, dt)
         self.renderer.offer(force, rx_at)
-        shaped = self.renderer.step(now, dt, self.hold)
+        shaped = self.renderer.step(now, dt, self.hold or not self.engaged)
         if not self.renderer.fading:
             shaped = self.bil.master_passivity(shaped, v, dt)
         applied = np.asarray(self.write(shaped), dtype=float)

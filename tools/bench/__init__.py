@@ -70,7 +70,7 @@ BENCHES = {
         "telesurg.tools.bench.haptics",
         "bilateral force feedback (none/naive/TDPA/wave) vs round trip, jitter, loss (in-process)",
     ),
-    "gym": ("telesurg.tools.bench.gym", "ms per step of each Gymnasium environment, no rendering"),
+    "gym": ("telesurg.gym.bench", "ms per step of each Gymnasium environment, no rendering"),
     "transport": (
         "telesurg.tools.bench.transport",
         "zenoh links for a 1 kHz stream under packet loss (root)",

@@ -14,7 +14,9 @@ Example::
 from __future__ import annotations
 
 import argparse
+import datetime
 import os
+import platform
 import statistics
 import sys
 import time
@@ -24,13 +26,11 @@ from typing import Any
 
 import numpy as np
 from telesurg.shared import jsonio
-from telesurg.tools.bench.machine import machine, now
 
 
 def step_costs(env_id: str, steps: int, seed: int) -> list[float]:
     """Seconds of each of ``steps`` steps of ``env_id`` with seeded random actions."""
     import gymnasium
-    import telesurg.gym  # noqa: F401  (registers the environments)
 
     env = gymnasium.make(env_id, image=False)
     try:
@@ -65,8 +65,8 @@ def run(steps: int, runs: int, seed: int) -> dict[str, Any]:
             "times_real_time": round(10.0 / med, 1),
         }
     return {
-        "date": now(),
-        "machine": machine(),
+        "date": datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%d %H:%M:%S UTC"),
+        "machine": {"platform": platform.platform(), "processor": platform.processor() or platform.machine()},
         "cpus": os.cpu_count(),
         "steps": steps,
         "runs": runs,
