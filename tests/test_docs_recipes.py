@@ -79,6 +79,11 @@ def checkout(tmp: Path) -> dict[str, str]:
     return dict(os.environ, PATH=f"{BIN}:{os.environ['PATH']}", XDG_STATE_HOME=str(keys), WORK=str(tmp))
 
 
+def tail(path: Path, n: int = 15) -> str:
+    """The last ``n`` lines of a file."""
+    return "\n".join(path.read_text(errors="replace").splitlines()[-n:])
+
+
 def in_netns(script: str, tmp: Path, timeout: float) -> subprocess.CompletedProcess[str]:
     """Run bash ``script`` in ``tmp`` in a network namespace of its own (loopback only)."""
     if os.geteuid() != 0 or not shutil.which("unshare") or not shutil.which("ip"):
@@ -95,13 +100,20 @@ def in_netns(script: str, tmp: Path, timeout: float) -> subprocess.CompletedProc
         try:
             out, err = p.communicate(timeout=timeout)
         except subprocess.TimeoutExpired:
+            out, err = "", ""
             for sig, grace in ((signal.SIGINT, 15.0), (signal.SIGKILL, 5.0)):
                 with contextlib.suppress(ProcessLookupError):
                     os.killpg(p.pid, sig)
                 with contextlib.suppress(subprocess.TimeoutExpired):
                     out, err = p.communicate(timeout=grace)
                     break
-            raise AssertionError(f"the recipe did not end within {timeout} s:\n{script}") from None
+            # what it printed and the end of each log it wrote: where it stuck
+            logs = sorted(tmp.glob("*.log")) + sorted(tmp.glob("*.txt"))
+            tails = [f"--- {f.name}\n{tail(f)}" for f in logs]
+            raise AssertionError(
+                f"the recipe did not end within {timeout} s:\n{script}\n--- stdout\n{out}\n--- stderr\n"
+                f"{err[-2000:]}\n" + "\n".join(tails)
+            ) from None
     return subprocess.CompletedProcess(p.args, p.returncode, out, err)
 
 
