@@ -3,7 +3,7 @@ master_capture runs with its clock 300 ms off (the software clock's test skew) b
 25 ms each way; the watchdog finds the offset with its clock probes (within 2 ms of the skew: the
 latency it judges is then within 2 ms of the true one, sample by sample), and the latency it
 publishes matches the one this test measures with the skew it knows (its own receive delay
-apart)."""
+apart: within 50 ms, where the skew is 300 ms)."""
 
 from __future__ import annotations
 
@@ -20,6 +20,9 @@ pytestmark = pytest.mark.process
 
 SKEW_MS = 300.0
 DELAY_MS = 25.0
+#: ms: how far this test's own receipt may judge a latency from the watchdog's. The precise bound
+#: is the offset's (2 ms); this one tells a corrected latency from a skewed or half-corrected one.
+GROSS_MS = 50.0
 
 
 def test_the_watchdog_latency_is_the_true_one_with_the_masters_clock_300ms_off(tmp_path: Path) -> None:
@@ -58,14 +61,16 @@ def test_the_watchdog_latency_is_the_true_one_with_the_masters_clock_300ms_off(t
             f"true one-way latency p50 {p50_true:.2f} ms; watchdog p50 {p50_seen:.2f} ms; "
             f"clock offset {offset:+.2f} ms (skew {SKEW_MS:+.0f} ms)"
         )
-        assert DELAY_MS <= p50_true < DELAY_MS + 20.0  # the delay is really on the path
+        # the delay is really on the path (this test's own receipt adds its scheduling delay: a
+        # second observer of a 1 kHz stream, 15-18 ms behind the watchdog once in CI)
+        assert DELAY_MS <= p50_true < DELAY_MS + GROSS_MS
         # The watchdog's latency of a sample is its receipt − (origin − offset); the true one is
         # receipt − (origin − skew): they differ by exactly offset − skew, sample by sample. So the
         # offset's error bounds the latency's error at the watchdog (acceptance: within 2 ms).
         assert abs(offset - SKEW_MS) < 2.0
         # The truth seen by a second receiver (this test) adds its own scheduling delay on a
-        # loaded host (3.3 ms measured once in CI): the same latency within that, not a skewed one
-        # (300 ms off) nor a half-corrected one.
-        assert abs(p50_seen - p50_true) < 10.0
+        # loaded host (3-18 ms measured in CI): the same latency within that, not a skewed one
+        # (300 ms off) nor a half-corrected one (150 ms).
+        assert abs(p50_seen - p50_true) < GROSS_MS
         with pipe.p.lock:  # no hold came from the skew: the site followed throughout
             assert not [s for t, s, *_ in pipe.p.safety if t >= t0 * 1e9 and s == "HOLD"]

@@ -216,7 +216,14 @@ def test_force_overlay_and_rumble_follow_the_tip_force(tmp_path: Path) -> None:
         for page, rumble in ((page1, rumble1), (page2, rumble2)):  # (live readings: ≥ 1 of 12)
             assert rumble == pytest.approx(page / LIMIT_N, abs=0.03), (page, rumble)
         assert bus2 > bus1 + 0.3 and rumble2 > rumble1 + 0.15  # the rumble rises with the force
-        assert page_force(cdp, s)["cls"] == "f-warn"  # past half the limit: amber
+        # past half the limit: amber (judged on one reading of value and colour together: a hold
+        # on this busy host may fade the force between two readings)
+        firm = None
+        end = time.monotonic() + 2.0
+        while firm is None and time.monotonic() < end:
+            now = page_force(cdp, s)
+            firm = now if float(now["value"]) > 0.5 * LIMIT_N else None
+        assert firm is not None and firm["cls"] == "f-warn", firm
 
         # the tab hidden: the rumble stops inside the event's own dispatch
         last = hide_page(cdp, s, True)
