@@ -1,5 +1,7 @@
 """A LeRobotDataset exported from a live recording, checked against that recording by readers
-that are not telesurg's writer: pyarrow (the Parquet files) and PyAV (the MP4). Used by
+that are not telesurg's writer: LeRobot's own ``LeRobotDataset`` (the ``lerobot-dataset``
+package, in a venv of its own: ``tests/lerobot_reader/``), and pyarrow (the Parquet files) and
+PyAV (the MP4), which must read the same rows and frames. Used by
 ``tests/test_docs_recipes.py`` (docs/learning.md's worked example: a live site with two clutch
 presses and the camera at 25 fps, recorded, exported at 10 fps).
 
@@ -13,12 +15,69 @@ the rows in the camera's gaps; every action the mapping's recorded target within
 
 from __future__ import annotations
 
+import fcntl
+import hashlib
 import json
+import os
+import subprocess
+import sys
+import tempfile
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from telesurg.services.record import iter_decoded, open_mcap
 from telesurg.shared.messages import CameraImage, CartesianPose, JointState, OperatingState
+
+READER = Path(__file__).parent / "lerobot_reader"
+#: the FFmpeg libraries torchcodec loads (Debian 12's packages; .ci/run installs them as root)
+FFMPEG_DEB = "libavcodec59 libavformat59 libavutil57 libswscale6 libavdevice59 libavfilter8"
+
+
+def lerobot_python() -> Path:
+    """The Python of the reader's venv (``tests/lerobot_reader/requirements.txt``), made once per
+    requirements in the user's cache (about 2 min and 6 GB: torch), under a lock."""
+    reqs = READER / "requirements.txt"
+    digest = hashlib.sha256(reqs.read_bytes()).hexdigest()[:12]
+    cache = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "telesurg"
+    venv = cache / f"lerobot-reader-{digest}"
+    python = venv / "bin" / "python"
+    cache.mkdir(parents=True, exist_ok=True)
+    with open(cache / f"lerobot-reader-{digest}.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        if not (venv / ".ready").exists():
+            subprocess.run([sys.executable, "-m", "venv", "--clear", str(venv)], check=True)
+            r = subprocess.run(
+                [str(python), "-m", "pip", "install", "-q", "-r", str(reqs)],
+                capture_output=True,
+                text=True,
+                timeout=1200,
+            )
+            assert r.returncode == 0, f"the LeRobot reader's venv could not be made:\n{r.stderr[-3000:]}"
+            (venv / ".ready").write_text(reqs.read_text())
+    return python
+
+
+def read_with_lerobot(out: Path) -> dict[str, Any]:
+    """The dataset ``out`` as LeRobot's ``LeRobotDataset`` gives it, item by item
+    (``tests/lerobot_reader/read.py``): ``meta`` (episodes, frames, fps, tasks, lengths) and arrays."""
+    python = lerobot_python()
+    with tempfile.TemporaryDirectory() as tmp:
+        npz = Path(tmp) / "read.npz"
+        r = subprocess.run(
+            [str(python), str(READER / "read.py"), str(out), str(npz)],
+            capture_output=True,
+            text=True,
+            timeout=300,
+        )
+        assert "libavutil" not in r.stderr, (
+            f"torchcodec needs the system's FFmpeg: apt-get install {FFMPEG_DEB}"
+        )
+        assert r.returncode == 0, f"LeRobotDataset could not read the dataset:\n{r.stderr[-4000:]}"
+        with np.load(npz) as z:
+            got = {k: z[k] for k in z.files}
+    got["meta"] = json.loads(str(got["meta"]))
+    return got
 
 
 def _recorded(run: Path) -> dict[str, list[tuple[int, object]]]:
@@ -79,6 +138,30 @@ def check_dataset(run: Path, out: Path, fps: float) -> dict[str, float]:
         with av.open(str(video)) as c:
             frames = [f.to_ndarray(format="rgb24").astype(np.float32) for f in c.decode(video=0)]
         assert len(frames) == info["total_frames"]
+    # LeRobot's own reader: the same episodes, rows and frames (its video decoder, torchcodec,
+    # seeks each frame by the row's timestamp); what follows checks its rows
+    lr = read_with_lerobot(out)
+    meta = lr["meta"]
+    assert meta["num_episodes"] == 2 and meta["num_frames"] == len(ts) and meta["fps"] == fps, meta
+    assert meta["lengths"] == [int(np.count_nonzero(ep_col == e["episode_index"])) for e in eps], meta
+    assert meta["start_ns"] == [e["telesurg/start_ns"] for e in eps], meta
+    assert len(meta["tasks"]) == 1 and meta["tasks"][0], f"LeRobot found no task text: {meta['tasks']}"
+    assert np.array_equal(lr["episode_index"], ep_col) and np.array_equal(lr["index"], data["index"])
+    assert np.allclose(lr["timestamp"], ts, atol=1e-6)
+    assert np.array_equal(lr["state"], state.astype(np.float32)), "LeRobot reads other joint states"
+    assert np.array_equal(lr["action"], action.astype(np.float32)), "LeRobot reads other actions"
+    state, action = lr["state"].astype(float), lr["action"].astype(float)
+    if cameras:
+        lr_frames = lr["frames/observation.images.endo"].astype(np.float32)
+        assert lr_frames.shape == (len(frames), *frames[0].shape), lr_frames.shape
+        # the same picture as PyAV's sequential decode (LeRobot rounds through float in [0, 1])
+        diff = max(float(np.abs(a - b).mean()) for a, b in zip(lr_frames, frames, strict=True))
+        assert diff < 1.0, f"LeRobot decodes other frames than PyAV (mean |Δ| up to {diff:.2f} levels)"
+        frames = list(lr_frames)
+    print(
+        f"LeRobotDataset: {meta['num_episodes']} episodes, {meta['num_frames']} frames at "
+        f"{meta['fps']:g} fps, lengths {meta['lengths']}, task {meta['tasks'][0]!r}"
+    )
     decoded = [simplejpeg.decode_jpeg(m.data, colorspace="RGB").astype(np.float32) for _t, m in images]
     image_t = np.array([t for t, _m in images], dtype=np.int64)
     chosen: dict[int, int] = {}  # dataset index → capture ns of the image the export says it took

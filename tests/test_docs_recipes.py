@@ -302,8 +302,9 @@ def test_the_plugin_examples_as_written(tmp_path: Path) -> None:
 @pytest.mark.timeout(420)
 def test_recording_to_dataset_to_a_policy_run_as_written(tmp_path: Path) -> None:
     """docs/learning.md: a site with two clutch presses (and its camera) recorded, exported as a
-    LeRobotDataset and read back by pyarrow and PyAV (tests/lerobot_check.py); then the dataset's
-    first episode, as a policy, drives a fresh site: its slave follows the policy and moves."""
+    LeRobotDataset and read back by LeRobot's own reader, pyarrow and PyAV
+    (tests/lerobot_check.py); then the dataset's first episode, as a policy, drives a fresh site:
+    its slave follows the policy and moves."""
     from lerobot_check import check_dataset
     from telesurg.services.record import iter_decoded, open_mcap
     from telesurg.shared.messages import CartesianPose, OperatingState

@@ -124,6 +124,7 @@ def _read_frames(video: Path) -> list[np.ndarray]:
 def test_two_engagements_make_two_episodes_read_back_with_pyarrow_and_pyav(
     recording: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
+    import pyarrow as pa
     import pyarrow.parquet as pq
 
     out = tmp_path / "ds"
@@ -145,8 +146,16 @@ def test_two_engagements_make_two_episodes_read_back_with_pyarrow_and_pyav(
     assert info["features"]["observation.state"]["shape"] == [13]
     data = pq.read_table(out / info["data_path"].format(chunk_index=0, file_index=0)).to_pydict()
     eps = pq.read_table(out / "meta/episodes/chunk-000/file-000.parquet").to_pylist()
-    tasks = pq.read_table(out / "meta/tasks.parquet").to_pylist()
-    assert tasks == [{"task_index": 0, "task": "reach"}]
+    tasks = pq.read_table(out / "meta/tasks.parquet")
+    assert tasks.to_pylist() == [{"task_index": 0, "task": "reach"}]
+    # as LeRobot reads them (pandas): the tasks indexed by their text, a one-element feature a scalar
+    assert tasks.schema.pandas_metadata["index_columns"] == ["task"]
+    assert (
+        pq.read_schema(out / info["data_path"].format(chunk_index=0, file_index=0))
+        .field("observation.rcm_error_mm")
+        .type
+        == pa.float32()
+    )
     # 1.5 s engaged at 10 fps: 15 frames each, frame k at start + k/10 s
     assert [e["length"] for e in eps] == [15, 15]
     assert [e["telesurg/start_ns"] for e in eps] == [T0 + 1000 * MS, T0 + 3500 * MS]

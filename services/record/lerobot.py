@@ -133,6 +133,38 @@ class Recording:
     images: dict[str, Series] = field(default_factory=dict)  # camera → (jpeg bytes, w, h)
 
 
+def _tasks_table(tasks: list[str]) -> Any:
+    """``meta/tasks.parquet``: LeRobot reads it with pandas as a frame indexed by the task's text
+    with one column, ``task_index``; the index is declared in the schema's pandas metadata (the
+    format pandas writes, https://pandas.pydata.org/docs/development/developer.html)."""
+    import pyarrow as pa
+
+    table = pa.table({"task_index": pa.array(range(len(tasks)), pa.int64()), "task": tasks})
+    pandas_meta = {
+        "index_columns": ["task"],
+        "column_indexes": [],
+        "columns": [
+            {
+                "name": "task_index",
+                "field_name": "task_index",
+                "pandas_type": "int64",
+                "numpy_type": "int64",
+                "metadata": None,
+            },
+            {
+                "name": "task",
+                "field_name": "task",
+                "pandas_type": "unicode",
+                "numpy_type": "object",
+                "metadata": None,
+            },
+        ],
+        "creator": {"library": "pyarrow", "version": pa.__version__},
+        "pandas_version": "2.2.3",
+    }
+    return table.replace_schema_metadata({"pandas": json.dumps(pandas_meta)})
+
+
 def read_recording(path: Path, arm: str | None) -> Recording:
     """The slave, mapping and camera streams of ``path`` (DatasetError if it has no arm)."""
     rec = Recording(path)
@@ -555,6 +587,8 @@ def _write(
             return pa.array(rows[k], type=pa.int64())
         if k == "timestamp":
             return pa.array(rows[k], type=pa.float32())
+        if f["shape"] == [1]:  # LeRobot stores a one-element feature as a scalar column
+            return pa.array([v[0] for v in rows[k]], type=pa.float32())
         return pa.array(rows[k], type=pa.list_(pa.float32(), f["shape"][0]))
 
     data_path = root / DATA_PATH.format(chunk_index=0, file_index=0)
@@ -563,9 +597,7 @@ def _write(
     ep_path = root / EPISODES_PATH
     ep_path.parent.mkdir(parents=True)
     pq.write_table(pa.Table.from_pylist(ep_rows), ep_path)
-    pq.write_table(
-        pa.table({"task_index": pa.array([0], pa.int64()), "task": [task]}), root / "meta/tasks.parquet"
-    )
+    pq.write_table(_tasks_table([task]), root / "meta/tasks.parquet")
     if cams:  # per frame and camera: the image's capture time and its offset from the frame
         t_rows: dict[str, list[Any]] = {
             k: [] for k in ("index", "episode_index", "frame_index", "camera", "capture_ns", "offset_ms")
