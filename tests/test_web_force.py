@@ -1,11 +1,12 @@
-"""The tip force in the browser (issue #42, acceptance 6): the web console's force overlay and a
-gamepad's rumble follow the slave's contact force.
+"""The tip force in the browser (issue #42, acceptance 6): the web console's force overlay, a
+gamepad's rumble and a phone's vibration follow the slave's contact force.
 
 A site (router, watchdog, slave_control on MuJoCo, mapping, the web console as the master;
 deploy/local, tissue limit 2 N for both the watchdog and the page) runs as processes; headless
 Chromium opens the page over the DevTools protocol. The gamepad is a page object, as in
 ``test_web_console.py`` (no DevTools command for a gamepad, no /dev/uinput here), and so is its
-``vibrationActuator``: a stub that records every ``playEffect`` / ``reset`` the page makes.
+``vibrationActuator``: a stub that records every ``playEffect`` / ``reset`` the page makes; the
+page is on an emulated touch screen, and its ``navigator.vibrate`` a stub that records each call.
 Everything else is the real path: the gamepad presses the MH3F's forceps into the scene's tissue,
 slave_control publishes the contact force (``measured_cf``, 500 Hz), the console forwards it in the
 state over its authenticated websocket, the page draws it and rumbles.
@@ -49,7 +50,8 @@ pytestmark = pytest.mark.process
 LIMIT_N = 2.0  # N: the tissue limit of this test (the watchdog's rule and the page's overlay)
 
 #: The pad's rumble motor: every call the page makes, with what the page's overlay said then
-#: (``window.consoleForce.quiet``: "" while the force is live), in ``window.__rumble``.
+#: (``window.consoleForce.quiet``: "" while the force is live), in ``window.__rumble``; and the
+#: phone's vibration motor (``navigator.vibrate``, the page on a touch screen), in ``window.__buzz``.
 RUMBLE_JS = """
 window.__rumble = [];
 window.__pad.vibrationActuator = {type: 'dual-rumble', effects: ['dual-rumble'],
@@ -63,6 +65,11 @@ window.__pad.vibrationActuator = {type: 'dual-rumble', effects: ['dual-rumble'],
       quiet: window.consoleForce.quiet});
     return Promise.resolve('complete');
   }};
+window.__buzz = [];
+Object.defineProperty(navigator, 'vibrate', {configurable: true, value(p) {
+  window.__buzz.push({t: performance.now(), ms: Array.isArray(p) ? (p[0] || 0) : p,
+    quiet: window.consoleForce.quiet});
+  return true; }});
 true
 """
 
@@ -104,13 +111,13 @@ def page_force(cdp: DevTools, s: str) -> dict[str, Any]:
         cdp,
         s,
         """(() => { const r = window.__rumble, last = r[r.length - 1];
-        const on = last && last.type !== 'reset';
+        const on = last && last.type !== 'reset', b = window.__buzz[window.__buzz.length - 1];
         return {value: document.querySelector('#force-value').textContent,
           limit: document.querySelector('#force-limit').textContent,
           why: document.querySelector('#force-why').textContent,
           cls: document.querySelector('#force').className,
           shown: !document.querySelector('#force').hidden,
-          rumble: on ? last.strong : 0, calls: r.length}; })()""",
+          rumble: on ? last.strong : 0, calls: r.length, buzz_ms: b ? b.ms : 0}; })()""",
     )
     assert isinstance(got, dict), got
     return got
@@ -157,11 +164,14 @@ def steady(cdp: DevTools, s: str, forces: Forces, label: str) -> tuple[float, fl
         f = page_force(cdp, s)
         bus = forces.over(t - 0.2, t)
         rows.append((float(np.median(bus)), float(f["value"]), float(f["rumble"])))
-        if f["why"]:  # (a hold, for the tissue or for load): quiet, so no rumble
+        if f["why"]:  # (a hold, for the tissue or for load): quiet, so no rumble, no buzz
             quiet.add(f["why"])
-            assert f["rumble"] == 0, f
+            assert f["rumble"] == 0 and f["buzz_ms"] == 0, f
         else:
             live.append(float(f["rumble"]))
+            # the phone's motor on for |F| / limit of each 100 ms (the page renews it on a change
+            # of a tenth, the pad's on one of 0.02)
+            assert abs(f["buzz_ms"] - 100 * f["rumble"]) <= 13, f
         time.sleep(0.08)
     bus_n, page_n = (float(np.median([r[i] for r in rows])) for i in range(2))
     rumble = float(np.median(live)) if live else 0.0
@@ -199,6 +209,8 @@ def test_force_overlay_and_rumble_follow_the_tip_force(tmp_path: Path) -> None:
         Node(BusConfig(connect=[endpoint]), "local", "webforce") as node,
         chromium(url, tmp_path, nice=0) as (cdp, s),
     ):
+        # a touch screen (a phone with a gamepad: the page plays the force on both motors)
+        cdp.call("Emulation.setTouchEmulationEnabled", {"enabled": True, "maxTouchPoints": 5}, s)
         forces = Forces(node)
         wait_page(cdp, s, "#arm-arm1 .v.safety .state", lambda t: t == "OK", 30.0)
         wait_page(cdp, s, "#arm-arm1 .v.teleop .state", lambda t: t == "IDLE", 10.0)
@@ -207,6 +219,7 @@ def test_force_overlay_and_rumble_follow_the_tip_force(tmp_path: Path) -> None:
         assert wait_until(lambda: page_force(cdp, s)["shown"], 10.0)
         free = page_force(cdp, s)
         assert float(free["value"]) < 0.01 and free["limit"] == f"{LIMIT_N:.1f}" and free["rumble"] == 0
+        assert free["buzz_ms"] == 0
 
         engage_pad(cdp, s)
         press_to(cdp, s, forces, probe, 0.3 * LIMIT_N)
@@ -228,6 +241,7 @@ def test_force_overlay_and_rumble_follow_the_tip_force(tmp_path: Path) -> None:
         # the tab hidden: the rumble stops inside the event's own dispatch
         last = hide_page(cdp, s, True)
         assert last is not None and last["type"] == "reset", last
+        assert js(cdp, s, "window.__buzz[window.__buzz.length - 1].ms") == 0  # the phone's too
         assert page_force(cdp, s)["rumble"] == 0 and page_force(cdp, s)["why"] == "page hidden"
         time.sleep(0.3)
         hidden = page_force(cdp, s)
@@ -275,6 +289,11 @@ def test_force_overlay_and_rumble_follow_the_tip_force(tmp_path: Path) -> None:
         assert not [r for r in loud if r["quiet"]], "the pad rumbled while the overlay was quiet"
         assert max(r["strong"] for r in loud) == pytest.approx(1.0)  # at the limit: full rumble
         assert rumble[-1]["type"] == "reset"
+        buzz = js(cdp, s, "window.__buzz")
+        on = [b for b in buzz if b["ms"] > 0]
+        print(f"phone: {len(buzz)} vibrate calls; the longest {max(b['ms'] for b in on)} ms of 100")
+        assert not [b for b in on if b["quiet"]], "the phone vibrated while the overlay was quiet"
+        assert max(b["ms"] for b in on) == 100 and buzz[-1]["ms"] == 0  # full at the limit; stopped
 
         # slave_control killed: the overlay says the force is stale, the watchdog holds
         t_kill = time.monotonic()

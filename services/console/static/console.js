@@ -218,7 +218,8 @@ function pollPad(t) {
 // ------------------------------------------------------------------ tip force: overlay and rumble
 // The slave's tip force (measured_cf of the arm this page's master drives, pushed in the state at
 // web.state_hz) is drawn over the picture — magnitude, direction, the tissue limit — and played on
-// the gamepad's rumble (Gamepad API vibrationActuator, "dual-rumble"), intensity |F| / limit.
+// the gamepad's rumble (Gamepad API vibrationActuator, "dual-rumble"), intensity |F| / limit,
+// and on a phone's vibration motor (buzz()).
 // Quiet — the force stream stale, the watchdog holding (or its state stale), no state from the
 // console for STATE_QUIET_MS, the page hidden or not in control — greys the overlay and stops the
 // rumble at once (reset()); each effect lasts only RUMBLE_MS, so a page that stops being updated
@@ -232,7 +233,23 @@ function actuator() {
   const a = pads.length ? pads[0].vibrationActuator : null;
   return a && typeof a.playEffect === "function" ? a : null;
 }
+// A phone or tablet (a touch screen with navigator.vibrate) buzzes too. Its motor has no
+// intensity, so |F| / limit is the share of each BUZZ_MS it runs: vibrate(k × BUZZ_MS), renewed
+// every BUZZ_MS (or at once on a change of a tenth); quiet stops it at once (vibrate(0)).
+const BUZZ_MS = 100;
+let buzzing = 0, buzzedAt = 0;
+function buzz(k, t) {
+  if (!(navigator.maxTouchPoints > 0) || typeof navigator.vibrate !== "function") { buzzing = 0; return; }
+  if (k <= 0) {
+    if (buzzing > 0) { buzzing = 0; navigator.vibrate(0); }
+    return;
+  }
+  if (Math.abs(k - buzzing) < 0.1 && t - buzzedAt < BUZZ_MS) return;
+  buzzing = k; buzzedAt = t;
+  navigator.vibrate(Math.max(1, Math.round(k * BUZZ_MS)));
+}
 function rumble(k, t) {
+  buzz(k, t);
   const act = actuator();
   if (!act) { rumbling = 0; return; }
   if (k <= 0) {
