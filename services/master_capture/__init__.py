@@ -36,6 +36,7 @@ from telesurg.services.master_capture.devices.serial import SerialMasterConfig
 from telesurg.shared.bus import BusConfig, Node
 from telesurg.shared.errors import ConfigError
 from telesurg.shared.haptics import BilateralConfig, ForceRenderer, RenderConfig, SlavePacket, make_bilateral
+from telesurg.shared.haptics.guidance import Guidance, GuidanceSettings
 from telesurg.shared.messages import (
     CartesianPose,
     CartesianWrench,
@@ -62,6 +63,51 @@ class HapticsConfig:
     rate_n_per_s: float = 200.0  # N/s: largest change of the force while the stream is fresh
     fade_n_per_s: float = 10.0  # N/s: fade to zero when the stream is stale or the watchdog holds
     stale_ms: float = 20.0  # ms: no measured_cf for this long → fade (slave_control sends at 500 Hz)
+    # guidance rendered here, without the network (docs/haptics.md), with or without slave_arm:
+    # the master's workspace walls (a box in the master frame, mm; both corners or neither)
+    walls_min_mm: tuple[float, float, float] | None = None
+    walls_max_mm: tuple[float, float, float] | None = None
+    # the virtual trocar (mm, master frame: the mapping's virtual_trocar_mm): the handle is a dummy
+    # forceps through this fulcrum, within its length, off the fulcrum and within a tilt
+    trocar_mm: tuple[float, float, float] | None = None
+    trocar_forceps_mm: float = 200.0  # mm: the dummy forceps' length (the mapping's dummy_forceps_mm)
+    trocar_handle_min_mm: float = 40.0  # mm: the handle's closest approach to the fulcrum
+    trocar_tilt_max_deg: float = 60.0  # deg: the dummy shaft's largest tilt from straight down
+    guidance_stiffness_n_per_m: float = 1000.0  # N/m: of the walls and the trocar
+    guidance_damping_ns_per_m: float = 2.0  # N·s/m: of the walls and the trocar, moving further in
+
+
+def guidance_settings(h: HapticsConfig) -> GuidanceSettings:
+    """The guidance of ``[master_capture.haptics]``, checked (a clear error for a bad value)."""
+    walls = None
+    if (h.walls_min_mm is None) != (h.walls_max_mm is None):
+        raise ConfigError("haptics.walls_min_mm and walls_max_mm: set both corners of the box, or neither")
+    if h.walls_min_mm is not None and h.walls_max_mm is not None:
+        lo, hi = np.array(h.walls_min_mm, dtype=float), np.array(h.walls_max_mm, dtype=float)
+        if not (np.all(np.isfinite(lo)) and np.all(np.isfinite(hi)) and np.all(lo < hi)):
+            raise ConfigError(
+                f"haptics.walls_min_mm {h.walls_min_mm} must be below walls_max_mm "
+                f"{h.walls_max_mm} on every axis"
+            )
+        walls = (tuple(lo / 1e3), tuple(hi / 1e3))
+    if not 0.0 < h.trocar_handle_min_mm < h.trocar_forceps_mm:
+        raise ConfigError(
+            f"haptics.trocar_handle_min_mm={h.trocar_handle_min_mm} must be in "
+            f"(0, trocar_forceps_mm={h.trocar_forceps_mm})"
+        )
+    if not 0.0 < h.trocar_tilt_max_deg < 180.0:
+        raise ConfigError(f"haptics.trocar_tilt_max_deg={h.trocar_tilt_max_deg} outside (0, 180)")
+    if not (h.guidance_stiffness_n_per_m > 0.0 and h.guidance_damping_ns_per_m >= 0.0):
+        raise ConfigError("haptics.guidance_stiffness_n_per_m must be > 0 and guidance_damping_ns_per_m >= 0")
+    return GuidanceSettings(
+        walls=walls,
+        trocar=None if h.trocar_mm is None else tuple(np.array(h.trocar_mm, dtype=float) / 1e3),
+        forceps_m=h.trocar_forceps_mm / 1e3,
+        handle_min_m=h.trocar_handle_min_mm / 1e3,
+        tilt_max_deg=h.trocar_tilt_max_deg,
+        stiffness=h.guidance_stiffness_n_per_m,
+        damping=h.guidance_damping_ns_per_m,
+    )
 
 
 @dataclass
@@ -137,7 +183,8 @@ def run(cfg: MasterCaptureConfig, stop: threading.Event) -> None:
 
             mapping = [cfg.mapping_source]
             node.subscribe(k.mapping("*", "teleop_state"), TeleopState, on_teleop, sources=mapping)
-        haptic = HapticLoop(cfg, device, node) if cfg.haptics.slave_arm else None
+        guided = guidance_settings(cfg.haptics)
+        haptic = HapticLoop(cfg, device, node) if cfg.haptics.slave_arm or Guidance(guided).on else None
         invalid_since: float | None = None  # time.monotonic() when the reading became invalid
         invalid_kind = ""  # why (the device's status up to its first ':'), said again when it changes
         log.info("publishing master %s at %.0f Hz (%s)", cfg.arm, cfg.rate_hz, cfg.device)
@@ -202,10 +249,11 @@ class HapticLoop:
         write = getattr(device, "write_force", None)
         if not callable(write):
             raise ConfigError(
-                f"haptics.slave_arm is set but device {cfg.device!r} takes no force "
+                f"haptics (slave_arm or guidance) is set but device {cfg.device!r} takes no force "
                 "(one with write_force, e.g. touch_sim)"
             )
         self.write = write
+        self.guidance = Guidance(guidance_settings(h))
         self.bil = make_bilateral(BilateralConfig(controller=h.controller, force_scale=h.force_scale))
         self.renderer = ForceRenderer(RenderConfig(h.limit_n, h.rate_n_per_s, h.fade_n_per_s, h.stale_ms))
         self.lock = threading.Lock()
@@ -223,6 +271,8 @@ class HapticLoop:
         self.e_in_s = 0.0
         self.position_scale = 1.0
         k = node.keys
+        if not h.slave_arm:  # guidance alone: no force from the slave
+            return
 
         def on_wrench(m: CartesianWrench, key: str) -> None:
             with self.lock:
@@ -265,8 +315,12 @@ class HapticLoop:
         shaped = self.renderer.step(now, dt, self.hold or not self.engaged)
         if not self.renderer.fading:
             shaped = self.bil.master_passivity(shaped, v, dt)
-        applied = np.asarray(self.write(shaped), dtype=float)
-        self.bil.master_sent(applied, x, v, dt)
+        if self.guidance.on:  # local: neither faded nor delayed; not the network port's energy
+            self.write(shaped + self.guidance.force(x, v))
+            self.bil.master_sent(shaped, x, v, dt)
+        else:
+            applied = np.asarray(self.write(shaped), dtype=float)
+            self.bil.master_sent(applied, x, v, dt)
         return self.bil.master.e_in
 
 
