@@ -2,7 +2,7 @@
 
 Every payload is a MessagePack map with a common header::
 
-    {"v": 5, "type": "joint_state", "src": "slave_control", "seq": 42, "ts": 1700000000000000000,
+    {"v": 6, "type": "joint_state", "src": "slave_control", "seq": 42, "ts": 1700000000000000000,
      ...body fields...}
 
 * ``v``    schema version (int, must equal :data:`SCHEMA_VERSION`)
@@ -61,8 +61,8 @@ from telesurg.shared.errors import MessageError
 
 # 2: safety fields (origin_ns, latency, scale, rcm, clipped), estop; 3: heartbeat polled_s;
 # 4: clock probes, safety_state.clock_offset_ms; pose / wrench energy_in_j (docs/haptics.md);
-# 5: heartbeat replayed, lost
-SCHEMA_VERSION = 5
+# 5: heartbeat replayed, lost; 6: teleop_state rotation
+SCHEMA_VERSION = 6
 #: Largest payload accepted by :func:`decode`, bytes.
 MAX_PAYLOAD_BYTES = 64 * 1024
 #: Largest joint count in any joint-space message.
@@ -1135,6 +1135,13 @@ class TeleopState(Message):
     safety_scale: float = fld(1.0, "the watchdog's motion-scale factor applied on top of it", ge=0.0, le=1.0)
     mode: str = fld(
         "cartesian", "the mapping mode, e.g. `cartesian`, `all_joints`, `vip`, `position`", nonempty=True
+    )
+    rotation: tuple[float, float, float, float] = fld(
+        (0.0, 0.0, 0.0, 1.0),
+        "`R_ms`, the rotation from the master's frame to the slave's base frame that the mapping "
+        "moves the slave with (the camera's view or the work frame), `[x, y, z, w]`; identity for a "
+        "joint-space mapping. A haptic master renders the slave's force through its transpose",
+        unit_quat=True,
     )
 
 

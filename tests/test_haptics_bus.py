@@ -161,3 +161,46 @@ def test_master_capture_renders_the_slave_force_and_fades_it(
         thread.join(timeout=5)
     assert not thread.is_alive()
     assert max(f for _, f in samples) <= 3.3
+
+
+def test_the_slave_force_is_felt_in_the_frame_the_master_moves_in(
+    endpoint: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The mapping moves the slave through R_ms (the camera's view or the work frame; its teleop
+    state's ``rotation``): a force along the slave's base y, with R_ms a quarter turn about z
+    (master x → slave y), pushes the master's handle along its own x."""
+    from telesurg.services import master_capture
+    from telesurg.services.master_capture import devices
+    from telesurg.services.master_capture.devices.touch_sim import TouchSim, TouchSimConfig
+    from telesurg.shared.messages import TeleopState
+
+    dev = TouchSim(TouchSimConfig(surface_mm=-1000.0))
+    monkeypatch.setattr(devices, "open_device", lambda name, settings=None: dev)
+    cfg = master_capture.MasterCaptureConfig(
+        device="touch_sim", rate_hz=1000.0, bus=BusConfig(connect=[endpoint])
+    )
+    cfg.haptics.slave_arm = "arm1"
+    cfg.haptics.controller = "naive"
+    stop = threading.Event()
+    thread = threading.Thread(target=master_capture.run, args=(cfg, stop), daemon=True)
+    bus = BusConfig(connect=[endpoint])
+    quarter = (0.0, 0.0, math.sin(math.pi / 4), math.cos(math.pi / 4))
+    with Node(bus, "local", "slave_control") as slave, Node(bus, "local", "mapping") as mapping:
+        thread.start()
+        out = slave.outlet(slave.keys.slave("arm1", "measured_cf"))
+        teleop = mapping.outlet(mapping.keys.mapping("arm1", "teleop_state"))
+        time.sleep(0.5)
+        felt = np.zeros(3)
+        end = time.monotonic() + 5.0
+        while time.monotonic() < end:
+            teleop.put(TeleopState(teleop.header(), "m1", "arm1", "ENABLED", rotation=quarter))
+            for _ in range(25):
+                out.put(CartesianWrench(out.header(), "base", (0.0, 2.0, 0.0), (0.0, 0.0, 0.0)))
+                time.sleep(0.002)
+            felt = dev.sim.motor.copy()
+            if np.allclose(felt, (1.0, 0.0, 0.0), atol=0.05):
+                break
+        stop.set()
+        thread.join(timeout=5)
+    print(f"slave force (0, 2, 0) N in the base frame → master {np.round(felt, 3)} N")
+    assert felt == pytest.approx((1.0, 0.0, 0.0), abs=0.05)  # 0.5 × R_msᵀ (0, 2, 0)

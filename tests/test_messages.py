@@ -111,8 +111,8 @@ def _pack(d: object) -> bytes:
         (lambda d: d.update(follow=1), "must be a boolean"),
         (lambda d: d.update(seq=-1), "outside"),
         (lambda d: d.update(seq=1.5), "must be an integer"),
-        (lambda d: d.update(v=1), "unknown schema version"),
-        (lambda d: d.update(v=6), "unknown schema version"),
+        (lambda d: d.update(v=SCHEMA_VERSION - 1), "unknown schema version"),
+        (lambda d: d.update(v=SCHEMA_VERSION + 1), "unknown schema version"),
         (lambda d: d.pop("v"), "unknown schema version"),
         (lambda d: d.update(type="nope"), "unknown message type"),
         (lambda d: d.update(extra=1), "unexpected fields"),
@@ -153,7 +153,7 @@ def test_rejects_unknown_enum_values() -> None:
     d["state"] = "RUNNING"
     with pytest.raises(MessageError, match="not one of"):
         decode(_pack(d))
-    assert SCHEMA_VERSION == 5
+    assert SCHEMA_VERSION == 6
 
 
 @settings(max_examples=300, deadline=None)

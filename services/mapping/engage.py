@@ -105,6 +105,9 @@ class EngageGate:
         self.since_ns = now_ns()
         self.scale = cfg.scale  # operator's motion scale (mapping/<arm>/command changes it)
         self.safety_scale = 1.0  # factor from the watchdog's safety state
+        # R_ms the strategy maps master motion with, as a quaternion [x, y, z, w] for the teleop
+        # state (a haptic master renders the slave's force through it); identity: joint space
+        self.rotation: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 1.0)
         self.reply_seq = Sequencer(cfg.service)  # replies on mapping/<arm>/command
         self.ik_failures = 0  # samples whose target could not be solved (held)
         self.conflated = 0  # master samples skipped because a newer one had come
@@ -290,6 +293,7 @@ class EngageGate:
                 self.scale,
                 self.safety_scale,
                 self.cfg.mode,
+                self.rotation,
             )
         )
         self._state_next = time.monotonic() + self._state_period

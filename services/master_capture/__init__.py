@@ -37,6 +37,7 @@ from telesurg.shared.bus import BusConfig, Node
 from telesurg.shared.errors import ConfigError
 from telesurg.shared.haptics import BilateralConfig, ForceRenderer, RenderConfig, SlavePacket, make_bilateral
 from telesurg.shared.haptics.guidance import Guidance, GuidanceSettings
+from telesurg.shared.kinematics import matrix_from_quat
 from telesurg.shared.messages import (
     CartesianPose,
     CartesianWrench,
@@ -240,8 +241,9 @@ class HapticLoop:
     here) through the bilateral controller's master side and the force renderer (check, fade when
     stale, held or not engaged, rate limit, device limit) to the device's ``write_force``. The
     force is rendered only while the mapping says the pair is engaged (teleop ``ENABLED``): a
-    master clutched out, or not yet engaged, is not pushed by a slave it does not move. The slave's force is
-    rendered in the master frame as is (no rotation between the frames yet). Returns the master
+    master clutched out, or not yet engaged, is not pushed by a slave it does not move. The
+    slave's force is rotated into the master frame by the mapping's ``R_ms`` (its teleop
+    state's ``rotation``): the surgeon feels it in the frame they move in. Returns the master
     port's input energy for ``measured_cp.energy_in_j``."""
 
     def __init__(self, cfg: MasterCaptureConfig, device: object, node: Node) -> None:
@@ -270,6 +272,9 @@ class HapticLoop:
         self.e_in_s_slave: float | None = None  # the slave's last sum, slave units
         self.e_in_s = 0.0
         self.position_scale = 1.0
+        # the slave base → master frame rotation, R_msᵀ of the mapping's teleop state (the camera's
+        # view or the work frame the master moves the slave in)
+        self.r_sm = np.eye(3)
         k = node.keys
         if not h.slave_arm:  # guidance alone: no force from the slave
             return
@@ -279,11 +284,14 @@ class HapticLoop:
                 if self.e_in_s_slave is not None and m.energy_in_j > self.e_in_s_slave:
                     self.e_in_s += h.force_scale / self.position_scale * (m.energy_in_j - self.e_in_s_slave)
                 self.e_in_s_slave = m.energy_in_j
-                self.packet = SlavePacket(m.header.seq, np.array(m.force), self.e_in_s)
+                # the slave's force (base frame) in the master's: R_msᵀ F
+                self.packet = SlavePacket(m.header.seq, self.r_sm @ np.array(m.force), self.e_in_s)
                 self.rx_at = time.monotonic()
 
         def on_teleop(m: TeleopState, key: str) -> None:
             self.engaged = m.state == "ENABLED"
+            with self.lock:
+                self.r_sm = matrix_from_quat(m.rotation).T
             if m.scale * m.safety_scale > 0.0:
                 with self.lock:
                     self.position_scale = m.scale * m.safety_scale

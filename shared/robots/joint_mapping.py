@@ -20,7 +20,7 @@ from telesurg.shared.messages import CartesianPose, JointSetpoint, Message, Safe
 from telesurg.shared.robots.api import PairContext
 from telesurg.shared.robots.registry import arm_profile
 from telesurg.shared.teleop.master import master_point
-from telesurg.shared.teleop.work_frame import master_rotation
+from telesurg.shared.teleop.work_frame import master_rotation, rotation_of
 
 #: Samples without clamping that end a clamping episode.
 CLAMP_QUIET = 50
@@ -120,6 +120,7 @@ class PoseJointStrategy(JointStrategy):
     def __init__(self, gate: PairContext) -> None:
         super().__init__(gate)
         self.r_ms = master_rotation(gate.cfg)
+        gate.rotation = rotation_of(self.r_ms)
         self.master_point = master_point
         self.pending: CartesianPose | None = None
         self.ref: tuple[np.ndarray, np.ndarray] | None = None  # (master point, slave point) anchor

@@ -18,7 +18,7 @@ from __future__ import annotations
 from typing import TYPE_CHECKING
 
 import numpy as np
-from telesurg.shared.kinematics.transforms import rpy_matrix
+from telesurg.shared.kinematics.transforms import quat_from_matrix, rpy_matrix
 from telesurg.shared.teleop.camera_frame import VIEW_TO_OPTICAL
 
 if TYPE_CHECKING:
@@ -26,6 +26,12 @@ if TYPE_CHECKING:
 
 #: Valid ``master_frame`` values.
 MASTER_FRAMES = ("fixed", "work")
+
+
+def rotation_of(r_ms: np.ndarray) -> tuple[float, float, float, float]:
+    """``R_ms`` as the teleop state's quaternion ``[x, y, z, w]``."""
+    q = quat_from_matrix(r_ms)
+    return (float(q[0]), float(q[1]), float(q[2]), float(q[3]))
 
 
 def master_rotation(cfg: MappingSettings) -> np.ndarray:

@@ -40,7 +40,7 @@ from telesurg.shared.robots.mh3f.trocar_clamp import TrocarClamp
 from telesurg.shared.robots.registry import get
 from telesurg.shared.teleop.camera_frame import view_rotation
 from telesurg.shared.teleop.master import master_point
-from telesurg.shared.teleop.work_frame import master_rotation
+from telesurg.shared.teleop.work_frame import master_rotation, rotation_of
 
 
 class CartesianMapping:
@@ -53,6 +53,7 @@ class CartesianMapping:
         cfg, node, slave = gate.cfg, gate.node, gate.slave
         self.geom = MH3F
         self.r_ms = master_rotation(cfg)  # (a camera pose replaces it: on_camera_pose)
+        gate.rotation = rotation_of(self.r_ms)
         self.r_ms_rows: list[list[float]] = self.r_ms.tolist()
         self.camera_poses = 0  # camera view-frame changes applied (on_camera_pose)
         self.servo_out: Outlet = node.outlet(node.keys.slave(slave, "servo_jp"))
@@ -109,6 +110,7 @@ class CartesianMapping:
             self.camera_poses += 1
             self.r_ms = r
             self.r_ms_rows = r.tolist()
+            self.gate.rotation = rotation_of(r)
             self.rescaled()
         if first or self.gate.following:
             self.gate.node.event(
