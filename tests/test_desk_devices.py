@@ -13,6 +13,7 @@ import sys
 import time
 from dataclasses import dataclass, field
 
+import numpy as np
 import pytest
 from telesurg.services.master_capture import devices
 from telesurg.services.master_capture.devices import open_device
@@ -183,3 +184,117 @@ def test_device_check_cli_reports_a_missing_library() -> None:
         timeout=60,
     )
     assert r.returncode == 0 and "valid readings" in r.stdout and "clutch" in r.stdout
+
+
+# --------------------------------------------------------------------------- force output
+
+
+class ForcePlayed(Played):
+    """A haptic binding: what it was told to push (device frame), in order."""
+
+    def __init__(self) -> None:
+        super().__init__([])
+        self.forces: list[tuple[float, float, float]] = []
+
+    def write_force(self, force: tuple[float, float, float]) -> None:
+        self.forces.append(force)
+
+
+@pytest.mark.parametrize(("kind", "limit"), [("touch", 3.3), ("omega7", 12.0)])
+def test_haptic_desk_devices_push_in_their_own_frame_within_their_limit(kind: str, limit: float) -> None:
+    cls = devices.get(kind)
+    binding = ForcePlayed()
+    # the device turned a quarter about z on the desk: its x is the master's y
+    dev = cls(DeskConfig(rotation_rpy_deg=(0.0, 0.0, 90.0)), binding=binding)  # type: ignore[call-arg]
+    with dev:
+        applied = dev.write_force((1.0, 0.0, 0.0))  # type: ignore[attr-defined]
+        assert tuple(applied) == pytest.approx((1.0, 0.0, 0.0))
+        assert binding.forces[-1] == pytest.approx((0.0, -1.0, 0.0))  # master x = device −y
+        big = dev.write_force((0.0, 0.0, 100.0))  # type: ignore[attr-defined]
+        assert float(np.linalg.norm(big)) == pytest.approx(limit)  # capped at the device's limit
+        assert binding.forces[-1] == pytest.approx((0.0, 0.0, limit))
+        dev.write_force((math.nan, 0.0, 0.0))  # type: ignore[attr-defined]
+        assert binding.forces[-1] == (0.0, 0.0, 0.0)  # never a non-finite force
+        dev.write_force((0.5, 0.0, 0.0))  # type: ignore[attr-defined]
+    assert binding.forces[-1] == (0.0, 0.0, 0.0) and not binding.opened  # zeroed, then closed
+
+
+def test_rate_devices_take_no_force_and_haptics_says_so() -> None:
+    from telesurg.services.master_capture import HapticLoop, MasterCaptureConfig
+
+    assert not hasattr(SpaceMouseDevice, "write_force") and not hasattr(GamepadDevice, "write_force")
+    cfg = MasterCaptureConfig(device="spacemouse")
+    cfg.haptics.slave_arm = "arm1"
+    with pytest.raises(ConfigError, match="takes no force"):
+        HapticLoop(cfg, SpaceMouseDevice(DeskConfig(), binding=Played()), node=None)  # type: ignore[arg-type]
+
+
+def test_the_touch_binding_sets_the_force_in_the_hd_servo_callback(monkeypatch: pytest.MonkeyPatch) -> None:
+    """pyOpenHaptics stood in for by modules that record the HD calls (no SDK, no device here):
+    the force is set inside the scheduler's callback, in the device's frame, zeroed at close."""
+    import types
+
+    calls: dict[str, list[object]] = {"set_force": [], "scheduler": [], "close": []}
+    hd = types.ModuleType("pyOpenHaptics.hd")
+    hd.set_force = lambda f: calls["set_force"].append(tuple(f))  # type: ignore[attr-defined]
+    hd_callback = types.ModuleType("pyOpenHaptics.hd_callback")
+    hd_callback.hd_callback = lambda fn: fn  # type: ignore[attr-defined]
+    hd_device = types.ModuleType("pyOpenHaptics.hd_device")
+
+    class HapticDevice:
+        def __init__(self, callback: object, scheduler_type: str = "async") -> None:
+            calls["scheduler"].append((callback, scheduler_type))
+
+        def close(self) -> None:
+            calls["close"].append(True)
+
+    hd_device.HapticDevice = HapticDevice  # type: ignore[attr-defined]
+    for name, mod in (
+        ("pyOpenHaptics", types.ModuleType("pyOpenHaptics")),
+        ("pyOpenHaptics.hd", hd),
+        ("pyOpenHaptics.hd_callback", hd_callback),
+        ("pyOpenHaptics.hd_device", hd_device),
+    ):
+        monkeypatch.setitem(sys.modules, name, mod)
+    dev = TouchDevice(DeskConfig(rotation_rpy_deg=(0.0, 0.0, 90.0)))
+    with dev:
+        ((servo, kind),) = calls["scheduler"]
+        assert kind == "async"
+        dev.write_force((0.0, 2.0, 0.0))
+        servo()  # the HD servo loop's tick
+        assert calls["set_force"][-1] == pytest.approx((2.0, 0.0, 0.0))  # master y = device x
+    servo()
+    assert calls["set_force"][-1] == (0.0, 0.0, 0.0) and calls["close"] == [True]
+
+
+def test_the_omega7_binding_enables_and_sets_the_force(monkeypatch: pytest.MonkeyPatch) -> None:
+    """forcedimension-core stood in for by a module that records the DHD calls."""
+    import types
+
+    from telesurg.services.master_capture.devices.omega7 import Omega7Device
+
+    calls: list[tuple[object, ...]] = []
+
+    class Dhd:
+        def open(self) -> int:
+            calls.append(("open",))
+            return 0
+
+        def enableForce(self, on: bool) -> None:
+            calls.append(("enableForce", on))
+
+        def setForceAndTorqueAndGripperForce(self, f: list[float], t: list[float], fg: float) -> int:
+            calls.append(("force", tuple(f), tuple(t), fg))
+            return 0
+
+        def close(self) -> None:
+            calls.append(("close",))
+
+    sdk = types.ModuleType("forcedimension_core")
+    sdk.dhd = Dhd()  # type: ignore[attr-defined]
+    monkeypatch.setitem(sys.modules, "forcedimension_core", sdk)
+    with Omega7Device(DeskConfig()) as dev:
+        dev.write_force((0.0, 0.0, 20.0))
+    assert calls[:2] == [("open",), ("enableForce", True)]
+    assert calls[2] == ("force", (0.0, 0.0, 12.0), (0.0, 0.0, 0.0), 0.0)  # capped at 12 N
+    assert calls[-2:] == [("force", (0.0, 0.0, 0.0), (0.0, 0.0, 0.0), 0.0), ("close",)]

@@ -20,10 +20,12 @@ from __future__ import annotations
 import importlib
 import math
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass
 from types import TracebackType
 from typing import ClassVar, Protocol
 
+import numpy as np
 from telesurg.services.master_capture.devices import DeviceSample, MasterDevice
 from telesurg.shared.errors import ConfigError, DeviceConnectionError
 
@@ -201,6 +203,12 @@ class Binding(Protocol):
     def close(self) -> None: ...
 
 
+class ForceBinding(Binding, Protocol):
+    """A haptic desk device's library also takes a force (N, the device's own frame)."""
+
+    def write_force(self, force: tuple[float, float, float]) -> None: ...
+
+
 def need_library(device: type[DeskDevice], module: str) -> object:
     """Import ``module`` for ``device``; DeviceConnectionError naming its ``library``."""
     try:
@@ -280,3 +288,37 @@ class DeskDevice(MasterDevice):
             return DeviceSample(pos, r.orientation or (0.0, 0.0, 0.0, 1.0), clutch, True)
         self.rate.step(r.t, r.trans, r.rot)
         return DeviceSample(self.rate.position, self.rate.orientation, clutch, True)
+
+
+class HapticDeskDevice(DeskDevice):
+    """An absolute desk device that also renders a force (the touch, the omega7): the haptic
+    loop's force (master frame) turned into the device's frame (``rotation_rpy_deg``ᵀ), its
+    magnitude capped at the device's ``force_limit_n``; the force is zeroed before the device is
+    closed. A subclass's binding is a :class:`ForceBinding`."""
+
+    absolute = True
+    force_limit_n: ClassVar[float]  # N: the device's peak force (its data sheet)
+
+    def write_force(self, force: Sequence[float]) -> np.ndarray:
+        """Command ``force`` (N, master frame); returns the force commanded (≤ the limit)."""
+        f = np.asarray(force, dtype=float)
+        if not np.all(np.isfinite(f)):
+            f = np.zeros(3)
+        n = float(np.linalg.norm(f))
+        if n > self.force_limit_n:
+            f = f * (self.force_limit_n / n)
+        r = np.array(rpy_matrix(self.cfg.rotation_rpy_deg))
+        dev = r.T @ f
+        self.binding.write_force((float(dev[0]), float(dev[1]), float(dev[2])))  # type: ignore[attr-defined]
+        return f
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        try:
+            self.binding.write_force((0.0, 0.0, 0.0))  # type: ignore[attr-defined]
+        finally:
+            self.binding.close()

@@ -11,7 +11,7 @@ import time
 from telesurg.services.master_capture.devices import register
 from telesurg.services.master_capture.devices.desk import (
     DeskConfig,
-    DeskDevice,
+    HapticDeskDevice,
     Reading,
     need_library,
     quat_of_columns,
@@ -21,7 +21,8 @@ from telesurg.shared.errors import DeviceConnectionError
 
 class Omega7Binding:
     """Force Dimension omega.7 through ``forcedimension-core`` (DHD API): position (m), the
-    orientation frame, the gripper angle as the grasp axis, the user button."""
+    orientation frame, the gripper angle as the grasp axis, the user button; the force on x y z
+    (N, device frame; no torque, no gripper force: nothing on the bus measures a grasp yet)."""
 
     def __init__(self, cfg: DeskConfig) -> None:
         self.cfg = cfg
@@ -32,7 +33,13 @@ class Omega7Binding:
         dhd = sdk.dhd  # type: ignore[attr-defined]
         if dhd.open() < 0:
             raise DeviceConnectionError(f"omega7: dhdOpen failed: {dhd.errorGetLastStr()}")
+        dhd.enableForce(True)
         self._dhd = dhd
+
+    def write_force(self, force: tuple[float, float, float]) -> None:
+        dhd = self._dhd
+        if dhd is not None:
+            dhd.setForceAndTorqueAndGripperForce(list(force), [0.0, 0.0, 0.0], 0.0)  # type: ignore[attr-defined]
 
     def read(self) -> Reading | None:
         dhd = self._dhd
@@ -57,10 +64,10 @@ class Omega7Binding:
 
 
 @register
-class Omega7Device(DeskDevice):
-    """Force Dimension omega.7 (absolute) through ``forcedimension-core``."""
+class Omega7Device(HapticDeskDevice):
+    """Force Dimension omega.7 (absolute, force on x y z) through ``forcedimension-core``."""
 
     name = "omega7"
     binding_class = Omega7Binding
     library = ("forcedimension-core", "the Force Dimension SDK (libdhd / libdrd)")
-    absolute = True
+    force_limit_n = 12.0  # N: the omega.7's continuous translational force (data sheet)

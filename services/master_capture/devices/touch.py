@@ -11,7 +11,7 @@ import time
 from telesurg.services.master_capture.devices import register
 from telesurg.services.master_capture.devices.desk import (
     DeskConfig,
-    DeskDevice,
+    HapticDeskDevice,
     Reading,
     need_library,
     quat_of_columns,
@@ -20,18 +20,30 @@ from telesurg.services.master_capture.devices.desk import (
 
 class TouchBinding:
     """Geomagic Touch / PHANTOM Omni through ``pyopenhaptics`` (OpenHaptics HD API): the stylus
-    tip position (mm → m) and orientation from its transform, the two stylus buttons."""
+    tip position (mm → m) and orientation from its transform, the two stylus buttons; the force
+    (N, device frame) set in the HD servo loop's callback (1 kHz, inside its frame)."""
 
     def __init__(self, cfg: DeskConfig) -> None:
         self.cfg = cfg
         self._dev: object | None = None
         self._hd: object | None = None
+        self._force = [0.0, 0.0, 0.0]  # the force the servo callback sets, N, device frame
 
     def open(self) -> None:
         hd = need_library(TouchDevice, "pyOpenHaptics.hd")
         dev_mod = need_library(TouchDevice, "pyOpenHaptics.hd_device")
-        self._dev = dev_mod.HapticDevice(callback=lambda: None, scheduler_type="async")  # type: ignore[attr-defined]
+        cb_mod = need_library(TouchDevice, "pyOpenHaptics.hd_callback")
+        force = self._force
+
+        @cb_mod.hd_callback  # type: ignore[attr-defined,untyped-decorator]
+        def servo() -> None:
+            hd.set_force(list(force))  # type: ignore[attr-defined]
+
+        self._dev = dev_mod.HapticDevice(callback=servo, scheduler_type="async")  # type: ignore[attr-defined]
         self._hd = hd
+
+    def write_force(self, force: tuple[float, float, float]) -> None:
+        self._force[:] = force  # (one list, swapped in place: the callback reads it whole)
 
     def read(self) -> Reading | None:
         hd = self._hd
@@ -51,10 +63,10 @@ class TouchBinding:
 
 
 @register
-class TouchDevice(DeskDevice):
-    """Geomagic Touch / PHANTOM Omni (absolute) through ``pyopenhaptics``."""
+class TouchDevice(HapticDeskDevice):
+    """Geomagic Touch / PHANTOM Omni (absolute, force on x y z) through ``pyopenhaptics``."""
 
     name = "touch"
     binding_class = TouchBinding
     library = ("pyopenhaptics", "the 3D Systems OpenHaptics SDK and Touch device drivers")
-    absolute = True
+    force_limit_n = 3.3  # N: the Touch's peak force (data sheet; the Omni's: 3.3 N)
