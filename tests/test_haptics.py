@@ -1,19 +1,24 @@
 """Bilateral force feedback: the tissue you can touch, the force renderer, the controllers.
 
-The slave is the real MuJoCo MH3F scene (``MujocoBackend``); the master is the simulated Touch and
-hand (``touch_sim``); the controllers and the renderer are ``shared/haptics``. Delay-sweep figures
-are ``telesurg bench haptics``'s; here only what a user would notice.
+The slave is the real MuJoCo MH3F scene (``MujocoBackend``; the PLAS and VIP scenes for their
+tissue); the master is the simulated Touch and hand (``touch_sim``); the controllers and the
+renderer are ``shared/haptics``. Delay-sweep figures are ``telesurg bench haptics``'s; here only
+what a user would notice.
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Iterator
 
+import mujoco
 import numpy as np
 import pytest
 from telesurg.services.master_capture.devices import open_device
 from telesurg.services.master_capture.devices.touch_sim.model import HeldDevice, TouchModel, press_and_slide
+from telesurg.services.slave_control import SlaveControlConfig, make_arms
 from telesurg.services.slave_control.backends import MujocoBackend
+from telesurg.services.slave_control.models import model_path
 from telesurg.shared.errors import ConfigError, MessageError
 from telesurg.shared.haptics import BilateralConfig, ForceRenderer, RenderConfig, SlavePortWork, check_force
 from telesurg.shared.haptics.tdpa import MasterPacket, make_bilateral
@@ -55,11 +60,70 @@ def test_tissue_pushes_back_with_its_published_stiffness(
     assert np.linalg.norm(backend.read().contact_wrench[:3]) < 1e-6  # type: ignore[index]
 
 
-def test_scene_joint_is_not_the_robots() -> None:
-    """The tissue's indentation joint is the scene's: the backend reports the arm's six joints."""
-    with MujocoBackend("mh3f", registry.arm_profile("mh3f", "arm1").home) as backend:
-        assert backend.joint_names == registry.arm_profile("mh3f", "arm1").joint_names
-        assert backend.read().position.shape == (6,)
+@pytest.mark.parametrize("model", ["mh3f", "plas", "vip"])
+def test_scene_joint_is_not_the_robots(model: str) -> None:
+    """The tissue's indentation joints are the scene's: the backend reports the arms' joints."""
+    arms = registry.arms_of(model)
+    joints = tuple(j for p in arms for j in p.model_joints)
+    home, tips = tuple(v for p in arms for v in p.home), tuple(p.tip_site for p in arms)
+    with MujocoBackend(model, home, tips) as backend:
+        assert backend.joint_names == joints
+        assert backend.read().position.shape == (len(joints),)
+        assert mujoco.MjModel.from_xml_path(str(backend.scene)).njnt > len(joints)  # it has a tissue
+
+
+#: Where a two-arm robot starts a press: the PLAS in its working "Y" (keyframe y_shape; its home
+#: holds the arms straight out to the sides), the VIP at home (Table I).
+START_KEY = {"plas": "y_shape", "vip": "home"}
+
+
+@pytest.fixture(scope="module", params=sorted(START_KEY))
+def two_arm_slave(request: pytest.FixtureRequest) -> Iterator[tuple[str, MujocoBackend]]:
+    """A two-arm slave, both tips reported (as slave_control runs it), at its working pose."""
+    model = request.param
+    arms = registry.arms_of(model)
+    n = sum(len(p.model_joints) for p in arms)
+    key = mujoco.MjModel.from_xml_path(str(model_path(model))).key(START_KEY[model])
+    with MujocoBackend(model, tuple(key.qpos[:n]), tuple(p.tip_site for p in arms)) as backend:
+        yield model, backend
+
+
+@pytest.mark.parametrize("arm", ["arm1", "arm2"])
+def test_each_arm_presses_its_own_tissue_with_the_published_stiffness(
+    two_arm_slave: tuple[str, MujocoBackend], arm: str
+) -> None:
+    """Each arm of the PLAS and the VIP lowers its tip from free space (no force) onto the tissue
+    under it, presses 3 then 6 mm: the force on its instrument points up and grows at 0.4 N/mm
+    within 20 %, nothing sideways; slave_control's other arm feels none of it; lifted, the force
+    is zero."""
+    model, backend = two_arm_slave
+    cores = {c.profile.arm: c for c in make_arms(SlaveControlConfig(model=model), backend)}
+    follower = TipFollower(backend, model, arm)
+    other = next(a for a in cores if a != arm)
+    start, w = follower.measured()
+    assert w is not None and np.linalg.norm(w[:3]) < 1e-6  # free space
+    z_c = contact_height(backend, follower)
+    assert start[2] - z_c > 0.01  # the working pose is clear of the tissue
+    x0 = follower.tip().copy()
+    forces, depths = [], []
+    for mm in (3.0, 6.0):
+        for _ in range(500):
+            follower.follow(np.array([x0[0], x0[1], z_c - mm / 1e3]))
+        tip, w = follower.measured()
+        assert w is not None
+        forces.append(w[:3].copy())
+        depths.append(z_c - tip[2])
+        r = backend.read()  # what each arm's measured_cf carries
+        published = {a: core.arm_reading(r).contact_wrench for a, core in cores.items()}
+        np.testing.assert_array_equal(published[arm], w)
+        assert np.linalg.norm(published[other][:3]) < 1e-6  # type: ignore[index]
+    k = (forces[1][2] - forces[0][2]) / (depths[1] - depths[0])
+    assert 0.8 * 400 <= k <= 1.2 * 400, f"{model} {arm}: tissue stiffness {k:.0f} N/m"
+    assert forces[1][2] > 1.5
+    assert abs(forces[1][0]) < 0.1 * forces[1][2] and abs(forces[1][1]) < 0.1 * forces[1][2]
+    for _ in range(800):  # lifted off: no force
+        follower.follow(np.array([x0[0], x0[1], z_c + 0.01]))
+    assert np.linalg.norm(follower.measured()[1][:3]) < 1e-6  # type: ignore[index]
 
 
 def test_bad_forces_are_refused_counted_and_never_reach_the_device() -> None:

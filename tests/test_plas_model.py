@@ -59,19 +59,21 @@ def test_registered() -> None:
 
 def test_slave_names_and_limits(slave: mujoco.MjModel) -> None:
     expected = [f"{arm}_{n}" for arm in ARM_NAMES for n in PLAS_SLAVE.joint_names]
-    assert _names(slave, mujoco.mjtObj.mjOBJ_JOINT, slave.njnt) == expected
+    # the scene's other joints are the tissue's indentations, unactuated (not the robot's)
+    tissue = [f"tissue_{arm}_indent" for arm in ARM_NAMES]
+    assert _names(slave, mujoco.mjtObj.mjOBJ_JOINT, slave.njnt) == expected + tissue
     assert _names(slave, mujoco.mjtObj.mjOBJ_ACTUATOR, slave.nu) == expected
     assert [slave.joint(slave.actuator(i).trnid[0]).name for i in range(slave.nu)] == expected
-    assert slave.nq == slave.nv == slave.nu == 12
+    assert slave.nu == 12 and slave.nq == slave.nv == 14
     for arm in ARM_NAMES:
         slave.site(f"{arm}_tip")  # raises KeyError if missing
     limits = np.column_stack([PLAS_SLAVE.lower_limits, PLAS_SLAVE.upper_limits])
     expected_range = np.vstack([limits, limits])
-    np.testing.assert_allclose(slave.jnt_range, expected_range, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(slave.jnt_range[:12], expected_range, rtol=0, atol=1e-9)
     np.testing.assert_allclose(slave.actuator_ctrlrange, expected_range, rtol=0, atol=1e-9)
     assert all(slave.jnt_limited)
     prismatic = [n in ("d1", "d5") for n in PLAS_SLAVE.joint_names] * 2
-    assert [t == mujoco.mjtJoint.mjJNT_SLIDE for t in slave.jnt_type] == prismatic
+    assert [t == mujoco.mjtJoint.mjJNT_SLIDE for t in slave.jnt_type[:12]] == prismatic
 
 
 def test_master_names_and_limits(master: mujoco.MjModel) -> None:
@@ -153,7 +155,7 @@ def test_slave_insertion_is_the_common_body() -> None:
         q = np.concatenate(
             [_random_q(rng, PLAS_SLAVE.lower_limits, PLAS_SLAVE.upper_limits) for _ in range(2)]
         )
-        data.qpos[:] = q
+        data.qpos[:12] = q
         mujoco.mj_forward(model, data)
         for k, arm in enumerate(ARM_NAMES):
             expected = arm_tip(arm, q[6 * k : 6 * k + 6], insertion=insertion)
@@ -184,8 +186,9 @@ def test_keyframes(slave: mujoco.MjModel, master: mujoco.MjModel) -> None:
     tip1, tip2 = data.site("arm1_tip").xpos, data.site("arm2_tip").xpos
     np.testing.assert_allclose(tip2, tip1 * [1, -1, 1], atol=1e-12)  # mirror images
     assert tip1[1] < 0.0 < tip2[1]
-    np.testing.assert_allclose(slave.key("y_shape").ctrl, slave.key("y_shape").qpos)
-    np.testing.assert_allclose(slave.key("insert").ctrl, slave.key("insert").qpos)
+    for key in ("y_shape", "insert"):  # the arms' joints; the tissue (the scene's last two) at rest
+        np.testing.assert_allclose(slave.key(key).ctrl, slave.key(key).qpos[:12])
+        np.testing.assert_array_equal(slave.key(key).qpos[12:], 0.0)
     np.testing.assert_allclose(master.key("rest").ctrl, master.key("rest").qpos)
 
 
@@ -221,7 +224,7 @@ def test_servo_steps(name: str) -> None:
         slide = model.jnt_type[model.actuator(i).trnid[0]] == mujoco.mjtJoint.mjJNT_SLIDE
         step = PRISMATIC_STEP if slide else REVOLUTE_STEP
         data = mujoco.MjData(model)
-        data.qpos[:] = q0
+        data.qpos[: model.nu] = q0
         data.ctrl[:] = q0
         data.ctrl[i] = q0[i] + step
         assert lo[i] <= data.ctrl[i] <= hi[i]
@@ -229,6 +232,6 @@ def test_servo_steps(name: str) -> None:
             mujoco.mj_step(model, data)
         err = abs(data.qpos[i] - data.ctrl[i])
         assert err <= 0.02 * step, f"{model.actuator(i).name}: {err:.3g} after 0.3 s"
-        others = np.delete(np.abs(data.qpos - q0), i)
+        others = np.delete(np.abs(data.qpos[: model.nu] - q0), i)
         assert float(np.max(others)) < 0.02 * step
         assert _warnings(data) == {}

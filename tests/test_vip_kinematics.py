@@ -333,21 +333,23 @@ def _warnings(data: mujoco.MjData) -> dict[int, int]:
 def test_model_names_limits_and_home(vip_model: mujoco.MjModel) -> None:
     m = vip_model
     names = [f"{arm}_q{i}" for arm, _ in ARMS for i in range(1, 6)]
-    assert [m.joint(i).name for i in range(m.njnt)] == names
+    # the scene's other joints are the tissue's indentations, unactuated (not the robot's)
+    tissue = [f"tissue_{arm}_indent" for arm, _ in ARMS]
+    assert [m.joint(i).name for i in range(m.njnt)] == names + tissue
     assert [m.actuator(i).name for i in range(m.nu)] == names
     for arm, _ in ARMS:
         for site in ("rcm", "elbow", "wrist"):
             m.site(f"{arm}_{site}")  # raises KeyError if missing
     m.camera("endoscope")
     limits = np.column_stack([VIP_ARM.lower_limits, VIP_ARM.upper_limits])
-    np.testing.assert_allclose(m.jnt_range, np.vstack([limits, limits]), atol=1e-9)
+    np.testing.assert_allclose(m.jnt_range[:10], np.vstack([limits, limits]), atol=1e-9)
     np.testing.assert_allclose(m.actuator_ctrlrange, np.vstack([limits, limits]), atol=1e-9)
     assert all(m.jnt_limited) and all(m.actuator_ctrllimited)
     home = np.concatenate([VIP_ARM.home_q, VIP_ARM.home_q])
     key = m.key("home")
-    np.testing.assert_allclose(key.qpos, home, atol=1e-9)
+    np.testing.assert_allclose(key.qpos, np.r_[home, 0, 0], atol=1e-9)  # the tissue at rest
     np.testing.assert_allclose(key.ctrl, home, atol=1e-9)
-    np.testing.assert_allclose(m.qpos0, home, atol=1e-9)
+    np.testing.assert_allclose(m.qpos0, np.r_[home, 0, 0], atol=1e-9)
 
 
 def test_model_sites_match_fk(vip_model: mujoco.MjModel) -> None:
@@ -357,7 +359,7 @@ def test_model_sites_match_fk(vip_model: mujoco.MjModel) -> None:
     qs = [np.concatenate([a, b]) for a, b in zip(_random_q(rng, 20), _random_q(rng, 20), strict=True)]
     qs.append(np.concatenate([VIP_ARM.lower_limits, VIP_ARM.upper_limits]))
     for q in qs:
-        data.qpos[:] = q
+        data.qpos[:10] = q
         mujoco.mj_forward(m, data)
         for j, (arm, geom) in enumerate(ARMS):
             p = fk(q[5 * j : 5 * j + 5], geom)

@@ -458,8 +458,8 @@ class ArmCore:
         i = self.index
         q = r.position[i]
         tau = None if r.external_torque is None else r.external_torque[i]
-        # the contact wrench is the tip arm's (a MuJoCo scene with one instrument)
-        touch = r.contact_wrench if self.profile.tip_site == "tip" else None
+        # the contact wrench on this arm's own instrument, about its controlled point
+        touch = None if r.site_wrenches is None else r.site_wrenches.get(self.profile.tip_site)
         return ArmReading(q, r.velocity[i], r.effort[i], self.profile, tau, r.fault, touch)
 
     def start(self, reading: ArmReading) -> None:

@@ -74,9 +74,13 @@ class SlaveReading:
     # controller watchdog, shadow divergence. Non-empty → the arm cores hold (arm.FaultHold).
     fault: str = ""
     divergence: ShadowDivergence | None = None  # vs the MuJoCo shadow, if one runs
-    # (6,) N, N·m: what the scene's contacts exert on the instrument (geoms of contype bit
-    # INSTRUMENT), force and torque about the tip, base frame; None: the backend has no contacts
+    # (6,) N, N·m: what the scene's contacts exert on the tip's instrument (geoms of contype bit
+    # INSTRUMENT on the tip's arm), force and torque about the tip, base frame; None: the backend
+    # has no contacts
     contact_wrench: np.ndarray | None = None
+    # the same for each of the backend's sites (one tip per arm) by site name, about that site:
+    # each arm's own instrument (a two-arm scene); None: the backend has no contacts
+    site_wrenches: dict[str, np.ndarray] | None = None
 
 
 class SlaveBackend(Protocol):
@@ -115,10 +119,11 @@ class SlaveBackend(Protocol):
 INSTRUMENT = 2
 
 
-def contact_wrench(m: Any, d: Any, mujoco: Any, point: np.ndarray) -> np.ndarray:
-    """(6,) force (N) and torque about ``point`` (N·m), base frame, that the contacts exert on
-    the instrument geoms (``contype & INSTRUMENT``) — the force a tip sensor would measure."""
-    out = np.zeros(6)
+def contact_wrenches(m: Any, d: Any, mujoco: Any, owner: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """(k, 6) force (N) and torque about ``points[i]`` (N·m), base frame, that the contacts exert
+    on the instrument geoms (``contype & INSTRUMENT``) of owner ``i`` (``owner[geom]``; -1: no
+    one's) — the force a tip sensor on each instrument would measure."""
+    out = np.zeros((len(points), 6))
     if d.ncon == 0:
         return out
     f6 = np.empty(6)
@@ -128,14 +133,44 @@ def contact_wrench(m: Any, d: Any, mujoco: Any, point: np.ndarray) -> np.ndarray
         on1, on2 = bool(m.geom_contype[g1] & INSTRUMENT), bool(m.geom_contype[g2] & INSTRUMENT)
         if on1 == on2:
             continue
+        k = int(owner[g1] if on1 else owner[g2])
+        if k < 0:
+            continue
         mujoco.mj_contactForce(m, d, i, f6)
         frame = c.frame.reshape(3, 3)  # rows: normal (geom1 → geom2), tangents
         f = frame.T @ f6[:3]  # the force on geom2, world frame
         if on1:
             f = -f
-        out[:3] += f
-        out[3:] += np.cross(c.pos - point, f)
+        out[k, :3] += f
+        out[k, 3:] += np.cross(c.pos - points[k], f)
     return out
+
+
+def instrument_owners(m: Any, sites: list[int]) -> np.ndarray:
+    """(ngeom,) for each geom, the index in ``sites`` of the arm it is on: the site nearest in the
+    body tree (the first ancestor of the geom's body that holds exactly one of the sites); -1 for
+    a geom of no one site's arm (the world, a common body of two arms)."""
+    parent = m.body_parentid
+    holders = []  # per site: its body and every ancestor, up to the world
+    for s in sites:
+        b, chain = int(m.site_bodyid[s]), set()
+        while True:
+            chain.add(b)
+            if b == 0:
+                break
+            b = int(parent[b])
+        holders.append(chain)
+    owner = np.full(m.ngeom, -1, dtype=int)
+    for g in range(m.ngeom):
+        b = int(m.geom_bodyid[g])
+        while True:
+            held = [k for k, chain in enumerate(holders) if b in chain]
+            if len(held) == 1:
+                owner[g] = held[0]
+            if held or b == 0:
+                break
+            b = int(parent[b])
+    return owner
 
 
 class MujocoBackend:
@@ -206,10 +241,14 @@ class MujocoBackend:
         self._tip_body = int(m.site_bodyid[self._tip])
         self._wrist_body = m.body("link6").id if "link6" in _names(m, "body") else self._tip_body
         self._mq = np.zeros(m.nv)
-        # the scene has an instrument that can touch something: measure its contact wrench
+        # the scene has an instrument that can touch something: measure its contact wrench, each
+        # instrument's (the tip's, then each site's: one per arm) about its own site
         self._touches = bool(np.any(m.geom_contype & INSTRUMENT)) and bool(
             np.any(m.geom_conaffinity & INSTRUMENT)
         )
+        self._wrench_sites = list(dict.fromkeys([self._tip, *self._site_ids]))
+        self._owner = instrument_owners(m, self._wrench_sites)
+        self._wrench_names = tuple(m.site(s).name for s in self._wrench_sites)
         self._m, self._d, self._mj = m, d, mujoco
         return self
 
@@ -264,6 +303,8 @@ class MujocoBackend:
         mj.mju_mat2Quat(quat, d.site_xmat[self._tip])  # (w, x, y, z)
         mj.mj_mulM(m, d, self._mq, d.qacc)
         tau_ext = (self._mq + d.qfrc_bias - d.qfrc_passive - d.qfrc_actuator - d.qfrc_constraint)[self._dadr]
+        sites = self._wrench_sites
+        w = contact_wrenches(m, d, mj, self._owner, d.site_xpos[sites]) if self._touches else None
         return SlaveReading(
             d.qpos[self._qadr],
             d.qvel[self._dadr],
@@ -273,7 +314,8 @@ class MujocoBackend:
             float(d.time),
             tau_ext,
             d.site_xpos[self._site_ids].copy() if self._site_ids else None,
-            contact_wrench=contact_wrench(m, d, mj, d.site_xpos[self._tip]) if self._touches else None,
+            contact_wrench=None if w is None else w[0],
+            site_wrenches=None if w is None else dict(zip(self._wrench_names, w, strict=True)),
         )
 
 

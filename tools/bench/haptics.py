@@ -90,17 +90,30 @@ class Channel:
 
 
 class TipFollower:
-    """The slave's tip follows a target (m, base frame) at a fixed orientation (damped least
-    squares on the arm's Jacobian; tip ≤ 0.5 m/s, joints ≤ 3 rad/s)."""
+    """One arm's tip follows a target (m, base frame) at a fixed orientation (damped least
+    squares on the arm's Jacobian; tip ≤ 0.5 m/s, joints ≤ 3 rad/s); an arm of fewer than six
+    joints follows the position only. The backend's other arms hold their joints."""
 
     def __init__(self, backend: MujocoBackend, model: str = "mh3f", arm: str = "arm1") -> None:
         self.profile = registry.arm_profile(model, arm)
         self.backend = backend
-        self.q = np.array(self.profile.home, dtype=float)
+        names = list(backend.joint_names)
+        self._index = [names.index(j) for j in self.profile.model_joints]
+        self._q_all = backend.read().position.copy()
+        self.q = self._q_all[self._index].copy()
 
     def tip(self) -> np.ndarray:
         out: np.ndarray = self.profile.pose(self.q)[:3, 3]
         return out
+
+    def measured(self) -> tuple[np.ndarray, np.ndarray | None]:
+        """The arm's measured tip (m) and the contact wrench on its instrument (N, N·m; None:
+        the backend measures no contact)."""
+        r, site = self.backend.read(), self.profile.tip_site
+        tip = r.tip_position
+        if r.site_positions is not None and site in self.backend.sites:
+            tip = r.site_positions[self.backend.sites.index(site)]
+        return tip.copy(), None if r.site_wrenches is None else r.site_wrenches.get(site)
 
     def follow(self, target: np.ndarray) -> None:
         jac = self.profile.jacobian(self.q)
@@ -109,23 +122,26 @@ class TipFollower:
         if n > 0.0005:  # at most 0.5 m/s: a far target is approached along a line
             step *= 0.0005 / n
         err = np.r_[step, np.zeros(3)]
+        if len(self.q) < 6:  # too few joints to hold an orientation too
+            jac, err = jac[:3], step
         dq = np.linalg.solve(jac.T @ jac + 1e-6 * np.eye(len(self.q)), jac.T @ err)
         big = float(np.max(np.abs(dq)))
         self.q = self.q + (dq * (0.003 / big) if big > 0.003 else dq)
-        self.backend.command(self.q)
+        self._q_all[self._index] = self.q
+        self.backend.command(self._q_all)
         self.backend.step(1)
 
 
 def contact_height(backend: MujocoBackend, follower: TipFollower) -> float:
-    """m: the tip's z where the tissue first pushes back (lowered at 10 mm/s from home)."""
+    """m: the tip's z where the tissue first pushes back (lowered at 10 mm/s from where it is)."""
     z = follower.tip()[2]
     x0 = follower.tip().copy()
     while z > x0[2] - 0.08:
         z -= 1e-5
         follower.follow(np.array([x0[0], x0[1], z]))
-        w = backend.read().contact_wrench
+        tip, w = follower.measured()
         if w is not None and w[2] > 0.05:
-            return float(backend.read().tip_position[2])
+            return float(tip[2])
     raise RuntimeError("the tip never touched the tissue: is the scene's tissue touchable?")
 
 
@@ -137,11 +153,11 @@ def tissue_stiffness(backend: MujocoBackend, follower: TipFollower, z_contact: f
         target = np.array([x0[0], x0[1], z_contact - mm / 1e3])
         for _ in range(400):
             follower.follow(target)
-        r = backend.read()
-        if r.contact_wrench is None:
+        tip, w = follower.measured()
+        if w is None:
             raise RuntimeError("the slave backend measures no contact")
-        depths.append(z_contact - float(r.tip_position[2]))
-        forces.append(float(r.contact_wrench[2]))
+        depths.append(z_contact - float(tip[2]))
+        forces.append(float(w[2]))
     return float(np.polyfit(depths, forces, 1)[0])
 
 
