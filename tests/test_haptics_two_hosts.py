@@ -10,7 +10,8 @@ presses the pedal when the console says the arm is ready, then plays the bench's
 engaged: reach the tissue, press, hold, slide 20 mm, hold, release upward.
 
 A user notices, and the test checks: the loop is stable (no contact-force overshoot above 1.5×
-the steady force, no sustained oscillation, the master port's energy never below −1 mJ); the
+the steady force, no sustained oscillation, the energy at either port never below −1 mJ: TDPA on
+both, the slave's passivity controller in the mapping); the
 tissue force stays within the site's tissue limit (no tip-force DEGRADED or HOLD); and the
 master–slave position drift TDPA leaves, which is reported (printed and written beside the logs;
 with ``TELESURG_PERF_DIR=docs/data/perf`` also to ``haptics-two-hosts.json`` there, for
@@ -22,6 +23,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import signal
 import time
 from pathlib import Path
@@ -164,6 +166,13 @@ def test_press_and_slide_on_the_tissue_across_two_hosts_with_tdpa(
     # the link's own 50 ms each way is within the site's budget: a load peak on this 2-core VM
     # must not scale the motion down mid-press
     site_flags += ["--set", "watchdog.latency_budget_ms=150"]
+    # TDPA on both ports: the slave's passivity controller in the mapping
+    site_flags += [
+        "--set",
+        "mapping.slave_passivity=true",
+        "--set",
+        f"mapping.haptics_force_scale={FORCE_SCALE}",
+    ]
     with two_hosts(tmp, site_flags=site_flags, probe_flags=["--haptics"]) as h:
         assert h.impair(f"delay {DELAY_MS:g}").startswith("ok"), "the impairer did not take the delay"
         home = h.probe.wait("tip", lambda r: True, timeout=20.0)
@@ -187,6 +196,15 @@ def test_press_and_slide_on_the_tissue_across_two_hosts_with_tdpa(
     safety = [r for r in recs if r["k"] == "safety" and r["t"] >= follow["t"]]
     tissue = [r for r in safety if any("tip force" in c for c in r["causes"])]
     figures = analyse(recs, follow["t"])
+    # the slave port (the mapping says at exit what its passivity controller saw and did)
+    spc = re.search(
+        r"slave passivity: observed W_s min (\S+) mJ, dissipated (\S+) mJ, drift max (\S+) mm",
+        (h.logs / "slave" / "mapping.log").read_text(),
+    )
+    assert spc is not None, f"the mapping said nothing of its slave passivity controller\n{_log_tail(h.logs)}"
+    figures["slave_energy_min_mj"], figures["slave_dissipated_mj"], figures["slave_drift_max_mm"] = (
+        float(v) for v in spc.groups()
+    )
     figures["surface_mm_master"] = round(surface_mm, 1)
     figures["delay_ms_each_way"] = DELAY_MS
     figures["tissue_states"] = sorted({r["state"] for r in tissue})
@@ -206,5 +224,6 @@ def test_press_and_slide_on_the_tissue_across_two_hosts_with_tdpa(
     assert figures["overshoot"] <= 1.5, figures  # stable: no contact-force overshoot
     assert figures["hold_oscillation_rms_n"] < 0.1, figures  # and no sustained oscillation
     assert figures["master_energy_min_mj"] >= -1.0, figures  # the master port stays passive
+    assert figures["slave_energy_min_mj"] >= -1.0, figures  # and so does the slave port
     assert figures["largest_force_n"] < TISSUE_LIMIT_N, figures  # within the tissue limit
     assert not tissue, f"the tissue limit was reached: {tissue[:3]}"

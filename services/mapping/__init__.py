@@ -37,6 +37,7 @@ from telesurg.shared.bus import BusConfig, Node, only
 from telesurg.shared.errors import AuthorityError, ConfigError
 from telesurg.shared.messages import (
     CartesianPose,
+    CartesianWrench,
     Command,
     CommandReply,
     JointState,
@@ -46,7 +47,13 @@ from telesurg.shared.messages import (
     Sequencer,
 )
 from telesurg.shared.pairs import parse_pair
-from telesurg.shared.robots.api import CameraFollower, CommandServer, MappingStrategy, PairContext
+from telesurg.shared.robots.api import (
+    CameraFollower,
+    CommandServer,
+    ForceFollower,
+    MappingStrategy,
+    PairContext,
+)
 from telesurg.shared.teleop.work_frame import MASTER_FRAMES
 from telesurg.shared.timing import check_rt_priority, start_loop
 
@@ -98,6 +105,12 @@ class MappingConfig:
     target_hz: float = 100.0  # Hz: setpoint_cp (for display; servo_jp carries every sample)
     workspace_min_mm: tuple[float, float, float] = (150.0, -600.0, -200.0)  # target box, base frame
     workspace_max_mm: tuple[float, float, float] = (1100.0, 600.0, 800.0)
+    # force feedback (docs/haptics.md): TDPA's slave passivity controller on the targets (the MH3F's
+    # cartesian mode): from the contact force (slave/<arm>/measured_cf) and the master's energy
+    # (measured_cp.energy_in_j) it backs the instrument off along the force when the slave port
+    # would take more energy out of the network than the master put in
+    slave_passivity: bool = False
+    haptics_force_scale: float = 0.5  # keep equal to master_capture.haptics.force_scale
     # Only these services may publish the inputs (others are rejected and counted; "" = anyone).
     master_source: str = "master_capture"
     slave_source: str = "slave_control"
@@ -255,6 +268,14 @@ def run(cfg: MappingConfig, stop: threading.Event) -> None:
                 polled=True,
             )
             sub(k.safety(slave, "state"), SafetyState, a.on_safety_state, sources=w_src, polled=True)
+            if cfg.slave_passivity:
+                if not isinstance(st, ForceFollower):
+                    raise ConfigError(
+                        f"mapping.slave_passivity: mode {cfg.mode!r} has no slave passivity controller "
+                        "(the MH3F's cartesian mode has)"
+                    )
+                cf = k.slave(slave, "measured_cf")
+                sub(cf, CartesianWrench, st.on_contact_force, sources=s_src, polled=True)
             arms.append(a)
             log.info("mapping %s → %s (%s), scale %.2f", master, slave, cfg.mode, cfg.scale)
         check_period = 0.01  # s: master staleness check

@@ -213,6 +213,14 @@ class CameraFollower(Protocol):
 
 
 @runtime_checkable
+class ForceFollower(Protocol):
+    """A strategy with TDPA's slave passivity controller (``slave_passivity`` set): the mapping
+    hands it the slave's contact force (``slave/<arm>/measured_cf``)."""
+
+    def on_contact_force(self, msg: Any, key: str) -> None: ...
+
+
+@runtime_checkable
 class ViewFrameUser(Protocol):
     """A motion source that jogs in the laparoscope's view (``work`` jogs): slave_control hands it
     the camera's pose stream where the site runs a camera."""

@@ -32,3 +32,6 @@ class MappingSettings(Protocol):
     workspace_min_mm: tuple[float, float, float]
     workspace_max_mm: tuple[float, float, float]
     latency_log: str  # .npy path of the latency trace ("" = none)
+    slave_source: str  # the only sender of the slave's streams taken
+    slave_passivity: bool  # TDPA's slave passivity controller on the targets
+    haptics_force_scale: float  # master force per slave contact force (the master's setting)

@@ -19,15 +19,18 @@ service's (:class:`~telesurg.shared.robots.api.PairContext`).
 
 from __future__ import annotations
 
+import logging
 import time
 
 import numpy as np
 from telesurg.shared.bus import Outlet
 from telesurg.shared.clock import wall_ns
 from telesurg.shared.errors import IKError
+from telesurg.shared.haptics.slave_pc import SlavePassivity
 from telesurg.shared.kinematics import matrix_from_quat, quat_from_matrix
 from telesurg.shared.messages import (
     CartesianPose,
+    CartesianWrench,
     Command,
     CommandReply,
     JointSetpoint,
@@ -41,6 +44,8 @@ from telesurg.shared.robots.registry import get
 from telesurg.shared.teleop.camera_frame import view_rotation
 from telesurg.shared.teleop.master import master_point
 from telesurg.shared.teleop.work_frame import master_rotation, rotation_of
+
+log = logging.getLogger(__name__)
 
 
 class CartesianMapping:
@@ -83,6 +88,9 @@ class CartesianMapping:
         # cfg.latency_log: (origin, received, mapping began, published) ns per servo_jp sent
         self.trace: np.ndarray | None = np.zeros((300_000, 4), dtype=np.int64) if cfg.latency_log else None
         self.traced = 0
+        # TDPA's slave port (cfg.slave_passivity): backs the target off along the contact force
+        self.spc = SlavePassivity(cfg.haptics_force_scale) if cfg.slave_passivity else None
+        self.spc_prev_ns = 0  # the previous mapped master sample's stamp (the controller's dt)
 
     # -- inputs -----------------------------------------------------------------------
     def on_safety_state(self, msg: SafetyState, key: str) -> None:
@@ -99,6 +107,12 @@ class CartesianMapping:
             arm=self.gate.slave,
             severity="warning" if msg.scale < 1.0 else "info",
         )
+
+    def on_contact_force(self, msg: CartesianWrench, key: str) -> None:
+        """The slave's contact force (base frame), for the slave passivity controller."""
+        if self.spc is not None:
+            with self.gate.lock:
+                self.spc.force = np.array(msg.force)
 
     def on_camera_pose(self, msg: CartesianPose, key: str) -> None:
         """The camera's pose: map in its view frame from now on, re-anchored (no jump)."""
@@ -166,6 +180,14 @@ class CartesianMapping:
         """The service stops: write the latency trace (``latency_log``), if any."""
         if self.trace is not None:
             np.save(self.gate.cfg.latency_log, self.trace[: self.traced])
+        if self.spc is not None:
+            log.info(
+                "[%s] slave passivity: observed W_s min %.3f mJ, dissipated %.3f mJ, drift max %.2f mm",
+                self.gate.slave,
+                self.spc.w_min * 1e3,
+                self.spc.dissipated * 1e3,
+                self.spc.offset_max * 1e3,
+            )
 
     def _try_engage(self, pose: CartesianPose) -> None:
         if not self.gate._may_engage():
@@ -182,6 +204,9 @@ class CartesianMapping:
         self.trocar_clamp.reset(pose.header.stamp_ns)
         self.last_pose = self.last_target = None
         self.ik_streak = 0
+        if self.spc is not None:
+            self.spc.engage(pose.energy_in_j)
+            self.spc_prev_ns = pose.header.stamp_ns
         k = self.gate.scale * self.gate.safety_scale
         self.gate._engaged_now(f"engaged {self.gate.master} → {self.gate.slave} at scale {k:.3g}")
 
@@ -235,6 +260,11 @@ class CartesianMapping:
     def _publish(self, pose: CartesianPose) -> None:
         if self.gate.following:
             target = self._target(pose)
+            if self.spc is not None:
+                dt = (pose.header.stamp_ns - self.spc_prev_ns) / 1e9
+                self.spc_prev_ns = pose.header.stamp_ns
+                k = self.gate.scale * self.gate.safety_scale
+                target[:3, 3] = self.spc.step(target[:3, 3], pose.energy_in_j, k, dt)
             assert self.q_last is not None
             try:
                 st = self.gate.slave_state
