@@ -299,7 +299,7 @@ def test_the_plugin_examples_as_written(tmp_path: Path) -> None:
 
 
 @pytest.mark.process
-@pytest.mark.timeout(420)
+@pytest.mark.timeout(1500)  # (the first run makes LeRobot's reader venv: torch, up to 20 min)
 def test_recording_to_dataset_to_a_policy_run_as_written(tmp_path: Path) -> None:
     """docs/learning.md: a site with two clutch presses (and its camera) recorded, exported as a
     LeRobotDataset and read back by LeRobot's own reader, pyarrow and PyAV

@@ -12,6 +12,7 @@ from __future__ import annotations
 import math
 import threading
 import time
+from typing import Any
 
 import msgpack
 import numpy as np
@@ -73,19 +74,16 @@ def test_only_genuine_forces_reach_the_device(endpoint: str) -> None:
     assert max(forces) <= 1.0 + 1e-9  # the genuine 1 N, approached at the rate limit; nothing else
 
 
-def test_master_capture_renders_the_slave_force_and_fades_it(
+def haptic_console(
     endpoint: str, monkeypatch: pytest.MonkeyPatch
-) -> None:
-    """master_capture with the touch_sim device and haptics on (its real loop, in a thread, on a
-    real bus): nothing while the pair is not engaged; engaged, the device pushes with force_scale
-    × the slave's contact force; when the stream stops it fades to zero no faster than 10 N/s; a
-    watchdog HOLD fades it too, and so does a clutch release."""
+) -> tuple[Any, threading.Event, threading.Thread]:
+    """master_capture's real loop (not started) with a touch_sim whose hand stays put (no contact
+    in its script) and haptics on for arm1 (the naive controller: the force as it comes)."""
     from telesurg.services import master_capture
     from telesurg.services.master_capture import devices
     from telesurg.services.master_capture.devices.touch_sim import TouchSim, TouchSimConfig
-    from telesurg.shared.messages import SafetyState, TeleopState
 
-    dev = TouchSim(TouchSimConfig(surface_mm=-1000.0))  # the hand stays put: no contact in its script
+    dev = TouchSim(TouchSimConfig(surface_mm=-1000.0))
     monkeypatch.setattr(devices, "open_device", lambda name, settings=None: dev)
     cfg = master_capture.MasterCaptureConfig(
         device="touch_sim", rate_hz=1000.0, bus=BusConfig(connect=[endpoint])
@@ -93,7 +91,19 @@ def test_master_capture_renders_the_slave_force_and_fades_it(
     cfg.haptics.slave_arm = "arm1"
     cfg.haptics.controller = "naive"
     stop = threading.Event()
-    thread = threading.Thread(target=master_capture.run, args=(cfg, stop), daemon=True)
+    return dev, stop, threading.Thread(target=master_capture.run, args=(cfg, stop), daemon=True)
+
+
+def test_master_capture_renders_the_slave_force_and_fades_it(
+    endpoint: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """master_capture with the touch_sim device and haptics on (its real loop, in a thread, on a
+    real bus): nothing while the pair is not engaged; engaged, the device pushes with force_scale
+    × the slave's contact force; when the stream stops it fades to zero no faster than 10 N/s; a
+    watchdog HOLD fades it too, and so does a clutch release."""
+    from telesurg.shared.messages import SafetyState, TeleopState
+
+    dev, stop, thread = haptic_console(endpoint, monkeypatch)
     bus = BusConfig(connect=[endpoint])
     samples: list[tuple[float, float]] = []
 
@@ -169,20 +179,9 @@ def test_the_slave_force_is_felt_in_the_frame_the_master_moves_in(
     """The mapping moves the slave through R_ms (the camera's view or the work frame; its teleop
     state's ``rotation``): a force along the slave's base y, with R_ms a quarter turn about z
     (master x → slave y), pushes the master's handle along its own x."""
-    from telesurg.services import master_capture
-    from telesurg.services.master_capture import devices
-    from telesurg.services.master_capture.devices.touch_sim import TouchSim, TouchSimConfig
     from telesurg.shared.messages import TeleopState
 
-    dev = TouchSim(TouchSimConfig(surface_mm=-1000.0))
-    monkeypatch.setattr(devices, "open_device", lambda name, settings=None: dev)
-    cfg = master_capture.MasterCaptureConfig(
-        device="touch_sim", rate_hz=1000.0, bus=BusConfig(connect=[endpoint])
-    )
-    cfg.haptics.slave_arm = "arm1"
-    cfg.haptics.controller = "naive"
-    stop = threading.Event()
-    thread = threading.Thread(target=master_capture.run, args=(cfg, stop), daemon=True)
+    dev, stop, thread = haptic_console(endpoint, monkeypatch)
     bus = BusConfig(connect=[endpoint])
     quarter = (0.0, 0.0, math.sin(math.pi / 4), math.cos(math.pi / 4))
     with Node(bus, "local", "slave_control") as slave, Node(bus, "local", "mapping") as mapping:
