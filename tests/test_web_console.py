@@ -331,16 +331,22 @@ def test_mouse_keyboard_master_drives_the_slave_and_estop(tmp_path: Path) -> Non
         wait_page(cdp, s, "#arm-arm1 .v.teleop .state", lambda t: t == "IDLE", 10.0)
         assert "publishing" in text(cdp, s, "#master-status")
         gain = float(js(cdp, s, "window.consoleState.mouse_mm_per_px"))
+        wd_scale = float("nan")  # the watchdog's factor of an undisturbed drag
         for attempt in range(6):
             engage(cdp, s)
             p0 = settle(probe)
             op_scale = float(text(cdp, s, "#arm-arm1 .op-scale"))
-            wd_scale = float(text(cdp, s, "#arm-arm1 .wd-scale"))
             t_drag = time.monotonic()
-            dx_px, dy_px = 250.0, -150.0
+            # a redone drag goes back the way the last one went (the tip stays within reach)
+            sign = 1.0 if attempt % 2 == 0 else -1.0
+            dx_px, dy_px = 250.0 * sign, -150.0 * sign
             drag(cdp, s, dx_px, dy_px)
             p1 = settle(probe)
             if probe.undisturbed(t_drag, time.monotonic()) and teleop(cdp, s) == "ENABLED":
+                # the watchdog's factor during the drag (one, undisturbed): from the bus, not the
+                # page, whose last push may predate a change just before the drag
+                with probe.lock:
+                    wd_scale = probe.safety[-1][3]
                 break
             print(f"drag {attempt}: interrupted by a watchdog hold or scale change (load); again")
             space(cdp, s, False)
@@ -477,20 +483,23 @@ def test_phone_touch_and_orientation_drive_the_slave(tmp_path: Path) -> None:
         dy, turn = -120.0, 0.0  # px, deg
         scale = float("nan")  # the trial's motion scale, from an undisturbed trial
         for attempt in range(6):
+            # a redone trial goes back the way the last one went: the tip and the wrist stay near
+            # where they started (six trials one way would take the wrist out of its reach)
+            sign = 1.0 if attempt % 2 == 0 else -1.0
             engage(cdp, s, lambda down: touch("touchStart", [pedal]) if down else touch("touchEnd", []))
             op_scale = float(text(cdp, s, "#arm-arm1 .op-scale"))
             p0, q0 = settle(probe), probe.quat()
             t0 = time.monotonic()
             touch("touchStart", [pedal, {"x": vx, "y": vy, "id": 2}])
             for i in range(1, 21):
-                touch("touchMove", [pedal, {"x": vx, "y": vy + dy * i / 20, "id": 2}])
+                touch("touchMove", [pedal, {"x": vx, "y": vy + sign * dy * i / 20, "id": 2}])
                 time.sleep(0.02)
             touch("touchMove", [pedal])  # the view finger lifts, the pedal finger stays
             # turn the phone 10° about its z axis in 0.5° steps: near this posture the MH3F's
             # wrist turns ~0.08 rad per degree about base z, and the mapping holds on a joint step
             # over 0.1 rad between two samples (an IK branch flip)
             for _ in range(20):
-                turn += 0.5
+                turn += sign * 0.5
                 cdp.call(
                     "DeviceOrientation.setDeviceOrientationOverride",
                     {"alpha": turn, "beta": 0, "gamma": 0},
@@ -512,7 +521,7 @@ def test_phone_touch_and_orientation_drive_the_slave(tmp_path: Path) -> None:
         save_shot(screenshot(cdp, s), "console-phone.png", tmp_path)
         with contextlib.suppress(RuntimeError):
             touch("touchEnd", [])
-        want = scale * np.array([0.0, -dy * gain, 0.0]) / 1e3
+        want = scale * np.array([0.0, -sign * dy * gain, 0.0]) / 1e3
         err_mm = float(np.linalg.norm((p1 - p0) - want) * 1e3)
         angle = math.degrees(2 * math.acos(min(1.0, abs(float(np.dot(q0, q1))))))
         print(

@@ -238,6 +238,9 @@ def run(cfg: SlaveControlConfig, stop: threading.Event) -> None:
         reading = backend.read()
         wrench_hz = cfg.contact_wrench_hz if reading.contact_wrench is not None else cfg.wrench_hz
         wrench_every = max(1, round(1.0 / (dt * wrench_hz)))
+        # out of contact the contact wrench is sent at wrench_hz only (nothing to feel: the
+        # receivers' load, two arms × 500 Hz on the PLAS and VIP, goes to what matters)
+        quiet_every = max(1, round(wrench_hz / cfg.wrench_hz))
         for a in arms:  # the first operating_state already carries the measurements
             a.start(a.arm_reading(reading))
         q_cmd = reading.position.copy()
@@ -318,7 +321,7 @@ def run(cfg: SlaveControlConfig, stop: threading.Event) -> None:
                     a.publish_measured(r)
             if timer.every(wrench_every, 2):
                 for a, r in zip(arms, arm_readings, strict=True):
-                    a.publish_wrench(r)
+                    a.publish_wrench(r, quiet_every)
             if timer.every(commanded_every, 5):  # (phase 5: with 10 periods, never with 0-3 above)
                 for a in arms:
                     a.publish_commanded()

@@ -269,6 +269,7 @@ class ArmCore:
     # the slave port's E_in_s for bilateral force feedback (docs/haptics.md, "Energy"), published
     # on measured_cf
     port_work: SlavePortWork = field(default_factory=SlavePortWork)
+    _free_calls: int = 0  # publish_wrench calls in a row without contact
 
     def __post_init__(self) -> None:
         p, cfg = self.profile, self.cfg
@@ -642,10 +643,12 @@ class ArmCore:
         out = self.outlets["setpoint_js"]
         out.put(JointState(out.header(), self.profile.joint_names, tuple(self.q_cmd.tolist()), (), ()))
 
-    def publish_wrench(self, r: ArmReading) -> None:
+    def publish_wrench(self, r: ArmReading, quiet_every: int = 1) -> None:
         """measured_cf: the contact wrench on the instrument when the backend measures contacts
         (MuJoCo with a touchable scene: what a tip force sensor reads), else the estimate from
-        the external joint torques; nothing when the backend has neither."""
+        the external joint torques; nothing when the backend has neither. Out of contact (a zero
+        contact wrench) only every ``quiet_every``-th call is sent, the first at once: the
+        contact rate where there is something to feel, the sub-rate in free space."""
         if r.contact_wrench is not None:
             w = r.contact_wrench
             f, m = (float(w[0]), float(w[1]), float(w[2])), (float(w[3]), float(w[4]), float(w[5]))
@@ -654,6 +657,12 @@ class ArmCore:
         else:
             return
         energy = self.port_work.add(np.array(f), r.tip_pose[:3, 3])
+        if r.contact_wrench is not None and not r.contact_wrench.any():
+            self._free_calls += 1
+            if (self._free_calls - 1) % quiet_every:
+                return
+        else:
+            self._free_calls = 0
         out = self.outlets["measured_cf"]
         out.put(CartesianWrench(out.header(), FRAME, f, m, energy))
 
