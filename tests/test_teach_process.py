@@ -71,7 +71,8 @@ def test_a_push_moves_the_arm_and_it_stays_when_released(arm: tuple[ArmClient, P
     with c.log.lock:
         f = np.array([w[1:] for w in c.log.forces if w[0] >= t0])
     print(f"measured_cf during the push: max {np.linalg.norm(f, axis=1).max():.3f} N over {len(f)} samples")
-    assert len(f) > 100 and float(np.linalg.norm(f, axis=1).max()) < 1.0
+    # (out of contact slave_control sends it at wrench_hz, 50 Hz: ~65 over the push and its 0.3 s)
+    assert len(f) > 30 and float(np.linalg.norm(f, axis=1).max()) < 1.0
 
     assert c.send("set_motion_mode", "mode=direct_teach").accepted
     before = c.settle()
