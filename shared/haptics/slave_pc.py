@@ -8,8 +8,9 @@ master units). When ``W_s = ΔE_in_m − ΔE_out_s`` (both counted from the enga
 zero, the controller changes this period's motion by ``β f_e`` with ``β = −W_s / (dt g |f_e|²)``
 (backing the instrument off along the force just enough to dissipate the deficit; a step is capped
 at ``max_correction_m``); with energy to spare it walks the accumulated offset (the drift) back
-over ``drift_time_s``, spending at most half of the spare. These are the equations of
-:class:`telesurg.shared.haptics.tdpa.Tdpa`'s slave side, applied to absolute targets.
+over ``drift_time_s``, spending at most half of the spare. The step is
+:func:`telesurg.shared.haptics.tdpa.slave_pc_step`, the bench's ``Tdpa`` slave side, applied to
+absolute targets.
 
 Example::
 
@@ -22,8 +23,7 @@ Example::
 from __future__ import annotations
 
 import numpy as np
-
-_EPS_F = 1e-3  # N: below this the force gives no direction to back off along
+from telesurg.shared.haptics.tdpa import slave_pc_step
 
 
 class SlavePassivity:
@@ -59,27 +59,12 @@ class SlavePassivity:
         g = self.force_scale / max(position_scale, 1e-6)
         f = self.force
         v = (x - self.x_prev) / dt
-        cap = self.max_correction_m / dt
         e_in = e_in_m - self.e_in0
         w = e_in - (self.e_out + max(-g * float(f @ v), 0.0) * dt)
-        ff = float(f @ f)
-        if w < 0.0 and ff > _EPS_F**2:
-            dv = (-w / (dt * g * ff)) * f
-            n = float(np.linalg.norm(dv))
-            if n > cap:
-                dv *= cap / n
-            v = v + dv
-            self.offset += dv * dt
-            self.dissipated += g * float(f @ dv) * dt
-        elif self.offset.any():  # drift compensation with the energy to spare
-            dv = -self.offset / self.drift_time_s
-            n = float(np.linalg.norm(dv))
-            if n > cap:
-                dv *= cap / n
-            extra = -g * float(f @ dv) * dt
-            if extra <= 0.5 * max(w, 0.0):
-                v = v + dv
-                self.offset += dv * dt
+        dv, removed = slave_pc_step(f, w, self.offset, g, dt, self.max_correction_m, self.drift_time_s)
+        v = v + dv
+        self.offset += dv * dt
+        self.dissipated += removed
         self.e_out += max(-g * float(f @ v), 0.0) * dt
         self.w_min = min(self.w_min, e_in - self.e_out)
         self.offset_max = max(self.offset_max, float(np.linalg.norm(self.offset)))

@@ -134,6 +134,30 @@ class SlavePortWork:
         return self.e_in
 
 
+def slave_pc_step(
+    f_e: Vec, w: float, drift: Vec, g: float, dt: float, max_correction_m: float, drift_time_s: float
+) -> tuple[Vec, float]:
+    """The slave passivity controller's change of this period's slave velocity (m/s), and the
+    out-energy it removed (J, master units): with the observed ``W_s`` = ``w`` below zero and a
+    force to act through, ``β f_e`` with ``β = −W_s / (dt g |f_e|²)`` (backing off along the force
+    just enough); else the drift compensator, ``−drift / drift_time_s`` when that spends at most
+    half of the spare energy. Each step capped at ``max_correction_m`` per period."""
+    cap = max_correction_m / dt
+    ff = float(f_e @ f_e)
+    if w < 0 and ff > _EPS_F**2:
+        dv = (-w / (dt * g * ff)) * f_e
+        n = float(np.linalg.norm(dv))
+        if n > cap:
+            dv *= cap / n
+        return dv, g * float(f_e @ dv) * dt
+    dv = -drift / drift_time_s
+    n = float(np.linalg.norm(dv))
+    if n > cap:
+        dv *= cap / n
+    extra = -g * float(f_e @ dv) * dt  # extra energy out of the network
+    return (dv, 0.0) if extra <= 0.5 * max(w, 0.0) else (np.zeros(3), 0.0)
+
+
 class Bilateral:
     """Position forward / force back without a controller on the energy (``naive``); the
     subclasses change what each side computes. One instance per side (or one for both in a
@@ -274,29 +298,15 @@ class Tdpa(Bilateral):
 
     def slave_velocity(self, f_e: Vec, dt: float) -> Vec:
         v = super().slave_velocity(f_e, dt)
-        cap = self.cfg.max_correction_m / dt
         p = -self.g * float(f_e @ v)  # out of the network at the slave port
         w = self.e_in_m_rx - (self.slave.e_out + max(p, 0.0) * dt)
-        ff = float(f_e @ f_e)
-        if w < 0 and ff > _EPS_F**2:
-            beta = -w / (dt * self.g * ff)
-            dv = beta * f_e
-            n = float(np.linalg.norm(dv))
-            if n > cap:
-                dv *= cap / n
-            v = v + dv
-            self.dissipated_s += self.g * float(f_e @ dv) * dt  # the out-energy it removed
-        else:  # drift compensation with the energy to spare
-            drift = (self.x_s + v * dt) - self.x_sd
-            dv = -drift / self.cfg.drift_time_s
-            n = float(np.linalg.norm(dv))
-            if n > cap:
-                dv *= cap / n
-            extra = -self.g * float(f_e @ dv) * dt  # extra energy out of the network
-            spare = self.e_in_m_rx - (self.slave.e_out + max(-self.g * float(f_e @ v), 0.0) * dt)
-            if extra <= 0.5 * max(spare, 0.0):
-                v = v + dv
-        return v
+        drift = (self.x_s + v * dt) - self.x_sd
+        dv, removed = slave_pc_step(
+            f_e, w, drift, self.g, dt, self.cfg.max_correction_m, self.cfg.drift_time_s
+        )
+        self.dissipated_s += removed
+        out: Vec = v + dv
+        return out
 
 
 class Wave(Bilateral):

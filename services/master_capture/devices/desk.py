@@ -321,4 +321,4 @@ class HapticDeskDevice(DeskDevice):
         try:
             self.binding.write_force((0.0, 0.0, 0.0))  # type: ignore[attr-defined]
         finally:
-            self.binding.close()
+            super().__exit__(exc_type, exc, tb)
