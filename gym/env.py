@@ -105,6 +105,7 @@ class _Pair:
         self.scale = cfg.scale
         self.safety_scale = 1.0
         self.rotation: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 1.0)  # R_ms (set by the strategy)
+        self.limit_wall: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0)  # (set by the strategy)
         self.reply_seq = Sequencer("mapping")
         self.ik_failures = self.conflated = self.clamped = 0
         self._following = False

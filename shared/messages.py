@@ -61,8 +61,8 @@ from telesurg.shared.errors import MessageError
 
 # 2: safety fields (origin_ns, latency, scale, rcm, clipped), estop; 3: heartbeat polled_s;
 # 4: clock probes, safety_state.clock_offset_ms; pose / wrench energy_in_j (docs/haptics.md);
-# 5: heartbeat replayed, lost; 6: teleop_state rotation
-SCHEMA_VERSION = 6
+# 5: heartbeat replayed, lost; 6: teleop_state rotation; 7: teleop_state limit_wall
+SCHEMA_VERSION = 7
 #: Largest payload accepted by :func:`decode`, bytes.
 MAX_PAYLOAD_BYTES = 64 * 1024
 #: Largest joint count in any joint-space message.
@@ -1142,6 +1142,14 @@ class TeleopState(Message):
         "moves the slave with (the camera's view or the work frame), `[x, y, z, w]`; identity for a "
         "joint-space mapping. A haptic master renders the slave's force through its transpose",
         unit_quat=True,
+    )
+    limit_wall: tuple[float, float, float, float] = fld(
+        (0.0, 0.0, 0.0, 0.0),
+        "the slave's nearest joint limit as a wall in the master's frame, `[nx, ny, nz, d]`: the "
+        "master point may move where `n·x ≤ d` before a slave joint comes within the mapping's "
+        "`limit_wall_margin_deg` of its limit (linearised at the current pose, refreshed with the "
+        "state); a haptic master renders it as a wall (docs/haptics.md). All zero: none near (no "
+        "limit within 50 mm of master motion, not following, or a mapping without one)",
     )
 
 

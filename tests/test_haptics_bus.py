@@ -203,3 +203,45 @@ def test_the_slave_force_is_felt_in_the_frame_the_master_moves_in(
         thread.join(timeout=5)
     print(f"slave force (0, 2, 0) N in the base frame → master {np.round(felt, 3)} N")
     assert felt == pytest.approx((1.0, 0.0, 0.0), abs=0.05)  # 0.5 × R_msᵀ (0, 2, 0)
+
+
+def test_the_slave_joint_limit_is_a_wall_the_master_feels(
+    endpoint: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The mapping's teleop state carries the slave's nearest joint limit as a wall in the master's
+    frame (``limit_wall``); engaged, a handle put 5 mm beyond it is pushed back along the wall's
+    normal by the guidance's spring (the simulated hand gives way a little), within the Touch's
+    3.3 N; short of the wall or clutched out, nothing."""
+    from telesurg.shared.messages import TeleopState
+
+    dev, stop, thread = haptic_console(endpoint, monkeypatch)
+    bus = BusConfig(connect=[endpoint])
+    with Node(bus, "local", "mapping") as mapping:
+        thread.start()
+        teleop = mapping.outlet(mapping.keys.mapping("arm1", "teleop_state"))
+        time.sleep(0.5)
+
+        def felt(state: str, beyond_m: float) -> np.ndarray:
+            """The device's force a moment after a teleop state whose wall (normal +x) stands
+            ``beyond_m`` behind the handle."""
+            wall = (1.0, 0.0, 0.0, float(dev.sim.x[0]) - beyond_m)
+            f = np.zeros(3)
+            end = time.monotonic() + 3.0
+            while time.monotonic() < end:
+                teleop.put(TeleopState(teleop.header(), "m1", "arm1", state, limit_wall=wall))
+                time.sleep(0.05)
+                f = dev.sim.motor.copy()
+                if state != "ENABLED" or f[0] < -0.5:
+                    break
+            return f
+
+        inside = felt("ENABLED", -0.01)  # the handle 10 mm short of the wall
+        beyond = felt("ENABLED", 0.005)
+        idle = felt("IDLE", 0.005)
+        stop.set()
+        thread.join(timeout=5)
+    print(f"short of the wall {np.round(inside, 3)} N, 5 mm beyond {np.round(beyond, 3)} N, idle {idle}")
+    assert np.allclose(inside, 0.0, atol=1e-6)
+    assert beyond[0] < -1.0 and abs(beyond[1]) < 0.05 and abs(beyond[2]) < 0.05  # back along −n
+    assert np.linalg.norm(beyond) <= 3.3 + 1e-6  # the device's limit
+    assert np.allclose(idle, 0.0, atol=0.05)

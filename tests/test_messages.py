@@ -153,7 +153,7 @@ def test_rejects_unknown_enum_values() -> None:
     d["state"] = "RUNNING"
     with pytest.raises(MessageError, match="not one of"):
         decode(_pack(d))
-    assert SCHEMA_VERSION == 6
+    assert SCHEMA_VERSION == 7
 
 
 @settings(max_examples=300, deadline=None)

@@ -110,3 +110,51 @@ def test_scale_commands_in_vip_mode(rig: tuple[Pair, list[JointSetpoint]]) -> No
     assert r.accepted and arm.scale == pytest.approx(0.2)
     r = arm.strategy.on_command(_cmd("set_scale", "value=3"))
     assert not r.accepted and arm.scale == pytest.approx(0.2)
+
+
+@pytest.mark.parametrize("energy_j", [0.0, 1.0])
+def test_vip_slave_passivity_backs_the_wrist_off_a_master_without_energy(energy_j: float) -> None:
+    """TDPA's slave port in the VIP mapping (``slave_passivity``): a master that put no energy into
+    the network cannot push the tissue (the wrist backs off along the contact force), one with
+    energy to spare is followed exactly."""
+    from telesurg.shared.messages import CartesianPose, CartesianWrench, MasterButtons
+
+    ep = f"tcp/127.0.0.1:{free_port()}"
+    router = open_session(BusConfig(mode="router", listen=[ep]))
+    try:
+        with Node(BusConfig(connect=[ep]), "t", "mapping") as node:
+            cfg = MappingConfig(
+                mode="vip", model="vip", scale=1.0, slave_passivity=True, haptics_force_scale=0.5
+            )
+            cfg.validate()
+            arm = Pair(cfg, node, "m1", "arm1", threading.Event())
+            arm.on_slave_js(JointState(H, G.joint_names, G.home), "")
+            arm.on_slave_state(OperatingState(H, "PAUSED", "joint", False, True, "", 0), "")
+            st = arm.strategy
+            surface = None
+            depth = []
+            for i in range(400):  # 2 ms samples: 0.8 s down 8 mm in the master's z, then held
+                stamp = 1_000_000_000 + i * 2_000_000
+                h = Header("test", i, stamp)
+                z = -0.008 * min(1.0, i / 300)
+                arm.on_buttons(MasterButtons(h, i > 0, True), "")  # a new press
+                # E_in_m counts from the engage (sample 1): 0 there, then what the master put in
+                e_in = energy_j if i > 1 else 0.0
+                arm.on_master(CartesianPose(h, "master", (0.0, 0.0, z), energy_in_j=e_in), "")
+                arm.process()
+                if st.q_cmd is None or not arm.following:
+                    continue
+                w = vip.fk(st.q_cmd, G).wrist
+                surface = w[2] if surface is None else surface  # the tissue's top: the engage's wrist
+                st.on_contact_force(
+                    CartesianWrench(h, "base", (0.0, 0.0, 400.0 * max(0.0, surface - w[2]))), ""
+                )
+                depth.append(surface - w[2])
+    finally:
+        router.close()  # type: ignore[no-untyped-call]
+    deepest = max(depth)
+    print(f"E_in_m {energy_j} J: deepest {deepest * 1e3:.2f} mm; W_s min {st.spc.w_min * 1e3:.3f} mJ")
+    if energy_j == 0.0:
+        assert deepest < 0.002 and st.spc.w_min > -1e-3 and st.spc.offset_max > 0.004
+    else:
+        assert deepest == pytest.approx(0.008, abs=2e-4) and st.spc.dissipated == 0.0

@@ -106,11 +106,14 @@ class MappingConfig:
     workspace_min_mm: tuple[float, float, float] = (150.0, -600.0, -200.0)  # target box, base frame
     workspace_max_mm: tuple[float, float, float] = (1100.0, 600.0, 800.0)
     # force feedback (docs/haptics.md): TDPA's slave passivity controller on the targets (the MH3F's
-    # cartesian mode): from the contact force (slave/<arm>/measured_cf) and the master's energy
-    # (measured_cp.energy_in_j) it backs the instrument off along the force when the slave port
-    # would take more energy out of the network than the master put in
+    # cartesian, the VIP and the position modes): from the contact force (slave/<arm>/measured_cf)
+    # and the master's energy (measured_cp.energy_in_j) it backs the instrument off along the force
+    # when the slave port would take more energy out of the network than the master put in
     slave_passivity: bool = False
     haptics_force_scale: float = 0.5  # keep equal to master_capture.haptics.force_scale
+    # deg: the teleop state's limit_wall stands this far before the slave's nearest joint limit (the
+    # MH3F's mapping, pen master; a haptic master renders it as a wall: docs/haptics.md)
+    limit_wall_margin_deg: float = 5.0
     # Only these services may publish the inputs (others are rejected and counted; "" = anyone).
     master_source: str = "master_capture"
     slave_source: str = "slave_control"
@@ -154,6 +157,8 @@ class MappingConfig:
             raise ConfigError(f"master_mode {self.master_mode!r} invalid; valid: {', '.join(MASTER_MODES)}")
         if not 10.0 <= self.dummy_forceps_mm <= 1000.0:
             raise ConfigError(f"dummy_forceps_mm={self.dummy_forceps_mm} outside [10, 1000]")
+        if not 0.0 <= self.limit_wall_margin_deg <= 45.0:
+            raise ConfigError(f"limit_wall_margin_deg={self.limit_wall_margin_deg} outside [0, 45]")
         if any(a >= b for a, b in zip(self.workspace_min_mm, self.workspace_max_mm, strict=True)):
             raise ConfigError("workspace_min_mm must be below workspace_max_mm on every axis")
         for p in self.pairs:
@@ -272,7 +277,7 @@ def run(cfg: MappingConfig, stop: threading.Event) -> None:
                 if not isinstance(st, ForceFollower):
                     raise ConfigError(
                         f"mapping.slave_passivity: mode {cfg.mode!r} has no slave passivity controller "
-                        "(the MH3F's cartesian mode has)"
+                        "(the MH3F's cartesian, the VIP's and the position mappings have one)"
                     )
                 cf = k.slave(slave, "measured_cf")
                 sub(cf, CartesianWrench, st.on_contact_force, sources=s_src, polled=True)

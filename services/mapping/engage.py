@@ -108,6 +108,7 @@ class EngageGate:
         # R_ms the strategy maps master motion with, as a quaternion [x, y, z, w] for the teleop
         # state (a haptic master renders the slave's force through it); identity: joint space
         self.rotation: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 1.0)
+        self.limit_wall: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0)  # (set by the strategy)
         self.reply_seq = Sequencer(cfg.service)  # replies on mapping/<arm>/command
         self.ik_failures = 0  # samples whose target could not be solved (held)
         self.conflated = 0  # master samples skipped because a newer one had come
@@ -294,6 +295,7 @@ class EngageGate:
                 self.safety_scale,
                 self.cfg.mode,
                 self.rotation,
+                self.limit_wall if self.following else (0.0, 0.0, 0.0, 0.0),
             )
         )
         self._state_next = time.monotonic() + self._state_period

@@ -66,11 +66,14 @@ class PositionMapping(PoseJointStrategy):
         assert self.q_cmd is not None
         pm = self.master_point(self.gate.cfg, msg.position)
         try:
+            anchor = self.ref is None
             if self.ref is None:
                 self.ref = (pm, self.profile.tip(self.q_cmd))
             pm0, p0 = self.ref
             target = p0 + self.gate.scale * self.gate.safety_scale * (self.r_ms @ (pm - pm0))
-            sol = solve_position(self.profile, self.q_cmd, target, self.lower, self.upper)
+            sol = solve_position(
+                self.profile, self.q_cmd, self.passive(target, msg, anchor=anchor), self.lower, self.upper
+            )
         except (KinematicsError, ValueError, np.linalg.LinAlgError) as exc:
             self._hold(f"holding last valid setpoint: {exc}")
             return

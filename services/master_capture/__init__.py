@@ -290,8 +290,12 @@ class HapticLoop:
 
         def on_teleop(m: TeleopState, key: str) -> None:
             self.engaged = m.state == "ENABLED"
+            n = np.array(m.limit_wall[:3])
+            # the slave's nearest joint limit, a wall here while engaged (a unit normal; else none)
+            wall = (n, m.limit_wall[3]) if self.engaged and abs(float(n @ n) - 1.0) < 1e-3 else None
             with self.lock:
                 self.r_sm = matrix_from_quat(m.rotation).T
+                self.guidance.limit_wall = wall
             if m.scale * m.safety_scale > 0.0:
                 with self.lock:
                     self.position_scale = m.scale * m.safety_scale

@@ -12,6 +12,8 @@ neither backend module imports the other's chooser: no import loop).
 
 from __future__ import annotations
 
+import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 from types import TracebackType
 from typing import Any, Protocol
@@ -146,6 +148,71 @@ def contact_wrenches(m: Any, d: Any, mujoco: Any, owner: np.ndarray, points: np.
     return out
 
 
+#: prefix of a scene's port declarations: ``<numeric name="port_<site>" data="k clearance capture"/>``
+PORT_PREFIX = "port_"
+
+
+@dataclass(frozen=True)
+class Port:
+    """A port in the body wall (a trocar) that an instrument's shaft passes through.
+
+    The wall holds the shaft: once the shaft crosses the port's plane (the plane through the site,
+    normal to its z axis; the instrument's far end on the other side), it moves freely within
+    ``clearance`` m of the site and beyond it is pushed back towards it with ``stiffness`` N/m ×
+    the excess, in the plane — the abdominal wall's lateral push on a trocar. A shaft crossing the
+    plane farther than ``capture`` m from the site is not in the port (nothing).
+    """
+
+    site: int
+    stiffness: float
+    clearance: float
+    capture: float
+
+    @classmethod
+    def declared(cls, m: Any) -> list[Port]:
+        """The ports a scene declares (``custom/numeric`` ``port_<site>``: stiffness N/m,
+        clearance m, capture m); ConfigError naming the declaration if one is malformed."""
+        ports = []
+        for i in range(m.nnumeric):
+            name = m.numeric(i).name
+            if not name.startswith(PORT_PREFIX):
+                continue
+            site = name[len(PORT_PREFIX) :]
+            data = [float(v) for v in m.numeric(i).data]
+            if len(data) != 3 or not (data[0] > 0 and 0 <= data[1] < data[2]):
+                raise ConfigError(
+                    f"scene numeric {name!r} = {data}: need stiffness N/m > 0, 0 <= clearance m < capture m"
+                )
+            try:
+                sid = m.site(site).id
+            except KeyError:
+                raise ConfigError(f"scene numeric {name!r}: the scene has no site {site!r}") from None
+            ports.append(cls(sid, *data))
+        return ports
+
+    def force(
+        self, site_pos: Sequence[float], normal: Sequence[float], a: Sequence[float], b: Sequence[float]
+    ) -> tuple[tuple[float, float, float], tuple[float, float, float]] | None:
+        """(force N, point m) the wall exerts on the shaft from ``a`` to ``b``, base frame; None if
+        the shaft is not held by the wall (it does not cross the port's plane, or crosses it
+        outside the port). Plain floats: it runs every control period."""
+        (ox, oy, oz), (nx, ny, nz) = site_pos, normal
+        sa = nx * (a[0] - ox) + ny * (a[1] - oy) + nz * (a[2] - oz)
+        sb = nx * (b[0] - ox) + ny * (b[1] - oy) + nz * (b[2] - oz)
+        if sa * sb >= 0.0:  # both ends on one side of the wall
+            return None
+        t = sa / (sa - sb)
+        p = (a[0] + t * (b[0] - a[0]), a[1] + t * (b[1] - a[1]), a[2] + t * (b[2] - a[2]))
+        ex, ey, ez = p[0] - ox, p[1] - oy, p[2] - oz  # where the shaft crosses the plane, from the site
+        en = nx * ex + ny * ey + nz * ez
+        ex, ey, ez = ex - en * nx, ey - en * ny, ez - en * nz
+        dist = math.sqrt(ex * ex + ey * ey + ez * ez)
+        if dist <= self.clearance or dist > self.capture:
+            return None
+        k = -self.stiffness * (dist - self.clearance) / dist
+        return (k * ex, k * ey, k * ez), p
+
+
 def instrument_owners(m: Any, sites: list[int]) -> np.ndarray:
     """(ngeom,) for each geom, the index in ``sites`` of the arm it is on: the site nearest in the
     body tree (the first ancestor of the geom's body that holds exactly one of the sites); -1 for
@@ -203,6 +270,7 @@ class MujocoBackend:
         self._push_force = np.zeros(3)
         self._push_until = 0.0  # sim time (s) at which the push ends
         self._push_at = "tip"
+        self._pushes_at = -1.0  # sim time of the ports' pushes applied now
 
     def __enter__(self) -> MujocoBackend:
         import mujoco
@@ -249,8 +317,46 @@ class MujocoBackend:
         self._wrench_sites = list(dict.fromkeys([self._tip, *self._site_ids]))
         self._owner = instrument_owners(m, self._wrench_sites)
         self._wrench_names = tuple(m.site(s).name for s in self._wrench_sites)
+        # ports in the body wall (a trocar) and the instrument shafts they hold: (geom, body, owner)
+        self._ports = Port.declared(m)
+        shafts = {int(mujoco.mjtGeom.mjGEOM_CAPSULE), int(mujoco.mjtGeom.mjGEOM_CYLINDER)}
+        self._shafts = (
+            [
+                (g, int(m.geom_bodyid[g]), int(self._owner[g]))
+                for g in range(m.ngeom)
+                if m.geom_contype[g] & INSTRUMENT and int(m.geom_type[g]) in shafts and self._owner[g] >= 0
+            ]
+            if self._ports
+            else []
+        )
         self._m, self._d, self._mj = m, d, mujoco
         return self
+
+    def _port_forces(self) -> list[tuple[int, int, np.ndarray, np.ndarray]]:
+        """(owner, body, force N, point m) of each port's push on each instrument shaft now."""
+        m, d = self._m, self._d
+        out = []
+        for port in self._ports:
+            site_pos = d.site_xpos[port.site].tolist()
+            xm = d.site_xmat[port.site]
+            normal = (float(xm[2]), float(xm[5]), float(xm[8]))  # the site's z axis
+            for g, body, owner in self._shafts:
+                c, gm, h = d.geom_xpos[g].tolist(), d.geom_xmat[g], float(m.geom_size[g][1])
+                ax = (float(gm[2]) * h, float(gm[5]) * h, float(gm[8]) * h)  # half the shaft
+                a = (c[0] - ax[0], c[1] - ax[1], c[2] - ax[2])
+                b = (c[0] + ax[0], c[1] + ax[1], c[2] + ax[2])
+                if (fp := port.force(site_pos, normal, a, b)) is not None:
+                    out.append((owner, body, np.array(fp[0]), np.array(fp[1])))
+        return out
+
+    def _apply_ports(self, pushes: list[tuple[int, int, np.ndarray, np.ndarray]]) -> None:
+        """The ports' pushes on the shafts, as forces on their bodies until the next call."""
+        d = self._d
+        for _, body, _ in self._shafts:
+            d.xfrc_applied[body] = 0.0
+        for _, body, f, p in pushes:
+            d.xfrc_applied[body, :3] += f
+            d.xfrc_applied[body, 3:] += np.cross(p - d.xipos[body], f)
 
     def __exit__(
         self,
@@ -282,6 +388,9 @@ class MujocoBackend:
 
     def step(self, n: int = 1) -> None:
         m, d, mj = self._m, self._d, self._mj
+        if self._shafts and self._pushes_at != d.time:  # (read() refreshes them every period)
+            self._apply_ports(self._port_forces())
+            self._pushes_at = float(d.time)
         if self._push_until <= d.time:
             mj.mj_step(m, d, nstep=n)
             return
@@ -305,6 +414,13 @@ class MujocoBackend:
         tau_ext = (self._mq + d.qfrc_bias - d.qfrc_passive - d.qfrc_actuator - d.qfrc_constraint)[self._dadr]
         sites = self._wrench_sites
         w = contact_wrenches(m, d, mj, self._owner, d.site_xpos[sites]) if self._touches else None
+        if w is not None and self._shafts:  # the wall's push is felt like a contact
+            pushes = self._port_forces()
+            self._apply_ports(pushes)  # (and it acts through the next step)
+            self._pushes_at = float(d.time)
+            for owner, _, f, p in pushes:
+                w[owner, :3] += f
+                w[owner, 3:] += np.cross(p - d.site_xpos[sites[owner]], f)
         return SlaveReading(
             d.qpos[self._qadr],
             d.qvel[self._dadr],

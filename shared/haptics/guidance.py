@@ -1,5 +1,6 @@
-"""Haptic guidance rendered on the console, without the network: the master's workspace walls and
-the virtual trocar (Jinno 2014's virtual-trocar master) as a physical constraint of the handle.
+"""Haptic guidance rendered on the console, without the network: the master's workspace walls, the
+virtual trocar (Jinno 2014's virtual-trocar master) as a physical constraint of the handle, and the
+slave's nearest joint limit as a wall (the mapping's ``limit_wall``, shared/teleop/limit_wall.py).
 
 A wall is a spring and a damper normal to it, acting only while the handle is beyond it (the
 damper only while it moves further in): ``f = k · depth − b · v_in``. The virtual trocar is the
@@ -78,20 +79,34 @@ def trocar_force(x: np.ndarray, v: np.ndarray, s: GuidanceSettings) -> np.ndarra
     return f
 
 
+def plane_force(x: np.ndarray, v: np.ndarray, n: np.ndarray, d: float, k: float, b: float) -> np.ndarray:
+    """N: the wall ``n·x = d`` (``n`` a unit vector) pushing a handle at ``x`` beyond it (``n·x > d``,
+    moving at ``v``) back; zero on the free side."""
+    depth = float(n @ x) - d
+    if depth <= 0.0:
+        return np.zeros(3)
+    out: np.ndarray = -(k * depth + b * max(float(n @ v), 0.0)) * n
+    return out
+
+
 class Guidance:
-    """The sum of the configured constraints' forces (:meth:`force`)."""
+    """The sum of the configured constraints' forces (:meth:`force`); ``limit_wall`` (``(n, d)``
+    or None) is the slave's joint-limit wall, set from the mapping's teleop state while engaged."""
 
     def __init__(self, settings: GuidanceSettings) -> None:
         self.s = settings
         self.lo = np.asarray(settings.walls[0], dtype=float) if settings.walls else None
         self.hi = np.asarray(settings.walls[1], dtype=float) if settings.walls else None
+        self.limit_wall: tuple[np.ndarray, float] | None = None
 
     @property
     def on(self) -> bool:
-        return self.lo is not None or self.s.trocar is not None
+        return self.lo is not None or self.s.trocar is not None or self.limit_wall is not None
 
     def force(self, x: np.ndarray, v: np.ndarray) -> np.ndarray:
         f = np.zeros(3)
+        if (wall := self.limit_wall) is not None:
+            f += plane_force(x, v, wall[0], wall[1], self.s.stiffness, self.s.damping)
         if self.lo is not None and self.hi is not None:
             f += wall_force(x, v, self.lo, self.hi, self.s.stiffness, self.s.damping)
         if self.s.trocar is not None:

@@ -119,6 +119,8 @@ class PairContext(Protocol):
     safety_scale: float  # the watchdog's factor on it (the strategy sets it on a safety state)
     # R_ms as [x, y, z, w] for the teleop state (the strategy sets it: rotation_of(r_ms))
     rotation: tuple[float, float, float, float]
+    # the slave's nearest joint limit as a wall in the master frame, (n, d) (shared/teleop/limit_wall.py)
+    limit_wall: tuple[float, float, float, float]
     reply_seq: Sequencer  # sequence of the replies on mapping/<arm>/command
     ik_failures: int  # counters the service logs at exit (the strategy counts)
     conflated: int

@@ -12,15 +12,19 @@ commanded joints (the robot profile's ``tip``, model world frame) goes out on
 
 from __future__ import annotations
 
+import logging
 import time
 
 import numpy as np
 from telesurg.shared.bus import Outlet
-from telesurg.shared.messages import CartesianPose, JointSetpoint, Message, SafetyState
+from telesurg.shared.haptics.slave_pc import SlavePassivity
+from telesurg.shared.messages import CartesianPose, CartesianWrench, JointSetpoint, Message, SafetyState
 from telesurg.shared.robots.api import PairContext
 from telesurg.shared.robots.registry import arm_profile
 from telesurg.shared.teleop.master import master_point
 from telesurg.shared.teleop.work_frame import master_rotation, rotation_of
+
+log = logging.getLogger(__name__)
 
 #: Samples without clamping that end a clamping episode.
 CLAMP_QUIET = 50
@@ -125,6 +129,41 @@ class PoseJointStrategy(JointStrategy):
         self.pending: CartesianPose | None = None
         self.ref: tuple[np.ndarray, np.ndarray] | None = None  # (master point, slave point) anchor
         self.last: tuple[np.ndarray, np.ndarray] | None = None  # last (master point, slave target)
+        # TDPA's slave port (cfg.slave_passivity): backs the slave point off along the contact force
+        self.spc = SlavePassivity(gate.cfg.haptics_force_scale) if gate.cfg.slave_passivity else None
+        self.spc_prev_ns = 0  # the previous sample's stamp (the controller's dt)
+
+    def on_contact_force(self, msg: CartesianWrench, key: str) -> None:
+        """The slave's contact force (base frame), for the slave passivity controller."""
+        if self.spc is not None:
+            with self.gate.lock:
+                self.spc.force = np.array(msg.force)
+
+    def passive(self, target: np.ndarray, msg: CartesianPose, *, anchor: bool = False) -> np.ndarray:
+        """The slave point's target after TDPA's slave passivity controller (``target`` itself
+        without one; lock held). ``anchor``: the engagement's first sample, where the slave port
+        starts counting. The controller acts on the mapped point (the VIP: the wrist reference),
+        whose motion stands in for the instrument's under the contact force."""
+        spc = self.spc
+        if spc is None:
+            return target
+        stamp = msg.header.stamp_ns
+        if anchor:
+            spc.engage(msg.energy_in_j)
+            self.spc_prev_ns = stamp
+        dt, self.spc_prev_ns = (stamp - self.spc_prev_ns) / 1e9, stamp
+        return spc.step(target, msg.energy_in_j, self.gate.scale * self.gate.safety_scale, dt)
+
+    def close(self) -> None:
+        """The service stops: say what the slave passivity controller saw and did, if one ran."""
+        if self.spc is not None:
+            log.info(
+                "[%s] slave passivity: observed W_s min %.3f mJ, dissipated %.3f mJ, drift max %.2f mm",
+                self.gate.slave,
+                self.spc.w_min * 1e3,
+                self.spc.dissipated * 1e3,
+                self.spc.offset_max * 1e3,
+            )
 
     def on_master(self, msg: CartesianPose, key: str) -> None:
         with self.gate.lock:

@@ -35,3 +35,4 @@ class MappingSettings(Protocol):
     slave_source: str  # the only sender of the slave's streams taken
     slave_passivity: bool  # TDPA's slave passivity controller on the targets
     haptics_force_scale: float  # master force per slave contact force (the master's setting)
+    limit_wall_margin_deg: float  # the joint-limit wall's distance before the limit

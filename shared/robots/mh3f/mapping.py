@@ -20,6 +20,7 @@ service's (:class:`~telesurg.shared.robots.api.PairContext`).
 from __future__ import annotations
 
 import logging
+import math
 import time
 
 import numpy as np
@@ -35,17 +36,22 @@ from telesurg.shared.messages import (
     CommandReply,
     JointSetpoint,
     Message,
+    OperatingState,
     SafetyState,
 )
 from telesurg.shared.robots.api import PairContext
 from telesurg.shared.robots.mh3f.kinematics import MH3F, fk, ik
+from telesurg.shared.robots.mh3f.trocar import trocar_ik
 from telesurg.shared.robots.mh3f.trocar_clamp import TrocarClamp
 from telesurg.shared.robots.registry import get
 from telesurg.shared.teleop.camera_frame import view_rotation
+from telesurg.shared.teleop.limit_wall import NO_WALL, limit_wall
 from telesurg.shared.teleop.master import master_point
 from telesurg.shared.teleop.work_frame import master_rotation, rotation_of
 
 log = logging.getLogger(__name__)
+#: s between two limit_wall computations (the teleop state's rate: it carries them)
+WALL_PERIOD_S = 0.1
 
 
 class CartesianMapping:
@@ -91,6 +97,7 @@ class CartesianMapping:
         # TDPA's slave port (cfg.slave_passivity): backs the target off along the contact force
         self.spc = SlavePassivity(cfg.haptics_force_scale) if cfg.slave_passivity else None
         self.spc_prev_ns = 0  # the previous mapped master sample's stamp (the controller's dt)
+        self.wall_next = 0.0  # monotonic s: the next limit_wall (at the teleop state's rate)
 
     # -- inputs -----------------------------------------------------------------------
     def on_safety_state(self, msg: SafetyState, key: str) -> None:
@@ -302,6 +309,9 @@ class CartesianMapping:
                 self.q_last = q
                 self.last_pose, self.last_target = pose, target
                 now = time.monotonic()
+                if now >= self.wall_next:
+                    self.wall_next = now + WALL_PERIOD_S
+                    self.gate.limit_wall = self._limit_wall(pose, target, q, st)
                 if now >= self.target_next:
                     self.target_next = max(self.target_next + self.target_period, now)
                     h = self.target_out.header()
@@ -320,6 +330,40 @@ class CartesianMapping:
                 follow=self.gate.following,
                 origin_ns=pose.header.stamp_ns,
             )
+        )
+
+    def _limit_wall(
+        self, pose: CartesianPose, target: np.ndarray, q: np.ndarray, st: OperatingState | None
+    ) -> tuple[float, float, float, float]:
+        """The slave's nearest joint limit as a wall in the master frame (shared/teleop/limit_wall.py),
+        linearised at this target; none with a virtual-trocar master (its handle is not the
+        mapped point)."""
+        cfg = self.gate.cfg
+        if cfg.master_mode != "pen":
+            return NO_WALL
+        rot = target[:3, :3]
+        if st is not None and st.control_mode == "trocar":
+            trocar = np.array(st.trocar)
+
+            def solve(p: np.ndarray) -> np.ndarray:
+                return trocar_ik(p, trocar, q, geom=self.geom)
+        else:
+
+            def solve(p: np.ndarray) -> np.ndarray:
+                t = np.eye(4)
+                t[:3, :3], t[:3, 3] = rot, p
+                return ik(t, q, self.geom)
+
+        k = self.gate.scale * self.gate.safety_scale
+        return limit_wall(
+            solve,
+            target[:3, 3],
+            q,
+            np.array(self.geom.lower),
+            np.array(self.geom.upper),
+            math.radians(cfg.limit_wall_margin_deg),
+            k * self.r_ms,
+            np.array(pose.position),
         )
 
 

@@ -65,12 +65,13 @@ class VipMapping(PoseJointStrategy):
                 # elbow then moves over to a new VIP's line
                 self.ref = (pm, self.vip.fk(self.q_cmd, self.geom).wrist)
                 self.last = self.ref
+                self.passive(self.ref[1], msg, anchor=True)
             elif self.gate.following and self.q_cmd is not None and self.V is not None:
                 assert self.ref is not None
                 pm0, w0 = self.ref
                 w = w0 + self.gate.scale * self.gate.safety_scale * (self.r_ms @ (pm - pm0))
                 try:
-                    q = self.vip.vip_ik(w, self.V, self.geom, q4_ref=float(self.q_cmd[3]))
+                    q = self.vip.vip_ik(self.passive(w, msg), self.V, self.geom, q4_ref=float(self.q_cmd[3]))
                     # at most half the joint speed limits per sample: after a new VIP the elbow
                     # moves over to its new line gradually instead of jumping
                     dt = min(max((msg.header.stamp_ns - self.t_prev) / 1e9, 0.001), 0.1)
