@@ -19,6 +19,7 @@ def test_services_bench_tdpa_and_naive_at_100_ms(tmp_path: Path) -> None:
     out, png = tmp_path / "haptics-services.json", tmp_path / "haptics-services.png"
     argv = ["haptics", "--services", "--controllers", "tdpa,naive", "--round-trips-ms", "100"]
     argv += ["--json", str(out), "--plot", str(png), "--log-dir", str(tmp_path / "logs")]
+    argv += ["--retries", "2"]  # (a run the host's load held is run again: module doc of the bench)
     assert bench.main(argv) == 0
     result = json.loads(out.read_text())
     assert result["in_process"] is False
