@@ -126,7 +126,8 @@ def analyse(recs: list[dict[str, Any]], t_follow: int, lag_s: float, scale: floa
         return out
 
     settled = window(PRESS_HOLD_S[1] - 0.5, PRESS_HOLD_S[1])
-    assert settled.sum() >= 10, f"too few contact samples in the press's hold: {int(settled.sum())}"
+    if settled.sum() < 10:
+        raise RuntimeError(f"too few contact samples in the press's hold: {int(settled.sum())}")
     steady = float(np.median(fz[settled]))
     pressing = sc <= PRESS_HOLD_S[1]  # reach, press and its hold
     overshoot = float(fz[pressing].max() / steady) if steady > 0 else float("inf")
@@ -410,7 +411,13 @@ def sweep(
         for c in controllers:
             for rt in round_trips:
                 for attempt in range(1 + retries):
-                    r = run_one(c, rt, root / f"{c}-{rt:g}ms-{attempt + 1}", jitter)
+                    try:
+                        r = run_one(c, rt, root / f"{c}-{rt:g}ms-{attempt + 1}", jitter)
+                    except RuntimeError as e:  # (the site never engaged, or no press: say why)
+                        if attempt == retries:
+                            raise
+                        print(f"{c:<6}{rt:>6g}  failed: {str(e).splitlines()[0]}", flush=True)
+                        continue
                     r["attempts"] = attempt + 1
                     if not r["disturbed"]:
                         break
