@@ -233,6 +233,13 @@ def run(cfg: MasterCaptureConfig, stop: threading.Event) -> None:
             outages,
             f", {retry.retries} presses again after a refused engage" if retry is not None else "",
         )
+        if haptic is not None and cfg.haptics.slave_arm:
+            log.info(
+                "[%s] master passivity: observed W_m min %.3f mJ, dissipated %.3f mJ",
+                cfg.haptics.slave_arm,
+                haptic.w_min * 1e3,
+                haptic.bil.dissipated_m * 1e3,
+            )
 
 
 class HapticLoop:
@@ -265,6 +272,7 @@ class HapticLoop:
         self.engaged = False  # the mapping's teleop state is ENABLED
         self.x_prev: np.ndarray | None = None
         self.t_prev = 0.0
+        self.w_min = 0.0  # J: the lowest W_m, the master port's observer, after its controller acted
         # E_in_s in master units, summed from this loop's first measured_cf on (as its own
         # E_out_m): each increase of the slave's sum (slave units) × force_scale / position_scale
         # at the time, the position scale being the mapping's (its teleop state: the operator's
@@ -333,6 +341,7 @@ class HapticLoop:
         else:
             applied = np.asarray(self.write(shaped), dtype=float)
             self.bil.master_sent(applied, x, v, dt)
+        self.w_min = min(self.w_min, self.bil.observed_master)
         return self.bil.master.e_in
 
 

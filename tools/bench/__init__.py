@@ -16,7 +16,7 @@ Subcommands::
     telesurg bench memory [--seconds 300] [--set SERVICE.KEY=VALUE] [--json FILE] [--plot FILE]
     telesurg bench wakeup [--seconds 10] [--blocks 2] [--slice-us 100] [--load cpu:2] [--json FILE]
     telesurg bench links [--pairs 4] [--seconds 20] [--rate 1000] [--json FILE]
-    telesurg bench haptics [--quick] [--json FILE] [--plot FILE]
+    telesurg bench haptics [--services] [--quick] [--json FILE] [--plot FILE]
     telesurg bench gym [--steps 2000] [--runs 3] [--json FILE]
 """
 
@@ -68,7 +68,8 @@ BENCHES = {
     ),
     "haptics": (
         "telesurg.tools.bench.haptics",
-        "bilateral force feedback (none/naive/TDPA/wave) vs round trip, jitter, loss (in-process)",
+        "bilateral force feedback (none/naive/TDPA/wave) vs round trip, jitter, loss (in-process; "
+        "--services: through a real site)",
     ),
     "gym": ("telesurg.gym.bench", "ms per step of each Gymnasium environment, no rendering"),
     "transport": (

@@ -1,15 +1,23 @@
 """``telesurg bench haptics``: bilateral force feedback under delay, jitter and loss.
 
-In-process (plainly: not through the services): the simulated Touch and hand
+Two modes. **In-process** (the default): the simulated Touch and hand
 (``services/master_capture/devices/touch_sim``), the haptic loop's force renderer and the bilateral
-controllers (``shared/haptics``) run against the real MuJoCo slave model (the MH3F scene with its
-touchable tissue, ``MujocoBackend``, the contact wrench slave_control publishes as
+controllers (``shared/haptics``) run in this process against the real MuJoCo slave model (the MH3F
+scene with its touchable tissue, ``MujocoBackend``, the contact wrench slave_control publishes as
 ``measured_cf``) over a simulated channel: each packet is delayed by half the round trip
 × (1 ± jitter), reordered packets are dropped by sequence number, a fraction is lost. Master and
 slave run at 1 kHz, the slave's force goes back at 500 Hz (as ``measured_cf``). The slave's tip
 follows its target by damped least squares on the arm's Jacobian with a fixed orientation (no
-trocar constraint here). A 2-core machine cannot run the four services for 56 runs; the same
-device, renderer and controller code is what the console side runs.
+trocar constraint here). It runs all four controllers (none, naive, TDPA, wave), every round trip,
+a clean and an impaired channel (56 runs) in minutes; the same device, renderer and controller
+code is what the console side runs.
+
+**Through the services** (``--services``, :mod:`telesurg.tools.bench.haptics_services`): one
+real local site per run (router, watchdog, slave_control on MuJoCo, mapping; master_capture with
+``touch_sim`` and the haptic loop) with the console's link through the userspace link impairer:
+delay (half the round trip each way) and, with ``--jitter``, jitter; a TCP proxy loses nothing, so
+loss stays the in-process mode's. Controllers none, naive and TDPA (its slave port in the
+mapping), the round trips of ``--round-trips-ms``; about 25 s a run.
 
 Per run (one controller, one round trip, one impairment): the tissue's contact force (steady value
 while pressing, overshoot = peak / steady), oscillation (RMS of the contact force above 2 Hz while
@@ -22,10 +30,17 @@ not decaying there), an oscillation above
 0.5 N rms, or a network that generated more than 10 mJ — an observer below −10 mJ: the energy the
 hand and tissue receive grows beyond what they put in; ``marginal`` otherwise).
 
+The services mode gives the same figures from what the site publishes (module doc of
+:mod:`~telesurg.tools.bench.haptics_services`): the observers are W_m (master_capture's) and, for
+TDPA, W_s (the mapping's), as each service says at exit; the felt stiffness is not measured there
+(the device's force stays inside master_capture).
+
 Example::
 
     telesurg bench haptics --json docs/data/haptics.json --plot docs/img/haptics.png
     telesurg bench haptics --quick   # 3 round trips, no impairment
+    telesurg bench haptics --services --json haptics-services.json --plot haptics-services.png
+    telesurg bench haptics --services --quick   # tdpa and naive at 0 and 100 ms
     telesurg bench haptics --diagram docs/img/haptics-architecture.png
 """
 
@@ -447,17 +462,54 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="telesurg bench haptics", description=__doc__.split("\n\n")[0])
     ap.add_argument("--json", type=Path, help="write the rows here")
     ap.add_argument("--plot", type=Path, help="write the figure here (PNG)")
-    ap.add_argument("--quick", action="store_true", help="0, 100 and 400 ms, clean channel only")
-    ap.add_argument("--controllers", default=",".join(CONTROLLERS), help="comma-separated subset")
+    ap.add_argument(
+        "--quick",
+        action="store_true",
+        help="0, 100 and 400 ms, clean channel (--services: 0 and 100 ms, tdpa, naive)",
+    )
+    ap.add_argument("--controllers", help="comma-separated subset (default: all of the mode's)")
     ap.add_argument("--diagram", type=Path, help="only draw the architecture picture (PNG) here")
+    ap.add_argument(
+        "--services", action="store_true", help="through the real services, one local site per run"
+    )
+    ap.add_argument(
+        "--round-trips-ms", help="--services: comma-separated round trips (default 0,10,25,50,100,200,400)"
+    )
+    ap.add_argument("--jitter", type=float, default=0.0, help="--services: per-chunk delay × (1 ± this)")
+    ap.add_argument("--log-dir", type=Path, help="--services: keep each run's service logs here")
+    ap.add_argument(
+        "--retries",
+        type=int,
+        default=1,
+        help="--services: runs again a run the host's load disturbed (holds)",
+    )
     args = ap.parse_args(argv)
     if args.diagram:
         diagram(args.diagram)
         return 0
-    ctrls = [c for c in args.controllers.split(",") if c]
-    bad = [c for c in ctrls if c not in CONTROLLERS]
+    if args.services:
+        from telesurg.tools.bench import haptics_services
+
+        valid: Sequence[str] = haptics_services.CONTROLLERS
+        default = "tdpa,naive" if args.quick else ",".join(valid)
+    else:
+        valid, default = CONTROLLERS, ",".join(CONTROLLERS)
+    ctrls = [c for c in (args.controllers or default).split(",") if c]
+    bad = [c for c in ctrls if c not in valid]
     if bad:
-        ap.error(f"unknown controller(s) {', '.join(bad)}; valid: {', '.join(CONTROLLERS)}")
+        ap.error(f"unknown controller(s) {', '.join(bad)}; valid: {', '.join(valid)}")
+    if args.services:
+        try:
+            trips = [float(v) for v in (args.round_trips_ms or "").split(",") if v.strip()]
+        except ValueError:
+            ap.error(f"--round-trips-ms: numbers in ms, comma-separated, not {args.round_trips_ms!r}")
+        if not trips:
+            trips = [0.0, 100.0] if args.quick else [float(v) for v in haptics_services.ROUND_TRIPS_MS]
+        if any(v < 0 for v in trips) or args.retries < 0 or not 0.0 <= args.jitter < 1.0:
+            ap.error("round trips must be ≥ 0 ms, --jitter in [0, 1), --retries ≥ 0")
+        return haptics_services.main(args, ctrls, trips)
+    if args.round_trips_ms or args.jitter or args.log_dir or args.retries != 1:
+        ap.error("--round-trips-ms, --jitter, --log-dir and --retries go with --services")
     rts = (0, 100, 400) if args.quick else ROUND_TRIPS_MS
     impairments = [(0.0, 0.0)] if args.quick else [(0.0, 0.0), (0.2, 0.05)]
     t0 = time.perf_counter()

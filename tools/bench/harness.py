@@ -47,6 +47,7 @@ from telesurg.shared.messages import (
     TeleopState,
 )
 from telesurg.tools.bench.impair import ImpairerProcess
+from telesurg.tools.bench.netprofile import LinkProfile
 
 log = logging.getLogger(__name__)
 
@@ -247,8 +248,10 @@ class Pipeline:
         acl: Path | None = None,
         camera: bool = False,
         mapping: bool = True,
+        link: LinkProfile | None = None,
     ) -> None:
         self.log_dir = log_dir
+        self._link = link  # the impairer's delay and jitter from before anything connects
         port = free_port()
         # (its own process: the test's, busy with its subscriptions, would delay the link)
         self.impairer = ImpairerProcess(("127.0.0.1", port)) if impair else None
@@ -283,6 +286,8 @@ class Pipeline:
         try:
             if self.impairer is not None:
                 self.impairer.start()
+                if self._link is not None:
+                    self.impairer.set_profile(self._link)
                 self.spec.connect["master_capture"] = self.impairer.endpoint
             self.site.start()
             # (without master_capture the caller acts as the master, e.g. a test console)
