@@ -7,6 +7,7 @@ Subcommands::
     telesurg bench fuzz --count N [--json FILE]
     telesurg bench latency --rate 1000 --seconds 10 [--json FILE]
     telesurg bench soak --rate 1000 --seconds 60 [--json FILE]
+    telesurg bench arms --arms 1,2,4 --rate 1000 --seconds 20 [--json FILE]
     telesurg bench ik [--n 1000] [--json FILE]
     telesurg bench sim [--seconds 5] [--json FILE]
     telesurg bench decode [--n 20000] [--json FILE]
@@ -40,6 +41,10 @@ BENCHES = {
     "fuzz": ("telesurg.tools.bench.fuzz", "malformed messages on every key while the pipeline runs"),
     "latency": ("telesurg.tools.bench.perf", "one-way latency: bare zenoh relay vs the real pipeline"),
     "soak": ("telesurg.tools.bench.perf", "long run: losses per stream, deadline misses, CPU and RSS"),
+    "arms": (
+        "telesurg.tools.bench.arms",
+        "a robot of N arms at the control rate: CPU per service, misses, HOLDs, latency vs the relay",
+    ),
     "ik": ("telesurg.tools.bench.perf", "analytic IK / mapping vs a generic numerical IK"),
     "sim": ("telesurg.tools.bench.perf", "MuJoCo steps/s unpaced per robot model"),
     "video": (
