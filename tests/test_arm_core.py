@@ -518,6 +518,20 @@ def wait(pred: Callable[[], bool], timeout: float) -> bool:
     return pred()
 
 
+def refused(rig: Rig, q: np.ndarray, timeout: float = 5.0) -> bool:
+    """Put the setpoint ``q`` (follow) until the slave counts one refused. The rig's mapping puts
+    its good setpoints on the same outlet from its own thread: a bad one numbered before a good
+    one that overtook it arrives out of order and is dropped unread (counted as reordered, never
+    applied), so one put alone may not reach the slave's rules."""
+    before = rig.rejected()
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        rig.put_setpoint(q, True, time.time_ns())
+        if wait(lambda: rig.rejected() > before, 0.2):
+            return True
+    return False
+
+
 def _stop(proc: subprocess.Popen[str] | None, err: IO[str] | None, sig: int = signal.SIGINT) -> int | None:
     code = None
     if proc is not None:
@@ -713,18 +727,15 @@ def test_refuses_a_setpoint_out_of_limits_and_a_jump(rig: Rig) -> None:
     assert rig.engage()
     p, j = rig.profile, _move_joint(rig.profile)
     q = rig.q_at()
-    before = rig.rejected()
     bad = q.copy()
     bad[j] = p.upper[j] + 0.05
-    rig.put_setpoint(bad, True, time.time_ns())  # one bad setpoint amid the mapping's good ones
-    assert wait(lambda: rig.rejected() > before, 5)
+    assert refused(rig, bad)  # a bad setpoint amid the mapping's good ones
     time.sleep(0.2)
     assert rig.following() and np.abs(rig.q() - q).max() < 0.005  # refused, and still following
     before = rig.rejected()
     jump = q.copy()
     jump[j] += 0.3 if q[j] + 0.3 < p.upper[j] else -0.3
-    rig.put_setpoint(jump, True, time.time_ns())
-    assert wait(lambda: rig.rejected() > before, 5)
+    assert refused(rig, jump)
     time.sleep(0.2)
     assert rig.following() and np.abs(rig.q() - q).max() < 0.005  # the arm did not jump
     rig.sp = (jump, True)  # a stream of them: each refused, the stream goes stale → hold, no motion

@@ -80,6 +80,22 @@ def _soak(d: dict[str, Any]) -> str:
     return out
 
 
+def _arms(d: dict[str, Any]) -> str:
+    rows = []
+    for r in d["rows"]:
+        e = r["end_to_end_ms"]
+        slave = r["deadline_misses"].get("slave_control", {}).get("miss_pct", "-")
+        rows.append(
+            f"{r['arms']} arm{'s' if r['arms'] > 1 else ''}: CPU {r['cpu_total_pct']:.0f} %, slave misses "
+            f"{slave} %, {r['watchdog_holds']} HOLD, master → slave p50 {e['p50']:.2f} / p99 "
+            f"{e['p99']:.2f} ms (relay × {r['ratio_p50']:.1f} / × {r['ratio_p99']:.1f})"
+        )
+    return (
+        "; ".join(rows) + f"; each arm beyond the first {d['cpu_per_added_arm_pct']:.0f} % of a core; "
+        f"largest N without a HOLD or 0.1 % misses: {d['largest_arms_without_misses']}"
+    )
+
+
 def _ik(d: dict[str, Any]) -> str:
     g = d["generic"]
     return (
@@ -241,6 +257,12 @@ RESULTS: tuple[Result, ...] = (
         "telesurg bench soak --rate 1000 --seconds 60 --no-record --load cpu:2 "
         f"--json {P}/soak-cpu2-1205-clean.json",
         _soak,
+    ),
+    Result(
+        "Arms at 1 kHz: a robot of N MH3F arms, one site",
+        f"{P}/arms.json",
+        f"telesurg bench arms --arms 1,2,3,4 --rate 1000 --seconds 20 --json {P}/arms.json",
+        _arms,
     ),
     Result("Inverse kinematics", f"{P}/ik.json", f"telesurg bench ik --n 1000 --json {P}/ik.json", _ik),
     Result("MuJoCo, unpaced", f"{P}/sim.json", f"telesurg bench sim --seconds 3 --json {P}/sim.json", _sim),
