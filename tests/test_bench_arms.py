@@ -56,4 +56,19 @@ def test_one_and_two_arms_run_through_the_real_services(tmp_path: Path) -> None:
         assert r["arms_followed"] == n, r
         assert set(r["cpu_pct"]) >= {"router", "watchdog", "slave_control", "mapping", "master_capture"}
         assert r["end_to_end_ms"]["n"] > 100 and r["relay_end_to_end_ms"]["n"] > 100
-    assert np.isfinite(res["cpu_per_added_arm_pct"])
+    # the CPU an added arm costs, where the host has room for both (else None: saturated)
+    assert res["cpu_per_added_arm_pct"] is None or np.isfinite(res["cpu_per_added_arm_pct"])
+
+
+def test_the_summary_reads_the_slope_where_the_host_has_room() -> None:
+    def row(n: int, cpu: float, runs: bool) -> dict[str, object]:
+        return {"arms": n, "cpu_total_pct": cpu, "runs": runs}
+
+    free = arms.summary([row(1, 60.0, True), row(2, 90.0, True), row(3, 120.0, False)], 2)
+    assert free == {
+        "cpu_per_added_arm_pct": 30.0,
+        "saturated_from_arms": None,
+        "largest_arms_without_misses": 2,
+    }
+    full = arms.summary([row(1, 186.0, False), row(2, 194.0, False)], 2)
+    assert full == {"cpu_per_added_arm_pct": None, "saturated_from_arms": 1, "largest_arms_without_misses": 0}

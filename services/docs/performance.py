@@ -90,9 +90,16 @@ def _arms(d: dict[str, Any]) -> str:
             f"{slave} %, {r['watchdog_holds']} HOLD, master → slave p50 {e['p50']:.2f} / p99 "
             f"{e['p99']:.2f} ms (relay × {r['ratio_p50']:.1f} / × {r['ratio_p99']:.1f})"
         )
+    slope = d["cpu_per_added_arm_pct"]
     return (
-        "; ".join(rows) + f"; each arm beyond the first {d['cpu_per_added_arm_pct']:.0f} % of a core; "
-        f"largest N without a HOLD or 0.1 % misses: {d['largest_arms_without_misses']}"
+        "; ".join(rows)
+        + (f"; each arm beyond the first {slope:.0f} % of a core" if slope is not None else "")
+        + (
+            f"; the 2 cores saturated from {d['saturated_from_arms']} arm(s)"
+            if d.get("saturated_from_arms")
+            else ""
+        )
+        + f"; largest N without a HOLD or 0.1 % misses: {d['largest_arms_without_misses']}"
     )
 
 

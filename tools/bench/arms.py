@@ -26,6 +26,7 @@ from __future__ import annotations
 import argparse
 import importlib
 import json
+import os
 import time
 from collections.abc import Sequence
 from pathlib import Path
@@ -48,6 +49,8 @@ from telesurg.tools.bench.perf import (
 SETTLE_S = 3.0
 #: a slave loop missing fewer of its deadlines than this (%) with no HOLD "runs"
 MISS_PCT_OK = 0.1
+#: a site using this share of the host's cores or more saturates it (its figures are the host's)
+SATURATED = 0.9
 
 PLUGIN = """# written by telesurg bench arms: the robot of {n} MH3F arms
 from pathlib import Path
@@ -157,15 +160,19 @@ def run_arms(n: int, a: argparse.Namespace, tmp: Path) -> dict[str, Any]:
     return res
 
 
-def summary(rows: list[dict[str, Any]]) -> dict[str, Any]:
-    """The CPU each arm beyond the first adds (least squares over N, % of one core) and the
-    largest N that ran (no HOLD, slave misses under :data:`MISS_PCT_OK` %)."""
-    ns = np.array([r["arms"] for r in rows], dtype=float)
-    cpu = np.array([r["cpu_total_pct"] for r in rows])
-    slope = float(np.polyfit(ns, cpu, 1)[0]) if len(set(ns.tolist())) > 1 else float("nan")
+def summary(rows: list[dict[str, Any]], cpus: int) -> dict[str, Any]:
+    """The CPU each arm beyond the first adds (least squares over the N whose site left the host
+    below :data:`SATURATED` of its cores, % of one core; None with fewer than two such N: the
+    host's limit, not the arms', would set the slope) and the largest N that ran (no HOLD, slave
+    misses under :data:`MISS_PCT_OK` %)."""
+    free = [r for r in rows if r["cpu_total_pct"] < SATURATED * 100 * cpus]
+    ns = np.array([r["arms"] for r in free], dtype=float)
+    cpu = np.array([r["cpu_total_pct"] for r in free])
+    slope = round(float(np.polyfit(ns, cpu, 1)[0]), 1) if len(set(ns.tolist())) > 1 else None
     ran = [r["arms"] for r in rows if r["runs"]]
     return {
-        "cpu_per_added_arm_pct": round(slope, 1),
+        "cpu_per_added_arm_pct": slope,
+        "saturated_from_arms": min((r["arms"] for r in rows if r not in free), default=None),
         "largest_arms_without_misses": max(ran) if ran else 0,
     }
 
@@ -190,9 +197,19 @@ def _print(rows: list[dict[str, Any]], summ: dict[str, Any], rate: float) -> Non
             f"{rl['p50']:.2f} / {rl['p99']:.2f}",
         )
     Console(width=max(160, Console().width)).print(t)
+    slope = summ["cpu_per_added_arm_pct"]
     print(
-        f"each arm beyond the first: {summ['cpu_per_added_arm_pct']} % of a core; largest N without "
-        f"a HOLD or {MISS_PCT_OK} % slave misses: {summ['largest_arms_without_misses']}"
+        (
+            f"each arm beyond the first: {slope} % of a core"
+            if slope is not None
+            else "each arm beyond the first: -"
+        )
+        + (
+            f"; the host is saturated (≥ {SATURATED:.0%} of its cores) from N = {summ['saturated_from_arms']}"
+            if summ["saturated_from_arms"] is not None
+            else ""
+        )
+        + f"; largest N without a HOLD or {MISS_PCT_OK} % slave misses: {summ['largest_arms_without_misses']}"
     )
     for r in rows:
         for c in r["watchdog_hold_causes"][:3]:
@@ -230,7 +247,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     for n in a.arms:
         with _workdir(a.keep_logs, f"N{n}") as d:
             rows.append(run_arms(n, a, Path(d)))
-    summ = summary(rows)
+    summ = summary(rows, os.cpu_count() or 1)
     _print(rows, summ, a.rate)
     if a.json:
         res = {"rate_hz": a.rate, "seconds": a.seconds, "rows": rows, **summ}
