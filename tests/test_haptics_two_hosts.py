@@ -31,13 +31,11 @@ from pathlib import Path
 import pytest
 from telesurg.tools.bench.haptics_services import (
     FORCE_SCALE,
-    MASTER_HZ,
-    PRESS_MM,
     SCALE,
     SCRIPT_S,
-    SLIDE_MM,
     TISSUE_LIMIT_N,
     analyse,
+    console_settings,
     tissue_top_z,
 )
 from test_two_hosts import (
@@ -58,17 +56,7 @@ DELAY_MS = 50.0  # each way
 def _console(h: TwoHosts, surface_mm: float) -> None:
     argv = [str(REPO / "deploy" / "console.sh"), SLAVE_ADDR, "--no-console", "--site", SITE]
     argv += ["--certs", str(h.certs), "--log-dir", str(h.logs / "console")]
-    for item in (
-        'device="touch_sim"',
-        'device_options.operator="site"',
-        f"device_options.surface_mm={surface_mm:.1f}",
-        f"device_options.slide_mm={SLIDE_MM}",
-        f"device_options.press_mm={PRESS_MM}",
-        'haptics.slave_arm="arm1"',
-        'haptics.controller="tdpa"',
-        f"haptics.force_scale={FORCE_SCALE}",
-        f"rate_hz={MASTER_HZ:g}",
-    ):
+    for item in console_settings(surface_mm, "tdpa"):
         argv += ["--set", f"master_capture.{item}"]
     h.spawn("console", h.console, argv)
 

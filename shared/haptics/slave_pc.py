@@ -44,6 +44,13 @@ class SlavePassivity:
         self.dissipated = 0.0  # J: what the controller removed
         self.offset_max = 0.0  # m: the largest drift
 
+    def report(self) -> str:
+        """What the controller saw and did, for the service's log at exit."""
+        return (
+            f"slave passivity: observed W_s min {self.w_min * 1e3:.3f} mJ, dissipated "
+            f"{self.dissipated * 1e3:.3f} mJ, drift max {self.offset_max * 1e3:.2f} mm"
+        )
+
     def engage(self, e_in_m: float) -> None:
         """A new engagement: count from here, no offset."""
         self.e_in0, self.e_out = e_in_m, 0.0

@@ -157,13 +157,7 @@ class PoseJointStrategy(JointStrategy):
     def close(self) -> None:
         """The service stops: say what the slave passivity controller saw and did, if one ran."""
         if self.spc is not None:
-            log.info(
-                "[%s] slave passivity: observed W_s min %.3f mJ, dissipated %.3f mJ, drift max %.2f mm",
-                self.gate.slave,
-                self.spc.w_min * 1e3,
-                self.spc.dissipated * 1e3,
-                self.spc.offset_max * 1e3,
-            )
+            log.info("[%s] %s", self.gate.slave, self.spc.report())
 
     def on_master(self, msg: CartesianPose, key: str) -> None:
         with self.gate.lock:

@@ -105,6 +105,23 @@ def script_clock(recs: list[dict[str, Any]], t_follow: int) -> tuple[np.ndarray,
     return t, played
 
 
+def console_settings(surface_mm: float, controller: str) -> list[str]:
+    """master_capture's settings of the haptic console that presses and slides: the simulated
+    Touch held by the scripted operator (``surface_mm`` below its start, in the master frame), the
+    haptic loop on arm1 with ``controller``, the pose at :data:`MASTER_HZ`."""
+    return [
+        'device="touch_sim"',
+        'device_options.operator="site"',
+        f"device_options.surface_mm={surface_mm:.1f}",
+        f"device_options.slide_mm={SLIDE_MM}",
+        f"device_options.press_mm={PRESS_MM}",
+        'haptics.slave_arm="arm1"',
+        f"haptics.controller={json.dumps(controller)}",
+        f"haptics.force_scale={FORCE_SCALE}",
+        f"rate_hz={MASTER_HZ:g}",
+    ]
+
+
 def analyse(recs: list[dict[str, Any]], t_follow: int, lag_s: float, scale: float = SCALE) -> dict[str, Any]:
     """The figures of one press and slide from the records (monotonic ns ``t``), phased by the
     operator's script clock, the slave's force ``lag_s`` behind it (the link's delay): the
@@ -261,17 +278,7 @@ def run_one(controller: str, round_trip_ms: float, log_dir: Path, jitter: float 
     mapping = [f"scale={SCALE}"]
     if controller == "tdpa":  # TDPA's slave port
         mapping += ["slave_passivity=true", f"haptics_force_scale={FORCE_SCALE}"]
-    master = [
-        'device="touch_sim"',
-        'device_options.operator="site"',
-        f"device_options.surface_mm={surface_mm:.1f}",
-        f"device_options.slide_mm={SLIDE_MM}",
-        f"device_options.press_mm={PRESS_MM}",
-        'haptics.slave_arm="arm1"',
-        f"haptics.controller={json.dumps(controller)}",
-        f"haptics.force_scale={FORCE_SCALE}",
-        f"rate_hz={MASTER_HZ:g}",
-    ]
+    master = console_settings(surface_mm, controller)
     overrides = {"watchdog": watchdog, "mapping": mapping, "master_capture": master}
     row: dict[str, Any] = {"controller": controller, "round_trip_ms": round_trip_ms, "jitter": jitter}
     link = LinkProfile(delay_ms=one_way, jitter_ms=one_way * jitter)

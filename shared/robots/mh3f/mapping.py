@@ -188,13 +188,7 @@ class CartesianMapping:
         if self.trace is not None:
             np.save(self.gate.cfg.latency_log, self.trace[: self.traced])
         if self.spc is not None:
-            log.info(
-                "[%s] slave passivity: observed W_s min %.3f mJ, dissipated %.3f mJ, drift max %.2f mm",
-                self.gate.slave,
-                self.spc.w_min * 1e3,
-                self.spc.dissipated * 1e3,
-                self.spc.offset_max * 1e3,
-            )
+            log.info("[%s] %s", self.gate.slave, self.spc.report())
 
     def _try_engage(self, pose: CartesianPose) -> None:
         if not self.gate._may_engage():
