@@ -15,7 +15,11 @@ from telesurg.tools.bench import arms
 from telesurg.tools.bench.arms_robot import register_arms
 
 
-def test_the_robot_of_n_arms_is_n_mh3f_each_with_its_own_joints_and_tip(tmp_path: Path) -> None:
+def test_the_robot_of_n_arms_is_n_mh3f_each_with_its_own_joints_and_tip(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # registered for this test only: the other tests see the registry they expect
+    monkeypatch.setattr(registry, "_REGISTRY", dict(registry._REGISTRY))
     name = register_arms(3, tmp_path)
     spec = registry.get(name)
     profiles = spec.arms("arm1")

@@ -34,7 +34,7 @@ from typing import Any
 
 import numpy as np
 from telesurg.shared import jsonio
-from telesurg.tools.bench.arms_robot import register_arms, robot_name
+from telesurg.tools.bench.arms_robot import robot_name, write_scene
 from telesurg.tools.bench.machine import machine, now
 from telesurg.tools.bench.perf import (
     _overrides,
@@ -84,7 +84,7 @@ def write_site(n: int, d: Path) -> Path:
     d.mkdir(parents=True, exist_ok=True)
     plugin = d / "arms_plugin.py"
     plugin.write_text(PLUGIN.format(n=n))
-    register_arms(n, d)  # (writes the scene beside the plugin; a bad model fails here)
+    write_scene(n, d)  # beside the plugin, which registers the robot in each service (a bad model fails here)
     pairs = ", ".join(f'"m1:arm{i}"' for i in range(1, n + 1))
     (d / "site.toml").write_text(SITE.format(n=n, robot=robot_name(n), pairs=pairs, plugin=plugin))
     return d
