@@ -341,25 +341,35 @@ def summarise(
     before = _hp_rms(_window(log, SLIDE[1] - 0.5, SLIDE[1] - 0.25)[:, 6])
     row["osc_end_n"] = round(last, 4)
     growing = (row["osc_growth"] or 0) > 1.5 and last > 0.05 and last >= 0.8 * before
+    row["verdict"], row["unstable_because"] = judge(
+        overshoot, growing, osc, min(w_m, w_s) * 1e3, cfg.controller
+    )
+    return row
+
+
+def judge(
+    overshoot: float, growing: bool, osc: float, w_min_mj: float, controller: str
+) -> tuple[str, list[str]]:
+    """The verdict of one run and the reasons of an ``unstable`` one: ``unstable`` (overshoot > 3×,
+    a growing oscillation, an oscillation above 0.5 N rms, or, with feedback on, an observer below
+    −10 mJ: the network generated energy), ``stable`` (overshoot ≤ 1.5, oscillation < 0.2 N rms, not
+    growing, observers ≥ −1 mJ) or ``marginal``. Without feedback no loop closes through the hand:
+    the slave's observer then only says the tissue got work the hand never felt."""
     why = [
         reason
         for reason, hit in (
             ("overshoot > 3× steady", overshoot > 3.0),
             ("growing oscillation", growing),
             ("oscillation > 0.5 N rms", osc > 0.5),
-            # (without feedback no loop closes through the hand: the slave's observer then only
-            # says the tissue got work the hand never felt, not that anything is unstable)
-            ("the network generated > 10 mJ", cfg.controller != "none" and min(w_m, w_s) < -10e-3),
+            ("the network generated > 10 mJ", controller != "none" and w_min_mj < -10.0),
         )
         if hit
     ]
-    row["unstable_because"] = why
-    unstable = bool(why)
-    stable = (
-        np.isfinite(overshoot) and overshoot <= 1.5 and osc < 0.2 and not growing and min(w_m, w_s) >= -1e-3
-    )
-    row["verdict"] = "unstable" if unstable else ("stable" if stable else "marginal")
-    return row
+    if why:
+        return "unstable", why
+    stable = bool(np.isfinite(overshoot)) and overshoot <= 1.5 and osc < 0.2 and not growing
+    stable = stable and w_min_mj >= -1.0
+    return ("stable" if stable else "marginal"), []
 
 
 def plot(rows: list[dict[str, Any]], logs: dict[tuple[str, float], np.ndarray], out: Path) -> None:

@@ -34,6 +34,7 @@ from typing import Any
 import numpy as np
 from telesurg.shared.bus import Node
 from telesurg.shared.messages import CartesianPose, CartesianWrench, OperatingState, SafetyState
+from telesurg.tools.bench.haptics import judge
 
 #: the controllers run through the services (wave has no slave side in the mapping)
 CONTROLLERS = ("none", "naive", "tdpa")
@@ -184,20 +185,7 @@ def verdict(fig: dict[str, Any], controller: str) -> tuple[str, list[str]]:
     osc = max(fig["hold_oscillation_rms_n"], fig["final_hold_oscillation_rms_n"])
     w_min = min(fig.get("master_observed_min_mj", 0.0), fig.get("slave_energy_min_mj", 0.0))
     growing = (fig["osc_growth"] or 0.0) > 1.5 and fig["final_hold_oscillation_rms_n"] > 0.05
-    why = [
-        reason
-        for reason, hit in (
-            ("overshoot > 3× steady", overshoot > 3.0),
-            ("growing oscillation", growing),
-            ("oscillation > 0.5 N rms", osc > 0.5),
-            ("the network generated > 10 mJ", controller != "none" and w_min < -10.0),
-        )
-        if hit
-    ]
-    if why:
-        return "unstable", why
-    stable = overshoot <= 1.5 and osc < 0.2 and not growing and w_min >= -1.0
-    return ("stable" if stable else "marginal"), []
+    return judge(overshoot, growing, osc, w_min, controller)
 
 
 class Recorder:
