@@ -43,6 +43,7 @@ class SlavePassivity:
         self.w_min = 0.0  # J: the lowest observed W_s after the controller acted
         self.dissipated = 0.0  # J: what the controller removed
         self.offset_max = 0.0  # m: the largest drift
+        self.prev_ns = 0  # the stamp of the master sample the last step was for (its dt)
 
     def report(self) -> str:
         """What the controller saw and did, for the service's log at exit."""
@@ -50,6 +51,18 @@ class SlavePassivity:
             f"slave passivity: observed W_s min {self.w_min * 1e3:.3f} mJ, dissipated "
             f"{self.dissipated * 1e3:.3f} mJ, drift max {self.offset_max * 1e3:.2f} mm"
         )
+
+    def engage_at(self, e_in_m: float, stamp_ns: int) -> None:
+        """:meth:`engage` at the master sample stamped ``stamp_ns`` (the next :meth:`follow`'s dt
+        counts from it)."""
+        self.engage(e_in_m)
+        self.prev_ns = stamp_ns
+
+    def follow(self, target: np.ndarray, e_in_m: float, stamp_ns: int, position_scale: float) -> np.ndarray:
+        """:meth:`step` for the master sample stamped ``stamp_ns``, its dt the time since the
+        previous sample's stamp."""
+        dt, self.prev_ns = (stamp_ns - self.prev_ns) / 1e9, stamp_ns
+        return self.step(target, e_in_m, position_scale, dt)
 
     def engage(self, e_in_m: float) -> None:
         """A new engagement: count from here, no offset."""

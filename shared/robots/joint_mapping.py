@@ -131,7 +131,6 @@ class PoseJointStrategy(JointStrategy):
         self.last: tuple[np.ndarray, np.ndarray] | None = None  # last (master point, slave target)
         # TDPA's slave port (cfg.slave_passivity): backs the slave point off along the contact force
         self.spc = SlavePassivity(gate.cfg.haptics_force_scale) if gate.cfg.slave_passivity else None
-        self.spc_prev_ns = 0  # the previous sample's stamp (the controller's dt)
 
     def on_contact_force(self, msg: CartesianWrench, key: str) -> None:
         """The slave's contact force (base frame), for the slave passivity controller."""
@@ -147,12 +146,10 @@ class PoseJointStrategy(JointStrategy):
         spc = self.spc
         if spc is None:
             return target
-        stamp = msg.header.stamp_ns
         if anchor:
-            spc.engage(msg.energy_in_j)
-            self.spc_prev_ns = stamp
-        dt, self.spc_prev_ns = (stamp - self.spc_prev_ns) / 1e9, stamp
-        return spc.step(target, msg.energy_in_j, self.gate.scale * self.gate.safety_scale, dt)
+            spc.engage_at(msg.energy_in_j, msg.header.stamp_ns)
+        k = self.gate.scale * self.gate.safety_scale
+        return spc.follow(target, msg.energy_in_j, msg.header.stamp_ns, k)
 
     def close(self) -> None:
         """The service stops: say what the slave passivity controller saw and did, if one ran."""

@@ -96,7 +96,6 @@ class CartesianMapping:
         self.traced = 0
         # TDPA's slave port (cfg.slave_passivity): backs the target off along the contact force
         self.spc = SlavePassivity(cfg.haptics_force_scale) if cfg.slave_passivity else None
-        self.spc_prev_ns = 0  # the previous mapped master sample's stamp (the controller's dt)
         self.wall_next = 0.0  # monotonic s: the next limit_wall (at the teleop state's rate)
 
     # -- inputs -----------------------------------------------------------------------
@@ -206,8 +205,7 @@ class CartesianMapping:
         self.last_pose = self.last_target = None
         self.ik_streak = 0
         if self.spc is not None:
-            self.spc.engage(pose.energy_in_j)
-            self.spc_prev_ns = pose.header.stamp_ns
+            self.spc.engage_at(pose.energy_in_j, pose.header.stamp_ns)
         k = self.gate.scale * self.gate.safety_scale
         self.gate._engaged_now(f"engaged {self.gate.master} → {self.gate.slave} at scale {k:.3g}")
 
@@ -262,10 +260,8 @@ class CartesianMapping:
         if self.gate.following:
             target = self._target(pose)
             if self.spc is not None:
-                dt = (pose.header.stamp_ns - self.spc_prev_ns) / 1e9
-                self.spc_prev_ns = pose.header.stamp_ns
                 k = self.gate.scale * self.gate.safety_scale
-                target[:3, 3] = self.spc.step(target[:3, 3], pose.energy_in_j, k, dt)
+                target[:3, 3] = self.spc.follow(target[:3, 3], pose.energy_in_j, pose.header.stamp_ns, k)
             assert self.q_last is not None
             try:
                 st = self.gate.slave_state
