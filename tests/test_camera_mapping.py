@@ -129,3 +129,24 @@ def test_pose_message_round_trip() -> None:
     T = src.pose()
     np.testing.assert_allclose(pose_matrix(_pose_msg(T)), T, atol=1e-9)
     src.close()
+
+
+def test_project_lands_where_the_camera_model_says_and_refuses_points_behind() -> None:
+    """``project`` (the web console's predictive overlay): a point on the optical axis lands on
+    the principal point, one to the right of it to the right; the right eye of a stereo pair sees
+    a point shifted left by fx·baseline/z; a point behind the camera has no pixel."""
+    from telesurg.shared.teleop.camera_frame import project
+
+    T = np.eye(4)
+    T[:3, :3] = _rot_about_view(np.eye(4), 30.0)[:3, :3]  # any orientation
+    T[:3, 3] = (0.4, -0.1, 0.8)
+    cam = _pose_msg(T)
+    k = (300.0, 310.0, 160.0, 120.0)
+    ahead = T[:3, :3] @ np.array([0.0, 0.0, 0.2]) + T[:3, 3]
+    assert project(ahead, cam, *k) == pytest.approx((160.0, 120.0))
+    right = T[:3, :3] @ np.array([0.01, -0.02, 0.2]) + T[:3, 3]
+    assert project(right, cam, *k) == pytest.approx((160.0 + 300.0 * 0.05, 120.0 - 310.0 * 0.1))
+    assert project(ahead, cam, *k, baseline_m=0.004) == pytest.approx((160.0 - 300.0 * 0.004 / 0.2, 120.0))
+    behind = T[:3, :3] @ np.array([0.0, 0.0, -0.2]) + T[:3, 3]
+    assert project(behind, cam, *k) is None
+    np.testing.assert_allclose(project(right, cam, *k), _pixel(T, Intrinsics(*k), right))

@@ -23,6 +23,7 @@ from telesurg.services.launcher import Site, SiteSpec, free_port
 from telesurg.shared import robots
 from telesurg.shared.bus import BusConfig, Node
 from telesurg.shared.messages import CameraImage, CartesianPose, JointState
+from telesurg.shared.teleop.camera_frame import project
 
 pytestmark = pytest.mark.process
 
@@ -90,8 +91,10 @@ def test_the_endoscope_shows_the_slave(tmp_path: Path) -> None:
     q = np.array(joints[-1].position)
     tip = profile.tip(q)
     T = pose_matrix(poses[-1])
-    pc = T[:3, :3].T @ (tip - T[:3, 3])
-    u, v = img.fx * pc[0] / pc[2] + img.cx, img.fy * pc[1] / pc[2] + img.cy
+    # (the projection the web console's predictive overlay draws with)
+    px = project(tip, poses[-1], img.fx, img.fy, img.cx, img.cy)
+    assert px is not None, "the tip is behind the camera"
+    u, v = px
     assert 1 <= u < img.width - 1 and 1 <= v < img.height - 1, f"tip projects outside the picture ({u}, {v})"
     # the same view without the arm
     bare = MujocoSource(robots.get("mh3f").scene, width=320, height=240, hide_bodies=("base",))

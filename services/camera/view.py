@@ -27,6 +27,7 @@ from typing import Any
 from urllib.parse import parse_qs
 
 from telesurg.services.common import duration_s, install_stop_handlers, setup_logging, tcp_port
+from telesurg.shared import mjpeg
 from telesurg.shared.bus import Node, add_bus_args, bus_from_args
 from telesurg.shared.clock import wall_ns
 from telesurg.shared.door import Door
@@ -135,9 +136,13 @@ def make_server(latest: Latest, port: int, stop: threading.Event, door: Door) ->
 
         def _stream(self) -> None:
             self.send_response(200)
-            self.send_header("Content-Type", "multipart/x-mixed-replace; boundary=frame")
+            self.send_header("Content-Type", mjpeg.CONTENT_TYPE)
             self.send_header("Cache-Control", "no-store")
             self.end_headers()
+            try:
+                self.wfile.write(mjpeg.START)
+            except OSError:
+                return
             last = -1
             while not stop.is_set():
                 with latest.cond:
@@ -153,13 +158,7 @@ def make_server(latest: Latest, port: int, stop: threading.Event, door: Door) ->
                     continue
                 last = m.header.seq
                 try:
-                    self.wfile.write(
-                        b"--frame\r\nContent-Type: image/jpeg\r\nContent-Length: "
-                        + str(len(m.data)).encode()
-                        + b"\r\n\r\n"
-                        + m.data
-                        + b"\r\n"
-                    )
+                    self.wfile.write(mjpeg.part(m.data))  # (shown on arrival: shared/mjpeg.py)
                 except OSError:  # the browser went away
                     return
 

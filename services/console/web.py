@@ -49,6 +49,7 @@ import signal
 import threading
 import time
 import weakref
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -65,7 +66,7 @@ from telesurg.services.console.browser import (
 )
 from telesurg.services.console.control import Control
 from telesurg.services.console.model import ConsoleConfig, ConsoleModel
-from telesurg.shared import robots
+from telesurg.shared import mjpeg, robots
 from telesurg.shared.bus import POLL_CAPACITY, Node, only
 from telesurg.shared.clock import wall_ns
 from telesurg.shared.door import LOGIN_ENV, Door
@@ -77,6 +78,7 @@ from telesurg.shared.messages import (
     JointState,
     MasterButtons,
 )
+from telesurg.shared.teleop.camera_frame import project
 from telesurg.shared.timing import CycleTimer, start_loop
 
 log = logging.getLogger(__name__)
@@ -110,6 +112,30 @@ class ArmView:
     setpoint_rx: float = 0.0
     cf: CartesianWrench | None = None  # the tissue's force on the instrument (measured_cf)
     cf_rx: float = -math.inf  # monotonic s: when the newest measured_cf arrived
+
+
+class PictureLag:
+    """How long after a motion the picture shows it, on average: the wait for the camera's next
+    capture (half a frame period) plus the frame's age when it reaches this console (capture,
+    render, encode, the bus), each a running mean of the last frames (EWMA). The stream to the page
+    adds its own milliseconds (the MJPEG part written on arrival, the browser's decode)."""
+
+    ALPHA = 0.1
+
+    def __init__(self) -> None:
+        self.arrival_ms: float | None = None
+        self.period_ms: float | None = None
+
+    def add(self, capture_ns: int, rx_ns: int, prev_capture_ns: int | None) -> None:
+        def ewma(old: float | None, x: float) -> float:
+            return x if old is None else old + self.ALPHA * (x - old)
+
+        self.arrival_ms = ewma(self.arrival_ms, (rx_ns - capture_ns) / 1e6)
+        if prev_capture_ns is not None and 0 < capture_ns - prev_capture_ns < 2_000_000_000:
+            self.period_ms = ewma(self.period_ms, (capture_ns - prev_capture_ns) / 1e6)
+
+    def behind_ms(self) -> float:
+        return (self.arrival_ms or 0.0) + (self.period_ms or 0.0) / 2
 
 
 class Counters:
@@ -171,7 +197,18 @@ class WebConsole:
         # the endoscope picture (camera service, docs/video.md): the newest frame of each camera,
         # served to the page as an MJPEG stream (/video.mjpg); nothing is queued behind it
         self.frames: dict[str, tuple[CameraImage, int]] = {}  # camera → (frame, receive time ns)
+        self.picture_lag: dict[str, PictureLag] = {}
+        self.frame_waiters: set[Callable[[], None]] = set()  # called on each new frame
         node.subscribe(f"{k.prefix}/camera/*/image", CameraImage, self._on_frame, sources=only("camera"))
+        # the cameras' optical-frame poses (latest: the current one at once), for the overlay
+        self.cam_poses: dict[str, CartesianPose] = {}
+        node.subscribe(
+            f"{k.prefix}/camera/*/measured_cp",
+            CartesianPose,
+            self._on_cam_pose,
+            sources=only("camera"),
+            latest=True,
+        )
         mk = node.keys
         out = master_node.outlet if master_node is not None else None
         self._pose_out = {m: out(mk.master(m, "measured_cp")) for m in self.masters if out}
@@ -220,8 +257,58 @@ class WebConsole:
         }
 
     def _on_frame(self, m: CameraImage, key: str) -> None:
+        rx = wall_ns()
         with self.lock:
-            self.frames[m.camera] = (m, wall_ns())
+            prev = self.frames.get(m.camera)
+            self.frames[m.camera] = (m, rx)
+            lag = self.picture_lag.setdefault(m.camera, PictureLag())
+            lag.add(m.capture_ns, rx, prev[0].capture_ns if prev is not None else None)
+            wake = list(self.frame_waiters)
+        for w in wake:  # the MJPEG streams waiting for a new frame (their event loop's callbacks)
+            w()
+
+    def _on_cam_pose(self, m: CartesianPose, key: str) -> None:
+        if m.frame == "base":
+            with self.lock:
+                self.cam_poses[key.rsplit("/", 2)[-2]] = m
+
+    def overlay(self) -> dict[str, Any]:
+        """The predictive overlay, per camera: each arm's commanded tip (the mapping's
+        ``setpoint_cp``, out before the slave moves and long before a picture can show it) in
+        pixels of the camera's image, one point per eye (None: not in front of the camera), the
+        newest picture's age, and ``behind_ms``: how far the picture lags what the overlay shows
+        (:class:`PictureLag`)."""
+        with self._poll_lock:  # (the setpoints arrive polled)
+            self.node.poll(limit=POLL_LIMIT)
+        now_wall, now = wall_ns(), time.monotonic()
+        with self.lock:
+            frames, poses = dict(self.frames), dict(self.cam_poses)
+            lags = {cam: self.picture_lag[cam].behind_ms() for cam in frames}
+            cmds = {a: (v.setpoint, v.setpoint_rx) for a, v in self.views.items()}
+        out: dict[str, Any] = {}
+        for cam, (img, _rx) in frames.items():
+            pose = poses.get(cam)
+            arms: dict[str, Any] = {}
+            for arm, (sp, rx) in cmds.items():
+                if pose is None or sp is None or sp.frame != "base":
+                    continue
+                intr = (img.fx, img.fy, img.cx, img.cy)
+                eyes = [project(sp.position, pose, *intr)]
+                if img.layout == "stereo_sbs":  # the right eye, in the image's right half
+                    r = project(sp.position, pose, *intr, baseline_m=img.baseline_m)
+                    eyes.append(None if r is None else (r[0] + img.width / 2, r[1]))
+                arms[arm] = {
+                    "px": [None if e is None else [round(e[0], 1), round(e[1], 1)] for e in eyes],
+                    "age_ms": round((now - rx) * 1e3, 1),
+                }
+            out[cam] = {
+                "width": img.width,
+                "height": img.height,
+                "picture_age_ms": round((now_wall - img.capture_ns) / 1e6, 1),
+                "behind_ms": round(lags[cam], 1),
+                "arms": arms,
+            }
+        return out
 
     def latest_frame(self, camera: str = "") -> CameraImage | None:
         """The newest frame of ``camera`` ("" = the first camera seen), None if none yet."""
@@ -597,23 +684,33 @@ class Server:
         camera = request.query.get("camera", "")
         resp = web.StreamResponse(
             headers={
-                "Content-Type": "multipart/x-mixed-replace; boundary=frame",
+                "Content-Type": mjpeg.CONTENT_TYPE,
                 "Cache-Control": "no-store",
             }
         )
         await resp.prepare(request)
         last = -1
         with contextlib.suppress(ConnectionError, asyncio.CancelledError):
-            await resp.write(b"--frame\r\n")
-            while True:
-                m = self.wc.latest_frame(camera)
-                if m is not None and m.header.seq != last and m.encoding == "jpeg":
-                    last = m.header.seq
-                    head = f"Content-Type: image/jpeg\r\nContent-Length: {len(m.data)}\r\n\r\n"
-                    # each part ends with the next boundary at once: the part is complete when it
-                    # is written, not when the next frame comes
-                    await resp.write(head.encode() + m.data + b"\r\n--frame\r\n")
-                await asyncio.sleep(0.02)
+            await resp.write(mjpeg.START)
+            loop, new = asyncio.get_running_loop(), asyncio.Event()
+
+            def wake() -> None:  # (a zenoh thread: the frame's arrival)
+                loop.call_soon_threadsafe(new.set)
+
+            with self.wc.lock:
+                self.wc.frame_waiters.add(wake)
+            try:
+                while True:
+                    m = self.wc.latest_frame(camera)
+                    if m is not None and m.header.seq != last and m.encoding == "jpeg":
+                        last = m.header.seq
+                        await resp.write(mjpeg.part(m.data))  # (shown on arrival: shared/mjpeg.py)
+                    with contextlib.suppress(TimeoutError):  # (the timeout: a stream with no frames)
+                        await asyncio.wait_for(new.wait(), 1.0)
+                    new.clear()
+            finally:
+                with self.wc.lock:
+                    self.wc.frame_waiters.discard(wake)
         return resp
 
     # -- control ---------------------------------------------------------------------------------
@@ -802,6 +899,21 @@ class Server:
             return self.wc.record(action if isinstance(action, str) else "")
         raise FrameError("unknown", f"unknown frame type {kind!r}")
 
+    async def broadcast_overlay(self, stop: asyncio.Event) -> None:
+        """Push the predictive overlay to every page at ``overlay_hz`` while a camera publishes."""
+        hz = self.wc.web.overlay_hz
+        while hz > 0 and not stop.is_set():
+            if self.sockets and self.wc.frames:
+                ov = await asyncio.to_thread(self.wc.overlay)
+                data = json.dumps({"type": "overlay", "cams": ov})
+                for ws in list(self.sockets):
+                    page = self.pages.get(ws)
+                    if not ws.closed and (page is None or self._page_alive(page)):
+                        with contextlib.suppress(Exception):
+                            await ws.send_str(data)
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(stop.wait(), 1.0 / hz)
+
     async def broadcast(self, stop: asyncio.Event) -> None:
         """Push the state (and new notices) to every page at ``state_hz``."""
         period = 1.0 / self.wc.web.state_hz
@@ -849,6 +961,7 @@ async def serve(wc: WebConsole, stop: asyncio.Event, token: str = "") -> None:
     else:
         print(f"web console: {door.login_url(door.mint())}", flush=True)
     task = asyncio.create_task(server.broadcast(stop))
+    overlay = asyncio.create_task(server.broadcast_overlay(stop))
     try:
         await stop.wait()
     finally:
@@ -856,6 +969,7 @@ async def serve(wc: WebConsole, stop: asyncio.Event, token: str = "") -> None:
             with contextlib.suppress(Exception):
                 await ws.close()
         await task
+        await overlay
         await runner.cleanup()
 
 

@@ -33,6 +33,9 @@ class WebConfig:
     # below the watchdog's master deadline (80 ms) so the console stops before the watchdog must
     sample_timeout_ms: float = 60.0
     state_hz: float = 20.0  # Hz: state pushed to every page
+    # Hz: the predictive overlay (each arm's commanded tip over the endoscope picture) pushed to
+    # every page while a camera publishes; 0: no overlay
+    overlay_hz: float = 50.0
     max_frame_bytes: int = 4096  # a websocket frame larger than this is refused
     max_frames_hz: float = 400.0  # frames/s per connection on average (bursts of 100); more: refused
     max_rejects: int = 50  # refused frames after which a connection is closed as abusive
@@ -72,6 +75,8 @@ class WebConfig:
             raise ConfigError(f"web.sample_timeout_ms={self.sample_timeout_ms} outside [10, 1000]")
         if not 1.0 <= self.state_hz <= 60.0:
             raise ConfigError(f"web.state_hz={self.state_hz} outside [1, 60]")
+        if self.overlay_hz != 0.0 and not 5.0 <= self.overlay_hz <= 120.0:
+            raise ConfigError(f"web.overlay_hz={self.overlay_hz} outside [5, 120] (0: no overlay)")
         if not 256 <= self.max_frame_bytes <= 1 << 20:
             raise ConfigError(f"web.max_frame_bytes={self.max_frame_bytes} outside [256, 1048576]")
         if not 10.0 <= self.max_frames_hz <= 10000.0:

@@ -234,6 +234,12 @@ def _webconsole(d: dict[str, Any]) -> str:
         f"mouse → servo_jp p50 {m['latency_p50_ms']:.1f} / p99 {m['latency_p99_ms']:.1f} ms, e-stop "
         f"{m['estop_ms']:.0f} ms; page closed → HOLD {q['close_to_hold_ms']:.0f} ms; glass to glass p50 "
         f"{g['glass_to_glass_ms_p50']:.0f} ms"
+        + (
+            f"; predictive overlay ahead of the picture by {o['lead_ms']:.0f} ms "
+            f"(page says {o['stated_ms']:.0f})"
+            if (o := d.get("overlay"))
+            else ""
+        )
     )
 
 

@@ -25,3 +25,24 @@ def view_rotation(camera_pose: CartesianPose) -> np.ndarray:
     r_base_optical = matrix_from_quat(np.array(camera_pose.orientation))
     out: np.ndarray = r_base_optical @ VIEW_TO_OPTICAL
     return out
+
+
+def project(
+    point: tuple[float, float, float] | np.ndarray,
+    camera_pose: CartesianPose,
+    fx: float,
+    fy: float,
+    cx: float,
+    cy: float,
+    baseline_m: float = 0.0,
+) -> tuple[float, float] | None:
+    """Pixel ``(u, v)`` of a base-frame point in the picture of the camera at ``camera_pose``
+    (its optical frame, pinhole intrinsics of :class:`~telesurg.shared.messages.CameraImage`);
+    ``baseline_m``: the right eye of a stereo pair, that far along the optical x (its pixel in that
+    eye's own image). None when the point is not in front of the camera."""
+    R = matrix_from_quat(np.array(camera_pose.orientation))
+    p = R.T @ (np.asarray(point, dtype=float) - np.array(camera_pose.position))
+    p[0] -= baseline_m
+    if p[2] <= 1e-6:
+        return None
+    return float(fx * p[0] / p[2] + cx), float(fy * p[1] / p[2] + cy)

@@ -69,6 +69,7 @@ function connect() {
   ws.onmessage = (ev) => {
     const m = JSON.parse(ev.data);
     if (m.type === "state") render(m);
+    else if (m.type === "overlay") overlay(m);
     else if (m.type === "notice") logLine("info", m.text);
     else if (m.type === "refused") logLine("error", "refused by the console: " + m.text);
     else if (m.type === "control") setRole(m);
@@ -474,6 +475,35 @@ function scope(video) {
   const old = v.age_ms > 500;
   $("#scope-info").innerHTML = `camera ${esc(cams[0])} · ${v.width}×${v.height} ${esc(v.layout)} · ` +
     `<span class="${old ? "bad" : ""}">frame age ${v.age_at_arrival_ms} ms at arrival, ${v.age_ms} ms now</span>`;
+}
+
+// The predictive overlay: each following arm's commanded tip over the endoscope picture, which
+// shows the arm as it was picture_age_ms ago (the video's delay): the surgeon sees where the tool
+// is going before the picture shows it. Marks are placed in the image's pixels, scaled to the
+// picture's size on the page; a stereo pair has one per eye.
+function overlay(m) {
+  const cams = Object.keys(m.cams || {});
+  const box = $("#scope-marks"), img = $("#endoscope");
+  const want = [];
+  let lead = "";
+  if (cams.length && !$("#scope").hidden && img.naturalWidth) {
+    const c = m.cams[cams[0]];
+    const kx = img.clientWidth / c.width, ky = img.clientHeight / c.height;
+    for (const [arm, a] of Object.entries(c.arms)) {
+      if (a.age_ms > 250) continue; // not following: no command to show (setpoint_cp at 100 Hz)
+      a.px.forEach((p, eye) => {
+        if (p && p[0] >= 0 && p[0] <= c.width && p[1] >= 0 && p[1] <= c.height) want.push([arm, eye, p[0] * kx, p[1] * ky]);
+      });
+    }
+    if (want.length) lead = `○ commanded tip: ${Math.round(c.behind_ms)} ms ahead of the picture`;
+  }
+  while (box.children.length < want.length) { const d = document.createElement("div"); d.className = "cmd-mark"; box.appendChild(d); }
+  while (box.children.length > want.length) box.lastChild.remove();
+  want.forEach(([arm, eye, x, y], i) => {
+    const d = box.children[i];
+    d.dataset.arm = arm; d.dataset.eye = eye; d.style.left = x.toFixed(1) + "px"; d.style.top = y.toFixed(1) + "px";
+  });
+  $("#scope-lead").textContent = lead;
 }
 
 // Two orthographic views of each arm (base frame, mm): top (x right, y up) and side (x right,
