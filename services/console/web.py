@@ -125,14 +125,16 @@ class PictureLag:
     def __init__(self) -> None:
         self.arrival_ms: float | None = None
         self.period_ms: float | None = None
+        self.capture_ns: int | None = None  # the previous frame's
 
-    def add(self, capture_ns: int, rx_ns: int, prev_capture_ns: int | None) -> None:
+    def add(self, capture_ns: int, rx_ns: int) -> None:
         def ewma(old: float | None, x: float) -> float:
             return x if old is None else old + self.ALPHA * (x - old)
 
         self.arrival_ms = ewma(self.arrival_ms, (rx_ns - capture_ns) / 1e6)
-        if prev_capture_ns is not None and 0 < capture_ns - prev_capture_ns < 2_000_000_000:
-            self.period_ms = ewma(self.period_ms, (capture_ns - prev_capture_ns) / 1e6)
+        if self.capture_ns is not None and 0 < capture_ns - self.capture_ns < 2_000_000_000:
+            self.period_ms = ewma(self.period_ms, (capture_ns - self.capture_ns) / 1e6)
+        self.capture_ns = capture_ns
 
     def behind_ms(self) -> float:
         return (self.arrival_ms or 0.0) + (self.period_ms or 0.0) / 2
@@ -259,10 +261,8 @@ class WebConsole:
     def _on_frame(self, m: CameraImage, key: str) -> None:
         rx = wall_ns()
         with self.lock:
-            prev = self.frames.get(m.camera)
             self.frames[m.camera] = (m, rx)
-            lag = self.picture_lag.setdefault(m.camera, PictureLag())
-            lag.add(m.capture_ns, rx, prev[0].capture_ns if prev is not None else None)
+            self.picture_lag.setdefault(m.camera, PictureLag()).add(m.capture_ns, rx)
             wake = list(self.frame_waiters)
         for w in wake:  # the MJPEG streams waiting for a new frame (their event loop's callbacks)
             w()
@@ -275,12 +275,11 @@ class WebConsole:
     def overlay(self) -> dict[str, Any]:
         """The predictive overlay, per camera: each arm's commanded tip (the mapping's
         ``setpoint_cp``, out before the slave moves and long before a picture can show it) in
-        pixels of the camera's image, one point per eye (None: not in front of the camera), the
-        newest picture's age, and ``behind_ms``: how far the picture lags what the overlay shows
-        (:class:`PictureLag`)."""
+        pixels of the camera's image, one point per eye (None: not in front of the camera), and
+        ``behind_ms``: how far the picture lags what the overlay shows (:class:`PictureLag`)."""
         with self._poll_lock:  # (the setpoints arrive polled)
             self.node.poll(limit=POLL_LIMIT)
-        now_wall, now = wall_ns(), time.monotonic()
+        now = time.monotonic()
         with self.lock:
             frames, poses = dict(self.frames), dict(self.cam_poses)
             lags = {cam: self.picture_lag[cam].behind_ms() for cam in frames}
@@ -288,11 +287,11 @@ class WebConsole:
         out: dict[str, Any] = {}
         for cam, (img, _rx) in frames.items():
             pose = poses.get(cam)
+            intr = (img.fx, img.fy, img.cx, img.cy)
             arms: dict[str, Any] = {}
             for arm, (sp, rx) in cmds.items():
                 if pose is None or sp is None or sp.frame != "base":
                     continue
-                intr = (img.fx, img.fy, img.cx, img.cy)
                 eyes = [project(sp.position, pose, *intr)]
                 if img.layout == "stereo_sbs":  # the right eye, in the image's right half
                     r = project(sp.position, pose, *intr, baseline_m=img.baseline_m)
@@ -304,7 +303,6 @@ class WebConsole:
             out[cam] = {
                 "width": img.width,
                 "height": img.height,
-                "picture_age_ms": round((now_wall - img.capture_ns) / 1e6, 1),
                 "behind_ms": round(lags[cam], 1),
                 "arms": arms,
             }

@@ -478,7 +478,7 @@ function scope(video) {
 }
 
 // The predictive overlay: each following arm's commanded tip over the endoscope picture, which
-// shows the arm as it was picture_age_ms ago (the video's delay): the surgeon sees where the tool
+// shows the arm as it was behind_ms ago (the video's delay): the surgeon sees where the tool
 // is going before the picture shows it. Marks are placed in the image's pixels, scaled to the
 // picture's size on the page; a stereo pair has one per eye.
 function overlay(m) {
