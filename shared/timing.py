@@ -34,18 +34,25 @@ class CycleTimer:
 
     Attributes:
         rate_hz: loop rate, Hz (> 0).
+        resync: what a late cycle does. False (control loops): wait for the next deadline on the
+            grid, skipping the periods it overran. True (a camera): start the next cycle at once
+            and restart the grid from it, so a frame finished a little late costs that little,
+            not a whole period; the lateness adds up, and each whole period of it counts as
+            missed (so cycles + missed still span the time elapsed).
         overruns: cycles whose work ended after the next deadline.
         cycles: cycles completed.
         periods: periods elapsed (cycles plus the deadlines missed), the loop's time in periods.
     """
 
     rate_hz: float
+    resync: bool = False
     overruns: int = 0
     cycles: int = 0
     periods: int = 0
     _before: int = field(init=False, default=0)
     _period_ns: int = field(init=False)
     _next_ns: int = field(init=False)
+    _late_ns: int = field(init=False, default=0)
 
     def __post_init__(self) -> None:
         if self.rate_hz <= 0:
@@ -70,9 +77,15 @@ class CycleTimer:
         now = time.monotonic_ns()
         missed = 0
         if now > self._next_ns:
-            missed = (now - self._next_ns) // self._period_ns + 1
             self.overruns += 1
-            self._next_ns += missed * self._period_ns
+            if self.resync:  # missed: the lateness summed over cycles, in whole periods
+                self._late_ns += now - self._next_ns
+                missed = self._late_ns // self._period_ns
+                self._late_ns -= missed * self._period_ns
+                self._next_ns = now
+            else:
+                missed = (now - self._next_ns) // self._period_ns + 1
+                self._next_ns += missed * self._period_ns
         delay = self._next_ns - now
         if delay > 0:
             time.sleep(delay / 1e9)

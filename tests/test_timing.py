@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import os
 import threading
 from collections.abc import Callable
@@ -61,6 +62,24 @@ def test_a_stall_is_counted_and_sub_rates_keep_their_rate_in_time(clock: FakeClo
     # 50 periods of time hold 12 multiples of 4; the stall's one wakeup crossed three of them
     # (12, 16, 20) and runs the task once, with the caught-up state
     assert fired == 12 - 2
+
+
+def test_a_resyncing_timer_starts_a_late_cycle_at_once(clock: FakeClock) -> None:
+    """A camera's frame finished 5 ms late starts the next at once: 45 ms between frames, not the
+    80 ms of a skipped period. The lateness adds up: each whole period of it counts as missed."""
+    timer = CycleTimer(rate_hz=25.0, resync=True)
+    starts = [clock.ns]
+    missed = []
+    for work_ms in (10, 45, 10, 10, 130, 10, 75, 10):
+        clock.ns += work_ms * 1_000_000
+        missed.append(timer.wait())
+        starts.append(clock.ns)
+    gaps_ms = [(b - a) / 1e6 for a, b in itertools.pairwise(starts)]
+    assert gaps_ms == [40, 45, 40, 40, 130, 40, 75, 40]
+    # late by 5, then 90 (95: two periods, 15 left), then 35 (50: one period, 10 left)
+    assert missed == [0, 0, 0, 0, 2, 0, 1, 0] and timer.overruns == 3
+    # cycles + missed span the time: 450 ms = 11 periods of 40 ms and the 10 ms still owed
+    assert timer.periods == 11 and starts[-1] - starts[0] == 450_000_000
 
 
 def test_rate_must_be_positive() -> None:

@@ -287,13 +287,13 @@ def run(cfg: CameraConfig, stop: threading.Event) -> None:
                 node.keys.camera(cfg.camera, "image"),
             )
             step_down()  # set up: below the control path from now on, if the launcher asked
-            timer = CycleTimer(cfg.fps)
+            timer = CycleTimer(cfg.fps, resync=True)  # a late frame: the next at once
             every = max(1, round(cfg.fps / cfg.pose_hz))
             while not stop.is_set():
                 cam.step()
                 if cam.frames % every == 0:
                     cam.publish_pose()
-                cam.dropped += timer.wait()  # the periods missed: frames never made (newest wins)
+                cam.dropped += timer.wait()  # whole periods lost: frames never made (newest wins)
             log.info("camera %s: %d frames sent, %d dropped", cfg.camera, cam.frames, cam.dropped)
     finally:
         source.close()
