@@ -29,6 +29,9 @@ docs/console.md.
 options:
   --port N             the slave site's TLS port (default: 7447)
   --protocol P         tls or quic (default: tls; quic needs --listen quic/... on the slave site)
+  --datagram N         send the master's pose, joints and buttons best effort to the slave
+                       site's UDP port N (deploy/slave-site.sh --datagram-port N): a lost packet
+                       costs one sample instead of stalling the stream; for a lossy WAN
   --site ID            site id, as on the slave site (default: lab)
   --certs DIR          ca.pem and IDENTITY.pem/.key (default: certs; telesurg certs)
   --identity NAME      certificate common name (default: console; console-mapping with --mapping)
@@ -61,6 +64,7 @@ certs=certs
 identity=""
 config_dir="$here/console"
 mapping=0
+datagram=""
 ui=1
 master=web
 web_port=8470
@@ -72,6 +76,7 @@ while [[ $# -gt 0 ]]; do
         -h|--help) usage; exit 0 ;;
         --port) port="$2"; shift 2 ;;
         --protocol) protocol="$2"; shift 2 ;;
+        --datagram) datagram="$2"; shift 2 ;;
         --site) site="$2"; shift 2 ;;
         --certs) certs="$2"; shift 2 ;;
         --identity) identity="$2"; shift 2 ;;
@@ -134,6 +139,13 @@ fi
 bus=(--site "$site" --connect "$protocol/$host:$port" --tls-ca "$certs/ca.pem" --mtls
      --tls-cert "$certs/$identity.pem" --tls-key "$certs/$identity.key")
 [[ -n "$keyring" ]] && bus+=(--keyring "$keyring")
+if [[ -n "$datagram" ]]; then
+    if ! [[ "$datagram" =~ ^[0-9]+$ ]] || (( datagram < 1 || datagram > 65535 )); then
+        echo "deploy/console.sh: --datagram $datagram: a UDP port number, 1-65535" >&2
+        exit 2
+    fi
+    bus+=(--datagram "udp/$host:$datagram")
+fi
 
 has_console=0
 if [[ $ui == 1 ]] && "$py" -c 'import importlib.util as u, sys; sys.exit(u.find_spec("telesurg.services.console") is None)' 2>/dev/null; then

@@ -29,6 +29,9 @@ options:
   --site ID            site id, key prefix telesurg/ID/... (default: lab)
   --listen ENDPOINT    TLS endpoint for consoles, repeatable (default: tls/0.0.0.0:7447)
   --local-port N       loopback port of the site's services (default: 7448; mutual TLS)
+  --datagram-port N    also listen on udp/0.0.0.0:N for the consoles' datagram streams (the
+                       master's pose, joints and buttons, best effort: deploy/console.sh
+                       --datagram N); the ACL lets a UDP transport put those and nothing else
   --certs DIR          ca.pem, slave-site.pem, slave-site.key (default: certs; telesurg certs)
   --acl FILE           access-control rules (default: slave-site/acl.json5 beside this script)
   --config-dir DIR     site folder: DIR/site.toml, a table per service (default: slave-site/
@@ -55,6 +58,7 @@ USAGE
 site=lab
 listen=()
 local_port=7448
+datagram_port=""
 certs=certs
 acl="$here/slave-site/acl.json5"
 config_dir="$here/slave-site"
@@ -68,6 +72,7 @@ while [[ $# -gt 0 ]]; do
         --site) site="$2"; shift 2 ;;
         --listen) listen+=("$2"); shift 2 ;;
         --local-port) local_port="$2"; shift 2 ;;
+        --datagram-port) datagram_port="$2"; shift 2 ;;
         --certs) certs="$2"; shift 2 ;;
         --acl) acl="$2"; shift 2 ;;
         --config-dir) config_dir="$2"; shift 2 ;;
@@ -85,6 +90,13 @@ while [[ $# -gt 0 ]]; do
     esac
 done
 [[ ${#listen[@]} -eq 0 ]] && listen=(tls/0.0.0.0:7447)
+if [[ -n "$datagram_port" ]]; then
+    if ! [[ "$datagram_port" =~ ^[0-9]+$ ]] || (( datagram_port < 1 || datagram_port > 65535 )); then
+        echo "deploy/slave-site.sh: --datagram-port $datagram_port: a UDP port number, 1-65535" >&2
+        exit 2
+    fi
+    listen+=("udp/0.0.0.0:$datagram_port")
+fi
 # --mirror alone serves the viewer; with --save the mirror writes the file instead
 if [[ $mirror == 1 ]]; then
     services+=",mirror"

@@ -18,6 +18,13 @@
   streams to every other subscriber as DROP, so a subscriber that stops reading loses samples
   instead of holding them up for the slave (services/router ``congestion_rules``). Other streams
   use ``Priority.DATA_HIGH`` and zenoh's default congestion control.
+* Datagram link (``--datagram udp/HOST:PORT``, a console across a lossy WAN): the streams a
+  service marks ``datagram`` (the master's pose, joints and buttons) go best effort over a second,
+  publish-only session on the site router's ``udp/`` listener — no retransmission, so a lost
+  packet costs one sample instead of stalling the stream for a round trip as TLS over TCP does.
+  Everything else stays on the main (mutual TLS) session. Each sample is still signed and
+  checked for freshness; the site's ACL lets a UDP transport put those streams and nothing else
+  (docs/deploy.md, "Link protocol").
 * State streams (``outlet(..., latest=True)``, ``subscribe(..., latest=True)``): the publisher
   answers a query on its key with its last message and a subscriber asks once when it
   subscribes, so a late joiner (a console started mid-session) has the current value at once,
@@ -130,6 +137,9 @@ class BusConfig:
     # ms added to this process's wall clock (shared/clock.py): a test or bench playing a host
     # whose clock is off; 0 in a real site
     clock_skew_ms: float = 0.0
+    # the site router's udp/ endpoint for the datagram streams ("" = none: every stream on the
+    # main session); a second, publish-only session (module docstring)
+    datagram: str = ""
 
     @property
     def secured(self) -> bool:
@@ -150,6 +160,10 @@ class BusConfig:
             raise ConfigError(f"bus clock_skew_ms={self.clock_skew_ms} outside ±{MAX_SKEW_MS:g}")
         if self.zid and not valid_zid(self.zid):
             raise ConfigError(f"bus zid {self.zid!r} invalid: 1-32 lowercase hex digits, no leading 0")
+        if self.datagram and (protocol_of(self.datagram) != "udp" or "?" in self.datagram):
+            raise ConfigError(
+                f"bus datagram {self.datagram!r} invalid: a udp/HOST:PORT endpoint of the site router"
+            )
         if self.mode == "client" and not self.connect:
             raise ConfigError("bus mode 'client' needs at least one --connect endpoint")
         for name in ("tls_root_ca", "tls_cert", "tls_key", "acl_file"):
@@ -172,6 +186,8 @@ class BusConfig:
             )
         if self.secured and not self.allow_insecure_listen:
             for ep in self.listen:
+                if protocol_of(ep) == "udp" and self.acl_file:
+                    continue  # the datagram listener: the ACL says what a UDP transport may do
                 if protocol_of(ep) in PLAIN_PROTOCOLS and not is_loopback(ep):
                     raise ConfigError(
                         f"plain listen endpoint {ep} on a secured bus (TLS/ACL): bind it to 127.0.0.1, "
@@ -228,6 +244,11 @@ def load_acl(path: str) -> str:
     return text
 
 
+#: Cycles after a change of a state sample on a datagram stream (the master's buttons) in which it
+#: goes out again: a lost packet must not lose a clutch press or release (1.2 % loss, 6 in a row:
+#: ~3e-12)
+DATAGRAM_REPEAT = 5
+
 #: The endpoint a client connects to when no ``--connect`` (nor ``--zenoh-config``) is given: the
 #: router of the local site (``telesurg up`` / ``demo`` listen there by default).
 LOCAL_ROUTER = "tcp/127.0.0.1:7447"
@@ -264,6 +285,11 @@ def add_bus_args(parser: argparse.ArgumentParser) -> None:
         default=None,
         help="with TLS/ACL, still allow plain tcp/udp listeners beyond loopback (development only)",
     )
+    g.add_argument(
+        "--datagram",
+        metavar="ENDPOINT",
+        help="the site router's udp/HOST:PORT: the master's pose, joints and buttons go there best effort",
+    )
 
 
 def bus_from_args(args: argparse.Namespace, base: BusConfig | None = None) -> BusConfig:
@@ -294,6 +320,8 @@ def bus_from_args(args: argparse.Namespace, base: BusConfig | None = None) -> Bu
         cfg.zenoh_log = zlog
     if keyring := getattr(args, "keyring", None):
         cfg.keys_dir = keyring
+    if datagram := getattr(args, "datagram", None):
+        cfg.datagram = datagram
     if cfg.mode == "client" and not cfg.connect and not cfg.config_file:
         cfg.connect = [LOCAL_ROUTER]  # every command line: the local site's router by default
     return cfg
@@ -445,6 +473,17 @@ class Node:
         self._polled_ns = 0  # when the last poll() finished (heartbeat's polled_s)
         self._closed = False
         self.session = open_session(bus)
+        self._datagram: Any = None  # the publish-only session of the datagram streams
+        if bus.datagram:
+            try:
+                self._datagram = open_session(
+                    BusConfig(
+                        mode="client", connect=[bus.datagram], lease_ms=bus.lease_ms, zenoh_log=bus.zenoh_log
+                    )
+                )
+            except ConnectionError:
+                self.session.close()  # type: ignore[no-untyped-call]
+                raise
         # presence by authenticated session (shared/presence.py): the token carries this node's sid
         self.presence = Presence()
         self._liveliness_subs: set[str] = set()
@@ -463,15 +502,28 @@ class Node:
         self._hb_thread.start()
 
     # -- outputs --------------------------------------------------------------------------
-    def outlet(self, key: str, *, control: bool = True, latest: bool = False) -> Outlet:
+    def outlet(
+        self, key: str, *, control: bool = True, latest: bool = False, datagram: bool = False
+    ) -> Outlet:
         """Declare a publisher; control streams get express + real-time priority + block.
 
         ``latest``: also answer queries on ``key`` with the last message put, so a subscriber
         that joins later (``subscribe(..., latest=True)``) gets the current value at once instead
-        of at the next publication (a state stream, e.g. the teleop state)."""
+        of at the next publication (a state stream, e.g. the teleop state).
+        ``datagram``: a control stream where the newest sample is all that counts (a pose); with
+        ``BusConfig.datagram`` set it goes best effort over the datagram session (express,
+        real-time priority, dropped rather than queued), else as any control stream."""
         import zenoh
 
-        if control:
+        if datagram and self._datagram is not None:
+            pub = self._datagram.declare_publisher(
+                key,
+                express=True,
+                priority=zenoh.Priority.REAL_TIME,
+                congestion_control=zenoh.CongestionControl.DROP,
+                reliability=zenoh.Reliability.BEST_EFFORT,
+            )
+        elif control:
             pub = self.session.declare_publisher(
                 key,
                 express=True,
@@ -938,6 +990,8 @@ class Node:
         self._polled.clear()
         self._handles.clear()
         self.session.close()  # type: ignore[no-untyped-call]
+        if self._datagram is not None:
+            self._datagram.close()
 
     def __enter__(self) -> Node:
         return self

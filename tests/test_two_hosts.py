@@ -482,6 +482,18 @@ def test_secured_bus_config_is_checked(pki: tuple[Path, Path]) -> None:
         mode="router", listen=["tcp/0.0.0.0:7448"], acl_file=str(ACL), allow_insecure_listen=True
     ).validate()
     BusConfig(mode="router", listen=["tcp/0.0.0.0:7448"]).validate()  # unsecured: as before
+    # the datagram listener: udp/ beyond loopback on a router whose ACL says what UDP may do
+    dg = BusConfig(mode="router", listen=[*ok.listen, "udp/0.0.0.0:7449"], mtls=True, acl_file=str(ACL))
+    dg.tls_root_ca, dg.tls_cert, dg.tls_key = ok.tls_root_ca, ok.tls_cert, ok.tls_key
+    dg.validate()
+    with pytest.raises(ConfigError, match=r"bind it to 127\.0\.0\.1"):  # TLS, no ACL: refused
+        BusConfig(
+            mode="router", listen=["udp/0.0.0.0:7449"], tls_cert=ok.tls_cert, tls_key=ok.tls_key
+        ).validate()
+    BusConfig(connect=["tls/host:7447"], tls_root_ca=ok.tls_root_ca, datagram="udp/host:7449").validate()
+    for bad in ("tls/host:7449", "udp/host:7449?rel=1"):
+        with pytest.raises(ConfigError, match="a udp/HOST:PORT endpoint of the site router"):
+            BusConfig(connect=["tcp/host:7447"], datagram=bad).validate()
     with pytest.raises(ConfigError, match="needs tls_cert"):
         BusConfig(mode="router", listen=["tls/0.0.0.0:7447"]).validate()
     with pytest.raises(ConfigError, match="needs tls_root_ca"):

@@ -115,3 +115,39 @@ def test_an_estop_never_waits_for_the_loop(endpoint: str) -> None:
         finally:
             stop.set()
             loop.join(2.0)
+
+
+def test_the_masters_lost_poses_count_as_a_share_of_its_samples(endpoint: str) -> None:
+    """Over the datagram link a WAN loses a few master poses, each superseded by the next: 4 % lost
+    changes nothing, 20 % is DEGRADED (``max_master_loss_pct``, 10 %); a lost ``servo_jp`` still
+    counts per second (``max_loss_per_s``)."""
+    from telesurg.shared.messages import CartesianPose
+
+    bus = BusConfig(connect=[endpoint])
+    cfg = WatchdogConfig(site="t", bus=bus)
+    cfg.validate()
+    with Node(bus, "t", "watchdog") as node, Node(bus, "t", "master_capture") as master:
+        wd = Watchdog(cfg, node)
+        arm = wd.arms[0]
+        out = master.outlet(arm.master_pose)
+        stats = node.streams.get(arm.master_pose)
+        time.sleep(0.3)
+        sent = 0
+
+        def burst(n: int, skip_every: int) -> None:
+            nonlocal sent
+            for i in range(n):
+                h = out.header()  # a number taken and never sent: a lost sample
+                if i % skip_every != skip_every - 1:
+                    out.put(CartesianPose(h, "master", (0.0, 0.0, 0.0)))
+                    sent += 1
+                time.sleep(0.001)
+            assert wait_until(lambda: node.poll() >= 0 and stats.received >= sent, 5.0), (stats, sent)
+
+        assert wd.degraded_causes(arm, 100.0) == []
+        burst(250, 25)  # 4 %
+        assert wd.degraded_causes(arm, 100.5) == []
+        assert wd.degraded_causes(arm, 102.0) == []  # (a new window: the burst above left it)
+        burst(250, 5)  # 20 %
+        causes = wd.degraded_causes(arm, 102.5)
+        assert causes == ["20 % of the master's poses lost or reordered in the last second"], causes

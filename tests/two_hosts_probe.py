@@ -2,7 +2,7 @@
 it prints what the slave site shows, one JSON line per record, until SIGINT/SIGTERM. A script of
 its own so it starts fast on a loaded host (no pytest, no test helpers to import)::
 
-    python tests/two_hosts_probe.py ENDPOINT [CREDENTIALS_DIR] [--haptics]
+    python tests/two_hosts_probe.py ENDPOINT [CREDENTIALS_DIR] [--haptics] [--master-times]
 """
 
 from __future__ import annotations
@@ -66,6 +66,7 @@ def probe_main(endpoint: str, creds: str = "", *flags: str) -> int:
     last_master = [0]  # receive time of the newest master pose: when the link went silent
     clutch: list[bool] = []
     haptics = "--haptics" in flags
+    master_times = "--master-times" in flags  # every master pose's arrival (tests/test_wan_process.py)
     bus = _bus(endpoint, None, "")
     if creds:
         from telesurg.services.launcher.lockdown import LocalPki
@@ -98,6 +99,8 @@ def probe_main(endpoint: str, creds: str = "", *flags: str) -> int:
 
         def on_master(m: CartesianPose, key: str) -> None:
             last_master[0] = time.monotonic_ns()
+            if master_times:
+                _emit(k="mt")
             if haptics:
                 _emit(k="mp", p=list(m.position), e=m.energy_in_j)
 

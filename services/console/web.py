@@ -67,7 +67,7 @@ from telesurg.services.console.browser import (
 from telesurg.services.console.control import Control
 from telesurg.services.console.model import ConsoleConfig, ConsoleModel
 from telesurg.shared import mjpeg, robots
-from telesurg.shared.bus import POLL_CAPACITY, Node, only
+from telesurg.shared.bus import DATAGRAM_REPEAT, POLL_CAPACITY, Node, only
 from telesurg.shared.clock import wall_ns
 from telesurg.shared.door import LOGIN_ENV, Door
 from telesurg.shared.errors import ConfigError
@@ -213,8 +213,8 @@ class WebConsole:
         )
         mk = node.keys
         out = master_node.outlet if master_node is not None else None
-        self._pose_out = {m: out(mk.master(m, "measured_cp")) for m in self.masters if out}
-        self._buttons_out = {m: out(mk.master(m, "buttons")) for m in self.masters if out}
+        self._pose_out = {m: out(mk.master(m, "measured_cp"), datagram=True) for m in self.masters if out}
+        self._buttons_out = {m: out(mk.master(m, "buttons"), datagram=True) for m in self.masters if out}
         self._stop = threading.Event()
         self._wake = threading.Event()
         self._recorder: Any = None
@@ -361,6 +361,7 @@ class WebConsole:
         timer = CycleTimer(self.web.rate_hz)
         every = max(1, round(self.web.rate_hz / self.web.buttons_hz))
         last: dict[str, tuple[bool, bool] | None] = dict.fromkeys(self.masters)
+        repeat: dict[str, int] = {}  # cycles left to send a master's buttons again after a change
         n = 0
         while not self._stop.is_set():
             now = time.monotonic()
@@ -373,8 +374,10 @@ class WebConsole:
                     continue
                 buttons = (p.clutch, p.present)
                 bo, po = self._buttons_out[m], self._pose_out[m]
-                if buttons != last[m] or n % every == 0:
-                    last[m] = buttons
+                if buttons != last[m]:
+                    repeat[m] = DATAGRAM_REPEAT + 1  # (master_capture's: a lost packet loses nothing)
+                if repeat.get(m, 0) > 0 or n % every == 0:
+                    last[m], repeat[m] = buttons, repeat.get(m, 0) - 1
                     bo.put(MasterButtons(bo.header(), *buttons))
                 h = dataclasses.replace(po.header(), stamp_ns=p.stamp_ns)
                 po.put(CartesianPose(h, "master", p.position, p.orientation))

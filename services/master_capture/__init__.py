@@ -2,7 +2,10 @@
 
 Publishes at ``rate_hz`` on ``master/<arm>/measured_cp`` (CartesianPose, m, master frame) and, for
 devices with joints, ``master/<arm>/measured_js``; ``master/<arm>/buttons`` (MasterButtons) goes out
-before the pose on every change and at least at ``buttons_hz``. While the device's reading is not
+before the pose on every change (and in the ``DATAGRAM_REPEAT`` cycles after it, shared/bus.py)
+and at least at ``buttons_hz``. All three are datagram streams: with ``--datagram`` they go best effort over
+UDP, in one order (shared/bus.py), so a clutch release never arrives after the poses that follow
+it, and one lost packet does not lose the release. While the device's reading is not
 valid (``DeviceSample.valid``) nothing is published, so the watchdog holds. A device with an
 ``engage_retry`` (the scripted pedal) is told of the mapping's refused engages of this master
 (``mapping/*/teleop_state`` ENGAGING → HOLDING); a device with a ``connect(node)`` (the ``policy``
@@ -33,7 +36,7 @@ from telesurg.services.master_capture import devices
 from telesurg.services.master_capture.devices.desk import DeskConfig
 from telesurg.services.master_capture.devices.scripted import EngageRetry, ScriptedConfig
 from telesurg.services.master_capture.devices.serial import SerialMasterConfig
-from telesurg.shared.bus import BusConfig, Node
+from telesurg.shared.bus import DATAGRAM_REPEAT, BusConfig, Node
 from telesurg.shared.errors import ConfigError
 from telesurg.shared.haptics import BilateralConfig, ForceRenderer, RenderConfig, SlavePacket, make_bilateral
 from telesurg.shared.haptics.guidance import Guidance, GuidanceSettings
@@ -153,13 +156,14 @@ def run(cfg: MasterCaptureConfig, stop: threading.Event) -> None:
         connect = getattr(device, "connect", None)
         if callable(connect):  # a device that reads the bus (policy: the slave's measurements)
             connect(node)
-        pose_out = node.outlet(k.master(cfg.arm, "measured_cp"))
-        buttons_out = node.outlet(k.master(cfg.arm, "buttons"))
-        js_out = node.outlet(k.master(cfg.arm, "measured_js")) if device.joint_names else None
+        pose_out = node.outlet(k.master(cfg.arm, "measured_cp"), datagram=True)
+        buttons_out = node.outlet(k.master(cfg.arm, "buttons"), datagram=True)
+        js_out = node.outlet(k.master(cfg.arm, "measured_js"), datagram=True) if device.joint_names else None
         timer = CycleTimer(cfg.rate_hz)
         t0 = time.monotonic()
         buttons_every = max(1, round(cfg.rate_hz / cfg.buttons_hz))
         last_buttons: tuple[bool, bool] | None = None
+        repeat = 0  # cycles left to send the buttons again after a change
         outages = 0
         console: list[tuple[bool, float]] = [(False, 0.0)]  # (pressed, monotonic time received)
 
@@ -218,8 +222,10 @@ def run(cfg: MasterCaptureConfig, stop: threading.Event) -> None:
             pressed, at = console[0]
             console_clutch = pressed and time.monotonic() - at <= console_timeout
             buttons = (s.clutch or console_clutch, s.operator_present)
-            if buttons != last_buttons or timer.cycles % buttons_every == 0:
-                last_buttons = buttons
+            if buttons != last_buttons:
+                repeat = DATAGRAM_REPEAT + 1
+            if repeat > 0 or timer.cycles % buttons_every == 0:
+                last_buttons, repeat = buttons, repeat - 1
                 buttons_out.put(MasterButtons(buttons_out.header(), *buttons))
             energy = haptic.step(s.position, time.monotonic()) if haptic is not None else 0.0
             pose_out.put(CartesianPose(pose_out.header(), "master", s.position, s.orientation, energy))

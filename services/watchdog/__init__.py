@@ -94,6 +94,10 @@ class WatchdogConfig:
     # older than this → HOLD (counted from the motion's start at the earliest)
     setpoint_js_deadline_ms: float = 100.0
     max_loss_per_s: int = 10  # lost + reordered control messages per second above this → DEGRADED
+    # the master's pose: more than this % of its samples lost or reordered in the last second →
+    # DEGRADED. Counted apart: over the datagram link (shared/bus.py) a WAN loses a few, each
+    # superseded by the next sample; its staleness is master_deadline_ms's
+    max_master_loss_pct: float = 10.0
     # clock: servo_jp's age since its master sample's stamp, on this host's clock (the master
     # host's offset, from the clock probes, taken out); echo: half the probes' round trip
     latency_source: str = "clock"
@@ -168,6 +172,8 @@ class WatchdogConfig:
             raise ConfigError(
                 f"latency_source {self.latency_source!r} invalid; valid: {', '.join(LATENCY_SOURCES)}"
             )
+        if not 0.0 < self.max_master_loss_pct <= 100.0:
+            raise ConfigError(f"max_master_loss_pct={self.max_master_loss_pct} outside (0, 100]")
         if not 0 < self.latency_budget_ms < self.latency_limit_ms:
             raise ConfigError("need 0 < latency_budget_ms < latency_limit_ms")
         if not 0.0 < self.degraded_scale <= 1.0:
@@ -222,11 +228,8 @@ class ArmWatch:
             k.slave(arm, "measured_js"): cfg.slave_deadline_ms,
             k.slave(arm, "operating_state"): cfg.slave_state_deadline_ms,
         }
-        self.control = [
-            k.master(master, "measured_cp"),
-            k.slave(arm, "servo_jp"),
-            k.slave(arm, "measured_js"),
-        ]
+        self.control = [k.slave(arm, "servo_jp"), k.slave(arm, "measured_js")]  # max_loss_per_s
+        self.master_pose = k.master(master, "measured_cp")  # max_master_loss_pct
         profile = arm_profile(cfg.model, arm)
         self.safety = ArmSafety(
             arm, cfg.policy(arm), profile.joint_names, tip_of=profile.tip, rule_settings=cfg.rules
@@ -238,7 +241,9 @@ class ArmWatch:
             cfg.patient_box_max_mm if keepout else None,
             tip_of=profile.tip,
         )
-        self.loss: deque[tuple[float, int]] = deque()  # (mono s, lost + reordered so far)
+        # (mono s, lost + reordered so far on the control streams, on the master pose, master
+        # poses received so far)
+        self.loss: deque[tuple[float, int, int, int]] = deque()
         self.lease_out: Outlet = node.outlet(k.safety(arm, "lease"))
         self.state_out: Outlet = node.outlet(k.safety(arm, "state"), control=False)
         self.video_out: Outlet | None = (
@@ -453,13 +458,20 @@ class Watchdog:
         for key in a.control:
             st = self.node.streams.get(key)
             total += st.lost + st.reordered
-        a.loss.append((now, total))
+        m = self.node.streams.get(a.master_pose)
+        a.loss.append((now, total, m.lost + m.reordered, m.received))
         while len(a.loss) > 1 and now - a.loss[1][0] >= 1.0:
             a.loss.popleft()
-        lost = total - a.loss[0][1]
+        first = a.loss[0]
+        out = []
+        lost = total - first[1]
         if lost > self.cfg.max_loss_per_s:
-            return [f"{lost} control messages lost or reordered in the last second"]
-        return []
+            out.append(f"{lost} control messages lost or reordered in the last second")
+        m_lost, m_rx = m.lost + m.reordered - first[2], m.received - first[3]
+        if m_lost and 100.0 * m_lost / (m_lost + m_rx) > self.cfg.max_master_loss_pct:
+            pct = 100.0 * m_lost / (m_lost + m_rx)
+            out.append(f"{pct:.0f} % of the master's poses lost or reordered in the last second")
+        return out
 
     def tick(self, *, force_state: bool = False) -> None:
         """Evaluate every arm, publish leases (and states on change or when forced)."""

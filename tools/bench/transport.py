@@ -9,7 +9,9 @@ streams retransmit in user space, UDP and QUIC datagrams (``?rel=0``) do not ret
 In one namespace a zenoh router subscribes (the slave site); in the other a client publishes a
 stream at ``--rate-hz`` with the control-stream QoS of :meth:`telesurg.shared.bus.Node.outlet` (express,
 real-time priority, congestion control BLOCK; reliable, except ``quic-mixed``: best effort over
-datagrams). Both stamp CLOCK_MONOTONIC, which namespaces share, so latency is one-way. The loss
+datagrams, and ``tls+datagram``: the deployed datagram link, best effort over UDP beside the
+mutual-TLS session, through the site's ACL). Both stamp CLOCK_MONOTONIC, which namespaces share,
+so latency is one-way. The loss
 is switched on after the session is up and the stream flows (handshake robustness is not what
 is measured). Per protocol and loss rate: delivered %, one-way latency p50/p99/max, and
 **stalls** — receive gaps longer than ``--stall-ms`` (no sample reached the slave) — their
@@ -64,8 +66,14 @@ TRANSPORTS: dict[str, tuple[str, str, bool, bool]] = {
     "quic": ("quic", "", True, False),
     "quic-dgram": ("quic", "?rel=0", True, False),
     "quic-mixed": ("quic", "?mixed_rel=1", True, True),
+    # the deployed datagram link (shared/bus.py ``datagram``): a mutual-TLS session and a second,
+    # publish-only session on the router's udp/ listener that carries the stream best effort,
+    # through the site's ACL (deploy/slave-site/acl.json5), on the master pose's key
+    "tls+datagram": ("tls", "", True, True),
 }
+ACL = Path(__file__).resolve().parents[2] / "deploy" / "slave-site" / "acl.json5"
 KEY = "bench/transport/stream"
+DATAGRAM_KEY = "telesurg/lab/master/m1/measured_cp"  # the one key the ACL lets a UDP transport put
 HEADER = struct.Struct("<qq")  # seq, send time (monotonic ns)
 PORT = 7447
 ADDR_PUB, ADDR_SUB = "10.251.0.1", "10.251.0.2"
@@ -105,6 +113,12 @@ def _bus(transport: str, role: str, certs: Path) -> BusConfig:
     else:
         cfg = BusConfig(mode="client", connect=[ep])
         ident = "console"
+    if transport == "tls+datagram":
+        if role == "sub":
+            cfg.listen.append(f"udp/{ADDR_SUB}:{PORT}")
+            cfg.acl_file = str(ACL)
+        else:
+            cfg.datagram = f"udp/{ADDR_SUB}:{PORT}"
     if mtls:
         cfg.tls_root_ca = str(certs / "ca.pem")
         cfg.tls_cert, cfg.tls_key = str(certs / f"{ident}.pem"), str(certs / f"{ident}.key")
@@ -130,7 +144,8 @@ def run_sub(transport: str, certs: Path, out: Path) -> int:
             rows.append((seq, t_sent, now))
 
     session = open_session(_bus(transport, "sub", certs))
-    _sub = session.declare_subscriber(KEY, on_sample)  # keep a reference: undeclared on GC
+    key = DATAGRAM_KEY if transport == "tls+datagram" else KEY
+    _sub = session.declare_subscriber(key, on_sample)  # keep a reference: undeclared on GC
     print("ready", flush=True)
     stop.wait()
     session.close()  # type: ignore[no-untyped-call]
@@ -144,12 +159,17 @@ def run_pub(transport: str, certs: Path, rate_hz: float, seconds: float, size: i
     import zenoh
 
     best_effort = TRANSPORTS[transport][3]
-    session = open_session(_bus(transport, "pub", certs))
+    bus = _bus(transport, "pub", certs)
+    main_session = session = open_session(bus)
+    key, congestion = KEY, zenoh.CongestionControl.BLOCK
+    if bus.datagram:  # the datagram session beside the TLS one, as Node.outlet(datagram=True) has it
+        session = open_session(BusConfig(mode="client", connect=[bus.datagram]))
+        key, congestion = DATAGRAM_KEY, zenoh.CongestionControl.DROP
     pub = session.declare_publisher(
-        KEY,
+        key,
         express=True,
         priority=zenoh.Priority.REAL_TIME,
-        congestion_control=zenoh.CongestionControl.BLOCK,
+        congestion_control=congestion,
         reliability=zenoh.Reliability.BEST_EFFORT if best_effort else zenoh.Reliability.RELIABLE,
     )
     pad = b"\0" * max(0, size - HEADER.size)
@@ -162,6 +182,8 @@ def run_pub(transport: str, certs: Path, rate_hz: float, seconds: float, size: i
     print(f"sent {n} overruns {timer.overruns}", flush=True)
     time.sleep(0.5)  # let the last samples leave before the session closes
     session.close()  # type: ignore[no-untyped-call]
+    if main_session is not session:
+        main_session.close()  # type: ignore[no-untyped-call]
     return 0
 
 
@@ -339,8 +361,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     )
     ap.add_argument(
         "--transports",
-        default="tcp,tls,udp,quic,quic-dgram",
-        help=f"comma-separated, from {', '.join(TRANSPORTS)} (default: tcp,tls,udp,quic,quic-dgram)",
+        default="tcp,tls,udp,quic,quic-dgram,tls+datagram",
+        help=f"comma-separated, from {', '.join(TRANSPORTS)} (default: all but quic-mixed)",
     )
     ap.add_argument("--loss", help="loss probabilities (default: the profile's, else 0,0.01,0.05)")
     ap.add_argument("--seconds", type=float, default=10.0, help="measured seconds per run (default 10)")
