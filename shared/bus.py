@@ -24,7 +24,7 @@
   packet costs one sample instead of stalling the stream for a round trip as TLS over TCP does.
   Everything else stays on the main (mutual TLS) session. Each sample is still signed and
   checked for freshness; the site's ACL lets a UDP transport put those streams and nothing else
-  (docs/deploy.md, "Link protocol").
+  (docs/deploy.md, "Across a distance").
 * State streams (``outlet(..., latest=True)``, ``subscribe(..., latest=True)``): the publisher
   answers a query on its key with its last message and a subscriber asks once when it
   subscribes, so a late joiner (a console started mid-session) has the current value at once,
@@ -244,6 +244,9 @@ def load_acl(path: str) -> str:
     return text
 
 
+#: ms a datagram session keeps trying to connect at start (its UDP handshake is not retransmitted)
+DATAGRAM_CONNECT_MS = 5000
+
 #: Cycles after a change of a state sample on a datagram stream (the master's buttons) in which it
 #: goes out again: a lost packet must not lose a clutch press or release (1.2 % loss, 6 in a row:
 #: ~3e-12)
@@ -364,14 +367,20 @@ def zenoh_config(cfg: BusConfig) -> zenoh.Config:
     return z
 
 
-def open_session(cfg: BusConfig) -> zenoh.Session:
-    """Open a zenoh session; errors name the endpoint that failed."""
+def open_session(cfg: BusConfig, *, retry_ms: int = 0) -> zenoh.Session:
+    """Open a zenoh session; errors name the endpoint that failed. ``retry_ms``: keep trying to
+    connect this long (a UDP handshake has no retransmission: on a lossy link one try can fail)."""
     import zenoh
 
     if cfg.zenoh_log:
         zenoh.init_log_from_env_or(cfg.zenoh_log)
     try:
-        return zenoh.open(zenoh_config(cfg))
+        z = zenoh_config(cfg)
+        if retry_ms:
+            z.insert_json5("connect/timeout_ms", json.dumps(retry_ms))
+            retry = {"period_init_ms": 200, "period_max_ms": 1000, "period_increase_factor": 2}
+            z.insert_json5("connect/retry", json.dumps(retry))
+        return zenoh.open(z)
     except zenoh.ZError as exc:
         tls = tls_diagnosis(cfg)
         if cfg.mode == "client" and not tls and "Unable to connect to any of" in str(exc):
@@ -479,7 +488,8 @@ class Node:
                 self._datagram = open_session(
                     BusConfig(
                         mode="client", connect=[bus.datagram], lease_ms=bus.lease_ms, zenoh_log=bus.zenoh_log
-                    )
+                    ),
+                    retry_ms=DATAGRAM_CONNECT_MS,
                 )
             except ConnectionError:
                 self.session.close()  # type: ignore[no-untyped-call]

@@ -1,19 +1,22 @@
 """The console across a lossy WAN: the master's pose over the datagram link keeps the arm following.
 
-Two network namespaces joined by a packet link (``tools/bench/impair.py`` ``PacketLink``) with the
-``5g-microhand`` profile: 57 ms each way and 1.2 % random loss per packet and direction, on every
-protocol (the TLS connection loses packets too, and its TCP retransmits them). The slave namespace
-runs ``deploy/slave-site.sh --datagram-port 7449`` (router with mutual TLS and the ACL, watchdog,
-slave_control on MuJoCo, mapping); the console namespace ``deploy/console.sh --datagram 7449
---no-console`` (master_capture: pose and buttons best effort over UDP, everything else over the
-mutual-TLS session). A probe on the slave site's loopback listener records what it shows.
+Two network namespaces joined by a packet link (``tools/bench/impair.py`` ``PacketLink``, in a
+process of its own) with the ``5g-microhand`` profile: 57 ms each way and 1.2 % random loss per
+packet and direction, on every protocol (the TLS connection loses packets too; its TCP
+retransmits them). The slave namespace runs ``deploy/slave-site.sh --datagram-port 7449``
+(router with mutual TLS and the ACL, watchdog, slave_control on MuJoCo, mapping); the console
+namespace ``deploy/console.sh --datagram 7449 --no-console`` (master_capture: pose and buttons
+best effort over UDP, everything else over the mutual-TLS session). A probe on the slave site's
+loopback listener records what it shows.
 
-A user notices, and the test checks, over one engagement of ~20 s: the slave follows the whole time
+A user notices, and the test checks, over one engagement of 20 s: the slave follows the whole time
 (no HOLD, no drop out of follow), the master pose reaches the slave site with the link's own delay
-(the longest gap between arrivals stays far below the 80 ms stream deadline: no head-of-line
-stall), the link's loss and delay cause no DEGRADED (no change of motion scale), and the tip
-moves. (The same over TLS alone stalls for a round trip at each loss and holds the arm:
-``telesurg bench transport``, docs/deploy.md.)
+(the longest gap between arrivals stays below the 80 ms stream deadline: no head-of-line
+stall), the poses' age is the link's own delay + 15 ms at most (p99), DEGRADED (a change of
+motion scale) comes only where docs/safety.md says, and the tip follows the command within 1 mm.
+(The same over TLS alone stalls for a round trip at each loss and holds the arm: ``telesurg
+bench transport``, docs/deploy.md.) The profile and the engaged time are the environment's
+(``TELESURG_WAN_PROFILES``, ``TELESURG_WAN_SECONDS``; below). A second test cuts the link.
 
 Also, on the datagram listener, a stranger (no certificate, plain UDP) can neither read the site
 nor put anything but the master's streams, and its forged pose and pedal are refused by the
@@ -25,14 +28,17 @@ Root and ``ip netns`` are required (skipped otherwise).
 from __future__ import annotations
 
 import contextlib
+import itertools
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
 import threading
 import time
 from collections.abc import Iterator
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -42,7 +48,7 @@ from helpers import clutch_flags
 from telesurg.services.keys import export
 from telesurg.shared.auth import IDENTITIES, KEYS_ENV, init_keyring
 from telesurg.tools.bench.impair import NetNamespace, PacketLink
-from telesurg.tools.bench.netprofile import profile
+from telesurg.tools.bench.netprofile import LinkProfile, profile
 from test_two_hosts import REPO, SITE, TwoHosts, _log_tail, needs_two_hosts
 
 pytestmark = [pytest.mark.process, pytest.mark.timeout(300)]
@@ -50,13 +56,30 @@ pytestmark = [pytest.mark.process, pytest.mark.timeout(300)]
 SLAVE_ADDR, CONSOLE_ADDR = "198.18.1.1", "198.18.1.2"  # RFC 2544 benchmark range, on the packet link
 TLS_PORT, LOCAL_PORT, DATAGRAM_PORT = 7447, 7448, 7449
 DEADLINE_MS = 80.0  # the watchdog's master_deadline_ms default
-ENGAGED_S = 20.0
+# one engagement this long, on each of these profiles (tools/bench/netprofile.py; NAME+FIELD=VALUE
+# overrides a field, e.g. 5g-microhand+loss=0.05+burst=4); the 5 minutes on three of issue #41:
+# TELESURG_WAN_SECONDS=300 TELESURG_WAN_PROFILES=fibre-30km,5g-microhand,lindbergh
+ENGAGED_S = float(os.environ.get("TELESURG_WAN_SECONDS", "20"))
+PROFILES = os.environ.get("TELESURG_WAN_PROFILES", "5g-microhand").split(",")
+
+
+def _profile(spec: str) -> LinkProfile:
+    """``NAME+FIELD=VALUE...``: the named profile with those fields."""
+    name, *over = spec.split("+")
+    fields = {k: (float(v) if k != "jitter" else v) for k, _, v in (o.partition("=") for o in over)}
+    for k in ("queue", "bucket_bytes"):
+        if k in fields:
+            fields[k] = int(fields[k])
+    return profile(name, **fields)
 
 
 @contextlib.contextmanager
-def wan(tmp: Path, *, datagram: bool = True, link_profile: str = "5g-microhand") -> Iterator[TwoHosts]:
-    """The slave site and the console in two namespaces on a packet link with ``link_profile``,
-    the probe on the slave site's local listener; the console engaged once for ``ENGAGED_S``."""
+def wan(
+    tmp: Path, *, datagram: bool = True, link_profile: str = "5g-microhand", clutch: str = ""
+) -> Iterator[TwoHosts]:
+    """The slave site and the console in two namespaces on a packet link with ``link_profile``
+    (``h.link``), the probe on the slave site's local listener; the console engaged once for
+    ``ENGAGED_S``, or as ``clutch`` says (``[[on, off]]`` every 14 s)."""
     from telesurg.services.certs import CertsConfig, make_certs
 
     certs, logs = tmp / "certs", tmp / "logs"
@@ -66,16 +89,23 @@ def wan(tmp: Path, *, datagram: bool = True, link_profile: str = "5g-microhand")
     export(site_keys, ["master_capture", "console"], "console", "slave-site", tmp / "console-keys")
     env = dict(os.environ, PYTHONPATH=str(REPO), PYTHONUNBUFFERED="1", **{KEYS_ENV: str(site_keys)})
     tag = os.getpid() % 100000
-    with (
-        NetNamespace(f"tswan-slave-{tag}") as ns_s,
-        NetNamespace(f"tswan-console-{tag}") as ns_c,
-        PacketLink(
-            ns_s.name, ns_c.name, addr_a=SLAVE_ADDR, addr_b=CONSOLE_ADDR, name=f"tw{tag}", seed=11
-        ) as link,
-    ):
-        link.set_profile(profile(link_profile))
+    with NetNamespace(f"tswan-slave-{tag}") as ns_s, NetNamespace(f"tswan-console-{tag}") as ns_c:
         h = TwoHosts(ns_s, ns_c, certs, certs, logs, env, tmp / "console-keys")
         try:
+            # the packet link in a process of its own: this one's garbage collection and the
+            # probe's JSON must not hold up its forwarding thread (they did: 100 ms once in 5 min)
+            argv = [sys.executable, str(Path(__file__).resolve()), "packetlink", ns_s.name, ns_c.name]
+            link = subprocess.Popen(
+                [*argv, f"tw{tag}", link_profile],
+                env=env,
+                stdin=subprocess.PIPE,
+                stdout=subprocess.PIPE,
+                text=True,
+                start_new_session=True,
+            )
+            h.procs["link"] = link
+            assert link.stdout is not None and link.stdout.readline().strip() == "ready", "no packet link"
+            h.link = LinkControl(link)  # type: ignore[attr-defined]
             site = [str(REPO / "deploy" / "slave-site.sh"), "--site", SITE, "--certs", str(certs)]
             site += ["--listen", f"tls/0.0.0.0:{TLS_PORT}", "--local-port", str(LOCAL_PORT)]
             site += ["--log-dir", str(logs / "slave"), "--credentials-dir", str(tmp / "local-creds")]
@@ -98,16 +128,14 @@ def wan(tmp: Path, *, datagram: bool = True, link_profile: str = "5g-microhand")
             if datagram:
                 console += ["--datagram", str(DATAGRAM_PORT)]
             # one long engagement: pressed from 3 s (the watchdog's first leases) for ENGAGED_S
-            console += [
-                *clutch_flags(),
-                "--set",
-                f"master_capture.scripted.clutch=[[3.0, {3.0 + ENGAGED_S}]]",
-            ]
-            console += ["--set", "master_capture.scripted.clutch_repeat_s=0.0"]
+            schedule = clutch or f"[[3.0, {3.0 + ENGAGED_S}]]"
+            console += [*clutch_flags(), "--set", f"master_capture.scripted.clutch={schedule}"]
+            repeat = "14.0" if clutch else "0.0"
+            console += ["--set", f"master_capture.scripted.clutch_repeat_s={repeat}"]
             h.spawn("console", ns_c, console)
             yield h
         finally:
-            for name in ("console", "probe", "slave-site"):
+            for name in ("console", "probe", "slave-site", "link"):
                 h.stop(name)
             with (logs / "probe.jsonl").open("w") as f, h.probe.lock:
                 f.writelines(json.dumps(r) + "\n" for r in h.probe.recs)
@@ -116,20 +144,79 @@ def wan(tmp: Path, *, datagram: bool = True, link_profile: str = "5g-microhand")
                     os.killpg(p.pid, signal.SIGKILL)
 
 
+@dataclass
+class LinkControl:
+    """Cut and restore the packet link of ``packetlink_main`` (a line each on its stdin)."""
+
+    proc: subprocess.Popen[str]
+
+    def _say(self, line: str) -> None:
+        assert self.proc.stdin is not None and self.proc.stdout is not None
+        self.proc.stdin.write(line + "\n")
+        self.proc.stdin.flush()
+        assert self.proc.stdout.readline().strip() == f"ok {line}"
+
+    def cut(self) -> None:
+        self._say("cut")
+
+    def restore(self) -> None:
+        self._say("restore")
+
+
+def packetlink_main(ns_a: str, ns_b: str, name: str, spec: str) -> int:
+    """A :class:`PacketLink` between the two namespaces with ``spec``'s profile until stdin ends
+    or SIGTERM/SIGINT; ``cut`` / ``restore`` lines cut and restore it (each answered ``ok ...``)."""
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, signal.default_int_handler)
+    with PacketLink(ns_a, ns_b, addr_a=SLAVE_ADDR, addr_b=CONSOLE_ADDR, name=name, seed=11) as link:
+        link.set_profile(_profile(spec))
+        print("ready", flush=True)
+        with contextlib.suppress(KeyboardInterrupt):
+            for line in sys.stdin:
+                cmd = line.strip()
+                if cmd == "cut":
+                    link.cut()
+                elif cmd == "restore":
+                    link.restore()
+                print(f"ok {cmd}", flush=True)
+    return 0
+
+
 def _engagement(h: TwoHosts) -> dict[str, Any]:
     """Wait for the engagement and its end; what the slave site saw during it."""
     engaged = h.probe.wait("op", lambda r: r["follow"], timeout=60.0)
     assert engaged is not None, f"the slave never followed the console\n{_log_tail(h.logs)}"
     t0 = engaged["t"]
-    release = h.probe.wait("clutch", lambda c: not c["v"], after=t0, timeout=ENGAGED_S + 15.0)
+    time.sleep(max(0.0, ENGAGED_S - 2.0 - (time.monotonic_ns() - t0) / 1e9))  # (no polling meanwhile)
+    release = h.probe.wait("clutch", lambda c: not c["v"], after=t0, timeout=20.0)
     assert release is not None, f"no clutch release\n{_log_tail(h.logs)}"
     t1 = release["t"] - 200_000_000  # up to the release (its state change takes a moment)
     ops = h.probe.of("op", t0, t1)
     drops = [r for r in ops if not r["follow"]]
     holds = [s for s in h.probe.of("safety", t0, t1) if s["state"] == "HOLD"]
     degraded = [s for s in h.probe.of("safety", t0, t1) if s["state"] == "DEGRADED"]
-    arrivals = np.array([r["t"] for r in h.probe.of("mt", t0, t1)], dtype=np.int64)
-    gaps = np.diff(arrivals) / 1e6 if len(arrivals) > 1 else np.array([np.inf])
+    summaries = h.probe.of("ms", t0 + 1_000_000_000, t1)  # (each: the second before it)
+    ages = np.array([a for r in summaries for a in r["age"]] or [np.inf])
+    gaps = np.array([g for r in summaries for g in r["gap"]] or [np.inf])
+    # tracking: the slave's tip against the mapping's commanded tip (interpolated), at the lag
+    # that fits best (the servo's own, a few ms): what is left is the error the surgeon would see
+    t_end = min([t1, *(r["t"] for r in drops)])  # while the slave follows
+    sps = h.probe.of("sp", t0, t_end)
+    tips = h.probe.of("tip", t0 + 500_000_000, t_end)
+    err, lag_ms = np.array([np.inf]), float("nan")
+    if len(sps) > 1 and tips:
+        sp_t = np.array([r["t"] for r in sps], dtype=np.float64)
+        sp_p = np.array([r["p"] for r in sps])
+        tip_t = np.array([r["t"] for r in tips], dtype=np.float64)
+        tip_p = np.array([r["p"] for r in tips])
+
+        def errors(lag_ns: float) -> np.ndarray:
+            at = tip_t - lag_ns
+            cmd = np.stack([np.interp(at, sp_t, sp_p[:, j]) for j in range(3)], axis=1)
+            return np.linalg.norm(tip_p - cmd, axis=1) * 1e3
+
+        lag_ms = min(range(0, 101, 5), key=lambda ms: float(np.mean(errors(ms * 1e6))))
+        err = errors(lag_ms * 1e6)
     p50 = [s["p50"] for s in h.probe.of("safety", t0, t1)]
     causes = sorted(
         {c for s in h.probe.of("safety", t0, t1) if s["state"] == "DEGRADED" for c in s["causes"]}
@@ -140,9 +227,14 @@ def _engagement(h: TwoHosts) -> dict[str, Any]:
         "out_of_follow": float(len(drops)),
         "holds": float(len(holds)),
         "degraded_reports": float(len(degraded)),
-        "master_samples": float(len(arrivals)),
+        "master_samples": float(len(ages)),
         "gap_p99_ms": float(np.percentile(gaps, 99)),
         "gap_max_ms": float(gaps.max()),
+        "age_p50_ms": float(np.percentile(ages, 50)),
+        "age_p99_ms": float(np.percentile(ages, 99)),
+        "tracking_p99_mm": float(np.percentile(err, 99)),
+        "tracking_max_mm": float(err.max()),
+        "tracking_lag_ms": lag_ms,
         "latency_p50_ms": float(np.median(p50)) if p50 else float("nan"),
         "tip_travel_mm": h.probe.motion_mm(t0, t1),
         "degraded_causes": causes,
@@ -183,9 +275,12 @@ def stranger_main(endpoint: str) -> int:
     return 0
 
 
-def test_the_arm_follows_through_a_lossy_wan_on_the_datagram_link(tmp_path: Path) -> None:
+@pytest.mark.timeout(ENGAGED_S + 240)
+@pytest.mark.parametrize("link_profile", PROFILES)
+def test_the_arm_follows_through_a_lossy_wan_on_the_datagram_link(tmp_path: Path, link_profile: str) -> None:
     needs_two_hosts()
-    with wan(tmp_path, datagram=True) as h:
+    prof = _profile(link_profile)
+    with wan(tmp_path, datagram=True, link_profile=link_profile) as h:
         dg = _engagement(h)
         # a stranger on the datagram listener, once the arm is out of follow
         time.sleep(1.0)
@@ -205,17 +300,27 @@ def test_the_arm_follows_through_a_lossy_wan_on_the_datagram_link(tmp_path: Path
         moved_mm = h.probe.motion_mm(t_s, t_e + 300_000_000)
         followed = [r for r in h.probe.of("op", t_s) if r["follow"]]
         estops = [s for s in h.probe.of("safety", t_s) if "estop" in " ".join(s["causes"]).lower()]
-    print(f"\n5g-microhand, the master's pose over the datagram link: {json.dumps(dg)}")
+    dg = {"profile": link_profile, "link": prof.describe(), **dg}
+    print(f"\n{link_profile}, the master's pose over the datagram link: {json.dumps(dg)}")
     if perf := os.environ.get("TELESURG_PERF_DIR"):
-        (Path(perf) / "wan-5g-microhand.json").write_text(json.dumps(dg, indent=1) + "\n")
+        name = link_profile.replace("+", "_").replace("=", "")
+        (Path(perf) / f"wan-{name}.json").write_text(json.dumps(dg, indent=1) + "\n")
     assert dg["engaged_s"] > 0.8 * ENGAGED_S
     assert dg["out_of_follow"] == 0 and dg["holds"] == 0, dg
-    # 500 Hz less the link's 1.2 %: no stall; the newest pose is never older than the deadline
-    assert dg["master_samples"] > 0.9 * 500 * dg["engaged_s"], dg
-    assert dg["gap_max_ms"] < DEADLINE_MS / 2, dg
-    assert dg["tip_travel_mm"] > 5.0, dg
-    # the link's 1.2 % loss and 57 ms are within the watchdog's budgets: no DEGRADED (motion scale)
-    assert not dg["degraded_causes"], dg
+    # 500 Hz less the link's loss: no stall; the newest pose is never older than the deadline
+    assert dg["master_samples"] > 0.9 * 500 * (dg["engaged_s"] - 1.0), dg
+    assert dg["gap_max_ms"] < DEADLINE_MS, dg
+    # the poses' age at the slave site: the link's own delay and jitter, + 15 ms at most (p99)
+    assert dg["age_p99_ms"] <= prof.delay_ms + prof.jitter_ms + 15.0, dg
+    # the slave's tip on the commanded one (the mapping's, at the servo's lag) within 1 mm
+    assert dg["tip_travel_mm"] > 5.0 and dg["tracking_max_mm"] < 1.0, dg
+    # DEGRADED (half the motion scale) only where docs/safety.md says: latency p90 above the
+    # 100 ms budget, or more than 10 % of a second's poses lost (a loaded host's stall can add
+    # its own drops to the link's); never for the link's delay alone when it is within budget
+    documented = re.compile(r"latency p90 .* > budget|% of the master's poses lost")
+    assert all(documented.search(c) for c in dg["degraded_causes"]), dg
+    if prof.delay_ms + prof.jitter_ms + 15.0 < 100.0:
+        assert not [c for c in dg["degraded_causes"] if "latency" in c], dg
     # the stranger: read nothing, no reply, its e-stop and setpoints never arrived, its forged
     # poses and buttons arrived and were refused by the message authentication; nothing moved
     print(
@@ -228,7 +333,64 @@ def test_the_arm_follows_through_a_lossy_wan_on_the_datagram_link(tmp_path: Path
     assert moved_mm < 0.1
 
 
+@pytest.mark.timeout(300)
+def test_outages_hold_the_arm_and_only_a_fresh_press_resumes_it(tmp_path: Path) -> None:
+    """Over ``5g-microhand``, the link cut for 0.3 s and then for 10 s (the sessions' lease, 1 s,
+    runs out: both reconnect) while the arm follows: the slave holds within the lease of the last
+    pose that reached it, does not move while held, and follows again only after a clutch release
+    and a fresh press, without a jump."""
+    needs_two_hosts()
+    # pressed 10 s of every 14 s: each outage starts 2 s into an engagement
+    with wan(tmp_path, clutch="[[2.0, 12.0]]") as h:
+        link = h.link  # type: ignore[attr-defined]
+        figures = []
+        for outage_s in (0.3, 10.0):
+            press = h.probe.wait("clutch", lambda c: c["v"], after=time.monotonic_ns(), timeout=40.0)
+            assert press is not None, f"no clutch press\n{_log_tail(h.logs)}"
+            eng = h.probe.wait("op", lambda r: r["follow"], after=press["t"], timeout=8.0)
+            assert eng is not None, f"no engagement after the press\n{_log_tail(h.logs)}"
+            time.sleep(2.0)
+            t_cut = time.monotonic_ns()
+            link.cut()
+            time.sleep(outage_s)
+            t_restore = time.monotonic_ns()
+            link.restore()
+            hold = h.probe.wait("op", lambda r: not r["follow"], after=t_cut, timeout=5.0)
+            assert hold is not None and hold["t"] < t_restore, "the slave kept following through the cut"
+            again = h.probe.wait("op", lambda r: r["follow"], after=t_restore, timeout=45.0)
+            assert again is not None, f"no re-engage after the outage\n{_log_tail(h.logs)}"
+            silent_ms = (hold["t"] - hold["m_last"]) / 1e6
+            # a fresh press: a release, then a press, after the hold and before the re-engage (the
+            # press and the slave's state reach the probe on different paths: 0.3 s between them)
+            clutch = h.probe.of("clutch", hold["t"])
+            release = next((c for c in clutch if not c["v"]), None)
+            repress = next((c for c in clutch if c["v"] and release and c["t"] > release["t"]), None)
+            assert release and repress and repress["t"] <= again["t"] + 300_000_000, (clutch, again)
+            held_mm = h.probe.motion_mm(hold["t"] + 100_000_000, again["t"])
+            tips = [
+                r for r in h.probe.of("tip", again["t"] - 200_000_000) if r["t"] <= again["t"] + 500_000_000
+            ]
+            steps = [np.linalg.norm(np.subtract(b["p"], a["p"])) * 1e3 for a, b in itertools.pairwise(tips)]
+            jump_mm = float(max(steps, default=0.0))
+            figures.append(
+                {
+                    "outage_s": outage_s,
+                    "hold_after_last_pose_ms": round(silent_ms, 1),
+                    "moved_while_held_mm": round(held_mm, 3),
+                    "largest_tip_step_at_reengage_mm": round(jump_mm, 3),
+                    "reengaged_after_s": round((again["t"] - t_restore) / 1e9, 2),
+                }
+            )
+            print(f"\noutage {outage_s:g} s: {figures[-1]}")
+            assert hold["m_last"] > 0 and silent_ms < 250.0, figures[-1]  # the watchdog's lease
+            assert held_mm < 0.5 and jump_mm < 1.0, figures[-1]
+    if perf := os.environ.get("TELESURG_PERF_DIR"):
+        (Path(perf) / "wan-outages.json").write_text(json.dumps(figures, indent=1) + "\n")
+
+
 if __name__ == "__main__":
     if sys.argv[1] == "stranger":
         sys.exit(stranger_main(sys.argv[2]))
-    sys.exit(f"usage: {sys.argv[0]} stranger ENDPOINT")
+    if sys.argv[1] == "packetlink":
+        sys.exit(packetlink_main(*sys.argv[2:6]))
+    sys.exit(f"usage: {sys.argv[0]} stranger ENDPOINT | packetlink NS_A NS_B NAME PROFILE")
