@@ -320,6 +320,18 @@ class TwoHosts:
         return p.returncode
 
 
+    def shut_down(self, order: Sequence[str]) -> None:
+        """Stop these processes in turn, save the probe's records beside the logs, then kill
+        anything left in the processes' groups."""
+        for name in order:
+            self.stop(name)
+        with (self.logs / "probe.jsonl").open("w") as f, self.probe.lock:
+            f.writelines(json.dumps(r) + "\n" for r in self.probe.recs)
+        for p in self.procs.values():  # anything left in the namespaces' process groups
+            with contextlib.suppress(ProcessLookupError):
+                os.killpg(p.pid, signal.SIGKILL)
+
+
 def _log_tail(logs: Path) -> str:
     parts = []
     for f in sorted(logs.rglob("*")):
@@ -415,13 +427,7 @@ def two_hosts(
             assert h.probe.wait("ready", lambda r: True, timeout=30.0), "probe did not start"
             yield h
         finally:
-            for name in ("console", "probe", "impair", "slave-site"):
-                h.stop(name)
-            with (logs / "probe.jsonl").open("w") as f, h.probe.lock:
-                f.writelines(json.dumps(r) + "\n" for r in h.probe.recs)
-            for p in h.procs.values():  # anything left in the namespaces' process groups
-                with contextlib.suppress(ProcessLookupError):
-                    os.killpg(p.pid, signal.SIGKILL)
+            h.shut_down(("console", "probe", "impair", "slave-site"))
 
 
 @pytest.fixture(scope="module")
