@@ -13,10 +13,10 @@ A user notices, and the test checks, over one engagement of 20 s: the slave foll
 (no HOLD, no drop out of follow), DEGRADED (a change of motion scale) comes only where
 docs/safety.md says, and the tip follows the command within 1 mm. The poses' age at the slave
 site and the gaps between them are reported (printed, and written with ``TELESURG_PERF_DIR``),
-not asserted.
-(The same over TLS alone stalls for a round trip at each loss and holds the arm: ``telesurg
-bench transport``, docs/deploy.md.) The profile and the engaged time are the environment's
-(``TELESURG_WAN_PROFILES``, ``TELESURG_WAN_SECONDS``; below). A second test cuts the link.
+not asserted. (The same over TLS alone stalls for a round trip at each loss and holds the arm:
+``telesurg bench transport``, docs/deploy.md.) The profile and the engaged time are the
+environment's (``TELESURG_WAN_PROFILES``, ``TELESURG_WAN_SECONDS``; below). A second test cuts
+the link.
 
 Also, on the datagram listener, a stranger (no certificate, plain UDP) can neither read the site
 nor put anything but the master's streams, and its forged pose and pedal are refused by the
