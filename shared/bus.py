@@ -252,6 +252,30 @@ DATAGRAM_CONNECT_MS = 5000
 #: ~3e-12)
 DATAGRAM_REPEAT = 5
 
+
+class Resend:
+    """When a state sample of a datagram stream (a master's buttons) goes out: on every change
+    and in the :data:`DATAGRAM_REPEAT` calls after it, and at least every ``every`` calls.
+    :meth:`reset`: the next one goes out whatever it is (readings resume after a gap)."""
+
+    def __init__(self, every: int) -> None:
+        self.every = max(1, every)
+        self._last: object = None
+        self._left = 0  # calls left in which it goes out again after a change
+        self._calls = 0
+
+    def reset(self) -> None:
+        self._last = None
+
+    def due(self, state: object) -> bool:
+        """Whether ``state``, this call's, goes out."""
+        self._calls += 1
+        if state != self._last:
+            self._last, self._left = state, DATAGRAM_REPEAT + 1
+        self._left -= 1
+        return self._left >= 0 or self._calls % self.every == 0
+
+
 #: The endpoint a client connects to when no ``--connect`` (nor ``--zenoh-config``) is given: the
 #: router of the local site (``telesurg up`` / ``demo`` listen there by default).
 LOCAL_ROUTER = "tcp/127.0.0.1:7447"
@@ -365,6 +389,13 @@ def zenoh_config(cfg: BusConfig) -> zenoh.Config:
                 f"acl file {cfg.acl_file!r} is not a valid zenoh access_control: {exc}"
             ) from None
     return z
+
+
+def open_datagram_session(bus: BusConfig) -> zenoh.Session:
+    """The publish-only session of ``bus``'s datagram streams, on ``bus.datagram`` (the module
+    docstring); it keeps trying to connect for :data:`DATAGRAM_CONNECT_MS`."""
+    cfg = BusConfig(mode="client", connect=[bus.datagram], lease_ms=bus.lease_ms, zenoh_log=bus.zenoh_log)
+    return open_session(cfg, retry_ms=DATAGRAM_CONNECT_MS)
 
 
 def open_session(cfg: BusConfig, *, retry_ms: int = 0) -> zenoh.Session:
@@ -485,12 +516,7 @@ class Node:
         self._datagram: Any = None  # the publish-only session of the datagram streams
         if bus.datagram:
             try:
-                self._datagram = open_session(
-                    BusConfig(
-                        mode="client", connect=[bus.datagram], lease_ms=bus.lease_ms, zenoh_log=bus.zenoh_log
-                    ),
-                    retry_ms=DATAGRAM_CONNECT_MS,
-                )
+                self._datagram = open_datagram_session(bus)
             except ConnectionError:
                 self.session.close()  # type: ignore[no-untyped-call]
                 raise

@@ -212,3 +212,27 @@ def test_a_polled_stream_keeps_its_newest_few_and_a_poll_can_be_bounded(endpoint
         assert sub.poll() == 4 and got[fast][-1] == 40.0
         stats = sub.streams.get(fast)
         assert stats.received == 8 and stats.gaps >= 1, stats
+
+
+def test_a_state_sample_goes_out_on_change_again_after_it_and_periodically() -> None:
+    """A master's buttons on the datagram link: a change goes out and again in the next
+    DATAGRAM_REPEAT calls (a lost packet loses no clutch release), else every ``every`` calls."""
+    from telesurg.shared.bus import DATAGRAM_REPEAT, Resend
+
+    r = Resend(every=10)
+    sent = [r.due(s) for s in ["up"] * 20 + ["down"] * 20]
+    assert sent[: DATAGRAM_REPEAT + 1] == [True] * (DATAGRAM_REPEAT + 1)
+    assert [i for i, x in enumerate(sent) if x][DATAGRAM_REPEAT + 1 :] == [
+        9,
+        19,
+        20,
+        21,
+        22,
+        23,
+        24,
+        25,
+        29,
+        39,
+    ]
+    r.reset()  # readings resume after a gap: the next goes out, and again after it
+    assert [r.due("down") for _ in range(DATAGRAM_REPEAT + 2)] == [True] * (DATAGRAM_REPEAT + 1) + [False]

@@ -319,7 +319,6 @@ class TwoHosts:
                     stream.close()
         return p.returncode
 
-
     def shut_down(self, order: Sequence[str]) -> None:
         """Stop these processes in turn, save the probe's records beside the logs, then kill
         anything left in the processes' groups."""

@@ -67,7 +67,7 @@ from telesurg.services.console.browser import (
 from telesurg.services.console.control import Control
 from telesurg.services.console.model import ConsoleConfig, ConsoleModel
 from telesurg.shared import mjpeg, robots
-from telesurg.shared.bus import DATAGRAM_REPEAT, POLL_CAPACITY, Node, only
+from telesurg.shared.bus import POLL_CAPACITY, Node, Resend, only
 from telesurg.shared.clock import wall_ns
 from telesurg.shared.door import LOGIN_ENV, Door
 from telesurg.shared.errors import ConfigError
@@ -359,25 +359,18 @@ class WebConsole:
     def _publish_loop(self) -> None:
         start_loop(self.web.rt_priority)
         timer = CycleTimer(self.web.rate_hz)
-        every = max(1, round(self.web.rate_hz / self.web.buttons_hz))
-        last: dict[str, tuple[bool, bool] | None] = dict.fromkeys(self.masters)
-        repeat: dict[str, int] = {}  # cycles left to send a master's buttons again after a change
-        n = 0
+        resend = {m: Resend(round(self.web.rate_hz / self.web.buttons_hz)) for m in self.masters}
         while not self._stop.is_set():
             now = time.monotonic()
             with self.lock:
                 pubs = {m: bm.current(now) for m, bm in self.masters.items()}
-            n += 1
             for m, p in pubs.items():
                 if p is None:
-                    last[m] = None  # buttons go out first when samples resume
+                    resend[m].reset()  # buttons go out first when samples resume
                     continue
                 buttons = (p.clutch, p.present)
                 bo, po = self._buttons_out[m], self._pose_out[m]
-                if buttons != last[m]:
-                    repeat[m] = DATAGRAM_REPEAT + 1  # (master_capture's: a lost packet loses nothing)
-                if repeat.get(m, 0) > 0 or n % every == 0:
-                    last[m], repeat[m] = buttons, repeat.get(m, 0) - 1
+                if resend[m].due(buttons):
                     bo.put(MasterButtons(bo.header(), *buttons))
                 h = dataclasses.replace(po.header(), stamp_ns=p.stamp_ns)
                 po.put(CartesianPose(h, "master", p.position, p.orientation))

@@ -36,7 +36,7 @@ from telesurg.services.master_capture import devices
 from telesurg.services.master_capture.devices.desk import DeskConfig
 from telesurg.services.master_capture.devices.scripted import EngageRetry, ScriptedConfig
 from telesurg.services.master_capture.devices.serial import SerialMasterConfig
-from telesurg.shared.bus import DATAGRAM_REPEAT, BusConfig, Node
+from telesurg.shared.bus import BusConfig, Node, Resend
 from telesurg.shared.errors import ConfigError
 from telesurg.shared.haptics import BilateralConfig, ForceRenderer, RenderConfig, SlavePacket, make_bilateral
 from telesurg.shared.haptics.guidance import Guidance, GuidanceSettings
@@ -161,9 +161,7 @@ def run(cfg: MasterCaptureConfig, stop: threading.Event) -> None:
         js_out = node.outlet(k.master(cfg.arm, "measured_js"), datagram=True) if device.joint_names else None
         timer = CycleTimer(cfg.rate_hz)
         t0 = time.monotonic()
-        buttons_every = max(1, round(cfg.rate_hz / cfg.buttons_hz))
-        last_buttons: tuple[bool, bool] | None = None
-        repeat = 0  # cycles left to send the buttons again after a change
+        resend = Resend(round(cfg.rate_hz / cfg.buttons_hz))
         outages = 0
         console: list[tuple[bool, float]] = [(False, 0.0)]  # (pressed, monotonic time received)
 
@@ -209,7 +207,7 @@ def run(cfg: MasterCaptureConfig, stop: threading.Event) -> None:
                         text = f"master {cfg.arm}: device {why}; still not publishing"
                     invalid_kind = why.split(":", 1)[0]
                     node.event("master_device", text, severity="warning")
-                last_buttons = None  # buttons go out first thing when readings resume
+                resend.reset()  # buttons go out first thing when readings resume
                 timer.wait()
                 continue
             if invalid_since is not None:
@@ -222,10 +220,7 @@ def run(cfg: MasterCaptureConfig, stop: threading.Event) -> None:
             pressed, at = console[0]
             console_clutch = pressed and time.monotonic() - at <= console_timeout
             buttons = (s.clutch or console_clutch, s.operator_present)
-            if buttons != last_buttons:
-                repeat = DATAGRAM_REPEAT + 1
-            if repeat > 0 or timer.cycles % buttons_every == 0:
-                last_buttons, repeat = buttons, repeat - 1
+            if resend.due(buttons):
                 buttons_out.put(MasterButtons(buttons_out.header(), *buttons))
             energy = haptic.step(s.position, time.monotonic()) if haptic is not None else 0.0
             pose_out.put(CartesianPose(pose_out.header(), "master", s.position, s.orientation, energy))

@@ -468,8 +468,8 @@ class Watchdog:
         if lost > self.cfg.max_loss_per_s:
             out.append(f"{lost} control messages lost or reordered in the last second")
         m_lost, m_rx = m.lost + m.reordered - first[2], m.received - first[3]
-        if m_lost and 100.0 * m_lost / (m_lost + m_rx) > self.cfg.max_master_loss_pct:
-            pct = 100.0 * m_lost / (m_lost + m_rx)
+        pct = 100.0 * m_lost / (m_lost + m_rx) if m_lost else 0.0
+        if pct > self.cfg.max_master_loss_pct:
             out.append(f"{pct:.0f} % of the master's poses lost or reordered in the last second")
         return out
 

@@ -51,7 +51,7 @@ from typing import IO, Any
 
 import numpy as np
 from telesurg.shared import jsonio
-from telesurg.shared.bus import BusConfig, open_session
+from telesurg.shared.bus import BusConfig, open_datagram_session, open_session
 from telesurg.shared.errors import ConfigError
 from telesurg.shared.timing import CycleTimer
 from telesurg.tools.bench.impair import NetNamespace, PacketLink, netns_available
@@ -163,7 +163,7 @@ def run_pub(transport: str, certs: Path, rate_hz: float, seconds: float, size: i
     main_session = session = open_session(bus)
     key, congestion = KEY, zenoh.CongestionControl.BLOCK
     if bus.datagram:  # the datagram session beside the TLS one, as Node.outlet(datagram=True) has it
-        session = open_session(BusConfig(mode="client", connect=[bus.datagram]))
+        session = open_datagram_session(bus)
         key, congestion = DATAGRAM_KEY, zenoh.CongestionControl.DROP
     pub = session.declare_publisher(
         key,
