@@ -38,7 +38,7 @@ options:
                        beside this script)
   --no-mapping         the mapping runs on the console machine (identity console-mapping)
   --camera             also start the endoscope camera (camera/<cam>/image to the consoles; the
-                       watchdog then guards the video: docs/video.md)
+                       watchdog then guards the video: docs/console.md)
   --mirror             also start the mirror (rerun viewer); with --serve or --save FILE.rrd
   --serve | --save F   mirror options (imply --mirror)
   --log-dir DIR        one log file per service

@@ -50,7 +50,7 @@ SLAVE_STREAMS: tuple[str, ...] = (
     "setpoint_js",
 )
 SAFETY_STREAMS = ("lease", "state", "video")
-CAMERA_STREAMS = ("image", "measured_cp", "servo_cp")
+CAMERA_STREAMS = ("image", "measured_cp", "servo_cp", "video", "video_feedback")
 #: The mapping's streams, per *slave* arm: a slave is driven by one pair (one master may drive
 #: several slaves, e.g. ``m1:arm1`` and ``m1:arm2``), so the slave arm names the pair (as for
 #: ``mapping/<arm>/command``).

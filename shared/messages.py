@@ -1153,8 +1153,9 @@ class TeleopState(Message):
     )
 
 
-#: Encodings of :class:`CameraImage` (``jpeg``: baseline JPEG, 8-bit RGB or grey).
-IMAGE_ENCODINGS = frozenset({"jpeg"})
+#: Encodings of :class:`CameraImage` (``jpeg``: baseline JPEG, 8-bit RGB or grey, on
+#: ``camera/<cam>/image``; ``h264``: one H.264 access unit, Annex B, on ``camera/<cam>/video``).
+IMAGE_ENCODINGS = frozenset({"jpeg", "h264"})
 #: Image layouts: ``mono``, or ``stereo_sbs`` (left eye in the left half, right eye in the right).
 IMAGE_LAYOUTS = frozenset({"mono", "stereo_sbs"})
 
@@ -1237,6 +1238,22 @@ class VideoState(Message):
     gaps: int = fld(0, "frames missing in the sequence since start (dropped by the camera or the link)")
 
 
+@message("video_feedback")
+@dataclass(frozen=True, slots=True)
+class VideoFeedback(Message):
+    """A viewer's report on a camera's H.264 stream (``camera/<cam>/video_feedback``, 2 Hz and at
+    once when it needs a keyframe): the camera adapts its bitrate to it (shared/video.py)."""
+
+    camera: str = fld("", "camera id (the `<cam>` of the key)", nonempty=True)
+    frames: int = fld(0, "frames received since the last report", ge=0, le=100_000)
+    lost: int = fld(0, "frames missing in the sequence since the last report", ge=0, le=100_000)
+    kbps: float = fld(0.0, "bitrate received since the last report", unit="kbit/s", ge=0.0, le=1e6)
+    age_p50_ms: float = fld(
+        0.0, "median frame age at arrival since the last report (0: none arrived)", unit="ms", ge=0.0, le=1e6
+    )
+    keyframe: bool = fld(False, "the viewer needs a keyframe (it lost a frame, or just started)")
+
+
 #: Every message class by its type tag.
 MESSAGE_TYPES: dict[str, type[Message]] = dict(_REGISTRY)
 
@@ -1258,6 +1275,7 @@ AnyMessage = (
     | TeleopState
     | CameraImage
     | VideoState
+    | VideoFeedback
 )
 
 

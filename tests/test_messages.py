@@ -33,6 +33,7 @@ from telesurg.shared.messages import (
     SafetyState,
     TeleopState,
     VideoState,
+    VideoFeedback,
     decode,
     decode_as,
 )
@@ -62,6 +63,7 @@ EXAMPLES = [
         H, "endo", 5, 320, 240, "jpeg", "mono", 0.0, 290.0, 290.0, 160.0, 120.0, 14.0, 0.4, 0, b"\xff\xd8"
     ),
     VideoState(H, "arm1", "endo", "OK", 40.0, 23.0, 22.0, 31.0, 12.0, 240, 0),
+    VideoFeedback(H, "endo", 12, 1, 812.4, 71.5, True),
     ClockProbe(H),
     ClockReply(H, 1_700_000_000_000_000_000, 1_700_000_000_300_100_000, 1_700_000_000_300_150_000),
 ]

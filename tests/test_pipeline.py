@@ -153,7 +153,7 @@ def site(tmp_path: Path) -> Iterator[tuple[subprocess.Popen[bytes], SiteSpec, Pa
     argv = [sys.executable, "-m", "telesurg.services.cli", "up", "--port", str(port), "--log-dir", str(logs)]
     argv += ["--save", str(rrd)]
     # the control pipeline without the camera: with one, the mapping maps the master in the
-    # endoscope's view frame (docs/video.md), and this test judges the fixed master → base frame
+    # endoscope's view frame (docs/console.md), and this test judges the fixed master → base frame
     argv += ["--services", "watchdog,slave_control,mapping,mirror,master_capture"]
     # the operator re-clutches every 4 s: a watchdog hold on this busy host ends one
     # engagement, not the test

@@ -655,7 +655,7 @@ def test_glass_to_glass_video_latency_in_the_browser(tmp_path: Path) -> None:
     (``camera/endo/servo_cp``) ten times; for each turn, the first frame on the bus that shows it
     gives the capture time (its ``capture_ns``), the first animation frame of the page whose
     picture shows it gives the paint time; both clocks are this host's. Figures in
-    ``docs/data/perf/webconsole.json`` (``glass``) and docs/video.md."""
+    ``docs/data/perf/webconsole.json`` (``glass``) and docs/console.md."""
     needs_chromium()
     import simplejpeg
     from telesurg.services.camera import pose_matrix, quat_xyzw

@@ -13,11 +13,15 @@ y down, z along the view; frame ``base``) at ``pose_hz`` and after every move; a
 ``camera/<cam>/servo_cp`` moves the simulated endoscope's holder. The launcher runs it under
 ``SCHED_IDLE``: it gets the CPU the control loops leave. Without OpenGL (no EGL, no OSMesa) the
 simulated camera exits at once saying so, and ``telesurg up`` / ``demo`` go on without video.
+With ``video = "h264"`` each frame also goes out as one H.264 access unit on
+``camera/<cam>/video`` (shared/video.py), for viewers across a distance: its bitrate follows
+their reports on ``camera/<cam>/video_feedback``, and a viewer that lost a frame gets a keyframe.
 
 Examples::
 
     telesurg camera --connect tcp/127.0.0.1:7447 --set fps=12
     telesurg camera --connect tcp/127.0.0.1:7447 --set source=video --set url='"clip.mp4"'
+    telesurg camera --connect tcp/127.0.0.1:7447 --set video='"h264"' --set width=640 --set height=480
 """
 
 from __future__ import annotations
@@ -35,12 +39,14 @@ from telesurg.shared import robots
 from telesurg.shared.bus import BusConfig, Node, Outlet
 from telesurg.shared.errors import ConfigError
 from telesurg.shared.kinematics import matrix_from_quat, quat_from_matrix
-from telesurg.shared.messages import CameraImage, CartesianPose, JointState
+from telesurg.shared.messages import CameraImage, CartesianPose, JointState, VideoFeedback
 from telesurg.shared.timing import CycleTimer, step_down
 
 log = logging.getLogger("telesurg.camera")
 
 SOURCES = ("sim", "video")
+VIDEO_CODECS = ("", "h264")  # "": JPEG frames only (camera/<cam>/image)
+KEYFRAME_GAP_S = 0.5  # s: keyframes the viewers ask for come at most this often
 
 
 @dataclass
@@ -54,7 +60,7 @@ class CameraConfig:
     model: str = "mh3f"  # the site's robot (its scene.xml is rendered); [site] robot
     arm: str = "arm1"  # arm id of a single-arm robot (multi-arm robots: all their arms)
     # px: image size (both eyes together for a stereo pair). 320x240 at 12 fps measured on the
-    # 2-core VM beside the 1 kHz pipeline (docs/video.md)
+    # 2-core VM beside the 1 kHz pipeline (docs/console.md)
     width: int = 320
     height: int = 240
     fps: float = 12.0  # Hz: frames a second; a frame not made within its period is dropped (counted)
@@ -66,6 +72,15 @@ class CameraConfig:
     loop: bool = True  # source "video": start a file over at its end
     fov_deg: float = 70.0  # deg: source "video": vertical field of view (intrinsics), until calibrated
     pose_hz: float = 10.0  # Hz: camera/<cam>/measured_cp rate (and at once after a move)
+    # video for distance (docs/console.md): "h264" also publishes each frame as H.264 on
+    # camera/<cam>/video, its bitrate adapted to the viewers' feedback between the two limits
+    video: str = ""
+    video_kbps: int = 1500  # kbit/s: the starting bitrate
+    video_min_kbps: int = 200
+    video_max_kbps: int = 4000
+    keyframe_s: float = 2.0  # s: a keyframe at least this often (and when a viewer asks)
+    # who may report on the video (camera/<cam>/video_feedback): the viewers' service ids
+    feedback_sources: list[str] = field(default_factory=lambda: ["console", "telesurg-view"])
     # the slave's measured_js publisher (only it drives the rendered arms)
     slave_source: str = "slave_control"
     # who may move the camera on camera/<cam>/servo_cp ([] = anyone: a sim camera moves no patient)
@@ -88,6 +103,19 @@ class CameraConfig:
             raise ConfigError(f"camera: stereo_baseline_m {self.stereo_baseline_m} outside [0, 0.2]")
         if self.pose_hz <= 0:
             raise ConfigError("camera: pose_hz must be > 0")
+        if self.video not in VIDEO_CODECS:
+            raise ConfigError(f"camera: video {self.video!r} invalid; valid: '' (JPEG only), 'h264'")
+        if self.video and (self.width % 2 or self.height % 2):
+            raise ConfigError(
+                f"camera: video h264 needs an even width and height: {self.width}x{self.height}"
+            )
+        if not 50 <= self.video_min_kbps <= self.video_kbps <= self.video_max_kbps <= 100_000:
+            raise ConfigError(
+                f"camera: video kbit/s must satisfy 50 <= video_min_kbps ({self.video_min_kbps}) <= "
+                f"video_kbps ({self.video_kbps}) <= video_max_kbps ({self.video_max_kbps}) <= 100000"
+            )
+        if not 0.2 <= self.keyframe_s <= 60.0:
+            raise ConfigError(f"camera: keyframe_s {self.keyframe_s} outside [0.2, 60]")
 
 
 def unavailable(cfg: CameraConfig) -> str:
@@ -180,6 +208,29 @@ class Camera:
                     # 12 fps picture needs, without a thread wake-up per message
                     polled=True,
                 )
+        self.encoder: Any = None
+        if cfg.video:
+            from telesurg.shared.video import H264Encoder, RateControl
+
+            self.encoder = H264Encoder(cfg.width, cfg.height, cfg.fps, cfg.video_kbps, cfg.keyframe_s)
+            self.rate = RateControl(cfg.video_kbps, cfg.video_min_kbps, cfg.video_max_kbps)
+            vkey = node.keys.camera(cfg.camera, "video")
+            vpub = node.session.declare_publisher(
+                vkey,
+                express=True,
+                priority=zenoh.Priority.DATA_LOW,
+                congestion_control=zenoh.CongestionControl.DROP,
+            )
+            self._vpub_handle = vpub
+            self.video_out = Outlet(vpub, node.service, node.signer, vkey)
+            self._feedback: list[VideoFeedback] = []
+            self._key_pending, self._key_at = False, float("-inf")
+            node.subscribe(
+                node.keys.camera(cfg.camera, "video_feedback"),
+                VideoFeedback,
+                self._on_feedback,
+                sources=cfg.feedback_sources,
+            )
         node.subscribe(
             node.keys.camera(cfg.camera, "servo_cp"),
             CartesianPose,
@@ -199,6 +250,60 @@ class Camera:
                 mj = names.get(n)
                 if mj is not None:
                     self._joints[mj] = q
+
+    def _on_feedback(self, msg: VideoFeedback, key: str) -> None:
+        with self._lock:
+            self._feedback.append(msg)
+
+    def _adapt(self) -> None:
+        """The viewers' reports since the last frame → a keyframe if one asked, the bitrate (the
+        lowest any viewer's figures allow)."""
+        with self._lock:
+            reports, self._feedback = self._feedback, []
+        now = time.monotonic()
+        self._key_pending |= any(r.keyframe for r in reports)
+        if self._key_pending and now - self._key_at >= KEYFRAME_GAP_S:  # (a flood of asks: one)
+            self.encoder.request_keyframe()
+            self._key_pending, self._key_at = False, now
+        figures = [r for r in reports if r.frames]  # (a bare keyframe ask carries none)
+        if not figures:
+            return
+        lost = sum(r.lost for r in figures)
+        age = max(r.age_p50_ms for r in figures)
+        kbps = self.rate.update(lost, age, now)
+        if kbps != self.encoder.kbps:
+            log.info("camera %s: video %d kbit/s (lost %d, age %.0f ms)", self.cfg.camera, kbps, lost, age)
+            self.encoder.set_kbps(kbps)
+
+    def _publish_video(self, rgb: np.ndarray, capture_ns: int, produce_ms: float, k: Any) -> None:
+        self._adapt()
+        t0 = time.perf_counter()
+        data, _key = self.encoder.encode(rgb)
+        encode_ms = (time.perf_counter() - t0) * 1e3
+        if not data:
+            return
+        h, w = rgb.shape[:2]
+        out = self.video_out
+        out.put(
+            CameraImage(
+                out.header(),
+                self.cfg.camera,
+                capture_ns,
+                w,
+                h,
+                "h264",
+                self.source.layout,
+                self.source.baseline_m,
+                float(k.fx),
+                float(k.fy),
+                float(k.cx),
+                float(k.cy),
+                produce_ms,
+                encode_ms,
+                self.dropped,
+                data,
+            )
+        )
 
     def _on_move(self, msg: CartesianPose, key: str) -> None:
         if msg.frame != "base":
@@ -261,6 +366,8 @@ class Camera:
                 data,
             )
         )
+        if self.encoder is not None:
+            self._publish_video(rgb, frame.capture_ns, frame.produce_ms, k)
         self.frames += 1
 
 

@@ -77,6 +77,7 @@ from telesurg.shared.messages import (
     CartesianWrench,
     JointState,
     MasterButtons,
+    VideoFeedback,
 )
 from telesurg.shared.teleop.camera_frame import project
 from telesurg.shared.timing import CycleTimer, start_loop
@@ -163,6 +164,91 @@ class Counters:
             }
 
 
+@dataclass
+class _Tally:
+    """One camera's H.264 arrivals since its last report."""
+
+    t0: float
+    frames: int = 0
+    lost: int = 0
+    bytes: int = 0
+    ages: list[float] = dataclasses.field(default_factory=list)
+
+
+class H264Relay:
+    """The cameras' H.264 streams to the pages (``/video.h264``) and the pages' reports back to the
+    cameras (:class:`~telesurg.shared.messages.VideoFeedback` on ``camera/<cam>/video_feedback``).
+
+    Each open stream has a queue of packets (:func:`telesurg.shared.video.pack`); a stream starts at
+    a keyframe, and one that falls behind (a slow page) or sees a frame missing drops what it holds
+    and waits for the next keyframe, which is asked for at once: a decoder is never fed a frame whose
+    reference it did not get."""
+
+    REPORT_S = 0.5  # s: a camera's report period (while its frames arrive)
+    BACKLOG = 8  # packets a stream may hold before it is reset to the next keyframe
+
+    def __init__(self, node: Node) -> None:
+        self.node = node
+        self.lock = threading.Lock()
+        self.streams: dict[str, set[Callable[[bytes, bool, bool], None]]] = {}  # camera → page streams
+        self.last_seq: dict[str, int] = {}
+        self.stats: dict[str, _Tally] = {}
+        self.outs: dict[str, Any] = {}
+
+    def _out(self, camera: str) -> Any:
+        if camera not in self.outs:
+            key = self.node.keys.camera(camera, "video_feedback")
+            self.outs[camera] = self.node.outlet(key, control=False)
+        return self.outs[camera]
+
+    def add(self, m: CameraImage, rx_ns: int, offset_ns: int) -> None:
+        """One access unit arrived (a zenoh thread)."""
+        from telesurg.shared.video import is_keyframe, pack
+
+        cam = m.camera
+        key = is_keyframe(m.data)
+        capture_ns = m.capture_ns + offset_ns
+        with self.lock:
+            prev = self.last_seq.get(cam)
+            self.last_seq[cam] = m.header.seq
+            lost = max(0, m.header.seq - prev - 1) if prev is not None else 0
+            st = self.stats.setdefault(cam, _Tally(time.monotonic()))
+            st.frames += 1
+            st.lost += lost
+            st.bytes += len(m.data)
+            st.ages.append((rx_ns - capture_ns) / 1e6)
+            sinks = list(self.streams.get(cam, ()))
+        packet = pack(m.data, key, capture_ns / 1e6, m.header.seq, m.width, m.height)
+        for sink in sinks:
+            sink(packet, key, lost > 0)
+        self._report(cam, keyframe=bool(lost and sinks))
+
+    def _report(self, cam: str, keyframe: bool = False) -> None:
+        now = time.monotonic()
+        with self.lock:
+            st = self.stats.get(cam)
+            if st is None or not (keyframe or now - st.t0 >= self.REPORT_S):
+                return
+            self.stats[cam] = _Tally(now)
+        kbps = st.bytes * 8 / max(now - st.t0, 1e-3) / 1e3
+        age = max(0.0, float(np.median(st.ages))) if st.ages else 0.0
+        out = self._out(cam)
+        out.put(VideoFeedback(out.header(), cam, st.frames, st.lost, round(kbps, 1), age, keyframe))
+
+    def ask_keyframe(self, cam: str) -> None:
+        """A page joined or fell behind: the camera's next frame is a keyframe."""
+        out = self._out(cam)
+        out.put(VideoFeedback(out.header(), cam, 0, 0, 0.0, 0.0, True))
+
+    def attach(self, cam: str, sink: Callable[[bytes, bool, bool], None]) -> None:
+        with self.lock:
+            self.streams.setdefault(cam, set()).add(sink)
+
+    def detach(self, cam: str, sink: Callable[[bytes, bool, bool], None]) -> None:
+        with self.lock:
+            self.streams.get(cam, set()).discard(sink)
+
+
 class WebConsole:
     """The bus side of the web console: the console model, the arm views and the browser masters."""
 
@@ -196,12 +282,16 @@ class WebConsole:
             node.subscribe(
                 k.slave(arm, "measured_cf"), CartesianWrench, self._on_cf, sources=s_src, polled=True, keep=4
             )
-        # the endoscope picture (camera service, docs/video.md): the newest frame of each camera,
+        # the endoscope picture (camera service, docs/console.md): the newest frame of each camera,
         # served to the page as an MJPEG stream (/video.mjpg); nothing is queued behind it
         self.frames: dict[str, tuple[CameraImage, int]] = {}  # camera → (frame, receive time ns)
         self.picture_lag: dict[str, PictureLag] = {}
         self.frame_waiters: set[Callable[[], None]] = set()  # called on each new frame
-        node.subscribe(f"{k.prefix}/camera/*/image", CameraImage, self._on_frame, sources=only("camera"))
+        if self.web.video == "h264":  # (only what the page shows crosses the link)
+            self.h264 = H264Relay(node)
+            node.subscribe(f"{k.prefix}/camera/*/video", CameraImage, self._on_video, sources=only("camera"))
+        else:
+            node.subscribe(f"{k.prefix}/camera/*/image", CameraImage, self._on_frame, sources=only("camera"))
         # the cameras' optical-frame poses (latest: the current one at once), for the overlay
         self.cam_poses: dict[str, CartesianPose] = {}
         node.subscribe(
@@ -267,6 +357,21 @@ class WebConsole:
         for w in wake:  # the MJPEG streams waiting for a new frame (their event loop's callbacks)
             w()
 
+    def _on_video(self, m: CameraImage, key: str) -> None:
+        if m.encoding != "h264":
+            return
+        rx = wall_ns()
+        self.h264.add(m, rx, self.clock_offset_ns())
+        self._on_frame(m, key)
+
+    def clock_offset_ns(self) -> int:
+        """This host's clock minus the slave site's (the watchdog's estimate, the first arm that
+        has one; 0 while unknown): a slave-site time + this is on this host's clock."""
+        for a in self.model.arms.values():
+            if a.safety is not None and a.safety.clock_offset_ms:
+                return int(a.safety.clock_offset_ms * 1e6)
+        return 0
+
     def _on_cam_pose(self, m: CartesianPose, key: str) -> None:
         if m.frame == "base":
             with self.lock:
@@ -326,6 +431,7 @@ class WebConsole:
                 "width": m.width,
                 "height": m.height,
                 "layout": m.layout,
+                "encoding": m.encoding,
                 "seq": m.header.seq,
                 "age_at_arrival_ms": round((rx - m.capture_ns) / 1e6, 1),
                 "age_ms": round((now - m.capture_ns) / 1e6, 1),
@@ -585,6 +691,7 @@ class Server:
         self.app.router.add_get("/api/stats", self._api_stats)
         self.app.router.add_get("/ws", self._ws)
         self.app.router.add_get("/video.mjpg", self._video)
+        self.app.router.add_get("/video.h264", self._video_h264)
         self.app.router.add_static("/static/", static_dir())
 
     # -- the door ------------------------------------------------------------------------------
@@ -705,6 +812,55 @@ class Server:
             finally:
                 with self.wc.lock:
                     self.wc.frame_waiters.discard(wake)
+        return resp
+
+    async def _video_h264(self, request: Any) -> Any:
+        """The endoscope picture as H.264 access units (``?camera=ID``; the page reads them with
+        ``fetch`` and decodes them with WebCodecs), each framed by :func:`telesurg.shared.video.pack`;
+        from a keyframe on, and again from the next keyframe after a frame missed or a backlog."""
+        from aiohttp import web
+
+        relay = getattr(self.wc, "h264", None)
+        camera = request.query.get("camera", "")
+        if relay is None:
+            raise web.HTTPNotFound(text="this console serves MJPEG (/video.mjpg); H.264: web.video = 'h264'")
+        if not camera:
+            frame = self.wc.latest_frame()
+            if frame is None:
+                raise web.HTTPServiceUnavailable(text="no camera publishes H.264 yet")
+            camera = frame.camera
+        resp = web.StreamResponse(
+            headers={"Content-Type": "application/octet-stream", "Cache-Control": "no-store"}
+        )
+        await resp.prepare(request)
+        loop = asyncio.get_running_loop()
+        queue: asyncio.Queue[bytes] = asyncio.Queue()
+        state = {"synced": False}
+
+        def on_packet(packet: bytes, key: bool, gap: bool) -> None:  # (a zenoh thread)
+            loop.call_soon_threadsafe(take, packet, key, gap)
+
+        def take(packet: bytes, key: bool, gap: bool) -> None:
+            behind = queue.qsize() >= H264Relay.BACKLOG
+            if gap or behind:  # a frame missed, or the page is behind: start over at a keyframe
+                state["synced"] = False
+                while not queue.empty():
+                    queue.get_nowait()
+                if behind and not key:
+                    relay.ask_keyframe(camera)  # (a gap: the relay asked already)
+            if not state["synced"] and not key:
+                return  # until a keyframe: a decoder starts only there
+            state["synced"] = True
+            queue.put_nowait(packet)
+
+        relay.attach(camera, on_packet)
+        relay.ask_keyframe(camera)
+        try:
+            with contextlib.suppress(ConnectionError, asyncio.CancelledError):
+                while True:
+                    await resp.write(await queue.get())
+        finally:
+            relay.detach(camera, on_packet)
         return resp
 
     # -- control ---------------------------------------------------------------------------------

@@ -36,6 +36,10 @@ class WebConfig:
     # Hz: the predictive overlay (each arm's commanded tip over the endoscope picture) pushed to
     # every page while a camera publishes; 0: no overlay
     overlay_hz: float = 50.0
+    # the endoscope picture to the page: "mjpeg" (camera/<cam>/image, any browser) or "h264"
+    # (camera/<cam>/video, a camera with video = "h264": decoded by the page's WebCodecs; for a
+    # distance, at a fraction of the bandwidth; docs/console.md)
+    video: str = "mjpeg"
     max_frame_bytes: int = 4096  # a websocket frame larger than this is refused
     max_frames_hz: float = 400.0  # frames/s per connection on average (bursts of 100); more: refused
     max_rejects: int = 50  # refused frames after which a connection is closed as abusive
@@ -77,6 +81,8 @@ class WebConfig:
             raise ConfigError(f"web.state_hz={self.state_hz} outside [1, 60]")
         if self.overlay_hz != 0.0 and not 5.0 <= self.overlay_hz <= 120.0:
             raise ConfigError(f"web.overlay_hz={self.overlay_hz} outside [5, 120] (0: no overlay)")
+        if self.video not in ("mjpeg", "h264"):
+            raise ConfigError(f"web.video={self.video!r} invalid; valid: 'mjpeg', 'h264'")
         if not 256 <= self.max_frame_bytes <= 1 << 20:
             raise ConfigError(f"web.max_frame_bytes={self.max_frame_bytes} outside [256, 1048576]")
         if not 10.0 <= self.max_frames_hz <= 10000.0:

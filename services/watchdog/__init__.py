@@ -129,7 +129,7 @@ class WatchdogConfig:
     master_source: str = "master_capture"
     mapping_source: str = "mapping"
     slave_source: str = "slave_control"
-    # The endoscope video (docs/video.md). camera id whose camera/<cam>/image every arm needs
+    # The endoscope video (docs/console.md). camera id whose camera/<cam>/image every arm needs
     # fresh ("" = no video watched; a site without a camera)
     video_camera: str = ""
     video_service: str = "camera"  # the camera's service id: its frames only, its liveliness token

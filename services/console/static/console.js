@@ -463,18 +463,125 @@ function askConfirm(c) {
   setTimeout(() => send({ type: "confirm", yes: window.confirm(q) }), 0);
 }
 
-// The endoscope picture (camera service): an MJPEG stream of the newest frames, shown once a
-// camera publishes, with the frame's age; hidden on a site without a camera.
+// The endoscope picture (camera service), shown once a camera publishes, with the frame's age;
+// hidden on a site without a camera. MJPEG: an <img> on /video.mjpg. H.264 (a console with
+// web.video = "h264", for a distance): access units read from /video.h264 with fetch, decoded by
+// WebCodecs, painted on a canvas, with each frame's age at paint (capture → painted, this host's
+// clock: the console corrects the slave site's capture time by the watchdog's clock offset).
 function scope(video) {
   const cams = Object.keys(video);
   const box = $("#scope");
   if (!cams.length) { box.hidden = true; return; }
   const v = video[cams[0]];
-  const img = $("#endoscope");
-  if (box.hidden) { img.src = "/video.mjpg?camera=" + encodeURIComponent(cams[0]); box.hidden = false; }
+  if (box.hidden) {
+    if (v.encoding === "h264") startH264(cams[0]);
+    else $("#endoscope").src = "/video.mjpg?camera=" + encodeURIComponent(cams[0]);
+    box.hidden = false;
+  }
   const old = v.age_ms > 500;
-  $("#scope-info").innerHTML = `camera ${esc(cams[0])} · ${v.width}×${v.height} ${esc(v.layout)} · ` +
+  let text = `camera ${esc(cams[0])} · ${v.width}×${v.height} ${esc(v.layout)} ${esc(v.encoding || "jpeg")} · ` +
     `<span class="${old ? "bad" : ""}">frame age ${v.age_at_arrival_ms} ms at arrival, ${v.age_ms} ms now</span>`;
+  if (v.encoding === "h264") {
+    const s = h264.stats();
+    text += h264.error ? ` · <span class="bad">${esc(h264.error)}</span>`
+      : ` · painted ${s.fps.toFixed(1)} fps, age at paint ${s.age_p50 === null ? "–" : Math.round(s.age_p50)} ms`;
+  }
+  $("#scope-info").innerHTML = text;
+}
+
+// The H.264 picture: a packet is u32 length of the rest, u8 flags (1 keyframe), f64 capture time
+// (ms since the epoch, this host's clock), u32 sequence, u16 width, u16 height, then the access
+// unit (Annex B). The decoder starts at a keyframe (the server sends one first); a page that
+// falls behind reconnects, and the server starts it again at a fresh keyframe.
+const h264 = {
+  error: "", painted: [], // [paint time ms, age ms] of the last frames painted
+  stats() {
+    const now = performance.timeOrigin + performance.now();
+    const recent = this.painted.filter(([t]) => now - t < 2000);
+    const ages = recent.map(([, a]) => a).sort((x, y) => x - y);
+    return { fps: recent.length / 2, age_p50: ages.length ? ages[ages.length >> 1] : null, frames: this.count || 0 };
+  },
+};
+window.telesurgH264 = h264; // (read by the browser tests)
+
+function avcCodec(au) { // "avc1.PPCCLL" from the access unit's SPS (NAL type 7)
+  for (let i = 0; i + 6 < au.length; i++) {
+    if (au[i] === 0 && au[i + 1] === 0 && au[i + 2] === 1 && (au[i + 3] & 0x1f) === 7) {
+      return "avc1." + [au[i + 4], au[i + 5], au[i + 6]].map((b) => b.toString(16).padStart(2, "0")).join("");
+    }
+  }
+  return null;
+}
+
+function startH264(cam) {
+  const canvas = $("#endoscope-h264"), img = $("#endoscope");
+  if (!("VideoDecoder" in window)) {
+    h264.error = "this browser has no WebCodecs video decoder: start the console with web.video = \"mjpeg\"";
+    return;
+  }
+  img.hidden = true; canvas.hidden = false;
+  const g = canvas.getContext("2d");
+  let dec = null, codec = null;
+  const output = (frame) => {
+    if (canvas.width !== frame.displayWidth || canvas.height !== frame.displayHeight) {
+      canvas.width = frame.displayWidth; canvas.height = frame.displayHeight;
+    }
+    g.drawImage(frame, 0, 0);
+    const capture = frame.timestamp / 1000;
+    frame.close();
+    requestAnimationFrame(() => { // painted with this animation frame
+      const now = performance.timeOrigin + performance.now();
+      h264.painted.push([now, now - capture]);
+      if (h264.painted.length > 200) h264.painted.shift();
+      h264.count = (h264.count || 0) + 1;
+    });
+  };
+  async function run() {
+    const ctl = new AbortController();
+    try {
+      const resp = await fetch("/video.h264?camera=" + encodeURIComponent(cam), { signal: ctl.signal, cache: "no-store" });
+      if (!resp.ok) { h264.error = `video: ${resp.status} ${await resp.text()}`; return; }
+      h264.error = "";
+      const reader = resp.body.getReader();
+      let buf = new Uint8Array(0);
+      for (;;) {
+        const { value, done } = await reader.read();
+        if (done) break;
+        const joined = new Uint8Array(buf.length + value.length); joined.set(buf); joined.set(value, buf.length); buf = joined;
+        while (buf.length >= 4) {
+          const dv = new DataView(buf.buffer, buf.byteOffset, buf.length);
+          const n = dv.getUint32(0, true);
+          if (buf.length < 4 + n) break;
+          const key = (dv.getUint8(4) & 1) === 1, capture = dv.getFloat64(5, true);
+          const au = buf.slice(21, 4 + n);
+          buf = buf.slice(4 + n);
+          if (!dec || dec.state === "closed") {
+            if (!key) continue;
+            codec = avcCodec(au) || "avc1.42e01e";
+            dec = new VideoDecoder({ output, error: (e) => { h264.error = `decoder: ${e.message}`; } });
+            dec.configure({ codec, optimizeForLatency: true });
+          }
+          if (dec.decodeQueueSize > 4 && !key) { ctl.abort(); break; } // behind: start over at a keyframe
+          dec.decode(new EncodedVideoChunk({ type: key ? "key" : "delta", timestamp: Math.round(capture * 1000), data: au }));
+        }
+        if (ctl.signal.aborted) break;
+      }
+    } catch (e) {
+      if (!ctl.signal.aborted) h264.error = `video: ${e.message}`;
+    }
+    if (dec && dec.state !== "closed") dec.close();
+    dec = null;
+    setTimeout(run, 500); // the stream ended (the console restarted, the page fell behind): again
+  }
+  run();
+}
+
+// the picture on the page (the MJPEG image or the H.264 canvas) and its size in image pixels
+function picture() {
+  const c = $("#endoscope-h264");
+  if (!c.hidden) return { el: c, w: c.width && c.clientWidth ? c.width : 0 };
+  const img = $("#endoscope");
+  return { el: img, w: img.naturalWidth };
 }
 
 // The predictive overlay: each following arm's commanded tip over the endoscope picture, which
@@ -483,10 +590,10 @@ function scope(video) {
 // picture's size on the page; a stereo pair has one per eye.
 function overlay(m) {
   const cams = Object.keys(m.cams || {});
-  const box = $("#scope-marks"), img = $("#endoscope");
+  const box = $("#scope-marks"), pic = picture(), img = pic.el;
   const want = [];
   let lead = "";
-  if (cams.length && !$("#scope").hidden && img.naturalWidth) {
+  if (cams.length && !$("#scope").hidden && pic.w) {
     const c = m.cams[cams[0]];
     const kx = img.clientWidth / c.width, ky = img.clientHeight / c.height;
     for (const [arm, a] of Object.entries(c.arms)) {
