@@ -32,8 +32,8 @@ from telesurg.shared.messages import (
     SafetyLease,
     SafetyState,
     TeleopState,
-    VideoState,
     VideoFeedback,
+    VideoState,
     decode,
     decode_as,
 )

@@ -494,14 +494,19 @@ function scope(video) {
 // unit (Annex B). The decoder starts at a keyframe (the server sends one first); a page that
 // falls behind reconnects, and the server starts it again at a fresh keyframe.
 const h264 = {
-  error: "", painted: [], // [paint time ms, age ms] of the last frames painted
+  error: "", count: 0,
+  painted: [], // [paint time ms, age ms] of the last frames painted
+  rx: [], // [arrival time ms, bytes] of the last packets
   stats() {
     const now = performance.timeOrigin + performance.now();
     const recent = this.painted.filter(([t]) => now - t < 2000);
     const ages = recent.map(([, a]) => a).sort((x, y) => x - y);
-    return { fps: recent.length / 2, age_p50: ages.length ? ages[ages.length >> 1] : null, frames: this.count || 0 };
+    const bytes = this.rx.filter(([t]) => now - t < 2000).reduce((n, [, b]) => n + b, 0);
+    return { fps: recent.length / 2, age_p50: ages.length ? ages[ages.length >> 1] : null,
+      kbps: bytes * 8 / 2000, frames: this.count };
   },
 };
+const keep = (list, item) => { list.push(item); if (list.length > 3000) list.shift(); };
 window.telesurgH264 = h264; // (read by the browser tests)
 
 function avcCodec(au) { // "avc1.PPCCLL" from the access unit's SPS (NAL type 7)
@@ -531,9 +536,8 @@ function startH264(cam) {
     frame.close();
     requestAnimationFrame(() => { // painted with this animation frame
       const now = performance.timeOrigin + performance.now();
-      h264.painted.push([now, now - capture]);
-      if (h264.painted.length > 200) h264.painted.shift();
-      h264.count = (h264.count || 0) + 1;
+      keep(h264.painted, [now, now - capture]);
+      h264.count++;
     });
   };
   async function run() {
@@ -554,6 +558,7 @@ function startH264(cam) {
           if (buf.length < 4 + n) break;
           const key = (dv.getUint8(4) & 1) === 1, capture = dv.getFloat64(5, true);
           const au = buf.slice(21, 4 + n);
+          keep(h264.rx, [performance.timeOrigin + performance.now(), 4 + n]);
           buf = buf.slice(4 + n);
           if (!dec || dec.state === "closed") {
             if (!key) continue;
