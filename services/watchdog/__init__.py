@@ -250,6 +250,7 @@ class ArmWatch:
             node.outlet(k.safety(arm, "video"), control=False) if cfg.video_camera else None
         )
         self.verdict = Verdict("HOLD", ("starting",), 1.0, 0.0, 0.0, 0.0, 0)
+        self.ever_ok = False  # the arm has been OK once: a HOLD from now on is an error, not start-up
         self.commanded_key = k.slave(arm, "setpoint_js")
         self.motion_tick: int | None = None  # the tick at which the slave began a slave-side motion
 
@@ -508,12 +509,16 @@ class Watchdog:
             a.verdict = v
             changed = v.state != old.state
             if changed:
+                # (before the arm was first OK, the services and the camera are still coming up:
+                # their HOLDs are the start-up's, not an error)
+                bad = "error" if a.ever_ok or v.state == "ESTOP" else "info"
                 self.node.event(
                     "safety_transition",
                     f"{old.state} → {v.state}" + (f": {'; '.join(v.causes)}" if v.causes else ""),
                     arm=a.arm,
-                    severity={"OK": "info", "DEGRADED": "warning"}.get(v.state, "error"),
+                    severity={"OK": "info", "DEGRADED": "warning" if a.ever_ok else "info"}.get(v.state, bad),
                 )
+                a.ever_ok |= v.state == "OK"
             if changed or force_state or v.causes != old.causes:
                 self.publish_state(a)
 
