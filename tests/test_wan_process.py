@@ -434,7 +434,8 @@ def test_video_reaches_the_page_across_the_wan_and_leaves_the_control_path_alone
         wrapper = tmp_path / "chromium-in-console-ns"
         # (under SCHED_IDLE, as the site's camera: on this one host the browser stands for another
         # machine, and takes no CPU the control path could use)
-        wrapper.write_text(f'#!/bin/sh\nexec chrt --idle 0 ip netns exec {h.console.name} /usr/bin/chromium "$@"\n')
+        run_in_ns = f"exec chrt --idle 0 ip netns exec {h.console.name} /usr/bin/chromium"
+        wrapper.write_text(f'#!/bin/sh\n{run_in_ns} "$@"\n')
         wrapper.chmod(0o755)
         with chromium(m.group(1), tmp_path / "chromium", browser=wrapper) as (cdp, s):
             ok = js(
