@@ -23,8 +23,9 @@
   publish-only session on the site router's ``udp/`` listener — no retransmission, so a lost
   packet costs one sample instead of stalling the stream for a round trip as TLS over TCP does.
   Everything else stays on the main (mutual TLS) session. Each sample is still signed and
-  checked for freshness; the site's ACL lets a UDP transport put those streams and nothing else
-  (docs/deploy.md, "Across a distance").
+  checked for freshness, and encrypted (``shared/auth.py``, sealed payloads); the site's ACL
+  lets a UDP transport put those streams and nothing else (docs/deploy.md, "Across a
+  distance").
 * State streams (``outlet(..., latest=True)``, ``subscribe(..., latest=True)``): the publisher
   answers a query on its key with its last message and a subscriber asks once when it
   subscribes, so a late joiner (a console started mid-session) has the current value at once,
@@ -61,9 +62,12 @@ from telesurg.shared.auth import (
     REPLY,
     AuthError,
     Keyring,
+    Sealer,
     Signer,
     attachment_signer,
     default_keys_dir,
+    is_sealed,
+    unseal,
     verify,
 )
 from telesurg.shared.clock import MAX_SKEW_MS, ClockSample, wall_ns
@@ -450,11 +454,14 @@ class Outlet:
     """A publisher plus the sequencer of its stream (and, for a ``latest`` outlet, its last
     message, which :class:`Node` serves to late joiners)."""
 
-    def __init__(self, publisher: Any, source: str, signer: Signer, key: str) -> None:
+    def __init__(
+        self, publisher: Any, source: str, signer: Signer, key: str, sealer: Sealer | None = None
+    ) -> None:
         self._pub = publisher
         self._seq = Sequencer(source)
         self._signer = signer
         self._key = key
+        self._sealer = sealer  # a datagram outlet's: the payload is encrypted (shared/auth.py)
         self.last: bytes | None = None  # the last payload put (kept by a ``latest`` outlet only)
         self._keep = False
 
@@ -467,6 +474,8 @@ class Outlet:
         payload = msg.encode()
         if self._keep:
             self.last = payload
+        if self._sealer is not None:
+            payload = self._sealer.seal(self._key, payload)
         self._pub.put(payload, attachment=self._signer.attach(PUT, self._key, payload))
 
     @property
@@ -514,6 +523,7 @@ class Node:
         self._closed = False
         self.session = open_session(bus)
         self._datagram: Any = None  # the publish-only session of the datagram streams
+        self._sealer_obj: Sealer | None = None
         if bus.datagram:
             try:
                 self._datagram = open_datagram_session(bus)
@@ -536,6 +546,12 @@ class Node:
         self._hb_stop = threading.Event()
         self._hb_thread = threading.Thread(target=self._heartbeat_loop, daemon=True)
         self._hb_thread.start()
+
+    def _sealer(self) -> Sealer:
+        """The encrypter of this node's datagram streams (made once)."""
+        if self._sealer_obj is None:
+            self._sealer_obj = Sealer(self.keyring, self.service)
+        return self._sealer_obj
 
     # -- outputs --------------------------------------------------------------------------
     def outlet(
@@ -569,7 +585,8 @@ class Node:
         else:
             pub = self.session.declare_publisher(key, priority=zenoh.Priority.DATA_HIGH)
         self._handles.append(pub)
-        out = Outlet(pub, self.service, self.signer, key)
+        sealed = datagram and self._datagram is not None  # no TLS on that link: encrypted here
+        out = Outlet(pub, self.service, self.signer, key, self._sealer() if sealed else None)
         if latest:
             out._keep = True
 
@@ -644,6 +661,8 @@ class Node:
             att = sample.attachment
             try:  # authentication first: nothing of a forged message is looked at
                 who = verify(self.keyring, REPLY if queried else PUT, k, payload, _raw(att), bind=bind)
+                if is_sealed(payload):  # (a datagram stream's)
+                    payload = unseal(self.keyring, who.signer, k, payload)
             except AuthError as exc:
                 self._unauthenticated(stats, k, _raw(att), str(exc))
                 return

@@ -3,10 +3,11 @@
 from __future__ import annotations
 
 import time
+from pathlib import Path
 
 import pytest
 from conftest import wait_until
-from telesurg.shared.bus import BusConfig, Node
+from telesurg.shared.bus import BusConfig, Node, open_session
 from telesurg.shared.errors import ConfigError
 from telesurg.shared.messages import Header, JointSetpoint, JointState
 
@@ -236,3 +237,33 @@ def test_a_state_sample_goes_out_on_change_again_after_it_and_periodically() -> 
     ]
     r.reset()  # readings resume after a gap: the next goes out, and again after it
     assert [r.due("down") for _ in range(DATAGRAM_REPEAT + 2)] == [True] * (DATAGRAM_REPEAT + 1) + [False]
+
+
+def test_a_datagram_stream_is_sealed_on_the_wire_and_opened_by_the_subscriber(tmp_path: Path) -> None:
+    """A pose on the datagram link (a second, UDP session to the router): a node's subscriber gets
+    the pose; a raw subscriber on the router, which holds no key, sees only sealed bytes."""
+    from telesurg.services.launcher import free_port
+    from telesurg.shared.auth import SEALED, init_keyring
+    from telesurg.shared.messages import CartesianPose
+
+    keys = str(init_keyring(tmp_path / "keys"))
+    tcp, udp = f"tcp/127.0.0.1:{free_port()}", f"udp/127.0.0.1:{free_port()}"
+    router = open_session(BusConfig(mode="router", listen=[tcp, udp]))
+    got: list[CartesianPose] = []
+    raw: list[bytes] = []
+    try:
+        sub_bus = BusConfig(connect=[tcp], keys_dir=keys)
+        pub_bus = BusConfig(connect=[tcp], datagram=udp, keys_dir=keys)
+        with Node(sub_bus, "t", "mapping") as sub, Node(pub_bus, "t", "master_capture") as pub:
+            key = pub.keys.master("m1", "measured_cp")
+            sub.subscribe(key, CartesianPose, lambda m, k: got.append(m))
+            _raw = router.declare_subscriber(key, lambda s: raw.append(s.payload.to_bytes()))
+            out = pub.outlet(key, datagram=True)
+            deadline = time.monotonic() + 5.0
+            while len(got) < 5 and time.monotonic() < deadline:
+                out.put(CartesianPose(out.header(), "master", (0.125, -0.25, 0.5)))
+                time.sleep(0.02)
+    finally:
+        router.close()  # type: ignore[no-untyped-call]
+    assert len(got) >= 5 and got[-1].position == (0.125, -0.25, 0.5)
+    assert raw and all(p[0] == SEALED and b"master" not in p for p in raw)

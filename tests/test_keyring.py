@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import os
 import secrets
+import struct
 import time
 from pathlib import Path
 
@@ -19,7 +20,7 @@ from telesurg.services.keys import export
 from telesurg.shared import auth
 from telesurg.shared.bus import BusConfig, Node
 from telesurg.shared.errors import ConfigError
-from telesurg.shared.messages import EStop, Header, JointSetpoint, SafetyLease
+from telesurg.shared.messages import CartesianPose, EStop, Header, JointSetpoint, SafetyLease
 
 KEY = "telesurg/t/slave/arm1/servo_jp"
 NOBODY = 65534
@@ -196,3 +197,28 @@ def test_a_link_file_is_checked_like_a_key(tmp_path: Path, hosts: Hosts) -> None
     link.write_text("{}")
     with pytest.raises(ConfigError, match="not a telesurg link"):
         auth.Keyring.load(site.path)
+
+
+def test_a_sealed_sample_opens_on_both_hosts_and_nowhere_else(hosts: Hosts, tmp_path: Path) -> None:
+    """The datagram link's samples: encrypted on the wire (no field of the pose readable), opened
+    by the site and by the console host's own services, by no other keyring; a changed byte or
+    another key expression does not open."""
+    site, console = hosts
+    key = "telesurg/t/master/m1/measured_cp"
+    pose = CartesianPose(Header("master_capture", 7, time.time_ns()), "master", (0.125, -0.25, 0.5))
+    plain = pose.encode()
+    sealed = auth.Sealer(console, "master_capture").seal(key, plain)
+    assert auth.is_sealed(sealed) and not auth.is_sealed(plain)
+    assert b"master" not in sealed and struct.pack(">d", 0.125) not in sealed  # nothing readable
+    assert auth.Sealer(console, "master_capture").seal(key, plain) != sealed  # a fresh nonce each time
+    att = _signer(console, "master_capture").attach(auth.PUT, key, sealed)
+    for ring in (site, console):  # signed over the sealed bytes, then opened
+        who = auth.verify(ring, auth.PUT, key, sealed, att)
+        assert auth.unseal(ring, who.signer, key, sealed) == plain
+    stranger = auth.Keyring.load(auth.init_keyring(tmp_path / "stranger", auth.IDENTITIES))
+    with pytest.raises(auth.AuthError, match="does not open"):
+        auth.unseal(stranger, "master_capture", key, sealed)
+    flipped = sealed[:-1] + bytes((sealed[-1] ^ 1,))
+    for bad_key, data in ((key, flipped), ("telesurg/t/master/m1/buttons", sealed), (key, sealed[:20])):
+        with pytest.raises(auth.AuthError):
+            auth.unseal(site, "master_capture", bad_key, data)

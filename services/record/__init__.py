@@ -51,7 +51,7 @@ from typing import IO, TYPE_CHECKING, Any
 
 from telesurg.services.common import install_stop_handlers, setup_logging
 from telesurg.shared import jsonio
-from telesurg.shared.auth import PUT, AuthError, Keyring, verify
+from telesurg.shared.auth import PUT, AuthError, Keyring, is_sealed, unseal, verify
 from telesurg.shared.bus import BusConfig, Node, add_bus_args, bus_from_args
 from telesurg.shared.clock import wall_ns
 from telesurg.shared.errors import ConfigError, MessageError, TelesurgError
@@ -391,7 +391,9 @@ class Recorder:
             if keyring is not None:
                 att = sample.attachment
                 try:
-                    verify(keyring, PUT, k, payload, att.to_bytes() if att is not None else None)
+                    who = verify(keyring, PUT, k, payload, att.to_bytes() if att is not None else None)
+                    if is_sealed(payload):  # a datagram stream's: written opened (its msgpack)
+                        payload = unseal(keyring, who.signer, k, payload)
                 except AuthError:
                     self.unauthenticated += 1
                     return
