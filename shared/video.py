@@ -20,6 +20,7 @@ Example::
 from __future__ import annotations
 
 import struct
+from collections import deque
 from dataclasses import dataclass
 from fractions import Fraction
 from typing import Any
@@ -139,6 +140,34 @@ class RateControl:
 
 
 # --------------------------------------------------------------------------- the stream to the page
+
+
+class StreamGate:
+    """One page's queue of access units. The page's decoder must start at a keyframe and never get
+    a frame whose reference it missed: the gate passes nothing until a keyframe; a frame missing
+    upstream (``gap``) or a page ``backlog`` packets behind empties the queue and waits for the next
+    keyframe (:meth:`offer` says when to ask the camera for one)."""
+
+    def __init__(self, backlog: int = 8) -> None:
+        self.backlog = backlog
+        self.queue: deque[bytes] = deque()
+        self.synced = False
+        self.resets = 0  # times the page started over at a keyframe
+
+    def offer(self, packet: bytes, key: bool, gap: bool) -> bool:
+        """One access unit arrived (``key``: a keyframe; ``gap``: frames before it are missing);
+        True when the camera should be asked for a keyframe (the page fell behind)."""
+        behind = len(self.queue) >= self.backlog
+        if (gap or behind) and self.synced:
+            self.synced = False
+            self.queue.clear()
+            self.resets += 1
+        if not self.synced and not key:
+            return behind  # (a gap: the relay asked already)
+        self.synced = True
+        self.queue.append(packet)
+        return False
+
 
 #: one packet to the page: length of what follows (u32), flags (u8: 1 keyframe), capture time on
 #: the console's clock (f64, ms since the Unix epoch), frame sequence (u32), width, height (u16)

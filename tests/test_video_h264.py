@@ -115,6 +115,26 @@ def test_keyframes_and_the_page_framing() -> None:
         H264Encoder(63, 48, 25.0, kbps=200)
 
 
+def test_a_page_starts_at_a_keyframe_and_starts_over_after_a_missed_frame_or_a_backlog() -> None:
+    from telesurg.shared.video import StreamGate
+
+    g = StreamGate(backlog=3)
+    assert not g.offer(b"d0", key=False, gap=False) and not g.queue  # joined mid-stream: waits
+    g.offer(b"k1", key=True, gap=False)
+    g.offer(b"d2", key=False, gap=False)
+    assert list(g.queue) == [b"k1", b"d2"]
+    g.queue.clear()  # (sent)
+    g.offer(b"d4", key=False, gap=True)  # d3 never arrived: d4 would decode against nothing
+    assert not g.queue and not g.synced and g.resets == 1
+    g.offer(b"k5", key=True, gap=False)
+    assert list(g.queue) == [b"k5"]
+    g.offer(b"d6", key=False, gap=False)
+    g.offer(b"d7", key=False, gap=False)  # the page reads nothing: three waiting
+    assert g.offer(b"d8", key=False, gap=False)  # behind: dropped, and a keyframe is asked for
+    assert not g.queue and g.resets == 2
+    assert not g.offer(b"k9", key=True, gap=False) and list(g.queue) == [b"k9"]
+
+
 def test_a_camera_with_bad_video_settings_is_refused() -> None:
     from telesurg.services.camera import CameraConfig
     from telesurg.shared.errors import ConfigError

@@ -81,6 +81,7 @@ from telesurg.shared.messages import (
 )
 from telesurg.shared.teleop.camera_frame import project
 from telesurg.shared.timing import CycleTimer, start_loop
+from telesurg.shared.video import StreamGate, is_keyframe, pack
 
 log = logging.getLogger(__name__)
 
@@ -203,8 +204,6 @@ class H264Relay:
 
     def add(self, m: CameraImage, rx_ns: int, offset_ns: int) -> None:
         """One access unit arrived (a zenoh thread)."""
-        from telesurg.shared.video import is_keyframe, pack
-
         cam = m.camera
         key = is_keyframe(m.data)
         capture_ns = m.capture_ns + offset_ns
@@ -833,32 +832,26 @@ class Server:
             headers={"Content-Type": "application/octet-stream", "Cache-Control": "no-store"}
         )
         await resp.prepare(request)
-        loop = asyncio.get_running_loop()
-        queue: asyncio.Queue[bytes] = asyncio.Queue()
-        state = {"synced": False}
+        loop, new = asyncio.get_running_loop(), asyncio.Event()
+        gate = StreamGate(H264Relay.BACKLOG)
 
         def on_packet(packet: bytes, key: bool, gap: bool) -> None:  # (a zenoh thread)
             loop.call_soon_threadsafe(take, packet, key, gap)
 
         def take(packet: bytes, key: bool, gap: bool) -> None:
-            behind = queue.qsize() >= H264Relay.BACKLOG
-            if gap or behind:  # a frame missed, or the page is behind: start over at a keyframe
-                state["synced"] = False
-                while not queue.empty():
-                    queue.get_nowait()
-                if behind and not key:
-                    relay.ask_keyframe(camera)  # (a gap: the relay asked already)
-            if not state["synced"] and not key:
-                return  # until a keyframe: a decoder starts only there
-            state["synced"] = True
-            queue.put_nowait(packet)
+            if gate.offer(packet, key, gap):
+                relay.ask_keyframe(camera)
+            new.set()
 
         relay.attach(camera, on_packet)
         relay.ask_keyframe(camera)
         try:
             with contextlib.suppress(ConnectionError, asyncio.CancelledError):
                 while True:
-                    await resp.write(await queue.get())
+                    while gate.queue:
+                        await resp.write(gate.queue.popleft())
+                    await new.wait()
+                    new.clear()
         finally:
             relay.detach(camera, on_packet)
         return resp
