@@ -177,23 +177,14 @@ class Camera:
     """The loop: latest joints in, newest frame out; counts what it dropped."""
 
     def __init__(self, cfg: CameraConfig, node: Node, source: Any) -> None:
-        import zenoh
-
         self.cfg, self.node, self.source = cfg, node, source
         self._lock = threading.Lock()
         self._joints: dict[str, float] = {}
         self._move: np.ndarray | None = None
         self.dropped = 0
         self.frames = 0
-        key = node.keys.camera(cfg.camera, "image")
-        pub = node.session.declare_publisher(
-            key,
-            express=True,
-            priority=zenoh.Priority.DATA_LOW,
-            congestion_control=zenoh.CongestionControl.DROP,
-        )
-        self._pub_handle = pub  # zenoh undeclares a publisher that is garbage-collected
-        self.image = Outlet(pub, node.service, node.signer, key)
+        self._handles: list[Any] = []  # zenoh undeclares a publisher that is garbage-collected
+        self.image = self._bulk_outlet("image")
         self.pose_out = node.outlet(node.keys.camera(cfg.camera, "measured_cp"), control=False, latest=True)
         if cfg.source == "sim":
             spec = robots.get(cfg.model)
@@ -214,15 +205,7 @@ class Camera:
 
             self.encoder = H264Encoder(cfg.width, cfg.height, cfg.fps, cfg.video_kbps, cfg.keyframe_s)
             self.rate = RateControl(cfg.video_kbps, cfg.video_min_kbps, cfg.video_max_kbps)
-            vkey = node.keys.camera(cfg.camera, "video")
-            vpub = node.session.declare_publisher(
-                vkey,
-                express=True,
-                priority=zenoh.Priority.DATA_LOW,
-                congestion_control=zenoh.CongestionControl.DROP,
-            )
-            self._vpub_handle = vpub
-            self.video_out = Outlet(vpub, node.service, node.signer, vkey)
+            self.video_out = self._bulk_outlet("video")
             self._feedback: list[VideoFeedback] = []
             self._key_pending, self._key_at = False, float("-inf")
             node.subscribe(
@@ -236,6 +219,47 @@ class Camera:
             CartesianPose,
             self._on_move,
             sources=cfg.move_sources or None,
+        )
+
+    def _bulk_outlet(self, stream: str) -> Outlet:
+        """A frame stream: below every control stream (``DATA_LOW``), dropped, never queued."""
+        import zenoh
+
+        key = self.node.keys.camera(self.cfg.camera, stream)
+        pub = self.node.session.declare_publisher(
+            key,
+            express=True,
+            priority=zenoh.Priority.DATA_LOW,
+            congestion_control=zenoh.CongestionControl.DROP,
+        )
+        self._handles.append(pub)
+        return Outlet(pub, self.node.service, self.node.signer, key)
+
+    def _put_frame(
+        self, out: Outlet, encoding: str, data: bytes, shape: tuple[int, ...], frame: Any, encode_ms: float
+    ) -> None:
+        """One encoded frame of ``frame`` (the source's: capture time, intrinsics) on ``out``."""
+        k = frame.intrinsics
+        h, w = shape[:2]
+        out.put(
+            CameraImage(
+                out.header(),
+                self.cfg.camera,
+                frame.capture_ns,
+                w,
+                h,
+                encoding,
+                self.source.layout,
+                self.source.baseline_m,
+                float(k.fx),
+                float(k.fy),
+                float(k.cx),
+                float(k.cy),
+                frame.produce_ms,
+                encode_ms,
+                self.dropped,
+                data,
+            )
         )
 
     def _js_handler(self, names: dict[str, str]) -> Callable[[JointState, str], None]:
@@ -275,35 +299,12 @@ class Camera:
             log.info("camera %s: video %d kbit/s (lost %d, age %.0f ms)", self.cfg.camera, kbps, lost, age)
             self.encoder.set_kbps(kbps)
 
-    def _publish_video(self, rgb: np.ndarray, capture_ns: int, produce_ms: float, k: Any) -> None:
+    def _publish_video(self, rgb: np.ndarray, frame: Any) -> None:
         self._adapt()
         t0 = time.perf_counter()
         data, _key = self.encoder.encode(rgb)
-        encode_ms = (time.perf_counter() - t0) * 1e3
-        if not data:
-            return
-        h, w = rgb.shape[:2]
-        out = self.video_out
-        out.put(
-            CameraImage(
-                out.header(),
-                self.cfg.camera,
-                capture_ns,
-                w,
-                h,
-                "h264",
-                self.source.layout,
-                self.source.baseline_m,
-                float(k.fx),
-                float(k.fy),
-                float(k.cx),
-                float(k.cy),
-                produce_ms,
-                encode_ms,
-                self.dropped,
-                data,
-            )
-        )
+        if data:
+            self._put_frame(self.video_out, "h264", data, rgb.shape, frame, (time.perf_counter() - t0) * 1e3)
 
     def _on_move(self, msg: CartesianPose, key: str) -> None:
         if msg.frame != "base":
@@ -342,32 +343,9 @@ class Camera:
         t0 = time.perf_counter()
         rgb = np.ascontiguousarray(frame.rgb)
         data = simplejpeg.encode_jpeg(rgb, quality=self.cfg.quality, colorspace="RGB")
-        encode_ms = (time.perf_counter() - t0) * 1e3
-        h, w = rgb.shape[:2]
-        k = frame.intrinsics
-        out = self.image
-        out.put(
-            CameraImage(
-                out.header(),
-                self.cfg.camera,
-                frame.capture_ns,
-                w,
-                h,
-                "jpeg",
-                self.source.layout,
-                self.source.baseline_m,
-                float(k.fx),
-                float(k.fy),
-                float(k.cx),
-                float(k.cy),
-                frame.produce_ms,
-                encode_ms,
-                self.dropped,
-                data,
-            )
-        )
+        self._put_frame(self.image, "jpeg", data, rgb.shape, frame, (time.perf_counter() - t0) * 1e3)
         if self.encoder is not None:
-            self._publish_video(rgb, frame.capture_ns, frame.produce_ms, k)
+            self._publish_video(rgb, frame)
         self.frames += 1
 
 
