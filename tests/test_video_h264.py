@@ -7,7 +7,8 @@ a real camera source (a 640×480, 25 fps clip through PyAV, as a capture card wo
 camera publishing H.264, and the web console serving it (``web.video = "h264"``); Chromium paints
 it, and the test reads from the page what a surgeon sees: a moving picture, its rate and its age at
 paint. A second page opened while the camera's periodic keyframe is a minute away shows the picture
-at once (the console asks the camera for a keyframe). Figures printed (``-s``); with
+at once (the console asks the camera for a keyframe). A frozen camera is flagged on the page.
+Figures printed (``-s``); with
 ``TELESURG_PERF_DIR`` also written to ``video-h264.json`` there.
 """
 
@@ -15,6 +16,7 @@ from __future__ import annotations
 
 import json
 import os
+import signal
 import time
 from fractions import Fraction
 from pathlib import Path
@@ -169,6 +171,7 @@ def _make_clip(path: Path, n: int = 100) -> None:
 @pytest.mark.process
 @pytest.mark.skipif(not Path("/usr/bin/chromium").exists(), reason="needs /usr/bin/chromium")
 def test_the_page_paints_the_h264_picture_and_a_new_page_gets_a_keyframe_at_once(tmp_path: Path) -> None:
+    from conftest import wait_until
     from helpers import chromium
     from test_web_console import console_site, js
 
@@ -186,7 +189,7 @@ def test_the_page_paints_the_h264_picture_and_a_new_page_gets_a_keyframe_at_once
     figures: dict[str, float] = {}
     overrides = {"camera": camera, "console": ["web.video='h264'"]}
     with (
-        console_site(tmp_path, camera=True, overrides=overrides) as (url, _endpoint, _probe, _site),
+        console_site(tmp_path, camera=True, overrides=overrides) as (url, _endpoint, _probe, site),
         chromium(url, tmp_path / "chromium") as (cdp, s),
     ):
         stats = (
@@ -235,6 +238,17 @@ def test_the_page_paints_the_h264_picture_and_a_new_page_gets_a_keyframe_at_once
             time.sleep(0.1)
         assert second and second["frames"] >= 1, f"the second page shows nothing: {second}"
         figures["second_page_first_paint_s"] = round(time.monotonic() - t0, 2)
+        # the camera freezes: the page says its picture is old; it thaws: the warning goes
+        info = "document.querySelector('#scope-info').textContent"
+        cam = site.pid("camera")
+        os.kill(cam, signal.SIGSTOP)
+        try:
+            frozen = wait_until(lambda: "picture on screen" in str(js(cdp, s, info)), 10.0)
+            said = str(js(cdp, s, info))
+        finally:
+            os.kill(cam, signal.SIGCONT)
+        assert frozen, f"a frozen picture is not flagged: {said}"
+        assert wait_until(lambda: "picture on screen" not in str(js(cdp, s, info)), 20.0), js(cdp, s, info)
     print(
         f"H.264 {W}x{H} in the page: {figures['fps']:.1f} fps painted, age at paint p50 "
         f"{figures['age_at_paint_p50_ms']} ms; a second page painted after "

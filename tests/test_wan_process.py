@@ -471,7 +471,7 @@ def test_video_reaches_the_page_across_the_wan_and_leaves_the_control_path_alone
     print(f"\nvideo over {VIDEO_PROFILE}: {json.dumps(res)}")
     if perf := os.environ.get("TELESURG_PERF_DIR"):
         (Path(perf) / "wan-video.json").write_text(json.dumps(res, indent=1) + "\n")
-    assert len(painted) > 5 * window_s, video  # the picture kept coming
+    assert len(painted) > window_s, video  # the picture kept coming (its rate is a figure)
     for eng in (off, on):  # the arm followed throughout, with and without the video
         assert eng["out_of_follow"] == 0 and eng["holds"] == 0 and eng["tip_travel_mm"] > 5.0, res
     # (with the video on, this one host also runs the browser and the camera's encoder: the

@@ -484,7 +484,8 @@ function scope(video) {
   if (v.encoding === "h264") {
     const s = h264.stats();
     text += h264.error ? ` · <span class="bad">${esc(h264.error)}</span>`
-      : ` · painted ${s.fps.toFixed(1)} fps, age at paint ${s.age_p50 === null ? "–" : Math.round(s.age_p50)} ms`;
+      : ` · painted ${s.fps.toFixed(1)} fps, age at paint ${s.age_p50 === null ? "–" : Math.round(s.age_p50)} ms` +
+        (s.shown_ms > 500 ? ` · <span class="bad">picture on screen ${Math.round(s.shown_ms)} ms old</span>` : "");
   }
   $("#scope-info").innerHTML = text;
 }
@@ -502,8 +503,9 @@ const h264 = {
     const recent = this.painted.filter(([t]) => now - t < 2000);
     const ages = recent.map(([, a]) => a).sort((x, y) => x - y);
     const bytes = this.rx.filter(([t]) => now - t < 2000).reduce((n, [, b]) => n + b, 0);
+    const last = this.painted[this.painted.length - 1]; // the picture on screen: its age now
     return { fps: recent.length / 2, age_p50: ages.length ? ages[ages.length >> 1] : null,
-      kbps: bytes * 8 / 2000, frames: this.count };
+      kbps: bytes * 8 / 2000, frames: this.count, shown_ms: last ? now - last[0] + last[1] : null };
   },
 };
 const keep = (list, item) => { list.push(item); if (list.length > 3000) list.shift(); };
