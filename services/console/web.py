@@ -67,7 +67,7 @@ from telesurg.services.console.browser import (
 from telesurg.services.console.control import Control
 from telesurg.services.console.model import ConsoleConfig, ConsoleModel
 from telesurg.shared import mjpeg, robots
-from telesurg.shared.bus import POLL_CAPACITY, Node, Resend, only
+from telesurg.shared.bus import POLL_CAPACITY, Node, Outlet, Resend, only
 from telesurg.shared.clock import wall_ns
 from telesurg.shared.door import LOGIN_ENV, Door
 from telesurg.shared.errors import ConfigError
@@ -194,13 +194,19 @@ class H264Relay:
         self.streams: dict[str, set[Callable[[bytes, bool, bool], None]]] = {}  # camera → page streams
         self.last_seq: dict[str, int] = {}
         self.stats: dict[str, _Tally] = {}
-        self.outs: dict[str, Any] = {}
+        self.outs: dict[str, Outlet] = {}  # camera → its feedback outlet
+        self.out_lock = threading.Lock()
 
-    def _out(self, camera: str) -> Any:
-        if camera not in self.outs:
-            key = self.node.keys.camera(camera, "video_feedback")
-            self.outs[camera] = self.node.outlet(key, control=False)
-        return self.outs[camera]
+    def _put(self, cam: str, frames: int, lost: int, kbps: float, age_ms: float, keyframe: bool) -> None:
+        """One report to ``cam``: from a zenoh thread (:meth:`add`) or the pages' event loop
+        (:meth:`ask_keyframe`), so one outlet per camera and one put at a time (its sequence)."""
+        with self.out_lock:
+            out = self.outs.get(cam)
+            if out is None:
+                out = self.outs[cam] = self.node.outlet(
+                    self.node.keys.camera(cam, "video_feedback"), control=False
+                )
+            out.put(VideoFeedback(out.header(), cam, frames, lost, kbps, age_ms, keyframe))
 
     def add(self, m: CameraImage, rx_ns: int, offset_ns: int) -> None:
         """One access unit arrived (a zenoh thread)."""
@@ -231,13 +237,11 @@ class H264Relay:
             self.stats[cam] = _Tally(now)
         kbps = st.bytes * 8 / max(now - st.t0, 1e-3) / 1e3
         age = max(0.0, float(np.median(st.ages))) if st.ages else 0.0
-        out = self._out(cam)
-        out.put(VideoFeedback(out.header(), cam, st.frames, st.lost, round(kbps, 1), age, keyframe))
+        self._put(cam, st.frames, st.lost, round(kbps, 1), age, keyframe)
 
     def ask_keyframe(self, cam: str) -> None:
         """A page joined or fell behind: the camera's next frame is a keyframe."""
-        out = self._out(cam)
-        out.put(VideoFeedback(out.header(), cam, 0, 0, 0.0, 0.0, True))
+        self._put(cam, 0, 0, 0.0, 0.0, True)
 
     def attach(self, cam: str, sink: Callable[[bytes, bool, bool], None]) -> None:
         with self.lock:

@@ -510,13 +510,16 @@ class Watchdog:
             changed = v.state != old.state
             if changed:
                 # (before the arm was first OK, the services and the camera are still coming up:
-                # their HOLDs are the start-up's, not an error)
-                bad = "error" if a.ever_ok or v.state == "ESTOP" else "info"
+                # their HOLDs are the start-up's, not an error; an e-stop always is)
+                if v.state == "OK" or not (a.ever_ok or v.state == "ESTOP"):
+                    severity = "info"
+                else:
+                    severity = "warning" if v.state == "DEGRADED" else "error"
                 self.node.event(
                     "safety_transition",
                     f"{old.state} → {v.state}" + (f": {'; '.join(v.causes)}" if v.causes else ""),
                     arm=a.arm,
-                    severity={"OK": "info", "DEGRADED": "warning" if a.ever_ok else "info"}.get(v.state, bad),
+                    severity=severity,
                 )
                 a.ever_ok |= v.state == "OK"
             if changed or force_state or v.causes != old.causes:
