@@ -202,15 +202,17 @@ def _engagement(h: TwoHosts, after: int = 0, timeout: float = 60.0) -> dict[str,
     ages = np.array([a for r in summaries for a in r["age"]] or [np.inf])
     gaps = np.array([g for r in summaries for g in r["gap"]] or [np.inf])
     # tracking: the slave's tip against the mapping's commanded tip (interpolated), at the lag
-    # that fits best (the servo's own, a few ms): what is left is the error the surgeon would see
+    # that fits best (the servo's own, a few ms): what is left is the error the surgeon would see.
+    # Both are placed at their senders' stamps (the mapping and the slave share the slave host's
+    # clock), not at the probe's arrival: the probe's own scheduling on a loaded host is not the arm's
     t_end = min([t1, *(r["t"] for r in drops)])  # while the slave follows
     sps = h.probe.of("sp", t0, t_end)
     tips = h.probe.of("tip", t0 + 500_000_000, t_end)
     err, lag_ms = np.array([np.inf]), float("nan")
     if len(sps) > 1 and tips:
-        sp_t = np.array([r["t"] for r in sps], dtype=np.float64)
+        sp_t = np.array([r["ts"] for r in sps], dtype=np.float64)
         sp_p = np.array([r["p"] for r in sps])
-        tip_t = np.array([r["t"] for r in tips], dtype=np.float64)
+        tip_t = np.array([r["ts"] for r in tips], dtype=np.float64)
         tip_p = np.array([r["p"] for r in tips])
 
         def errors(lag_ns: float) -> np.ndarray:
@@ -318,7 +320,7 @@ def test_the_arm_follows_through_a_lossy_wan_on_the_datagram_link(tmp_path: Path
     # budget, or more than 10 % of a second's poses lost (a loaded host's stall adds the sender's
     # own drops to the link's). The poses' age and the gaps are figures, not asserted: timing
     # goals belong to the run above with TELESURG_PERF_DIR (docs/deploy.md)
-    documented = re.compile(r"latency p90 .* > budget|% of the master's poses lost")
+    documented = re.compile(r"latency p90 .* (> budget|not yet below)|% of the master's poses lost")
     assert all(documented.search(c) for c in dg["degraded_causes"]), dg
     # the stranger: read nothing, no reply, its e-stop and setpoints never arrived, its forged
     # poses and buttons arrived and were refused by the message authentication; nothing moved

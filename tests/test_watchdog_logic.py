@@ -174,6 +174,23 @@ def test_a_burst_after_one_stall_does_not_degrade_a_slow_link_does() -> None:
     assert v.state == "DEGRADED" and v.causes[0].startswith("latency p90")
 
 
+def test_the_latency_cause_says_why_the_arm_is_still_degraded_below_the_budget() -> None:
+    # over the budget: "> budget"; then under it but inside the 20 % hysteresis: not a false "85 > 100"
+    a = arm()
+    for i in range(200):
+        a.add_latency(120.0, i * 1e-3)
+    v = a.evaluate(0.2)
+    assert v.state == "DEGRADED" and v.causes == ("latency p90 120.0 ms > budget 100 ms",), v.causes
+    for i in range(1000):
+        a.add_latency(90.0, 0.2 + i * 1e-3)
+    v = a.evaluate(1.2)
+    assert v.state == "DEGRADED", v
+    assert v.causes == ("latency p90 90.0 ms, not yet below 80 ms (budget 100 ms)",), v.causes
+    for i in range(1000):
+        a.add_latency(70.0, 1.2 + i * 1e-3)
+    assert a.evaluate(2.2).state == "OK"
+
+
 def test_config_validation() -> None:
     with pytest.raises(ConfigError, match="latency_budget_ms"):
         WatchdogConfig(latency_budget_ms=300.0).validate()

@@ -91,7 +91,7 @@ def probe_main(endpoint: str, creds: str = "", *flags: str) -> int:
             now = time.monotonic_ns()
             if now - last_tip[0] >= 10_000_000:  # 100 Hz is plenty
                 last_tip[0] = now
-                _emit(k="tip", p=list(m.position))
+                _emit(k="tip", p=list(m.position), ts=m.header.stamp_ns)
 
         def on_op(m: OperatingState, key: str) -> None:
             _emit(
@@ -143,7 +143,7 @@ def probe_main(endpoint: str, creds: str = "", *flags: str) -> int:
             now = time.monotonic_ns()
             if now - last_sp[0] >= 10_000_000:
                 last_sp[0] = now
-                _emit(k="sp", p=list(m.position))
+                _emit(k="sp", p=list(m.position), ts=m.header.stamp_ns)
 
         sub(k.slave("arm1", "measured_cp"), CartesianPose, on_tip, sources=["slave_control"])
         if master_times:

@@ -226,9 +226,9 @@ class ArmSafety:
                 ls = "OK"
             self.latency_state = ls
         if self.latency_state == "HOLD":
-            hold_causes.append(f"latency p50 {p50:.1f} ms > limit {p.latency_limit_ms:g} ms")
+            hold_causes.append(_over("p50", p50, "limit", p.latency_limit_ms))
         elif self.latency_state == "DEGRADED":
-            degraded_causes.append(f"latency p90 {p90:.1f} ms > budget {p.latency_budget_ms:g} ms")
+            degraded_causes.append(_over("p90", p90, "budget", p.latency_budget_ms))
         for r in self.rules:
             f = self._ask(r, r.check, now)
             if f is not None:
@@ -294,3 +294,11 @@ class ArmSafety:
 
     def _fault(self, tag: str, text: str, now: float) -> None:
         self._latch(tag, HOLD, text, now)
+
+
+def _over(stat: str, value: float, name: str, threshold: float) -> str:
+    """The latency cause as the operator reads it: over the threshold, or (the 20 % hysteresis)
+    under it but not yet back below 80 % of it."""
+    if value > threshold:
+        return f"latency {stat} {value:.1f} ms > {name} {threshold:g} ms"
+    return f"latency {stat} {value:.1f} ms, not yet below {0.8 * threshold:g} ms ({name} {threshold:g} ms)"
