@@ -59,6 +59,7 @@ SHARED_FACTS: dict[str, tuple[str, ...]] = {
     "patient_box_min_mm": ("patient_box_min_mm",),
     "patient_box_max_mm": ("patient_box_max_mm",),
     "work_frame_rpy_deg": ("work_frame_rpy_deg",),
+    "scene": ("scene",),
 }
 
 
@@ -82,6 +83,9 @@ class SiteFacts:
     # deg, roll/pitch/yaw of the work frame (the laparoscope's view) in the slave's base frame:
     # slave_control's `work` jogs and the mapping's `master_frame = "work"` (unset: theirs)
     work_frame_rpy_deg: tuple[float, float, float] | None = None
+    # MuJoCo: another scene of the robot, a scene_*.xml in its folder (e.g. the MH3F's
+    # "scene_trocar_task.xml"): what slave_control simulates and the camera renders (unset: scene.xml)
+    scene: str | None = None
 
 
 @dataclass

@@ -29,6 +29,8 @@ import numpy.typing as npt
 from telesurg.shared.errors import ConfigError
 
 KINDS = ("targets", "path")
+#: What the harness does before a trial's go (:attr:`TaskSpec.setup`).
+SETUPS = ("", "trocar")
 #: error kinds a trial counts (an excursion over the limit each, :func:`excursions`; a path exit;
 #: ``watchdog_hold`` an entry into HOLD/ESTOP)
 ERROR_KINDS = ("tissue_force", "path_exit", "rcm_error", "watchdog_hold")
@@ -62,6 +64,10 @@ class TaskSpec:
         force_limit_n: N: tissue force above this is an error (below the watchdog's own limit).
         rcm_limit_mm: mm: RCM error above this (in trocar mode) is an error.
         time_limit_s: s: a trial not done by then ends incomplete.
+        scene: the robot's scene for the task, one of its ``scene_*.xml`` ("" = its own scene).
+        setup: what the harness does before the go: "" nothing; "trocar" the MH3F's insert flow
+            (posture adjustment by PTP, insert to trocar mode, master–slave in trocar mode).
+        q_start: rad: the slave's start pose (slave_control's ``q_home``; () = the robot's home).
     """
 
     name: str
@@ -75,10 +81,15 @@ class TaskSpec:
     force_limit_n: float = 2.0
     rcm_limit_mm: float = 2.0
     time_limit_s: float = 90.0
+    scene: str = ""
+    setup: str = ""
+    q_start: tuple[float, ...] = ()
 
     def __post_init__(self) -> None:
         if self.kind not in KINDS:
             raise ConfigError(f"task {self.name}: kind {self.kind!r} invalid; valid: {', '.join(KINDS)}")
+        if self.setup not in SETUPS:
+            raise ConfigError(f"task {self.name}: setup {self.setup!r} invalid; valid: {SETUPS}")
         if not self.goals:
             raise ConfigError(f"task {self.name}: no goals")
         if self.kind == "path" and (len(self.path) < 2 or self.tube_radius_m <= 0):

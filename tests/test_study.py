@@ -60,7 +60,7 @@ def test_a_good_protocol_parses_with_defaults() -> None:
 @pytest.mark.parametrize(
     ("edit", "line", "words"),
     [
-        (("mh3f-wire", "mh3f-peg"), 4, "unknown task 'mh3f-peg'; known: mh3f-targets, mh3f-wire"),
+        (("mh3f-wire", "mh3f-peg"), 4, "unknown task 'mh3f-peg'; known: mh3f-targets, mh3f-trocar-targets"),
         (("delay_ms = 150", "delay_ms = -5"), 14, "delay_ms=-5 outside [0, 10000]"),
         (('name = "0 ms"\ndelay_ms = 0\n', 'name = "0 ms"\n'), 8, "#1 missing field 'delay_ms'"),
         (("seed = 7\n", ""), 1, "missing field 'seed'"),
@@ -219,6 +219,44 @@ def test_tasks_are_registered_by_the_robot_folder() -> None:
     assert math.isclose(wire.tube_radius_m, 0.005) and len(wire.path) > 10
 
 
+def test_the_trocar_task_s_targets_are_on_its_organ_and_reachable_through_the_trocar() -> None:
+    import mujoco
+    from telesurg.shared import robots
+    from telesurg.shared.robots.mh3f.kinematics import MH3F, fk, within_limits
+    from telesurg.shared.robots.mh3f.trocar import posture_adjust, rcm_error, trocar_ik
+
+    t = tasks.get("mh3f-trocar-targets")
+    assert (t.setup, t.scene) == ("trocar", "scene_trocar_task.xml")
+    m = mujoco.MjModel.from_xml_path(str(robots.get("mh3f").scene_file(t.scene)))
+    d = mujoco.MjData(m)
+    mujoco.mj_forward(m, d)
+    marks = [d.geom(n).xpos for n in ("organ_target_a", "organ_target_b")]
+    organ = d.geom("organ")
+    semi = m.geom_size[organ.id]
+    for g, mark in zip(t.goals, [*marks, *marks], strict=True):
+        assert np.linalg.norm(np.array(g.position[:2]) - mark[:2]) < 1e-6  # under the scene's mark
+        rel = (np.array(g.position) - organ.xpos) / semi
+        assert abs(np.linalg.norm(rel) - 1.0) < 0.05  # on the organ's surface (touch depth 0.5 mm)
+    # from the start pose: the insert flow's alignment, the tip 50 mm in, then every target by
+    # the trocar IK within the joint limits and on the trocar
+    trocar = np.array([0.5, 0.0, 0.2])
+    q = posture_adjust(np.array(t.q_start), trocar)
+    q = trocar_ik(trocar + 0.05 * fk(q)[:3, 0], trocar, q)
+    assert np.linalg.norm(fk(q)[:3, 3] - np.array(t.start_tip)) < 1e-3
+    for g in t.goals:
+        q = trocar_ik(np.array(g.position), trocar, q)
+        assert within_limits(q, MH3F) and rcm_error(q, trocar) < 1e-6
+
+
+def test_a_scene_that_the_robot_does_not_ship_is_refused_naming_the_valid_ones() -> None:
+    from telesurg.shared import robots
+
+    with pytest.raises(ConfigError, match=r"no scene 'scene_x\.xml'; valid: scene_trocar_task\.xml"):
+        robots.get("mh3f").scene_file("scene_x.xml")
+    with pytest.raises(ConfigError, match="valid: none"):
+        robots.get("vip").scene_file("scene_trocar_task.xml")
+
+
 LINE = TaskSpec(
     "t-line",
     "mh3f",
@@ -336,7 +374,7 @@ def simulate(task: str, delay_s: float, seed: int = 0, rate: float = 50.0) -> ta
     )
 
 
-@pytest.mark.parametrize("task", ["mh3f-targets", "mh3f-wire"])
+@pytest.mark.parametrize("task", ["mh3f-targets", "mh3f-wire", "mh3f-trocar-targets"])
 def test_the_operator_does_the_task_and_delay_makes_it_slower(task: str) -> None:
     times = {}
     for delay in (0.0, 0.15, 0.3):

@@ -69,3 +69,44 @@ def test_a_study_runs_on_real_sites_and_delay_slows_the_operator(tmp_path: Path)
     fast = sum(active[(t, "0 ms")] for t in ("mh3f-targets", "mh3f-wire"))
     print(f"time following, both tasks: {fast:.1f} s at 0 ms, {slow:.1f} s at 300 ms")
     assert slow > fast
+
+
+TROCAR_PROTOCOL = """\
+[study]
+name = "through the trocar"
+seed = 5
+tasks = ["mh3f-trocar-targets"]
+repetitions = 1
+host_margin_ms = 500
+
+[[condition]]
+name = "0 ms"
+delay_ms = 0
+"""
+
+
+@pytest.mark.process
+@pytest.mark.timeout(900)
+def test_the_trocar_task_is_done_through_the_trocar_on_a_real_site(tmp_path: Path) -> None:
+    """Issue #44 acceptance 1, the MH3F target task through the trocar: the harness sets the arm up
+    (PTP posture adjustment, insert to trocar mode, master–slave), the synthetic operator touches
+    the organ's targets under the trocar in trocar mode, and the RCM error stays within its limit."""
+    proto = tmp_path / "trocar.toml"
+    proto.write_text(TROCAR_PROTOCOL)
+    out = tmp_path / "out"
+    assert study.main([str(proto), "--out", str(out)]) == 0
+    (r,) = [json.loads(line) for line in (out / "results.jsonl").read_text().splitlines()]
+    print(
+        f"{r['task']}: done={r['completed']} in {r['completion_time_s']} s (held {r['time_held_s']:.1f} s), "
+        f"path {r['path_length_mm']:.0f} mm (ideal {r['ideal_length_mm']:.0f}), errors {r['errors']}, "
+        f"RCM max {r['rcm_error_max_mm']:.3f} mm mean {r['rcm_error_mean_mm']:.3f} mm, "
+        f"peak force {r['peak_force_n']:.2f} N, contact {r['contact_time_s']:.1f} s"
+    )
+    assert r["completed"] and r["goals_reached"] == 4, r
+    s = streams_from_mcap(out / r["recording"])
+    go = s.follow[s.follow[:, 1] > 0.5, 0][0]
+    during = s.rcm[(s.rcm[:, 0] >= go) & (s.rcm[:, 0] <= go + r["completion_time_s"])]
+    assert len(during) > 20 and during[:, 2].min() == 1.0  # in trocar mode throughout the trial
+    assert r["rcm_error_max_mm"] < 2.0 and r["errors"]["rcm_error"] == 0, r  # the RCM held
+    # the forceps touched the organ (each touch presses it) and never pressed it too hard
+    assert r["contact_time_s"] > 0.5 and 0.05 < r["peak_force_n"] < 2.0, r

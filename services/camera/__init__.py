@@ -58,6 +58,7 @@ class CameraConfig:
     camera: str = "endo"  # camera id: the <cam> of camera/<cam>/image
     source: str = "sim"  # "sim" (MuJoCo render of the site's scene) or "video" (PyAV: device, URL, file)
     model: str = "mh3f"  # the site's robot (its scene.xml is rendered); [site] robot
+    scene: str = ""  # another scene of the robot (a scene_*.xml in its folder; "" = scene.xml); [site] scene
     arm: str = "arm1"  # arm id of a single-arm robot (multi-arm robots: all their arms)
     # px: image size (both eyes together for a stereo pair). 320x240 at 12 fps measured on the
     # 2-core VM beside the 1 kHz pipeline (docs/console.md)
@@ -134,7 +135,7 @@ def unavailable(cfg: CameraConfig) -> str:
     import mujoco
 
     try:
-        scene = robots.get(cfg.model).scene
+        scene = robots.get(cfg.model).scene_file(cfg.scene)
         model = mujoco.MjModel.from_xml_path(str(scene))
     except (ConfigError, ValueError) as exc:
         return f"robot {cfg.model!r}: {exc}"
@@ -150,7 +151,7 @@ def make_source(cfg: CameraConfig) -> Any:
     if cfg.source == "video":
         return VideoSource(cfg.url, width=cfg.width, height=cfg.height, fov_deg=cfg.fov_deg, loop=cfg.loop)
     return MujocoSource(
-        robots.get(cfg.model).scene,
+        robots.get(cfg.model).scene_file(cfg.scene),
         width=cfg.width,
         height=cfg.height,
         camera=cfg.scene_camera,

@@ -79,6 +79,9 @@ class SlaveControlConfig:
     # robot model, a name in the robot registry (shared/robots/<model>): mh3f (one forceps arm,
     # trocar modes); plas, vip: two joint-space arms arm1/arm2 in one process (one arm core each)
     model: str = "mh3f"
+    # MuJoCo: another scene of the robot, a scene_*.xml file in its folder ("" = its own scene.xml;
+    # e.g. the MH3F's "scene_trocar_task.xml": tissue under the trocar for the study's trocar tasks)
+    scene: str = ""
     # the robot's own knobs (its config dataclass, shared/robots/<model>/config.py; e.g.
     # --set robot.jog_speed_mm_s=20): checked against the robot's config at start
     robot: dict[str, Any] = field(default_factory=dict)
@@ -212,6 +215,9 @@ def run(cfg: SlaveControlConfig, stop: threading.Event) -> None:
         raise ConfigError(f"setpoint_js_hz={cfg.setpoint_js_hz} outside [10, 1000]")
     if not 0.0 < cfg.follow_max_lag_ms <= 1000.0:  # the interpolator keeps 1.2 s of setpoints
         raise ConfigError(f"follow_max_lag_ms={cfg.follow_max_lag_ms} outside (0, 1000]")
+    if cfg.scene and cfg.backend != "mujoco":
+        raise ConfigError(f'scene={cfg.scene!r} is a MuJoCo scene: it needs backend = "mujoco"')
+    robots.get(cfg.model).scene_file(cfg.scene)  # (ConfigError naming the robot's scenes)
     profiles = arms_of(cfg.model, cfg.arm)
     home = tuple(v for p in profiles for v in p.home)
     sites = tuple(p.tip_site for p in profiles)

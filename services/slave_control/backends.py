@@ -255,10 +255,12 @@ class MujocoBackend:
         q_home: tuple[float, ...],
         sites: tuple[str, ...] = (),
         home: tuple[float, ...] = (),
+        *,
+        scene: str = "",
     ) -> None:
         from telesurg.services.slave_control.models import model_path
 
-        self.scene = model_path(model)
+        self.scene = model_path(model, scene)  # (scene: one of the robot's scene_*.xml, "" its own)
         self.sites = sites  # extra sites reported in read().site_positions (e.g. one tip per arm)
         self.q_home = np.array(q_home, dtype=float)
         self.home = home  # start pose if q_home is empty and the model has no "home" keyframe

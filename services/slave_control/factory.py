@@ -34,7 +34,7 @@ def make_backend(
     if cfg is not None and cfg.shadow and kind != "serial":
         raise ConfigError(f'shadow = true needs backend = "serial" (backend is {kind!r})')
     if kind == "mujoco":
-        return MujocoBackend(model, q_home, sites, home)
+        return MujocoBackend(model, q_home, sites, home, scene=cfg.scene if cfg is not None else "")
     if kind == "serial":
         if cfg is None:
             raise ConfigError("the serial backend needs the slave_control config (serial.port, ...)")

@@ -190,6 +190,26 @@ class RobotSpec:
     catch_up: bool = False
     patient_keepout: bool = False
 
+    def scene_variants(self) -> tuple[str, ...]:
+        """The other scenes this robot ships beside ``scene``: the ``scene_*.xml`` files in its
+        folder (a task's scene, e.g. the MH3F's ``scene_trocar_task.xml``), sorted."""
+        return tuple(sorted(p.name for p in self.scene.parent.glob("scene_*.xml")))
+
+    def scene_file(self, variant: str = "") -> pathlib.Path:
+        """The MuJoCo scene: ``scene``, or its ``variant`` (a name from :meth:`scene_variants`).
+
+        Raises:
+            ConfigError: ``variant`` is not one of them (the message lists the valid ones).
+        """
+        if not variant:
+            return self.scene
+        if variant not in (valid := self.scene_variants()):
+            raise ConfigError(
+                f"robot {self.name!r} has no scene {variant!r}; valid: {', '.join(valid) or 'none'} "
+                "(the scene_*.xml files in its folder), or empty for its own scene"
+            )
+        return self.scene.parent / variant
+
     def __post_init__(self) -> None:
         if not _NAME.fullmatch(self.name):
             raise ConfigError(f"robot name {self.name!r} must match {_NAME.pattern}")

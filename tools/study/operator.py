@@ -12,8 +12,9 @@ It sees what a surgeon sees — the slave's tip, as the bus brings it (so late b
   corrects from what it sees; so a longer delay makes it slower, as it does a person;
 * a small hand **tremor** (``tremor_mm``, per step);
 * a **dwell** at targets: it holds still while it sees the tip inside;
-* a **new press** when it sees the slave stop following (the watchdog held it): it lifts its foot
-  off the pedal (the policy pauses one step: the device releases it) and presses again.
+* a **new press** when it sees the slave stop following (the watchdog held it), or not start
+  (pressed before the arm was set up): it lifts its foot off the pedal (the policy pauses one
+  step: the device releases it) and presses again.
 
 For a path task it plans the same way along via points every ``path_step_mm`` of the wire (each
 sub-movement aimed from where it sees the tip, so back toward the wire), going on to the next as
@@ -104,8 +105,9 @@ class Operator:
         self.lag = 0.0  # s: its estimate of the time from a command to seeing it
         self.move_shown = False
         self.dwell_since: float | None = None
-        self.repress_s = repress_s  # s: not following this long after it followed → a new press
-        self.followed_until: float | None = None  # when it last saw the slave follow
+        # s: not following this long (since it last followed, or since it started) → a new press
+        self.repress_s = repress_s
+        self.followed_until: float | None = None  # when it last saw the slave follow (or started)
 
     # -- what it sees ---------------------------------------------------------------------------
     def _speed(self, now: float, window: float = 0.15) -> float:
@@ -163,10 +165,14 @@ class Operator:
         t, tip = obs.t, np.asarray(obs.tip, dtype=float)
         self.seen.append((t, tip))
         out = np.zeros(3)
+        if self.followed_until is None:
+            self.followed_until = t
         if not obs.following:  # not engaged (yet, or the watchdog held): hands still, start over
             if self.phase not in ("wait", "done"):
                 self.phase = "wait"
-            if self.followed_until is not None and t - self.followed_until >= self.repress_s + 2 * self.lag:
+            # (a press before the arm was ready — a trocar task's set-up — is answered by none:
+            # the slave waits for a new press, as after a hold)
+            if t - self.followed_until >= self.repress_s + 2 * self.lag:
                 # held and not following again: lift the foot off the pedal (the device releases it
                 # while the policy does not act) and press anew (``repress_s`` of the device later)
                 self.followed_until = t

@@ -159,7 +159,14 @@ def overrides(trial: Trial, margin_ms: float = 0.0) -> dict[str, list[str]]:
         # ms: what it sees may be this old before it stops acting (a loaded host delays it too)
         "device_options.stale_ms=1000.0",
     ] + [f"device_options.options.{k}={json.dumps(v)}" for k, v in opts.items()]
+    task = tasks.get(trial.task)
+    slave = [f"scene={json.dumps(task.scene)}"] if task.scene else []
+    if task.q_start:
+        slave.append(f"q_home={list(task.q_start)}")
+    if task.setup == "trocar":  # the insertion jog at the speed Jinno's experiment uses
+        slave.append("robot.jog_speed_mm_s=40.0")
     return {
+        "slave_control": slave,
         "master_capture": master,
         "mapping": [
             f"scale={c.scale}",
@@ -246,6 +253,13 @@ def run_trial(trial: Trial, where: Where, margin_ms: float = 0.0) -> dict[str, A
     except SiteStartError as e:  # (a loaded host: a service that did not come up in time)
         raise TrialFailed(f"trial {trial.index}: the site did not start: {e}") from e
     try:
+        if task.setup == "trocar":
+            from telesurg.shared.bus import Node
+            from telesurg.tools.experiment.client import ArmClient
+
+            # (as the operator console: only it may command the arm, shared/authority.py)
+            with Node(p.spec.client_bus("operator"), p.spec.site, "console") as console:
+                insert_through_trocar(ArmClient(console))
         info = {"trial": str(trial.index), "task": trial.task, "condition": c.name}
         watch = Watch(p.node)
         with Recorder(part, p.spec.site, info=info) as rec:
@@ -273,6 +287,50 @@ def run_trial(trial: Trial, where: Where, margin_ms: float = 0.0) -> dict[str, A
         **s.row(),
     }
     return row
+
+
+#: A slave-side motion of the set-up stopped by a watchdog hold (a loaded host) is commanded again
+#: at most this often.
+SETUP_ATTEMPTS = 10
+
+
+def insert_through_trocar(arm: Any) -> None:
+    """The MH3F's insert flow before a trocar task's go, as the surgeon's assistant sets the arm up
+    (Jinno 2014, Fig. 5; docs/trocar.md): posture adjustment by PTP until aligned with the trocar,
+    insert until trocar mode, master–slave. ``arm``: a
+    :class:`~telesurg.tools.experiment.client.ArmClient` of the operator console. A hold of the
+    watchdog stops a slave-side motion: it is aborted and commanded again.
+
+    Raises:
+        TrialFailed: the arm was not in trocar mode master–slave after the attempts.
+    """
+
+    def stopped_since(t: float, done: str) -> bool:
+        return any(arm.events_of(k, t) for k in (done, "hold", "motion_stopped"))
+
+    for _ in range(SETUP_ATTEMPTS):
+        if not arm.wait(arm.lease_ok, 30):
+            raise TrialFailed("set-up: the watchdog never allowed motion")
+        t = time.monotonic()
+        if arm.mode() == "non_trocar":
+            arm.must("begin_posture_adjust", "method=ptp")
+            arm.wait(lambda t=t: stopped_since(t, "ptp_done"), 30)
+            if not arm.events_of("ptp_done", t):
+                arm.send("abort", "reason=held during the set-up's PTP")
+                continue
+            arm.settle()
+            if not arm.wait(lambda: arm.send("finish_posture_adjust").accepted, 5):
+                arm.send("abort", "reason=not aligned after the PTP")
+                continue
+        t = time.monotonic()
+        if arm.mode() != "trocar":
+            arm.send("insert")
+            arm.wait(lambda t=t: arm.mode() == "trocar" or stopped_since(t, "hold"), 30)
+            if not arm.wait(lambda: arm.mode() == "trocar", 0.5):
+                continue  # (held mid-insertion: insert again from where it stopped)
+        if arm.send("set_motion_mode", "mode=master_slave").accepted:
+            return
+    raise TrialFailed(f"set-up: the arm never reached trocar-mode master–slave (mode {arm.mode()!r})")
 
 
 class Watch:

@@ -10,6 +10,7 @@ from __future__ import annotations
 import pathlib
 
 from telesurg.shared import robots
+from telesurg.shared.errors import ConfigError
 
 _MODELS_DIR = pathlib.Path(robots.__file__).resolve().parent
 
@@ -24,14 +25,22 @@ def model_names() -> tuple[str, ...]:
     return tuple(sorted({*robots.names(), *_OTHER_SCENES}))
 
 
-def model_path(name: str) -> pathlib.Path:
-    """Path of the ``scene.xml`` of model ``name`` (e.g. ``"mh3f"``).
+def model_path(name: str, scene: str = "") -> pathlib.Path:
+    """Path of the ``scene.xml`` of model ``name`` (e.g. ``"mh3f"``), or of its variant ``scene``
+    (a file name from :meth:`~telesurg.shared.robots.RobotSpec.scene_variants`; ``""``: the
+    robot's own scene).
 
     Raises:
-        ValueError: ``name`` is not a known model; the message lists the valid names.
+        ValueError: ``name`` is not a known model, or ``scene`` not one of its variants; the
+            message lists the valid names.
     """
     if name in robots.names():
-        return pathlib.Path(robots.get(name).scene)
+        try:
+            return pathlib.Path(robots.get(name).scene_file(scene))
+        except ConfigError as e:
+            raise ValueError(str(e)) from None
+    if scene:
+        raise ValueError(f"model {name!r} has no scene variants (scene = {scene!r})")
     try:
         relative = _OTHER_SCENES[name]
     except KeyError:

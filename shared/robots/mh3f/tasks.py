@@ -7,8 +7,14 @@
   25 mm amplitude over 80 mm) from end to end without the tip leaving the 5 mm tube around it.
 
 Both start with the tip at the site's home pose (the forceps 40 mm above the tissue), in the
-arm's default (non-trocar) control mode: in this scene the tissue lies beyond the trocar's reach
-(docs/study.md). The RCM error is scored whenever the arm is in trocar mode.
+arm's default (non-trocar) control mode: in this scene the tissue lies beyond the trocar's reach.
+
+* ``mh3f-trocar-targets`` — the pointing task through the trocar, in trocar mode: two targets
+  31 mm apart on the organ of ``scene_trocar_task.xml`` under the trocar. The harness first runs
+  the insert flow (posture adjustment by PTP from ``TROCAR_Q_START``, insert to trocar mode,
+  master–slave), as the surgeon's assistant would set the arm up (docs/study.md).
+
+The RCM error is scored whenever the arm is in trocar mode.
 """
 
 from __future__ import annotations
@@ -68,5 +74,48 @@ PATH = TaskSpec(
     time_limit_s=60.0,
 )
 
+# -- through the trocar: the organ of scene_trocar_task.xml, under the trocar at (0.5, 0, 0.2)
+
+ORGAN_CENTRE = (0.57, 0.0, 0.132)  # m: the organ body (scene_trocar_task.xml)
+ORGAN_SEMI_AXES = (0.045, 0.045, 0.015)  # m: its ellipsoid
+#: rad: the start pose, above the trocar (the Jinno experiment's start_a, tools/experiment/jinno.py);
+#: the insert flow from there leaves the tip at TROCAR_START_TIP, 50 mm beyond the trocar
+TROCAR_Q_START = (0.0, -0.2, 0.6, -0.8, -1.0, 0.0)
+TROCAR_START_TIP = (0.529, 0.0, 0.159)
+
+
+def organ_touch(x: float, y: float, radius_m: float = 0.005, dwell_s: float = 0.3) -> Goal:
+    """A target on the organ's surface at (x, y)."""
+    (cx, cy, cz), (a, b, c) = ORGAN_CENTRE, ORGAN_SEMI_AXES
+    r = 1.0 - ((x - cx) / a) ** 2 - ((y - cy) / b) ** 2
+    if r < 0:
+        raise ValueError(f"({x}, {y}) is not above the organ")
+    return Goal((x, y, cz + c * math.sqrt(r) - TOUCH_DEPTH_M), radius_m, dwell_s)
+
+
+# the scene's organ_target_a, organ_target_b (x, y): 31 mm apart. Through the trocar the wrist moves
+# about five times as far as the tip (the forceps is 500 mm, the tip ~90 mm in): a 31 mm reach
+# swings J1 by ~40°, so the targets are closer than on the open tissue
+TA, TB = (0.560, -0.012), (0.580, 0.012)
+
+TROCAR_TARGETS = TaskSpec(
+    name="mh3f-trocar-targets",
+    robot="mh3f",
+    kind="targets",
+    instructions=(
+        "Through the trocar: touch the green target on the organ, then the blue one, in turn; "
+        "hold each touch until it is taken."
+    ),
+    goals=(organ_touch(*TA), organ_touch(*TB), organ_touch(*TA), organ_touch(*TB)),
+    start_tip=TROCAR_START_TIP,
+    force_limit_n=2.0,
+    rcm_limit_mm=2.0,
+    time_limit_s=60.0,
+    scene="scene_trocar_task.xml",
+    setup="trocar",
+    q_start=TROCAR_Q_START,
+)
+
 register(TARGETS)
 register(PATH)
+register(TROCAR_TARGETS)
