@@ -25,6 +25,7 @@ service instance id)::
     mapping/<arm>/teleop_state   TeleopState     teleop state of the pair driving slave <arm> (10 Hz,
                                                  on change; also a queryable: the current state)
     console/<m>/clutch           MasterButtons   the console's keyboard clutch for master <m>
+    study/trial                  TrialState      the current trial of telesurg study: task, clock, score
     echo/<service>               (queryable)     replies at once: round-trip time across hosts
     events/<service>             SafetyEvent     events (transitions, IK failures, ...)
     heartbeat/<service>          Heartbeat       2 Hz service heartbeat
@@ -124,6 +125,11 @@ class Keys:
     def console_clutch(self, master: str) -> str:
         """``telesurg/<site>/console/<master>/clutch``: the operator console's clutch for a master."""
         return f"{self.prefix}/console/{check_id('arm', master)}/clutch"
+
+    @property
+    def study_trial(self) -> str:
+        """``telesurg/<site>/study/trial``: the current trial of ``telesurg study`` (the console shows it)."""
+        return f"{self.prefix}/study/trial"
 
     def mapping_command(self, arm: str) -> str:
         """``telesurg/<site>/mapping/<arm>/command``: the mapping's command queryable (VIP)."""

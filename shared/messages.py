@@ -1254,6 +1254,35 @@ class VideoFeedback(Message):
     keyframe: bool = fld(False, "the viewer needs a keyframe (it lost a frame, or just started)")
 
 
+TRIAL_PHASES = frozenset({"setup", "ready", "running", "done", "failed"})
+
+
+@message("trial_state")
+@dataclass(frozen=True, slots=True)
+class TrialState(Message):
+    """The current trial of a study (``study/trial``, from ``telesurg study``: 4 Hz and on change):
+    what the operator's console shows — the task, its instructions, the trial's clock and, at the
+    end, its score. In a blinded study ``condition`` is the trial's code, never the condition."""
+
+    trial: int = fld(0, "the trial's number, 1-based (0: none)", ge=0, le=100_000)
+    trials: int = fld(0, "trials in the participant's schedule", ge=0, le=100_000)
+    task: str = fld("", "the task's registered name (`mh3f-targets`)")
+    instructions: str = fld("", "what the operator is told")
+    condition: str = fld("", "the condition as the operator may see it: its code when blinded")
+    practice: bool = fld(False, "a practice trial (not scored)")
+    phase: str = fld(
+        "setup",
+        "`setup` (the site starts, the arm is set up), `ready` (press the clutch to start), "
+        "`running` (the clock runs while the slave follows), `done`, `failed`",
+        choices=TRIAL_PHASES,
+    )
+    elapsed_s: float = fld(0.0, "the trial's clock: time following since the go", unit="s", ge=0.0, le=1e6)
+    time_limit_s: float = fld(0.0, "the task's time limit (of time following)", unit="s", ge=0.0, le=1e6)
+    goals_reached: int = fld(0, "goals reached so far, in order", ge=0, le=10_000)
+    goals: int = fld(0, "the task's goals", ge=0, le=10_000)
+    result: str = fld("", 'the score at the end, one line (`""` before)')
+
+
 #: Every message class by its type tag.
 MESSAGE_TYPES: dict[str, type[Message]] = dict(_REGISTRY)
 
@@ -1276,6 +1305,7 @@ AnyMessage = (
     | CameraImage
     | VideoState
     | VideoFeedback
+    | TrialState
 )
 
 

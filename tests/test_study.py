@@ -146,7 +146,7 @@ def test_an_interrupted_study_keeps_its_trials_and_resumes(
     out = tmp_path / "out"
     ran: list[int] = []
 
-    def interrupted(trial: Any, where: Any, margin: float) -> dict[str, Any]:
+    def interrupted(trial: Any, where: Any, margin: float, **how: Any) -> dict[str, Any]:
         if trial.index == 3:
             raise KeyboardInterrupt
         ran.append(trial.index)
@@ -163,7 +163,7 @@ def test_an_interrupted_study_keeps_its_trials_and_resumes(
     with (out / "results.jsonl").open("a") as f:
         f.write('{"trial": 3, "task": "mh3f-')
 
-    def failing(trial: Any, where: Any, margin: float) -> dict[str, Any]:
+    def failing(trial: Any, where: Any, margin: float, **how: Any) -> dict[str, Any]:
         if trial.index == 5:
             raise runner.TrialFailed("trial 5: services exited: {'slave_control': -9}")
         ran.append(trial.index)
@@ -174,7 +174,7 @@ def test_an_interrupted_study_keeps_its_trials_and_resumes(
     assert ran == [0, 1, 2, 3, 4]  # trial 5 tried twice (a retry), then the study stops
     assert "slave_control" in capsys.readouterr().err
 
-    monkeypatch.setattr(study, "run_trial", lambda t, w, m: (ran.append(t.index), fake_row(t))[1])
+    monkeypatch.setattr(study, "run_trial", lambda t, w, m, **how: (ran.append(t.index), fake_row(t))[1])
     assert study.main([str(proto), "--out", str(out)]) == 0
     assert ran == list(range(10))  # every trial exactly once
     assert "resuming: 5 of 10 trials done, 5 to go" in capsys.readouterr().out
@@ -195,14 +195,24 @@ def test_a_blinded_study_never_prints_the_condition(
 ) -> None:
     proto = tmp_path / "p.toml"
     proto.write_text(GOOD.replace("practice = 1", "practice = 0"))
-    monkeypatch.setattr(study, "run_trial", lambda t, w, m: fake_row(t))
+    panel: list[str] = []  # what the console's trial panel is given to show
+
+    def run(t: Any, w: Any, m: float, **how: Any) -> dict[str, Any]:
+        panel.append(how["shown"])
+        assert how["total"] == 8 and how["master"] == "operator"
+        return fake_row(t)
+
+    monkeypatch.setattr(study, "run_trial", run)
     monkeypatch.setattr(report, "write", lambda *a: [])  # (the report: the resume test's)
     assert study.main([str(proto), "--out", str(tmp_path / "b")]) == 0
     shown = [line for line in capsys.readouterr().out.splitlines() if line.startswith("trial")]
     assert len(shown) == 8 and all("ms" not in line and "condition " in line for line in shown)
+    assert len(panel) == 8 and all(p.startswith("condition ") and "ms" not in p for p in panel), panel
+    panel.clear()
     proto.write_text(GOOD.replace("practice = 1", "practice = 0\nblinded = false"))
     assert study.main([str(proto), "--out", str(tmp_path / "u")]) == 0
     assert any("150 ms" in line for line in capsys.readouterr().out.splitlines() if line.startswith("trial"))
+    assert "150 ms" in panel  # (not blinded: the condition itself)
 
 
 # ----------------------------------------------------------------------------- tasks and scores

@@ -31,6 +31,7 @@ from telesurg.shared.messages import (
     SafetyState,
     Sequencer,
     TeleopState,
+    TrialState,
 )
 
 log = logging.getLogger(__name__)
@@ -58,6 +59,7 @@ class ConsoleConfig:
     watchdog_source: str = "watchdog"
     master_source: str = "master_capture"
     mapping_source: str = "mapping"
+    study_source: str = "study"  # the study's trial (study/trial: task, clock, score) from telesurg study
     web: WebConfig = field(default_factory=WebConfig)  # the web console (telesurg console --web)
     bus: BusConfig = field(default_factory=BusConfig)  # zenoh session
 
@@ -202,6 +204,9 @@ class ConsoleModel:
                 k.master(m, "buttons"), MasterButtons, self._on_pedal, sources=only(cfg.master_source)
             )
         node.subscribe(k.events(), SafetyEvent, self._on_event)
+        # the study's current trial, if a study runs (latest: shown at once on a page opened mid-trial)
+        self.trial: tuple[TrialState, float] | None = None  # (state, monotonic s received)
+        node.subscribe(k.study_trial, TrialState, self._on_trial, sources=only(cfg.study_source), latest=True)
         node.watch_liveliness(k.alive(), self._on_alive)
         self._clutch_thread = threading.Thread(target=self._clutch_loop, daemon=True, name="console-clutch")
         self._clutch_thread.start()
@@ -250,6 +255,10 @@ class ConsoleModel:
             self._notices.append(
                 Notice(stamp, m.severity, f"{where}{m.header.source} {m.kind}: {m.text}", toast=False)
             )
+
+    def _on_trial(self, m: TrialState, key: str) -> None:
+        with self.lock:
+            self.trial = (m, time.monotonic())
 
     def _on_alive(self, service: str, alive: bool) -> None:
         with self.lock:

@@ -595,6 +595,32 @@ class WebConsole:
                 if (p := self.model.pending_confirm) is None
                 else {"arm": p.arm, "command": p.line, "question": p.question}
             ),
+            "trial": self._trial(now),
+        }
+
+    def _trial(self, now: float) -> dict[str, Any] | None:
+        """The study's current trial as the operator may see it (None: no study, or its last state
+        is older than 10 s — the study ended or stopped)."""
+        with self.model.lock:
+            got = self.model.trial
+        if got is None or now - got[1] > 10.0:
+            return None
+        m, rx = got
+        # (the clock runs on between the study's 4 Hz states while the trial runs)
+        elapsed = m.elapsed_s + (now - rx if m.phase == "running" else 0.0)
+        return {
+            "trial": m.trial,
+            "trials": m.trials,
+            "task": m.task,
+            "instructions": m.instructions,
+            "condition": m.condition,
+            "practice": m.practice,
+            "phase": m.phase,
+            "elapsed_s": round(elapsed, 1),
+            "time_limit_s": m.time_limit_s,
+            "goals_reached": m.goals_reached,
+            "goals": m.goals,
+            "result": m.result,
         }
 
     @staticmethod

@@ -249,6 +249,7 @@ class Pipeline:
         camera: bool = False,
         mapping: bool = True,
         link: LinkProfile | None = None,
+        console: bool = False,
     ) -> None:
         self.log_dir = log_dir
         self._link = link  # the impairer's delay and jitter from before anything connects
@@ -264,6 +265,12 @@ class Pipeline:
         services: tuple[str, ...] = ("watchdog", "slave_control") + (("mapping",) if mapping else ())
         services += (("master_capture",) if master else ()) + (("mirror",) if mirror else ())
         services += ("camera",) if camera else ()  # (its video then guards the arm: Site._camera_first)
+        # the web console, its page the master (telesurg up --master web): it reaches the site
+        # through the impairer as master_capture does
+        self.console_port = free_port() if console else 0
+        if console:
+            services += ("console",)
+            ov.setdefault("console", []).insert(0, f"web.port={self.console_port}")
         self.spec = SiteSpec(
             port=port,
             config_dir=config_dir or default_config_dir(),
@@ -289,6 +296,8 @@ class Pipeline:
                 if self._link is not None:
                     self.impairer.set_profile(self._link)
                 self.spec.connect["master_capture"] = self.impairer.endpoint
+                if self.console_port:
+                    self.spec.connect["console"] = self.impairer.endpoint
             self.site.start()
             # (without master_capture the caller acts as the master, e.g. a test console)
             self._node = Node(self.spec.client_bus("operator"), self.spec.site, "bench_probe")
@@ -321,6 +330,20 @@ class Pipeline:
         if self.impairer is not None:
             self.impairer.close()
         return codes
+
+    def keep(self, node: Node) -> Node:
+        """Close ``node`` with the pipeline (a node of the caller's, e.g. another identity)."""
+        self._extra_nodes.append(node)
+        return node
+
+    def console_login(self, timeout: float = 30.0) -> str:
+        """The web console's one-time login URL, once its page is served (``console=True``)."""
+        from telesurg.services.launcher import login_url, wait_port
+
+        if not self.console_port:
+            raise RuntimeError("this pipeline has no web console (console=True)")
+        wait_port("127.0.0.1", self.console_port, timeout)
+        return login_url(f"http://127.0.0.1:{self.console_port}/", self.site.login_token)
 
     @property
     def p(self) -> Probe:

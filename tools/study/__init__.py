@@ -7,9 +7,14 @@ with its recording ``DIR/trials/NNN.mcap``; at the end (and with ``--report`` at
 ``DIR/report.md``, ``report.json`` and ``report.png``. Run the same command again after an
 interruption (Ctrl-C, a service that died) and it resumes after the last finished trial.
 
+With ``--master web`` a person performs the trials at the web console's page instead (its
+one-time login URL is printed for each trial); the page shows the task, its instructions, the
+trial's clock and its result, and, in a blinded study, the condition's code only.
+
 Examples::
 
     telesurg study docs/data/study-delay.toml --out out/study --participant p01
+    telesurg study docs/data/study-delay.toml --out out/study --participant p02 --master web
     telesurg study docs/data/study-delay.toml --out out/study --report   # the report only
 
 Exit codes: 0 done, 1 a trial failed (run again to resume), 2 a bad protocol or arguments,
@@ -29,7 +34,15 @@ from pathlib import Path
 from typing import Any
 
 from telesurg.tools.study.protocol import ProtocolError, Trial, load
-from telesurg.tools.study.runner import StudyError, TrialFailed, Where, finished, prepare, run_trial
+from telesurg.tools.study.runner import (
+    MASTERS,
+    StudyError,
+    TrialFailed,
+    Where,
+    finished,
+    prepare,
+    run_trial,
+)
 
 RETRIES = 1  # a trial whose site failed is tried this many more times before the study stops
 
@@ -44,6 +57,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--participant", default="p01", help="participant id: seeds the order (default p01)")
     ap.add_argument("--restart", action="store_true", help="discard what --out holds and start again")
     ap.add_argument("--report", action="store_true", help="only write the report of the finished trials")
+    ap.add_argument(
+        "--master",
+        choices=MASTERS,
+        default="operator",
+        help="operator: the synthetic operator performs the trials (default); web: a person at the web "
+        "console's page (its one-time login URL is printed for each trial: a fresh site each)",
+    )
     ap.add_argument("--log-level", default="WARNING", help="DEBUG, INFO, WARNING, ERROR")
     a = ap.parse_args(argv)
     logging.basicConfig(level=a.log_level.upper(), format="%(levelname)s %(name)s: %(message)s")
@@ -71,7 +91,9 @@ def main(argv: Sequence[str] | None = None) -> int:
             shown = trial.code if protocol.blinded else f"{trial.condition.name}"
             print(f"trial {trial.index + 1}/{len(trials)}: {trial.task}, {shown}", flush=True)
             try:
-                row = _attempt(trial, where, protocol.host_margin_ms)
+                row = _attempt(
+                    trial, where, protocol.host_margin_ms, shown=shown, total=len(trials), master=a.master
+                )
             except KeyboardInterrupt:
                 n_done = len(finished(where.results))
                 print(
@@ -107,11 +129,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     return 0
 
 
-def _attempt(trial: Trial, where: Where, margin_ms: float) -> dict[str, Any]:
-    """Run the trial, once more if its site failed."""
+def _console(url: str) -> None:
+    print(f"  the console for this trial (one-time login): {url}", flush=True)
+
+
+def _attempt(trial: Trial, where: Where, margin_ms: float, **how: Any) -> dict[str, Any]:
+    """Run the trial, once more if its site failed (``how``: :func:`run_trial`'s keywords)."""
     for attempt in range(RETRIES + 1):
         try:
-            return run_trial(trial, where, margin_ms)
+            return run_trial(trial, where, margin_ms, on_console=_console, **how)
         except TrialFailed as e:
             if attempt == RETRIES:
                 raise

@@ -24,6 +24,7 @@ import os
 import shutil
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
@@ -39,6 +40,7 @@ from telesurg.shared.messages import (
     MasterButtons,
     OperatingState,
     SafetyState,
+    TrialState,
 )
 from telesurg.tools.study.protocol import Protocol, Trial, schedule
 
@@ -234,17 +236,65 @@ def streams_from_mcap(path: Path, arm: str = "arm1", master: str = "m1") -> task
     )
 
 
-def run_trial(trial: Trial, where: Where, margin_ms: float = 0.0) -> dict[str, Any]:
-    """Run one trial on a fresh site and return its result row (raises TrialFailed)."""
+#: The masters a study can use: the synthetic operator (the policy device of master_capture) or a
+#: person at the web console's page (mouse and keyboard, phone, gamepad).
+MASTERS = ("operator", "web")
+#: s the site stays up after a trial with a person at the page: the page shows the result
+RESULT_SHOWN_S = 3.0
+
+
+class Board:
+    """The trial as the operator's console shows it (``study/trial``, :class:`TrialState`): the
+    task, its instructions, the condition as the operator may see it (its code when blinded), the
+    clock and the result."""
+
+    def __init__(self, node: Any, trial: Trial, task: tasks.TaskSpec, shown: str, total: int) -> None:
+        self.out = node.outlet(node.keys.study_trial, control=False, latest=True)
+        self.trial, self.task, self.shown, self.total = trial, task, shown, total
+
+    def show(self, phase: str, elapsed_s: float = 0.0, reached: int = 0, result: str = "") -> None:
+        t = self.task
+        self.out.put(
+            TrialState(
+                self.out.header(), self.trial.index + 1, self.total, t.name, t.instructions,
+                self.shown, self.trial.practice, phase, round(elapsed_s, 2), t.time_limit_s, reached,
+                len(t.goals), result,
+            )
+        )  # fmt: skip
+
+
+def run_trial(
+    trial: Trial,
+    where: Where,
+    margin_ms: float = 0.0,
+    *,
+    shown: str = "",
+    total: int = 0,
+    master: str = "operator",
+    on_console: Callable[[str], None] | None = None,
+) -> dict[str, Any]:
+    """Run one trial on a fresh site and return its result row (raises TrialFailed).
+
+    ``shown``: the condition as the operator may see it (its code when blinded), on the console's
+    trial panel; ``total``: the trials of the schedule. ``master``: ``operator`` (the synthetic
+    operator) or ``web`` (a person at the web console's page: ``on_console`` gets its one-time
+    login URL once it is served)."""
+    from telesurg.shared.bus import Node
     from telesurg.tools.bench.harness import Pipeline
     from telesurg.tools.bench.netprofile import LinkProfile
 
+    if master not in MASTERS:
+        raise StudyError(f"master {master!r} unknown; valid: {', '.join(MASTERS)}")
     task = tasks.get(trial.task)
     logs, mcap = where.logs(trial.index), where.mcap(trial.index)
     shutil.rmtree(logs, ignore_errors=True)
     mcap.unlink(missing_ok=True)
     c = trial.condition
-    pipe = Pipeline(logs, mirror=False, impair=True, probe=False, overrides=overrides(trial, margin_ms))
+    ov = overrides(trial, margin_ms)
+    web = master == "web"
+    if web:  # the page is the master: no master_capture (its policy settings go)
+        ov.pop("master_capture")
+    pipe = Pipeline(logs, mirror=False, impair=True, probe=False, overrides=ov, master=not web, console=web)
     assert pipe.impairer is not None
     pipe.impairer.set_profile(LinkProfile(delay_ms=c.delay_ms, jitter_ms=c.jitter_ms))
     part = mcap.with_name(mcap.name + ".part")
@@ -253,8 +303,13 @@ def run_trial(trial: Trial, where: Where, margin_ms: float = 0.0) -> dict[str, A
     except SiteStartError as e:  # (a loaded host: a service that did not come up in time)
         raise TrialFailed(f"trial {trial.index}: the site did not start: {e}") from e
     try:
+        study = Node(p.spec.client_bus("operator"), p.spec.site, "study")
+        p.keep(study)
+        board = Board(study, trial, task, shown or c.name, total)
+        board.show("setup")
+        if web and on_console is not None:
+            on_console(p.console_login())
         if task.setup == "trocar":
-            from telesurg.shared.bus import Node
             from telesurg.tools.experiment.client import ArmClient
 
             # (as the operator console: only it may command the arm, shared/authority.py)
@@ -265,10 +320,13 @@ def run_trial(trial: Trial, where: Where, margin_ms: float = 0.0) -> dict[str, A
         with Recorder(part, p.spec.site, info=info) as rec:
             for key in record_keys(p.node.keys):
                 rec.subscribe(p.node.session, key, p.node.keyring)
-            t_go, t_end, why = watch.run(p.site, task)
+            t_go, t_end, why = watch.run(p.site, task, board)
             time.sleep(AFTER_DONE_S)
         if why:
+            board.show("failed", result=why.splitlines()[0])
             raise TrialFailed(f"trial {trial.index}: {why}\n{p.diagnose(6)}")
+        if web:
+            time.sleep(RESULT_SHOWN_S)
     finally:
         p.close()
     os.replace(part, mcap)
@@ -351,19 +409,24 @@ class Watch:
     def _on_op(self, m: OperatingState, key: str) -> None:
         self.following = m.follow  # (a bool: set atomically from the bus thread)
 
-    def run(self, site: Any, task: tasks.TaskSpec) -> tuple[float, float, str]:
+    def run(self, site: Any, task: tasks.TaskSpec, board: Board | None = None) -> tuple[float, float, str]:
         """Wait for the go (the slave follows), then until the task is done or its time limit:
-        (go, end, "" or why the trial failed), monotonic s."""
+        (go, end, "" or why the trial failed), monotonic s. ``board``: shows the trial's phase,
+        clock and, at the end, its result (4 Hz)."""
         deadline = time.monotonic() + ENGAGE_TIMEOUT_S
+        shown = 0.0
         while not self.following:
             if (dead := site.dead()) or time.monotonic() > deadline:
                 why = f"services exited: {dead}" if dead else "the slave never followed the operator"
                 return math.nan, math.nan, why
+            if board is not None and time.monotonic() - shown > 0.25:
+                board.show("ready")
+                shown = time.monotonic()
             time.sleep(0.05)
         go = last = time.monotonic()
         active = 0.0  # s the slave followed since the go: the time limit counts these
         while True:
-            time.sleep(0.5)
+            time.sleep(0.25)
             now = time.monotonic()
             active += (now - last) if self.following else 0.0
             last = now
@@ -371,6 +434,26 @@ class Watch:
                 return go, now, f"services exited: {dead}"
             with self.lock:
                 tips = np.array(self.tips, dtype=float).reshape(-1, 4)
+            tips = tips[tips[:, 0] >= go]
             over = active > task.time_limit_s or now - go > WALL_LIMIT * task.time_limit_s
-            if tasks.evaluate(task, tips[tips[:, 0] >= go]).done or over:
+            prog = tasks.evaluate(task, tips)
+            if board is not None:
+                board.show("done" if prog.done or over else "running", active, len(prog.reached),
+                           live_result(prog, tips, go, over))  # fmt: skip
+            if prog.done or over:
                 return go, now, ""
+
+
+def live_result(prog: tasks.Progress, tips: np.ndarray, go: float, over: bool) -> str:
+    """The trial's result as the console shows it at its end, from the live tip samples ("" while it
+    runs); the scored row (from the recording) follows in results.jsonl."""
+    if not (prog.done or over):
+        return ""
+    done_t = prog.done_t if prog.done_t is not None else float(tips[-1, 0]) if len(tips) else go
+    inside = tips[tips[:, 0] <= done_t] if len(tips) else tips
+    path_mm = (
+        float(np.linalg.norm(np.diff(inside[:, 1:], axis=0), axis=1).sum()) * 1e3 if len(inside) > 1 else 0.0
+    )
+    if prog.done:
+        return f"done in {done_t - go:.1f} s · tip path {path_mm:.0f} mm"
+    return f"not done: time limit · {len(prog.reached)} goals reached · tip path {path_mm:.0f} mm"

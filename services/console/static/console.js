@@ -446,11 +446,29 @@ function render(m) {
     d.innerHTML = armHtml(a);
   }
   banner(m);
+  trial(m.trial);
   for (const n of m.notices || []) logLine(n.severity, n.text);
   scope(m.video || {});
   askConfirm(m.confirm);
   draw(m);
   showForce(m);
+}
+
+// The study's current trial (telesurg study): the task, its instructions, the clock, the score at
+// the end. The condition is what the study lets the operator see: its code when blinded.
+const PHASE = { setup: "setting up the arm…", ready: "ready: press the clutch to start", running: "", done: "done", failed: "stopped" };
+function trial(t) {
+  const box = $("#trial");
+  box.hidden = !t;
+  if (!t) return;
+  box.className = "t-" + t.phase;
+  $("#trial-title").textContent = `${t.practice ? "practice" : "trial"} ${t.trial}/${t.trials} · ${t.task}`;
+  $("#trial-condition").textContent = t.condition;
+  $("#trial-phase").textContent = PHASE[t.phase] ?? t.phase;
+  $("#trial-clock").textContent = `${t.elapsed_s.toFixed(1)} s` + (t.time_limit_s ? ` / ${t.time_limit_s.toFixed(0)} s` : "");
+  $("#trial-goals").textContent = t.goals ? `goals ${t.goals_reached}/${t.goals}` : "";
+  $("#trial-instructions").textContent = t.instructions;
+  $("#trial-result").textContent = t.result;
 }
 
 // A motion-starting command is carried out only once the operator confirms the server's question.
