@@ -1281,6 +1281,11 @@ class TrialState(Message):
     goals_reached: int = fld(0, "goals reached so far, in order", ge=0, le=10_000)
     goals: int = fld(0, "the task's goals", ge=0, le=10_000)
     result: str = fld("", 'the score at the end, one line (`""` before)')
+    goal_points: tuple[float, ...] = fld(
+        (),
+        "the goals' positions in order, x y z each (the slave's base frame): the console draws them",
+        unit="m",
+    )
 
 
 #: Every message class by its type tag.

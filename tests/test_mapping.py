@@ -165,6 +165,48 @@ def test_joint_space_mapping_follows_the_same_engage_rules(
     assert arm.following
 
 
+def test_a_slave_that_stops_following_on_its_own_disengages_the_pair(
+    rig: tuple[Pair, list[JointSetpoint], list[SafetyEvent]],
+) -> None:
+    """The slave held on a stale setpoint stream (its lease intact) and waits for a new press: the
+    pair goes HOLDING naming why, not ENABLED while the arm stands still; the slave's own start
+    (not yet following, just after the engage) does not."""
+    from telesurg.shared.messages import now_ns
+
+    arm0, _, _ = rig
+    cfg = MappingConfig(mode="all_joints", model="plas")
+    cfg.validate()
+    arm = Pair(cfg, arm0.node, "m1", "arm1", threading.Event())
+    names = arm.strategy.profile.joint_names
+    arm.on_slave_js(JointState(H, names, tuple(0.0 for _ in names)), "")
+    arm.on_slave_state(OperatingState(H, "PAUSED", "joint", False, True, "", 0), "")
+
+    def sample(clutch: bool) -> None:
+        arm.on_buttons(MasterButtons(H, clutch, True), "")
+        arm.on_master(JointState(H, tuple(f"m{i}" for i in range(6)), (0.0,) * 6), "")
+        arm.process()
+
+    def slave(follow: bool, reason: str, after_engage_ms: float) -> None:
+        h = Header("slave_control", 1, arm.since_ns + int(after_engage_ms * 1e6))
+        arm.on_slave_state(OperatingState(h, "ENABLED", "joint", follow, True, reason, 1), "")
+
+    sample(False)
+    sample(True)
+    assert arm.following
+    slave(False, "waiting for engage", 50)  # its start: armed, the first setpoint on its way
+    slave(False, "waiting for a new engage (clutch)", 100)  # (inside the start's grace)
+    assert arm.following
+    slave(True, "", 120)
+    slave(False, "setpoint stream stale", 2000)
+    assert not arm.following and arm.state == "HOLDING"
+    assert arm.reason == "slave not following: setpoint stream stale"
+    sample(True)  # the pedal still down: no engage
+    assert not arm.following
+    sample(False)
+    sample(True)  # a new press engages again
+    assert arm.following and arm.since_ns <= now_ns()
+
+
 def test_virtual_trocar_master_maps_the_dummy_tip_with_the_fulcrum_effect() -> None:
     cfg = MappingConfig(
         master_mode="virtual_trocar", virtual_trocar_mm=(0.0, 0.0, 0.0), dummy_forceps_mm=200.0

@@ -108,5 +108,7 @@ def test_the_trocar_task_is_done_through_the_trocar_on_a_real_site(tmp_path: Pat
     during = s.rcm[(s.rcm[:, 0] >= go) & (s.rcm[:, 0] <= go + r["completion_time_s"])]
     assert len(during) > 20 and during[:, 2].min() == 1.0  # in trocar mode throughout the trial
     assert r["rcm_error_max_mm"] < 2.0 and r["errors"]["rcm_error"] == 0, r  # the RCM held
-    # the forceps touched the organ (each touch presses it) and never pressed it too hard
-    assert r["contact_time_s"] > 0.5 and 0.05 < r["peak_force_n"] < 2.0, r
+    # the forceps touched the organ (each touch presses it), and a press above the 2 N limit is
+    # scored as an error (the synthetic operator overshoots into the organ now and then: 2.4-3 N)
+    assert r["contact_time_s"] > 0.5 and r["peak_force_n"] > 0.05, r
+    assert (r["errors"]["tissue_force"] > 0) == (r["peak_force_n"] > 2.0), r

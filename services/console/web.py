@@ -621,6 +621,10 @@ class WebConsole:
             "goals_reached": m.goals_reached,
             "goals": m.goals,
             "result": m.result,
+            "goals_mm": [
+                [round(v * 1e3, 2) for v in m.goal_points[i : i + 3]]
+                for i in range(0, len(m.goal_points) - 2, 3)
+            ],
         }
 
     @staticmethod

@@ -25,7 +25,9 @@ These rules are a named state machine (the dVRK teleop pattern), one per pair::
     ENGAGING → ENABLED        the checks pass at the next master sample
     ENGAGING → HOLDING        the checks fail (``engage_refused``)
     ENABLED → IDLE/DISABLED   the clutch is released (``disengage``, the operator's)
-    ENABLED → HOLDING         operator absent, slave holding, slave mode change, master stale
+    ENABLED → HOLDING         operator absent, slave holding (no lease) or not following (it
+                              stopped on its own: a stale setpoint stream, a refused engage),
+                              slave mode change, master stale
     HOLDING/ENGAGING → IDLE/DISABLED  the clutch is released
 
 The state, the state before it, the reason and the time of the last change and the scales in
@@ -66,6 +68,11 @@ if TYPE_CHECKING:
 log = logging.getLogger(__name__)
 
 DISABLED, IDLE, ENGAGING, ENABLED, HOLDING = "DISABLED", "IDLE", "ENGAGING", "ENABLED", "HOLDING"
+#: The slave's reason while it waits, armed, for the engage's first following setpoint.
+SLAVE_ARMED = "waiting for engage"
+#: ns after an engage during which the slave's not-following states are its start, not a stop: its
+#: states stamped later that say it is not following (lease intact) disengage the pair (HOLDING)
+SLAVE_START_GRACE_NS = 500_000_000
 #: Hz: the teleop state is re-sent this often (and on every change).
 STATE_HZ = 10.0
 
@@ -167,6 +174,16 @@ class EngageGate:
             old, self.slave_state = self.slave_state, msg
             if self.following and not msg.lease_ok:
                 self._disengage(f"slave holding: {msg.reason or 'no lease'}")
+            elif (
+                self.following
+                and not msg.follow
+                and msg.reason not in ("", SLAVE_ARMED)
+                and msg.header.stamp_ns > self.since_ns + SLAVE_START_GRACE_NS
+            ):
+                # the slave stopped following with its lease intact (its setpoint stream went
+                # stale, or it refused the engage) and waits for a new press: say so, do not
+                # stay ENABLED while the arm stands still
+                self._disengage(f"slave not following: {msg.reason}")
             elif self.following and old is not None and old.control_mode != msg.control_mode:
                 self._disengage(f"slave control mode {old.control_mode} → {msg.control_mode}")
 

@@ -162,7 +162,11 @@ def overrides(trial: Trial, margin_ms: float = 0.0) -> dict[str, list[str]]:
         "device_options.stale_ms=1000.0",
     ] + [f"device_options.options.{k}={json.dumps(v)}" for k, v in opts.items()]
     task = tasks.get(trial.task)
-    slave = [f"scene={json.dumps(task.scene)}"] if task.scene else []
+    # (the slave's own setpoint deadline too: a stall of the master stream on a loaded host
+    # otherwise stops the slave first, while the mapping's longer deadline keeps it engaged)
+    slave = [f"setpoint_timeout_ms={100.0 + margin_ms}"] if margin_ms else []
+    if task.scene:
+        slave.append(f"scene={json.dumps(task.scene)}")
     if task.q_start:
         slave.append(f"q_home={list(task.q_start)}")
     if task.setup == "trocar":  # the insertion jog at the speed Jinno's experiment uses
@@ -258,7 +262,7 @@ class Board:
             TrialState(
                 self.out.header(), self.trial.index + 1, self.total, t.name, t.instructions,
                 self.shown, self.trial.practice, phase, round(elapsed_s, 2), t.time_limit_s, reached,
-                len(t.goals), result,
+                len(t.goals), result, tuple(float(v) for g in t.goals for v in g.position),
             )
         )  # fmt: skip
 
@@ -294,9 +298,10 @@ def run_trial(
     web = master == "web"
     if web:  # the page is the master: no master_capture (its policy settings go)
         ov.pop("master_capture")
-    pipe = Pipeline(logs, mirror=False, impair=True, probe=False, overrides=ov, master=not web, console=web)
-    assert pipe.impairer is not None
-    pipe.impairer.set_profile(LinkProfile(delay_ms=c.delay_ms, jitter_ms=c.jitter_ms))
+    link = LinkProfile(delay_ms=c.delay_ms, jitter_ms=c.jitter_ms)  # (set before anything connects)
+    pipe = Pipeline(
+        logs, mirror=False, impair=True, probe=False, overrides=ov, master=not web, console=web, link=link
+    )
     part = mcap.with_name(mcap.name + ".part")
     try:
         p = pipe.__enter__()  # (closes what it started if it fails)

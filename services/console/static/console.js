@@ -665,6 +665,14 @@ function draw(m) {
         sk.forceps.forEach((p, j) => { const q = P(p); j ? g.lineTo(...q) : g.moveTo(...q); }); g.stroke();
       }
       if (sk && sk.rcm) { for (const p of sk.rcm) { const q = P(p); g.strokeStyle = "#4dabf7"; g.lineWidth = 2; g.strokeRect(q[0] - 5, q[1] - 5, 10, 10); } }
+      if (m.trial && m.trial.goals_mm && a === m.arms[0]) { // the study's goals: the next one filled
+        m.trial.goals_mm.forEach((p, j) => {
+          const q = P(p), next = j === m.trial.goals_reached;
+          if (j < m.trial.goals_reached) return;
+          g.strokeStyle = g.fillStyle = next ? "#4dabf7" : "#3b5d7a"; g.lineWidth = 2; g.beginPath(); g.arc(q[0], q[1], next ? 7 : 5, 0, 7);
+          next ? g.fill() : g.stroke();
+        });
+      }
       if (a.ghost_mm) { const q = P(a.ghost_mm); g.strokeStyle = "#f06595"; g.lineWidth = 2; g.beginPath(); g.arc(q[0], q[1], 9, 0, 7); g.stroke(); }
       if (a.tip_mm) { const q = P(a.tip_mm); g.fillStyle = "#5fd35f"; g.beginPath(); g.arc(q[0], q[1], 5, 0, 7); g.fill(); }
       if (a.tip_mm && a.force && a.force.mag > 0.01) { // the tip force, 15 px per N, from the tip
