@@ -128,17 +128,22 @@ def test_a_press_released_before_the_next_sample_does_not_engage(
     assert arm.following
 
 
-def test_joint_space_mapping_follows_the_same_engage_rules(
-    rig: tuple[Pair, list[JointSetpoint], list[SafetyEvent]],
-) -> None:
-    # the PLAS all-joints mapping shares the clutch rules (services/mapping/engage.py)
-    arm0, _, _ = rig
+def plas_pair(arm0: Pair) -> Pair:
+    """A PLAS all-joints pair on ``arm0``'s node, its slave at zero, allowed to move, not following."""
     cfg = MappingConfig(mode="all_joints", model="plas")
     cfg.validate()
     arm = Pair(cfg, arm0.node, "m1", "arm1", threading.Event())
     names = arm.strategy.profile.joint_names
     arm.on_slave_js(JointState(H, names, tuple(0.0 for _ in names)), "")
     arm.on_slave_state(OperatingState(H, "PAUSED", "joint", False, True, "", 0), "")
+    return arm
+
+
+def test_joint_space_mapping_follows_the_same_engage_rules(
+    rig: tuple[Pair, list[JointSetpoint], list[SafetyEvent]],
+) -> None:
+    # the PLAS all-joints mapping shares the clutch rules (services/mapping/engage.py)
+    arm = plas_pair(rig[0])
 
     def sample(clutch: bool | None) -> None:
         if clutch is not None:
@@ -173,13 +178,7 @@ def test_a_slave_that_stops_following_on_its_own_disengages_the_pair(
     (not yet following, just after the engage) does not."""
     from telesurg.shared.messages import now_ns
 
-    arm0, _, _ = rig
-    cfg = MappingConfig(mode="all_joints", model="plas")
-    cfg.validate()
-    arm = Pair(cfg, arm0.node, "m1", "arm1", threading.Event())
-    names = arm.strategy.profile.joint_names
-    arm.on_slave_js(JointState(H, names, tuple(0.0 for _ in names)), "")
-    arm.on_slave_state(OperatingState(H, "PAUSED", "joint", False, True, "", 0), "")
+    arm = plas_pair(rig[0])
 
     def sample(clutch: bool) -> None:
         arm.on_buttons(MasterButtons(H, clutch, True), "")
