@@ -279,7 +279,7 @@ def run_trial(
 ) -> dict[str, Any]:
     """Run one trial on a fresh site and return its result row (raises TrialFailed).
 
-    ``shown``: the condition as the operator may see it (its code when blinded), on the console's
+    ``shown``: the condition as the operator may see it (default: its code), on the console's
     trial panel; ``total``: the trials of the schedule. ``master``: ``operator`` (the synthetic
     operator) or ``web`` (a person at the web console's page: ``on_console`` gets its one-time
     login URL once it is served)."""
@@ -310,7 +310,7 @@ def run_trial(
     try:
         study = Node(p.spec.client_bus("operator"), p.spec.site, "study")
         p.keep(study)
-        board = Board(study, trial, task, shown or c.name, total)
+        board = Board(study, trial, task, shown or trial.code, total)  # (blinded unless told)
         board.show("setup")
         if web and on_console is not None:
             on_console(p.console_login())
