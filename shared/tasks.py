@@ -100,12 +100,9 @@ class TaskSpec:
         (targets); start → the wire's start, then along the wire (path)."""
         if self.kind == "targets":
             pts = np.array([self.start_tip, *(g.position for g in self.goals)])
-            return float(np.linalg.norm(np.diff(pts, axis=0), axis=1).sum())
+            return path_length(pts)
         wire = np.array(self.path)
-        return float(
-            np.linalg.norm(wire[0] - np.array(self.start_tip))
-            + np.linalg.norm(np.diff(wire, axis=0), axis=1).sum()
-        )
+        return float(np.linalg.norm(wire[0] - np.array(self.start_tip))) + path_length(wire)
 
 
 _TASKS: dict[str, TaskSpec] = {}
@@ -145,6 +142,12 @@ def get(name: str) -> TaskSpec:
 
 
 # --------------------------------------------------------------------------- geometry
+
+
+def path_length(points: npt.ArrayLike) -> float:
+    """Length (m) of the polyline through ``points`` (n, 3); 0 for fewer than two."""
+    pts = np.asarray(points, dtype=float).reshape(-1, 3)
+    return float(np.linalg.norm(np.diff(pts, axis=0), axis=1).sum()) if len(pts) > 1 else 0.0
 
 
 def distance_to_path(points: npt.ArrayLike, path: npt.ArrayLike) -> tuple[np.ndarray, np.ndarray]:
@@ -219,7 +222,7 @@ def evaluate(task: TaskSpec, tips: npt.ArrayLike) -> Progress:
         return prog
     d, s = distance_to_path(tips[:, 1:], task.path)
     wire = np.array(task.path)
-    length = float(np.linalg.norm(np.diff(wire, axis=0), axis=1).sum())
+    length = path_length(wire)
     end = task.goals[-1]
     start_ok = np.linalg.norm(tips[:, 1:] - wire[0], axis=1) <= task.tube_radius_m
     if not start_ok.any():
@@ -361,7 +364,7 @@ def score(task: TaskSpec, streams: Streams, t_end: float | None = None) -> Trial
     prog = evaluate(task, tip_all[tip_all[:, 0] >= t0])
     t1 = prog.done_t if prog.done_t is not None else last
     tip = _window(tip_all, t0, t1)
-    length = float(np.linalg.norm(np.diff(tip[:, 1:], axis=0), axis=1).sum()) if len(tip) > 1 else 0.0
+    length = path_length(tip[:, 1:])
     ideal = task.ideal_length_m()
     force = _window(streams.force, t0, t1)
     f = force[:, 1] if len(force) else np.zeros(0)

@@ -456,9 +456,7 @@ def live_result(prog: tasks.Progress, tips: np.ndarray, go: float, over: bool) -
         return ""
     done_t = prog.done_t if prog.done_t is not None else float(tips[-1, 0]) if len(tips) else go
     inside = tips[tips[:, 0] <= done_t] if len(tips) else tips
-    path_mm = (
-        float(np.linalg.norm(np.diff(inside[:, 1:], axis=0), axis=1).sum()) * 1e3 if len(inside) > 1 else 0.0
-    )
+    path_mm = tasks.path_length(inside[:, 1:]) * 1e3
     if prog.done:
         return f"done in {done_t - go:.1f} s · tip path {path_mm:.0f} mm"
     return f"not done: time limit · {len(prog.reached)} goals reached · tip path {path_mm:.0f} mm"

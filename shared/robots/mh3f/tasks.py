@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import math
 
-from telesurg.shared.tasks import Goal, TaskSpec, register
+from telesurg.shared.tasks import Goal, TaskSpec, Vec3, register
 
 HOME_TIP = (0.835, 0.0, 0.301)  # m: the forceps tip at the site's home pose (README, "Tissue")
 TISSUE_CENTRE = (0.835, 0.0, 0.235)  # m: the tissue body (scene.xml)
@@ -29,12 +29,15 @@ TISSUE_SEMI_AXES = (0.09, 0.08, 0.025)  # m: its ellipsoid
 TOUCH_DEPTH_M = 0.0005  # a touch presses the tissue this deep (0.2 N at its 0.4 N/mm)
 
 
-def tissue_top(x: float, y: float) -> float:
-    """z (m) of the tissue's upper surface above (x, y) (the undeformed ellipsoid)."""
-    (cx, cy, cz), (a, b, c) = TISSUE_CENTRE, TISSUE_SEMI_AXES
+def tissue_top(
+    x: float, y: float, centre: Vec3 = TISSUE_CENTRE, semi_axes: Vec3 = TISSUE_SEMI_AXES, what: str = "tissue"
+) -> float:
+    """z (m) of the upper surface above (x, y) of a tissue ellipsoid (undeformed): the scene's
+    tissue, or ``centre`` / ``semi_axes`` (m) of another (the organ of scene_trocar_task.xml)."""
+    (cx, cy, cz), (a, b, c) = centre, semi_axes
     r = 1.0 - ((x - cx) / a) ** 2 - ((y - cy) / b) ** 2
     if r < 0:
-        raise ValueError(f"({x}, {y}) is not above the tissue")
+        raise ValueError(f"({x}, {y}) is not above the {what}")
     return cz + c * math.sqrt(r)
 
 
@@ -86,11 +89,8 @@ TROCAR_START_TIP = (0.529, 0.0, 0.159)
 
 def organ_touch(x: float, y: float, radius_m: float = 0.005, dwell_s: float = 0.3) -> Goal:
     """A target on the organ's surface at (x, y)."""
-    (cx, cy, cz), (a, b, c) = ORGAN_CENTRE, ORGAN_SEMI_AXES
-    r = 1.0 - ((x - cx) / a) ** 2 - ((y - cy) / b) ** 2
-    if r < 0:
-        raise ValueError(f"({x}, {y}) is not above the organ")
-    return Goal((x, y, cz + c * math.sqrt(r) - TOUCH_DEPTH_M), radius_m, dwell_s)
+    top = tissue_top(x, y, ORGAN_CENTRE, ORGAN_SEMI_AXES, "organ")
+    return Goal((x, y, top - TOUCH_DEPTH_M), radius_m, dwell_s)
 
 
 # the scene's organ_target_a, organ_target_b (x, y): 31 mm apart. Through the trocar the wrist moves
