@@ -149,6 +149,9 @@ class _Pair:
     def _publish_state(self) -> None:
         return None
 
+    def grip_command(self) -> float:
+        return -1.0  # (the environment's arms have no jaws)
+
     def scale_command(self, cmd: Command, describe: str) -> CommandReply:
         return CommandReply(
             self.reply_seq.next(), self._slave, cmd.name, False, "no commands in an environment"

@@ -446,8 +446,9 @@ def _raw(attachment: Any) -> bytes | None:
 
 
 def only(service: str) -> list[str] | None:
-    """``sources=`` value for :meth:`Node.subscribe` allowing one service id ("" = anyone)."""
-    return [service] if service else None
+    """``sources=`` value for :meth:`Node.subscribe` allowing one service id, or several
+    comma-separated (``"master_capture,master_capture_2"``: a site with two masters); "" = anyone."""
+    return [s.strip() for s in service.split(",") if s.strip()] if service else None
 
 
 class Outlet:

@@ -13,6 +13,7 @@ service instance id)::
     slave/<arm>/measured_cf      CartesianWrench external wrench at the tip, base frame (estimate)
     slave/<arm>/operating_state  OperatingState  slave state, mode, follow, hold reason
     slave/<arm>/setpoint_js      JointState      commanded joints of a slave-side motion (watchdog)
+    slave/<arm>/scene            SceneState      the simulation's loose objects, their holders, collisions
     safety/<arm>/lease           SafetyLease     watchdog → slave permission to move
     safety/<arm>/state           SafetyState     watchdog's view of the arm
     safety/<arm>/video           VideoState      watchdog's view of the arm's video (frame age)
@@ -49,6 +50,7 @@ MASTER_STREAMS = ("measured_cp", "measured_js", "buttons")
 SLAVE_STREAMS: tuple[str, ...] = (
     *("servo_jp", "setpoint_cp", "measured_js", "measured_cp", "measured_cf", "operating_state"),
     "setpoint_js",
+    "scene",
 )
 SAFETY_STREAMS = ("lease", "state", "video")
 CAMERA_STREAMS = ("image", "measured_cp", "servo_cp", "video", "video_feedback")

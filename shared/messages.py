@@ -71,6 +71,8 @@ MAX_JOINTS = 32
 MAX_STR = 512
 #: Most entries in a list-of-strings field (e.g. safety causes).
 MAX_LIST = 64
+#: most loose objects a scene state lists
+MAX_OBJECTS = 16
 #: Largest ``camera_image`` payload, bytes: images have their own limit, on their own key
 #: (``camera/<cam>/image``), and only ``decode_as(payload, CameraImage)`` accepts one
 #: (:data:`Message.MAX_PAYLOAD`); :func:`decode` keeps :data:`MAX_PAYLOAD_BYTES` and no bin values.
@@ -832,6 +834,14 @@ class MasterButtons(Message):
     operator_present: bool = fld(
         False, "operator detected at the console (head/hand sensor); false disengages"
     )
+    grip: float = fld(
+        0.0,
+        "the master's gripper: 0 open … 1 closed (an omega.7's grip, a stylus button held = 1); "
+        "the slave's jaws follow it while engaged, once it has come to their closure",
+        ge=0.0,
+        le=1.0,
+        added=True,
+    )
 
 
 @message("servo_jp")
@@ -851,6 +861,14 @@ class JointSetpoint(Message):
         "source timestamp (`ts`) of the master sample this setpoint was computed from, 0 if none; "
         "receivers on the same host measure end-to-end latency with it",
         unit="ns",
+    )
+    grip: float = fld(
+        -1.0,
+        "the jaws' closure to follow with this setpoint, 0 open … 1 closed; -1: none (the jaws keep "
+        "their last command). Followed only while the slave follows",
+        ge=-1.0,
+        le=1.0,
+        added=True,
     )
 
 
@@ -910,6 +928,14 @@ class OperatingState(Message):
         False,
         "CRTK `is_busy`: a slave-side motion (PTP, jog, playback, direct teach) is running; "
         "`servo_jp` is not followed meanwhile",
+        added=True,
+    )
+    grip: float = fld(
+        -1.0,
+        "the jaws' closure commanded now, 0 open … 1 closed (kept through a hold: a hold never "
+        "releases what the jaws hold); -1: the arm has no jaws",
+        ge=-1.0,
+        le=1.0,
         added=True,
     )
 
@@ -1288,6 +1314,36 @@ class TrialState(Message):
     )
 
 
+@message("scene_state")
+@dataclass(frozen=True, slots=True)
+class SceneState(Message):
+    """What the slave's simulation holds besides the arms (``slave/<arm>/scene``, ~20 Hz, MuJoCo
+    scenes with loose objects or jaws): each loose object, who holds it, and whether the
+    instruments touch each other. The same message on every arm's key of the slave."""
+
+    objects: tuple[str, ...] = fld(
+        (), "the scene's loose objects (MuJoCo bodies with a free joint)", max_len=MAX_OBJECTS
+    )
+    x: tuple[float, ...] = fld(
+        (), "each object's position: x (the slave's base frame)", unit="m", same_len="objects"
+    )
+    y: tuple[float, ...] = fld((), "… y", unit="m", same_len="objects")
+    z: tuple[float, ...] = fld((), "… z", unit="m", same_len="objects")
+    held_by: tuple[str, ...] = fld(
+        (),
+        'per object, the arms whose both jaws touch it, "+"-joined (`"arm1+arm2"` in a hand-over; '
+        '`""`: none)',
+        same_len="objects",
+    )
+    jaws: tuple[float, ...] = fld(
+        (), "each arm's measured jaw closure in arm order, 0 open … 1 closed (empty: no jaws)", max_len=8
+    )
+    in_collision: bool = fld(False, "two arms' instruments touch now")
+    collisions: int = fld(
+        0, "instrument collisions since the slave started (each a new contact between two arms)", ge=0
+    )
+
+
 #: Every message class by its type tag.
 MESSAGE_TYPES: dict[str, type[Message]] = dict(_REGISTRY)
 
@@ -1311,6 +1367,7 @@ AnyMessage = (
     | VideoState
     | VideoFeedback
     | TrialState
+    | SceneState
 )
 
 

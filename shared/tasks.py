@@ -28,12 +28,17 @@ import numpy as np
 import numpy.typing as npt
 from telesurg.shared.errors import ConfigError
 
-KINDS = ("targets", "path")
+KINDS = ("targets", "path", "transfer")
 #: What the harness does before a trial's go (:attr:`TaskSpec.setup`).
 SETUPS = ("", "trocar")
 #: error kinds a trial counts (an excursion over the limit each, :func:`excursions`; a path exit;
 #: ``watchdog_hold`` an entry into HOLD/ESTOP)
-ERROR_KINDS = ("tissue_force", "path_exit", "rcm_error", "watchdog_hold")
+#: ``drop`` an object that left every arm's jaws anywhere but its target; ``collision`` the
+#: instruments of two arms touching)
+ERROR_KINDS = ("tissue_force", "path_exit", "rcm_error", "watchdog_hold", "drop", "collision")
+#: s: an object free of every arm's jaws this long is let go (a drop, or placed on its target); a
+#: grasp's contacts flicker for shorter
+LET_GO_S = 0.3
 HELD_STATES = ("HOLD", "ESTOP")
 
 Vec3 = tuple[float, float, float]
@@ -55,7 +60,9 @@ class TaskSpec:
     Attributes:
         name: registered name, ``<robot>-<task>`` (``mh3f-targets``).
         robot: the robot registry name it runs on.
-        kind: ``targets`` (reach ``goals`` in order) or ``path`` (follow ``path`` in its tube).
+        kind: ``targets`` (reach ``goals`` in order), ``path`` (follow ``path`` in its tube) or
+            ``transfer`` (a peg transfer: ``arms[0]`` grasps ``obj`` at ``goals[0]``, hands it over
+            to ``arms[-1]`` at ``goals[1]``, which places it on ``goals[2]``).
         instructions: what the operator is told (one or two sentences).
         goals: targets: the sequence; path: the wire's end (the last goal ends the trial).
         path: path: the wire, polyline of points, m, base frame.
@@ -68,6 +75,17 @@ class TaskSpec:
         setup: what the harness does before the go: "" nothing; "trocar" the MH3F's insert flow
             (posture adjustment by PTP, insert to trocar mode, master–slave in trocar mode).
         q_start: rad: the slave's start pose (slave_control's ``q_home``; () = the robot's home).
+        arms: the slave arms the task uses (a transfer: the one that grasps first, then the one
+            that places); ``start_tip`` is the first's, ``start_tips`` every one's.
+        start_tips: m: each arm's controlled point at the start (() = ``start_tip`` alone).
+        obj: transfer: the scene's loose object to move (``slave/<arm>/scene``).
+        grasp_offset: m: the jaws' centre from the controlled point, in the tip frame (the frame of
+            ``measured_cp``'s orientation).
+        obj_grasps: m: where each arm grasps the object, from its centre (base frame axes).
+        tool_axis: the way the instrument points, in the tip frame (its jaws come along it).
+        mapping: the mapping mode the task runs with ("" = the site's; ``position`` for a
+            Cartesian master on the PLAS, whose site maps an all-joints master).
+        mapping_set: more of the mapping's settings (``--set`` items, e.g. the VIPs).
     """
 
     name: str
@@ -84,6 +102,14 @@ class TaskSpec:
     scene: str = ""
     setup: str = ""
     q_start: tuple[float, ...] = ()
+    arms: tuple[str, ...] = ("arm1",)
+    start_tips: tuple[Vec3, ...] = ()
+    obj: str = ""
+    grasp_offset: Vec3 = (0.0, 0.0, 0.0)
+    obj_grasps: tuple[Vec3, ...] = ()
+    tool_axis: Vec3 = (0.0, 0.0, -1.0)
+    mapping: str = ""
+    mapping_set: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
         if self.kind not in KINDS:
@@ -94,6 +120,14 @@ class TaskSpec:
             raise ConfigError(f"task {self.name}: no goals")
         if self.kind == "path" and (len(self.path) < 2 or self.tube_radius_m <= 0):
             raise ConfigError(f"task {self.name}: a path task needs >= 2 points and tube_radius_m > 0")
+        if self.kind == "transfer" and (len(self.goals) != 3 or len(self.arms) != 2 or not self.obj):
+            raise ConfigError(
+                f"task {self.name}: a transfer needs 3 goals (grasp, hand-over, place), 2 arms and an obj"
+            )
+        if self.start_tips and len(self.start_tips) != len(self.arms):
+            raise ConfigError(
+                f"task {self.name}: start_tips has {len(self.start_tips)} points for {len(self.arms)} arms"
+            )
 
     def ideal_length_m(self) -> float:
         """The shortest tip path that does the task (m): straight lines start → each goal
@@ -101,6 +135,10 @@ class TaskSpec:
         if self.kind == "targets":
             pts = np.array([self.start_tip, *(g.position for g in self.goals)])
             return path_length(pts)
+        if self.kind == "transfer":  # the first arm: start → grasp → hand-over; the last: → place
+            grasp, over, place = (np.array(g.position) for g in self.goals)
+            first, last = self.start_tips or (self.start_tip, self.start_tip)
+            return path_length(np.array([first, grasp, over])) + path_length(np.array([last, over, place]))
         wire = np.array(self.path)
         return float(np.linalg.norm(wire[0] - np.array(self.start_tip))) + path_length(wire)
 
@@ -200,6 +238,8 @@ def evaluate(task: TaskSpec, tips: npt.ArrayLike) -> Progress:
     start; each move out of the tube from then is an exit; done when the tip, having covered 90 %
     of the wire's length, is within the last goal's radius.
     """
+    if task.kind == "transfer":
+        return evaluate_transfer(task, tips)
     tips = np.asarray(tips, dtype=float).reshape(-1, 4)
     prog = Progress()
     if task.kind == "targets":
@@ -245,6 +285,53 @@ def evaluate(task: TaskSpec, tips: npt.ArrayLike) -> Progress:
     return prog
 
 
+def holders(held_by: str, arms: tuple[str, ...]) -> int:
+    """A scene's ``held_by`` entry (``"arm1+arm2"``) as bits: bit i set when ``arms[i]`` holds."""
+    names = held_by.split("+")
+    return sum(1 << i for i, a in enumerate(arms) if a in names)
+
+
+def evaluate_transfer(task: TaskSpec, obj: npt.ArrayLike) -> Progress:
+    """A transfer's success rule over the object's samples (n, 5): t s, x, y, z m, holders (bits,
+    :func:`holders`), in time order.
+
+    Goals reached: the grasp (the first arm holds it), the hand-over (the last arm holds it alone,
+    after the first held it) and the place (after the hand-over, let go for :data:`LET_GO_S` within
+    the place goal's radius, horizontally, and its height within 10 mm) — the task done. Every
+    letting go for :data:`LET_GO_S` elsewhere, after a grasp, is a drop (``Progress.exits``)."""
+    rows = np.asarray(obj, dtype=float).reshape(-1, 5)
+    prog = Progress()
+    place = task.goals[-1]
+    first, last = 1, 1 << (len(task.arms) - 1)
+    held_ever, stage, free_since, dropped = False, 0, None, False
+    for t, x, y, z, bits in rows:
+        b = int(bits)
+        if b:
+            free_since, dropped = None, False
+            held_ever = True
+            if stage == 0 and b & first:
+                prog.reached.append(float(t))
+                stage = 1
+            if stage == 1 and b == last:
+                prog.reached.append(float(t))
+                stage = 2
+            continue
+        if not held_ever:
+            continue
+        free_since = t if free_since is None else free_since
+        if t - free_since < LET_GO_S or dropped:
+            continue
+        px, py, pz = place.position
+        on_target = math.hypot(x - px, y - py) <= place.radius_m and abs(z - pz) <= 0.01
+        if stage == 2 and on_target:
+            prog.reached.append(float(t))
+            prog.done_t = float(t)
+            break
+        prog.exits.append(float(free_since))  # a drop: let go where it does not belong
+        dropped = True
+    return prog
+
+
 # --------------------------------------------------------------------------- scores
 
 
@@ -259,6 +346,10 @@ class Streams:
         follow: (n, 2) t, 1 while the slave follows: operating_state.
         clutch: (n, 2) t, 1 pressed: the master's buttons.
         safety: (n, 2) t, 1 while the watchdog holds (HOLD / ESTOP): its state.
+        obj: (n, 5) t, x, y, z (m), holders (bits, :func:`holders`): a transfer's object.
+        collide: (n, 2) t, 1 while two arms' instruments touch: the scene.
+        more_tips: the other arms' tips (as ``tip``), by arm.
+        more_forces: the other arms' forces (as ``force``), by arm.
     """
 
     tip: np.ndarray
@@ -267,11 +358,16 @@ class Streams:
     follow: np.ndarray
     clutch: np.ndarray
     safety: np.ndarray
+    obj: np.ndarray = field(default_factory=lambda: np.zeros((0, 5)))
+    collide: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
+    more_tips: dict[str, np.ndarray] = field(default_factory=dict)
+    more_forces: dict[str, np.ndarray] = field(default_factory=dict)
 
     @staticmethod
     def empty() -> Streams:
         """No samples at all."""
-        return Streams(*(np.zeros((0, c)) for c in (4, 2, 3, 2, 2, 2)))
+        tip, force, rcm, follow, clutch, safety = (np.zeros((0, c)) for c in (4, 2, 3, 2, 2, 2))
+        return Streams(tip, force, rcm, follow, clutch, safety)
 
 
 @dataclass
@@ -292,7 +388,9 @@ class TrialScore:
     clutch_count: int  # clutch presses from the trial's start
     time_held_s: float  # the watchdog held (HOLD / ESTOP) this long in the trial
     goals_reached: int
-    path_exits: list[float]  # path: s after go of each exit
+    path_exits: list[float]  # path: s after go of each exit; transfer: of each drop
+    # each arm's tip path (mm) over the trial; path_length_mm is their sum
+    path_lengths_mm: dict[str, float] = field(default_factory=dict)
 
     def row(self) -> dict[str, Any]:
         """As a JSON-ready dict (NaN → None)."""
@@ -361,15 +459,29 @@ def score(task: TaskSpec, streams: Streams, t_end: float | None = None) -> Trial
             0.0, nan, nan, 0, 0.0, 0, [],
         )  # fmt: skip
     last = float(tip_all[-1, 0]) if t_end is None else t_end
-    prog = evaluate(task, tip_all[tip_all[:, 0] >= t0])
+    if task.kind == "transfer":
+        prog = evaluate_transfer(
+            task, streams.obj[streams.obj[:, 0] >= t0] if len(streams.obj) else streams.obj
+        )
+    else:
+        prog = evaluate(task, tip_all[tip_all[:, 0] >= t0])
     t1 = prog.done_t if prog.done_t is not None else last
-    tip = _window(tip_all, t0, t1)
-    length = path_length(tip[:, 1:])
+    lengths = {
+        arm: path_length(_window(tp, t0, t1)[:, 1:])
+        for arm, tp in {task.arms[0]: tip_all, **streams.more_tips}.items()
+    }
+    length = sum(lengths.values())
     ideal = task.ideal_length_m()
-    force = _window(streams.force, t0, t1)
-    f = force[:, 1] if len(force) else np.zeros(0)
+    forces = [_window(fs, t0, t1) for fs in (streams.force, *streams.more_forces.values())]
+    f = (
+        np.concatenate([fs[:, 1] for fs in forces if len(fs)])
+        if any(len(fs) for fs in forces)
+        else np.zeros(0)
+    )
     contact = f > 0.05
-    contact_s = time_true(np.column_stack([force[:, 0], contact]) if len(force) else force, t0, t1)
+    contact_s = sum(
+        time_true(np.column_stack([fs[:, 0], fs[:, 1] > 0.05]), t0, t1) for fs in forces if len(fs)
+    )
     rcm = _window(streams.rcm, t0, t1)
     trocar = rcm[rcm[:, 2] > 0.5] if len(rcm) else rcm
     held = _window(streams.safety, t0, t1)
@@ -378,11 +490,14 @@ def score(task: TaskSpec, streams: Streams, t_end: float | None = None) -> Trial
     if len(before):
         held = np.vstack([[t0, before[-1, 1]], held])
     clutch = streams.clutch[streams.clutch[:, 0] <= t1] if len(streams.clutch) else streams.clutch
+    collide = _window(streams.collide, t0, t1)
     errors = {
-        "tissue_force": excursions(force, task.force_limit_n) if len(force) else 0,
-        "path_exit": len(prog.exits),
+        "tissue_force": sum(excursions(fs, task.force_limit_n) for fs in forces),
+        "path_exit": len(prog.exits) if task.kind == "path" else 0,
         "rcm_error": excursions(trocar[:, :2], task.rcm_limit_mm) if len(trocar) else 0,
         "watchdog_hold": rising(held[:, 1] > 0.5) if len(held) else 0,
+        "drop": len(prog.exits) if task.kind == "transfer" else 0,
+        "collision": rising(collide[:, 1] > 0.5) if len(collide) else 0,
     }
     return TrialScore(
         completed=prog.done,
@@ -400,4 +515,5 @@ def score(task: TaskSpec, streams: Streams, t_end: float | None = None) -> Trial
         time_held_s=time_true(held, t0, t1),
         goals_reached=len(prog.reached),
         path_exits=[round(t - t0, 3) for t in prog.exits],
+        path_lengths_mm={arm: round(v * 1e3, 2) for arm, v in lengths.items()},
     )

@@ -361,3 +361,39 @@ def test_a_joint_space_mapping_publishes_the_controlled_point_of_its_setpoint(
         assert targets[-1].frame == "base"  # the frame of the slave's measured_cp
         np.testing.assert_allclose(targets[-1].position, tip, atol=1e-12)
         assert np.linalg.norm(np.subtract(targets[-1].position, targets[0].position)) > 1e-4  # it moved
+
+
+def test_the_jaws_follow_the_grip_only_once_it_has_come_to_them_after_an_engage(
+    rig: tuple[Pair, list[JointSetpoint], list[SafetyEvent]],
+) -> None:
+    """An engage never opens the jaws on what they hold nor snaps them shut: the setpoints carry
+    no grip (-1, the jaws keep theirs) until the master's grip comes within 0.1 of the jaws', then
+    the grip; not engaged, none; an arm without jaws, none."""
+    arm, setpoints, events = rig
+    arm = plas_pair(arm)
+
+    def slave_jaws(grip: float) -> None:
+        arm.on_slave_state(OperatingState(H, "PAUSED", "joint", False, True, "", 0, grip=grip), "")
+
+    def sample(clutch: bool, grip: float) -> float:
+        arm.on_buttons(MasterButtons(H, clutch, True, grip), "")
+        arm.on_master(JointState(H, tuple(f"m{i}" for i in range(6)), (0.0,) * 6), "")
+        arm.process()
+        wait_until(lambda: len(setpoints) >= n + 1, 3.0)
+        return setpoints[-1].grip
+
+    n = 0
+    slave_jaws(1.0)  # the jaws hold something (closed)
+    assert sample(False, 0.0) == -1.0  # not engaged: none
+    n = len(setpoints)
+    assert sample(True, 0.0) == -1.0 and arm.following  # engaged, the grip open: the jaws stay shut
+    n = len(setpoints)
+    assert sample(True, 0.5) == -1.0
+    n = len(setpoints)
+    assert sample(True, 0.95) == 0.95  # came to the jaws' closure: followed from now on
+    n = len(setpoints)
+    assert sample(True, 0.2) == 0.2
+    assert wait_until(lambda: any(e.kind == "grip" for e in events), 2.0)
+    n = len(setpoints)
+    slave_jaws(-1.0)  # an arm without jaws: never a grip
+    assert sample(True, 0.2) == -1.0

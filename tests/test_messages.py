@@ -31,6 +31,7 @@ from telesurg.shared.messages import (
     SafetyEvent,
     SafetyLease,
     SafetyState,
+    SceneState,
     TeleopState,
     TrialState,
     VideoFeedback,
@@ -81,6 +82,7 @@ EXAMPLES = [
         "",
         (0.815, -0.02, 0.2575, 0.855, 0.02, 0.2575),
     ),
+    SceneState(H, ("peg",), (0.01,), (-0.02,), (-0.11,), ("arm1+arm2",), (0.8, 0.9), False, 1),
     ClockProbe(H),
     ClockReply(H, 1_700_000_000_000_000_000, 1_700_000_000_300_100_000, 1_700_000_000_300_150_000),
 ]

@@ -46,6 +46,11 @@ def _random_q(rng: np.random.Generator, lower: FloatArray, upper: FloatArray) ->
     return rng.uniform(lower, upper)
 
 
+def _arm_qadr(model: mujoco.MjModel, arm: str) -> np.ndarray:
+    """qpos addresses of an arm's six joints (its two jaw fingers follow theta6 in qpos)."""
+    return np.array([model.jnt_qposadr[model.joint(f"{arm}_{n}").id] for n in PLAS_SLAVE.joint_names])
+
+
 # --------------------------------------------------------------------------------------------
 # Registry, names, limits
 # --------------------------------------------------------------------------------------------
@@ -59,21 +64,34 @@ def test_registered() -> None:
 
 def test_slave_names_and_limits(slave: mujoco.MjModel) -> None:
     expected = [f"{arm}_{n}" for arm in ARM_NAMES for n in PLAS_SLAVE.joint_names]
-    # the scene's other joints are the tissue's indentations, unactuated (not the robot's)
+    # each arm's six joints, then its two jaw fingers; the scene's other joints are the tissue's
+    # indentations, unactuated (not the robot's)
     tissue = [f"tissue_{arm}_indent" for arm in ARM_NAMES]
-    assert _names(slave, mujoco.mjtObj.mjOBJ_JOINT, slave.njnt) == expected + tissue
-    assert _names(slave, mujoco.mjtObj.mjOBJ_ACTUATOR, slave.nu) == expected
-    assert [slave.joint(slave.actuator(i).trnid[0]).name for i in range(slave.nu)] == expected
-    assert slave.nu == 12 and slave.nq == slave.nv == 14
+    per_arm = [
+        [*expected[6 * k : 6 * k + 6], f"{arm}_jaw_a", f"{arm}_jaw_b"] for k, arm in enumerate(ARM_NAMES)
+    ]
+    assert _names(slave, mujoco.mjtObj.mjOBJ_JOINT, slave.njnt) == [*per_arm[0], *per_arm[1], *tissue]
+    # the twelve arm servos first, in joint order, then the jaws (actuator group 2: tools), each
+    # on its finger a
+    jaws = [f"{arm}_jaw" for arm in ARM_NAMES]
+    assert _names(slave, mujoco.mjtObj.mjOBJ_ACTUATOR, slave.nu) == expected + jaws
+    assert [slave.joint(slave.actuator(i).trnid[0]).name for i in range(slave.nu)] == expected + [
+        f"{j}_a" for j in jaws
+    ]
+    assert list(slave.actuator_group) == [0] * 12 + [2, 2]
+    assert slave.nu == 14 and slave.nq == slave.nv == 18
     for arm in ARM_NAMES:
         slave.site(f"{arm}_tip")  # raises KeyError if missing
+        slave.site(f"{arm}_grasp")
     limits = np.column_stack([PLAS_SLAVE.lower_limits, PLAS_SLAVE.upper_limits])
     expected_range = np.vstack([limits, limits])
-    np.testing.assert_allclose(slave.jnt_range[:12], expected_range, rtol=0, atol=1e-9)
-    np.testing.assert_allclose(slave.actuator_ctrlrange, expected_range, rtol=0, atol=1e-9)
+    arm_ids = [slave.joint(n).id for n in expected]
+    np.testing.assert_allclose(slave.jnt_range[arm_ids], expected_range, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(slave.actuator_ctrlrange[:12], expected_range, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(slave.actuator_ctrlrange[12:], [[0.0, 0.0045]] * 2, rtol=0, atol=1e-12)
     assert all(slave.jnt_limited)
     prismatic = [n in ("d1", "d5") for n in PLAS_SLAVE.joint_names] * 2
-    assert [t == mujoco.mjtJoint.mjJNT_SLIDE for t in slave.jnt_type[:12]] == prismatic
+    assert [t == mujoco.mjtJoint.mjJNT_SLIDE for t in slave.jnt_type[arm_ids]] == prismatic
 
 
 def test_master_names_and_limits(master: mujoco.MjModel) -> None:
@@ -130,12 +148,14 @@ def test_slave_zero_pose(slave: mujoco.MjModel) -> None:
 def test_slave_tip_matches_layout(slave: mujoco.MjModel, arm: str) -> None:
     data = mujoco.MjData(slave)
     rng = np.random.default_rng(2015 + ARM_NAMES.index(arm))
-    k = ARM_NAMES.index(arm)
-    other = (1 - k) * 6
+    adr = _arm_qadr(slave, arm)
+    other = _arm_qadr(slave, ARM_NAMES[1 - ARM_NAMES.index(arm)])
+    fingers = np.setdiff1d(np.arange(16), np.r_[adr, other])  # the four jaw fingers (before the tissue)
     for _ in range(20):
         q = _random_q(rng, PLAS_SLAVE.lower_limits, PLAS_SLAVE.upper_limits)
-        data.qpos[6 * k : 6 * k + 6] = q
-        data.qpos[other : other + 6] = _random_q(rng, PLAS_SLAVE.lower_limits, PLAS_SLAVE.upper_limits)
+        data.qpos[adr] = q
+        data.qpos[other] = _random_q(rng, PLAS_SLAVE.lower_limits, PLAS_SLAVE.upper_limits)
+        data.qpos[fingers] = rng.uniform(0.0, 0.0045, 4)  # the jaws do not move the tip
         mujoco.mj_forward(slave, data)
         site = data.site(f"{arm}_tip")
         np.testing.assert_allclose(site.xpos, arm_tip(arm, q), rtol=0, atol=TOL)
@@ -155,7 +175,7 @@ def test_slave_insertion_is_the_common_body() -> None:
         q = np.concatenate(
             [_random_q(rng, PLAS_SLAVE.lower_limits, PLAS_SLAVE.upper_limits) for _ in range(2)]
         )
-        data.qpos[:12] = q
+        data.qpos[np.r_[_arm_qadr(model, "arm1"), _arm_qadr(model, "arm2")]] = q
         mujoco.mj_forward(model, data)
         for k, arm in enumerate(ARM_NAMES):
             expected = arm_tip(arm, q[6 * k : 6 * k + 6], insertion=insertion)
@@ -186,9 +206,11 @@ def test_keyframes(slave: mujoco.MjModel, master: mujoco.MjModel) -> None:
     tip1, tip2 = data.site("arm1_tip").xpos, data.site("arm2_tip").xpos
     np.testing.assert_allclose(tip2, tip1 * [1, -1, 1], atol=1e-12)  # mirror images
     assert tip1[1] < 0.0 < tip2[1]
-    for key in ("y_shape", "insert"):  # the arms' joints; the tissue (the scene's last two) at rest
-        np.testing.assert_allclose(slave.key(key).ctrl, slave.key(key).qpos[:12])
-        np.testing.assert_array_equal(slave.key(key).qpos[12:], 0.0)
+    adr = np.r_[_arm_qadr(slave, "arm1"), _arm_qadr(slave, "arm2")]
+    for key in ("y_shape", "insert"):  # the arms' joints; the jaws open, the tissue at rest
+        np.testing.assert_allclose(slave.key(key).ctrl[:12], slave.key(key).qpos[adr])
+        np.testing.assert_array_equal(slave.key(key).ctrl[12:], 0.0)
+        np.testing.assert_array_equal(np.delete(slave.key(key).qpos, adr), 0.0)
     np.testing.assert_allclose(master.key("rest").ctrl, master.key("rest").qpos)
 
 
@@ -220,18 +242,40 @@ def test_servo_steps(name: str) -> None:
     model = mujoco.MjModel.from_xml_path(str(model_path(name)))
     lo, hi = model.actuator_ctrlrange[:, 0], model.actuator_ctrlrange[:, 1]
     q0 = lo + 0.4 * (hi - lo)  # away from every limit, with room for the step (ranges >= 30 mm, 2 rad)
-    for i in range(model.nu):
+    adr = model.jnt_qposadr[model.actuator_trnid[:, 0]]  # each servo's joint (a jaw's: its finger a)
+    arm = np.flatnonzero(model.actuator_group != 2)  # the joint servos (group 2: the jaws)
+    for i in arm:
         slide = model.jnt_type[model.actuator(i).trnid[0]] == mujoco.mjtJoint.mjJNT_SLIDE
         step = PRISMATIC_STEP if slide else REVOLUTE_STEP
         data = mujoco.MjData(model)
-        data.qpos[: model.nu] = q0
+        data.qpos[adr] = q0
         data.ctrl[:] = q0
         data.ctrl[i] = q0[i] + step
         assert lo[i] <= data.ctrl[i] <= hi[i]
         for _ in range(SETTLE_STEPS):
             mujoco.mj_step(model, data)
-        err = abs(data.qpos[i] - data.ctrl[i])
+        err = abs(data.qpos[adr[i]] - data.ctrl[i])
         assert err <= 0.02 * step, f"{model.actuator(i).name}: {err:.3g} after 0.3 s"
-        others = np.delete(np.abs(data.qpos[: model.nu] - q0), i)
+        others = np.delete(np.abs(data.qpos[adr[arm]] - q0[arm]), np.flatnonzero(arm == i))
         assert float(np.max(others)) < 0.02 * step
         assert _warnings(data) == {}
+
+
+def test_jaws_close_and_open_together(slave: mujoco.MjModel) -> None:
+    """Each arm's jaw servo (group 2) closes both fingers fully within 0.1 s and opens them again,
+    the two fingers mirroring each other, the arm's joints unmoved."""
+    data = mujoco.MjData(slave)
+    mujoco.mj_resetDataKeyframe(slave, data, slave.key("y_shape").id)
+    arms = np.r_[_arm_qadr(slave, "arm1"), _arm_qadr(slave, "arm2")]
+    q_arms = data.qpos[arms].copy()
+    for arm in ARM_NAMES:
+        act = slave.actuator(f"{arm}_jaw").id
+        a, b = (slave.jnt_qposadr[slave.joint(f"{arm}_jaw_{f}").id] for f in "ab")
+        for target in (0.0045, 0.0):  # closed, then open again
+            data.ctrl[act] = target
+            for _ in range(100):
+                mujoco.mj_step(slave, data)
+            assert data.qpos[a] == pytest.approx(target, abs=2e-5)
+            assert data.qpos[b] == pytest.approx(data.qpos[a], abs=2e-5)
+    np.testing.assert_allclose(data.qpos[arms], q_arms, rtol=0, atol=1e-6)
+    assert _warnings(data) == {}

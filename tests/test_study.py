@@ -263,8 +263,9 @@ def test_a_scene_that_the_robot_does_not_ship_is_refused_naming_the_valid_ones()
 
     with pytest.raises(ConfigError, match=r"no scene 'scene_x\.xml'; valid: scene_trocar_task\.xml"):
         robots.get("mh3f").scene_file("scene_x.xml")
-    with pytest.raises(ConfigError, match="valid: none"):
+    with pytest.raises(ConfigError, match=r"valid: scene_pegs\.xml"):
         robots.get("vip").scene_file("scene_trocar_task.xml")
+    assert robots.get("vip").scene_file("scene_pegs.xml").name == "scene_pegs.xml"
 
 
 LINE = TaskSpec(
@@ -324,7 +325,14 @@ def test_the_score_of_a_trial() -> None:
     assert s.completion_time_s == pytest.approx(1.21 - 0.3, abs=0.011)
     assert s.path_length_mm == pytest.approx(20.0) and s.ideal_length_mm == pytest.approx(20.0)
     assert s.economy == pytest.approx(1.0)
-    assert s.errors == {"tissue_force": 1, "path_exit": 0, "rcm_error": 0, "watchdog_hold": 1}
+    assert s.errors == {
+        "tissue_force": 1,
+        "path_exit": 0,
+        "rcm_error": 0,
+        "watchdog_hold": 1,
+        "drop": 0,
+        "collision": 0,
+    }
     assert s.peak_force_n == pytest.approx(2.5) and s.time_held_s == pytest.approx(0.10, abs=1e-9)
     assert s.clutch_count == 2
     assert math.isnan(s.rcm_error_max_mm)  # never in trocar mode
@@ -397,3 +405,93 @@ def test_the_operator_does_the_task_and_delay_makes_it_slower(task: str) -> None
         )
     assert times[0.0] < times[0.15] < times[0.3]
     assert times[0.0] > 2.0  # a person's reaction times and reaches, not a teleport
+
+
+PEGS = TaskSpec(
+    name="test-transfer",
+    robot="vip",
+    kind="transfer",
+    instructions="Hand the peg over.",
+    goals=(Goal((-0.02, 0.0, -0.1), 0.005), Goal((0.0, 0.0, -0.09), 0.008), Goal((0.02, 0.0, -0.1), 0.005)),
+    start_tip=(-0.03, 0.0, -0.07),
+    start_tips=((-0.03, 0.0, -0.07), (0.03, 0.0, -0.07)),
+    arms=("arm1", "arm2"),
+    obj="peg",
+)
+
+
+def peg_track(*legs: tuple[float, tuple[float, float, float], int]) -> np.ndarray:
+    """The object's samples at 50 Hz: each leg (seconds, where it is, holders bits)."""
+    rows, t = [], 0.0
+    for dur, p, bits in legs:
+        for _ in range(round(dur / 0.02)):
+            rows.append((t, *p, bits))
+            t += 0.02
+    return np.array(rows)
+
+
+def test_a_peg_transfer_is_done_when_placed_after_a_hand_over_and_a_drop_is_counted() -> None:
+    start, over, place = (g.position for g in PEGS.goals)
+    ok = peg_track(
+        (0.5, start, 0), (1.0, start, 1), (0.5, over, 1), (0.5, over, 3), (0.5, over, 2), (1.0, place, 0)
+    )
+    prog = tasks.evaluate(PEGS, ok)
+    assert prog.done and len(prog.reached) == 3 and not prog.exits
+    assert prog.done_t == pytest.approx(3.0 + tasks.LET_GO_S, abs=0.03)  # placed once let go 0.3 s
+    # placed by the first arm without a hand-over: not done (and let go there before a hand-over, a drop)
+    skip = peg_track((0.5, start, 0), (1.0, start, 1), (1.0, place, 1), (1.0, place, 0))
+    assert not tasks.evaluate(PEGS, skip).done
+    # dropped on the way (free 1 s on the floor), picked up again, then the transfer: one drop
+    floor = (-0.01, 0.01, -0.12)
+    dropped = peg_track(
+        (0.5, start, 1), (1.0, floor, 0), (0.5, floor, 1), (0.5, over, 3), (0.3, over, 2), (1.0, place, 0)
+    )
+    prog = tasks.evaluate(PEGS, dropped)
+    assert prog.done and len(prog.exits) == 1 and prog.exits[0] == pytest.approx(0.5, abs=0.03)
+    # a grasp's contacts flickering for less than 0.3 s are no drop
+    flicker = peg_track((0.5, start, 1), (0.1, start, 0), (0.5, over, 1), (0.5, over, 2), (1.0, place, 0))
+    assert not tasks.evaluate(PEGS, flicker).exits
+
+
+def test_the_score_of_a_transfer_counts_drops_collisions_and_both_arms_paths() -> None:
+    start, over, place = (g.position for g in PEGS.goals)
+    floor = (-0.01, 0.01, -0.12)
+    obj = peg_track(
+        (0.5, start, 1), (1.0, floor, 0), (0.5, floor, 1), (0.5, over, 3), (0.3, over, 2), (1.0, place, 0)
+    )
+    t = obj[:, 0]
+    arm1 = np.column_stack([t, np.linspace(0, 0.05, len(t)), np.zeros((len(t), 2))])  # 50 mm
+    arm2 = np.column_stack([t, np.zeros(len(t)), np.linspace(0, 0.03, len(t)), np.zeros(len(t))])  # 30 mm
+    collide = np.column_stack([t, ((t > 1.0) & (t < 1.2)) | ((t > 2.0) & (t < 2.1))])
+    streams = Streams(
+        tip=arm1,
+        force=np.column_stack([t, np.zeros_like(t)]),
+        rcm=np.zeros((0, 3)),
+        follow=np.array([[0.0, 1.0]]),
+        clutch=np.zeros((0, 2)),
+        safety=np.zeros((0, 2)),
+        obj=obj,
+        collide=collide,
+        more_tips={"arm2": arm2},
+        more_forces={"arm2": np.column_stack([t, np.where((t > 3.0) & (t < 3.2), 2.5, 0.0)])},
+    )
+    s = tasks.score(PEGS, streams)
+    assert s.completed and s.goals_reached == 3
+    assert s.errors["drop"] == 1 and s.errors["collision"] == 2 and s.errors["tissue_force"] == 1
+    assert s.errors["path_exit"] == 0
+    done_frac = s.completion_time_s / t[-1]
+    assert s.path_lengths_mm["arm1"] == pytest.approx(50 * done_frac, rel=0.03)
+    assert s.path_lengths_mm["arm2"] == pytest.approx(30 * done_frac, rel=0.03)
+    assert s.path_length_mm == pytest.approx(sum(s.path_lengths_mm.values()), abs=0.02)
+    assert s.peak_force_n == pytest.approx(2.5)
+    legs = [((-0.03, 0.0, -0.07), start), (start, over), ((0.03, 0.0, -0.07), over), (over, place)]
+    assert s.ideal_length_mm == pytest.approx(sum(math.dist(a, b) for a, b in legs) * 1e3)
+
+
+def test_a_transfer_task_needs_its_three_goals_two_arms_and_an_object() -> None:
+    with pytest.raises(ConfigError, match="3 goals"):
+        TaskSpec(
+            "x", "vip", "transfer", "", PEGS.goals[:2], (0.0, 0.0, 0.0), arms=("arm1", "arm2"), obj="peg"
+        )
+    with pytest.raises(ConfigError, match="an obj"):
+        TaskSpec("x", "vip", "transfer", "", PEGS.goals, (0.0, 0.0, 0.0), arms=("arm1", "arm2"))

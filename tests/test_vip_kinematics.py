@@ -330,26 +330,47 @@ def _warnings(data: mujoco.MjData) -> dict[int, int]:
     return {i: int(w.number) for i, w in enumerate(data.warning) if w.number}
 
 
+#: the arm joints (arm1 q1..q5, arm2 q1..q5) and each arm's jaw fingers (robot.xml "jaws")
+ARM_JOINTS = [f"{arm}_q{i}" for arm, _ in ARMS for i in range(1, 6)]
+JAWS = [f"{arm}_jaw" for arm, _ in ARMS]
+
+
+def _arm_qadr(m: mujoco.MjModel) -> np.ndarray:
+    """qpos addresses of the ten arm joints (each arm's fingers follow its q5 in qpos)."""
+    return np.array([m.jnt_qposadr[m.joint(n).id] for n in ARM_JOINTS])
+
+
 def test_model_names_limits_and_home(vip_model: mujoco.MjModel) -> None:
     m = vip_model
-    names = [f"{arm}_q{i}" for arm, _ in ARMS for i in range(1, 6)]
-    # the scene's other joints are the tissue's indentations, unactuated (not the robot's)
+    names = ARM_JOINTS
+    # each arm's five joints, then its two jaw fingers; the scene's other joints are the tissue's
+    # indentations, unactuated (not the robot's)
     tissue = [f"tissue_{arm}_indent" for arm, _ in ARMS]
-    assert [m.joint(i).name for i in range(m.njnt)] == names + tissue
-    assert [m.actuator(i).name for i in range(m.nu)] == names
+    per_arm = [[*(f"{arm}_q{i}" for i in range(1, 6)), f"{arm}_jaw_a", f"{arm}_jaw_b"] for arm, _ in ARMS]
+    assert [m.joint(i).name for i in range(m.njnt)] == [*per_arm[0], *per_arm[1], *tissue]
+    # the ten arm servos first, in joint order, then the jaws (actuator group 2: tools), each on
+    # its finger a
+    assert [m.actuator(i).name for i in range(m.nu)] == names + JAWS
+    assert [m.joint(m.actuator(i).trnid[0]).name for i in range(m.nu)] == names + [f"{j}_a" for j in JAWS]
+    assert list(m.actuator_group) == [0] * 10 + [2, 2]
     for arm, _ in ARMS:
-        for site in ("rcm", "elbow", "wrist"):
+        for site in ("rcm", "elbow", "wrist", "grasp"):
             m.site(f"{arm}_{site}")  # raises KeyError if missing
     m.camera("endoscope")
     limits = np.column_stack([VIP_ARM.lower_limits, VIP_ARM.upper_limits])
-    np.testing.assert_allclose(m.jnt_range[:10], np.vstack([limits, limits]), atol=1e-9)
-    np.testing.assert_allclose(m.actuator_ctrlrange, np.vstack([limits, limits]), atol=1e-9)
+    arm_ids = [m.joint(n).id for n in names]
+    np.testing.assert_allclose(m.jnt_range[arm_ids], np.vstack([limits, limits]), atol=1e-9)
+    np.testing.assert_allclose(m.actuator_ctrlrange[:10], np.vstack([limits, limits]), atol=1e-9)
+    np.testing.assert_allclose(m.actuator_ctrlrange[10:], [[0.0, 0.0045]] * 2, atol=1e-12)  # open .. closed
     assert all(m.jnt_limited) and all(m.actuator_ctrllimited)
     home = np.concatenate([VIP_ARM.home_q, VIP_ARM.home_q])
     key = m.key("home")
-    np.testing.assert_allclose(key.qpos, np.r_[home, 0, 0], atol=1e-9)  # the tissue at rest
-    np.testing.assert_allclose(key.ctrl, home, atol=1e-9)
-    np.testing.assert_allclose(m.qpos0, np.r_[home, 0, 0], atol=1e-9)
+    adr = _arm_qadr(m)
+    np.testing.assert_allclose(key.qpos[adr], home, atol=1e-9)
+    np.testing.assert_array_equal(np.delete(key.qpos, adr), 0.0)  # the jaws open, the tissue at rest
+    np.testing.assert_allclose(key.ctrl, np.r_[home, 0, 0], atol=1e-9)  # the jaws commanded open
+    np.testing.assert_allclose(m.qpos0[adr], home, atol=1e-9)
+    np.testing.assert_array_equal(np.delete(m.qpos0, adr), 0.0)
 
 
 def test_model_sites_match_fk(vip_model: mujoco.MjModel) -> None:
@@ -358,8 +379,11 @@ def test_model_sites_match_fk(vip_model: mujoco.MjModel) -> None:
     rng = np.random.default_rng(9)
     qs = [np.concatenate([a, b]) for a, b in zip(_random_q(rng, 20), _random_q(rng, 20), strict=True)]
     qs.append(np.concatenate([VIP_ARM.lower_limits, VIP_ARM.upper_limits]))
+    adr = _arm_qadr(m)
+    fingers = np.setdiff1d(np.arange(10 + 4), adr)  # the four jaw fingers (before the tissue)
     for q in qs:
-        data.qpos[:10] = q
+        data.qpos[adr] = q
+        data.qpos[fingers] = rng.uniform(0.0, 0.0045, 4)  # the jaws do not move the wrist
         mujoco.mj_forward(m, data)
         for j, (arm, geom) in enumerate(ARMS):
             p = fk(q[5 * j : 5 * j + 5], geom)
@@ -403,10 +427,11 @@ def test_model_robot_xml_alone_steps_cleanly() -> None:
     assert m.opt.timestep == pytest.approx(0.001)
     assert m.opt.integrator == mujoco.mjtIntegrator.mjINT_IMPLICITFAST
     data = mujoco.MjData(m)
+    driven = m.jnt_qposadr[m.actuator_trnid[:, 0]]  # each servo's joint (the jaws: finger a)
     for k in range(1000):
         if k == 500:
             data.ctrl[:] = np.clip(
-                data.qpos[: m.nu] + 0.05, m.actuator_ctrlrange[:, 0], m.actuator_ctrlrange[:, 1]
+                data.qpos[driven] + 0.05, m.actuator_ctrlrange[:, 0], m.actuator_ctrlrange[:, 1]
             )
         mujoco.mj_step(m, data)
     assert _warnings(data) == {}

@@ -621,6 +621,34 @@ class Site:
                 )
         log.info("started %-15s pid %d", name, pid)
 
+    def spawn_instance(self, name: str, table: str, sets: Sequence[str] = ()) -> None:
+        """Start another instance ``name`` of service ``table`` (a second master_capture of a
+        two-master site: ``service`` and the ``arm`` it reads set in ``sets``), connected where
+        ``table`` connects, with ``table``'s settings and ``sets`` after them; stopped with the
+        site."""
+        argv = service_argv(self.spec, table)
+        argv += [
+            "--set",
+            f"service={json.dumps(name)}",
+            "--set",
+            f"bus.zid={json.dumps(secrets.token_hex(8))}",
+        ]
+        for item in sets:
+            argv += ["--set", item]
+        out: IO[bytes] | None = None
+        if self.spec.log_dir:
+            out = (self.spec.log_dir / f"{name}.log").open("ab")
+            self._logs.append(out)
+        preexec = functools.partial(_foreground, control_slice_us()) if table in CONTROL else None
+        self.procs[name] = subprocess.Popen(
+            argv,
+            stdout=out,
+            stderr=subprocess.STDOUT if out else None,
+            start_new_session=True,
+            preexec_fn=preexec,
+        )
+        log.info("started %-15s pid %d", name, self.procs[name].pid)
+
     def restart(self, name: str) -> None:
         """Start ``name`` again (after it died or was killed); the old process must be gone."""
         old = self.procs.get(name)
@@ -655,6 +683,7 @@ class Site:
         """
         codes: dict[str, int] = {}
         order = (*STOP_ORDER[:-1], "record", "replay", STOP_ORDER[-1])  # the recorder, then the router
+        order = (*(n for n in self.procs if n not in order), *order)  # (spawn_instance's first)
         if running := [n for n in order if n in self.procs and self.procs[n].poll() is None]:
             log.info("stopping %s", ", ".join(running))
         for name in order:

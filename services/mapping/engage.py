@@ -75,6 +75,9 @@ SLAVE_ARMED = "waiting for engage"
 SLAVE_START_GRACE_NS = 500_000_000
 #: Hz: the teleop state is re-sent this often (and on every change).
 STATE_HZ = 10.0
+#: After an engage the slave's jaws keep their closure until the master's grip comes within this
+#: of it (0 open … 1 closed): an engage never opens the jaws on what they hold, nor snaps them shut.
+GRIP_MATCH = 0.1
 
 
 class EngageGate:
@@ -121,6 +124,8 @@ class EngageGate:
         self.conflated = 0  # master samples skipped because a newer one had come
         self.clamped = 0  # samples whose target was clamped (workspace or joint limits)
         self._names_warned = False
+        # the jaws wait for the master's grip to come to their closure (GRIP_MATCH) after each engage
+        self.grip_locked = True
         self.state_out: Outlet = node.outlet(
             node.keys.mapping(slave, "teleop_state"), control=False, latest=True
         )
@@ -138,6 +143,20 @@ class EngageGate:
     def want_engage(self) -> bool:
         """A new press arrived that may engage (state ``ENGAGING``; the service loop tries it)."""
         return self.state == ENGAGING
+
+    def grip_command(self) -> float:
+        """The jaws' closure to send with the next setpoint: the master's grip while engaged, once
+        it has come within :data:`GRIP_MATCH` of the slave's jaws after the engage; -1 (the jaws
+        keep theirs) before that, while not engaged, and for an arm without jaws."""
+        b, op = self.buttons, self.slave_state
+        if self.state != ENABLED or b is None or op is None or op.grip < 0.0:
+            return -1.0
+        if self.grip_locked:
+            if abs(b.grip - op.grip) > GRIP_MATCH:
+                return -1.0
+            self.grip_locked = False
+            self.node.event("grip", f"the jaws follow the grip (at {b.grip:.2f})", arm=self.slave)
+        return b.grip
 
     # -- inputs -----------------------------------------------------------------------
     def on_buttons(self, msg: MasterButtons, key: str) -> None:
@@ -231,6 +250,7 @@ class EngageGate:
     def _engaged_now(self, text: str) -> None:
         """The engage went ahead: ENABLED, and an ``engage`` event with ``text``."""
         self._enter(ENABLED, text)
+        self.grip_locked = True
         self.node.event("engage", text, arm=self.slave)
 
     def _disengage(self, reason: str, *, operator: bool = False) -> None:

@@ -219,7 +219,8 @@ def run(cfg: MasterCaptureConfig, stop: threading.Event) -> None:
                 invalid_since = None
             pressed, at = console[0]
             console_clutch = pressed and time.monotonic() - at <= console_timeout
-            buttons = (s.clutch or console_clutch, s.operator_present)
+            # (the grip to 0.01: a sensor's noise is not a change to send at once)
+            buttons = (s.clutch or console_clutch, s.operator_present, round(min(max(s.grip, 0.0), 1.0), 2))
             if resend.due(buttons):
                 buttons_out.put(MasterButtons(buttons_out.header(), *buttons))
             energy = haptic.step(s.position, time.monotonic()) if haptic is not None else 0.0

@@ -60,7 +60,7 @@ from telesurg.shared.bus import BusConfig, Node, only
 from telesurg.shared.clock import wall_ns
 from telesurg.shared.errors import ConfigError
 from telesurg.shared.kinematics.work_frame import CameraWorkFrame, ConfiguredWorkFrame
-from telesurg.shared.messages import CartesianPose
+from telesurg.shared.messages import CartesianPose, SceneState
 from telesurg.shared.robots import arms_of
 from telesurg.shared.robots.api import MotionContext, ViewFrameUser
 from telesurg.shared.timing import CycleTimer, check_rt_priority, start_loop
@@ -94,6 +94,9 @@ class SlaveControlConfig:
     # tissue): a haptic master's force stream (docs/haptics.md) needs ≥ 500 Hz
     contact_wrench_hz: float = 500.0
     state_hz: float = 20.0  # Hz: operating_state (also sent on every change)
+    # Hz: slave/<arm>/scene, a MuJoCo scene's loose objects (who holds them) and the instruments'
+    # collisions (scenes with loose objects or jaws only; collisions are sampled at this rate)
+    scene_hz: float = 20.0
     # Hz: setpoint_js, the commanded joints while a slave-side motion drives the arm (PTP, jog,
     # playback, insert/remove, direct teach), checked by the watchdog; the watchdog checks the
     # joint path between two samples at fine steps, so this rate only sets its reaction time
@@ -183,8 +186,50 @@ def make_arms(cfg: SlaveControlConfig, backend: SlaveBackend) -> list[ArmCore]:
         # (arm.CATCHUP): the joint-space arms keep their timeline (with the catch-up the PLAS
         # slave left its commanded path)
         catchup = CATCHUP if spec.catch_up else 1.0
-        cores.append(ArmCore(p, index, cfg, backend.dt, motion=motion, interpolate=True, catchup=catchup))
+        core = ArmCore(p, index, cfg, backend.dt, motion=motion, interpolate=True, catchup=catchup)
+        tool = f"{p.arm}_jaw"
+        if tool in getattr(backend, "tool_names", ()):  # the arm's jaws: open at the start
+            core.tool, core.grip = tool, 0.0
+            getattr(backend, "command_tool")(tool, 0.0)  # noqa: B009 (a MuJoCo backend's)
+        cores.append(core)
     return cores
+
+
+class ScenePublisher:
+    """``slave/<arm>/scene`` of every arm (:class:`~telesurg.shared.messages.SceneState`): the
+    scene's loose objects and who holds them, each arm's jaws, and the instruments' collisions (an
+    ``instrument_collision`` event at each new one)."""
+
+    def __init__(self, node: Node, backend: Any, arms: list[ArmCore]) -> None:
+        self.node, self.backend, self.arms = node, backend, arms
+        self.outlets = [node.outlet(node.keys.slave(a.arm, "scene"), control=False) for a in arms]
+        self.collisions = 0
+        self.touching = False
+
+    @staticmethod
+    def wanted(backend: Any) -> bool:
+        """The backend has a scene worth publishing: loose objects or jaws."""
+        if not hasattr(backend, "read_scene"):
+            return False
+        r = backend.read_scene()
+        return bool(r.objects) or bool(r.tools)
+
+    def publish(self) -> None:
+        r = self.backend.read_scene()
+        if r.instrument_contact and not self.touching:
+            self.collisions += 1
+            self.node.event("instrument_collision", "the instruments of two arms collide", severity="warning")
+        self.touching = bool(r.instrument_contact)
+        jaws = tuple(round(float(r.tools[a.tool]), 3) for a in self.arms if a.tool in r.tools)
+        held = tuple("+".join(h) for h in r.held_by)
+        pos = np.round(np.asarray(r.positions, dtype=float).reshape(-1, 3), 5)
+        x, y, z = (tuple(float(v) for v in pos[:, i]) for i in range(3))
+        for out in self.outlets:
+            out.put(
+                SceneState(
+                    out.header(), tuple(r.objects), x, y, z, held, jaws, self.touching, self.collisions
+                )
+            )
 
 
 def follow_camera(node: Node, cfg: SlaveControlConfig, motion: ViewFrameUser) -> None:
@@ -244,17 +289,24 @@ def run(cfg: SlaveControlConfig, stop: threading.Event) -> None:
         reading = backend.read()
         wrench_hz = cfg.contact_wrench_hz if reading.contact_wrench is not None else cfg.wrench_hz
         wrench_every = max(1, round(1.0 / (dt * wrench_hz)))
+        scene = ScenePublisher(node, backend, arms) if ScenePublisher.wanted(backend) else None
+        scene_every = max(1, round(1.0 / (dt * cfg.scene_hz)))
         # out of contact the contact wrench is sent at wrench_hz only (nothing to feel: the
         # receivers' load, two arms × 500 Hz on the PLAS and VIP, goes to what matters)
         quiet_every = max(1, round(wrench_hz / cfg.wrench_hz))
         for a in arms:  # the first operating_state already carries the measurements
             a.start(a.arm_reading(reading))
         q_cmd = reading.position.copy()
+        sent_grip = {a.tool: a.grip for a in arms if a.tool}
+        command_tool: Any = getattr(backend, "command_tool", None)  # (the arms' jaws, MuJoCo)
 
         def command(now: float, reading: SlaveReading) -> None:
             """Every arm's command for the period at ``now``, sent to the backend."""
             for a in arms:
                 q_cmd[a.index] = a.control(now, a.arm_reading(reading))
+                if a.tool and a.grip != sent_grip.get(a.tool):
+                    command_tool(a.tool, a.grip)
+                    sent_grip[a.tool] = a.grip
             backend.command(q_cmd)
 
         def stepped() -> None:
@@ -331,6 +383,8 @@ def run(cfg: SlaveControlConfig, stop: threading.Event) -> None:
             if timer.every(commanded_every, 5):  # (phase 5: with 10 periods, never with 0-3 above)
                 for a in arms:
                     a.publish_commanded()
+            if scene is not None and timer.every(scene_every, 7):  # (never with phases 0-5 above)
+                scene.publish()
             force_state = timer.every(state_every, 3)
             for a, s in zip(arms, servo_streams, strict=True):
                 a.publish_state(force_state, s.rejected)

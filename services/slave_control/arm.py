@@ -270,6 +270,11 @@ class ArmCore:
     # on measured_cf
     port_work: SlavePortWork = field(default_factory=SlavePortWork)
     _free_calls: int = 0  # publish_wrench calls in a row without contact
+    # the backend's tool (jaws) of this arm ("" = none) and their closure commanded now, 0 open …
+    # 1 closed (-1: no jaws): the followed setpoints' grip, kept through a hold
+    tool: str = ""
+    grip: float = -1.0
+    _grip_sp: float = -1.0  # the newest accepted setpoint's grip
 
     def __post_init__(self) -> None:
         p, cfg = self.profile, self.cfg
@@ -421,6 +426,7 @@ class ArmCore:
                 stamp_ns=msg.header.stamp_ns,
             )
             self.fresh_setpoint = True
+            self._grip_sp = msg.grip
             self._arrived.append(self.setpoint)
             del self._arrived[:-PENDING_MAX]
 
@@ -476,6 +482,7 @@ class ArmCore:
         q_meas, q_cmd, ctl, motion = reading.position, self.q_cmd, self.ctl, self.motion
         with self.lock:
             lease, sp, arrived = self.lease, self.setpoint, self._arrived
+            grip_sp = self._grip_sp
             self.fresh_setpoint = False
             self._arrived = []
             if self.estop:
@@ -521,6 +528,8 @@ class ArmCore:
                     f"limit follow_max_lag_ms = {self._max_lag * 1e3:g})",
                 )
             out = ctl.update(now, q_meas, q_cmd, lease, sp, self.dt, self.cycle)
+            if ctl.following and self.tool and grip_sp >= 0.0:  # the jaws follow only with the arm
+                self.grip = grip_sp
             if logged and ctl.following and self.interpolate and self._applied is not None:
                 self._applied[self._n_applied - 1, 4] = round(self.servo.interp.played * 1e9)
         self.q_cmd = out
@@ -674,7 +683,17 @@ class ArmCore:
             mode = motion.control_mode if motion is not None else "joint"
             rcm_mm, trocar = motion.state_fields() if motion is not None else (0.0, (0.0, 0.0, 0.0))
             estop = self.estop
-        state = (ctl.following, ctl.lease_valid, ctl.reason, mode, internal, self.held.cause, bool(estop))
+        grip = round(self.grip, 2)
+        state = (
+            ctl.following,
+            ctl.lease_valid,
+            ctl.reason,
+            mode,
+            internal,
+            self.held.cause,
+            bool(estop),
+            grip,
+        )
         if state == self._last_state and not force:
             return
         self._last_state = state
@@ -699,6 +718,7 @@ class ArmCore:
                 self.rejected + servo_rejected,
                 trocar,
                 is_busy=internal,
+                grip=grip,
             )
         )
 

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from types import TracebackType
 from typing import Any, Protocol
 
@@ -85,6 +85,29 @@ class SlaveReading:
     site_wrenches: dict[str, np.ndarray] | None = None
 
 
+@dataclass(frozen=True)
+class SceneReading:
+    """What a task scene holds now: its loose objects, who grasps them, the tools' jaws.
+
+    Attributes:
+        objects: names of the scene's loose objects (the bodies with a free joint), model order.
+        positions: (k, 3) m, each object's body origin, base (world) frame.
+        held_by: per object, the arms whose jaws hold it now (both fingers of the arm's tool
+            touch it): the tool name without its ``_jaw`` suffix (``"arm1"``), tool order.
+        tools: each tool's measured closure from its finger joint, 0 = open … 1 = closed.
+        instrument_contact: one arm's instrument (or jaws) touches the other arm now.
+        quats: (k, 4) each object's orientation, unit quaternion (x, y, z, w) like
+            :attr:`SlaveReading.tip_quat` (a peg standing upright: its z axis up).
+    """
+
+    objects: tuple[str, ...]
+    positions: np.ndarray
+    held_by: tuple[tuple[str, ...], ...]
+    tools: dict[str, float]
+    instrument_contact: bool
+    quats: np.ndarray = field(default_factory=lambda: np.zeros((0, 4)))
+
+
 class SlaveBackend(Protocol):
     """What slave_control needs from a robot."""
 
@@ -119,6 +142,10 @@ class SlaveBackend(Protocol):
 #: contype bit of an instrument's contact geoms (robot.xml) and the conaffinity bit of the tissue
 #: they touch (scene.xml): the contacts whose forces make the measured tip wrench.
 INSTRUMENT = 2
+
+#: actuator group of a tool (a grasper's jaws, robot.xml): not an arm joint. The arm's joints are
+#: those driven by the other actuators; :meth:`MujocoBackend.command_tool` drives the tools.
+TOOL_GROUP = 2
 
 
 def contact_wrenches(m: Any, d: Any, mujoco: Any, owner: np.ndarray, points: np.ndarray) -> np.ndarray:
@@ -247,6 +274,11 @@ class MujocoBackend:
     inverse dynamics ``M q̈ + c(q, q̇)`` minus what the model itself explains (actuators, joint
     damping and gravity compensation, constraints). :meth:`push` simulates a hand pushing the
     forceps tip or the wrist (for direct teach); the estimate then equals ``Jᵀ F`` of that push.
+
+    A robot with graspers (actuators of group :data:`TOOL_GROUP`, e.g. the ``vip`` and ``plas``
+    jaws ``arm1_jaw``, ``arm2_jaw``) has them in :attr:`tool_names`, driven by :meth:`command_tool`
+    and not among the arm's joints; :meth:`read_scene` tells what a task scene's loose objects
+    (a peg) do: where they are and which arms hold them.
     """
 
     def __init__(
@@ -265,6 +297,7 @@ class MujocoBackend:
         self.q_home = np.array(q_home, dtype=float)
         self.home = home  # start pose if q_home is empty and the model has no "home" keyframe
         self.joint_names: tuple[str, ...] = ()
+        self.tool_names: tuple[str, ...] = ()  # the group-2 actuators (graspers), model order
         self.dt = 0.001
         self.realtime = False
         self._m: Any = None
@@ -279,18 +312,35 @@ class MujocoBackend:
 
         m = mujoco.MjModel.from_xml_path(str(self.scene))
         d = mujoco.MjData(m)
-        # the robot's joints are the actuated ones (one position actuator each); an unactuated
-        # joint belongs to the scene (the MH3F tissue's indentation) and is not reported
-        driven = {
-            int(m.actuator_trnid[a, 0])
+        # the robot's joints are the ones its arm actuators drive (one position actuator each; a
+        # tool's actuator, group TOOL_GROUP, drives a grasper, not an arm joint); an unactuated
+        # joint belongs to the scene (the MH3F tissue's indentation, a peg) and is not reported
+        joint_act = mujoco.mjtTrn.mjTRN_JOINT
+        tools = [a for a in range(m.nu) if int(m.actuator_group[a]) == TOOL_GROUP]
+        act_of = {
+            int(m.actuator_trnid[a, 0]): a
             for a in range(m.nu)
-            if m.actuator_trntype[a] == mujoco.mjtTrn.mjTRN_JOINT
+            if m.actuator_trntype[a] == joint_act and a not in tools
         }
-        joints = [j for j in range(m.njnt) if j in driven] if driven else list(range(m.njnt))
+        joints = [j for j in range(m.njnt) if j in act_of] if act_of else list(range(m.njnt))
         self._qadr = np.array([int(m.jnt_qposadr[j]) for j in joints])
         self._dadr = np.array([int(m.jnt_dofadr[j]) for j in joints])
         self.joint_names = tuple(m.joint(j).name for j in joints)
         n = len(joints)
+        # the arm's actuators in joint order: ctrl[self._ctrl] = q (a slice when they come first,
+        # in joint order, as in every robot.xml here: the 1 kHz command is one copy)
+        acts = [act_of[j] for j in joints] if act_of else list(range(m.nu))
+        self._ctrl: slice | np.ndarray = slice(0, n) if acts == list(range(n)) else np.array(acts, dtype=int)
+        if any(m.actuator_ctrlrange[a, 0] >= m.actuator_ctrlrange[a, 1] for a in tools):
+            raise ConfigError(
+                f"model {self.scene.parent.name}: a tool actuator (group {TOOL_GROUP}) has no ctrlrange"
+            )
+        self.tool_names = tuple(m.actuator(a).name for a in tools)
+        self._tool_act = {m.actuator(a).name: a for a in tools}
+        self._tool_range = {
+            m.actuator(a).name: (float(m.actuator_ctrlrange[a, 0]), float(m.actuator_ctrlrange[a, 1]))
+            for a in tools
+        }
         if len(self.q_home) == 0:  # the model's own start pose: keyframe "home", else `home`
             if "home" in {m.key(i).name for i in range(m.nkey)}:
                 mujoco.mj_resetDataKeyframe(m, d, m.key("home").id)
@@ -300,7 +350,7 @@ class MujocoBackend:
         if len(self.q_home) != n:
             raise ConfigError(f"q_home has {len(self.q_home)} values, model has {n} joints")
         d.qpos[self._qadr] = self.q_home
-        d.ctrl[:] = self.q_home
+        d.ctrl[self._ctrl] = self.q_home
         mujoco.mj_forward(m, d)
         self.dt = float(m.opt.timestep)
         try:
@@ -331,6 +381,18 @@ class MujocoBackend:
             if self._ports
             else []
         )
+        self._scene = _SceneIndex(m, mujoco, tools)
+        # each tool's fingers (qpos, dof address and how each follows the actuated one) for reset()
+        self._tool_rest = [
+            (
+                a,
+                [
+                    (int(m.jnt_qposadr[j]), int(m.jnt_dofadr[j]), c0, c1)
+                    for j, c0, c1 in _fingers(m, mujoco, a)
+                ],
+            )
+            for a in tools
+        ]
         self._m, self._d, self._mj = m, d, mujoco
         return self
 
@@ -369,15 +431,46 @@ class MujocoBackend:
         self._m = self._d = None
 
     def command(self, q: np.ndarray) -> None:
-        self._d.ctrl[:] = q
+        self._d.ctrl[self._ctrl] = q
 
     def reset(self, q: np.ndarray) -> None:
-        """Put the arm at rest at joints ``q`` (rad), commanded to stay there (the shadow's re-sync)."""
+        """Put the arm at rest at joints ``q`` (rad), commanded to stay there (the shadow's re-sync,
+        an episode's start); its tools' fingers at rest where their commands put them."""
         d = self._d
         d.qpos[self._qadr] = q
         d.qvel[self._dadr] = 0.0
-        d.ctrl[:] = q
+        d.ctrl[self._ctrl] = q
+        for a, fingers in self._tool_rest:
+            target = float(d.ctrl[a])
+            for qadr, dadr, c0, c1 in fingers:
+                d.qpos[qadr] = c0 + c1 * target
+                d.qvel[dadr] = 0.0
         self._mj.mj_forward(self._m, d)
+
+    def command_tool(self, name: str, grip: float) -> None:
+        """Drive tool ``name`` (one of :attr:`tool_names`): ``grip`` 0 = fully open … 1 = fully
+        closed (clipped to [0, 1]), the low … high end of the tool actuator's ``ctrlrange``. A
+        closed grasper squeezes what is between its jaws with the actuator's force limit.
+
+        Raises:
+            ConfigError: no tool ``name`` (the message names the valid ones), or ``grip`` is not
+                a finite number.
+        """
+        a = self._tool_act.get(name)
+        if a is None:
+            raise ConfigError(
+                f"no tool {name!r}; valid: {', '.join(self.tool_names) or 'none (the model has no tools)'}"
+            )
+        g = float(grip)
+        if not math.isfinite(g):
+            raise ConfigError(f"tool {name!r}: grip {grip!r} must be a number in [0, 1]")
+        lo, hi = self._tool_range[name]
+        self._d.ctrl[a] = lo + min(1.0, max(0.0, g)) * (hi - lo)
+
+    def read_scene(self) -> SceneReading:
+        """The scene's loose objects, who holds them and the tools' closure, now (see
+        :class:`SceneReading`). Reads the contacts of the last step: call it after :meth:`step`."""
+        return self._scene.read(self._d)
 
     def push(self, force: np.ndarray, seconds: float, at: str = "tip") -> None:
         """Push with ``force`` (N, base frame) for ``seconds`` of sim time, at the forceps ``tip``
@@ -426,7 +519,7 @@ class MujocoBackend:
         return SlaveReading(
             d.qpos[self._qadr],
             d.qvel[self._dadr],
-            d.actuator_force.copy(),
+            d.actuator_force[self._ctrl].copy(),
             d.site_xpos[self._tip].copy(),
             np.array([quat[1], quat[2], quat[3], quat[0]]),
             float(d.time),
@@ -435,6 +528,114 @@ class MujocoBackend:
             contact_wrench=None if w is None else w[0],
             site_wrenches=None if w is None else dict(zip(self._wrench_names, w, strict=True)),
         )
+
+
+class _SceneIndex:
+    """Which geoms are whose, for :meth:`MujocoBackend.read_scene`: the loose objects' (bodies with
+    a free joint), each tool's fingers' and each arm's (the tool's chain of bodies), computed
+    once; :meth:`read` then goes through the contacts with numpy."""
+
+    def __init__(self, m: Any, mujoco: Any, tools: list[int]) -> None:
+        free = int(mujoco.mjtJoint.mjJNT_FREE)
+        bodies = [int(m.jnt_bodyid[j]) for j in range(m.njnt) if int(m.jnt_type[j]) == free]
+        self.objects = tuple(m.body(b).name for b in bodies)
+        self.bodies = np.array(bodies, dtype=int)
+        parent = m.body_parentid
+        geom_body = m.geom_bodyid
+
+        def subtree(root: int) -> set[int]:  # root and every body below it
+            out = {root}
+            for b in range(root + 1, m.nbody):  # (bodies come in depth-first order)
+                if int(parent[b]) in out:
+                    out.add(b)
+            return out
+
+        # a geom's object (index in self.objects), -1: none
+        self.geom_object = np.full(m.ngeom, -1, dtype=int)
+        for k, b in enumerate(bodies):
+            self.geom_object[np.isin(geom_body, list(subtree(b)))] = k
+        # each tool's finger joints: the one its actuator drives and those an equality couples to it
+        # (finger b mirroring finger a); a finger's geoms: its body's subtree's
+        self.tools = tuple(m.actuator(a).name for a in tools)
+        self.arms = tuple(n.removesuffix("_jaw") for n in self.tools)
+        self.tool_qadr = np.array([int(m.jnt_qposadr[m.actuator_trnid[a, 0]]) for a in tools], dtype=int)
+        ranges = np.array([m.actuator_ctrlrange[a] for a in tools], dtype=float).reshape(-1, 2)
+        self.tool_lo, self.tool_span = ranges[:, 0], ranges[:, 1] - ranges[:, 0]
+        self.geom_finger = np.full(m.ngeom, -1, dtype=int)  # a geom's finger: column in `touch`
+        self.finger_tool: list[int] = []  # each finger's tool
+        chains = []  # per tool: the bodies of its fingers and all their ancestors
+        for t, a in enumerate(tools):
+            chain: set[int] = set()
+            for j, _, _ in _fingers(m, mujoco, a):
+                b = int(m.jnt_bodyid[j])
+                self.geom_finger[np.isin(geom_body, list(subtree(b)))] = len(self.finger_tool)
+                self.finger_tool.append(t)
+                while b != 0:
+                    chain.add(b)
+                    b = int(parent[b])
+            chains.append(chain)
+        self.fingers_of = [np.flatnonzero(np.array(self.finger_tool) == t) for t in range(len(tools))]
+        # a geom's arm (tool index): the first body up its tree that is in exactly one tool's chain
+        # (a link, the shaft, the jaws); -1: the world or a body common to the arms
+        self.geom_arm = np.full(m.ngeom, -1, dtype=int)
+        for g in range(m.ngeom):
+            b = int(geom_body[g])
+            while b != 0:
+                held = [t for t, chain in enumerate(chains) if b in chain]
+                if held:
+                    if len(held) == 1:
+                        self.geom_arm[g] = held[0]
+                    break
+                b = int(parent[b])
+        self._xyzw = [1, 2, 3, 0]
+
+    def read(self, d: Any) -> SceneReading:
+        k, nf = len(self.objects), len(self.finger_tool)
+        touch = np.zeros((k, nf), dtype=bool)  # object touched by finger
+        contact = False
+        if d.ncon:
+            geom = d.contact.geom  # (ncon, 2)
+            g1, g2 = geom[:, 0], geom[:, 1]
+            if k and nf:
+                for ga, gb in ((g1, g2), (g2, g1)):
+                    obj, fin = self.geom_object[ga], self.geom_finger[gb]
+                    hit = (obj >= 0) & (fin >= 0)
+                    touch[obj[hit], fin[hit]] = True
+            a1, a2 = self.geom_arm[g1], self.geom_arm[g2]
+            contact = bool(np.any((a1 >= 0) & (a2 >= 0) & (a1 != a2)))
+        held = tuple(
+            tuple(arm for t, arm in enumerate(self.arms) if touch[i, self.fingers_of[t]].all())
+            for i in range(k)
+        )
+        closure = np.clip((d.qpos[self.tool_qadr] - self.tool_lo) / self.tool_span, 0.0, 1.0)
+        return SceneReading(
+            self.objects,
+            d.xpos[self.bodies].copy(),
+            held,
+            dict(zip(self.tools, closure.tolist(), strict=True)),
+            contact,
+            d.xquat[self.bodies][:, self._xyzw].copy(),
+        )
+
+
+def _fingers(m: Any, mujoco: Any, a: int) -> list[tuple[int, float, float]]:
+    """The joints tool actuator ``a`` moves: ``(joint, c0, c1)``, the joint at ``c0 + c1 · q`` when
+    the actuated joint is at ``q``: that joint (0, 1), then each joint a linear joint equality
+    couples to it (a grasper's finger b mirroring finger a)."""
+    j0 = int(m.actuator_trnid[a, 0])
+    out = [(j0, 0.0, 1.0)]
+    for e in range(m.neq):
+        if int(m.eq_type[e]) != int(mujoco.mjtEq.mjEQ_JOINT):
+            continue
+        j1, j2 = int(m.eq_obj1id[e]), int(m.eq_obj2id[e])  # q1 = c0 + c1 q2 (+ c2 q2² …)
+        c0, c1, *rest = (float(v) for v in m.eq_data[e, :5])
+        if any(rest) or j1 == j2 or j0 not in (j1, j2):
+            continue
+        if j2 == j0:
+            out.append((j1, c0, c1))
+        elif c1 != 0.0:
+            out.append((j2, -c0 / c1, 1.0 / c1))
+    return out
 
 
 def _names(m: Any, kind: str) -> set[str]:

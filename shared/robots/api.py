@@ -161,6 +161,10 @@ class PairContext(Protocol):
         """Publish the teleop state now (after a scale change)."""
         ...
 
+    def grip_command(self) -> float:
+        """The jaws' closure (0 open … 1 closed) to send with the next setpoint; -1: none."""
+        ...
+
     def scale_command(self, cmd: Command, describe: str) -> CommandReply:
         """Answer ``state`` and the operator's scale commands (``describe`` leads ``state``)."""
         ...

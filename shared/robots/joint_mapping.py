@@ -105,6 +105,7 @@ class JointStrategy:
                 tuple(float(x) for x in q),
                 follow=self.gate.following,
                 origin_ns=origin_ns,
+                grip=self.gate.grip_command(),
             )
         )
         now = time.monotonic()

@@ -29,14 +29,16 @@ Loaded by name through master_capture's config (the study harness sets it)::
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections import deque
 from collections.abc import Callable
+from dataclasses import dataclass
 
 import numpy as np
 from telesurg.services.master_capture.devices.policy import PolicyObservation
 from telesurg.shared import tasks as tasks_mod
-from telesurg.shared.tasks import Goal, TaskSpec
+from telesurg.shared.tasks import Goal, TaskSpec, Vec3
 
 LIFT_M = 0.008  # m: a target is approached from this high above it
 
@@ -50,6 +52,8 @@ def min_jerk(s: float) -> float:
 def via_points(task: TaskSpec, step_m: float) -> list[Goal]:
     """The goals the operator aims at in turn: each target between points ``LIFT_M`` above it (it
     lifts the tip off the tissue before it moves on), or the wire every ``step_m``."""
+    if task.kind == "transfer":  # (its hands plan their own: TransferHand)
+        return list(task.goals)
     if task.kind == "targets":
         out = []
         for g in task.goals:
@@ -228,10 +232,245 @@ class Operator:
             self.phase, self.until = "react", t + self.reaction_s * self.rng.uniform(0.6, 1.0)
 
 
+def quat_rotate(q: tuple[float, float, float, float] | np.ndarray, v: np.ndarray) -> np.ndarray:
+    """``v`` rotated by the unit quaternion ``q`` (x, y, z, w)."""
+    x, y, z, w = (float(c) for c in q)
+    u = np.array([x, y, z])
+    out: np.ndarray = v + 2.0 * np.cross(u, np.cross(u, v) + w * v)
+    return out
+
+
+def _vec(p: np.ndarray) -> Vec3:
+    return (float(p[0]), float(p[1]), float(p[2]))
+
+
+@dataclass(frozen=True)
+class Step:
+    """One step of a hand's program (:class:`TransferHand`).
+
+    ``move``: bring the jaws' centre to ``to(hand, obs)`` (within ``radius_m``, held ``dwell_s``);
+    ``grip``: set the master's grip to ``value`` and wait until ``until(hand, obs)`` (at most
+    ``timeout_s``, then on to step ``retry``); ``wait``: wait until ``until``.
+    """
+
+    kind: str
+    to: Callable[[TransferHand, PolicyObservation], np.ndarray] | None = None
+    radius_m: float = 0.003
+    dwell_s: float = 0.0
+    value: float = 0.0
+    until: Callable[[TransferHand, PolicyObservation], bool] | None = None
+    timeout_s: float = math.inf
+    retry: int = -1  # step to go to on a timeout (-1: the next)
+    live: bool = False  # move: its goal follows the object (re-aimed at each sub-movement)
+    min_s: float = 0.0  # grip / wait: at least this long (and its lag) before it goes on
+
+
+class TransferHand(Operator):
+    """One hand of the synthetic operator in a transfer task (a peg transfer: ``task.arms[role]``).
+
+    It plans with the :class:`Operator`'s human-like sub-movements, but aims the jaws' centre (the
+    controlled point plus ``task.grasp_offset`` turned by the tip's orientation, as a surgeon aims
+    the jaws they see), squeezes and opens the master's grip, and waits on what it sees in the
+    scene — the object's position and which jaws hold it:
+
+    * the first hand (``role`` 0): above the object, down onto it, close; once it sees the object
+      held, lift and carry it to the hand-over; wait until the other jaws hold it, open, withdraw;
+      an object it sees lying free (a drop) is picked up again;
+    * the other hand (``role`` 1): wait until it sees the object held at the hand-over, come to it
+      from above, close; once the first hand let go, lift, carry to the target, lower, open,
+      withdraw.
+
+    Knobs: ``approach_mm`` (height above a grasp it comes from), ``lift_mm``, ``release_mm`` (the
+    object's clearance above the target when it opens), ``drop_after_lift`` (the first hand opens
+    once it has lifted the object: a drop, for the tests that provoke one).
+    """
+
+    def __init__(
+        self,
+        task: TaskSpec,
+        scale: float,
+        rate_hz: float,
+        seed: int = 0,
+        role: int = 0,
+        approach_mm: float = 12.0,
+        lift_mm: float = 15.0,
+        release_mm: float = 2.0,
+        drop_after_lift: bool = False,
+        **knobs: float,
+    ) -> None:
+        super().__init__(task, scale, rate_hz, seed, **knobs)
+        self.role, self.arm = role, task.arms[role]
+        self.giver = task.arms[0]
+        self.offset = np.array(task.grasp_offset, dtype=float)
+        self.approach, self.lift, self.release = approach_mm / 1e3, lift_mm / 1e3, release_mm / 1e3
+        self.grip = 0.0
+        self.k = 0
+        self.step_t0: float | None = None
+        self.mark = np.zeros(3)  # the jaws where the step began
+        self.free_since: float | None = None
+        self.drops_seen = 0
+        self.steps = self._giver(drop_after_lift) if role == 0 else self._taker()
+
+    # -- what it sees -----------------------------------------------------------------------------
+    def jaws(self, obs: PolicyObservation) -> np.ndarray:
+        """Where it sees the jaws' centre."""
+        out: np.ndarray = np.asarray(obs.tip, dtype=float) + quat_rotate(obs.tip_quat, self.offset)
+        return out
+
+    def obj(self, obs: PolicyObservation) -> np.ndarray | None:
+        p = obs.objects.get(self.task.obj)
+        return None if p is None else np.array(p, dtype=float)
+
+    def holds(self, obs: PolicyObservation, arm: str) -> bool:
+        return arm in obs.held_by.get(self.task.obj, ())
+
+    def tool(self, obs: PolicyObservation) -> np.ndarray:
+        """The way its instrument points now (unit, base frame)."""
+        return quat_rotate(obs.tip_quat, np.array(self.task.tool_axis, dtype=float))
+
+    def at_obj(self, back: float = 0.0) -> Callable[[TransferHand, PolicyObservation], np.ndarray]:
+        """Its grasp point on the object (``task.obj_grasps``), ``back`` m behind it along its
+        instrument (the way it comes in)."""
+        grasp = np.array(self.task.obj_grasps[self.role] if self.task.obj_grasps else (0.0, 0.0, 0.0))
+
+        def to(h: TransferHand, obs: PolicyObservation) -> np.ndarray:
+            o = h.obj(obs)
+            base = o + grasp if o is not None else h.jaws(obs)
+            out: np.ndarray = base - back * h.tool(obs)
+            return out
+
+        return to
+
+    def from_mark(self, up: float) -> Callable[[TransferHand, PolicyObservation], np.ndarray]:
+        """``up`` m above where the jaws were when the step began."""
+        return lambda h, obs: h.mark + np.array([0.0, 0.0, up])
+
+    def back_from_mark(self, back: float) -> Callable[[TransferHand, PolicyObservation], np.ndarray]:
+        """``back`` m behind where the jaws were when the step began, along its instrument."""
+        return lambda h, obs: h.mark - back * h.tool(obs)
+
+    @staticmethod
+    def fixed(
+        p: tuple[float, float, float], up: float = 0.0
+    ) -> Callable[[TransferHand, PolicyObservation], np.ndarray]:
+        return lambda h, obs: np.array(p, dtype=float) + np.array([0.0, 0.0, up])
+
+    # -- the programs ---------------------------------------------------------------------------
+    def _giver(self, drop_after_lift: bool) -> list[Step]:
+        me, other = self.arm, self.task.arms[-1]
+        grasp = self.task.obj_grasps[0] if self.task.obj_grasps else (0.0, 0.0, 0.0)
+        over = _vec(np.add(self.task.goals[1].position, grasp))
+        steps = [
+            Step("move", self.at_obj(self.approach), 0.003, live=True),
+            Step("move", self.at_obj(0.0), 0.0015, 0.2, live=True),
+            Step("grip", value=1.0, until=lambda h, o: h.holds(o, me), timeout_s=2.0, retry=0),
+            Step("move", self.from_mark(self.lift), 0.004),
+        ]
+        if drop_after_lift:
+            steps.append(Step("grip", value=0.0, until=lambda h, o: not h.holds(o, me), timeout_s=1.0))
+        steps += [
+            Step("move", self.fixed(over), 0.003, 0.2),
+            # (it lets go once it has seen the other jaws hold a moment: a firm grasp)
+            Step("wait", until=lambda h, o: h.holds(o, other), timeout_s=30.0, min_s=0.3),
+            Step("grip", value=0.0, until=lambda h, o: not h.holds(o, me), timeout_s=2.0),
+            Step("move", self.back_from_mark(self.approach), 0.005),  # (back out along its instrument)
+        ]
+        return steps
+
+    def _taker(self) -> list[Step]:
+        me, giver = self.arm, self.giver
+        over = np.array(self.task.goals[1].position)
+        grasp = self.task.obj_grasps[1] if self.task.obj_grasps else (0.0, 0.0, 0.0)
+        place = _vec(np.add(self.task.goals[2].position, grasp))
+
+        def offered(h: TransferHand, o: PolicyObservation) -> bool:
+            p = h.obj(o)
+            return p is not None and h.holds(o, giver) and float(np.linalg.norm(p - over)) < 0.008
+
+        return [
+            Step("wait", until=offered),
+            Step("move", self.at_obj(self.approach), 0.003, live=True),
+            Step("move", self.at_obj(0.0), 0.0015, 0.2, live=True),
+            Step("grip", value=1.0, until=lambda h, o: h.holds(o, me), timeout_s=2.0, retry=1),
+            Step("wait", until=lambda h, o: not h.holds(o, giver), timeout_s=30.0),
+            # (straight on to above the target: down and away from the first hand's jaws)
+            Step("move", self.fixed(place, self.approach), 0.003),
+            Step("move", self.fixed(place, self.release), 0.002, 0.2),
+            Step("grip", value=0.0, until=lambda h, o: not h.holds(o, me), timeout_s=2.0),
+            Step("move", self.from_mark(self.approach), 0.005),
+        ]
+
+    # -- the policy -----------------------------------------------------------------------------
+    def _begin(self, k: int, t: float, obs: PolicyObservation) -> None:
+        self.k, self.step_t0 = k, t
+        self.mark = self.jaws(obs)
+        self.i = 0
+        if k < len(self.steps) and self.steps[k].kind == "move":
+            st = self.steps[k]
+            assert st.to is not None
+            self.goals = [Goal(_vec(st.to(self, obs)), st.radius_m, st.dwell_s)]
+            self.phase, self.until = "react", t + self.reaction_s * self.rng.uniform(0.6, 1.0)
+        else:  # (still: a hold's new press re-aims it here)
+            self.goals, self.phase = [Goal(_vec(self.mark), 0.003)], "done"
+
+    def _dropped(self, t: float, obs: PolicyObservation) -> bool:
+        """It sees the object lying free (no jaws on it) for a while, after its grasp: a drop."""
+        if self.role != 0 or self.k < 3 or self.grip > 0.5:
+            self.free_since = None
+            return False
+        if obs.held_by.get(self.task.obj):
+            self.free_since = None
+            return False
+        self.free_since = t if self.free_since is None else self.free_since
+        return t - self.free_since > 0.5 + self.lag
+
+    def __call__(self, obs: PolicyObservation) -> np.ndarray | None:
+        t = obs.t
+        if self.step_t0 is None:
+            self._begin(0, t, obs)
+        seen = dataclasses.replace(obs, tip=self.jaws(obs))
+        if self.k >= len(self.steps):  # done: hands still (the pose held, the pedal pressed)
+            out = super().__call__(seen)
+            return None if out is None else np.append(np.zeros(3), self.grip)
+        if obs.following and self._dropped(t, obs) and self.obj(obs) is not None:
+            self.drops_seen += 1
+            self.steps = self._giver(False)  # (a provoked drop happens once)
+            self._begin(0, t, obs)  # pick it up again where it lies
+        st = self.steps[self.k]
+        if st.kind == "move":
+            if st.live and st.to is not None and self.phase == "react":
+                self.goals = [Goal(_vec(st.to(self, obs)), st.radius_m, st.dwell_s)]
+            out = super().__call__(seen)
+            if out is None:
+                return None
+            if self.phase == "done":
+                self._begin(self.k + 1, t, obs)
+            return np.append(out, self.grip)
+        # grip / wait: the hand still (its tremor), the grip set, watching
+        out = super().__call__(dataclasses.replace(seen, following=obs.following))
+        if out is None:
+            return None
+        if st.kind == "grip":
+            self.grip = st.value
+        assert self.step_t0 is not None
+        waited = t - self.step_t0
+        done = st.until is not None and st.until(self, obs)
+        if obs.following and done and waited >= max(self.lag, st.min_s):
+            self._begin(self.k + 1, t, obs)
+        elif waited > st.timeout_s + self.lag:
+            if st.kind == "grip" and st.value > 0.5:
+                self.grip = 0.0  # a grasp that did not take: open, and try again
+            self._begin(st.retry if st.retry >= 0 else self.k + 1, t, obs)
+        return np.append(out * 0.0 if self.phase in ("done", "wait") else out, self.grip)
+
+
 def make(
     task: str, scale: float = 0.5, rate_hz: float = 50.0, seed: int = 0, **knobs: float
 ) -> Callable[[PolicyObservation], np.ndarray | None]:
     """The operator performing the registered task ``task`` at motion scale ``scale`` (the
     mapping's: slave / master), asked at ``rate_hz`` (the policy device's); ``knobs``: the
-    :class:`Operator`'s human-like parameters."""
-    return Operator(tasks_mod.get(task), scale, rate_hz, seed, **knobs)
+    :class:`Operator`'s human-like parameters (a transfer: :class:`TransferHand`'s, its ``role``)."""
+    spec = tasks_mod.get(task)
+    if spec.kind == "transfer":
+        return TransferHand(spec, scale, rate_hz, seed, **knobs)  # type: ignore[arg-type]
+    return Operator(spec, scale, rate_hz, seed, **knobs)

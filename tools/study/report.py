@@ -112,7 +112,7 @@ def plot(rows: list[dict[str, Any]], conditions: list[str], out: Path, title: st
     plt.close(fig)
 
 
-def plot_tasks(traces: dict[str, np.ndarray], out: Path) -> None:
+def plot_tasks(traces: dict[str, np.ndarray | list[np.ndarray]], out: Path) -> None:
     """The tasks from above and from the side (mm, the slave's base frame): goals with their
     radius, the wire with its tube, and one trial's tip path each (``traces``: task → (n, 4) t,
     x, y, z in m)."""
@@ -126,7 +126,9 @@ def plot_tasks(traces: dict[str, np.ndarray], out: Path) -> None:
     names = list(traces)
     fig, axes = plt.subplots(2, len(names), figsize=(4.6 * len(names), 6.4), squeeze=False)
     for j, name in enumerate(names):
-        task, tip = tasks.get(name), traces[name] * 1e3
+        task = tasks.get(name)
+        trace = traces[name]
+        paths = [t * 1e3 for t in trace] if isinstance(trace, list) else [trace * 1e3]
         for i, (a, b, view) in enumerate(((1, 2, "from above"), (1, 3, "from the side"))):
             ax = axes[i][j]
             if task.kind == "path":
@@ -141,9 +143,11 @@ def plot_tasks(traces: dict[str, np.ndarray], out: Path) -> None:
                 ax.add_patch(Circle((p[a - 1], p[b - 1]), g.radius_m * 1e3, color="#27ae60", alpha=0.3))
                 if task.kind == "targets" and k < 2:
                     ax.annotate("AB"[k], (p[a - 1], p[b - 1]), ha="center", va="center", fontsize=8)
-            s = np.array(task.start_tip) * 1e3
-            ax.plot(tip[:, a], tip[:, b], color="#20639b", lw=0.8, label="tip")
-            ax.plot(s[a - 1], s[b - 1], "k^", ms=6, label="start")
+            for n, (tip, start) in enumerate(zip(paths, task.start_tips or (task.start_tip,), strict=False)):
+                s = np.array(start) * 1e3
+                label = "tip" if len(paths) == 1 else f"{task.arms[n]} tip"
+                ax.plot(tip[:, a], tip[:, b], color=("#20639b", "#e67e22")[n % 2], lw=0.8, label=label)
+                ax.plot(s[a - 1], s[b - 1], "k^", ms=6, label="start" if n == 0 else None)
             ax.set_aspect("equal", adjustable="datalim")
             ax.set_xlabel("x (mm)", fontsize=8)
             ax.set_ylabel(("y", "z")[i] + " (mm)", fontsize=8)
@@ -177,7 +181,9 @@ def write(out_dir: Path, rows: list[dict[str, Any]], conditions: list[str], titl
     png = out_dir / "report.png"
     plot(rows, conditions, png, title)
     written = [md, js, png]
-    traces = {}
+    from telesurg.shared import tasks
+
+    traces: dict[str, np.ndarray | list[np.ndarray]] = {}
     for r in rows:  # the first finished trial of each task at the first condition: its tip path
         if (
             r["task"] not in traces
@@ -189,7 +195,8 @@ def write(out_dir: Path, rows: list[dict[str, Any]], conditions: list[str], titl
 
             rec = out_dir / r["recording"]
             if rec.exists():
-                traces[r["task"]] = streams_from_mcap(rec).tip
+                st = streams_from_mcap(rec, tasks.get(r["task"]))
+                traces[r["task"]] = [st.tip, *st.more_tips.values()]
     if traces:
         plot_tasks(traces, out_dir / "tasks.png")
         written.append(out_dir / "tasks.png")

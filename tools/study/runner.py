@@ -40,6 +40,7 @@ from telesurg.shared.messages import (
     MasterButtons,
     OperatingState,
     SafetyState,
+    SceneState,
     TrialState,
 )
 from telesurg.tools.study.protocol import Protocol, Trial, schedule
@@ -140,17 +141,20 @@ def prepare(protocol: Protocol, participant: str, out: Path) -> tuple[list[Trial
     return trials, finished(where.results)
 
 
-def overrides(trial: Trial, margin_ms: float = 0.0) -> dict[str, list[str]]:
+def overrides(
+    trial: Trial, margin_ms: float = 0.0, knobs: dict[str, Any] | None = None
+) -> dict[str, list[str]]:
     """The site's settings for one trial: the operator as the master, the condition's scale, the
     watchdog's latency limits above the condition's delay (the study measures the delay, not the
     watchdog's answer to it), and ``margin_ms`` (the protocol's ``host_margin_ms``) added to every
-    freshness deadline of the watchdog and the mapping."""
+    freshness deadline of the watchdog and the mapping; ``knobs``: the synthetic operator's
+    (:mod:`telesurg.tools.study.operator`, e.g. ``drop_after_lift`` for a test that provokes a drop)."""
     c = trial.condition
     # (the latency the watchdog sees is the round trip plus the host's own; on a loaded host the
     # latter alone can pass the defaults, 100 / 250 ms)
     rtt = 2.0 * (c.delay_ms + c.jitter_ms)
     budget = max(100.0, rtt + 100.0) + margin_ms
-    opts = {"task": trial.task, "scale": c.scale, "rate_hz": POLICY_HZ, "seed": trial.seed}
+    opts = {"task": trial.task, "scale": c.scale, "rate_hz": POLICY_HZ, "seed": trial.seed, **(knobs or {})}
     master = [
         'device="policy"',
         f'device_options.policy="{OPERATOR}"',
@@ -162,6 +166,14 @@ def overrides(trial: Trial, margin_ms: float = 0.0) -> dict[str, list[str]]:
         "device_options.stale_ms=1000.0",
     ] + [f"device_options.options.{k}={json.dumps(v)}" for k, v in opts.items()]
     task = tasks.get(trial.task)
+    if len(task.arms) > 1:  # each arm its own master (m1, m2 …): the first here, the others in hands()
+        pairs = [f"m{i + 1}:{arm}" for i, arm in enumerate(task.arms)]
+        masters = ",".join(["master_capture", *(f"master_capture_{i + 1}" for i in range(1, len(task.arms)))])
+        master += [
+            f"device_options.slave={json.dumps(task.arms[0])}",
+            f"device_options.watch={json.dumps(list(task.arms[1:]))}",
+            "device_options.options.role=0",
+        ]
     # (the slave's own setpoint deadline too: a stall of the master stream on a loaded host
     # otherwise stops the slave first, while the mapping's longer deadline keeps it engaged)
     slave = [f"setpoint_timeout_ms={100.0 + margin_ms}"] if margin_ms else []
@@ -171,7 +183,7 @@ def overrides(trial: Trial, margin_ms: float = 0.0) -> dict[str, list[str]]:
         slave.append(f"q_home={list(task.q_start)}")
     if task.setup == "trocar":  # the insertion jog at the speed Jinno's experiment uses
         slave.append("robot.jog_speed_mm_s=40.0")
-    return {
+    out = {
         "slave_control": slave,
         "master_capture": master,
         "mapping": [
@@ -182,47 +194,87 @@ def overrides(trial: Trial, margin_ms: float = 0.0) -> dict[str, list[str]]:
         "watchdog": [f"latency_budget_ms={budget}", f"latency_limit_ms={budget + 150.0}"]
         + [f"{k}={v + margin_ms}" for k, v in WATCHDOG_DEADLINES.items()],
     }
+    if task.mapping:
+        out["mapping"].append(f"mode={json.dumps(task.mapping)}")
+    out["mapping"] += task.mapping_set
+    if len(task.arms) > 1:
+        for name in ("mapping", "watchdog"):
+            out[name] += [f"pairs={json.dumps(pairs)}", f"master_source={json.dumps(masters)}"]
+        required = ["master_capture", "mapping", "slave_control", *masters.split(",")[1:]]
+        out["watchdog"].append(f"required_services={json.dumps(required)}")
+    return out
 
 
-def record_keys(k: Keys, arm: str = "arm1", master: str = "m1") -> list[str]:
-    """What a trial records: the master's streams (a replay's input), the slave's measurements and
-    state, the watchdog's and the mapping's states and every event — not the 500 Hz setpoints the
-    mapping derives from the master, the leases or the heartbeats (a loaded host's CPU)."""
+def hands(trial: Trial, ov: dict[str, list[str]]) -> dict[str, list[str]]:
+    """The other masters of a task with several arms (``master_capture_2`` … → ``m2`` …): each the
+    synthetic operator's other hand on its own arm, seeing the others (settings after the first
+    master's)."""
+    task = tasks.get(trial.task)
+    out = {}
+    for i, arm in enumerate(task.arms[1:], start=1):
+        others = [a for a in task.arms if a != arm]
+        out[f"master_capture_{i + 1}"] = [
+            f"arm=m{i + 1}",
+            f"device_options.slave={json.dumps(arm)}",
+            f"device_options.watch={json.dumps(others)}",
+            f"device_options.options.role={i}",
+            f"device_options.options.seed={trial.seed + 1000 * i}",
+        ]
+    return out
+
+
+def record_keys(k: Keys, arms: tuple[str, ...] = ("arm1",)) -> list[str]:
+    """What a trial records: the masters' streams (a replay's input), each arm's measurements and
+    state, the watchdog's and the mapping's states, the scene (of the first arm: every arm's key
+    carries the same) and every event — not the 500 Hz setpoints the mapping derives from the
+    master, the leases or the heartbeats (a loaded host's CPU)."""
     slave = ("measured_cp", "measured_cf", "measured_js", "operating_state")
-    return [
-        f"{k.prefix}/master/{master}/**",
-        *(k.slave(arm, s) for s in slave),
-        k.safety(arm, "state"),
-        k.mapping(arm, "teleop_state"),
-        f"{k.prefix}/events/**",
-    ]
+    out = [f"{k.prefix}/master/m{i + 1}/**" for i in range(len(arms))]
+    for arm in arms:
+        out += [*(k.slave(arm, s) for s in slave), k.safety(arm, "state"), k.mapping(arm, "teleop_state")]
+    return [*out, k.slave(arms[0], "scene"), f"{k.prefix}/events/**"]
 
 
 def _rows(rows: list[tuple[float, ...]], cols: int) -> np.ndarray:
     return np.array(rows, dtype=float).reshape(-1, cols)
 
 
-def streams_from_mcap(path: Path, arm: str = "arm1", master: str = "m1") -> tasks.Streams:
-    """A trial's :class:`~telesurg.shared.tasks.Streams` from its recording (receive time, s)."""
+def streams_from_mcap(path: Path, task: tasks.TaskSpec | None = None) -> tasks.Streams:
+    """A trial's :class:`~telesurg.shared.tasks.Streams` from its recording (receive time, s): of
+    the task's first arm and master ``m1``, its other arms' tips and forces, its object."""
+    arms = task.arms if task is not None else ("arm1",)
+    arm, obj = arms[0], task.obj if task is not None else ""
     with open_mcap(path) as reader:
         from telesurg.services.record import recording_site
 
         k = Keys(recording_site(reader))
         keys = {
-            k.slave(arm, "measured_cp"): "tip",
-            k.slave(arm, "measured_cf"): "force",
             k.slave(arm, "operating_state"): "op",
-            k.master(master, "buttons"): "clutch",
+            k.master("m1", "buttons"): "clutch",
             k.safety(arm, "state"): "safety",
+            k.slave(arm, "scene"): "scene",
         }
-        got: dict[str, list[tuple[float, ...]]] = {n: [] for n in ("tip", "force", "op", "clutch", "safety")}
+        for a in arms:
+            keys[k.slave(a, "measured_cp")] = f"tip:{a}"
+            keys[k.slave(a, "measured_cf")] = f"force:{a}"
+        got: dict[str, list[tuple[float, ...]]] = {
+            n: [] for n in ("op", "clutch", "safety", "obj", "collide")
+        }
+        for a in arms:
+            got[f"tip:{a}"], got[f"force:{a}"] = [], []
         rcm: list[tuple[float, ...]] = []
         for topic, log_ns, _pub, _payload, msg in iter_decoded(reader, lambda t: t in keys):
             t, what = log_ns / 1e9, keys[topic]
-            if what == "tip" and isinstance(msg, CartesianPose):
-                got["tip"].append((t, *msg.position))
-            elif what == "force" and isinstance(msg, CartesianWrench):
-                got["force"].append((t, math.hypot(*msg.force)))
+            if what.startswith("tip:") and isinstance(msg, CartesianPose):
+                got[what].append((t, *msg.position))
+            elif what.startswith("force:") and isinstance(msg, CartesianWrench):
+                got[what].append((t, math.hypot(*msg.force)))
+            elif what == "scene" and isinstance(msg, SceneState):
+                got["collide"].append((t, float(msg.in_collision)))
+                if obj in msg.objects:
+                    i = msg.objects.index(obj)
+                    bits = tasks.holders(msg.held_by[i], arms)
+                    got["obj"].append((t, msg.x[i], msg.y[i], msg.z[i], float(bits)))
             elif what == "op" and isinstance(msg, OperatingState):
                 got["op"].append((t, float(msg.follow)))
                 rcm.append((t, msg.rcm_error_mm, float(msg.control_mode == "trocar")))
@@ -231,12 +283,16 @@ def streams_from_mcap(path: Path, arm: str = "arm1", master: str = "m1") -> task
             elif what == "safety" and isinstance(msg, SafetyState):
                 got["safety"].append((t, float(msg.state in tasks.HELD_STATES)))
     return tasks.Streams(
-        tip=_rows(got["tip"], 4),
-        force=_rows(got["force"], 2),
+        tip=_rows(got[f"tip:{arm}"], 4),
+        force=_rows(got[f"force:{arm}"], 2),
         rcm=_rows(rcm, 3),
         follow=_rows(got["op"], 2),
         clutch=_rows(got["clutch"], 2),
         safety=_rows(got["safety"], 2),
+        obj=_rows(got["obj"], 5),
+        collide=_rows(got["collide"], 2),
+        more_tips={a: _rows(got[f"tip:{a}"], 4) for a in arms[1:]},
+        more_forces={a: _rows(got[f"force:{a}"], 2) for a in arms[1:]},
     )
 
 
@@ -276,13 +332,14 @@ def run_trial(
     total: int = 0,
     master: str = "operator",
     on_console: Callable[[str], None] | None = None,
+    knobs: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
     """Run one trial on a fresh site and return its result row (raises TrialFailed).
 
     ``shown``: the condition as the operator may see it (default: its code), on the console's
     trial panel; ``total``: the trials of the schedule. ``master``: ``operator`` (the synthetic
     operator) or ``web`` (a person at the web console's page: ``on_console`` gets its one-time
-    login URL once it is served)."""
+    login URL once it is served); ``knobs``: the synthetic operator's (:func:`overrides`)."""
     from telesurg.shared.bus import Node
     from telesurg.tools.bench.harness import Pipeline
     from telesurg.tools.bench.netprofile import LinkProfile
@@ -290,24 +347,32 @@ def run_trial(
     if master not in MASTERS:
         raise StudyError(f"master {master!r} unknown; valid: {', '.join(MASTERS)}")
     task = tasks.get(trial.task)
+    if master == "web" and len(task.arms) > 1:
+        raise StudyError(f"task {task.name} needs {len(task.arms)} masters: --master web drives one arm")
     logs, mcap = where.logs(trial.index), where.mcap(trial.index)
     shutil.rmtree(logs, ignore_errors=True)
     mcap.unlink(missing_ok=True)
     c = trial.condition
-    ov = overrides(trial, margin_ms)
+    ov = overrides(trial, margin_ms, knobs)
     web = master == "web"
     if web:  # the page is the master: no master_capture (its policy settings go)
         ov.pop("master_capture")
     link = LinkProfile(delay_ms=c.delay_ms, jitter_ms=c.jitter_ms)  # (set before anything connects)
+    from telesurg.services.launcher import deploy_dir
+
+    site_dir = deploy_dir() / task.robot  # (the robot's own site, e.g. deploy/vip; else the MH3F's)
     pipe = Pipeline(
-        logs, mirror=False, impair=True, probe=False, overrides=ov, master=not web, console=web, link=link
-    )
+        logs, mirror=False, impair=True, probe=False, overrides=ov, master=not web, console=web, link=link,
+        config_dir=site_dir if (site_dir / "site.toml").is_file() else None,
+    )  # fmt: skip
     part = mcap.with_name(mcap.name + ".part")
     try:
         p = pipe.__enter__()  # (closes what it started if it fails)
     except SiteStartError as e:  # (a loaded host: a service that did not come up in time)
         raise TrialFailed(f"trial {trial.index}: the site did not start: {e}") from e
     try:
+        for name, sets in hands(trial, ov).items():  # (through the impairer, as master_capture)
+            p.site.spawn_instance(name, "master_capture", sets)
         study = Node(p.spec.client_bus("operator"), p.spec.site, "study")
         p.keep(study)
         board = Board(study, trial, task, shown or trial.code, total)  # (blinded unless told)
@@ -321,9 +386,9 @@ def run_trial(
             with Node(p.spec.client_bus("operator"), p.spec.site, "console") as console:
                 insert_through_trocar(ArmClient(console))
         info = {"trial": str(trial.index), "task": trial.task, "condition": c.name}
-        watch = Watch(p.node)
+        watch = Watch(p.node, task)
         with Recorder(part, p.spec.site, info=info) as rec:
-            for key in record_keys(p.node.keys):
+            for key in record_keys(p.node.keys, task.arms):
                 rec.subscribe(p.node.session, key, p.node.keyring)
             t_go, t_end, why = watch.run(p.site, task, board)
             time.sleep(AFTER_DONE_S)
@@ -335,7 +400,7 @@ def run_trial(
     finally:
         p.close()
     os.replace(part, mcap)
-    s = tasks.score(task, streams_from_mcap(mcap))
+    s = tasks.score(task, streams_from_mcap(mcap, task))
     row = {
         "trial": trial.index,
         "task": trial.task,
@@ -397,19 +462,31 @@ def insert_through_trocar(arm: Any) -> None:
 
 
 class Watch:
-    """What the harness follows live: the slave's tip and whether it follows (monotonic s)."""
+    """What the harness follows live: the slave's tip (of the task's first arm), whether it follows,
+    and a transfer's object (monotonic s)."""
 
-    def __init__(self, node: Any, arm: str = "arm1") -> None:
+    def __init__(self, node: Any, task: tasks.TaskSpec) -> None:
         self.lock = threading.Lock()
         self.tips: list[tuple[float, float, float, float]] = []
+        self.obj: list[tuple[float, ...]] = []
         self.following = False
-        src = ["slave_control"]
+        self.task = task
+        arm, src = task.arms[0], ["slave_control"]
         node.subscribe(node.keys.slave(arm, "measured_cp"), CartesianPose, self._on_tip, sources=src)
         node.subscribe(node.keys.slave(arm, "operating_state"), OperatingState, self._on_op, sources=src)
+        if task.obj:
+            node.subscribe(node.keys.slave(arm, "scene"), SceneState, self._on_scene, sources=src)
 
     def _on_tip(self, m: CartesianPose, key: str) -> None:
         with self.lock:
             self.tips.append((time.monotonic(), *m.position))
+
+    def _on_scene(self, m: SceneState, key: str) -> None:
+        if self.task.obj in m.objects:
+            i = m.objects.index(self.task.obj)
+            bits = tasks.holders(m.held_by[i], self.task.arms)
+            with self.lock:
+                self.obj.append((time.monotonic(), m.x[i], m.y[i], m.z[i], float(bits)))
 
     def _on_op(self, m: OperatingState, key: str) -> None:
         self.following = m.follow  # (a bool: set atomically from the bus thread)
@@ -439,9 +516,10 @@ class Watch:
                 return go, now, f"services exited: {dead}"
             with self.lock:
                 tips = np.array(self.tips, dtype=float).reshape(-1, 4)
+                obj = np.array(self.obj, dtype=float).reshape(-1, 5)
             tips = tips[tips[:, 0] >= go]
             over = active > task.time_limit_s or now - go > WALL_LIMIT * task.time_limit_s
-            prog = tasks.evaluate(task, tips)
+            prog = tasks.evaluate(task, obj[obj[:, 0] >= go] if task.kind == "transfer" else tips)
             if board is not None:
                 board.show("done" if prog.done or over else "running", active, len(prog.reached),
                            live_result(prog, tips, go, over))  # fmt: skip

@@ -48,6 +48,7 @@ class DeviceSample:
             zeros) and must not be published.
         joint1_switch: the all-joints master's joint-1 (shoulder slide) switch is pressed;
             False on devices without one.
+        grip: the gripper, 0 open … 1 closed (an omega.7's grip; 0 on devices without one).
     """
 
     position: tuple[float, float, float]
@@ -57,6 +58,7 @@ class DeviceSample:
     joints: tuple[float, ...] = ()
     valid: bool = True
     joint1_switch: bool = False
+    grip: float = 0.0
 
 
 class MasterDevice:

@@ -5,7 +5,8 @@ The policy is a Python callable named ``module:function`` (or ``path/to/file.py:
 ``1 / rate_hz`` s the policy is given a :class:`PolicyObservation` — what the slave measures now
 (``slave/<arm>/measured_js`` and ``measured_cp`` of the arm ``slave``, and whether it follows),
 from the bus — and returns the master tip's displacement for this step (m, master frame, 3 values;
-clipped to ``max_step_mm``, counted) or ``None``. Between calls the pose is held, sampled at
+clipped to ``max_step_mm``, counted), optionally followed by the master's grip (a 4th value, 0 open …
+1 closed: the slave's jaws follow it), or ``None``. Between calls the pose is held, sampled at
 master_capture's rate.
 
 It is an ordinary master: master_capture publishes its pose and buttons, the mapping clutches,
@@ -45,7 +46,7 @@ import numpy as np
 from telesurg.services.master_capture.devices import DeviceSample, MasterDevice, register
 from telesurg.services.master_capture.devices.scripted import EngageRetry
 from telesurg.shared.errors import ConfigError
-from telesurg.shared.messages import CartesianPose, JointState, OperatingState
+from telesurg.shared.messages import CartesianPose, JointState, OperatingState, SceneState
 
 if TYPE_CHECKING:
     from telesurg.shared.bus import Node
@@ -63,6 +64,7 @@ class PolicyConfig:
     # keyword arguments: if any, function(**options) is called once and returns the policy
     options: dict[str, Any] = field(default_factory=dict)
     slave: str = "arm1"  # the slave arm whose measurements the policy observes
+    watch: list[str] = field(default_factory=list)  # other arms whose tips it sees (a two-hand task)
     slave_source: str = "slave_control"  # the only publisher of them accepted
     rate_hz: float = 30.0  # Hz: the policy is asked this often (the pose is held in between)
     max_step_mm: float = 5.0  # mm: a longer displacement per step is shortened (counted)
@@ -104,6 +106,11 @@ class PolicyObservation:
         tip_quat: its orientation, quaternion (x, y, z, w).
         following: the slave follows the master now (engaged).
         master: the master tip the device publishes, m, master frame, shape (3,).
+        grip: the slave's jaws' commanded closure, 0 open … 1 closed (-1: no jaws).
+        objects: the scene's loose objects (``slave/<arm>/scene``), name → position (m, base frame);
+            empty without a scene.
+        held_by: name → the arms whose jaws hold it now.
+        others: the other arms' controlled points (``measured_cp`` of ``watch``), arm → (3,) m.
     """
 
     t: float
@@ -112,6 +119,10 @@ class PolicyObservation:
     tip_quat: tuple[float, float, float, float]
     following: bool
     master: np.ndarray
+    grip: float = -1.0
+    objects: dict[str, np.ndarray] = field(default_factory=dict)
+    held_by: dict[str, tuple[str, ...]] = field(default_factory=dict)
+    others: dict[str, np.ndarray] = field(default_factory=dict)
 
 
 Policy = Callable[[PolicyObservation], Sequence[float] | np.ndarray | None]
@@ -165,6 +176,10 @@ class PolicyDevice(MasterDevice):
         self._js: tuple[float, np.ndarray] | None = None  # (monotonic s received, joints)
         self._cp: tuple[float, np.ndarray, tuple[float, float, float, float]] | None = None
         self._following = False
+        self._grip_seen = -1.0
+        self._scene: SceneState | None = None
+        self._others: dict[str, np.ndarray] = {}
+        self.grip = 0.0  # the master's grip the policy set, 0 open … 1 closed
         self._next = 0.0
         self._acting = False
         self._released_until = 0.0
@@ -182,6 +197,18 @@ class PolicyDevice(MasterDevice):
         node.subscribe(k.slave(arm, "measured_js"), JointState, self._on_js, sources=src)
         node.subscribe(k.slave(arm, "measured_cp"), CartesianPose, self._on_cp, sources=src)
         node.subscribe(k.slave(arm, "operating_state"), OperatingState, self._on_state, sources=src)
+        node.subscribe(k.slave(arm, "scene"), SceneState, self._on_scene, sources=src)
+        for other in self.cfg.watch:
+            node.subscribe(k.slave(other, "measured_cp"), CartesianPose, self._on_other(other), sources=src)
+
+    def _on_scene(self, m: SceneState, key: str) -> None:
+        self._scene = m  # (one reference: set atomically)
+
+    def _on_other(self, arm: str) -> Callable[[CartesianPose, str], None]:
+        def on_pose(m: CartesianPose, key: str) -> None:
+            self._others[arm] = np.array(m.position)
+
+        return on_pose
 
     def _on_js(self, m: JointState, key: str) -> None:
         with self._lock:
@@ -194,6 +221,7 @@ class PolicyDevice(MasterDevice):
     def _on_state(self, m: OperatingState, key: str) -> None:
         with self._lock:
             self._following = m.follow
+            self._grip_seen = m.grip
 
     def status(self) -> str:
         """Why nothing is published now (master_capture says it in its event)."""
@@ -211,7 +239,16 @@ class PolicyDevice(MasterDevice):
         if age > limit:
             self._status = f"stale: the slave's measurements are {age * 1e3:.0f} ms old"
             return None
-        return PolicyObservation(t, js[1], cp[1], cp[2], following, self.position.copy())
+        objects: dict[str, np.ndarray] = {}
+        held: dict[str, tuple[str, ...]] = {}
+        if (sc := self._scene) is not None:
+            for i, name in enumerate(sc.objects):
+                objects[name] = np.array((sc.x[i], sc.y[i], sc.z[i]))
+                held[name] = tuple(a for a in sc.held_by[i].split("+") if a)
+        return PolicyObservation(
+            t, js[1], cp[1], cp[2], following, self.position.copy(), self._grip_seen, objects, held,
+            dict(self._others),
+        )  # fmt: skip
 
     def _act(self, obs: PolicyObservation | None) -> bool:
         """Ask the policy once; True if it acted (the pose moved or held by its word)."""
@@ -231,9 +268,11 @@ class PolicyDevice(MasterDevice):
             self._status = "paused: the policy returned None"
             return False
         d = np.array(out, dtype=float).reshape(-1)  # (a copy: the policy may keep its array)
-        if d.shape != (3,) or not np.all(np.isfinite(d)):
-            self._status = f"refused: the policy returned {out!r}, not 3 finite numbers (m)"
+        if d.shape not in ((3,), (4,)) or not np.all(np.isfinite(d)) or (len(d) == 4 and not 0 <= d[3] <= 1):
+            self._status = f"refused: the policy returned {out!r}, not dx dy dz in m (and a grip 0–1)"
             return False
+        if len(d) == 4:
+            self.grip, d = float(d[3]), d[:3]
         n, lim = float(np.linalg.norm(d)), self.cfg.max_step_mm / 1e3
         if n > lim:
             d *= lim / n
@@ -265,4 +304,5 @@ class PolicyDevice(MasterDevice):
             clutch=pedal,
             operator_present=True,
             valid=self._acting,
+            grip=self.grip,
         )

@@ -319,6 +319,7 @@ class CartesianMapping:
                 tuple(q_pub.tolist()),
                 follow=self.gate.following,
                 origin_ns=pose.header.stamp_ns,
+                grip=self.gate.grip_command(),
             )
         )
 

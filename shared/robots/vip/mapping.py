@@ -33,7 +33,10 @@ class VipMapping(PoseJointStrategy):
         super().__init__(gate)
         cfg = gate.cfg
         self.vip = vip
-        self.vip_ev_mm: float = get(cfg.model).make_config(cfg.robot).vip_ev_mm
+        rcfg = get(cfg.model).make_config(cfg.robot)
+        self.vip_ev_mm: float = rcfg.vip_ev_mm
+        site_vip = rcfg.vips_mm.get(gate.slave)
+        self.site_vip = None if site_vip is None else np.array(site_vip, dtype=float) / 1e3
         self.geom = vip.VIP_ARM1 if gate.slave == "arm1" else vip.VIP_ARM2
         self.V: np.ndarray | None = None  # the virtual incision port, m, world frame
         self.vmax = np.array(self.profile.max_velocity)
@@ -41,7 +44,10 @@ class VipMapping(PoseJointStrategy):
 
     def _engaged(self) -> None:
         assert self.gate.q_meas is not None and self.gate.buttons is not None
-        if self.V is None:
+        if self.V is None and self.site_vip is not None:
+            self.V = self.site_vip.copy()
+            self._vip_event("VIP set by the site (vips_mm) at the first engage")
+        elif self.V is None:
             self.V = self.vip.select_vip(self.gate.q_meas, self.vip_ev_mm / 1e3, self.geom)
             self._vip_event("VIP chosen at the first engage from the current joints")
         self.ref = None  # taken from the next master sample
