@@ -286,7 +286,8 @@ class TeleopReachEnv(gymnasium.Env[dict[str, np.ndarray], np.ndarray]):
 
     def _measured(self) -> np.ndarray:
         """The arm's joints now (what the backend's reading gives, without its torque estimate)."""
-        q: np.ndarray = self.backend._d.qpos[self.index].copy()
+        # (the arm's own qpos addresses: a jaw's fingers may sit between two arms' joints)
+        q: np.ndarray = self.backend._d.qpos[self.backend._qadr[self.index]].copy()
         return q
 
     def _master_msg(self) -> Message:

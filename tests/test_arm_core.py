@@ -847,3 +847,42 @@ def test_a_setpoint_acts_in_the_first_exchange_after_it_came(tmp_path: Path) -> 
     )
     # with the inputs read right after the previous exchange instead, ~all of them wait a period
     assert len(rows) >= 30 and in_time.mean() > 0.5
+
+
+def test_the_jaws_follow_the_grip_only_while_the_arm_follows_and_keep_it_through_a_hold() -> None:
+    """A hold never releases what the jaws hold, and a grip sent while not following (or -1) does
+    not move them."""
+    p = arm_profile("vip", "arm1")
+    core = ArmCore(p, np.arange(len(p.joint_names)), SlaveControlConfig(model="vip"), 0.001)
+    core.tool, core.grip = "arm1_jaw", 0.0
+    core.servo.interpolate = False
+    q = np.array(p.home)
+    core.start(ArmReading(q, q * 0, q * 0, p))
+    t = 100.0
+
+    def send(grip: float, follow: bool) -> None:
+        h = Header("mapping", 0, time.time_ns())
+        core.on_setpoint(JointSetpoint(h, p.joint_names, tuple(float(v) for v in q), follow, grip=grip), "")
+        assert core.setpoint is not None
+        core.setpoint = dataclasses.replace(core.setpoint, received=t, cycle=core.cycle)
+
+    def run(seconds: float, allow: bool = True) -> None:
+        nonlocal t, q
+        for _ in range(round(seconds / 0.001)):
+            t += 0.001
+            core.lease = Lease(allow, t + 0.1, "" if allow else "operator pedal", core.cycle, 100)
+            q = _period(core, t, q)
+
+    send(0.9, False)  # not following: the jaws stay open
+    run(0.01)
+    assert core.grip == 0.0
+    send(0.9, True)  # engaged: they close to the grip
+    run(0.01)
+    assert core.ctl.following and core.grip == 0.9
+    send(-1.0, True)  # no grip in the setpoint: they keep theirs
+    run(0.01)
+    assert core.grip == 0.9
+    run(0.01, allow=False)  # a hold: they keep their grip, whatever comes
+    send(0.0, True)
+    run(0.01, allow=False)
+    assert not core.ctl.following and core.grip == 0.9

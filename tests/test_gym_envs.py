@@ -136,7 +136,7 @@ def _service_tips(env: TeleopReachEnv, actions: np.ndarray) -> np.ndarray:
                 now = EPOCH_S + k * env.dt_ctrl + (i + 1) * backend.dt
                 reading = core.arm_reading(backend.read())
                 q = core.control(now, reading)
-                ctrl = backend._d.ctrl.copy()
+                ctrl = backend._d.ctrl[: len(backend.joint_names)].copy()  # the arm servos (the jaws follow)
                 ctrl[env.index] = q
                 backend.command(ctrl)
                 backend.step()

@@ -82,9 +82,10 @@ def two_arm_slave(request: pytest.FixtureRequest) -> Iterator[tuple[str, MujocoB
     """A two-arm slave, both tips reported (as slave_control runs it), at its working pose."""
     model = request.param
     arms = registry.arms_of(model)
-    n = sum(len(p.model_joints) for p in arms)
-    key = mujoco.MjModel.from_xml_path(str(model_path(model))).key(START_KEY[model])
-    with MujocoBackend(model, tuple(key.qpos[:n]), tuple(p.tip_site for p in arms)) as backend:
+    m = mujoco.MjModel.from_xml_path(str(model_path(model)))
+    key = m.key(START_KEY[model])
+    adr = [m.jnt_qposadr[m.joint(j).id] for p in arms for j in p.model_joints]  # (jaw fingers between)
+    with MujocoBackend(model, tuple(key.qpos[adr]), tuple(p.tip_site for p in arms)) as backend:
         yield model, backend
 
 

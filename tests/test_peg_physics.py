@@ -53,8 +53,7 @@ class Layout:
     the jaws close along its y (plas: along +z, closing along x). ``tilt1``/``tilt2``: each arm's
     tool angle from straight down (deg) while it holds the peg: constant, with the closing
     direction horizontal, so the held peg stays upright. ``seed1``: arm1's joints above the peg;
-    ``seed2``: arm2's joints at its grasp on the handover; ``via``: arm2's carry from the handover
-    to the target passes these (x, y) (m).
+    ``seed2``: arm2's joints at its grasp on the handover.
     """
 
     robot: str
@@ -64,28 +63,26 @@ class Layout:
     tilt2: float
     seed1: tuple[float, ...]
     seed2: tuple[float, ...]
-    via: tuple[tuple[float, float], ...] = ()
 
 
 LAYOUTS = {
     "vip": Layout(
-        "vip",
-        0.012,
-        True,
-        5.0,
-        62.0,
-        (0.3426, 0.7962, -0.1030, 1.2215, 0.3029),
-        (0.5177, 0.4164, -0.1504, 1.3898, 1.2892),
+        robot="vip",
+        jaw_offset=0.012,
+        vip=True,
+        tilt1=5.0,
+        tilt2=62.0,
+        seed1=(0.3426, 0.7962, -0.1030, 1.2215, 0.3029),
+        seed2=(0.5177, 0.4164, -0.1504, 1.3898, 1.2892),
     ),
     "plas": Layout(
-        "plas",
-        0.0045,
-        False,
-        30.0,
-        55.0,
-        (0.0565, 0.7854, 1.0976, -0.4274, -0.0014, -0.9091),
-        (0.0709, 1.2262, 1.3046, 0.0, -0.0003, 0.0),
-        ((0.012, -0.005), (0.02, 0.012)),
+        robot="plas",
+        jaw_offset=0.0045,
+        vip=False,
+        tilt1=40.0,
+        tilt2=70.0,
+        seed1=(0.0558, 0.6979, 0.7282, 0.6855, 0.0061, -1.3446),
+        seed2=(0.0744, 1.4235, 1.2427, -0.7268, 0.0046, -0.3295),
     ),
 }
 
@@ -130,7 +127,7 @@ class Operator:
 
     def ik(self, arm: str, target: np.ndarray, tilt_deg: float, iters: int = 1) -> None:
         """Damped least squares on the jaw centre (3), the tool's tilt from straight down (1) and a
-        horizontal closing direction (1); a redundant joint (plas) drifts to mid-range."""
+        horizontal closing direction (1); the redundancy (plas) keeps the joints off their limits."""
         prof, q = self.arms[arm], self.q(arm).copy()
         lo, hi = np.array(prof.lower), np.array(prof.upper)
         cos_t, w = math.cos(math.radians(tilt_deg)), 0.02  # w: m per unit of the direction rows
@@ -145,7 +142,10 @@ class Operator:
             A = np.vstack([Jv - _skew(r) @ Jw, -w * (a_z @ Jw), w * (c_z @ Jw)])
             e = np.concatenate([target - (T[:3, 3] + r), [w * (cos_t + a[2]), -w * c[2]]])
             pinv = A.T @ np.linalg.inv(A @ A.T + 1e-8 * np.eye(len(e)))
-            dq = pinv @ e + (np.eye(len(q)) - pinv @ A) @ (0.05 * ((lo + hi) / 2 - q))
+            # the redundancy (plas: 6 joints, 5 tasks) pushes the joints within 20 % of a limit back
+            span = hi - lo
+            near = np.clip(0.2 - np.minimum(q - lo, hi - q) / span, 0.0, None)
+            dq = pinv @ e + (np.eye(len(q)) - pinv @ A) @ (near * np.sign((lo + hi) / 2 - q) * span)
             q = np.clip(q + dq, lo, hi)
         self.q_cmd[self.idx[arm]] = q
 
@@ -335,11 +335,12 @@ def test_peg_transfer_hand_over_and_place(operator: Operator) -> None:
     assert np.linalg.norm(op.peg() - before) < 1e-3
 
     # arm2 carries it to the target and sets it down on the board
-    for x, y in lay.via:
-        op.move("arm2", np.array([x, y, grasp2[2]]), lay.tilt2)
     place = target + (HALF_HEIGHT + 0.0005 - (HALF_HEIGHT - LOW_GRIP)) * EZ  # 0.5 mm above the board
+    n0 = len(op.track)
     op.move("arm2", place + LIFT * EZ, lay.tilt2)
-    assert op.scene.held_by == (("arm2",),)
+    carry = op.track[n0:]
+    assert all(r.held_by == (("arm2",),) for _, r in carry)
+    assert max(_upright(r.quats[0]) for _, r in carry) < 2.0  # carried upright
     op.move("arm2", place, lay.tilt2, speed=0.02)
     op.wait(0.1)
     op.b.command_tool("arm2_jaw", 0.0)

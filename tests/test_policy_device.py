@@ -78,7 +78,9 @@ def test_a_step_too_long_is_shortened_and_bad_answers_hold(tmp_path: Path) -> No
         assert d.clipped == 2 and np.linalg.norm(d.position) == pytest.approx(0.010)
 
         d.policy = lambda obs: (1.0, 2.0)  # not 3 numbers
-        assert not d.read(1.0).valid and "not 3 finite numbers" in d.status()
+        assert not d.read(1.0).valid and "not dx dy dz" in d.status()
+        d.policy = lambda obs: (0.0, 0.0, 0.0, 1.5)  # a grip outside [0, 1]
+        assert not d.read(1.5).valid and "grip 0–1" in d.status()
 
         def broken(obs: object) -> None:
             raise RuntimeError("no checkpoint")
@@ -103,3 +105,28 @@ def test_a_policy_that_cannot_be_loaded_is_named(tmp_path: Path) -> None:
                 device="policy", device_options={"policy": f"{REACH}:make", "clutch": "foot"}
             ),
         )
+
+
+def test_a_fourth_value_is_the_grip_and_the_scene_is_seen(tmp_path: Path) -> None:
+    """A policy's 4th value sets the master's grip (the slave's jaws follow it); it sees the
+    slave's jaws and the scene's objects and who holds them."""
+    from telesurg.shared.messages import SceneState
+
+    d = _device(tmp_path)
+    seen: list[object] = []
+
+    def grasp(obs: object) -> tuple[float, float, float, float]:
+        seen.append(obs)
+        return (0.0, 0.0, 0.001, 0.75)
+
+    with d:
+        d.policy = grasp
+        d._on_scene(SceneState(H, ("peg",), (0.01,), (-0.02,), (-0.2,), ("arm1+arm2",), (0.4, 0.0)), "")
+        _measure(d, following=True)
+        d._on_state(OperatingState(H, "ENABLED", "joint", follow=True, grip=0.4), "")
+        s = d.read(0.0)
+        assert s.valid and s.grip == 0.75 and s.position[2] == pytest.approx(0.001)
+        obs = seen[-1]
+        assert obs.grip == 0.4  # type: ignore[attr-defined]
+        assert obs.held_by == {"peg": ("arm1", "arm2")}  # type: ignore[attr-defined]
+        np.testing.assert_allclose(obs.objects["peg"], (0.01, -0.02, -0.2))  # type: ignore[attr-defined]

@@ -128,9 +128,13 @@ CONTROL = tuple(s.name for s in SERVICE_ROWS if s.control)
 ZID_SERVICES = tuple(s.name for s in SERVICE_ROWS if s.zid)
 
 
-def _new_zids() -> dict[str, str]:
+def _new_zid() -> str:
     # 16 hex digits, the first 8-f (zenoh refuses an id written with a leading 0)
-    return {name: f"{secrets.randbits(63) | 1 << 63:x}" for name in ZID_SERVICES}
+    return f"{secrets.randbits(63) | 1 << 63:x}"
+
+
+def _new_zids() -> dict[str, str]:
+    return {name: _new_zid() for name in ZID_SERVICES}
 
 
 def control_nice() -> int:
@@ -631,7 +635,7 @@ class Site:
             "--set",
             f"service={json.dumps(name)}",
             "--set",
-            f"bus.zid={json.dumps(secrets.token_hex(8))}",
+            f"bus.zid={json.dumps(_new_zid())}",
         ]
         for item in sets:
             argv += ["--set", item]

@@ -114,7 +114,8 @@ class MappingConfig:
     # deg: the teleop state's limit_wall stands this far before the slave's nearest joint limit (the
     # MH3F's mapping, pen master; a haptic master renders it as a wall: docs/haptics.md)
     limit_wall_margin_deg: float = 5.0
-    # Only these services may publish the inputs (others are rejected and counted; "" = anyone).
+    # Only these services may publish the inputs (others are rejected and counted; "" = anyone;
+    # several comma-separated: a site with two masters, "master_capture,master_capture_2").
     master_source: str = "master_capture"
     slave_source: str = "slave_control"
     watchdog_source: str = "watchdog"

@@ -125,7 +125,8 @@ class WatchdogConfig:
     rules: dict[str, dict[str, Any]] = field(default_factory=dict)
     state_hz: float = 5.0  # Hz: safety state republish rate (also sent on every change)
     # Only these services may publish the watched streams (others are rejected and counted, and
-    # cannot keep a stream looking fresh; "" = anyone). E-stops are accepted from anyone.
+    # cannot keep a stream looking fresh; "" = anyone; several comma-separated: a site with two
+    # masters, "master_capture,master_capture_2"). E-stops are accepted from anyone.
     master_source: str = "master_capture"
     mapping_source: str = "mapping"
     slave_source: str = "slave_control"

@@ -447,6 +447,10 @@ def _simulate() -> tuple[list[_SimArm], int]:
     t_sp = np.asarray(np.arange(n_sp) * SETPOINT_PERIOD_S, dtype=np.float64)
     rng = np.random.default_rng(SIM_SEED)
     q_sp, vips, interps, arrivals = [], [], [], []
+    # each arm's five joints in qpos / qvel (its jaw fingers follow them: not 5 j … 5 j + 5)
+    joints = [[m.joint(f"{arm}_q{i}").id for i in range(1, 6)] for arm, _ in ARMS]
+    qadr = [m.jnt_qposadr[js] for js in joints]
+    dadr = [m.jnt_dofadr[js] for js in joints]
     for j, (_, geom) in enumerate(ARMS):
         V = paper_vip(geom)
         q = np.array([vip_ik(w, V, geom) for w in reference_wrist(t_sp, geom)])
@@ -454,7 +458,7 @@ def _simulate() -> tuple[list[_SimArm], int]:
         vips.append(V)
         interps.append(SetpointInterpolator())
         arrivals.append(t_sp + rng.uniform(0.0, SIM_LATENCY_MAX_S, n_sp))
-        d.qpos[5 * j : 5 * j + 5] = q[0]
+        d.qpos[qadr[j]] = q[0]
         d.ctrl[5 * j : 5 * j + 5] = q[0]
     mujoco.mj_forward(m, d)
     sites = [(m.site(f"{arm}_wrist").id, m.site(f"{arm}_elbow").id) for arm, _ in ARMS]
@@ -490,7 +494,7 @@ def _simulate() -> tuple[list[_SimArm], int]:
             wrist=wrist[j],
             elbow=elbow[j],
             ctrl=ctrl[:, 5 * j : 5 * j + 5],
-            qvel=qvel[:, 5 * j : 5 * j + 5],
+            qvel=qvel[:, dadr[j]],
             t_sp=t_sp,
             q_sp=q_sp[j],
             # The playback runs the source timeline at (arrival - stamp of the second setpoint)
