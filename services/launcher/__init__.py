@@ -568,19 +568,22 @@ class Site:
         log.info("started %-15s pid %d", name, p.pid)
         return p
 
-    def _spawn(self, name: str) -> None:
+    def _spawn(self, name: str, table: str = "", extra: Sequence[str] = ()) -> None:
+        """Start service ``name`` (an instance of service ``table``, default ``name``; ``extra``
+        arguments after its own)."""
+        table = table or name
         out: IO[bytes] | None = None
         if self.spec.log_dir:
             self.spec.log_dir.mkdir(parents=True, exist_ok=True)
             out = (self.spec.log_dir / f"{name}.log").open("ab")
             self._logs.append(out)
-        argv = service_argv(self.spec, name)
-        slice_us = control_slice_us() if name in CONTROL else 0.0
+        argv = [*service_argv(self.spec, table), *extra]
+        slice_us = control_slice_us() if table in CONTROL else 0.0
         preexec: Callable[[], None] | None = None
         env: dict[str, str] | None = None
-        if name in NICE:  # it only watches: it steps down below the control path once up
+        if table in NICE:  # it only watches: it steps down below the control path once up
             env = {**os.environ, BEST_EFFORT_ENV: str(best_effort_nice())}
-        elif name in CONTROL:
+        elif table in CONTROL:
             preexec = functools.partial(_foreground, slice_us)
         if name == "console":  # its login token: in the environment, never on the command line
             from telesurg.shared.door import LOGIN_ENV
@@ -597,7 +600,7 @@ class Site:
             env=env,
         )
         pid = self.procs[name].pid
-        if name in CONTROL and control_nice():
+        if table in CONTROL and control_nice():
             try:
                 got = os.getpriority(os.PRIO_PROCESS, pid)
             except OSError:  # already gone: its own exit is reported
@@ -630,28 +633,10 @@ class Site:
         two-master site: ``service`` and the ``arm`` it reads set in ``sets``), connected where
         ``table`` connects, with ``table``'s settings and ``sets`` after them; stopped with the
         site."""
-        argv = service_argv(self.spec, table)
-        argv += [
-            "--set",
-            f"service={json.dumps(name)}",
-            "--set",
-            f"bus.zid={json.dumps(_new_zid())}",
-        ]
+        extra = ["--set", f"service={json.dumps(name)}", "--set", f"bus.zid={json.dumps(_new_zid())}"]
         for item in sets:
-            argv += ["--set", item]
-        out: IO[bytes] | None = None
-        if self.spec.log_dir:
-            out = (self.spec.log_dir / f"{name}.log").open("ab")
-            self._logs.append(out)
-        preexec = functools.partial(_foreground, control_slice_us()) if table in CONTROL else None
-        self.procs[name] = subprocess.Popen(
-            argv,
-            stdout=out,
-            stderr=subprocess.STDOUT if out else None,
-            start_new_session=True,
-            preexec_fn=preexec,
-        )
-        log.info("started %-15s pid %d", name, self.procs[name].pid)
+            extra += ["--set", item]
+        self._spawn(name, table, extra)
 
     def restart(self, name: str) -> None:
         """Start ``name`` again (after it died or was killed); the old process must be gone."""
