@@ -1343,6 +1343,13 @@ class SceneState(Message):
         0, "instrument collisions since the slave started (each a new contact between two arms)", ge=0
     )
 
+    def object(self, name: str) -> tuple[tuple[float, float, float], tuple[str, ...]] | None:
+        """Object ``name``'s position (m) and the arms that hold it; None if the scene has none."""
+        if name not in self.objects:
+            return None
+        i = self.objects.index(name)
+        return (self.x[i], self.y[i], self.z[i]), tuple(a for a in self.held_by[i].split("+") if a)
+
 
 #: Every message class by its type tag.
 MESSAGE_TYPES: dict[str, type[Message]] = dict(_REGISTRY)

@@ -32,9 +32,8 @@ KINDS = ("targets", "path", "transfer")
 #: What the harness does before a trial's go (:attr:`TaskSpec.setup`).
 SETUPS = ("", "trocar")
 #: error kinds a trial counts (an excursion over the limit each, :func:`excursions`; a path exit;
-#: ``watchdog_hold`` an entry into HOLD/ESTOP)
-#: ``drop`` an object that left every arm's jaws anywhere but its target; ``collision`` the
-#: instruments of two arms touching)
+#: ``watchdog_hold`` an entry into HOLD/ESTOP; ``drop`` an object let go anywhere but its target;
+#: ``collision`` the instruments of two arms touching)
 ERROR_KINDS = ("tissue_force", "path_exit", "rcm_error", "watchdog_hold", "drop", "collision")
 #: s: an object free of every arm's jaws this long is let go (a drop, or placed on its target); a
 #: grasp's contacts flicker for shorter
@@ -231,7 +230,8 @@ class Progress:
 
 
 def evaluate(task: TaskSpec, tips: npt.ArrayLike) -> Progress:
-    """Run the task's success rule over tip samples (n, 4): t s, x, y, z m (time order).
+    """Run the task's success rule over tip samples (n, 4): t s, x, y, z m (time order); a
+    transfer's over its object's samples (:func:`evaluate_transfer`).
 
     Targets: goal i is reached once the tip has stayed within its radius for its dwell (then the
     next goal counts). Path: the trial is on the wire from the first sample within the tube at its
@@ -285,9 +285,8 @@ def evaluate(task: TaskSpec, tips: npt.ArrayLike) -> Progress:
     return prog
 
 
-def holders(held_by: str, arms: tuple[str, ...]) -> int:
-    """A scene's ``held_by`` entry (``"arm1+arm2"``) as bits: bit i set when ``arms[i]`` holds."""
-    names = held_by.split("+")
+def holders(names: tuple[str, ...], arms: tuple[str, ...]) -> int:
+    """The arms holding an object (``SceneState.object``) as bits: bit i set when ``arms[i]`` holds."""
     return sum(1 << i for i, a in enumerate(arms) if a in names)
 
 
@@ -459,12 +458,8 @@ def score(task: TaskSpec, streams: Streams, t_end: float | None = None) -> Trial
             0.0, nan, nan, 0, 0.0, 0, [],
         )  # fmt: skip
     last = float(tip_all[-1, 0]) if t_end is None else t_end
-    if task.kind == "transfer":
-        prog = evaluate_transfer(
-            task, streams.obj[streams.obj[:, 0] >= t0] if len(streams.obj) else streams.obj
-        )
-    else:
-        prog = evaluate(task, tip_all[tip_all[:, 0] >= t0])
+    samples = streams.obj if task.kind == "transfer" else tip_all  # (what its success rule reads)
+    prog = evaluate(task, samples[samples[:, 0] >= t0])
     t1 = prog.done_t if prog.done_t is not None else last
     lengths = {
         arm: path_length(_window(tp, t0, t1)[:, 1:])
@@ -472,16 +467,11 @@ def score(task: TaskSpec, streams: Streams, t_end: float | None = None) -> Trial
     }
     length = sum(lengths.values())
     ideal = task.ideal_length_m()
-    forces = [_window(fs, t0, t1) for fs in (streams.force, *streams.more_forces.values())]
-    f = (
-        np.concatenate([fs[:, 1] for fs in forces if len(fs)])
-        if any(len(fs) for fs in forces)
-        else np.zeros(0)
-    )
+    windows = (_window(fs, t0, t1) for fs in (streams.force, *streams.more_forces.values()))
+    forces = [fs for fs in windows if len(fs)]  # each arm's force in the trial
+    f = np.concatenate([fs[:, 1] for fs in forces]) if forces else np.zeros(0)
     contact = f > 0.05
-    contact_s = sum(
-        time_true(np.column_stack([fs[:, 0], fs[:, 1] > 0.05]), t0, t1) for fs in forces if len(fs)
-    )
+    contact_s = sum(time_true(np.column_stack([fs[:, 0], fs[:, 1] > 0.05]), t0, t1) for fs in forces)
     rcm = _window(streams.rcm, t0, t1)
     trocar = rcm[rcm[:, 2] > 0.5] if len(rcm) else rcm
     held = _window(streams.safety, t0, t1)

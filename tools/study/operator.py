@@ -38,6 +38,7 @@ from dataclasses import dataclass
 import numpy as np
 from telesurg.services.master_capture.devices.policy import PolicyObservation
 from telesurg.shared import tasks as tasks_mod
+from telesurg.shared.kinematics.transforms import matrix_from_quat
 from telesurg.shared.tasks import Goal, TaskSpec, Vec3
 
 LIFT_M = 0.008  # m: a target is approached from this high above it
@@ -232,14 +233,6 @@ class Operator:
             self.phase, self.until = "react", t + self.reaction_s * self.rng.uniform(0.6, 1.0)
 
 
-def quat_rotate(q: tuple[float, float, float, float] | np.ndarray, v: np.ndarray) -> np.ndarray:
-    """``v`` rotated by the unit quaternion ``q`` (x, y, z, w)."""
-    x, y, z, w = (float(c) for c in q)
-    u = np.array([x, y, z])
-    out: np.ndarray = v + 2.0 * np.cross(u, np.cross(u, v) + w * v)
-    return out
-
-
 def _vec(p: np.ndarray) -> Vec3:
     return (float(p[0]), float(p[1]), float(p[2]))
 
@@ -277,10 +270,11 @@ class TransferHand(Operator):
       held, lift and carry it to the hand-over; wait until the other jaws hold it, open, withdraw;
       an object it sees lying free (a drop) is picked up again;
     * the other hand (``role`` 1): wait until it sees the object held at the hand-over, come to it
-      from above, close; once the first hand let go, lift, carry to the target, lower, open,
-      withdraw.
+      along its instrument, close; once the first hand let go, carry it to above the target, lower,
+      open, back out.
 
-    Knobs: ``approach_mm`` (height above a grasp it comes from), ``lift_mm``, ``release_mm`` (the
+    Knobs: ``approach_mm`` (how far back along its instrument it comes in from a grasp, and how far
+    above the target it carries), ``lift_mm`` (the first hand's lift), ``release_mm`` (the
     object's clearance above the target when it opens), ``drop_after_lift`` (the first hand opens
     once it has lifted the object: a drop, for the tests that provoke one).
     """
@@ -308,13 +302,12 @@ class TransferHand(Operator):
         self.step_t0: float | None = None
         self.mark = np.zeros(3)  # the jaws where the step began
         self.free_since: float | None = None
-        self.drops_seen = 0
         self.steps = self._giver(drop_after_lift) if role == 0 else self._taker()
 
     # -- what it sees -----------------------------------------------------------------------------
     def jaws(self, obs: PolicyObservation) -> np.ndarray:
         """Where it sees the jaws' centre."""
-        out: np.ndarray = np.asarray(obs.tip, dtype=float) + quat_rotate(obs.tip_quat, self.offset)
+        out: np.ndarray = np.asarray(obs.tip, dtype=float) + matrix_from_quat(obs.tip_quat) @ self.offset
         return out
 
     def obj(self, obs: PolicyObservation) -> np.ndarray | None:
@@ -326,7 +319,8 @@ class TransferHand(Operator):
 
     def tool(self, obs: PolicyObservation) -> np.ndarray:
         """The way its instrument points now (unit, base frame)."""
-        return quat_rotate(obs.tip_quat, np.array(self.task.tool_axis, dtype=float))
+        out: np.ndarray = matrix_from_quat(obs.tip_quat) @ np.array(self.task.tool_axis, dtype=float)
+        return out
 
     def at_obj(self, back: float = 0.0) -> Callable[[TransferHand, PolicyObservation], np.ndarray]:
         """Its grasp point on the object (``task.obj_grasps``), ``back`` m behind it along its
@@ -350,9 +344,8 @@ class TransferHand(Operator):
         return lambda h, obs: h.mark - back * h.tool(obs)
 
     @staticmethod
-    def fixed(
-        p: tuple[float, float, float], up: float = 0.0
-    ) -> Callable[[TransferHand, PolicyObservation], np.ndarray]:
+    def fixed(p: Vec3, up: float = 0.0) -> Callable[[TransferHand, PolicyObservation], np.ndarray]:
+        """``up`` m above the point ``p``."""
         return lambda h, obs: np.array(p, dtype=float) + np.array([0.0, 0.0, up])
 
     # -- the programs ---------------------------------------------------------------------------
@@ -433,7 +426,6 @@ class TransferHand(Operator):
             out = super().__call__(seen)
             return None if out is None else np.append(np.zeros(3), self.grip)
         if obs.following and self._dropped(t, obs) and self.obj(obs) is not None:
-            self.drops_seen += 1
             self.steps = self._giver(False)  # (a provoked drop happens once)
             self._begin(0, t, obs)  # pick it up again where it lies
         st = self.steps[self.k]
@@ -447,7 +439,7 @@ class TransferHand(Operator):
                 self._begin(self.k + 1, t, obs)
             return np.append(out, self.grip)
         # grip / wait: the hand still (its tremor), the grip set, watching
-        out = super().__call__(dataclasses.replace(seen, following=obs.following))
+        out = super().__call__(seen)
         if out is None:
             return None
         if st.kind == "grip":
@@ -461,7 +453,7 @@ class TransferHand(Operator):
             if st.kind == "grip" and st.value > 0.5:
                 self.grip = 0.0  # a grasp that did not take: open, and try again
             self._begin(st.retry if st.retry >= 0 else self.k + 1, t, obs)
-        return np.append(out * 0.0 if self.phase in ("done", "wait") else out, self.grip)
+        return np.append(out, self.grip)
 
 
 def make(

@@ -167,13 +167,7 @@ def overrides(
     ] + [f"device_options.options.{k}={json.dumps(v)}" for k, v in opts.items()]
     task = tasks.get(trial.task)
     if len(task.arms) > 1:  # each arm its own master (m1, m2 …): the first here, the others in hands()
-        pairs = [f"m{i + 1}:{arm}" for i, arm in enumerate(task.arms)]
-        masters = ",".join(["master_capture", *(f"master_capture_{i + 1}" for i in range(1, len(task.arms)))])
-        master += [
-            f"device_options.slave={json.dumps(task.arms[0])}",
-            f"device_options.watch={json.dumps(list(task.arms[1:]))}",
-            "device_options.options.role=0",
-        ]
+        master += [f"device_options.slave={json.dumps(task.arms[0])}", "device_options.options.role=0"]
     # (the slave's own setpoint deadline too: a stall of the master stream on a loaded host
     # otherwise stops the slave first, while the mapping's longer deadline keeps it engaged)
     slave = [f"setpoint_timeout_ms={100.0 + margin_ms}"] if margin_ms else []
@@ -198,29 +192,35 @@ def overrides(
         out["mapping"].append(f"mode={json.dumps(task.mapping)}")
     out["mapping"] += task.mapping_set
     if len(task.arms) > 1:
-        for name in ("mapping", "watchdog"):
-            out[name] += [f"pairs={json.dumps(pairs)}", f"master_source={json.dumps(masters)}"]
-        required = ["master_capture", "mapping", "slave_control", *masters.split(",")[1:]]
+        pairs = [f"m{i + 1}:{arm}" for i, arm in enumerate(task.arms)]
+        names = masters(task)
+        for table in ("mapping", "watchdog"):
+            out[table] += [f"pairs={json.dumps(pairs)}", f"master_source={json.dumps(','.join(names))}"]
+        required = [names[0], "mapping", "slave_control", *names[1:]]
         out["watchdog"].append(f"required_services={json.dumps(required)}")
     return out
 
 
-def hands(trial: Trial, ov: dict[str, list[str]]) -> dict[str, list[str]]:
+def masters(task: tasks.TaskSpec) -> list[str]:
+    """The master_capture services of a task, one per arm: ``master_capture`` (``m1``) for the
+    first, ``master_capture_2`` (``m2``) … for the others."""
+    return ["master_capture", *(f"master_capture_{i + 1}" for i in range(1, len(task.arms)))]
+
+
+def hands(trial: Trial) -> dict[str, list[str]]:
     """The other masters of a task with several arms (``master_capture_2`` … → ``m2`` …): each the
-    synthetic operator's other hand on its own arm, seeing the others (settings after the first
-    master's)."""
+    synthetic operator's other hand on its own arm (settings after the first master's)."""
     task = tasks.get(trial.task)
-    out = {}
-    for i, arm in enumerate(task.arms[1:], start=1):
-        others = [a for a in task.arms if a != arm]
-        out[f"master_capture_{i + 1}"] = [
+    return {
+        name: [
             f"arm=m{i + 1}",
             f"device_options.slave={json.dumps(arm)}",
-            f"device_options.watch={json.dumps(others)}",
             f"device_options.options.role={i}",
             f"device_options.options.seed={trial.seed + 1000 * i}",
         ]
-    return out
+        for i, (name, arm) in enumerate(zip(masters(task), task.arms, strict=True))
+        if i > 0
+    }
 
 
 def record_keys(k: Keys, arms: tuple[str, ...] = ("arm1",)) -> list[str]:
@@ -233,6 +233,14 @@ def record_keys(k: Keys, arms: tuple[str, ...] = ("arm1",)) -> list[str]:
     for arm in arms:
         out += [*(k.slave(arm, s) for s in slave), k.safety(arm, "state"), k.mapping(arm, "teleop_state")]
     return [*out, k.slave(arms[0], "scene"), f"{k.prefix}/events/**"]
+
+
+def object_sample(m: SceneState, obj: str, arms: tuple[str, ...]) -> tuple[float, ...] | None:
+    """x, y, z (m) and holders (bits, :func:`telesurg.shared.tasks.holders`) of ``obj`` in ``m``."""
+    if (seen := m.object(obj)) is None:
+        return None
+    (x, y, z), names = seen
+    return x, y, z, float(tasks.holders(names, arms))
 
 
 def _rows(rows: list[tuple[float, ...]], cols: int) -> np.ndarray:
@@ -271,10 +279,8 @@ def streams_from_mcap(path: Path, task: tasks.TaskSpec | None = None) -> tasks.S
                 got[what].append((t, math.hypot(*msg.force)))
             elif what == "scene" and isinstance(msg, SceneState):
                 got["collide"].append((t, float(msg.in_collision)))
-                if obj in msg.objects:
-                    i = msg.objects.index(obj)
-                    bits = tasks.holders(msg.held_by[i], arms)
-                    got["obj"].append((t, msg.x[i], msg.y[i], msg.z[i], float(bits)))
+                if (row := object_sample(msg, obj, arms)) is not None:
+                    got["obj"].append((t, *row))
             elif what == "op" and isinstance(msg, OperatingState):
                 got["op"].append((t, float(msg.follow)))
                 rcm.append((t, msg.rcm_error_mm, float(msg.control_mode == "trocar")))
@@ -371,7 +377,7 @@ def run_trial(
     except SiteStartError as e:  # (a loaded host: a service that did not come up in time)
         raise TrialFailed(f"trial {trial.index}: the site did not start: {e}") from e
     try:
-        for name, sets in hands(trial, ov).items():  # (through the impairer, as master_capture)
+        for name, sets in hands(trial).items():  # (through the impairer, as master_capture)
             p.site.spawn_instance(name, "master_capture", sets)
         study = Node(p.spec.client_bus("operator"), p.spec.site, "study")
         p.keep(study)
@@ -482,11 +488,9 @@ class Watch:
             self.tips.append((time.monotonic(), *m.position))
 
     def _on_scene(self, m: SceneState, key: str) -> None:
-        if self.task.obj in m.objects:
-            i = m.objects.index(self.task.obj)
-            bits = tasks.holders(m.held_by[i], self.task.arms)
+        if (row := object_sample(m, self.task.obj, self.task.arms)) is not None:
             with self.lock:
-                self.obj.append((time.monotonic(), m.x[i], m.y[i], m.z[i], float(bits)))
+                self.obj.append((time.monotonic(), *row))
 
     def _on_op(self, m: OperatingState, key: str) -> None:
         self.following = m.follow  # (a bool: set atomically from the bus thread)

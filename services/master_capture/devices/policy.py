@@ -64,7 +64,6 @@ class PolicyConfig:
     # keyword arguments: if any, function(**options) is called once and returns the policy
     options: dict[str, Any] = field(default_factory=dict)
     slave: str = "arm1"  # the slave arm whose measurements the policy observes
-    watch: list[str] = field(default_factory=list)  # other arms whose tips it sees (a two-hand task)
     slave_source: str = "slave_control"  # the only publisher of them accepted
     rate_hz: float = 30.0  # Hz: the policy is asked this often (the pose is held in between)
     max_step_mm: float = 5.0  # mm: a longer displacement per step is shortened (counted)
@@ -110,7 +109,6 @@ class PolicyObservation:
         objects: the scene's loose objects (``slave/<arm>/scene``), name → position (m, base frame);
             empty without a scene.
         held_by: name → the arms whose jaws hold it now.
-        others: the other arms' controlled points (``measured_cp`` of ``watch``), arm → (3,) m.
     """
 
     t: float
@@ -122,7 +120,6 @@ class PolicyObservation:
     grip: float = -1.0
     objects: dict[str, np.ndarray] = field(default_factory=dict)
     held_by: dict[str, tuple[str, ...]] = field(default_factory=dict)
-    others: dict[str, np.ndarray] = field(default_factory=dict)
 
 
 Policy = Callable[[PolicyObservation], Sequence[float] | np.ndarray | None]
@@ -178,7 +175,6 @@ class PolicyDevice(MasterDevice):
         self._following = False
         self._grip_seen = -1.0
         self._scene: SceneState | None = None
-        self._others: dict[str, np.ndarray] = {}
         self.grip = 0.0  # the master's grip the policy set, 0 open … 1 closed
         self._next = 0.0
         self._acting = False
@@ -198,17 +194,9 @@ class PolicyDevice(MasterDevice):
         node.subscribe(k.slave(arm, "measured_cp"), CartesianPose, self._on_cp, sources=src)
         node.subscribe(k.slave(arm, "operating_state"), OperatingState, self._on_state, sources=src)
         node.subscribe(k.slave(arm, "scene"), SceneState, self._on_scene, sources=src)
-        for other in self.cfg.watch:
-            node.subscribe(k.slave(other, "measured_cp"), CartesianPose, self._on_other(other), sources=src)
 
     def _on_scene(self, m: SceneState, key: str) -> None:
         self._scene = m  # (one reference: set atomically)
-
-    def _on_other(self, arm: str) -> Callable[[CartesianPose, str], None]:
-        def on_pose(m: CartesianPose, key: str) -> None:
-            self._others[arm] = np.array(m.position)
-
-        return on_pose
 
     def _on_js(self, m: JointState, key: str) -> None:
         with self._lock:
@@ -242,12 +230,11 @@ class PolicyDevice(MasterDevice):
         objects: dict[str, np.ndarray] = {}
         held: dict[str, tuple[str, ...]] = {}
         if (sc := self._scene) is not None:
-            for i, name in enumerate(sc.objects):
-                objects[name] = np.array((sc.x[i], sc.y[i], sc.z[i]))
-                held[name] = tuple(a for a in sc.held_by[i].split("+") if a)
+            for name in sc.objects:
+                if (seen := sc.object(name)) is not None:
+                    objects[name], held[name] = np.array(seen[0]), seen[1]
         return PolicyObservation(
-            t, js[1], cp[1], cp[2], following, self.position.copy(), self._grip_seen, objects, held,
-            dict(self._others),
+            t, js[1], cp[1], cp[2], following, self.position.copy(), self._grip_seen, objects, held
         )  # fmt: skip
 
     def _act(self, obs: PolicyObservation | None) -> bool:
