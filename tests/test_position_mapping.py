@@ -3,6 +3,7 @@ on its registry pose/Jacobian, with the mapping's clutch rules, joint-limit clam
 
 from __future__ import annotations
 
+import contextlib
 import threading
 import time
 from collections.abc import Iterator
@@ -12,9 +13,9 @@ import pytest
 from conftest import wait_until
 from helpers import feed_master
 from telesurg.services.launcher import free_port
-from telesurg.services.mapping import MappingConfig, Pair
+from telesurg.services.mapping import MappingConfig, Pair, position
 from telesurg.shared.bus import BusConfig, Node, open_session
-from telesurg.shared.errors import ConfigError
+from telesurg.shared.errors import ConfigError, KinematicsError
 from telesurg.shared.kinematics import solve_position
 from telesurg.shared.messages import (
     Command,
@@ -25,6 +26,7 @@ from telesurg.shared.messages import (
     SafetyEvent,
 )
 from telesurg.shared.robots import MODELS, arm_profile, arms_of
+from telesurg.shared.robots.plas import tasks as plas_tasks
 
 H = Header("test", 0, 0)
 
@@ -68,8 +70,12 @@ def test_solve_position_clamps_at_the_joint_limits() -> None:
     assert sol.error > 0.5
 
 
-@pytest.fixture
-def rig() -> Iterator[tuple[Pair, list[JointSetpoint], list[SafetyEvent]]]:
+@contextlib.contextmanager
+def _rig(
+    cfg: MappingConfig, slave: str = "arm1", q0: tuple[float, ...] | None = None
+) -> Iterator[tuple[Pair, list[JointSetpoint], list[SafetyEvent]]]:
+    """One mapping pair ``m1:<slave>`` on a router of its own, the slave at ``q0`` (its home) and
+    allowed to move; with the setpoints and events it sends."""
     ep = f"tcp/127.0.0.1:{free_port()}"
     router = open_session(BusConfig(mode="router", listen=[ep]))
     bus = BusConfig(connect=[ep])
@@ -78,19 +84,24 @@ def rig() -> Iterator[tuple[Pair, list[JointSetpoint], list[SafetyEvent]]]:
     try:
         with Node(bus, "t", "mapping") as node, Node(bus, "t", "probe") as probe:
             probe.subscribe(
-                probe.keys.slave("arm1", "servo_jp"), JointSetpoint, lambda m, k: setpoints.append(m)
+                probe.keys.slave(slave, "servo_jp"), JointSetpoint, lambda m, k: setpoints.append(m)
             )
             probe.subscribe(probe.keys.events(), SafetyEvent, lambda m, k: events.append(m))
             time.sleep(0.3)
-            cfg = MappingConfig(mode="position", model="vip", scale=0.5, max_joint_step_rad=0.2)
             cfg.validate()
-            arm = Pair(cfg, node, "m1", "arm1", threading.Event())
+            arm = Pair(cfg, node, "m1", slave, threading.Event())
             names = arm.strategy.profile.joint_names
-            arm.on_slave_js(JointState(H, names, arm.strategy.profile.home), "")
+            arm.on_slave_js(JointState(H, names, q0 or arm.strategy.profile.home), "")
             arm.on_slave_state(OperatingState(H, "PAUSED", "joint", False, True, "", 0), "")
             yield arm, setpoints, events
     finally:
         router.close()  # type: ignore[no-untyped-call]
+
+
+@pytest.fixture
+def rig() -> Iterator[tuple[Pair, list[JointSetpoint], list[SafetyEvent]]]:
+    with _rig(MappingConfig(mode="position", model="vip", scale=0.5, max_joint_step_rad=0.2)) as r:
+        yield r
 
 
 def test_position_mapping_engages_on_a_press_and_moves_the_tip_by_the_scaled_increment(
@@ -155,3 +166,78 @@ def test_operator_scale_commands_rescale_the_motion_without_a_jump(
     assert not arm.strategy.on_command(Command(H, "arm1", "set_scale", ("value=5",))).accepted
     assert not arm.strategy.on_command(Command(H, "arm2", "state", ())).accepted
     assert "scale 0.7" in arm.strategy.on_command(Command(H, "arm1", "state", ())).reason
+
+
+def test_a_target_that_stays_out_of_a_step_disengages_and_a_new_press_goes_on_from_there(
+    rig: tuple[Pair, list[JointSetpoint], list[SafetyEvent]], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The master ran ahead while its samples stalled: after holding ``STUCK_S`` the mapping lets
+    go (the operator sees HOLDING and why), and the next press re-anchors where the slave stands,
+    so it does not jump to the far target."""
+    monkeypatch.setattr(position, "STUCK_S", 0.05)
+    arm, _, events = rig
+    feed_master(arm, (0.0, 0.0, 0.0), clutch=False)
+    feed_master(arm, (0.0, 0.0, 0.0), clutch=True)
+    assert arm.strategy.q_cmd is not None
+    q_held = arm.strategy.q_cmd.copy()
+    deadline = time.monotonic() + 0.3
+    while time.monotonic() < deadline:  # the master stays 100 mm (slave) away
+        feed_master(arm, (0.2, 0.0, 0.0), clutch=True)
+        time.sleep(0.01)
+    assert not arm.following
+    assert arm.state == "HOLDING" and "press again" in arm.reason, arm.reason
+    np.testing.assert_allclose(arm.strategy.q_cmd, q_held)  # it never moved toward the far target
+    wait_until(lambda: any(e.kind == "disengage" and "out of reach" in e.text for e in events), 3.0)
+    arm.on_slave_js(JointState(H, arm.strategy.profile.joint_names, tuple(q_held)), "")  # still there
+    feed_master(arm, (0.2, 0.0, 0.0), clutch=False)
+    feed_master(arm, (0.2, 0.0, 0.0), clutch=True)  # a new press, where the hand is now
+    assert arm.following
+    feed_master(arm, (0.202, 0.0, 0.0), clutch=True)  # +2 mm → +1 mm from where the slave stands
+    tip = arm.strategy.profile.tip(arm.strategy.q_cmd)
+    np.testing.assert_allclose(tip - arm.strategy.profile.tip(q_held), (0.001, 0.0, 0.0), atol=1e-5)
+
+
+def test_solve_position_keeps_the_tilt_and_turns_only_about_the_vertical() -> None:
+    """``keep_up``: the PLAS's forceps reaches targets 30 mm away with its tilt from the vertical
+    unchanged (to 0.01°) while the free solve tilts it by degrees; a bad ``keep_up`` is refused."""
+    p = arm_profile("plas", "arm2")
+    lo, hi = np.array(p.lower), np.array(p.upper)
+    q0 = np.array(plas_tasks.Q_ARM2)
+    R0 = p.pose(q0)[:3, :3]
+    up = R0.T @ np.array([0.0, 0.0, 1.0])
+    free_tilts = []
+    for d in ((0.0, 0.03, 0.0), (0.0, 0.0, -0.01), (0.01, 0.01, 0.01)):
+        target = p.tip(q0) + np.array(d)
+        kept = solve_position(p, q0, target, lo, hi, iterations=30, keep_up=up)
+        assert kept.error < 1e-5 and kept.tilt_error < np.radians(0.01), (d, kept)
+        R = p.pose(kept.q)[:3, :3]
+        np.testing.assert_allclose(R @ up, (0.0, 0.0, 1.0), atol=2e-4)  # up is still up
+        free = solve_position(p, q0, target, lo, hi, iterations=30)
+        free_tilts.append(np.degrees(np.arccos(np.clip((p.pose(free.q)[:3, :3] @ up)[2], -1, 1))))
+    assert max(free_tilts) > 2.0, free_tilts  # without it, the same reaches tilt the forceps
+    with pytest.raises(KinematicsError, match="keep_up"):
+        solve_position(p, q0, p.tip(q0), lo, hi, keep_up=(0.0, 0.0, 0.0))
+
+
+def test_keep_tilt_carries_the_plas_forceps_without_tilting_it() -> None:
+    """The PLAS pair in position mode with ``keep_tilt``: a 60 mm master stroke (30 mm at the tip)
+    keeps the forceps' tilt from the engage while the free mapping's tilts it."""
+    tilts = {}
+    for keep in (True, False):
+        cfg = MappingConfig(mode="position", model="plas", pairs=["m1:arm2"], scale=0.5, keep_tilt=keep)
+        with _rig(cfg, "arm2", plas_tasks.Q_ARM2) as (arm, _, _):
+            prof = arm.strategy.profile
+            up = prof.pose(plas_tasks.Q_ARM2)[:3, :3].T @ np.array([0.0, 0.0, 1.0])
+            feed_master(arm, (0.0, 0.0, 0.0), clutch=False)
+            feed_master(arm, (0.0, 0.0, 0.0), clutch=True)
+            worst = 0.0
+            for i in range(1, 121):  # 0.5 mm of master per sample along y
+                feed_master(arm, (0.0, 0.0005 * i, 0.0), clutch=True)
+                assert arm.strategy.q_cmd is not None
+                R = prof.pose(arm.strategy.q_cmd)[:3, :3]
+                worst = max(worst, float(np.degrees(np.arccos(np.clip((R @ up)[2], -1.0, 1.0)))))
+            assert arm.ik_failures == 0
+            moved = prof.tip(arm.strategy.q_cmd) - prof.tip(plas_tasks.Q_ARM2)
+            assert np.linalg.norm(moved) == pytest.approx(0.03, abs=1e-4)
+            tilts[keep] = worst
+    assert tilts[True] < 0.05 and tilts[False] > 2.0, tilts

@@ -1,4 +1,4 @@
-"""The peg transfer through the real services (docs/study.md): on the VIP site, two
+"""The peg transfer through the real services (docs/study.md): on the VIP and PLAS sites, two
 masters (the synthetic operator's two hands, each a ``policy`` master_capture through the link
 impairer) drive the two arms; slave_control's MuJoCo jaws grasp the peg by friction, hand it over
 and place it. What a user notices: the trial completes with the peg on its target after a real
@@ -49,10 +49,12 @@ def in_order(seen: list[int], wanted: list[int]) -> bool:
 
 @pytest.mark.process
 @pytest.mark.timeout(600)
-def test_the_peg_is_handed_over_and_placed_by_real_grasps(tmp_path: Path) -> None:
-    """Issue #44 acceptance 1, the two-arm peg transfer on the VIP: grasp, hand over, place, in
-    MuJoCo, with no drop and no collision of the instruments."""
-    task = tasks.get("vip-pegs")
+@pytest.mark.parametrize("name", ["vip-pegs", "plas-pegs"])
+def test_the_peg_is_handed_over_and_placed_by_real_grasps(tmp_path: Path, name: str) -> None:
+    """Issue #44 acceptance 1, the two-arm peg transfer on the VIP and on the PLAS (its position
+    mapping keeping the forceps' tilt): grasp, hand over, place, in MuJoCo, with no drop and no
+    collision of the instruments."""
+    task = tasks.get(name)
     proto = tmp_path / "pegs.toml"
     proto.write_text(PROTOCOL.format(task=task.name))
     out = tmp_path / "out"

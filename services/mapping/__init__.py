@@ -79,6 +79,9 @@ class MappingConfig:
     robot: dict[str, Any] = field(default_factory=dict)
     scale: float = 0.5  # slave translation / master translation (motion scaling), 0 < scale <= 2
     orientation: str = "follow"  # follow: apply master rotation increments; fixed: keep engage pose
+    # position mode: the instrument keeps the tilt from the vertical it had at the engage and turns
+    # only about the vertical, so a held object stays upright (false: its orientation is free)
+    keep_tilt: bool = False
     # pen: the master position is the tip; virtual_trocar (Jinno 2014, Fig. 7): it is the handle of
     # a dummy forceps pivoting in a virtual trocar, and the dummy tip beyond it is mapped
     master_mode: str = "pen"

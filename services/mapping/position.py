@@ -8,11 +8,15 @@ master sample after an engage (no jump) and re-anchored when the watchdog's safe
 operator's scale (``scale_up`` / ``scale_down`` / ``set_scale`` on ``mapping/<arm>/command``)
 changes.
 The target is solved by damped least squares on the registry's ``pose`` / ``jacobian``
-(:func:`telesurg.shared.kinematics.solve_position`), joint-limit clamped; the orientation is not
-controlled. The clutch rules are the other mappings' (:class:`~telesurg.services.mapping.engage.
-EngageGate`); a joint step larger than ``max_joint_step_rad`` between two samples holds the last
-setpoint (an ``ik_failure`` event, as the Cartesian mapping's branch-flip check); a joint riding
-its limit or a target out of reach is a clamping episode (``clamped`` events, counted).
+(:func:`telesurg.shared.kinematics.solve_position`), joint-limit clamped. The orientation is free,
+unless ``keep_tilt``: then the instrument keeps the tilt from the vertical it had at the engage and
+turns only about the vertical, so an object it holds stays upright (a tilt the solver cannot keep
+is a clamping episode). The clutch rules are the other mappings'
+(:class:`~telesurg.services.mapping.engage.EngageGate`). A joint step larger than
+``max_joint_step_rad`` between two samples holds the last setpoint (an ``ik_failure`` event, as the
+Cartesian mapping's branch-flip check); holds on every sample for ``STUCK_S`` (the master ran ahead
+while its samples stalled) disengage, and the next press re-anchors where the slave stands. A joint
+riding its limit or a target out of reach is a clamping episode (``clamped`` events, counted).
 
 The joints go out as ``servo_jp`` for every sample and, as for every joint-space mapping, the
 controlled point of the commanded joints as ``slave/<arm>/setpoint_cp`` at ``target_hz`` (frame
@@ -24,6 +28,8 @@ apply; the watchdog's workspace does.
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 from telesurg.shared.errors import KinematicsError
 from telesurg.shared.kinematics import solve_position
@@ -33,6 +39,10 @@ from telesurg.shared.robots.joint_mapping import PoseJointStrategy
 
 #: [m] a target further than this from what the solver reached counts as out of reach (clamped).
 REACH_TOL = 1e-3
+#: [s] a hold on every sample this long disengages (press again to go on from where it stands)
+STUCK_S = 0.5
+#: [rad] with ``keep_tilt``, a tilt further than this from the engage's counts as not kept (clamped).
+TILT_TOL = np.radians(2.0)
 
 
 class PositionMapping(PoseJointStrategy):
@@ -41,6 +51,8 @@ class PositionMapping(PoseJointStrategy):
     def __init__(self, gate: PairContext) -> None:
         super().__init__(gate)
         self.ik_streak = 0
+        self.keep_up: np.ndarray | None = None  # keep_tilt: the world's up in the tip frame
+        self.held_since = 0.0  # monotonic s of the streak's first hold
 
     def on_command(self, cmd: Command) -> CommandReply:
         """``state``, ``scale_up``, ``scale_down``, ``set_scale value=`` (the operator's motion scale)."""
@@ -49,6 +61,7 @@ class PositionMapping(PoseJointStrategy):
     # -- logic (lock held)
     def _engaged(self) -> None:
         self.ref = self.last = None  # anchored at the next master sample
+        self.keep_up = None  # keep_tilt: the tilt at this engage
         self.ik_streak = 0
 
     def process(self) -> None:
@@ -69,18 +82,28 @@ class PositionMapping(PoseJointStrategy):
             anchor = self.ref is None
             if self.ref is None:
                 self.ref = (pm, self.profile.tip(self.q_cmd))
+            if self.keep_up is None and self.gate.cfg.keep_tilt:
+                self.keep_up = self.profile.pose(self.q_cmd)[:3, :3].T @ np.array([0.0, 0.0, 1.0])
             pm0, p0 = self.ref
             target = p0 + self.gate.scale * self.gate.safety_scale * (self.r_ms @ (pm - pm0))
             sol = solve_position(
-                self.profile, self.q_cmd, self.passive(target, msg, anchor=anchor), self.lower, self.upper
+                self.profile,
+                self.q_cmd,
+                self.passive(target, msg, anchor=anchor),
+                self.lower,
+                self.upper,
+                keep_up=self.keep_up,
             )
         except (KinematicsError, ValueError, np.linalg.LinAlgError) as exc:
             self._hold(f"holding last valid setpoint: {exc}")
             return
-        step = float(np.max(np.abs(sol.q - self.q_cmd)))
-        if step > self.gate.cfg.max_joint_step_rad:
+        steps = np.abs(sol.q - self.q_cmd)
+        if (step := float(steps.max())) > self.gate.cfg.max_joint_step_rad:
+            joint = self.profile.joint_names[int(steps.argmax())]
             self._hold(
-                f"holding last valid setpoint: joint step {step:.3f} > {self.gate.cfg.max_joint_step_rad}"
+                f"holding last valid setpoint: joint step {step:.3f} ({joint}) > "
+                f"{self.gate.cfg.max_joint_step_rad}; q {np.round(self.q_cmd, 3).tolist()} → "
+                f"{np.round(sol.q, 3).tolist()}"
             )
             return
         if self.ik_streak:
@@ -93,10 +116,23 @@ class PositionMapping(PoseJointStrategy):
         why = tuple(self.profile.joint_names[i] for i in sol.clamped)
         if sol.error > REACH_TOL:
             why += (f"target out of reach by {sol.error * 1e3:.1f} mm",)
+        if sol.tilt_error > TILT_TOL:
+            why += (f"tilt not kept, off by {np.degrees(sol.tilt_error):.1f} deg",)
         self._report_clamp(why)
 
     def _hold(self, text: str) -> None:
         self.gate.ik_failures += 1
         self.ik_streak += 1
+        now = time.monotonic()
         if self.ik_streak == 1:
+            self.held_since = now
             self.gate.node.event("ik_failure", text, arm=self.gate.slave, severity="warning")
+        elif now - self.held_since > STUCK_S:
+            # the target stays out of a step's reach (the master ran ahead while the samples
+            # stalled): the operator's hand and the instrument no longer match; let go, and the
+            # next press takes it from here without a jump
+            self.gate._disengage(
+                f"the target stayed out of reach for {STUCK_S:.1f} s ({self.ik_streak} samples); "
+                "press again to go on from here"
+            )
+            self.ik_streak = 0

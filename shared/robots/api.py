@@ -157,6 +157,10 @@ class PairContext(Protocol):
         """The strategy took its references: ENABLED, and an ``engage`` event with ``text``."""
         ...
 
+    def _disengage(self, reason: str, *, operator: bool = False) -> None:
+        """Stop following (HOLDING, a ``disengage`` event with ``reason``): a new press engages."""
+        ...
+
     def _publish_state(self) -> None:
         """Publish the teleop state now (after a scale change)."""
         ...

@@ -18,6 +18,7 @@ class MappingSettings(Protocol):
     robot: dict[str, Any]  # the robot's own knobs (RobotSpec.make_config)
     scale: float  # the operator's initial motion scale
     orientation: str  # follow | fixed
+    keep_tilt: bool  # position mode: keep the instrument's tilt from the vertical
     master_mode: str  # pen | virtual_trocar
     virtual_trocar_mm: tuple[float, float, float]
     dummy_forceps_mm: float
