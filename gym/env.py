@@ -146,6 +146,9 @@ class _Pair:
     def _engaged_now(self, text: str) -> None:
         self._following = True
 
+    def _disengage(self, reason: str, *, operator: bool = False) -> None:
+        self._following, self._want = False, True  # (the pedal stays down: it engages again)
+
     def _publish_state(self) -> None:
         return None
 

@@ -368,6 +368,9 @@ def test_opening_the_jaws_mid_carry_drops_the_peg(operator: Operator) -> None:
     assert s.held_by == ((),)
     assert s.positions[0][2] < held[2] - 0.01  # it fell (onto the board, maybe on its side)
     assert s.positions[0][2] < start[2] + 0.002
+    # and it stays where it fell: no rolling away across the board (rolling friction)
+    later = op.wait(1.0).positions[0]
+    assert np.linalg.norm(later - s.positions[0]) < 1e-3
 
 
 def test_instruments_driven_into_each_other_touch(operator: Operator) -> None:
@@ -384,3 +387,10 @@ def test_instruments_driven_into_each_other_touch(operator: Operator) -> None:
     # physical: arm1's jaws stop short of where they are commanded (free, they track to < 0.01 mm)
     assert np.linalg.norm(op.measured_jaw("arm1") - op.jaw("arm1")[0]) > 3e-4
     assert op.scene.positions[0][2] < _site(op, "peg_start")[2] + HALF_HEIGHT + 1e-3  # the peg untouched
+    # both instruments feel the push, equal and opposite: the pressing arm is stopped by the same
+    # force limit as the arm it presses
+    w = op.b.read().site_wrenches
+    assert w is not None
+    f1, f2 = (w[p.tip_site][:3] for p in op.arms.values())
+    assert np.linalg.norm(f1) > 0.5, (f1, f2)
+    np.testing.assert_allclose(f1, -f2, atol=0.05 * np.linalg.norm(f1))

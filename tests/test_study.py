@@ -17,7 +17,7 @@ from telesurg.shared.errors import ConfigError
 from telesurg.shared.tasks import Goal, Streams, TaskSpec
 from telesurg.tools import study
 from telesurg.tools.study import report, runner
-from telesurg.tools.study.operator import make, min_jerk
+from telesurg.tools.study.operator import make, min_jerk, via_points
 from telesurg.tools.study.protocol import ProtocolError, codes, parse, schedule
 
 GOOD = """\
@@ -495,3 +495,18 @@ def test_a_transfer_task_needs_its_three_goals_two_arms_and_an_object() -> None:
         )
     with pytest.raises(ConfigError, match="an obj"):
         TaskSpec("x", "vip", "transfer", "", PEGS.goals, (0.0, 0.0, 0.0), arms=("arm1", "arm2"))
+
+
+def test_the_operator_errs_on_purpose_only_when_told() -> None:
+    """``press_mm`` aims every touch that deep into the tissue; ``detour_mm`` takes the wire's middle
+    via point that far to the side, out of its tube; without them it aims at the goals themselves."""
+    targets, wire = tasks.get("mh3f-targets"), tasks.get("mh3f-wire")
+    plain, pressed = via_points(targets, 0.012), via_points(targets, 0.012, press_m=0.009)
+    touches = [g.position for g in targets.goals]
+    assert [g.position for g in plain[1::3]] == touches
+    for g, want in zip(pressed[1::3], touches, strict=True):
+        np.testing.assert_allclose(np.subtract(want, g.position), (0.0, 0.0, 0.009))
+    straight, detour = via_points(wire, 0.012), via_points(wire, 0.012, detour_m=0.010)
+    off = [float(tasks.distance_to_path([g.position], wire.path)[0][0]) for g in detour]
+    assert max(float(tasks.distance_to_path([g.position], wire.path)[0][0]) for g in straight) < 1e-9
+    assert sorted(off)[-2] < 1e-9 and max(off) == pytest.approx(0.010, abs=1e-3)  # one via point out

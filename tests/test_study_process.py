@@ -15,8 +15,10 @@ import os
 from pathlib import Path
 
 import pytest
+from telesurg.shared import tasks
 from telesurg.tools import study
-from telesurg.tools.study.runner import streams_from_mcap
+from telesurg.tools.study.protocol import load, schedule
+from telesurg.tools.study.runner import Where, run_trial, streams_from_mcap
 
 PROTOCOL = """\
 [study]
@@ -112,3 +114,32 @@ def test_the_trocar_task_is_done_through_the_trocar_on_a_real_site(tmp_path: Pat
     # scored as an error (the synthetic operator overshoots into the organ now and then: 2.4-3 N)
     assert r["contact_time_s"] > 0.5 and r["peak_force_n"] > 0.05, r
     assert (r["errors"]["tissue_force"] > 0) == (r["peak_force_n"] > 2.0), r
+
+
+@pytest.mark.process
+@pytest.mark.timeout(600)
+@pytest.mark.parametrize(
+    ("task", "knobs", "error"),
+    [("mh3f-targets", {"press_mm": 9.0}, "tissue_force"), ("mh3f-wire", {"detour_mm": 10.0}, "path_exit")],
+)
+def test_a_provoked_error_is_detected_and_scored(
+    tmp_path: Path, task: str, knobs: dict[str, float], error: str
+) -> None:
+    """Issue #44 acceptance 1: the synthetic operator errs on purpose through the real services —
+    it presses the tissue 9 mm deep at its first touch, or leaves the wire's tube 10 mm to the side
+    at the wire's middle — and the trial's row scores it (force above the task's 2 N limit; an
+    exit from the 5 mm tube), the recording showing the cause."""
+    proto = tmp_path / "p.toml"
+    proto.write_text(PROTOCOL.replace('tasks = ["mh3f-targets", "mh3f-wire"]', f'tasks = ["{task}"]'))
+    trial = next(t for t in schedule(load(proto), "p01") if t.condition.delay_ms == 0)
+    where = Where(tmp_path / "out")
+    row = run_trial(trial, where, 500.0, knobs=knobs, time_limit_s=15.0)
+    print({k: row[k] for k in ("completed", "completion_time_s", "errors", "peak_force_n", "path_exits")})
+    assert row["errors"][error] >= 1, row
+    s = streams_from_mcap(where.mcap(trial.index))
+    if error == "tissue_force":
+        assert row["peak_force_n"] > 2.0 and s.force[:, 1].max() > 2.0, row
+    else:
+        spec = tasks.get(task)
+        far = float(tasks.distance_to_path(s.tip[:, 1:4], spec.path)[0].max())
+        assert far > spec.tube_radius_m, far  # the tip was out of the tube

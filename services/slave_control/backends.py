@@ -151,7 +151,9 @@ TOOL_GROUP = 2
 def contact_wrenches(m: Any, d: Any, mujoco: Any, owner: np.ndarray, points: np.ndarray) -> np.ndarray:
     """(k, 6) force (N) and torque about ``points[i]`` (N·m), base frame, that the contacts exert
     on the instrument geoms (``contype & INSTRUMENT``) of owner ``i`` (``owner[geom]``; -1: no
-    one's) — the force a tip sensor on each instrument would measure."""
+    one's) — the force a tip sensor on each instrument would measure. Two arms touching each other
+    (any of their geoms, a two-arm scene's contact pairs) both feel it, each the push on its own
+    geom: the arm pressing is stopped by the same force limit as the arm pressed."""
     out = np.zeros((len(points), 6))
     if d.ncon == 0:
         return out
@@ -159,19 +161,22 @@ def contact_wrenches(m: Any, d: Any, mujoco: Any, owner: np.ndarray, points: np.
     for i in range(d.ncon):
         c = d.contact[i]
         g1, g2 = int(c.geom1), int(c.geom2)
+        o1, o2 = int(owner[g1]), int(owner[g2])
         on1, on2 = bool(m.geom_contype[g1] & INSTRUMENT), bool(m.geom_contype[g2] & INSTRUMENT)
-        if on1 == on2:
-            continue
-        k = int(owner[g1] if on1 else owner[g2])
-        if k < 0:
+        felt: tuple[tuple[int, float], ...]  # (owner, sign of the force on geom2)
+        if o1 >= 0 and o2 >= 0 and o1 != o2:  # two arms touch: both feel it
+            felt = ((o1, -1.0), (o2, 1.0))
+        elif on1 != on2 and (o1 if on1 else o2) >= 0:  # an instrument touches the scene
+            felt = ((o1, -1.0),) if on1 else ((o2, 1.0),)
+        else:
             continue
         mujoco.mj_contactForce(m, d, i, f6)
         frame = c.frame.reshape(3, 3)  # rows: normal (geom1 → geom2), tangents
         f = frame.T @ f6[:3]  # the force on geom2, world frame
-        if on1:
-            f = -f
-        out[k, :3] += f
-        out[k, 3:] += np.cross(c.pos - points[k], f)
+        for k, sign in felt:
+            push = sign * f
+            out[k, :3] += push
+            out[k, 3:] += np.cross(c.pos - points[k], push)
     return out
 
 

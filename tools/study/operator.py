@@ -50,9 +50,13 @@ def min_jerk(s: float) -> float:
     return s**3 * (10.0 - 15.0 * s + 6.0 * s * s)
 
 
-def via_points(task: TaskSpec, step_m: float) -> list[Goal]:
+def via_points(task: TaskSpec, step_m: float, press_m: float = 0.0, detour_m: float = 0.0) -> list[Goal]:
     """The goals the operator aims at in turn: each target between points ``LIFT_M`` above it (it
-    lifts the tip off the tissue before it moves on), or the wire every ``step_m``."""
+    lifts the tip off the tissue before it moves on), or the wire every ``step_m``.
+
+    ``press_m``: it aims each touch this far below the target (into the tissue: a press too
+    hard); ``detour_m``: it aims the wire's middle via point this far to the side (out of the
+    tube). Both are errors on purpose, for the tests that provoke them."""
     if task.kind == "transfer":  # (its hands plan their own: TransferHand)
         return list(task.goals)
     if task.kind == "targets":
@@ -60,14 +64,19 @@ def via_points(task: TaskSpec, step_m: float) -> list[Goal]:
         for g in task.goals:
             x, y, z = g.position
             above = Goal((x, y, z + LIFT_M), g.radius_m)
-            out += [above, g, above]
+            out += [above, Goal((x, y, z - press_m), g.radius_m + press_m, g.dwell_s), above]
         return out[:-1]
     wire = np.array(task.path)
     seg = np.linalg.norm(np.diff(wire, axis=0), axis=1)
     cum = np.concatenate([[0.0], np.cumsum(seg)])
     out = []
-    for s in np.arange(0.0, cum[-1], step_m)[1:]:
+    along = np.arange(0.0, cum[-1], step_m)[1:]
+    for s in along:
         p = np.array([np.interp(s, cum, wire[:, i]) for i in range(3)])
+        if detour_m and s == along[len(along) // 2]:
+            d = np.array([np.interp(s + 1e-3, cum, wire[:, i]) for i in range(3)]) - p
+            side = np.cross(d, (0.0, 0.0, 1.0))
+            p = p + detour_m * side / np.linalg.norm(side)
         out.append(Goal((float(p[0]), float(p[1]), float(p[2])), task.tube_radius_m * 0.5))
     w0 = (float(wire[0, 0]), float(wire[0, 1]), float(wire[0, 2]))
     out.insert(0, Goal(w0, task.tube_radius_m * 0.4))
@@ -94,13 +103,15 @@ class Operator:
         settle_mm_s: float = 8.0,
         max_wait_s: float = 3.0,
         repress_s: float = 3.0,
+        press_mm: float = 0.0,
+        detour_mm: float = 0.0,
     ) -> None:
         self.task, self.scale, self.dt = task, scale, 1.0 / rate_hz
         self.rng = np.random.default_rng(seed)
         self.reaction_s, self.fa, self.fb = reaction_s, fitts_a_s, fitts_b_s
         self.noise, self.undershoot, self.tremor = endpoint_noise, undershoot, tremor_mm / 1e3
         self.settle, self.max_wait = settle_mm_s / 1e3, max_wait_s
-        self.goals = via_points(task, path_step_mm / 1e3)
+        self.goals = via_points(task, path_step_mm / 1e3, press_mm / 1e3, detour_mm / 1e3)
         self.i = 0  # the goal aimed at
         self.phase = "wait"  # wait (engage) · react · move · settle · dwell · done
         self.until = 0.0  # react: when it may move
@@ -271,7 +282,7 @@ class TransferHand(Operator):
       an object it sees lying free (a drop) is picked up again;
     * the other hand (``role`` 1): wait until it sees the object held at the hand-over, come to it
       along its instrument, close; once the first hand let go, carry it to above the target, lower,
-      open, back out.
+      open wide, back out along its instrument.
 
     Knobs: ``approach_mm`` (how far back along its instrument it comes in from a grasp, and how far
     above the target it carries), ``lift_mm`` (the first hand's lift), ``release_mm`` (the
@@ -301,7 +312,8 @@ class TransferHand(Operator):
         self.k = 0
         self.step_t0: float | None = None
         self.mark = np.zeros(3)  # the jaws where the step began
-        self.free_since: float | None = None
+        self.free_since: float | None = None  # the object seen lying free since (a drop)
+        self.off_since: float | None = None  # the other jaws seen off the object since
         self.steps = self._giver(drop_after_lift) if role == 0 else self._taker()
 
     # -- what it sees -----------------------------------------------------------------------------
@@ -316,6 +328,14 @@ class TransferHand(Operator):
 
     def holds(self, obs: PolicyObservation, arm: str) -> bool:
         return arm in obs.held_by.get(self.task.obj, ())
+
+    def let_go(self, obs: PolicyObservation, arm: str, seconds: float) -> bool:
+        """It has seen ``arm``'s jaws off the object for ``seconds``."""
+        if self.holds(obs, arm):
+            self.off_since = None
+            return False
+        self.off_since = obs.t if self.off_since is None else self.off_since
+        return obs.t - self.off_since >= seconds
 
     def tool(self, obs: PolicyObservation) -> np.ndarray:
         """The way its instrument points now (unit, base frame)."""
@@ -365,7 +385,9 @@ class TransferHand(Operator):
             Step("move", self.fixed(over), 0.003, 0.2),
             # (it lets go once it has seen the other jaws hold a moment: a firm grasp)
             Step("wait", until=lambda h, o: h.holds(o, other), timeout_s=30.0, min_s=0.3),
-            Step("grip", value=0.0, until=lambda h, o: not h.holds(o, me), timeout_s=2.0),
+            # (it lets the jaws open wide before it draws them back along its instrument: jaws
+            # still half closed drag the peg out of the other's grasp, or knock it over)
+            Step("grip", value=0.0, until=lambda h, o: not h.holds(o, me), timeout_s=2.0, min_s=0.4),
             Step("move", self.back_from_mark(self.approach), 0.005),  # (back out along its instrument)
         ]
         return steps
@@ -385,12 +407,14 @@ class TransferHand(Operator):
             Step("move", self.at_obj(self.approach), 0.003, live=True),
             Step("move", self.at_obj(0.0), 0.0015, 0.2, live=True),
             Step("grip", value=1.0, until=lambda h, o: h.holds(o, me), timeout_s=2.0, retry=1),
-            Step("wait", until=lambda h, o: not h.holds(o, giver), timeout_s=30.0),
+            # (it waits to see the first hand's jaws open and draw back before it carries)
+            Step("wait", until=lambda h, o: h.let_go(o, giver, 1.0), timeout_s=30.0),
             # (straight on to above the target: down and away from the first hand's jaws)
             Step("move", self.fixed(place, self.approach), 0.003),
             Step("move", self.fixed(place, self.release), 0.002, 0.2),
-            Step("grip", value=0.0, until=lambda h, o: not h.holds(o, me), timeout_s=2.0),
-            Step("move", self.from_mark(self.approach), 0.005),
+            # (as the first hand: jaws open wide before they draw back off the peg)
+            Step("grip", value=0.0, until=lambda h, o: not h.holds(o, me), timeout_s=2.0, min_s=0.4),
+            Step("move", self.back_from_mark(self.approach), 0.005),
         ]
 
     # -- the policy -----------------------------------------------------------------------------

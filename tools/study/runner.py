@@ -25,7 +25,7 @@ import shutil
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -339,13 +339,15 @@ def run_trial(
     master: str = "operator",
     on_console: Callable[[str], None] | None = None,
     knobs: dict[str, Any] | None = None,
+    time_limit_s: float | None = None,
 ) -> dict[str, Any]:
     """Run one trial on a fresh site and return its result row (raises TrialFailed).
 
     ``shown``: the condition as the operator may see it (default: its code), on the console's
     trial panel; ``total``: the trials of the schedule. ``master``: ``operator`` (the synthetic
     operator) or ``web`` (a person at the web console's page: ``on_console`` gets its one-time
-    login URL once it is served); ``knobs``: the synthetic operator's (:func:`overrides`)."""
+    login URL once it is served); ``knobs``: the synthetic operator's (:func:`overrides`);
+    ``time_limit_s``: instead of the task's (a shorter trial)."""
     from telesurg.shared.bus import Node
     from telesurg.tools.bench.harness import Pipeline
     from telesurg.tools.bench.netprofile import LinkProfile
@@ -396,7 +398,8 @@ def run_trial(
         with Recorder(part, p.spec.site, info=info) as rec:
             for key in record_keys(p.node.keys, task.arms):
                 rec.subscribe(p.node.session, key, p.node.keyring)
-            t_go, t_end, why = watch.run(p.site, task, board)
+            limit = replace(task, time_limit_s=time_limit_s) if time_limit_s else task
+            t_go, t_end, why = watch.run(p.site, limit, board)
             time.sleep(AFTER_DONE_S)
         if why:
             board.show("failed", result=why.splitlines()[0])
