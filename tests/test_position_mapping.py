@@ -18,10 +18,12 @@ from telesurg.shared.bus import BusConfig, Node, open_session
 from telesurg.shared.errors import ConfigError, KinematicsError
 from telesurg.shared.kinematics import solve_position
 from telesurg.shared.messages import (
+    CartesianPose,
     Command,
     Header,
     JointSetpoint,
     JointState,
+    MasterButtons,
     OperatingState,
     SafetyEvent,
 )
@@ -241,3 +243,36 @@ def test_keep_tilt_carries_the_plas_forceps_without_tilting_it() -> None:
             assert np.linalg.norm(moved) == pytest.approx(0.03, abs=1e-4)
             tilts[keep] = worst
     assert tilts[True] < 0.05 and tilts[False] > 2.0, tilts
+
+
+def test_a_hand_faster_than_the_arm_is_followed_at_the_arm_s_pace() -> None:
+    """A 40 mm master stroke in 40 ms (0.5 m/s at the PLAS's tip, ten times its slide's 50 mm/s):
+    the setpoints move no joint faster than 90 % of its speed limit (by the samples' stamps, as the
+    watchdog judges them: no "jump" hold), and the tip gets to the target once the hand stops."""
+    cfg = MappingConfig(mode="position", model="plas", pairs=["m1:arm2"], scale=0.5, keep_tilt=True)
+    with _rig(cfg, "arm2", plas_tasks.Q_ARM2) as (arm, _, _):
+        prof = arm.strategy.profile
+        vmax = np.array(prof.max_velocity)
+
+        def feed(i: int, p: tuple[float, float, float], clutch: bool = True) -> None:
+            h = Header("test", i, 1_000_000_000 + i * 4_000_000)  # a sample every 4 ms
+            arm.on_buttons(MasterButtons(h, clutch, True), "")
+            arm.on_master(CartesianPose(h, "master", p), "")
+            arm.process()
+
+        feed(0, (0.0, 0.0, 0.0), clutch=False)
+        feed(1, (0.0, 0.0, 0.0))
+        assert arm.strategy.q_cmd is not None
+        q_prev = arm.strategy.q_cmd.copy()
+        tip0 = prof.tip(q_prev)
+        worst = 0.0
+        for i in range(2, 400):  # 40 mm down in 10 samples, then the hand holds still
+            feed(i, (0.0, 0.0, -0.004 * min(i - 1, 10)))
+            q = arm.strategy.q_cmd
+            assert q is not None
+            worst = max(worst, float(np.max(np.abs(q - q_prev) / (vmax * 0.004))))
+            q_prev = q.copy()
+        assert worst <= 0.9 + 1e-9, worst
+        moved = prof.tip(arm.strategy.q_cmd) - tip0
+        np.testing.assert_allclose(moved, (0.0, 0.0, -0.02), atol=1e-4)  # 40 mm × 0.5, at last
+        assert arm.ik_failures == 0

@@ -17,6 +17,9 @@ is a clamping episode). The clutch rules are the other mappings'
 Cartesian mapping's branch-flip check); holds on every sample for ``STUCK_S`` (the master ran ahead
 while its samples stalled) disengage, and the next press re-anchors where the slave stands. A joint
 riding its limit or a target out of reach is a clamping episode (``clamped`` events, counted).
+The setpoints move the joints at most ``SPEED_FRACTION`` of their speed limits (by the master
+samples' stamps, as the watchdog judges them): a hand faster than the arm is followed at the arm's
+pace, the whole step scaled down so the path stays the same.
 
 The joints go out as ``servo_jp`` for every sample and, as for every joint-space mapping, the
 controlled point of the commanded joints as ``slave/<arm>/setpoint_cp`` at ``target_hz`` (frame
@@ -33,12 +36,15 @@ import time
 import numpy as np
 from telesurg.shared.errors import KinematicsError
 from telesurg.shared.kinematics import solve_position
+from telesurg.shared.limits import limit_step
 from telesurg.shared.messages import CartesianPose, Command, CommandReply
 from telesurg.shared.robots.api import PairContext
 from telesurg.shared.robots.joint_mapping import PoseJointStrategy
 
 #: [m] a target further than this from what the solver reached counts as out of reach (clamped).
 REACH_TOL = 1e-3
+#: the setpoints move the joints at most this fraction of their speed limits
+SPEED_FRACTION = 0.9
 #: [s] a hold on every sample this long disengages (press again to go on from where it stands)
 STUCK_S = 0.5
 #: [rad] with ``keep_tilt``, a tilt further than this from the engage's counts as not kept (clamped).
@@ -53,6 +59,8 @@ class PositionMapping(PoseJointStrategy):
         self.ik_streak = 0
         self.keep_up: np.ndarray | None = None  # keep_tilt: the world's up in the tip frame
         self.held_since = 0.0  # monotonic s of the streak's first hold
+        self.vmax = np.array(self.profile.max_velocity)
+        self.t_prev = 0  # ns: the stamp of the previous master sample
 
     def on_command(self, cmd: Command) -> CommandReply:
         """``state``, ``scale_up``, ``scale_down``, ``set_scale value=`` (the operator's motion scale)."""
@@ -73,6 +81,7 @@ class PositionMapping(PoseJointStrategy):
                 return
             if self.gate.following and self.q_cmd is not None:
                 self._follow(msg)
+            self.t_prev = msg.header.stamp_ns
             self._put(msg.header.stamp_ns)
 
     def _follow(self, msg: CartesianPose) -> None:
@@ -111,7 +120,13 @@ class PositionMapping(PoseJointStrategy):
                 "ik_recovered", f"target valid again after {self.ik_streak} samples", arm=self.gate.slave
             )
             self.ik_streak = 0
-        self.q_cmd = sol.q
+        if self.t_prev and msg.header.stamp_ns > self.t_prev:
+            # within the joint speed limits (by the samples' stamps, as the watchdog judges the
+            # setpoints): a faster hand is followed at the arm's pace, on the same path
+            dt = min((msg.header.stamp_ns - self.t_prev) / 1e9, 0.1)
+            self.q_cmd = self.q_cmd + limit_step(sol.q - self.q_cmd, SPEED_FRACTION * self.vmax * dt)
+        else:
+            self.q_cmd = sol.q
         self.last = (pm, target)
         why = tuple(self.profile.joint_names[i] for i in sol.clamped)
         if sol.error > REACH_TOL:
