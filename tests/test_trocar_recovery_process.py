@@ -171,6 +171,7 @@ def test_every_stuck_state_has_its_way_out(console: Console) -> None:
 
 PUSH_N = 60.0  # N at the tip, sideways (the forceps points down into the patient)
 PUSH_S = 0.4  # s
+WALL_OK_N = 40.0  # N: the tip-force limit here, above the body wall's push on an arm off the trocar
 
 
 class RcmConsole(Console):
@@ -201,7 +202,13 @@ class RcmConsole(Console):
 
 @pytest.fixture
 def rcm_console(tmp_path: Path) -> Iterator[RcmConsole]:
-    overrides = {"slave_control": [f"q_home={list(STARTS['start_a'])}", "robot.jog_speed_mm_s=40.0"]}
+    # (the tip-force rule off its way: the arm frozen off the trocar rests against the body wall,
+    # whose push reads as a tip force — 6.7 N on one CI run, above the 4 N limit — and that hold
+    # would outlast the RCM one; the force-hold way out is not what this test is about)
+    overrides = {
+        "slave_control": [f"q_home={list(STARTS['start_a'])}", "robot.jog_speed_mm_s=40.0"],
+        "watchdog": [f"rules.tip_force.limit_n={WALL_OK_N}"],
+    }
     with (
         Pipeline(
             tmp_path / "logs", mirror=False, impair=False, master=False, probe=False, overrides=overrides
