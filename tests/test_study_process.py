@@ -126,7 +126,7 @@ def test_a_provoked_error_is_detected_and_scored(
     tmp_path: Path, task: str, knobs: dict[str, float], error: str
 ) -> None:
     """Issue #44 acceptance 1: the synthetic operator errs on purpose through the real services —
-    it presses the tissue 9 mm deep at its first touch, or leaves the wire's tube 10 mm to the side
+    it aims each touch 9 mm into the tissue, or leaves the wire's tube 10 mm to the side
     at the wire's middle — and the trial's row scores it (force above the task's 2 N limit; an
     exit from the 5 mm tube), the recording showing the cause."""
     proto = tmp_path / "p.toml"

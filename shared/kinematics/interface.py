@@ -113,16 +113,17 @@ def solve_position(
     free = np.ones(q.shape, dtype=bool)
     ez = np.array([0.0, 0.0, 1.0])
 
-    def error(q: FloatArray) -> tuple[FloatArray, FloatArray]:
+    def error(q: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
+        """Position error, every row's error, and where the kept up points now (world)."""
         T = arm.pose(q)
         e = p - T[:3, 3]
         if up is None:
-            return e, e
+            return e, e, ez
         # the rotation (x, y; world) that brings the kept up back onto the world's +z
-        tilt = np.cross(T[:3, :3] @ up, ez)[:2]
-        return e, np.concatenate([e, TILT_WEIGHT * tilt])
+        now_up = T[:3, :3] @ up
+        return e, np.concatenate([e, TILT_WEIGHT * np.cross(now_up, ez)[:2]]), now_up
 
-    e, full = error(q)
+    e, full, now_up = error(q)
     rows = 3 if up is None else 5
     for _ in range(iterations):
         if float(np.linalg.norm(full)) <= tol:
@@ -133,10 +134,7 @@ def solve_position(
         q_new = np.clip(q + dq, lo, hi)
         free &= ~(((q_new <= lo) & (dq < 0.0)) | ((q_new >= hi) & (dq > 0.0)))
         q = q_new
-        e, full = error(q)
+        e, full, now_up = error(q)
     at_limit = np.flatnonzero(((q <= lo) | (q >= hi)) & ~free)
-    tilt_error = 0.0
-    if up is not None:
-        cos = float(np.clip((arm.pose(q)[:3, :3] @ up) @ ez, -1.0, 1.0))
-        tilt_error = float(np.arccos(cos))
+    tilt_error = float(np.arccos(np.clip(now_up @ ez, -1.0, 1.0)))  # (0 without keep_up)
     return PositionSolution(q, float(np.linalg.norm(e)), tuple(int(i) for i in at_limit), tilt_error)

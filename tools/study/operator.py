@@ -69,13 +69,16 @@ def via_points(task: TaskSpec, step_m: float, press_m: float = 0.0, detour_m: fl
     wire = np.array(task.path)
     seg = np.linalg.norm(np.diff(wire, axis=0), axis=1)
     cum = np.concatenate([[0.0], np.cumsum(seg)])
+
+    def at(s: float) -> np.ndarray:  # the wire's point s m along it
+        return np.array([np.interp(s, cum, wire[:, i]) for i in range(3)])
+
     out = []
     along = np.arange(0.0, cum[-1], step_m)[1:]
     for s in along:
-        p = np.array([np.interp(s, cum, wire[:, i]) for i in range(3)])
+        p = at(s)
         if detour_m and s == along[len(along) // 2]:
-            d = np.array([np.interp(s + 1e-3, cum, wire[:, i]) for i in range(3)]) - p
-            side = np.cross(d, (0.0, 0.0, 1.0))
+            side = np.cross(at(s + 1e-3) - p, (0.0, 0.0, 1.0))
             p = p + detour_m * side / np.linalg.norm(side)
         out.append(Goal((float(p[0]), float(p[1]), float(p[2])), task.tube_radius_m * 0.5))
     w0 = (float(wire[0, 0]), float(wire[0, 1]), float(wire[0, 2]))
